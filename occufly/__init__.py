@@ -1,0 +1,3 @@
+"""OccuFly Studio pipeline library: semantic voxel ground truth from camera-only drone surveys."""
+
+__version__ = "0.1.0"

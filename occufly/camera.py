@@ -1,0 +1,314 @@
+"""Camera models (COLMAP conventions), projection, poses and frusta.
+
+Pixel coordinates follow COLMAP: the top-left corner of the top-left pixel is (0, 0), so the
+centre of pixel (row r, column c) is (c + 0.5, r + 0.5) and ``floor(uv)`` gives its index.
+Camera frame: x right, y down, z forward (viewing direction). Poses are world-to-camera,
+``xyz_cam = R_cam_world @ xyz_world + t_cam_world``, stored as a (4, 4) float64 matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+
+# model name -> parameter names in COLMAP order
+CAMERA_MODELS: dict[str, tuple[str, ...]] = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An intrinsic camera model.
+
+    model: one of :data:`CAMERA_MODELS`; params: (P,) float64 in COLMAP's order for that model.
+    """
+
+    model: str
+    width: int
+    height: int
+    params: np.ndarray = field(repr=False)
+
+    def __post_init__(self) -> None:
+        if self.model not in CAMERA_MODELS:
+            raise InputFormatError(
+                f"camera model {self.model!r} is not supported; expected one of "
+                f"{', '.join(CAMERA_MODELS)}"
+            )
+        params = np.asarray(self.params, dtype=np.float64).reshape(-1)
+        expected = len(CAMERA_MODELS[self.model])
+        if params.shape != (expected,):
+            raise InputFormatError(
+                f"camera model {self.model} takes {expected} parameters "
+                f"({', '.join(CAMERA_MODELS[self.model])}), got {params.size}"
+            )
+        if not np.all(np.isfinite(params)):
+            raise InputFormatError(f"camera {self.model} has non-finite parameters {params}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise InputFormatError(f"camera size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "params", params)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    # ---- intrinsics ----------------------------------------------------------------------
+    @property
+    def focal(self) -> tuple[float, float]:
+        p = self.params
+        if self.model in ("PINHOLE", "OPENCV"):
+            return float(p[0]), float(p[1])
+        return float(p[0]), float(p[0])
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        p = self.params
+        if self.model in ("PINHOLE", "OPENCV"):
+            return float(p[2]), float(p[3])
+        return float(p[1]), float(p[2])
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 calibration matrix (distortion not included)."""
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return self._n_dist > 0 and bool(np.any(self._dist_params() != 0))
+
+    @property
+    def _n_dist(self) -> int:
+        return {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[
+            self.model
+        ]
+
+    def _dist_params(self) -> np.ndarray:
+        n = self._n_dist
+        return self.params[len(self.params) - n :] if n else np.zeros(0)
+
+    # ---- distortion on normalised coordinates -------------------------------------------
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """xy: (N, 2) float64 undistorted normalised coords -> (N, 2) distorted normalised."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if not self._n_dist:
+            return xy.copy()
+        return xy + self._distortion_delta(xy)
+
+    def _distortion_delta(self, xy: np.ndarray) -> np.ndarray:
+        u, v = xy[:, 0], xy[:, 1]
+        d = self._dist_params()
+        r2 = u * u + v * v
+        if self.model == "SIMPLE_RADIAL":
+            radial = d[0] * r2
+            return np.stack([u * radial, v * radial], axis=1)
+        radial = d[0] * r2 + d[1] * r2 * r2
+        if self.model == "RADIAL":
+            return np.stack([u * radial, v * radial], axis=1)
+        p1, p2 = d[2], d[3]
+        uv = u * v
+        du = u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u * u)
+        dv = v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v * v)
+        return np.stack([du, dv], axis=1)
+
+    def undistort(self, xy_d: np.ndarray, *, iterations: int = 50, tol: float = 1e-12) -> np.ndarray:
+        """Invert :meth:`distort` by vectorised Newton iterations (numeric 2x2 Jacobian).
+
+        xy_d: (N, 2) float64 distorted normalised coords -> (N, 2) undistorted.
+        """
+        xy_d = np.asarray(xy_d, dtype=np.float64)
+        if not self._n_dist:
+            return xy_d.copy()
+        x = xy_d.copy()
+        eps = 1e-9
+        active = np.ones(len(x), dtype=bool)
+        for _ in range(iterations):
+            xa = x[active]
+            f = xa + self._distortion_delta(xa) - xy_d[active]
+            # numeric Jacobian of distort at xa
+            ex = np.array([eps, 0.0])
+            ey = np.array([0.0, eps])
+            jx = (self.distort(xa + ex) - self.distort(xa - ex)) / (2 * eps)
+            jy = (self.distort(xa + ey) - self.distort(xa - ey)) / (2 * eps)
+            a, c = jx[:, 0], jx[:, 1]
+            b, d = jy[:, 0], jy[:, 1]
+            det = a * d - b * c
+            det = np.where(np.abs(det) < 1e-15, 1e-15, det)
+            step = np.stack([(d * f[:, 0] - b * f[:, 1]) / det, (-c * f[:, 0] + a * f[:, 1]) / det], 1)
+            x[active] = xa - step
+            done = np.abs(step).max(axis=1) < tol
+            idx = np.flatnonzero(active)
+            active[idx[done]] = False
+            if not active.any():
+                break
+        return x
+
+    # ---- projection ----------------------------------------------------------------------
+    def project(self, xyz_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """xyz_cam: (N, 3) camera metres -> (uv (N, 2) float64 pixels, z (N,) float64 depth).
+
+        Points with z <= 0 get uv = NaN; callers test ``z > 0`` and the image bounds.
+        """
+        xyz = np.asarray(xyz_cam, dtype=np.float64).reshape(-1, 3)
+        z = xyz[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = xyz[:, :2] / z[:, None]
+        xy[z <= 0] = np.nan
+        xy = self.distort(xy)
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        uv = np.empty_like(xy)
+        uv[:, 0] = fx * xy[:, 0] + cx
+        uv[:, 1] = fy * xy[:, 1] + cy
+        return uv, z
+
+    def unproject(self, uv: np.ndarray, depth: np.ndarray | float = 1.0) -> np.ndarray:
+        """uv: (N, 2) pixels, depth: (N,) or scalar z-depth in metres -> (N, 3) camera metres."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        xy_d = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy], axis=1)
+        xy = self.undistort(xy_d)
+        depth = np.broadcast_to(np.asarray(depth, dtype=np.float64), (len(uv),))
+        return np.column_stack([xy * depth[:, None], depth])
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """(N,) bool: uv inside [0, width) x [0, height)."""
+        return (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+
+    def scaled(self, factor: float) -> Camera:
+        """The camera for the image resized by ``factor`` (e.g. 0.25 for 1/4 resolution)."""
+        p = self.params.copy()
+        n_focal_c = len(p) - self._n_dist
+        p[:n_focal_c] *= factor
+        return Camera(
+            self.model,
+            max(1, int(round(self.width * factor))),
+            max(1, int(round(self.height * factor))),
+            p,
+        )
+
+    def pixel_rays(self, step: int = 1) -> np.ndarray:
+        """(H/step * W/step, 3) float64 unit-z rays through pixel centres, row-major."""
+        cols = np.arange(0, self.width, step) + 0.5 * step
+        rows = np.arange(0, self.height, step) + 0.5 * step
+        uu, vv = np.meshgrid(cols, rows)
+        return self.unproject(np.column_stack([uu.ravel(), vv.ravel()]), 1.0)
+
+    # ---- (de)serialisation ---------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "model": self.model,
+            "width": self.width,
+            "height": self.height,
+            "params": [float(v) for v in self.params],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(d["model"], int(d["width"]), int(d["height"]), np.asarray(d["params"], float))
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, Camera)
+            and self.model == other.model
+            and self.width == other.width
+            and self.height == other.height
+            and np.array_equal(self.params, other.params)
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.model, self.width, self.height, self.params.tobytes()))
+
+
+# ---- poses ---------------------------------------------------------------------------------
+def make_pose(R_cam_world: np.ndarray, t_cam_world: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation and (3,) translation -> (4, 4) float64 world-to-camera matrix."""
+    T = np.eye(4)
+    T[:3, :3] = R_cam_world
+    T[:3, 3] = np.asarray(t_cam_world, dtype=np.float64).reshape(3)
+    return T
+
+
+def camera_center(T_cam_world: np.ndarray) -> np.ndarray:
+    """(4, 4) world-to-camera -> (3,) float64 camera centre in world coordinates."""
+    R = T_cam_world[:3, :3]
+    return -R.T @ T_cam_world[:3, 3]
+
+
+def viewing_direction(T_cam_world: np.ndarray) -> np.ndarray:
+    """(4, 4) world-to-camera -> (3,) unit vector of the optical axis in world coordinates."""
+    return T_cam_world[2, :3].copy()
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera pose of a camera at ``center`` looking at ``target`` (x right, y down).
+
+    ``up`` is the world direction that should appear upwards in the image; for a nadir view
+    pass a horizontal vector (the image's "up" on the ground).
+    """
+    center = np.asarray(center, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - center
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, dtype=np.float64)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look_at: up is parallel to the viewing direction")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    return make_pose(R, -R @ center)
+
+
+def transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) rigid transform to (N, 3) points; returns float64."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    return xyz @ T[:3, :3].T + T[:3, 3]
+
+
+def project_world(
+    camera: Camera, T_cam_world: np.ndarray, xyz_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project world points into an image.
+
+    Returns uv (N, 2) float64 pixels, z (N,) float64 camera depth, and visible (N,) bool:
+    in front of the camera and inside the image.
+    """
+    xyz_cam = transform(T_cam_world, xyz_world)
+    uv, z = camera.project(xyz_cam)
+    with np.errstate(invalid="ignore"):
+        visible = (z > 0) & camera.in_image(uv)
+    return uv, z, visible
+
+
+def frustum_corners(camera: Camera, T_cam_world: np.ndarray, depth: float) -> np.ndarray:
+    """(5, 3) float64 world points: camera centre then image corners at z = ``depth``."""
+    corners = np.array(
+        [[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]], float
+    )
+    xyz_cam = camera.unproject(corners, depth)
+    T_world_cam = np.linalg.inv(T_cam_world)
+    return np.vstack([camera_center(T_cam_world), transform(T_world_cam, xyz_cam)])
+
+
+def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) quaternion (w, x, y, z), w >= 0 (COLMAP text order)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:
+    """(4,) quaternion (w, x, y, z) -> (3, 3) rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()

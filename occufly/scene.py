@@ -1,0 +1,371 @@
+"""The scene model and its on-disk workspace.
+
+A :class:`Scene` holds the frames (camera, world-to-camera pose, image), the dense point cloud
+in float32 *scene-local* coordinates plus a float64 origin offset (``xyz_world = origin +
+xyz``), and the 2D-3D visibility as CSR-like arrays: for frame ``f`` the slice
+``offsets[f]:offsets[f + 1]`` of ``point_ids`` / ``uv`` / ``depth`` lists the points it sees,
+where they project and at what camera depth.
+
+Workspace layout (all arrays ``.npy``, memory-mapped on load)::
+
+    WS/scene.json                 format, version, origin, frames, meta, counts
+    WS/taxonomy.json              the scene's class table
+    WS/points/xyz.npy             (N, 3) float32 scene-local metres
+    WS/points/rgb.npy             (N, 3) uint8
+    WS/visibility/offsets.npy     (F + 1,) int64
+    WS/visibility/point_ids.npy   (M,) int32
+    WS/visibility/uv.npy          (M, 2) float32 pixels (COLMAP convention)
+    WS/visibility/depth.npy       (M,) float32 camera z in metres
+
+Later pipeline steps add their own sub-folders (labels, grids, exports) next to these.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occufly.camera import Camera, camera_center, viewing_direction
+from occufly.errors import WorkspaceError
+from occufly.fsutil import atomic_directory, atomic_save_npy, atomic_write_text
+from occufly.taxonomy import Taxonomy, default_taxonomy
+
+WORKSPACE_FORMAT = "occufly-workspace"
+WORKSPACE_VERSION = 1
+
+
+@dataclass
+class Frame:
+    """One registered image.
+
+    T_cam_world: (4, 4) float64 world-to-camera in *scene-local* coordinates.
+    """
+
+    name: str
+    camera: Camera
+    T_cam_world: np.ndarray
+    image_path: str | None = None
+    altitude: float = math.nan
+    nominal_altitude: int | None = None
+
+    @property
+    def stem(self) -> str:
+        return Path(self.name).stem
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) float64 camera centre, scene-local metres."""
+        return camera_center(self.T_cam_world)
+
+    @property
+    def direction(self) -> np.ndarray:
+        """(3,) float64 unit optical axis, scene-local frame."""
+        return viewing_direction(self.T_cam_world)
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "camera": self.camera.to_dict(),
+            "T_cam_world": np.asarray(self.T_cam_world, dtype=np.float64).tolist(),
+            "image_path": self.image_path,
+            "altitude": None if math.isnan(self.altitude) else float(self.altitude),
+            "nominal_altitude": self.nominal_altitude,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Frame:
+        alt = d.get("altitude")
+        return cls(
+            name=d["name"],
+            camera=Camera.from_dict(d["camera"]),
+            T_cam_world=np.asarray(d["T_cam_world"], dtype=np.float64),
+            image_path=d.get("image_path"),
+            altitude=math.nan if alt is None else float(alt),
+            nominal_altitude=d.get("nominal_altitude"),
+        )
+
+
+@dataclass
+class Visibility:
+    """2D-3D correspondences, CSR by frame.
+
+    offsets: (F + 1,) int64; point_ids: (M,) int32; uv: (M, 2) float32 pixels;
+    depth: (M,) float32 camera z in metres.
+    """
+
+    offsets: np.ndarray
+    point_ids: np.ndarray
+    uv: np.ndarray
+    depth: np.ndarray
+
+    @classmethod
+    def empty(cls, n_frames: int) -> Visibility:
+        return cls(
+            np.zeros(n_frames + 1, np.int64),
+            np.zeros(0, np.int32),
+            np.zeros((0, 2), np.float32),
+            np.zeros(0, np.float32),
+        )
+
+    @classmethod
+    def from_parts(
+        cls, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    ) -> Visibility:
+        """parts[f] = (point_ids (m,), uv (m, 2), depth (m,)) for each frame in order."""
+        counts = np.array([len(p[0]) for p in parts], dtype=np.int64)
+        offsets = np.zeros(len(parts) + 1, np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        if len(parts) and offsets[-1]:
+            ids = np.concatenate([p[0] for p in parts]).astype(np.int32, copy=False)
+            uv = np.concatenate([np.asarray(p[1]).reshape(-1, 2) for p in parts]).astype(np.float32)
+            depth = np.concatenate([p[2] for p in parts]).astype(np.float32, copy=False)
+        else:
+            return cls.empty(len(parts))
+        return cls(offsets, ids, uv, depth)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.offsets) - 1
+
+    def frame(self, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(point_ids (m,) int32, uv (m, 2) float32, depth (m,) float32) seen by frame ``f``."""
+        a, b = int(self.offsets[f]), int(self.offsets[f + 1])
+        return self.point_ids[a:b], self.uv[a:b], self.depth[a:b]
+
+    def counts_per_frame(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def views_per_point(self, n_points: int) -> np.ndarray:
+        """(N,) int64 number of frames that see each point."""
+        return np.bincount(np.asarray(self.point_ids), minlength=n_points)
+
+    def frames_of_entries(self) -> np.ndarray:
+        """(M,) int32 frame index of each correspondence."""
+        return np.repeat(np.arange(self.n_frames, dtype=np.int32), self.counts_per_frame())
+
+
+@dataclass
+class Scene:
+    """Frames, dense points and visibility, in scene-local coordinates."""
+
+    frames: list[Frame]
+    xyz: np.ndarray  # (N, 3) float32 scene-local metres
+    rgb: np.ndarray  # (N, 3) uint8
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) float64 world offset
+    visibility: Visibility | None = None
+    taxonomy: Taxonomy = field(default_factory=default_taxonomy)
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        if self.xyz.ndim != 2 or self.xyz.shape[1] != 3:
+            raise ValueError(f"xyz must be (N, 3), got {self.xyz.shape}")
+        if self.rgb.shape != self.xyz.shape:
+            raise ValueError(f"rgb must be {self.xyz.shape}, got {self.rgb.shape}")
+        if self.visibility is None:
+            self.visibility = Visibility.empty(len(self.frames))
+        if self.visibility.n_frames != len(self.frames):
+            raise ValueError(
+                f"visibility has {self.visibility.n_frames} frames, scene has {len(self.frames)}"
+            )
+
+    # ---- convenience ---------------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def frame_index(self, name_or_stem: str) -> int:
+        for i, f in enumerate(self.frames):
+            if f.name == name_or_stem or f.stem == name_or_stem:
+                return i
+        raise KeyError(name_or_stem)
+
+    def centers(self) -> np.ndarray:
+        """(F, 3) float64 camera centres, scene-local."""
+        return np.array([f.center for f in self.frames]).reshape(-1, 3)
+
+    def xyz_world(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """(N, 3) float64 points in the original (e.g. UTM) coordinates."""
+        return np.asarray(self.xyz[idx], dtype=np.float64) + self.origin
+
+    def summary(self) -> dict:
+        vis = self.visibility
+        views = vis.views_per_point(self.n_points) if self.n_points else np.zeros(0, int)
+        per_frame = vis.counts_per_frame()
+        alts: dict[str, int] = {}
+        for f in self.frames:
+            key = "unknown" if f.nominal_altitude is None else str(f.nominal_altitude)
+            alts[key] = alts.get(key, 0) + 1
+        lo = self.xyz.min(axis=0).tolist() if self.n_points else [0, 0, 0]
+        hi = self.xyz.max(axis=0).tolist() if self.n_points else [0, 0, 0]
+        return {
+            "frames": len(self.frames),
+            "points": self.n_points,
+            "origin": self.origin.tolist(),
+            "bounds_local": {"min": lo, "max": hi},
+            "visibility": {
+                "correspondences": int(vis.offsets[-1]),
+                "points_seen": int((views > 0).sum()),
+                "points_unseen": int((views == 0).sum()),
+                "frames_without_points": int((per_frame == 0).sum()),
+                "points_per_frame_min": int(per_frame.min()) if len(per_frame) else 0,
+                "points_per_frame_mean": float(per_frame.mean()) if len(per_frame) else 0.0,
+                "views_per_point_mean": float(views.mean()) if len(views) else 0.0,
+            },
+            "altitudes": alts,
+            "taxonomy": {"name": self.taxonomy.name, "classes": len(self.taxonomy)},
+            "meta": self.meta,
+        }
+
+    # ---- workspace -----------------------------------------------------------------------
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
+        """Write the workspace atomically: all of it appears, or nothing changes."""
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise WorkspaceError(f"{path}: workspace already exists (use --force to replace it)")
+        with atomic_directory(path, overwrite=overwrite) as tmp:
+            self._write_into(tmp)
+        return path
+
+    def _write_into(self, root: Path) -> None:
+        (root / "points").mkdir()
+        (root / "visibility").mkdir()
+        np.save(root / "points" / "xyz.npy", np.ascontiguousarray(self.xyz, dtype=np.float32))
+        np.save(root / "points" / "rgb.npy", np.ascontiguousarray(self.rgb, dtype=np.uint8))
+        v = self.visibility
+        np.save(root / "visibility" / "offsets.npy", np.asarray(v.offsets, np.int64))
+        np.save(root / "visibility" / "point_ids.npy", np.asarray(v.point_ids, np.int32))
+        np.save(root / "visibility" / "uv.npy", np.asarray(v.uv, np.float32))
+        np.save(root / "visibility" / "depth.npy", np.asarray(v.depth, np.float32))
+        (root / "taxonomy.json").write_text(json.dumps(self.taxonomy.to_dict(), indent=1))
+        (root / "scene.json").write_text(json.dumps(self._header(), indent=1))
+
+    def _header(self) -> dict:
+        return {
+            "format": WORKSPACE_FORMAT,
+            "version": WORKSPACE_VERSION,
+            "origin": self.origin.tolist(),
+            "n_points": self.n_points,
+            "frames": [f.to_dict() for f in self.frames],
+            "meta": self.meta,
+        }
+
+    def save_header(self, path: str | Path) -> None:
+        """Rewrite scene.json only (frames, meta) after in-place edits such as altitudes."""
+        atomic_write_text(Path(path) / "scene.json", json.dumps(self._header(), indent=1))
+
+    @classmethod
+    def load(cls, path: str | Path, *, mmap: bool = True) -> Scene:
+        path = Path(path)
+        header_path = path / "scene.json"
+        if not header_path.is_file():
+            raise WorkspaceError(f"{path}: not a scene workspace (no scene.json)")
+        try:
+            header = json.loads(header_path.read_text())
+        except json.JSONDecodeError as e:
+            raise WorkspaceError(f"{header_path}: not valid JSON ({e})") from None
+        if header.get("format") != WORKSPACE_FORMAT:
+            raise WorkspaceError(f"{header_path}: not an OccuFly workspace header")
+        if header.get("version", 0) > WORKSPACE_VERSION:
+            raise WorkspaceError(
+                f"{header_path}: workspace version {header['version']} is newer than this "
+                f"OccuFly ({WORKSPACE_VERSION})"
+            )
+        mode = "r" if mmap else None
+
+        def arr(rel: str) -> np.ndarray:
+            p = path / rel
+            if not p.is_file():
+                raise WorkspaceError(f"{p}: missing workspace array")
+            return np.load(p, mmap_mode=mode, allow_pickle=False)
+
+        tax_path = path / "taxonomy.json"
+        taxonomy = Taxonomy.load(tax_path) if tax_path.is_file() else default_taxonomy()
+        frames = [Frame.from_dict(d) for d in header["frames"]]
+        vis = Visibility(
+            arr("visibility/offsets.npy"),
+            arr("visibility/point_ids.npy"),
+            arr("visibility/uv.npy"),
+            arr("visibility/depth.npy"),
+        )
+        return cls(
+            frames=frames,
+            xyz=arr("points/xyz.npy"),
+            rgb=arr("points/rgb.npy"),
+            origin=np.asarray(header["origin"], dtype=np.float64),
+            visibility=vis,
+            taxonomy=taxonomy,
+            meta=header.get("meta", {}),
+        )
+
+
+def save_workspace_array(ws: str | Path, rel: str, array: np.ndarray) -> Path:
+    """Atomically store an array produced by a later pipeline step (e.g. ``labels/point.npy``)."""
+    p = Path(ws) / rel
+    atomic_save_npy(p, array)
+    return p
+
+
+# ---- altitudes ---------------------------------------------------------------------------------
+def ground_height_under(
+    xyz: np.ndarray, centers_xy: np.ndarray, *, radius: float = 20.0, percentile: float = 5.0
+) -> np.ndarray:
+    """Ground height below each camera: a low percentile of point z within ``radius`` in XY.
+
+    xyz: (N, 3) float32 scene-local, z up; centers_xy: (F, 2) float64.
+    Cameras with no point nearby fall back to the global percentile. Returns (F,) float64.
+    """
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz)
+    if len(xyz) == 0:
+        return np.zeros(len(centers_xy))
+    step = max(1, len(xyz) // 500_000)  # a subsample is plenty for a percentile
+    sub = np.asarray(xyz[::step], dtype=np.float64)
+    tree = cKDTree(sub[:, :2])
+    global_h = float(np.percentile(sub[:, 2], percentile))
+    out = np.full(len(centers_xy), global_h)
+    for i, nbrs in enumerate(tree.query_ball_point(centers_xy, r=radius)):
+        if len(nbrs) >= 10:
+            out[i] = np.percentile(sub[nbrs, 2], percentile)
+    return out
+
+
+def bin_altitudes(altitudes: np.ndarray, nominal: list[float] | None = None, *, gap: float = 4.0) -> np.ndarray:
+    """Assign each altitude (F,) to a nominal flight altitude; returns (F,) int.
+
+    With ``nominal`` given, the nearest one. Otherwise altitudes are clustered (a sorted gap
+    larger than ``gap`` metres starts a new cluster) and each cluster's median is rounded to
+    whole metres, so a survey flown at 50/40/30 m bins to exactly those values.
+    """
+    alt = np.asarray(altitudes, dtype=np.float64)
+    if len(alt) == 0:
+        return np.zeros(0, dtype=int)
+    if nominal:
+        nom = np.asarray(sorted(nominal), dtype=np.float64)
+        return nom[np.abs(alt[:, None] - nom[None, :]).argmin(axis=1)].round().astype(int)
+    order = np.argsort(alt)
+    cluster = np.zeros(len(alt), dtype=int)
+    cluster[order[1:]] = np.cumsum(np.diff(alt[order]) > gap)
+    out = np.empty(len(alt), dtype=int)
+    for c in np.unique(cluster):
+        sel = cluster == c
+        out[sel] = int(round(float(np.median(alt[sel]))))
+    return out
+
+
+def assign_altitudes(scene: Scene, nominal: list[float] | None = None) -> None:
+    """Fill ``altitude`` (above ground) and ``nominal_altitude`` of every frame (z up)."""
+    if not scene.frames:
+        return
+    centers = scene.centers()
+    ground = ground_height_under(scene.xyz, centers[:, :2])
+    alts = centers[:, 2] - ground
+    bins = bin_altitudes(alts, nominal)
+    for f, a, b in zip(scene.frames, alts, bins, strict=True):
+        f.altitude = float(a)
+        f.nominal_altitude = int(b)

@@ -1,0 +1,191 @@
+"""COLMAP dense-workspace files: depth maps, ``fused.ply`` and ``fused.ply.vis``.
+
+- ``stereo/depth_maps/<image>.geometric.bin``: ASCII header ``width&height&channels&`` then
+  little-endian float32 values in column-major order; 0 means no depth.
+- ``fused.ply``: binary PLY, x y z (float, or double for georeferenced clouds we write),
+  nx ny nz, red green blue.
+- ``fused.ply.vis``: uint64 point count, then per point a uint32 count followed by that many
+  uint32 indices into the dense workspace's image list (images sorted by image id).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+from occufly.fsutil import atomic_write_bytes
+from occufly.io.ply import read_ply, write_ply
+
+
+# ---- depth maps ------------------------------------------------------------------------------
+def read_depth_map(path: str | Path) -> np.ndarray:
+    """Read a COLMAP ``.bin`` depth map -> (H, W) float32 metres (0 = no depth)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read depth map ({e.strerror})") from None
+    header_end = 0
+    amps = 0
+    for i in range(min(len(raw), 64)):
+        if raw[i : i + 1] == b"&":
+            amps += 1
+            if amps == 3:
+                header_end = i + 1
+                break
+    if amps != 3:
+        raise InputFormatError(
+            f"{path}: not a COLMAP depth map (expected an ASCII header 'width&height&channels&')"
+        )
+    try:
+        width, height, channels = (int(v) for v in raw[: header_end - 1].decode().split("&"))
+    except ValueError:
+        raise InputFormatError(f"{path}: malformed depth-map header {raw[:header_end]!r}") from None
+    if width <= 0 or height <= 0 or channels != 1:
+        raise InputFormatError(
+            f"{path}: depth map header says {width}x{height}x{channels}; expected one channel"
+        )
+    expected = width * height * channels * 4
+    body = len(raw) - header_end
+    if body != expected:
+        raise InputFormatError(
+            f"{path}: depth map is truncated or padded: {body} bytes of data, expected "
+            f"{expected} for {width}x{height}"
+        )
+    data = np.frombuffer(raw, dtype="<f4", offset=header_end)
+    depth = data.reshape((width, height), order="F").T  # column-major -> (H, W)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    bad = ~np.isfinite(depth) | (depth < 0)
+    if bad.any():
+        depth[bad] = 0.0
+    return depth
+
+
+def write_depth_map(path: str | Path, depth: np.ndarray) -> None:
+    """Write ``depth`` (H, W) float32 metres as a COLMAP ``.bin`` depth map (atomic)."""
+    depth = np.asarray(depth, dtype="<f4")
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {depth.shape}")
+    h, w = depth.shape
+    header = f"{w}&{h}&1&".encode()
+    atomic_write_bytes(path, header + np.asfortranarray(depth.T).tobytes(order="F"))
+
+
+# ---- fused.ply + .vis --------------------------------------------------------------------------
+def read_fused_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Read a dense cloud PLY -> (xyz (N, 3) float64, rgb (N, 3) uint8 | None, normals | None)."""
+    v = read_ply(path)
+    return v.xyz, v.rgb, v.normals
+
+
+def write_fused_ply(
+    path: str | Path,
+    xyz: np.ndarray,
+    normals: np.ndarray | None = None,
+    rgb: np.ndarray | None = None,
+    *,
+    double: bool = True,
+) -> None:
+    """Write a COLMAP-style ``fused.ply``.
+
+    xyz: (N, 3) float64 world metres; normals: (N, 3) float; rgb: (N, 3) uint8. ``double``
+    stores x, y, z as double so UTM-scale coordinates keep millimetre precision (COLMAP itself
+    writes float; our reader accepts both).
+    """
+    fields: dict[str, np.ndarray] = {}
+    xyz = np.asarray(xyz)
+    ctype = np.float64 if double else np.float32
+    for i, n in enumerate("xyz"):
+        fields[n] = xyz[:, i].astype(ctype)
+    if normals is not None:
+        for i, n in enumerate(("nx", "ny", "nz")):
+            fields[n] = np.asarray(normals)[:, i].astype(np.float32)
+    if rgb is not None:
+        for i, n in enumerate(("red", "green", "blue")):
+            fields[n] = np.asarray(rgb)[:, i].astype(np.uint8)
+    write_ply(path, fields)
+
+
+def read_fused_vis(path: str | Path, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``fused.ply.vis`` -> (offsets (N + 1,) int64, image_indices (M,) uint32), CSR by point."""
+    path = Path(path)
+    try:
+        raw = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read visibility file ({e.strerror})") from None
+    if raw.size < 8:
+        raise InputFormatError(f"{path}: too short for a fused.ply.vis file (need a uint64 count)")
+    n = int(raw[:8].view("<u8")[0])
+    if n_points is not None and n != n_points:
+        raise InputFormatError(f"{path}: lists {n} points but the cloud has {n_points}")
+    if (raw.size - 8) % 4:
+        raise InputFormatError(f"{path}: body is not a whole number of uint32 values")
+    words = raw[8:].view("<u4")
+    heads = _vis_heads(words, n, path)
+    counts = words[heads].astype(np.int64)
+    offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    # index of every entry = its head position + 1 + rank within the point
+    point_of_entry = np.repeat(np.arange(n), counts)
+    rank = np.arange(offsets[-1]) - offsets[point_of_entry]
+    idx = words[heads[point_of_entry] + 1 + rank]
+    return offsets, np.asarray(idx, dtype=np.uint32)
+
+
+def _vis_heads(words: np.ndarray, n: int, path: Path) -> np.ndarray:
+    """Positions of the per-point count words (a sequential walk, done in chunks of ints)."""
+    heads = np.empty(n, dtype=np.int64)
+    pos = 0
+    total = len(words)
+    chunk = 1 << 20
+    i = 0
+    while i < n:
+        # Python ints from a bounded window keep memory flat on 10 M-point clouds.
+        window_start = pos
+        window = words[window_start : window_start + chunk].tolist()
+        wlen = len(window)
+        local = 0
+        while i < n and local < wlen:
+            heads[i] = window_start + local
+            local += 1 + window[local]
+            i += 1
+        pos = window_start + local
+        if pos > total or (i < n and pos >= total):
+            raise InputFormatError(f"{path}: truncated after {i} of {n} points")
+        if wlen == 0:
+            raise InputFormatError(f"{path}: truncated after {i} of {n} points")
+    if pos != total:
+        raise InputFormatError(f"{path}: {total - pos} trailing values after {n} points")
+    return heads
+
+
+def write_fused_vis(path: str | Path, offsets: np.ndarray, image_indices: np.ndarray) -> None:
+    """Write ``fused.ply.vis`` from CSR arrays: offsets (N + 1,) int64, image_indices (M,)."""
+    offsets = np.asarray(offsets, dtype=np.int64)
+    idx = np.asarray(image_indices, dtype="<u4")
+    n = len(offsets) - 1
+    counts = np.diff(offsets)
+    out = np.empty(n + len(idx), dtype="<u4")
+    heads = offsets[:-1] + np.arange(n)
+    out[heads] = counts
+    mask = np.ones(len(out), dtype=bool)
+    mask[heads] = False
+    out[mask] = idx
+    atomic_write_bytes(path, np.array([n], dtype="<u8").tobytes() + out.tobytes())
+
+
+def find_depth_map(depth_dir: Path, image_name: str) -> Path | None:
+    """``<dir>/<image name>.geometric.bin`` (COLMAP), else ``.photometric.bin``."""
+    for kind in ("geometric", "photometric"):
+        p = depth_dir / f"{image_name}.{kind}.bin"
+        if p.is_file():
+            return p
+    base = os.path.basename(image_name)
+    for kind in ("geometric", "photometric"):
+        p = depth_dir / f"{base}.{kind}.bin"
+        if p.is_file():
+            return p
+    return None

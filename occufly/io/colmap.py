@@ -87,13 +87,9 @@ def read_sparse_model(source: str | Path) -> SparseModel:
         if im.camera_id not in cameras:
             raise InputFormatError(f"{sparse}: image {im.name} refers to unknown camera {im.camera_id}")
         pts = im.points2D
-        if len(pts):
-            ids = np.array([p.point3D_id for p in pts], dtype=np.int64)
-            uv = np.array([p.xy for p in pts], dtype=np.float64).reshape(-1, 2)
-            has = np.array([p.has_point3D() for p in pts], dtype=bool)
-            ids, uv = ids[has], uv[has]
-        else:
-            ids, uv = np.zeros(0, np.int64), np.zeros((0, 2))
+        tracked = [p for p in pts if p.has_point3D()]
+        ids = np.array([p.point3D_id for p in tracked], dtype=np.int64)
+        uv = np.array([p.xy for p in tracked], dtype=np.float64).reshape(-1, 2)
         images.append(SparseImage(iid, im.name, cameras[im.camera_id], T, ids, uv))
     if not images:
         raise InputFormatError(f"{sparse}: the model has no registered images")

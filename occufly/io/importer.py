@@ -1,0 +1,311 @@
+"""Import a reconstruction on disk into a scene workspace.
+
+Input: a COLMAP model (``SOURCE``, ``SOURCE/sparse`` or ``SOURCE/sparse/0``; text or binary),
+the images (``SOURCE/images`` unless given), a dense cloud (``--cloud``; else
+``SOURCE/dense/fused.ply`` or ``SOURCE/fused.ply``; else the sparse points), optional MVS
+depth maps (``--depth-maps``; else ``SOURCE[/dense]/stereo/depth_maps``).
+
+Coordinates. A model is *georeferenced* when its coordinates are UTM-scale (any camera centre
+or point farther than 10 km from the origin) or the cloud is LAS/LAZ; its world is taken as
+z-up. The scene stores a float64 origin (the rounded centre of the cloud's bounding box) and
+float32 local coordinates, so 6-7 digit UTM metres keep sub-millimetre precision.
+
+A model that is not georeferenced has an arbitrary world frame (COLMAP's is the first
+camera's). Its up axis is estimated from the flight: drone surveys fly in horizontal planes,
+so up is the normal of the plane best fitting the camera centres (smallest singular vector),
+signed so the cameras look down (up . mean viewing direction < 0). When the centres are close
+to collinear (one flight line) or there are fewer than three frames, up is minus the mean
+viewing direction. The scene is then *levelled*: its world frame is rotated so up is +z. The
+rotation is kept in ``scene.meta["levelling_rotation"]`` (x_levelled = R @ x_source) so
+exports can return to the source frame (:func:`source_coordinates`).
+
+Visibility: ``fused.ply.vis`` when the cloud is COLMAP's ``fused.ply`` and the file is present;
+tracks when the cloud is the sparse model; otherwise a depth test against the depth maps, or
+against depth rendered from the cloud.
+
+Nothing is written unless the whole import succeeds: the workspace appears complete or not at
+all.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from occufly.camera import make_pose
+from occufly.errors import InputFormatError, WorkspaceError
+from occufly.io.colmap import read_sparse_model
+from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
+from occufly.io.pointcloud import read_point_cloud
+from occufly.progress import ProgressFn, noop
+from occufly.scene import Frame, Scene, assign_altitudes
+from occufly.taxonomy import Taxonomy, default_taxonomy
+from occufly.visibility import visibility_from_depth, visibility_from_point_lists
+
+log = logging.getLogger(__name__)
+
+GEOREF_THRESHOLD_M = 10_000.0
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".JPG", ".JPEG", ".PNG")
+
+
+def import_scene(
+    source: str | Path,
+    workspace: str | Path,
+    *,
+    cloud: str | Path | None = None,
+    depth_maps: str | Path | None = None,
+    images: str | Path | None = None,
+    taxonomy: Taxonomy | str | Path | None = None,
+    nominal_altitudes: list[float] | None = None,
+    rel_tol: float = 0.02,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> Scene:
+    """Read the reconstruction at ``source`` and write the workspace ``workspace``."""
+    report = progress or noop
+    t0 = time.perf_counter()
+    source = Path(source)
+    workspace = Path(workspace)
+    if workspace.exists() and not overwrite and any(workspace.iterdir()):
+        raise WorkspaceError(f"{workspace}: workspace already exists (use --force to replace it)")
+    if taxonomy is None:
+        tax = default_taxonomy()
+    elif isinstance(taxonomy, Taxonomy):
+        tax = taxonomy
+    else:
+        tax = Taxonomy.load(taxonomy)
+
+    report(0.0, "reading COLMAP model")
+    model = read_sparse_model(source)
+    image_dir = _find_image_dir(source, images)
+    _check_images(image_dir, [im.name for im in model.images], model)
+
+    report(0.05, "reading point cloud")
+    cloud_path = _find_cloud(source, cloud)
+    if cloud_path is not None:
+        xyz_w, rgb = read_point_cloud(cloud_path)
+    else:
+        if not len(model.xyz):
+            raise InputFormatError(
+                f"{source}: no dense cloud (dense/fused.ply) and the sparse model has no points"
+            )
+        xyz_w, rgb = model.xyz, model.rgb
+    if len(xyz_w) == 0:
+        raise InputFormatError(f"{cloud_path or source}: the point cloud is empty")
+
+    centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
+    georef = bool(
+        (cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz"))
+        or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
+        or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M
+    )
+    if georef:
+        R_level = np.eye(3)
+        up_method = "georeferenced: z up"
+    else:
+        R_level, up_method = _levelling_rotation(model)
+    lo, hi = xyz_w.min(axis=0), xyz_w.max(axis=0)
+    origin_src = np.round((lo + hi) / 2.0)
+    # x_local = R (x_src - origin_src); the scene's world is the levelled frame, whose origin
+    # offset is R @ origin_src (identity for georeferenced models)
+    xyz_local = ((xyz_w - origin_src) @ R_level.T).astype(np.float32)
+    origin = R_level @ origin_src
+
+    frames = []
+    for im in model.images:
+        R = im.T_cam_world[:3, :3]
+        t = im.T_cam_world[:3, 3]
+        # x_cam = R x_src + t = R (R_l^T x_local + o_src) + t
+        T_local = make_pose(R @ R_level.T, t + R @ origin_src)
+        frames.append(
+            Frame(name=im.name, camera=im.camera, T_cam_world=T_local,
+                  image_path=str((image_dir / im.name).resolve()))
+        )
+
+    report(0.15, "visibility")
+    vis_stats: dict = {}
+    depth_dir = _find_depth_dir(source, depth_maps)
+    vis_path = Path(str(cloud_path) + ".vis") if cloud_path is not None else None
+    vis_sub = _sub_progress(report, 0.15, 0.9)
+    if vis_path is not None and vis_path.is_file():
+        offsets, idx = read_fused_vis(vis_path, len(xyz_w))
+        if len(idx) and int(idx.max()) >= len(frames):
+            raise InputFormatError(
+                f"{vis_path}: refers to image index {int(idx.max())} but the model has "
+                f"{len(frames)} registered images"
+            )
+        visibility, vis_stats = visibility_from_point_lists(frames, xyz_local, offsets, idx.astype(np.int64))
+        vis_source = f"{vis_path.name}"
+    elif cloud_path is None:
+        visibility, vis_stats = _visibility_from_tracks(model, frames, xyz_local)
+        vis_source = "COLMAP tracks"
+    else:
+        def depth_for(f: int) -> np.ndarray | None:
+            if depth_dir is None:
+                return None
+            p = find_depth_map(depth_dir, frames[f].name)
+            return read_depth_map(p) if p is not None else None
+
+        visibility, vis_stats = visibility_from_depth(
+            frames, xyz_local, depth_for, rel_tol=rel_tol, progress=vis_sub
+        )
+        vis_source = (
+            "depth test against MVS depth maps" if depth_dir is not None
+            else "depth test against depth rendered from the cloud"
+        )
+
+    scene = Scene(
+        frames=frames,
+        xyz=xyz_local,
+        rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
+        origin=origin,
+        visibility=visibility,
+        taxonomy=tax,
+        meta={
+            "source": str(source.resolve()),
+            "sparse_model": str(model.path.resolve()),
+            "cloud": str(cloud_path.resolve()) if cloud_path else None,
+            "images": str(image_dir.resolve()),
+            "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
+            "georeferenced": georef,
+            "up_axis": up_method,
+            "levelling_rotation": R_level.tolist(),
+            "source_origin": origin_src.tolist(),
+            "visibility_source": vis_source,
+            "visibility_stats": vis_stats,
+        },
+    )
+    report(0.9, "altitudes")
+    assign_altitudes(scene, nominal_altitudes)
+    scene.meta["import_seconds"] = round(time.perf_counter() - t0, 3)
+    report(0.95, "writing workspace")
+    scene.save(workspace, overwrite=True)
+    report(1.0, "done")
+    return Scene.load(workspace)
+
+
+def source_coordinates(scene: Scene, xyz_local: np.ndarray) -> np.ndarray:
+    """(N, 3) scene-local -> (N, 3) float64 in the source reconstruction's frame (e.g. UTM)."""
+    R = np.asarray(scene.meta.get("levelling_rotation", np.eye(3)), dtype=np.float64)
+    o_src = np.asarray(scene.meta.get("source_origin", scene.origin), dtype=np.float64)
+    return np.asarray(xyz_local, dtype=np.float64) @ R + o_src
+
+
+# ---- helpers -------------------------------------------------------------------------------------
+def _sub_progress(report: ProgressFn, start: float, end: float) -> ProgressFn:
+    return lambda frac, msg="": report(start + (end - start) * frac, msg)
+
+
+def _find_image_dir(source: Path, images: str | Path | None) -> Path:
+    if images is not None:
+        d = Path(images)
+        if not d.is_dir():
+            raise InputFormatError(f"{d}: image folder not found")
+        return d
+    for cand in (source / "images", source / "dense" / "images"):
+        if cand.is_dir():
+            return cand
+    raise InputFormatError(f"{source}: no image folder (expected {source}/images or --images DIR)")
+
+
+def _check_images(image_dir: Path, names: list[str], model) -> None:
+    from PIL import Image
+
+    missing = [n for n in names if not (image_dir / n).is_file()]
+    if missing:
+        raise InputFormatError(
+            f"{image_dir}: does not match the model {model.path}: {len(missing)} of "
+            f"{len(names)} images are missing (first: {missing[0]})"
+        )
+    for im in model.images:
+        p = image_dir / im.name
+        try:
+            with Image.open(p) as img:
+                size = img.size
+        except Exception:  # noqa: BLE001 - PIL raises many types for broken files
+            raise InputFormatError(f"{p}: not a readable image") from None
+        if size != (im.camera.width, im.camera.height):
+            raise InputFormatError(
+                f"{p}: image is {size[0]}x{size[1]} but its camera in {model.path} is "
+                f"{im.camera.width}x{im.camera.height}"
+            )
+
+
+def _find_cloud(source: Path, cloud: str | Path | None) -> Path | None:
+    if cloud is not None:
+        p = Path(cloud)
+        if not p.is_file():
+            raise InputFormatError(f"{p}: point cloud file not found")
+        return p
+    for cand in (source / "dense" / "fused.ply", source / "fused.ply"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def _find_depth_dir(source: Path, depth_maps: str | Path | None) -> Path | None:
+    if depth_maps is not None:
+        d = Path(depth_maps)
+        if not d.is_dir():
+            raise InputFormatError(f"{d}: depth-map folder not found")
+        return d
+    for cand in (source / "dense" / "stereo" / "depth_maps", source / "stereo" / "depth_maps"):
+        if cand.is_dir():
+            return cand
+    return None
+
+
+def _levelling_rotation(model) -> tuple[np.ndarray, str]:
+    dirs = np.array([im.T_cam_world[2, :3] for im in model.images])
+    mean_dir = dirs.mean(axis=0)
+    centers = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
+    up = None
+    method = ""
+    if len(centers) >= 3:
+        c = centers - centers.mean(axis=0)
+        _, s, vt = np.linalg.svd(c, full_matrices=False)
+        if s[1] > 0.2 * s[0] and s[2] < 0.5 * s[1]:
+            up = vt[2]
+            method = "normal of the plane through the camera centres"
+    if up is None:
+        if np.linalg.norm(mean_dir) < 1e-6:
+            return np.eye(3), "unknown: kept the model's z axis"
+        up = -mean_dir
+        method = "minus the mean viewing direction"
+    up = up / np.linalg.norm(up)
+    if np.dot(up, mean_dir) > 0:
+        up = -up
+    # rotation taking `up` to +z (Rodrigues)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(up, z)
+    c = float(np.dot(up, z))
+    if np.linalg.norm(v) < 1e-12:
+        R = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+        R = np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))
+    return R, f"not georeferenced; up = {method}"
+
+
+def _visibility_from_tracks(model, frames: list[Frame], xyz_local: np.ndarray):
+    """Visibility from COLMAP tracks (sparse cloud): each observation is a correspondence."""
+    index_of = {int(p): i for i, p in enumerate(model.point_ids)}
+    lut_keys = np.array(list(index_of.keys()), dtype=np.int64)
+    lut_vals = np.array(list(index_of.values()), dtype=np.int64)
+    order = np.argsort(lut_keys)
+    lut_keys, lut_vals = lut_keys[order], lut_vals[order]
+    rows_p, rows_f = [], []
+    for f, im in enumerate(model.images):
+        pos = np.searchsorted(lut_keys, im.point3D_ids)
+        ok = (pos < len(lut_keys)) & (lut_keys[np.minimum(pos, len(lut_keys) - 1)] == im.point3D_ids)
+        rows_p.append(lut_vals[pos[ok]])
+        rows_f.append(np.full(int(ok.sum()), f, np.int64))
+    p = np.concatenate(rows_p) if rows_p else np.zeros(0, np.int64)
+    fr = np.concatenate(rows_f) if rows_f else np.zeros(0, np.int64)
+    order = np.argsort(p, kind="stable")
+    p, fr = p[order], fr[order]
+    offsets = np.searchsorted(p, np.arange(len(xyz_local) + 1))
+    return visibility_from_point_lists(frames, xyz_local, offsets, fr)

@@ -1,0 +1,560 @@
+"""Turn pipeline outputs into viser scene calls (pure numpy; the only viser code is `send_*`).
+
+Everything here works in float32 *scene-local* metres (``xyz_world = scene.origin + xyz``):
+viser's default float16 point precision would round a point 3 km from the origin to ~2 m, so
+point clouds are sent with ``precision="float32"``.
+
+Node names (what a client receives; tests assert them)::
+
+    /points/<class name>            one point cloud per class present ("unlabelled" for 0)
+    /grid/scene/<class name>        instanced boxes of the scene grid (surface voxels)
+    /grid/frame/<class name>        a frame's camera grid, valid occupied voxels
+    /grid/frame/_occluded           ... occupied voxels hidden behind the first surface
+    /grid/frame/_invalid            ... a sparse sample of invalid voxels (outside frustum)
+    /cameras/<frame stem>           a frustum per frame, coloured by review state
+
+Colour modes (:data:`COLOUR_MODES`): ``rgb`` (reconstruction colour), ``semantic`` (taxonomy
+colour of the final label), ``confidence`` (dark red 0 -> yellow 1), ``origin`` (grey none,
+blue direct, orange kNN-filled, purple denoised) and ``disagreement`` (red where the final
+label differs from the direct vote of the masks, light grey where they agree, dark grey where
+no mask voted).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from occufly.errors import WorkspaceError
+from occufly.scene import Scene
+from occufly.taxonomy import Taxonomy
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_POINTS = 2_000_000
+COLOUR_MODES = ("rgb", "semantic", "confidence", "origin", "disagreement")
+UNLABELLED = "unlabelled"
+
+# origin codes written by occufly.lifting: 0 none, 1 direct, 2 filled, 3 denoised
+ORIGIN_NAMES = ("none", "direct", "filled", "denoised")
+ORIGIN_COLOURS = np.array([[128, 128, 128], [30, 110, 255], [255, 150, 0], [170, 60, 220]], np.uint8)
+DISAGREE_COLOUR = np.array([230, 20, 20], np.uint8)
+AGREE_COLOUR = np.array([200, 200, 200], np.uint8)
+NO_VOTE_COLOUR = np.array([90, 90, 90], np.uint8)
+
+FRAME_STATES = ("not_selected", "selected", "annotated", "accepted", "rejected")
+STATE_COLOURS: dict[str, tuple[int, int, int]] = {
+    "not_selected": (150, 150, 150),
+    "selected": (40, 120, 255),
+    "annotated": (255, 190, 0),
+    "accepted": (0, 180, 60),
+    "rejected": (230, 20, 20),
+}
+
+
+# ---- inputs ------------------------------------------------------------------------------
+@dataclass
+class ViewerData:
+    """What the viewer draws for one scene.
+
+    labels: (N,) uint8 final raw class ids (0 = unlabelled) or None (RGB-only fallback).
+    confidence: (N,) float32 in [0, 1] or None. origin: (N,) uint8 codes 0..3 or None.
+    direct: (N,) uint8 direct-vote labels (0 = no vote) or None.
+    grid: an ``occufly.grid.SceneGrid`` or None.
+    """
+
+    scene: Scene
+    labels: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    origin: np.ndarray | None = None
+    direct: np.ndarray | None = None
+    grid: Any = None
+    workspace: Path | None = None
+
+    def __post_init__(self) -> None:
+        n = self.scene.n_points
+        for name in ("labels", "confidence", "origin", "direct"):
+            arr = getattr(self, name)
+            if arr is None:
+                continue
+            arr = np.asarray(arr)
+            if arr.shape != (n,):
+                where = f"{self.workspace}/lifting/{name}.npy" if self.workspace else name
+                raise WorkspaceError(f"{where}: expected shape ({n},) for {n} points, got {arr.shape}")
+            setattr(self, name, arr)
+
+    @property
+    def taxonomy(self) -> Taxonomy:
+        return self.scene.taxonomy
+
+    @classmethod
+    def load(cls, ws: str | Path, *, scene: Scene | None = None) -> ViewerData:
+        """Load a workspace: scene, ``lifting/{labels,confidence,origin}.npy`` if present,
+        direct votes (``occufly.lifting.LiftState``) if available, ``grid/scene_grid.npz``."""
+        ws = Path(ws)
+        scene = scene if scene is not None else Scene.load(ws)
+
+        def opt(rel: str) -> np.ndarray | None:
+            p = ws / rel
+            if not p.is_file():
+                return None
+            try:
+                return np.load(p, mmap_mode="r", allow_pickle=False)
+            except (OSError, ValueError) as e:
+                raise WorkspaceError(f"{p}: not a readable .npy array ({e})") from None
+
+        labels = opt("lifting/labels.npy")
+        conf = opt("lifting/confidence.npy")
+        origin = opt("lifting/origin.npy")
+        direct = _load_direct(ws, scene)
+        grid = None
+        gp = ws / "grid" / "scene_grid.npz"
+        if gp.is_file():
+            from occufly.grid import SceneGrid
+
+            grid = SceneGrid.load(gp)
+        return cls(scene, labels, conf, origin, direct, grid, ws)
+
+
+def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
+    """Direct (mask-vote) labels if the lifting module and its state exist, else None."""
+    if not (ws / "lifting").is_dir():
+        return None
+    try:
+        from occufly.lifting import LiftState  # written by the lifting engineer
+    except ImportError:
+        return None
+    try:
+        return np.asarray(LiftState.open(ws, scene).direct_labels(), dtype=np.uint8)
+    except Exception as e:  # noqa: BLE001 - a half-written lifting state must not kill the viewer
+        log.warning("viewer: cannot read direct votes in %s: %s", ws, e)
+        return None
+
+
+# ---- level of detail ---------------------------------------------------------------------
+def class_quotas(counts: np.ndarray, max_points: int) -> np.ndarray:
+    """Stratified budget: water-filling so that small classes are kept whole.
+
+    counts: (C,) int points per class. Returns (C,) int64 quotas with quota <= count,
+    sum(quota) == min(sum(counts), max_points), and every class that has points getting at
+    least min(count, max_points // C) points (a rare class is never squeezed out).
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    total = int(counts.sum())
+    if max_points < 0:
+        raise ValueError(f"max_points must be >= 0, got {max_points}")
+    if total <= max_points:
+        return counts.copy()
+    order = np.argsort(counts, kind="stable")
+    quotas = np.zeros_like(counts)
+    remaining = int(max_points)
+    left = len(counts)
+    for ci in order:  # loop over classes (<= 256), not points
+        share = remaining // left
+        q = min(int(counts[ci]), share)
+        quotas[ci] = q
+        remaining -= q
+        left -= 1
+    # distribute the rounding remainder to the classes that still have points to give
+    if remaining > 0:
+        spare = counts - quotas
+        for ci in np.argsort(-spare, kind="stable"):
+            if remaining == 0:
+                break
+            add = min(int(spare[ci]), remaining)
+            quotas[ci] += add
+            remaining -= add
+    return quotas
+
+
+def stratified_subsample(labels: np.ndarray | None, n_points: int, max_points: int,
+                         *, seed: int = 0) -> np.ndarray:
+    """Indices (sorted, int64) of at most ``max_points`` points, stratified per class.
+
+    labels: (N,) uint8 raw ids or None (one stratum). Deterministic for a given seed.
+    """
+    if labels is None:
+        labels = np.zeros(n_points, np.uint8)
+    labels = np.asarray(labels)
+    if n_points <= max_points:
+        return np.arange(n_points, dtype=np.int64)
+    counts = np.bincount(labels, minlength=256)
+    quotas = class_quotas(counts, max_points)
+    order = np.argsort(labels, kind="stable")  # points grouped by class, ascending index
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    rng = np.random.default_rng(seed)
+    picks = []
+    for cid in np.flatnonzero(counts):  # per class, vectorised inside
+        members = order[starts[cid]:starts[cid + 1]]
+        q = int(quotas[cid])
+        if q >= len(members):
+            picks.append(members)
+        elif q > 0:
+            picks.append(members[rng.choice(len(members), q, replace=False)])
+    idx = np.concatenate(picks) if picks else np.zeros(0, np.int64)
+    idx.sort()
+    return idx.astype(np.int64, copy=False)
+
+
+# ---- colours -----------------------------------------------------------------------------
+def confidence_colours(conf: np.ndarray) -> np.ndarray:
+    """(n,) float in [0, 1] -> (n, 3) uint8 ramp dark red (0) -> orange -> yellow (1)."""
+    c = np.clip(np.nan_to_num(np.asarray(conf, np.float32), nan=0.0), 0.0, 1.0)
+    out = np.empty((len(c), 3), np.uint8)
+    out[:, 0] = (120 + 135 * np.minimum(c * 2, 1.0)).astype(np.uint8)
+    out[:, 1] = (230 * c).astype(np.uint8)
+    out[:, 2] = (40 * (1 - c)).astype(np.uint8)
+    return out
+
+
+def point_colours(data: ViewerData, mode: str, idx: np.ndarray) -> np.ndarray:
+    """(n, 3) uint8 colours of points ``idx`` (int64 indices) in colour ``mode``.
+
+    Modes that need lifting outputs fall back to RGB when those are missing.
+    """
+    if mode not in COLOUR_MODES:
+        raise ValueError(f"colour mode must be one of {COLOUR_MODES}, got {mode!r}")
+    if mode == "semantic" and data.labels is not None:
+        return data.taxonomy.colour_lut()[np.asarray(data.labels[idx])]
+    if mode == "confidence" and data.confidence is not None:
+        return confidence_colours(np.asarray(data.confidence[idx]))
+    if mode == "origin" and data.origin is not None:
+        return ORIGIN_COLOURS[np.minimum(np.asarray(data.origin[idx]), 3)]
+    if mode == "disagreement" and data.labels is not None:
+        lab = np.asarray(data.labels[idx])
+        out = np.empty((len(idx), 3), np.uint8)
+        if data.direct is not None:
+            d = np.asarray(data.direct[idx])
+            voted = d != 0
+            disagree = voted & (d != lab)
+        else:  # no vote state: a point relabelled by the denoise pass disagrees with its votes
+            o = np.asarray(data.origin[idx]) if data.origin is not None else np.zeros(len(idx))
+            voted = o != 0
+            disagree = o == 3
+        out[:] = NO_VOTE_COLOUR
+        out[voted] = AGREE_COLOUR
+        out[disagree] = DISAGREE_COLOUR
+        return out
+    return np.ascontiguousarray(np.asarray(data.scene.rgb[idx], dtype=np.uint8))
+
+
+# ---- point nodes -------------------------------------------------------------------------
+@dataclass
+class PointNode:
+    """One class's points. point_ids: (n,) int64 into the full cloud; xyz: (n, 3) float32
+    scene-local metres; colors: (n, 3) uint8."""
+
+    name: str
+    class_id: int
+    point_ids: np.ndarray
+    xyz: np.ndarray
+    colors: np.ndarray
+
+
+def class_name(taxonomy: Taxonomy, class_id: int) -> str:
+    if class_id == 0:
+        return UNLABELLED
+    if class_id in taxonomy:
+        return taxonomy[class_id].name
+    return f"id_{class_id}"
+
+
+def build_point_nodes(data: ViewerData, *, mode: str = "semantic",
+                      max_points: int = DEFAULT_MAX_POINTS, seed: int = 0,
+                      classes: set[int] | None = None,
+                      subsample: np.ndarray | None = None) -> list[PointNode]:
+    """One :class:`PointNode` per class present, after a stratified LOD subsample.
+
+    ``classes`` restricts the output to those raw ids (for live refresh). ``subsample``
+    reuses precomputed indices (from :func:`stratified_subsample`).
+    """
+    n = data.scene.n_points
+    idx = subsample if subsample is not None else stratified_subsample(data.labels, n, max_points, seed=seed)
+    lab = np.asarray(data.labels[idx]) if data.labels is not None else np.zeros(len(idx), np.uint8)
+    order = np.argsort(lab, kind="stable")
+    idx, lab = idx[order], lab[order]
+    ids, starts = np.unique(lab, return_index=True)
+    ends = np.append(starts[1:], len(lab))
+    cols = point_colours(data, mode, idx)
+    xyz = np.asarray(data.scene.xyz[idx], dtype=np.float32)
+    nodes = []
+    for cid, a, b in zip(ids.tolist(), starts.tolist(), ends.tolist(), strict=True):
+        if classes is not None and cid not in classes:
+            continue
+        nodes.append(PointNode(
+            name=f"/points/{class_name(data.taxonomy, cid)}",
+            class_id=int(cid),
+            point_ids=idx[a:b],
+            xyz=np.ascontiguousarray(xyz[a:b]),
+            colors=np.ascontiguousarray(cols[a:b]),
+        ))
+    return nodes
+
+
+def send_point_nodes(scene_api: Any, nodes: list[PointNode], *, point_size: float = 0.05,
+                     visible: dict[int, bool] | None = None) -> dict[int, Any]:
+    """Add every node to a viser ``SceneApi`` (server.scene or client.scene) in float32."""
+    handles = {}
+    for nd in nodes:
+        handles[nd.class_id] = scene_api.add_point_cloud(
+            nd.name, points=nd.xyz, colors=nd.colors, point_size=point_size,
+            precision="float32", point_shape="square", point_shading="flat",
+            visible=True if visible is None else visible.get(nd.class_id, True),
+        )
+    return handles
+
+
+# ---- rectangle selection -----------------------------------------------------------------
+def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """(4,) quaternion (w, x, y, z) -> (3, 3) float64 rotation."""
+    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) float64 quaternion (w, x, y, z), w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def points_in_screen_rect(xyz: np.ndarray, cam_position: np.ndarray, cam_wxyz: np.ndarray,
+                          fov_y: float, aspect: float, screen_min: tuple[float, float],
+                          screen_max: tuple[float, float]) -> np.ndarray:
+    """(N,) bool: points in front of a viser camera whose projection falls in the rectangle.
+
+    xyz: (N, 3) float32 scene-local metres. The camera follows viser: ``wxyz``/``position``
+    map camera to world (OpenCV axes: x right, y down, z forward), ``fov_y`` vertical field
+    of view in radians, ``aspect`` = width / height; screen coordinates are 0..1 from the
+    top-left corner.
+    """
+    R = quat_to_matrix(cam_wxyz)
+    p = (np.asarray(xyz, np.float64) - np.asarray(cam_position, np.float64)) @ R  # = R^T (x - t)
+    z = p[:, 2]
+    t = np.tan(fov_y / 2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = 0.5 + p[:, 0] / (z * t * aspect) / 2.0
+        v = 0.5 + p[:, 1] / (z * t) / 2.0
+    (u0, v0), (u1, v1) = screen_min, screen_max
+    u0, u1 = min(u0, u1), max(u0, u1)
+    v0, v1 = min(v0, v1), max(v0, v1)
+    return (z > 0) & (u >= u0) & (u <= u1) & (v >= v0) & (v <= v1)
+
+
+# ---- voxel grids -------------------------------------------------------------------------
+CUBE_VERTICES = np.array(
+    [[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)], np.float32
+)
+CUBE_FACES = np.array([
+    [0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5],  # -x, +x
+    [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],  # -y, +y
+    [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3],  # -z, +z
+], np.uint32)
+
+
+@dataclass
+class VoxelNode:
+    """Instanced boxes of one class. centers: (n, 3) float32 scene-local metres."""
+
+    name: str
+    class_id: int
+    centers: np.ndarray
+    size: float
+    color: tuple[int, int, int]
+    wxyz: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    opacity: float | None = None
+
+
+def surface_mask(occupied: np.ndarray) -> np.ndarray:
+    """(X, Y, Z) bool: occupied voxels with at least one empty (or out-of-grid) 6-neighbour."""
+    occ = np.asarray(occupied, bool)
+    p = np.pad(occ, 1, constant_values=False)
+    inner = (p[:-2, 1:-1, 1:-1] & p[2:, 1:-1, 1:-1] & p[1:-1, :-2, 1:-1] & p[1:-1, 2:, 1:-1]
+             & p[1:-1, 1:-1, :-2] & p[1:-1, 1:-1, 2:])
+    return occ & ~inner
+
+
+def _cap(ijk: np.ndarray, max_voxels: int) -> np.ndarray:
+    if len(ijk) <= max_voxels:
+        return ijk
+    step = int(np.ceil(len(ijk) / max_voxels))
+    return ijk[::step]
+
+
+def _voxel_nodes(labels: np.ndarray, keep: np.ndarray, centers_of, taxonomy: Taxonomy,
+                 prefix: str, size: float, max_voxels: int, wxyz: np.ndarray) -> list[VoxelNode]:
+    ijk = np.argwhere(keep)
+    if len(ijk) == 0:
+        return []
+    lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    order = np.argsort(lab, kind="stable")
+    ijk, lab = ijk[order], lab[order]
+    ids, starts = np.unique(lab, return_index=True)
+    ends = np.append(starts[1:], len(lab))
+    lut = taxonomy.colour_lut()
+    total = len(lab)
+    nodes = []
+    for cid, a, b in zip(ids.tolist(), starts.tolist(), ends.tolist(), strict=True):
+        share = max(1, int(max_voxels * (b - a) / total)) if total > max_voxels else b - a
+        sel = _cap(ijk[a:b], share)
+        nodes.append(VoxelNode(
+            name=f"{prefix}/{class_name(taxonomy, cid)}", class_id=int(cid),
+            centers=centers_of(sel).astype(np.float32), size=size,
+            color=tuple(int(v) for v in lut[cid]), wxyz=wxyz,
+        ))
+    return nodes
+
+
+def scene_grid_nodes(grid: Any, scene_origin: np.ndarray, taxonomy: Taxonomy, *,
+                     prefix: str = "/grid/scene", surface_only: bool = True,
+                     max_voxels: int = 300_000) -> list[VoxelNode]:
+    """Scene grid -> one node per class with voxel centres in scene-local metres.
+
+    Only surface voxels are drawn by default (interior boxes are never visible); at most
+    ``max_voxels`` in total, shared by class in proportion (regular stride).
+    """
+    labels = np.asarray(grid.labels)
+    occ = (labels != 0) & (labels != 255)
+    keep = surface_mask(occ) if surface_only else occ
+    shift = np.asarray(grid.origin, np.float64) - np.asarray(scene_origin, np.float64)
+    vs = float(grid.voxel_size)
+
+    def centers_of(ijk: np.ndarray) -> np.ndarray:
+        return shift + (ijk + 0.5) * vs
+
+    return _voxel_nodes(labels, keep, centers_of, taxonomy, prefix, vs, max_voxels,
+                        np.array([1.0, 0.0, 0.0, 0.0]))
+
+
+def camera_grid_nodes(labels: np.ndarray, invalid: np.ndarray, occluded: np.ndarray,
+                      surface: np.ndarray, T_cam_world: np.ndarray, voxel_size: float,
+                      taxonomy: Taxonomy, *, prefix: str = "/grid/frame",
+                      surface_only: bool = False, max_voxels: int = 300_000,
+                      max_invalid: int = 20_000) -> list[VoxelNode]:
+    """A frame's camera-centric grid (FORMATS.md section 2) -> nodes in scene-local metres.
+
+    labels: (X, Y, Z) uint8 raw ids (255 = invalid); invalid / occluded / surface: (X, Y, Z)
+    bool masks; T_cam_world: (4, 4) float64 scene-local world-to-camera. Voxel (i, j, k) has
+    camera centre ((i - X/2 + .5) r, (j - Y/2 + .5) r, (k + .5) r). Valid occupied voxels
+    (optionally surface only) are drawn per class; ``_occluded`` (grey, translucent) holds the
+    occupied voxels behind the first surface; ``_invalid`` a sparse sample of invalid voxels.
+    """
+    labels = np.asarray(labels)
+    X, Y, _ = labels.shape
+    invalid = np.asarray(invalid, bool)
+    occluded = np.asarray(occluded, bool)
+    surface = np.asarray(surface, bool)
+    T_world_cam = np.linalg.inv(np.asarray(T_cam_world, np.float64))
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    r = float(voxel_size)
+    off = np.array([X / 2.0, Y / 2.0, 0.0])
+
+    def centers_of(ijk: np.ndarray) -> np.ndarray:
+        cam = (ijk - off + 0.5) * r
+        return cam @ R.T + t
+
+    wxyz = matrix_to_quat(R)
+    occ = (labels != 0) & (labels != 255) & ~invalid
+    visible = occ & ~occluded
+    if surface_only:
+        visible &= surface
+    nodes = _voxel_nodes(labels, visible, centers_of, taxonomy, prefix, r, max_voxels, wxyz)
+    occ_ijk = _cap(np.argwhere(occ & occluded), max_voxels)
+    if len(occ_ijk):
+        nodes.append(VoxelNode(f"{prefix}/_occluded", -1, centers_of(occ_ijk).astype(np.float32),
+                               r, (110, 110, 110), wxyz, opacity=0.35))
+    inv_ijk = _cap(np.argwhere(invalid), max_invalid)
+    if len(inv_ijk):
+        nodes.append(VoxelNode(f"{prefix}/_invalid", -2, centers_of(inv_ijk).astype(np.float32),
+                               r * 0.3, (60, 60, 60), wxyz, opacity=0.15))
+    return nodes
+
+
+def send_voxel_nodes(scene_api: Any, nodes: list[VoxelNode],
+                     visible: dict[int, bool] | None = None) -> dict[str, Any]:
+    """Add every voxel node as instanced boxes (``add_batched_meshes_simple``)."""
+    handles = {}
+    for nd in nodes:
+        n = len(nd.centers)
+        handles[nd.name] = scene_api.add_batched_meshes_simple(
+            nd.name, vertices=CUBE_VERTICES * np.float32(nd.size), faces=CUBE_FACES,
+            batched_wxyzs=np.broadcast_to(np.asarray(nd.wxyz, np.float32), (n, 4)),
+            batched_positions=nd.centers, batched_colors=np.asarray(nd.color, np.uint8),
+            opacity=nd.opacity, flat_shading=True, lod="off", cast_shadow=False,
+            receive_shadow=False,
+            visible=True if visible is None else visible.get(nd.class_id, True),
+        )
+    return handles
+
+
+# ---- cameras -----------------------------------------------------------------------------
+@dataclass
+class FrustumNode:
+    """A frame's frustum: camera-to-world pose (viser/OpenCV axes) in scene-local metres."""
+
+    name: str
+    frame_index: int
+    fov: float
+    aspect: float
+    wxyz: np.ndarray
+    position: np.ndarray
+    state: str
+    color: tuple[int, int, int]
+
+
+def viewer_state(selected: bool, state: str | None) -> str:
+    """Map the backend's frame fields to a frustum state of :data:`FRAME_STATES`."""
+    if state == "accepted":
+        return "accepted"
+    if state == "rejected":
+        return "rejected"
+    if state == "submitted":
+        return "annotated"
+    return "selected" if selected else "not_selected"
+
+
+def frustum_nodes(scene: Scene, states: dict[int, str] | None = None) -> list[FrustumNode]:
+    """One frustum per frame; ``states`` maps frame index -> one of :data:`FRAME_STATES`."""
+    nodes = []
+    states = states or {}
+    for i, fr in enumerate(scene.frames):
+        T_world_cam = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        fy = fr.camera.focal[1]
+        fov = 2.0 * float(np.arctan2(fr.camera.height / 2.0, fy))
+        st = states.get(i, "not_selected")
+        if st not in STATE_COLOURS:
+            raise ValueError(f"frame state must be one of {FRAME_STATES}, got {st!r}")
+        nodes.append(FrustumNode(
+            name=f"/cameras/{fr.stem}", frame_index=i, fov=fov,
+            aspect=fr.camera.width / fr.camera.height, wxyz=matrix_to_quat(T_world_cam[:3, :3]),
+            position=T_world_cam[:3, 3].copy(), state=st, color=STATE_COLOURS[st],
+        ))
+    return nodes
+
+
+def send_frustum_nodes(scene_api: Any, nodes: list[FrustumNode], *, scale: float = 2.0) -> dict[int, Any]:
+    handles = {}
+    for nd in nodes:
+        handles[nd.frame_index] = scene_api.add_camera_frustum(
+            nd.name, fov=nd.fov, aspect=nd.aspect, scale=scale, color=nd.color,
+            wxyz=nd.wxyz, position=nd.position, thickness=0.05,
+        )
+    return handles
+
+
+def scene_extent(data: ViewerData) -> float:
+    """A length scale (metres) of the scene for frustum size and point size defaults."""
+    xyz = np.asarray(data.scene.xyz[:: max(1, data.scene.n_points // 100_000)])
+    if len(xyz) == 0:
+        return 10.0
+    return float(max(np.ptp(xyz, axis=0).max(), 1.0))

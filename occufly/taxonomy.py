@@ -154,6 +154,7 @@ class Taxonomy:
         rows = []
         for i, row in enumerate(data["classes"]):
             rows.append(_parse_row(row, where=f"{source}: classes[{i}]"))
+        _validate(tuple(rows), source=source)
         return cls(classes=tuple(rows), name=str(data.get("name", Path(source).stem)))
 
     def save(self, path: str | Path) -> None:

@@ -13,9 +13,10 @@ float32 local coordinates, so 6-7 digit UTM metres keep sub-millimetre precision
 A model that is not georeferenced has an arbitrary world frame (COLMAP's is the first
 camera's). Its up axis is estimated from the flight: drone surveys fly in horizontal planes,
 so up is the normal of the plane best fitting the camera centres (smallest singular vector),
-signed so the cameras look down (up . mean viewing direction < 0). When the centres are close
-to collinear (one flight line) or there are fewer than three frames, up is minus the mean
-viewing direction. The scene is then *levelled*: its world frame is rotated so up is +z. The
+signed so the cameras look down (up . mean viewing direction < 0), provided it lies within 30
+degrees of minus the mean viewing direction. When the centres are close to collinear (one
+flight line), disagree with the viewing directions, or there are fewer than three frames, up is
+minus the mean viewing direction. The scene is then *levelled*: its world frame is rotated so up is +z. The
 rotation is kept in ``scene.meta["levelling_rotation"]`` (x_levelled = R @ x_source) so
 exports can return to the source frame (:func:`source_coordinates`).
 
@@ -267,8 +268,12 @@ def _levelling_rotation(model) -> tuple[np.ndarray, str]:
     if len(centers) >= 3:
         c = centers - centers.mean(axis=0)
         _, s, vt = np.linalg.svd(c, full_matrices=False)
-        if s[1] > 0.2 * s[0] and s[2] < 0.5 * s[1]:
-            up = vt[2]
+        normal = vt[2] if np.dot(vt[2], mean_dir) < 0 else -vt[2]
+        down = -mean_dir / max(np.linalg.norm(mean_dir), 1e-12)
+        planar = s[1] > 0.2 * s[0] and s[2] < 0.5 * s[1]
+        # trust the plane only where it agrees with the cameras looking down (within 30 deg)
+        if planar and np.dot(normal, down) > np.cos(np.radians(30)):
+            up = normal
             method = "normal of the plane through the camera centres"
     if up is None:
         if np.linalg.norm(mean_dir) < 1e-6:

@@ -41,6 +41,10 @@ def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def _read_las(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     import laspy
 
+    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
+        raise InputFormatError(
+            f"{path}: cannot decompress LAZ: no LAZ backend is installed (pip install 'laspy[lazrs]')"
+        )
     try:
         las = laspy.read(path)
     except laspy.errors.LaspyException as e:

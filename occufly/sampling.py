@@ -1,0 +1,440 @@
+"""Per-frame ground truth: the camera-centric voxel grid of FORMATS.md section 2, its masks and
+a metric depth map.
+
+Grid. Shape (X, Y, Z) (default 192 x 128 x 128) with edge ``r`` (default 0.5 m), axes = the
+camera's (x right, y down, z forward), origin at the camera centre. Voxel (i, j, k) spans
+``x in [(i - X/2) r, (i - X/2 + 1) r]``, ``y in [(j - Y/2) r, ...]``, ``z in [k r, (k + 1) r]``;
+its centre is ``((i - X/2 + .5) r, (j - Y/2 + .5) r, (k + .5) r)``.
+
+Sampling. Every voxel centre is moved to world coordinates with the frame pose
+(``xyz_world = scene.origin + T_world_cam @ centre``; frame poses are scene-local) and takes
+the label of the scene-grid voxel that contains it (nearest-neighbour resampling).
+
+Masks (all (X, Y, Z) bool):
+
+- **invalid**: the centre is outside the truncated frustum -- it does not project inside the
+  image (``0 <= u < W``, ``0 <= v < H`` with the camera's distortion) or its camera depth
+  ``z`` is not in ``[near, far]`` -- *or* the reconstruction has no data there, which we take
+  as: the centre lies outside the scene grid's bounding box. Invalid voxels have label 0 in
+  :attr:`FrameGT.labels` (255 in the exported ``.label``, see :meth:`FrameGT.label_with_invalid`).
+- **surface**: valid, occupied, and at least one of its 6 neighbours is empty. Neighbours are
+  looked up in the *sampled* grid before the frustum crop (so a voxel is not "surface" just
+  because its neighbour is outside the image); a neighbour outside the frame grid counts as
+  not empty.
+- **occluded**: valid, occupied, and its pixel's ray hits an occupied voxel in an earlier
+  depth slice first. Rays: an angular raster over undistorted normalised image coordinates
+  (a = x/z, b = y/z) with cell size ``voxel_size / (oversample * far)`` (default
+  oversample 2: a voxel at the far plane spans >= 2 cells), covering the image; a voxel's
+  "pixel" is the raster cell containing its centre, and the ray is the one through that
+  cell's centre. The first hit per ray is exact, not marched: every occupied *surface*
+  voxel (the first occupied voxel along any ray entering from empty space is always a
+  surface voxel) is splatted into the raster cells whose centre rays intersect its box -- a
+  conservative angular bounding box followed by an exact ray/box slab test -- and a z-buffer
+  keeps the smallest entry depth per cell. So no occluder is missed however thin. A voxel is
+  occluded when the z-buffer at its cell is smaller than its own front face ``k r`` (hits in
+  the same depth slice do not count). Occupied voxels with front face closer than ``near``
+  are not occluders.
+
+Depth maps. At 1/4 image resolution (``round(W/4) x round(H/4)``), metres along the optical
+axis, 0 = no depth: nearest sample of the reconstruction's MVS depth map when the workspace
+has one for the frame (``scene.meta["depth_maps"]``, COLMAP ``.geometric.bin``), else a
+z-buffer of the dense points the frame sees (its visibility entries, or all points if it has
+none) splatted one pixel each.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occufly.camera import Camera
+from occufly.errors import WorkspaceError
+from occufly.grid import SceneGrid
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """Camera-centric grid and frustum parameters.
+
+    shape: (X, Y, Z) voxels; voxel_size: metres; near/far: clip distances along the optical
+    axis in metres (far defaults to the grid depth Z * voxel_size); oversample: occlusion rays
+    per voxel width at the far plane.
+    """
+
+    shape: tuple[int, int, int] = (192, 128, 128)
+    voxel_size: float = 0.5
+    near: float = 1.0
+    far: float | None = None
+    oversample: float = 2.0
+    max_raster: int = 2048
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(s) for s in self.shape)
+        if len(shape) != 3 or min(shape) <= 0:
+            raise ValueError(f"GridSpec.shape must be 3 positive ints, got {self.shape!r}")
+        object.__setattr__(self, "shape", shape)
+        if not self.voxel_size > 0:
+            raise ValueError(f"GridSpec.voxel_size must be > 0, got {self.voxel_size}")
+        if not (self.near >= 0 and self.far_m > self.near):
+            raise ValueError(f"GridSpec needs 0 <= near < far, got near={self.near} far={self.far_m}")
+
+    @property
+    def far_m(self) -> float:
+        return float(self.far) if self.far is not None else self.shape[2] * self.voxel_size
+
+    @property
+    def n_voxels(self) -> int:
+        return self.shape[0] * self.shape[1] * self.shape[2]
+
+    def axis_centers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(X,), (Y,), (Z,) float64 voxel-centre coordinates along camera x, y, z in metres."""
+        X, Y, Z = self.shape
+        r = self.voxel_size
+        return (
+            (np.arange(X) - X / 2 + 0.5) * r,
+            (np.arange(Y) - Y / 2 + 0.5) * r,
+            (np.arange(Z) + 0.5) * r,
+        )
+
+    def to_dict(self) -> dict:
+        return {"shape": list(self.shape), "voxel_size": self.voxel_size, "near": self.near,
+                "far": self.far_m, "oversample": self.oversample}
+
+
+@dataclass
+class FrameGT:
+    """Ground truth of one frame.
+
+    labels: (X, Y, Z) uint8 raw ids, 0 = empty or invalid; invalid / surface / occluded:
+    (X, Y, Z) bool; depth: (h, w) float32 metres at 1/4 resolution (0 = none) or None.
+    """
+
+    labels: np.ndarray
+    invalid: np.ndarray
+    surface: np.ndarray
+    occluded: np.ndarray
+    depth: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)
+
+    def label_with_invalid(self) -> np.ndarray:
+        """(X, Y, Z) uint8 labels with 255 where invalid (the exported ``.label``)."""
+        out = self.labels.copy()
+        out[self.invalid] = 255
+        return out
+
+
+def check_pose(T_cam_world: np.ndarray, where: str) -> np.ndarray:
+    """Validate a (4, 4) world-to-camera pose; raise WorkspaceError naming ``where``."""
+    T = np.asarray(T_cam_world, dtype=np.float64) if T_cam_world is not None else None
+    if T is None or T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise WorkspaceError(f"{where}: frame has no valid pose (expected a finite 4x4 world-to-camera matrix)")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise WorkspaceError(f"{where}: frame pose is not a rigid transform (rotation not orthonormal)")
+    return T
+
+
+# ---- sampling -------------------------------------------------------------------------------
+def sample_labels(
+    grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: GridSpec
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the scene grid at every frame-grid voxel centre.
+
+    T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64.
+    Returns (labels (X, Y, Z) uint8, inside (X, Y, Z) bool: centre inside the scene grid).
+    """
+    T_world_cam = np.linalg.inv(np.asarray(T_cam_world, dtype=np.float64))
+    R = T_world_cam[:3, :3]
+    # camera centre in scene-grid voxel units (float64 before anything gets small)
+    p0 = (np.asarray(scene_origin, np.float64) + T_world_cam[:3, 3] - grid.origin) / grid.voxel_size
+    cx, cy, cz = spec.axis_centers()
+    sx, sy, sz = grid.shape
+    itype = np.int32 if grid.labels.size < 2**31 else np.int64
+    flat = np.zeros(spec.shape, dtype=itype)
+    inside = np.ones(spec.shape, dtype=bool)
+    strides = (sy * sz, sz, 1)
+    for d, (n, stride) in enumerate(zip(grid.shape, strides, strict=True)):
+        # world axis d of every centre in scene-grid voxel units, separable in (i, j, k);
+        # float32 is exact enough here: values are small (relative to the grid origin)
+        a = (p0[d] + R[d, 0] * cx / grid.voxel_size).astype(np.float32)
+        b = (R[d, 1] * cy / grid.voxel_size).astype(np.float32)
+        c = (R[d, 2] * cz / grid.voxel_size).astype(np.float32)
+        f = a[:, None, None] + b[None, :, None]
+        f = f + c[None, None, :]
+        inside &= f >= 0
+        inside &= f < n
+        np.clip(f, 0, n - 1, out=f)  # after clipping, truncation == floor
+        flat += f.astype(itype) * itype(stride)
+    labels = np.take(grid.labels.reshape(-1), flat)
+    labels[~inside] = 0
+    return labels, inside
+
+
+def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.ndarray:
+    """(X, Y, Z) bool: voxel centre inside the image and with near <= z <= far.
+
+    With ``margin`` (pinhole cameras only; others return all True) the test is widened so
+    that every voxel whose *box* may intersect the image frustum beyond the near plane is
+    kept (used to select occluders).
+    """
+    cx, cy, cz = spec.axis_centers()
+    zok = (cz >= spec.near) & (cz <= spec.far_m)
+    if margin and camera.has_distortion:
+        return np.ones(spec.shape, dtype=bool)
+    if not camera.has_distortion:
+        fx, fy = camera.focal
+        px, py = camera.principal_point
+        u = fx * cx[:, None] / cz[None, :] + px  # (X, Z)
+        v = fy * cy[:, None] / cz[None, :] + py  # (Y, Z)
+        if margin:
+            r = spec.voxel_size
+            zf = np.maximum(cz - r / 2, 1e-6)[None, :]
+            mu = fx * (np.abs(cx)[:, None] + r) / zf - fx * np.abs(cx)[:, None] / cz[None, :]
+            mv = fy * (np.abs(cy)[:, None] + r) / zf - fy * np.abs(cy)[:, None] / cz[None, :]
+            uok = (u >= -mu) & (u < camera.width + mu)
+            vok = (v >= -mv) & (v < camera.height + mv)
+            zok = cz + r / 2 >= spec.near
+            return uok[:, None, :] & vok[None, :, :] & zok[None, None, :]
+        uok = (u >= 0) & (u < camera.width)
+        vok = (v >= 0) & (v < camera.height)
+        return uok[:, None, :] & vok[None, :, :] & zok[None, None, :]
+    X, Y, Z = spec.shape
+    out = np.zeros(spec.shape, dtype=bool)
+    ii, jj = np.meshgrid(cx, cy, indexing="ij")
+    for k in np.flatnonzero(zok):  # one slice at a time keeps memory small
+        xyz = np.column_stack([ii.ravel(), jj.ravel(), np.full(X * Y, cz[k])])
+        uv, z = camera.project(xyz)
+        with np.errstate(invalid="ignore"):
+            out[:, :, k] = camera.in_image(uv).reshape(X, Y)
+    return out
+
+
+def surface_mask(occupied: np.ndarray) -> np.ndarray:
+    """(X, Y, Z) bool: occupied with at least one empty 6-neighbour (outside = not empty)."""
+    empty = ~occupied
+    has_empty = np.zeros_like(occupied)
+    has_empty[1:] |= empty[:-1]
+    has_empty[:-1] |= empty[1:]
+    has_empty[:, 1:] |= empty[:, :-1]
+    has_empty[:, :-1] |= empty[:, 1:]
+    has_empty[:, :, 1:] |= empty[:, :, :-1]
+    has_empty[:, :, :-1] |= empty[:, :, 1:]
+    return occupied & has_empty
+
+
+@dataclass(frozen=True)
+class Raster:
+    """Angular ray raster over undistorted normalised coordinates (a = x/z, b = y/z)."""
+
+    a0: float
+    b0: float
+    step: float
+    na: int
+    nb: int
+
+    @classmethod
+    def for_camera(cls, camera: Camera, spec: GridSpec) -> Raster:
+        W, H = camera.width, camera.height
+        t = np.linspace(0, 1, 65)
+        border = np.concatenate([
+            np.column_stack([t * W, np.zeros_like(t)]), np.column_stack([t * W, np.full_like(t, H)]),
+            np.column_stack([np.zeros_like(t), t * H]), np.column_stack([np.full_like(t, W), t * H]),
+        ])
+        ab = camera.unproject(border, 1.0)[:, :2]
+        lo, hi = ab.min(axis=0), ab.max(axis=0)
+        step = spec.voxel_size / (spec.oversample * spec.far_m)
+        step = max(step, float((hi - lo).max()) / spec.max_raster)
+        na = int(math.ceil((hi[0] - lo[0]) / step)) + 1
+        nb = int(math.ceil((hi[1] - lo[1]) / step)) + 1
+        return cls(float(lo[0]), float(lo[1]), float(step), na, nb)
+
+    def cell_of(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Integer cell (ia, ib) containing normalised coords; clipped into the raster."""
+        ia = np.clip(np.floor((a - self.a0) / self.step), 0, self.na - 1).astype(np.int64)
+        ib = np.clip(np.floor((b - self.b0) / self.step), 0, self.nb - 1).astype(np.int64)
+        return ia, ib
+
+    def cell_center(self, ia: np.ndarray, ib: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.a0 + (ia + 0.5) * self.step, self.b0 + (ib + 0.5) * self.step
+
+
+def first_hit_zbuffer(
+    ijk: np.ndarray, spec: GridSpec, raster: Raster, *, max_pairs: int = 20_000_000
+) -> np.ndarray:
+    """Z-buffer of box entry depths.
+
+    ijk: (M, 3) int frame-grid indices of occluder voxels. Returns (na, nb) float64: per
+    raster cell the smallest camera z at which its centre ray enters any of the boxes
+    (inf where none).
+    """
+    X, Y, _ = spec.shape
+    r = spec.voxel_size
+    zbuf = np.full(raster.na * raster.nb, np.inf)
+    if len(ijk) == 0:
+        return zbuf.reshape(raster.na, raster.nb)
+    x0 = (ijk[:, 0] - X / 2) * r
+    y0 = (ijk[:, 1] - Y / 2) * r
+    z0 = ijk[:, 2] * r
+    x1, y1, z1 = x0 + r, y0 + r, z0 + r
+    # conservative angular bounding box of each box (z0 > 0 guaranteed by the caller)
+    amin = np.minimum(x0 / z0, x0 / z1)
+    amax = np.maximum(x1 / z0, x1 / z1)
+    bmin = np.minimum(y0 / z0, y0 / z1)
+    bmax = np.maximum(y1 / z0, y1 / z1)
+    s = raster.step
+    ia_lo = np.clip(np.ceil((amin - raster.a0) / s - 0.5), 0, raster.na).astype(np.int64)
+    ia_hi = np.clip(np.floor((amax - raster.a0) / s - 0.5), -1, raster.na - 1).astype(np.int64)
+    ib_lo = np.clip(np.ceil((bmin - raster.b0) / s - 0.5), 0, raster.nb).astype(np.int64)
+    ib_hi = np.clip(np.floor((bmax - raster.b0) / s - 0.5), -1, raster.nb - 1).astype(np.int64)
+    na_ = np.maximum(ia_hi - ia_lo + 1, 0)
+    nb_ = np.maximum(ib_hi - ib_lo + 1, 0)
+    counts = na_ * nb_
+    order = np.argsort(z0, kind="stable")  # near boxes first: chunks stay depth-coherent
+    cum = np.cumsum(counts[order])
+    start = 0
+    while start < len(order):
+        stop = int(np.searchsorted(cum, (cum[start - 1] if start else 0) + max_pairs, side="right"))
+        stop = max(stop, start + 1)
+        sel = order[start:stop]
+        start = stop
+        cnt = counts[sel]
+        total = int(cnt.sum())
+        if total == 0:
+            continue
+        owner = np.repeat(sel, cnt)
+        first = np.cumsum(cnt) - cnt
+        local = np.arange(total) - np.repeat(first, cnt)
+        nbo = nb_[owner]
+        ia = ia_lo[owner] + local // nbo
+        ib = ib_lo[owner] + local % nbo
+        a, b = raster.cell_center(ia, ib)
+        entry = _slab_entry(a, b, x0[owner], x1[owner], y0[owner], y1[owner], z0[owner], z1[owner])
+        hit = np.isfinite(entry)
+        np.minimum.at(zbuf, ia[hit] * raster.nb + ib[hit], entry[hit])
+    return zbuf.reshape(raster.na, raster.nb)
+
+
+def _slab_entry(a, b, x0, x1, y0, y1, z0, z1) -> np.ndarray:
+    """Entry z of the ray (a z, b z, z) into boxes [x0,x1]x[y0,y1]x[z0,z1]; inf on a miss."""
+    lo = z0.astype(np.float64).copy()
+    hi = z1.astype(np.float64).copy()
+    for s, c0, c1 in ((a, x0, x1), (b, y0, y1)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0 = c0 / s
+            t1 = c1 / s
+        tl = np.minimum(t0, t1)
+        th = np.maximum(t0, t1)
+        zero = s == 0
+        inside0 = (c0 <= 0) & (c1 >= 0)
+        tl = np.where(zero, np.where(inside0, -np.inf, np.inf), tl)
+        th = np.where(zero, np.where(inside0, np.inf, -np.inf), th)
+        np.maximum(lo, tl, out=lo)
+        np.minimum(hi, th, out=hi)
+    return np.where(lo <= hi, lo, np.inf)
+
+
+def occlusion_mask(
+    occupied: np.ndarray, surface_all: np.ndarray, valid: np.ndarray, camera: Camera, spec: GridSpec
+) -> np.ndarray:
+    """(X, Y, Z) bool occluded mask (see the module docstring)."""
+    X, Y, Z = spec.shape
+    r = spec.voxel_size
+    raster = Raster.for_camera(camera, spec)
+    kmin = int(math.ceil(spec.near / r - 1e-9))
+    kmin = max(kmin, 1)  # slice 0 touches the camera centre
+    near_frustum = frustum_mask(camera, spec, margin=True)[:, :, kmin:]
+    occ_ijk = np.argwhere(surface_all[:, :, kmin:] & near_frustum)
+    occ_ijk[:, 2] += kmin
+    zbuf = first_hit_zbuffer(occ_ijk, spec, raster)
+    targets = np.argwhere(occupied & valid)
+    out = np.zeros(spec.shape, dtype=bool)
+    if len(targets) == 0:
+        return out
+    cx, cy, cz = spec.axis_centers()
+    a = cx[targets[:, 0]] / cz[targets[:, 2]]
+    b = cy[targets[:, 1]] / cz[targets[:, 2]]
+    ia, ib = raster.cell_of(a, b)
+    front = targets[:, 2] * r
+    occl = zbuf[ia, ib] < front - 1e-9 * max(r, 1.0)
+    t = targets[occl]
+    out[t[:, 0], t[:, 1], t[:, 2]] = True
+    return out
+
+
+def sample_frame(
+    grid: SceneGrid,
+    camera: Camera,
+    T_cam_world: np.ndarray,
+    scene_origin: np.ndarray,
+    spec: GridSpec | None = None,
+) -> FrameGT:
+    """Labels and masks of one frame (no depth map; see :func:`frame_depth_map`).
+
+    T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64.
+    """
+    spec = spec or GridSpec()
+    labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec)
+    occupied_all = labels_all != 0
+    surface_all = surface_mask(occupied_all)
+    valid = frustum_mask(camera, spec) & inside
+    occluded = occlusion_mask(occupied_all, surface_all, valid, camera, spec)
+    labels = np.where(valid, labels_all, np.uint8(0)).astype(np.uint8)
+    surface = surface_all & valid
+    return FrameGT(labels=labels, invalid=~valid, surface=surface, occluded=occluded,
+                   stats={"occupied": int(np.count_nonzero(labels)), "valid": int(valid.sum())})
+
+
+# ---- depth maps ---------------------------------------------------------------------------------
+def quarter_shape(camera: Camera) -> tuple[int, int]:
+    """(h, w) of the 1/4-resolution depth map."""
+    q = camera.scaled(0.25)
+    return q.height, q.width
+
+
+def resample_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Nearest-sample an (H', W') depth map at the pixel centres of an (h, w) map -> float32."""
+    h, w = shape
+    H, W = depth.shape
+    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    return np.ascontiguousarray(depth[rows[:, None], cols[None, :]], dtype=np.float32)
+
+
+def render_depth(camera: Camera, uv: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Z-buffer of points at full-resolution pixels ``uv`` (N, 2) with depth ``z`` (N,) into an
+    (h, w) float32 map (smallest positive depth per pixel, 0 where none)."""
+    h, w = shape
+    uv = np.asarray(uv, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    col = np.floor(uv[:, 0] * w / camera.width)
+    row = np.floor(uv[:, 1] * h / camera.height)
+    ok = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    buf = np.full(h * w, np.inf)
+    np.minimum.at(buf, (row[ok] * w + col[ok]).astype(np.int64), z[ok])
+    buf[~np.isfinite(buf)] = 0.0
+    return buf.reshape(h, w).astype(np.float32)
+
+
+def frame_depth_map(scene, f: int, *, depth_dir: str | Path | None = None) -> tuple[np.ndarray, str]:
+    """(h, w) float32 depth at 1/4 resolution for frame index ``f`` and its source
+    ("mvs" or "rendered")."""
+    from occufly.camera import project_world
+
+    frame = scene.frames[f]
+    shape = quarter_shape(frame.camera)
+    ddir = depth_dir if depth_dir is not None else scene.meta.get("depth_maps")
+    if ddir:
+        from occufly.io.colmap_dense import find_depth_map, read_depth_map
+
+        p = find_depth_map(Path(ddir), frame.name)
+        if p is not None:
+            return resample_depth(read_depth_map(p), shape), "mvs"
+    vis = scene.visibility
+    if vis is not None and vis.n_frames > f and vis.offsets[f + 1] > vis.offsets[f]:
+        _ids, uv, z = vis.frame(f)
+        return render_depth(frame.camera, uv, z, shape), "rendered"
+    uv, z, visible = project_world(frame.camera, frame.T_cam_world, np.asarray(scene.xyz))
+    return render_depth(frame.camera, uv[visible], z[visible], shape), "rendered"

@@ -1,0 +1,762 @@
+"""Multi-view label lifting: incremental votes, kNN fill, kNN denoise, confidence.
+
+Votes
+    Every annotated frame votes once for each point it sees, with the mask pixel the point
+    projects to (``floor(uv / s)`` for a mask downscaled by the integer ``s``). 0 (unpainted)
+    and 255 (ignore) cast no vote. Counts live in ``ws/lifting/votes.npy``, a memory-mapped
+    (N, C) uint16 array over the taxonomy's classes in table order, and every frame's own votes
+    in ``ws/lifting/frames/<frame_index>.npz`` (point ids, class column) so that replacing or
+    removing a mask subtracts exactly what it added. The cost of :meth:`LiftState.set_mask` is
+    proportional to the points that frame sees, never to the scene.
+
+    Crash safety: ``state.json`` is marked dirty before the votes are touched and clean after;
+    the per-frame file is written (atomically) *before* the counts change, so a dirty state is
+    repaired on open by recounting from the per-frame files.
+
+Majority
+    Unweighted; ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
+    argmax over the class columns reordered by priority returns the first maximum).
+
+Fill and denoise (:func:`fill_and_denoise`)
+    Fill: each point without votes takes the inverse-distance-weighted vote of its k=100
+    nearest *directly labelled* points within ``fill_radius`` (exact, cKDTree over the
+    labelled points near unlabelled ones only). Denoise: every labelled point takes the
+    dominant class of its k=200 nearest labelled points (itself included) within
+    ``denoise_radius``. The fast method certifies whole voxels at once: with voxel edge ``v``
+    near the typical k-NN radius, a point's k nearest neighbours lie in the 3x3x3 voxel block
+    around its voxel; if that block holds at least ``k`` points and fewer than k/2 of them
+    disagree with the block's dominant class, that class must win the k-NN vote. Only points of
+    uncertified voxels (class boundaries, sparse areas) run an exact k-NN query against the
+    labelled points of their neighbourhood. :func:`fill_and_denoise_exact` is the plain
+    cKDTree baseline used by tests and the benchmark.
+
+Confidence (float32 in [0, 1])
+    The share of the denoise neighbourhood that has the final class; for points whose label is
+    the direct vote it is averaged with the vote margin ``(top - second) / votes``.
+Origin (uint8)
+    0 none (no label), 1 direct, 2 filled, 3 denoised (denoising changed the direct/fill label).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occufly.errors import MaskError, WorkspaceError
+from occufly.fsutil import atomic_save_npy, atomic_write_bytes, atomic_write_text, npy_bytes
+from occufly.progress import ProgressFn, noop
+from occufly.scene import Scene
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+
+LIFT_DIR = "lifting"
+STATE_VERSION = 1
+
+ORIGIN_NONE = 0
+ORIGIN_DIRECT = 1
+ORIGIN_FILLED = 2
+ORIGIN_DENOISED = 3
+ORIGIN_NAMES = {ORIGIN_NONE: "none", ORIGIN_DIRECT: "direct", ORIGIN_FILLED: "filled",
+                ORIGIN_DENOISED: "denoised"}
+
+_CHUNK_ROWS = 1_000_000
+
+
+# ---- parameters and results ----------------------------------------------------------------
+@dataclass
+class LiftParams:
+    """kNN parameters of the fill and denoise passes (all distances in scene metres)."""
+
+    fill_k: int = 100
+    fill_radius: float = 3.0
+    denoise_k: int = 200
+    denoise_radius: float = 3.0
+    method: str = "voxel"  # "voxel" (fast, certified voxels + exact boundaries) or "exact"
+    voxel: float | None = None  # voxel edge of the fast method; None = from the point density
+    voxel_factor: float = 1.0  # auto voxel = factor * typical denoise k-NN radius
+    certify_min_points: float = 1.5  # a block needs >= this * k points to be certified
+    workers: int = 1  # cKDTree query workers
+
+
+@dataclass
+class LiftResult:
+    """Output of the fill/denoise passes.
+
+    labels: (N,) uint8 raw class ids (0 = no label); confidence: (N,) float32 in [0, 1];
+    origin: (N,) uint8 (0 none, 1 direct, 2 filled, 3 denoised); stats: timings and counts.
+    """
+
+    labels: np.ndarray
+    confidence: np.ndarray
+    origin: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    def summary(self, taxonomy: Taxonomy | None = None) -> dict:
+        counts = np.bincount(np.asarray(self.origin), minlength=4)
+        out = {
+            "points": int(len(self.labels)),
+            "origin": {ORIGIN_NAMES[i]: int(counts[i]) for i in range(4)},
+            "mean_confidence": float(np.mean(self.confidence)) if len(self.confidence) else 0.0,
+        }
+        if taxonomy is not None:
+            per = np.bincount(np.asarray(self.labels), minlength=256)
+            out["classes"] = {c.name: int(per[c.id]) for c in taxonomy.classes if per[c.id]}
+        out.update(self.stats)
+        return out
+
+
+# ---- majority with tie order --------------------------------------------------------------
+class _Classes:
+    """Column bookkeeping: class columns in table order, priority permutation, id lookups."""
+
+    def __init__(self, taxonomy: Taxonomy) -> None:
+        self.taxonomy = taxonomy
+        self.ids = taxonomy.ids  # (C,) uint8, column order
+        self.C = len(self.ids)
+        self.col_of = np.full(256, -1, dtype=np.int16)  # raw id -> column
+        self.col_of[self.ids] = np.arange(self.C, dtype=np.int16)
+        prio = taxonomy.priority_lut()[self.ids]  # rank of each column
+        self.perm = np.argsort(prio, kind="stable")  # columns, most preferred first
+        self.perm_ids = self.ids[self.perm]
+
+    def majority(self, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """counts: (n, C) -> (winner column (n,) int64, top (n,), second (n,)) in count units.
+
+        Ties are broken by the taxonomy's order; winner is -1 where every count is 0.
+        """
+        c = np.asarray(counts)[:, self.perm]
+        arg = np.argmax(c, axis=1)
+        top = np.take_along_axis(c, arg[:, None], axis=1)[:, 0]
+        col = self.perm[arg].astype(np.int64)
+        col[top <= 0] = -1
+        if self.C > 1:
+            part = np.partition(c, self.C - 2, axis=1)
+            second = part[:, self.C - 2]
+        else:
+            second = np.zeros(len(c), dtype=c.dtype)
+        return col, top, second
+
+    def labels_of(self, col: np.ndarray) -> np.ndarray:
+        """(n,) column (-1 = none) -> (n,) uint8 raw ids (0 = none)."""
+        out = np.zeros(len(col), dtype=np.uint8)
+        ok = col >= 0
+        out[ok] = self.ids[col[ok]]
+        return out
+
+
+# ---- the incremental vote state -----------------------------------------------------------
+class LiftState:
+    """Per-point vote counts for one scene workspace, updated incrementally.
+
+    Not safe for concurrent writers: one process (the web app's lifting worker or the CLI)
+    owns a workspace's lifting state at a time.
+    """
+
+    def __init__(self, ws: Path, scene: Scene, votes: np.ndarray, versions: dict[int, str | None]):
+        self.ws = Path(ws)
+        self.scene = scene
+        self.votes = votes  # (N, C) uint16 memmap
+        self._versions = versions
+        self._cls = _Classes(scene.taxonomy)
+
+    # -- paths
+    @property
+    def dir(self) -> Path:
+        return self.ws / LIFT_DIR
+
+    def _frame_path(self, frame_index: int) -> Path:
+        return self.dir / "frames" / f"{frame_index}.npz"
+
+    # -- open / save
+    @classmethod
+    def open(cls, ws: str | Path, scene: Scene | None = None) -> LiftState:
+        """Load the lifting state of workspace ``ws`` or create an empty one."""
+        ws = Path(ws)
+        if scene is None:
+            scene = Scene.load(ws)
+        d = ws / LIFT_DIR
+        state_path = d / "state.json"
+        n, ids = scene.n_points, [int(i) for i in scene.taxonomy.ids]
+        votes_path = d / "votes.npy"
+        if state_path.is_file():
+            try:
+                state = json.loads(state_path.read_text())
+            except json.JSONDecodeError as e:
+                raise WorkspaceError(f"{state_path}: not valid JSON ({e})") from None
+            if state.get("n_points") != n or state.get("class_ids") != ids:
+                raise WorkspaceError(
+                    f"{state_path}: lifting state was built for {state.get('n_points')} points / "
+                    f"classes {state.get('class_ids')}, the scene has {n} points / classes {ids}; "
+                    f"remove {d} to start the lifting over"
+                )
+            if not votes_path.is_file():
+                raise WorkspaceError(f"{votes_path}: missing vote counts (remove {d} to start over)")
+            votes = np.lib.format.open_memmap(votes_path, mode="r+")
+            if votes.shape != (n, len(ids)) or votes.dtype != np.uint16:
+                raise WorkspaceError(f"{votes_path}: expected ({n}, {len(ids)}) uint16 vote counts")
+            versions = {int(k): v for k, v in state.get("versions", {}).items()}
+            self = cls(ws, scene, votes, versions)
+            if state.get("dirty"):
+                self.rebuild()
+            return self
+        (d / "frames").mkdir(parents=True, exist_ok=True)
+        tmp = d / f".votes.npy.{os.getpid()}.tmp"
+        votes = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint16, shape=(n, len(ids)))
+        votes.flush()
+        del votes
+        os.replace(tmp, votes_path)
+        votes = np.lib.format.open_memmap(votes_path, mode="r+")
+        self = cls(ws, scene, votes, {})
+        stale = sorted((d / "frames").glob("*.npz"))
+        if stale:  # frame votes without a state file: recount from them
+            self._versions = {int(p.stem): None for p in stale if p.stem.isdigit()}
+            self.rebuild()
+        else:
+            self._write_state(dirty=False)
+        return self
+
+    def _write_state(self, *, dirty: bool) -> None:
+        state = {
+            "version": STATE_VERSION,
+            "n_points": self.scene.n_points,
+            "class_ids": [int(i) for i in self._cls.ids],
+            "versions": {str(k): v for k, v in sorted(self._versions.items())},
+            "dirty": dirty,
+        }
+        atomic_write_text(self.dir / "state.json", json.dumps(state, indent=1))
+
+    def save(self) -> None:
+        """Flush the vote counts and write ``state.json`` atomically."""
+        self.votes.flush()
+        self._write_state(dirty=False)
+
+    def rebuild(self) -> None:
+        """Recount every vote from the per-frame files (repairs an interrupted update)."""
+        self._write_state(dirty=True)
+        self.votes[:] = 0
+        flat = self.votes.reshape(-1)
+        C = self._cls.C
+        for p in sorted((self.dir / "frames").glob("*.npz")):
+            if not p.stem.isdigit():
+                continue
+            pids, cols = self._load_frame_file(p)
+            np.add.at(flat, pids.astype(np.int64) * C + cols, 1)
+            self._versions.setdefault(int(p.stem), None)
+        for fi in list(self._versions):
+            if not self._frame_path(fi).is_file():
+                del self._versions[fi]
+        self.save()
+
+    # -- queries
+    def included_versions(self) -> dict[int, str | None]:
+        """frame_index -> version tag of the mask whose votes are counted."""
+        return dict(sorted(self._versions.items()))
+
+    def direct_labels(self) -> np.ndarray:
+        """(N,) uint8 raw ids of the vote majority, 0 where a point has no votes."""
+        return self._direct()[0]
+
+    def _direct(self) -> tuple[np.ndarray, np.ndarray]:
+        """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes)."""
+        n = self.scene.n_points
+        labels = np.zeros(n, dtype=np.uint8)
+        margin = np.zeros(n, dtype=np.float32)
+        for a in range(0, n, _CHUNK_ROWS):
+            b = min(n, a + _CHUNK_ROWS)
+            c = np.asarray(self.votes[a:b])
+            col, top, second = self._cls.majority(c)
+            labels[a:b] = self._cls.labels_of(col)
+            total = c.sum(axis=1, dtype=np.int64)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                margin[a:b] = np.where(total > 0, (top.astype(np.float64) - second) / total, 0.0)
+        return labels, margin
+
+    def labels_of_points(self, point_ids: np.ndarray) -> np.ndarray:
+        """(m,) uint8 direct labels of the given points (cost ~ m)."""
+        col, _, _ = self._cls.majority(self.votes[np.asarray(point_ids, dtype=np.int64)])
+        return self._cls.labels_of(col)
+
+    # -- updates
+    def _check_frame(self, frame_index: int, name: str) -> int:
+        if not isinstance(frame_index, (int, np.integer)) or not (
+            0 <= int(frame_index) < len(self.scene.frames)
+        ):
+            raise MaskError(
+                f"{name}: frame {frame_index!r} is not in the scene (it has "
+                f"{len(self.scene.frames)} frames, indices 0..{len(self.scene.frames) - 1})"
+            )
+        return int(frame_index)
+
+    def frame_votes(self, frame_index: int, mask: np.ndarray, *, name: str = "<mask>"
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Validate ``mask`` for a frame and return its votes: (point ids int32, column uint8)."""
+        from occufly.io.masks import mask_scale, validate_ids
+
+        fi = self._check_frame(frame_index, name)
+        frame = self.scene.frames[fi]
+        mask = np.asarray(mask)
+        if mask.ndim != 2:
+            raise MaskError(f"{name}: expected a (h, w) array of raw class ids, got shape {mask.shape}")
+        if mask.dtype != np.uint8:
+            if not np.issubdtype(mask.dtype, np.integer) or (
+                mask.size and (mask.min() < 0 or mask.max() > 255)
+            ):
+                raise MaskError(f"{name}: expected uint8 raw class ids 0..255, got {mask.dtype}")
+            mask = mask.astype(np.uint8)
+        s = mask_scale(mask.shape, frame, name=name)
+        validate_ids(mask, self.scene.taxonomy, name=name)
+        pids, uv, _ = self.scene.visibility.frame(fi)
+        h, w = mask.shape
+        uv = np.asarray(uv)
+        col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
+        row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
+        raw = mask[row, col]
+        keep = (raw != EMPTY) & (raw != INVALID)
+        return (np.asarray(pids)[keep].astype(np.int32),
+                self._cls.col_of[raw[keep]].astype(np.uint8))
+
+    @staticmethod
+    def _load_frame_file(p: Path) -> tuple[np.ndarray, np.ndarray]:
+        with np.load(p, allow_pickle=False) as z:
+            return z["point_ids"], z["cols"]
+
+    def _old_votes(self, fi: int) -> tuple[np.ndarray, np.ndarray]:
+        p = self._frame_path(fi)
+        if p.is_file():
+            return self._load_frame_file(p)
+        return np.zeros(0, np.int32), np.zeros(0, np.uint8)
+
+    def _apply(self, old: tuple[np.ndarray, np.ndarray], new: tuple[np.ndarray, np.ndarray]) -> dict:
+        C = self._cls.C
+        touched = np.unique(np.concatenate([old[0], new[0]]).astype(np.int64))
+        before = self.labels_of_points(touched)
+        flat = self.votes.reshape(-1)
+        if len(old[0]):
+            np.subtract.at(flat, old[0].astype(np.int64) * C + old[1], 1)
+        if len(new[0]):
+            np.add.at(flat, new[0].astype(np.int64) * C + new[1], 1)
+        after = self.labels_of_points(touched)
+        return {
+            "points_touched": int(len(touched)),
+            "points_changed": int(np.count_nonzero(before != after)),
+            "votes_removed": int(len(old[0])),
+            "votes_added": int(len(new[0])),
+        }
+
+    def set_mask(self, frame_index: int, mask: np.ndarray, *, version: str | None = None,
+                 name: str | None = None) -> dict:
+        """Replace frame ``frame_index``'s votes with those of ``mask`` ((h, w) uint8 raw ids).
+
+        Validates the mask first (MaskError naming ``name``; the state is then unchanged).
+        Returns {points_touched, points_changed (direct label changed), votes_removed,
+        votes_added, seconds}.
+        """
+        t0 = time.perf_counter()
+        name = name or f"mask of frame {frame_index}"
+        pids, cols = self.frame_votes(frame_index, mask, name=name)
+        fi = int(frame_index)
+        old = self._old_votes(fi)
+        self._write_state(dirty=True)
+        atomic_write_bytes(self._frame_path(fi), _npz_bytes(point_ids=pids, cols=cols))
+        stats = self._apply(old, (pids, cols))
+        self._versions[fi] = version
+        self.save()
+        stats["frame_index"] = fi
+        stats["seconds"] = time.perf_counter() - t0
+        return stats
+
+    def remove_mask(self, frame_index: int) -> dict:
+        """Subtract frame ``frame_index``'s votes (no-op if it has none)."""
+        t0 = time.perf_counter()
+        fi = self._check_frame(frame_index, f"mask of frame {frame_index}")
+        p = self._frame_path(fi)
+        if not p.is_file():
+            return {"frame_index": fi, "removed": False, "points_touched": 0, "points_changed": 0,
+                    "votes_removed": 0, "votes_added": 0, "seconds": time.perf_counter() - t0}
+        old = self._old_votes(fi)
+        self._write_state(dirty=True)
+        stats = self._apply(old, (np.zeros(0, np.int32), np.zeros(0, np.uint8)))
+        self.votes.flush()
+        p.unlink()
+        self._versions.pop(fi, None)
+        self.save()
+        stats.update(frame_index=fi, removed=True, seconds=time.perf_counter() - t0)
+        return stats
+
+    # -- fill and denoise
+    def fill_and_denoise(self, progress: ProgressFn | None = None,
+                         params: LiftParams | None = None) -> LiftResult:
+        """kNN fill + denoise of the current votes; writes labels/confidence/origin .npy files."""
+        report = progress or noop
+        report(0.0, "majority vote")
+        direct, margin = self._direct()
+        result = fill_and_denoise(
+            np.asarray(self.scene.xyz), direct, self.scene.taxonomy, params=params,
+            vote_margin=margin,
+            progress=lambda f, m: report(0.05 + 0.9 * f, m),
+        )
+        result.stats["annotated_frames"] = len(self._versions)
+        result.stats["versions"] = {str(k): v for k, v in self.included_versions().items()}
+        report(0.96, "writing labels")
+        save_result(self.ws, result)
+        report(1.0, "done")
+        return result
+
+
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def save_result(ws: str | Path, result: LiftResult) -> None:
+    d = Path(ws) / LIFT_DIR
+    atomic_save_npy(d / "labels.npy", result.labels.astype(np.uint8))
+    atomic_save_npy(d / "confidence.npy", result.confidence.astype(np.float32))
+    atomic_save_npy(d / "origin.npy", result.origin.astype(np.uint8))
+    atomic_write_text(d / "labels.json", json.dumps(result.stats, indent=1, default=_jsonable))
+
+
+def _jsonable(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
+def load_labels(ws: str | Path) -> LiftResult | None:
+    """The latest fill/denoise output of workspace ``ws`` (memory-mapped), or None."""
+    d = Path(ws) / LIFT_DIR
+    if not (d / "labels.npy").is_file():
+        return None
+    stats = {}
+    if (d / "labels.json").is_file():
+        try:
+            stats = json.loads((d / "labels.json").read_text())
+        except json.JSONDecodeError:
+            stats = {}
+    return LiftResult(
+        labels=np.load(d / "labels.npy", mmap_mode="r"),
+        confidence=np.load(d / "confidence.npy", mmap_mode="r"),
+        origin=np.load(d / "origin.npy", mmap_mode="r"),
+        stats=stats,
+    )
+
+
+# ---- kNN fill and denoise -----------------------------------------------------------------
+def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must be (N, 3), got {xyz.shape}")
+    direct = np.asarray(direct)
+    if direct.shape != (len(xyz),):
+        raise ValueError(f"labels must be ({len(xyz)},), got {direct.shape}")
+    return np.ascontiguousarray(xyz, dtype=np.float32), direct.astype(np.uint8, copy=False)
+
+
+def _scores_to_cols(cls: _Classes, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, C) scores -> (winner column (n,) int64, -1 = none; winner share (n,) float32)."""
+    col, top, _ = cls.majority(scores)
+    total = scores.sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(total > 0, top / total, 0.0).astype(np.float32)
+    return col, share
+
+
+def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
+              cls: _Classes, *, weighted: bool, workers: int = 1, chunk: int = 50_000
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Exact k-NN (within ``radius``) vote of ``queries`` against a cKDTree of labelled points.
+
+    tree_cols: (n_tree,) column of each tree point. Returns (column (q,) int64, share (q,)).
+    """
+    q = len(queries)
+    cols = np.full(q, -1, dtype=np.int64)
+    share = np.zeros(q, dtype=np.float32)
+    n_tree = tree.n
+    if q == 0 or n_tree == 0:
+        return cols, share
+    k_eff = min(k, n_tree)
+    C = cls.C
+    for a in range(0, q, chunk):
+        b = min(q, a + chunk)
+        d, idx = tree.query(queries[a:b], k=k_eff, distance_upper_bound=radius, workers=workers)
+        if k_eff == 1:
+            d, idx = d[:, None], idx[:, None]
+        ok = idx < n_tree
+        rows = np.broadcast_to(np.arange(b - a)[:, None], idx.shape)[ok]
+        c = tree_cols[idx[ok]]
+        if weighted:
+            w = 1.0 / np.maximum(d[ok], 1e-6)
+        else:
+            w = None
+        scores = np.bincount(rows * C + c, weights=w, minlength=(b - a) * C).reshape(b - a, C)
+        cols[a:b], share[a:b] = _scores_to_cols(cls, scores)
+    return cols, share
+
+
+def _finish(cls: _Classes, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
+            agree: np.ndarray, vote_margin: np.ndarray | None) -> LiftResult:
+    labels = cls.labels_of(final_cols)
+    filled = cls.labels_of(filled_cols)
+    origin = np.zeros(len(labels), dtype=np.uint8)
+    has = labels > 0
+    is_direct = has & (direct > 0) & (labels == direct)
+    is_filled = has & (direct == 0) & (labels == filled)
+    origin[has] = ORIGIN_DENOISED
+    origin[is_filled] = ORIGIN_FILLED
+    origin[is_direct] = ORIGIN_DIRECT
+    conf = np.where(has, agree, 0.0).astype(np.float32)
+    if vote_margin is not None:
+        conf[is_direct] = 0.5 * (conf[is_direct] + np.asarray(vote_margin, np.float32)[is_direct])
+    return LiftResult(labels=labels, confidence=conf, origin=origin)
+
+
+def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
+                           params: LiftParams | None = None, vote_margin: np.ndarray | None = None,
+                           query_index: np.ndarray | None = None,
+                           progress: ProgressFn | None = None) -> LiftResult:
+    """Baseline: plain cKDTree k=100 IDW fill then k=200 majority denoise over all points.
+
+    xyz: (N, 3) float32 scene-local metres; direct: (N,) uint8 raw ids (0 = no votes).
+    With ``query_index`` ((q,) int) the denoise queries only those points (for timing the
+    baseline on a sample); labels of the others are then just the filled labels.
+    """
+    from scipy.spatial import cKDTree
+
+    p = params or LiftParams()
+    report = progress or noop
+    xyz, direct = _check_inputs(xyz, direct)
+    cls = _Classes(taxonomy)
+    t0 = time.perf_counter()
+    dcols = cls.col_of[direct].astype(np.int64)  # -1 where no label
+    lab_idx = np.flatnonzero(dcols >= 0)
+    un_idx = np.flatnonzero(dcols < 0)
+    filled = dcols.copy()
+    fill_share = np.zeros(len(xyz), np.float32)
+    if len(un_idx) and len(lab_idx):
+        report(0.0, "fill: building tree")
+        tree = cKDTree(xyz[lab_idx])
+        report(0.1, "fill: querying")
+        c, s = _knn_vote(tree, dcols[lab_idx], xyz[un_idx], p.fill_k, p.fill_radius, cls,
+                         weighted=True, workers=p.workers)
+        filled[un_idx], fill_share[un_idx] = c, s
+    t1 = time.perf_counter()
+    report(0.3, "denoise: building tree")
+    lab2 = np.flatnonzero(filled >= 0)
+    final = filled.copy()
+    agree = fill_share.copy()
+    agree[dcols >= 0] = 1.0
+    if len(lab2):
+        tree2 = cKDTree(xyz[lab2])
+        q = lab2 if query_index is None else np.intersect1d(np.asarray(query_index), lab2)
+        report(0.4, "denoise: querying")
+        c, s = _knn_vote(tree2, filled[lab2], xyz[q], p.denoise_k, p.denoise_radius, cls,
+                         weighted=False, workers=p.workers)
+        final[q], agree[q] = c, s
+    t2 = time.perf_counter()
+    res = _finish(cls, direct, filled, final, agree, vote_margin)
+    res.stats = {"method": "exact", "fill_seconds": t1 - t0, "denoise_seconds": t2 - t1,
+                 "unlabelled_before_fill": int(len(un_idx))}
+    report(1.0, "done")
+    return res
+
+
+# -- voxel hashing helpers
+class _VoxelGrid:
+    """Sparse voxel hash of a point set: sorted unique keys, per-point voxel index."""
+
+    def __init__(self, xyz: np.ndarray, edge: float, pad: int) -> None:
+        self.edge = float(edge)
+        self.pad = int(pad)
+        mn = xyz.min(axis=0).astype(np.float64)
+        q = np.floor((xyz - mn) / edge).astype(np.int64) + pad
+        self.dims = q.max(axis=0) + pad + 1
+        if float(np.prod(self.dims.astype(np.float64))) > 2**62:
+            raise ValueError("scene too large for the voxel hash at this voxel size")
+        self.mn = mn
+        key = (q[:, 0] * self.dims[1] + q[:, 1]) * self.dims[2] + q[:, 2]
+        self.keys, self.inverse = np.unique(key, return_inverse=True)
+        self.inverse = self.inverse.reshape(-1)
+
+    @property
+    def n_voxels(self) -> int:
+        return len(self.keys)
+
+    def offset_key(self, dx: int, dy: int, dz: int) -> int:
+        return int((dx * self.dims[1] + dy) * self.dims[2] + dz)
+
+    def neighbour(self, voxels: np.ndarray, dx: int, dy: int, dz: int) -> np.ndarray:
+        """(m,) voxel indices -> (m,) index of the neighbour voxel at the offset, -1 if empty."""
+        nk = self.keys[voxels] + self.offset_key(dx, dy, dz)
+        pos = np.searchsorted(self.keys, nk)
+        pos = np.minimum(pos, len(self.keys) - 1)
+        return np.where(self.keys[pos] == nk, pos, -1)
+
+    def dilate(self, voxels: np.ndarray, r: int) -> np.ndarray:
+        """(m,) voxel indices -> sorted voxel indices within Chebyshev distance r (occupied only)."""
+        mark = np.zeros(self.n_voxels, dtype=bool)
+        mark[voxels] = True
+        cur = np.flatnonzero(mark)
+        # separable dilation along each axis keeps the cost at 3 * (2r + 1) lookups per voxel
+        for axis in range(3):
+            add = []
+            for s in range(-r, r + 1):
+                if s == 0:
+                    continue
+                off = [0, 0, 0]
+                off[axis] = s
+                nb = self.neighbour(cur, *off)
+                add.append(nb[nb >= 0])
+            if add:
+                mark[np.concatenate(add)] = True
+            cur = np.flatnonzero(mark)
+        return cur
+
+
+def typical_knn_radius(xyz: np.ndarray, k: int, *, quantile: float = 0.75, sample: int = 2000,
+                       seed: int = 0) -> float:
+    """Estimate the ``quantile`` of the k-NN radius over the cloud from a random subsample.
+
+    The k-th neighbour in the full cloud is about the (k f)-th in a subsample of fraction f.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    if n <= k:
+        ext = np.ptp(xyz, axis=0) if n else np.ones(3)
+        return float(max(np.max(ext), 1e-3))
+    rng = np.random.default_rng(seed)
+    kk = 8
+    m = min(n, max(int(math.ceil(n * kk / k)), kk + 1))
+    sub = xyz[rng.choice(n, size=m, replace=False)] if m < n else xyz
+    kk = max(1, min(kk, int(round(k * m / n))))
+    tree = cKDTree(sub)
+    qi = rng.choice(n, size=min(sample, n), replace=False)
+    d, _ = tree.query(xyz[qi], k=kk + 1)
+    r = d[:, -1]
+    r = r[np.isfinite(r)]
+    return float(np.quantile(r, quantile)) if len(r) else 1.0
+
+
+def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
+                     params: LiftParams | None = None, vote_margin: np.ndarray | None = None,
+                     progress: ProgressFn | None = None) -> LiftResult:
+    """kNN fill (k=100, IDW, bounded radius) then kNN denoise (k=200) of per-point labels.
+
+    xyz: (N, 3) float32 scene-local metres; direct: (N,) uint8 raw ids of the vote majority
+    (0 = no votes); vote_margin: (N,) float32 optional, enters the confidence of direct points.
+    See the module docstring for the certified-voxel method; ``params.method == "exact"``
+    runs :func:`fill_and_denoise_exact`.
+    """
+    from scipy.spatial import cKDTree
+
+    p = params or LiftParams()
+    if p.method == "exact":
+        return fill_and_denoise_exact(xyz, direct, taxonomy, params=p, vote_margin=vote_margin,
+                                      progress=progress)
+    if p.method != "voxel":
+        raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
+    report = progress or noop
+    xyz, direct = _check_inputs(xyz, direct)
+    cls = _Classes(taxonomy)
+    C = cls.C
+    n = len(xyz)
+    t0 = time.perf_counter()
+    stats: dict = {"method": "voxel"}
+    dcols = cls.col_of[direct].astype(np.int64)
+    if n == 0 or not (dcols >= 0).any():
+        res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin)
+        res.stats = {**stats, "note": "no labelled points"}
+        return res
+
+    # voxel edge: about the typical k-NN radius of the denoise pass
+    report(0.0, "voxel size")
+    edge = p.voxel or p.voxel_factor * typical_knn_radius(xyz, p.denoise_k)
+    edge = float(min(max(edge, 1e-3), max(p.denoise_radius, p.fill_radius)))
+    stats["voxel"] = edge
+    report(0.05, "voxel hash")
+    fill_r = int(math.ceil(p.fill_radius / edge))
+    grid = _VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1)
+    vox = grid.inverse
+    V = grid.n_voxels
+    stats["voxels"] = int(V)
+
+    # ---- fill: exact IDW k-NN for points without votes, tree over nearby labelled points
+    filled = dcols.copy()
+    agree = np.zeros(n, np.float32)
+    agree[dcols >= 0] = 1.0
+    un_idx = np.flatnonzero(dcols < 0)
+    t_fill = time.perf_counter()
+    if len(un_idx):
+        report(0.1, "fill")
+        near = grid.dilate(np.unique(vox[un_idx]), fill_r)
+        in_near = np.zeros(V, bool)
+        in_near[near] = True
+        src = np.flatnonzero((dcols >= 0) & in_near[vox])
+        if len(src):
+            tree = cKDTree(xyz[src])
+            c, s = _knn_vote(tree, dcols[src], xyz[un_idx], p.fill_k, p.fill_radius, cls,
+                             weighted=True, workers=p.workers)
+            filled[un_idx], agree[un_idx] = c, s
+        stats["fill_tree_points"] = int(len(src))
+    stats["unlabelled_before_fill"] = int(len(un_idx))
+    stats["fill_seconds"] = time.perf_counter() - t_fill
+
+    # ---- denoise: certified voxels, exact k-NN elsewhere
+    t_den = time.perf_counter()
+    report(0.3, "denoise: voxel histograms")
+    lab = filled >= 0
+    lab_idx = np.flatnonzero(lab)
+    counts = np.bincount(vox[lab_idx] * C + filled[lab_idx], minlength=V * C)
+    counts = counts.reshape(V, C).astype(np.int32)
+    block = counts.copy()
+    allv = np.arange(V)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                nb = grid.neighbour(allv, dx, dy, dz)
+                ok = nb >= 0
+                block[ok] += counts[nb[ok]]
+    bcol, btop, _ = cls.majority(block)
+    btotal = block.sum(axis=1)
+    k = p.denoise_k
+    certified = (btotal >= p.certify_min_points * k) & ((btotal - btop) * 2 < k) & (bcol >= 0)
+    final = filled.copy()
+    cert_pts = lab & certified[vox]
+    final[cert_pts] = bcol[vox[cert_pts]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bshare = np.where(btotal > 0, btop / np.maximum(btotal, 1), 0.0).astype(np.float32)
+    agree[cert_pts] = bshare[vox[cert_pts]]
+    rest = np.flatnonzero(lab & ~certified[vox])
+    stats["certified_voxels"] = int(certified.sum())
+    stats["exact_denoise_points"] = int(len(rest))
+    if len(rest):
+        report(0.5, "denoise: exact k-NN at boundaries")
+        near = grid.dilate(np.unique(vox[rest]), 1)
+        in_near = np.zeros(V, bool)
+        in_near[near] = True
+        src = np.flatnonzero(lab & in_near[vox])
+        tree = cKDTree(xyz[src])
+        c, s = _knn_vote(tree, filled[src], xyz[rest], k, p.denoise_radius, cls,
+                         weighted=False, workers=p.workers)
+        final[rest], agree[rest] = c, s
+        stats["denoise_tree_points"] = int(len(src))
+    stats["denoise_seconds"] = time.perf_counter() - t_den
+    res = _finish(cls, direct, filled, final, agree, vote_margin)
+    stats["seconds"] = time.perf_counter() - t0
+    res.stats = stats
+    report(1.0, "done")
+    return res
+
+
+def params_dict(p: LiftParams) -> dict:
+    return asdict(p)

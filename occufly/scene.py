@@ -335,12 +335,16 @@ def ground_height_under(
     return out
 
 
-def bin_altitudes(altitudes: np.ndarray, nominal: list[float] | None = None, *, gap: float = 4.0) -> np.ndarray:
+def bin_altitudes(
+    altitudes: np.ndarray, nominal: list[float] | None = None, *, gap: float = 4.0,
+    round_to: float = 5.0,
+) -> np.ndarray:
     """Assign each altitude (F,) to a nominal flight altitude; returns (F,) int.
 
     With ``nominal`` given, the nearest one. Otherwise altitudes are clustered (a sorted gap
     larger than ``gap`` metres starts a new cluster) and each cluster's median is rounded to
-    whole metres, so a survey flown at 50/40/30 m bins to exactly those values.
+    a multiple of ``round_to`` metres (flights are planned in round numbers), so a survey
+    flown at 50/40/30 m bins to exactly those values despite +-2 m of terrain error.
     """
     alt = np.asarray(altitudes, dtype=np.float64)
     if len(alt) == 0:
@@ -354,7 +358,7 @@ def bin_altitudes(altitudes: np.ndarray, nominal: list[float] | None = None, *, 
     out = np.empty(len(alt), dtype=int)
     for c in np.unique(cluster):
         sel = cluster == c
-        out[sel] = int(round(float(np.median(alt[sel]))))
+        out[sel] = int(round(float(np.median(alt[sel])) / round_to) * round_to)
     return out
 
 

@@ -1,0 +1,104 @@
+// REST client for /api. Every failure becomes an ApiError with a readable message
+// (the backend's {"detail": ...}, or a sentence for network errors) so pages can show it.
+
+export class ApiError extends Error {
+  constructor(status, message, body = null) {
+    super(message);
+    this.name = "ApiError";
+    this.status = status;
+    this.body = body;
+  }
+}
+
+const STATUS_HINT = {
+  401: "You are not logged in (or your session expired).",
+  403: "Your role is not allowed to do this.",
+  404: "Not found.",
+  409: "Someone else changed this in the meantime.",
+  413: "The upload is too large.",
+  422: "The input was not accepted.",
+  429: "Too many attempts; wait a moment and retry.",
+};
+
+/** Turn a FastAPI error body into one readable sentence. */
+export function readableDetail(status, body, statusText = "") {
+  let detail = body && body.detail !== undefined ? body.detail : null;
+  if (Array.isArray(detail)) {
+    // pydantic validation errors: [{loc: [...], msg: "..."}]
+    detail = detail
+      .map((d) => {
+        const loc = Array.isArray(d.loc) ? d.loc.filter((p) => p !== "body").join(".") : "";
+        return loc ? `${loc}: ${d.msg}` : d.msg;
+      })
+      .join("; ");
+  } else if (detail && typeof detail === "object") {
+    detail = detail.message || JSON.stringify(detail);
+  }
+  const hint = STATUS_HINT[status] || `The server answered ${status} ${statusText}.`;
+  if (!detail) return hint;
+  return status >= 500 ? `Server error (${status}): ${detail}` : String(detail);
+}
+
+async function send(method, path, { json, body, headers = {}, keepalive = false } = {}) {
+  const init = { method, headers: { ...headers }, credentials: "same-origin", keepalive };
+  if (json !== undefined) {
+    init.body = JSON.stringify(json);
+    init.headers["Content-Type"] = "application/json";
+  } else if (body !== undefined) {
+    init.body = body;
+  }
+  let res;
+  try {
+    res = await fetch(path.startsWith("/") ? `/api${path}` : path, init);
+  } catch (e) {
+    throw new ApiError(0, `Cannot reach the server (${e.message}). Check the connection and retry.`);
+  }
+  if (!res.ok) {
+    let parsed = null;
+    try {
+      parsed = await res.json();
+    } catch {
+      parsed = null;
+    }
+    throw new ApiError(res.status, readableDetail(res.status, parsed, res.statusText), parsed);
+  }
+  return res;
+}
+
+async function asJson(res) {
+  if (res.status === 204) return null;
+  const text = await res.text();
+  return text ? JSON.parse(text) : null;
+}
+
+export const api = {
+  send,
+  async get(path) {
+    return asJson(await send("GET", path));
+  },
+  async post(path, json) {
+    return asJson(await send("POST", path, { json: json ?? {} }));
+  },
+  async patch(path, json) {
+    return asJson(await send("PATCH", path, { json }));
+  },
+  async put(path, json) {
+    return asJson(await send("PUT", path, { json }));
+  },
+  /** GET a binary resource; returns {blob, etag} or null on 404. */
+  async blob(path, { allow404 = true } = {}) {
+    try {
+      const res = await send("GET", path);
+      return { blob: await res.blob(), etag: parseEtag(res.headers.get("ETag")) };
+    } catch (e) {
+      if (allow404 && e instanceof ApiError && e.status === 404) return null;
+      throw e;
+    }
+  },
+};
+
+/** 'W/"12"' -> '12' */
+export function parseEtag(v) {
+  if (!v) return null;
+  return v.replace(/^W\//, "").replace(/^"(.*)"$/, "$1");
+}

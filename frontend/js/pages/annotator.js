@@ -1,0 +1,538 @@
+// Annotator page: take the next frame from the queue, paint its mask at full resolution,
+// autosave drafts (idle + leaving) with If-Match, submit, resolve 409 conflicts without
+// losing either version, prefill from the lifted 3D labels.
+
+import { api, ApiError } from "../core/api.js";
+import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.js";
+import { encodeGreyPng, decodeIdPng, resizeIds } from "../core/png.js";
+import { Editor } from "../paint/editor.js";
+
+const IDLE_SAVE_MS = 2500;
+
+export async function mount(root, ctx) {
+  const page = new AnnotatorPage(root, ctx);
+  await page.start();
+  return page;
+}
+
+class AnnotatorPage {
+  constructor(root, ctx) {
+    this.root = root;
+    this.ctx = ctx;
+    this.editor = null;
+    this.frame = null;
+    this.scene = null;
+    this.version = null; // mask version the editor content is based on ("none" = no mask yet)
+    this.editSeq = 0;
+    this.savedSeq = 0;
+    this.saving = null;
+    this.idleTimer = null;
+    this.stats = { openMs: null, saves: [] };
+    this._listeners = [];
+    window.__occufly = { page: this }; // used by the e2e tests and bench/bench_browser.py
+  }
+
+  get unsaved() {
+    return this.editSeq !== this.savedSeq;
+  }
+
+  listen(target, type, fn, opts) {
+    target.addEventListener(type, fn, opts);
+    this._listeners.push(() => target.removeEventListener(type, fn, opts));
+  }
+
+  async start() {
+    const scenes = await api.get("/scenes");
+    this.scenes = scenes || [];
+    this.sceneSel = el(
+      "select",
+      { id: "scene-select", "aria-label": "Scene" },
+      this.scenes.map((s) => el("option", { value: s.id }, `${s.name} (${s.n_selected ?? "?"} selected)`)),
+    );
+    const want = this.ctx.params.scene;
+    if (want) this.sceneSel.value = want;
+    this.sceneSel.addEventListener("change", () => this.ctx.setParams({ scene: this.sceneSel.value, frame: null }));
+    this.nextBtn = el("button", { type: "button", class: "primary", id: "next-frame", onclick: () => this.next() }, "Next frame");
+    this.frameInfo = el("span", { class: "frame-info", id: "frame-info" }, "No frame open");
+    this.saveState = el("span", { class: "save-state", id: "save-state", role: "status" }, "");
+    this.paintedEl = el("span", { class: "painted", id: "painted" }, "");
+    this.prefillBtn = el("button", { type: "button", id: "prefill", disabled: true, onclick: () => this.prefill(), title: "Start from the lifted 3D labels rendered into this frame" }, "Prefill from 3D");
+    this.draftBtn = el("button", { type: "button", id: "save-draft", disabled: true, onclick: () => this.save("draft"), title: "Save a draft (Ctrl+S)" }, "Save draft");
+    this.submitBtn = el("button", { type: "button", id: "submit", class: "primary", disabled: true, onclick: () => this.submit(), title: "Submit for review (Ctrl+Enter)" }, "Submit");
+    this.host = el("div", { class: "canvas-host", id: "canvas-host" }, el("p", { class: "empty-hint" }, 'Press "Next frame" to get a frame from the annotation queue.'));
+    this.toolsEl = el("div", { class: "tools", role: "toolbar", "aria-label": "Painting tools" });
+    this.paletteEl = el("div", { class: "palette", role: "radiogroup", "aria-label": "Class palette" });
+    this.sideEl = el("div", { class: "side-info" });
+    this.statusEl = el("div", { class: "statusline", id: "status" }, "");
+    this.root.append(
+      el(
+        "section",
+        { class: "annotator", "aria-label": "Annotator" },
+        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.frameInfo, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.prefillBtn, this.draftBtn, this.submitBtn),
+        el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right" }, el("h2", {}, "Classes"), this.paletteEl, this.sideEl)),
+        this.statusEl,
+      ),
+    );
+    this.listen(document, "keydown", (e) => this.onKey(e));
+    this.listen(document, "keyup", (e) => this.onKey(e));
+    this.listen(window, "beforeunload", (e) => {
+      if (this.unsaved) {
+        this.saveOnLeave();
+        e.preventDefault();
+        e.returnValue = "";
+      }
+    });
+    this.listen(document, "visibilitychange", () => {
+      if (document.visibilityState === "hidden" && this.unsaved) this.saveOnLeave();
+    });
+    this.listen(window, "pagehide", () => {
+      if (this.unsaved) this.saveOnLeave();
+    });
+    if (!this.scenes.length) {
+      this.host.replaceChildren(el("p", { class: "empty-hint" }, "There is no scene yet. An admin has to import one first."));
+      this.nextBtn.disabled = true;
+      return;
+    }
+    if (this.ctx.params.frame) await this.open(Number(this.ctx.params.frame));
+  }
+
+  async unmount() {
+    clearTimeout(this.idleTimer);
+    if (this.unsaved && this.frame) {
+      try {
+        await this.save("draft");
+      } catch (e) {
+        showError(e);
+      }
+    }
+    for (const off of this._listeners) off();
+    this.editor?.destroy();
+    if (window.__occufly?.page === this) delete window.__occufly;
+  }
+
+  status(msg) {
+    this.statusEl.textContent = msg;
+  }
+
+  async sceneDetail(sid) {
+    if (this.scene && String(this.scene.id) === String(sid)) return this.scene;
+    this.scene = await api.get(`/scenes/${sid}`);
+    return this.scene;
+  }
+
+  async next() {
+    if (this.frame && this.unsaved) await this.save("draft");
+    this.nextBtn.disabled = true;
+    try {
+      const f = await api.post(`/scenes/${this.sceneSel.value}/next`);
+      if (!f) {
+        toast("The queue is empty: every selected frame is taken or done.");
+        this.host.replaceChildren(el("p", { class: "empty-hint" }, "The annotation queue is empty. Thank you!"));
+        return;
+      }
+      this.ctx.setParams({ scene: this.sceneSel.value, frame: f.id });
+      await this.open(f.id);
+    } catch (e) {
+      showError(e);
+    } finally {
+      this.nextBtn.disabled = false;
+    }
+  }
+
+  async open(fid) {
+    const t0 = performance.now();
+    this.status("Opening frame…");
+    const frame = await api.get(`/frames/${fid}`);
+    const sid = frame.scene_id ?? this.sceneSel.value;
+    if (frame.scene_id !== undefined) this.sceneSel.value = String(frame.scene_id);
+    const [scene, imgRes, maskRes, items] = await Promise.all([
+      this.sceneDetail(sid),
+      api.send("GET", `/frames/${fid}/image`).then((r) => r.blob()),
+      api.blob(`/frames/${fid}/mask`),
+      api.get(`/scenes/${sid}/review-items`).catch(() => []),
+    ]);
+    const [bitmap, decoded] = await Promise.all([createImageBitmap(imgRes), maskRes ? decodeIdPng(maskRes.blob) : null]);
+    const classes = (scene.taxonomy && scene.taxonomy.classes) || [];
+    if (!classes.length) throw new Error(`Scene ${scene.name} has no taxonomy classes; cannot paint.`);
+    const W = frame.width || bitmap.width;
+    const H = frame.height || bitmap.height;
+    this.editor?.destroy();
+    this.host.replaceChildren();
+    this.frame = frame;
+    const ed = new Editor(this.host, { width: W, height: H, classes });
+    this.editor = ed;
+    ed.setPhoto(bitmap);
+    if (decoded) ed.mask.setAll(resizeIds(decoded.ids, decoded.width, decoded.height, W, H));
+    this.version = maskRes ? maskRes.etag || "none" : "none";
+    this.editSeq = this.savedSeq = 0;
+    ed.signals.edited.add(() => this.onEdited());
+    ed.signals.status.add((m) => this.status(m));
+    ed.mask.changed.add(() => this.schedulePainted());
+    this.buildTools();
+    this.buildPalette(classes);
+    this.items = (items || []).filter((it) => String(it.frame_id) === String(fid));
+    this.buildSide();
+    ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
+    ed.view.overlay.focus({ preventScroll: true });
+    this.frameInfo.textContent = `${frame.name} · ${W}×${H} · ${frame.state}`;
+    for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = false;
+    this.updatePainted();
+    this.updateSaveState();
+    await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+    this.stats.openMs = performance.now() - t0;
+    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, H pan, [ ] size, 1–0 classes, Ctrl+Z undo.`);
+  }
+
+  buildTools() {
+    const ed = this.editor;
+    const btns = Object.values(ed.tools).map((t) =>
+      el("button", { type: "button", class: "tool", "data-tool": t.name, "aria-pressed": String(t === ed.tool), title: `${t.label} (${t.key.toUpperCase()})`, onclick: () => ed.setTool(t.name) }, `${t.label}`, el("kbd", {}, t.key.toUpperCase())),
+    );
+    const size = el("input", { type: "range", id: "brush-size", min: 1, max: 400, value: ed.state.size });
+    const sizeOut = el("output", { for: "brush-size" }, `${ed.state.size} px`);
+    size.addEventListener("input", () => ed.setSize(Number(size.value)));
+    const op = el("input", { type: "range", id: "opacity", min: 0, max: 100, value: Math.round(ed.state.opacity * 100) });
+    const opOut = el("output", { for: "opacity" }, `${Math.round(ed.state.opacity * 100)} %`);
+    op.addEventListener("input", () => ed.setOpacity(Number(op.value) / 100));
+    const tol = el("input", { type: "range", id: "tolerance", min: 0, max: 128, value: ed.state.tolerance });
+    const tolOut = el("output", { for: "tolerance" }, `${ed.state.tolerance}`);
+    tol.addEventListener("input", () => {
+      ed.state.tolerance = Number(tol.value);
+      tolOut.textContent = tol.value;
+    });
+    const undo = el("button", { type: "button", id: "undo", title: "Undo (Ctrl+Z)", onclick: () => ed.undo() }, "Undo");
+    const redo = el("button", { type: "button", id: "redo", title: "Redo (Ctrl+Shift+Z)", onclick: () => ed.redo() }, "Redo");
+    const fit = el("button", { type: "button", title: "Fit to window (Home)", onclick: () => ed.view.fit() }, "Fit");
+    const refreshUndo = () => {
+      undo.disabled = !ed.history.undos.length;
+      redo.disabled = !ed.history.redos.length;
+    };
+    ed.history.changed.add(refreshUndo);
+    refreshUndo();
+    ed.signals.toolChanged.add((name) => btns.forEach((b) => b.setAttribute("aria-pressed", String(b.dataset.tool === name))));
+    ed.signals.sizeChanged.add((s) => {
+      size.value = s;
+      sizeOut.textContent = `${s} px`;
+    });
+    ed.signals.opacityChanged.add((a) => {
+      op.value = Math.round(a * 100);
+      opOut.textContent = `${Math.round(a * 100)} %`;
+    });
+    this.toolsEl.replaceChildren(
+      ...btns,
+      el("div", { class: "row" }, undo, redo, fit),
+      el("label", { for: "brush-size" }, "Brush size ", sizeOut),
+      size,
+      el("label", { for: "opacity" }, "Mask opacity (O) ", opOut),
+      op,
+      el("label", { for: "tolerance" }, "Flood tolerance ", tolOut),
+      tol,
+    );
+  }
+
+  buildPalette(classes) {
+    const ed = this.editor;
+    const keyOf = (i) => (i < 10 ? String((i + 1) % 10) : i < 20 ? `⇧${(i - 9) % 10}` : "");
+    const items = classes.map((c, i) =>
+      el(
+        "button",
+        { type: "button", role: "radio", class: "swatch-btn", "data-class": c.id, "aria-checked": String(c.id === ed.state.classId), title: `${c.name} (id ${c.id}, ${c.group})` },
+        el("span", { class: "swatch", style: { background: ed.classCss(c.id) } }),
+        el("kbd", {}, keyOf(i)),
+        el("span", {}, c.name),
+      ),
+    );
+    items.forEach((b) => b.addEventListener("click", () => ed.selectClass(Number(b.dataset.class))));
+    ed.signals.classChanged.add((id) => items.forEach((b) => b.setAttribute("aria-checked", String(Number(b.dataset.class) === id))));
+    this.paletteEl.replaceChildren(...items);
+  }
+
+  buildSide() {
+    const f = this.frame;
+    const parts = [];
+    if (f.state === "rejected") parts.push(el("p", { class: "notice" }, "A reviewer sent this frame back. See the comments below and on the image."));
+    if (this.items.length) {
+      parts.push(el("h2", {}, "Review comments"));
+      parts.push(
+        el(
+          "ul",
+          { class: "comments", id: "review-comments" },
+          this.items.map((it) =>
+            el(
+              "li",
+              {},
+              el("strong", {}, it.pixel ? `at (${Math.round(it.pixel[0])}, ${Math.round(it.pixel[1])}) ` : ""),
+              it.comment ?? it.text ?? "",
+              ...(it.comments || []).map((c) => el("div", { class: "reply" }, `${c.author ?? ""}: ${c.text ?? c.comment ?? ""}`)),
+              el("button", { type: "button", class: "link", onclick: () => this.jumpTo(it.pixel) }, it.pixel ? "show" : ""),
+            ),
+          ),
+        ),
+      );
+    }
+    const versions = el("details", { class: "versions" }, el("summary", {}, "Version history"));
+    versions.addEventListener("toggle", () => versions.open && this.loadVersions(versions));
+    parts.push(versions);
+    this.sideEl.replaceChildren(...parts);
+  }
+
+  async loadVersions(box) {
+    try {
+      const vs = await api.get(`/frames/${this.frame.id}/mask/versions`);
+      box.replaceChildren(
+        el("summary", {}, "Version history"),
+        vs && vs.length
+          ? el(
+              "ul",
+              { class: "version-list" },
+              vs.map((v) =>
+                el(
+                  "li",
+                  {},
+                  `v${v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
+                  el("button", { type: "button", class: "link", onclick: () => this.restore(v.version) }, "restore"),
+                  el("a", { href: `/api/frames/${this.frame.id}/mask/versions/${v.version}`, download: `${this.frame.name}_v${v.version}.png` }, "download"),
+                ),
+              ),
+            )
+          : el("p", {}, "No saved versions yet."),
+      );
+    } catch (e) {
+      showError(e);
+    }
+  }
+
+  async restore(vid) {
+    if (this.unsaved) await this.save("draft");
+    const r = await api.post(`/frames/${this.frame.id}/mask/versions/${vid}/restore`);
+    toast(`Restored version ${vid} as version ${r?.version ?? "?"}.`);
+    await this.open(this.frame.id);
+  }
+
+  jumpTo(px) {
+    if (!px || !this.editor) return;
+    const v = this.editor.view;
+    v.scale = Math.max(v.scale, 0.5);
+    v.tx = v.cssW / 2 - px[0] * v.scale;
+    v.ty = v.cssH / 2 - px[1] * v.scale;
+    v.invalidate();
+  }
+
+  drawPins(c, v) {
+    for (const it of this.items || []) {
+      if (!it.pixel) continue;
+      const [x, y] = v.toScreen(it.pixel[0], it.pixel[1]);
+      c.fillStyle = it.status === "resolved" ? "#6c6" : "#ff3b30";
+      c.strokeStyle = "#fff";
+      c.lineWidth = 2;
+      c.beginPath();
+      c.arc(x, y, 7, 0, Math.PI * 2);
+      c.fill();
+      c.stroke();
+    }
+  }
+
+  onKey(e) {
+    if (!this.editor) return;
+    const t = e.target;
+    if (t && (t.tagName === "INPUT" || t.tagName === "TEXTAREA" || t.tagName === "SELECT") && t.type !== "range") return;
+    if (document.querySelector("dialog[open]")) return;
+    if (e.type === "keydown" && (e.ctrlKey || e.metaKey) && e.key === "s") {
+      e.preventDefault();
+      this.save("draft").catch(showError);
+      return;
+    }
+    if (e.type === "keydown" && (e.ctrlKey || e.metaKey) && e.key === "Enter") {
+      e.preventDefault();
+      this.submit();
+      return;
+    }
+    if (t && t.tagName === "BUTTON" && (e.key === " " || e.key === "Enter")) return;
+    if (this.editor.handleKey(e)) e.preventDefault();
+  }
+
+  onEdited() {
+    this.editSeq++;
+    this.updateSaveState();
+    this.updatePainted();
+    clearTimeout(this.idleTimer);
+    this.idleTimer = setTimeout(() => this.save("draft").catch(showError), IDLE_SAVE_MS);
+  }
+
+  schedulePainted() {
+    if (this._paintedPending) return;
+    this._paintedPending = true;
+    setTimeout(() => {
+      this._paintedPending = false;
+      this.updatePainted();
+    }, 200);
+  }
+
+  updatePainted() {
+    if (!this.editor) return;
+    const s = this.editor.mask.paintedShare;
+    this.paintedEl.textContent = `Painted ${(100 * s).toFixed(1)} %`;
+    this.paintedEl.dataset.share = String(s);
+  }
+
+  updateSaveState(text) {
+    const el_ = this.saveState;
+    if (text) el_.textContent = text;
+    else if (this.saving) el_.textContent = "Saving…";
+    else if (this.unsaved) el_.textContent = "Unsaved changes";
+    else el_.textContent = this.version && this.version !== "none" ? `Saved (version ${this.version})` : "Nothing saved yet";
+    el_.dataset.state = this.saving ? "saving" : this.unsaved ? "unsaved" : "saved";
+  }
+
+  /** Encode the mask and PUT it; one save at a time. Returns the server's answer. */
+  async save(kind = "draft", { force = false } = {}) {
+    if (!this.editor || !this.frame) return null;
+    clearTimeout(this.idleTimer);
+    while (this.saving) await this.saving.catch(() => {});
+    if (kind === "draft" && !this.unsaved && !force) return null;
+    const run = this._save(kind);
+    this.saving = run;
+    this.updateSaveState();
+    try {
+      return await run;
+    } finally {
+      this.saving = null;
+      this.updateSaveState();
+    }
+  }
+
+  async _save(kind) {
+    const ed = this.editor;
+    const seq = this.editSeq;
+    const frame = this.frame;
+    const t0 = performance.now();
+    const blob = await encodeGreyPng(ed.mask.ids, ed.mask.width, ed.mask.height);
+    const tEnc = performance.now();
+    try {
+      const res = await api.send("PUT", `/frames/${frame.id}/mask?kind=${kind}`, {
+        body: blob,
+        headers: { "Content-Type": "image/png", "If-Match": String(this.version ?? "none") },
+      });
+      const body = await res.json();
+      this.version = String(body.version);
+      if (this.editSeq === seq) this.savedSeq = seq;
+      else this.savedSeq = Math.min(this.savedSeq, seq);
+      this.stats.saves.push({ kind, bytes: blob.size, rawBytes: ed.mask.ids.length, encodeMs: tEnc - t0, totalMs: performance.now() - t0, version: this.version });
+      if (kind === "submitted") this.frame.state = body.frame_state ?? "submitted";
+      return body;
+    } catch (e) {
+      if (e instanceof ApiError && e.status === 409) return this.conflict(kind, blob, e);
+      throw e;
+    }
+  }
+
+  /** 409: another session saved first. Keep both versions; let the user choose. */
+  async conflict(kind, mine, err) {
+    const theirs = err.body && err.body.current_version != null ? String(err.body.current_version) : null;
+    for (;;) {
+      const choice = await dialog({
+        title: "This mask was changed by someone else",
+        body: el(
+          "div",
+          {},
+          el("p", {}, `While you were painting, version ${theirs ?? "?"} of ${this.frame.name} was saved from another session.`),
+          el("p", {}, "Nothing is lost: your painting is still in this editor (the server also keeps your upload as a conflict version), and theirs is stored on the server. Choose what to do:"),
+          el("ul", {}, el("li", {}, "Keep mine: save your mask as a new version on top of theirs."), el("li", {}, "Load theirs: show their version here; Undo (Ctrl+Z) brings yours back."), el("li", {}, "Download mine: save your mask as a PNG file, then choose again.")),
+        ),
+        buttons: [
+          { label: "Keep mine as new version", value: "mine", primary: true },
+          { label: "Load theirs", value: "theirs" },
+          { label: "Download mine", value: "download" },
+        ],
+        cancelValue: "later",
+      });
+      if (choice === "download") {
+        downloadBlob(mine, `${this.frame.name.replace(/\.[^.]+$/, "")}_mine.png`);
+        continue;
+      }
+      if (choice === "mine") {
+        this.version = theirs ?? "none";
+        return this._save(kind);
+      }
+      if (choice === "theirs") {
+        const r = await api.blob(theirs ? `/frames/${this.frame.id}/mask/versions/${theirs}` : `/frames/${this.frame.id}/mask`);
+        if (r) {
+          const d = await decodeIdPng(r.blob);
+          this.editor.replaceIds("load their version", resizeIds(d.ids, d.width, d.height, this.editor.mask.width, this.editor.mask.height));
+        }
+        this.version = theirs ?? (r && r.etag) ?? "none";
+        this.savedSeq = this.editSeq;
+        clearTimeout(this.idleTimer);
+        toast("Loaded their version. Undo brings yours back.");
+        return null;
+      }
+      toast("Not saved yet: your changes stay in the editor.");
+      return null;
+    }
+  }
+
+  /** Best effort when the tab is hidden or closed: keepalive PUT if small enough. */
+  saveOnLeave() {
+    if (!this.editor || this.saving) return;
+    this.save("draft").catch(() => {});
+  }
+
+  async submit() {
+    if (!this.editor) return;
+    this.submitBtn.disabled = true;
+    try {
+      const r = await this.save("submitted", { force: true });
+      if (r) {
+        toast(`Submitted version ${r.version}. Press "Next frame" for the next one.`);
+        this.frameInfo.textContent = `${this.frame.name} · submitted (version ${r.version})`;
+        this.updateSaveState(`Submitted (version ${r.version})`);
+      }
+    } catch (e) {
+      showError(e);
+    } finally {
+      this.submitBtn.disabled = false;
+    }
+  }
+
+  async prefill() {
+    const ed = this.editor;
+    this.prefillBtn.disabled = true;
+    try {
+      this.status("Rendering the lifted 3D labels into this frame…");
+      const r = await api.blob(`/frames/${this.frame.id}/prefill`);
+      if (!r) {
+        toast("No 3D labels to prefill from yet.");
+        return;
+      }
+      const d = await decodeIdPng(r.blob);
+      const ids = resizeIds(d.ids, d.width, d.height, ed.mask.width, ed.mask.height);
+      let n = 0;
+      for (let i = 0; i < ids.length; i++) if (ids[i]) n++;
+      if (!n) {
+        toast("The 3D labels do not cover this frame yet (prefill is empty).");
+        this.status("Prefill is empty.");
+        return;
+      }
+      let onlyUnpainted = false;
+      if (ed.mask.painted > 0) {
+        const c = await dialog({
+          title: "Prefill from 3D",
+          body: el("p", {}, "This frame already has painted pixels. Fill only the unpainted pixels, or replace everything with the 3D labels? (Undo reverts either.)"),
+          buttons: [
+            { label: "Fill unpainted only", value: "unpainted", primary: true },
+            { label: "Replace everything", value: "all" },
+            { label: "Cancel", value: null },
+          ],
+        });
+        if (!c) return;
+        onlyUnpainted = c === "unpainted";
+      }
+      ed.replaceIds("prefill from 3D", ids, { onlyUnpainted });
+      this.status(`Prefilled ${(100 * (n / ids.length)).toFixed(1)} % of the frame from the 3D labels. Correct it with the tools.`);
+    } catch (e) {
+      showError(e);
+    } finally {
+      this.prefillBtn.disabled = false;
+    }
+  }
+}

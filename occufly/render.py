@@ -1,0 +1,221 @@
+"""Render the semantic point cloud into a frame; 2D agreement with painted masks.
+
+Rendering is a z-buffered splat of every point (labelled or not: unlabelled points still
+occlude and render as 0). A point at depth z covers the ``s x s`` pixels whose centres lie within
+``s / 2`` of its projection, ``s = clip(ceil(1.2 * f * spacing / z), 1, 8)`` (``f`` focal
+length in pixels at the render scale, ``spacing`` the typical point spacing), so surfaces stay
+closed while far points stay sharp. Depth and label are packed into one uint64 key (float32 depth bits,
+which order like the floats for positive values, then the label) so a single
+``np.minimum.at`` per splat offset keeps the nearest point's label.
+
+Agreement (the paper's validation metric, FORMATS.md section 5): the share of pixels where a
+mask and the rendering both have a label (mask not 0/255, rendering not 0) and agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occufly.camera import transform
+from occufly.scene import Scene
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+
+MAX_SPLAT = 8  # largest splat side in pixels (radius 4)
+SPLAT_FACTOR = 1.2
+_SPACING_CACHE: dict[tuple[int, int], float] = {}
+
+
+def estimate_point_spacing(xyz: np.ndarray, *, sample: int = 200_000, queries: int = 5000,
+                           seed: int = 0) -> float:
+    """Median nearest-neighbour distance of the cloud, from a subsample.
+
+    xyz: (N, 3) float32 scene-local metres. Aerial clouds are surfaces, so the spacing of an
+    m-point subsample is scaled by sqrt(m / N).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    if n < 2:
+        return 1.0
+    rng = np.random.default_rng(seed)
+    m = min(n, sample)
+    sub = np.asarray(xyz[np.sort(rng.choice(n, size=m, replace=False))] if m < n else xyz,
+                     dtype=np.float64)
+    tree = cKDTree(sub)
+    q = sub[rng.choice(m, size=min(queries, m), replace=False)]
+    d, _ = tree.query(q, k=2)
+    d = d[:, 1]
+    d = d[np.isfinite(d) & (d > 0)]
+    if not len(d):
+        return 1.0
+    return float(np.median(d) * np.sqrt(m / n))
+
+
+def scene_point_spacing(scene: Scene) -> float:
+    """Cached :func:`estimate_point_spacing` of a scene (``scene.meta['point_spacing']`` wins)."""
+    if "point_spacing" in scene.meta:
+        return float(scene.meta["point_spacing"])
+    key = (id(scene.xyz), scene.n_points)
+    if key not in _SPACING_CACHE:
+        _SPACING_CACHE[key] = estimate_point_spacing(scene.xyz)
+    return _SPACING_CACHE[key]
+
+
+def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
+                  point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
+                  chunk: int = 2_000_000
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Render per-point labels into frame ``frame_index``.
+
+    labels: (N,) uint8 raw class ids (0 = unlabelled). scale: resolution factor (0.25 = quarter).
+    Returns ((h, w) uint8 class image, 0 = nothing; (h, w) float32 depth in metres, 0 = none).
+    """
+    labels = np.asarray(labels)
+    if labels.shape != (scene.n_points,):
+        raise ValueError(f"labels must be ({scene.n_points},), got {labels.shape}")
+    frame = scene.frames[frame_index]
+    cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
+    h, w = cam.height, cam.width
+    spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    f = 0.5 * sum(cam.focal)
+    zbuf = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
+    for a in range(0, scene.n_points, chunk):
+        b = min(scene.n_points, a + chunk)
+        xyz_cam = transform(frame.T_cam_world, scene.xyz[a:b])
+        front = xyz_cam[:, 2] > 1e-6
+        idx = np.flatnonzero(front)
+        uv, z = cam.project(xyz_cam[idx])
+        # keep points whose largest splat could touch the image
+        ok = ((uv[:, 0] >= -MAX_SPLAT) & (uv[:, 0] < w + MAX_SPLAT)
+              & (uv[:, 1] >= -MAX_SPLAT) & (uv[:, 1] < h + MAX_SPLAT))
+        idx, uv, z = idx[ok], uv[ok], z[ok]
+        if not len(idx):
+            continue
+        size = np.clip(np.ceil(splat_factor * f * spacing / z), 1, MAX_SPLAT).astype(np.int64)
+        # the s x s pixels whose centres lie within s/2 of the projected point
+        col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
+        row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
+        key = (z.astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(8)) | \
+            labels[a:b][idx].astype(np.uint64)
+        for dy in range(MAX_SPLAT):
+            for dx in range(MAX_SPLAT):
+                sel = np.flatnonzero(size > max(dx, dy))
+                if not len(sel):
+                    break
+                r = row0[sel] + dy
+                c = col0[sel] + dx
+                inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+                np.minimum.at(zbuf, r[inside] * w + c[inside], key[sel[inside]])
+    hit = zbuf != np.iinfo(np.uint64).max
+    cls = np.zeros(h * w, dtype=np.uint8)
+    cls[hit] = (zbuf[hit] & np.uint64(255)).astype(np.uint8)
+    depth = np.zeros(h * w, dtype=np.float32)
+    depth[hit] = (zbuf[hit] >> np.uint64(8)).astype(np.uint32).view(np.float32)
+    return cls.reshape(h, w), depth.reshape(h, w)
+
+
+def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int, mask_shape: tuple[int, int],
+                    **kw) -> tuple[np.ndarray, np.ndarray]:
+    """Render at the resolution of a (possibly downscaled) mask of that frame."""
+    W = scene.frames[frame_index].camera.width
+    s = W // int(mask_shape[1])
+    cls, depth = render_labels(scene, labels, frame_index, scale=1.0 / s, **kw)
+    if cls.shape != tuple(mask_shape):
+        raise ValueError(f"rendered {cls.shape} does not match mask {tuple(mask_shape)}")
+    return cls, depth
+
+
+def _check_pair(mask: np.ndarray, rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mask = np.asarray(mask)
+    rendered = np.asarray(rendered)
+    if mask.shape != rendered.shape or mask.ndim != 2:
+        raise ValueError(f"mask {mask.shape} and rendering {rendered.shape} must be the same (h, w)")
+    return mask.astype(np.uint8, copy=False), rendered.astype(np.uint8, copy=False)
+
+
+def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dict:
+    """Pixel agreement of a mask and a rendering, both (h, w) uint8 raw ids.
+
+    Counts pixels where the mask has a class (not 0 / 255) and the rendering has one (not 0).
+    Returns {"agreement", "pixels", "agree", "mask_pixels", "coverage" (share of mask-labelled
+    pixels the rendering covers), "per_class": {name: {mask_pixels, rendered_pixels, agree,
+    recall, precision, iou}}, "confusion": {"ids": [...], "matrix": C x C list, rows = mask}}.
+    """
+    mask, rendered = _check_pair(mask, rendered)
+    col_of = np.full(256, -1, dtype=np.int64)
+    col_of[taxonomy.ids] = np.arange(len(taxonomy))
+    C = len(taxonomy)
+    m_lab = (mask != EMPTY) & (mask != INVALID) & (col_of[mask] >= 0)
+    r_lab = col_of[rendered] >= 0
+    both = m_lab & r_lab
+    mc = col_of[mask[both]]
+    rc = col_of[rendered[both]]
+    conf = np.bincount(mc * C + rc, minlength=C * C).reshape(C, C)
+    agree = int(np.trace(conf))
+    pixels = int(both.sum())
+    mask_px = int(m_lab.sum())
+    per_class = {}
+    rows, cols_ = conf.sum(axis=1), conf.sum(axis=0)
+    for i, c in enumerate(taxonomy.classes):
+        if rows[i] == 0 and cols_[i] == 0:
+            continue
+        tp = int(conf[i, i])
+        union = int(rows[i] + cols_[i] - tp)
+        per_class[c.name] = {
+            "id": c.id,
+            "mask_pixels": int(rows[i]),
+            "rendered_pixels": int(cols_[i]),
+            "agree": tp,
+            "recall": tp / int(rows[i]) if rows[i] else None,
+            "precision": tp / int(cols_[i]) if cols_[i] else None,
+            "iou": tp / union if union else None,
+        }
+    return {
+        "agreement": agree / pixels if pixels else None,
+        "pixels": pixels,
+        "agree": agree,
+        "mask_pixels": mask_px,
+        "coverage": pixels / mask_px if mask_px else None,
+        "per_class": per_class,
+        "confusion": {"ids": [int(i) for i in taxonomy.ids], "matrix": conf.tolist()},
+    }
+
+
+def merge_agreements(results: list[dict]) -> dict:
+    """Pixel-weighted total over several :func:`agreement` results."""
+    pixels = sum(r["pixels"] for r in results)
+    agree = sum(r["agree"] for r in results)
+    mask_px = sum(r["mask_pixels"] for r in results)
+    out = {"agreement": agree / pixels if pixels else None, "pixels": pixels, "agree": agree,
+           "mask_pixels": mask_px, "coverage": pixels / mask_px if mask_px else None}
+    if results:
+        mats = [np.asarray(r["confusion"]["matrix"]) for r in results]
+        conf = np.sum(mats, axis=0)
+        ids = results[0]["confusion"]["ids"]
+        tp = np.diag(conf)
+        union = conf.sum(0) + conf.sum(1) - tp
+        out["per_class_iou"] = {int(i): (float(tp[k] / union[k]) if union[k] else None)
+                                for k, i in enumerate(ids) if union[k]}
+        out["confusion"] = {"ids": ids, "matrix": conf.tolist()}
+    return out
+
+
+def disagreement_image(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> np.ndarray:
+    """(h, w, 4) uint8 RGBA overlay for reviewers.
+
+    Where both have a label and disagree: the *rendered* class colour, opaque (alpha 230).
+    Where the mask has a label the rendering does not cover: grey, alpha 96. Elsewhere
+    (agreement, unpainted, ignore): fully transparent.
+    """
+    mask, rendered = _check_pair(mask, rendered)
+    valid = taxonomy.valid_lut()
+    m_lab = valid[mask]
+    r_lab = valid[rendered]
+    out = np.zeros(mask.shape + (4,), dtype=np.uint8)
+    dis = m_lab & r_lab & (mask != rendered)
+    lut = taxonomy.colour_lut()
+    out[dis, :3] = lut[rendered[dis]]
+    out[dis, 3] = 230
+    gap = m_lab & ~r_lab
+    out[gap] = (128, 128, 128, 96)
+    return out

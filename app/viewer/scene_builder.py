@@ -136,38 +136,34 @@ def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
 
 
 # ---- level of detail ---------------------------------------------------------------------
-def class_quotas(counts: np.ndarray, max_points: int) -> np.ndarray:
-    """Stratified budget: water-filling so that small classes are kept whole.
+def class_quotas(counts: np.ndarray, max_points: int, *, floor_share: float = 0.25) -> np.ndarray:
+    """Stratified LOD budget per class: a guaranteed floor, the rest proportional.
 
-    counts: (C,) int points per class. Returns (C,) int64 quotas with quota <= count,
-    sum(quota) == min(sum(counts), max_points), and every class that has points getting at
-    least min(count, max_points // C) points (a rare class is never squeezed out).
+    counts: (C,) int points per class. Every class present first gets
+    ``min(count, floor_share * max_points / classes_present)`` points (so a rare class is kept
+    whole and never squeezed out by a dominant one); the remaining budget is shared in
+    proportion to the points each class has left, which keeps the relative density of the
+    large classes. Returns (C,) int64 quotas with ``quota <= count`` and
+    ``sum == min(sum(counts), max_points)``.
     """
     counts = np.asarray(counts, dtype=np.int64)
-    total = int(counts.sum())
     if max_points < 0:
         raise ValueError(f"max_points must be >= 0, got {max_points}")
+    total = int(counts.sum())
     if total <= max_points:
         return counts.copy()
-    order = np.argsort(counts, kind="stable")
-    quotas = np.zeros_like(counts)
-    remaining = int(max_points)
-    left = len(counts)
-    for ci in order:  # loop over classes (<= 256), not points
-        share = remaining // left
-        q = min(int(counts[ci]), share)
-        quotas[ci] = q
-        remaining -= q
-        left -= 1
-    # distribute the rounding remainder to the classes that still have points to give
-    if remaining > 0:
-        spare = counts - quotas
-        for ci in np.argsort(-spare, kind="stable"):
-            if remaining == 0:
-                break
-            add = min(int(spare[ci]), remaining)
-            quotas[ci] += add
-            remaining -= add
+    n_present = int((counts > 0).sum())
+    floor = np.minimum(counts, int(floor_share * max_points / n_present))
+    budget = int(max_points - floor.sum())
+    rest = counts - floor
+    share = rest * (budget / float(rest.sum()))
+    quotas = floor + np.floor(share).astype(np.int64)
+    quotas = np.minimum(quotas, counts)
+    short = int(max_points - quotas.sum())
+    if short > 0:  # hand out the rounding remainder by largest fractional part
+        frac = np.where(quotas < counts, share - np.floor(share), -1.0)
+        for ci in np.argsort(-frac, kind="stable")[:short]:
+            quotas[ci] += 1
     return quotas
 
 

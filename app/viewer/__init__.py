@@ -1,0 +1,104 @@
+"""3D review viewer (viser), reached only through the app under ``/viewer/``.
+
+Integration (the backend calls exactly this from ``create_app``)::
+
+    from app import viewer
+    viewer.mount(app, settings=settings, authorize=authorize)
+
+``mount(fastapi_app, *, settings, authorize, identify=None, scenes=None, frame_states=None,
+frame_mask=None, on_review_item=None, max_points=None, prefix="/viewer") -> None``
+
+- ``authorize(request_or_websocket) -> bool`` (sync or async): True for a logged-in reviewer
+  or admin (cookie ``occufly_session`` or bearer). It may also raise ``HTTPException(401/403)``.
+  False gives 401 when the request carries no credentials, else 403; websockets are closed
+  with code 1008.
+- ``identify(request_or_websocket) -> user`` (optional): the user object handed to
+  ``on_review_item``; default ``websocket.state.user`` if ``authorize`` set it, else None.
+- ``scenes() -> {scene_id: (name, workspace_path)}`` (optional): the scenes a reviewer can
+  open; default: every workspace (a folder with ``scene.json``) up to three levels below
+  ``settings.data_dir``, id = folder name. Open a scene with ``/viewer/?scene=<id>``.
+- ``frame_states(scene_id) -> {frame_index: state}`` (optional) with state one of
+  ``not_selected | selected | annotated | accepted | rejected`` (see
+  :func:`app.viewer.scene_builder.viewer_state` to map the API's ``selected`` + ``state``).
+- ``frame_mask(scene_id, frame_index) -> (h, w) uint8 | None`` (optional): current mask,
+  shown in the side panel when a frustum is clicked.
+- ``on_review_item(scene_id, point_ids, comment, user)``: called when a reviewer files a
+  review item from a rectangle selection; default ``app.review.service.create_item_from_3d``
+  if that exists.
+- ``max_points``: LOD default (else ``settings.viewer_max_points``, else 2,000,000).
+
+Live update: ``app.state.viewer.refresh(scene_id, classes=None)`` re-sends the affected class
+nodes to open viewers (also triggered automatically within ~2 s when ``lifting/labels.npy``,
+``confidence.npy``, ``origin.npy`` or ``grid/scene_grid.npz`` change on disk).
+
+The viser server binds 127.0.0.1 on a free port, starts with the app (or on the first
+``/viewer/`` request) and never creates a share link.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from app.viewer import scene_builder
+from app.viewer.scene_builder import DEFAULT_MAX_POINTS
+from app.viewer.server import ViewerService, default_scenes
+
+__all__ = ["mount", "ViewerService", "scene_builder"]
+
+log = logging.getLogger(__name__)
+
+
+def _default_review_hook() -> Callable[..., Any] | None:
+    try:
+        from app.review import service as review_service  # the backend's
+    except ImportError:
+        return None
+    return getattr(review_service, "create_item_from_3d", None)
+
+
+def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
+          identify: Callable[[Any], Any] | None = None,
+          scenes: Callable[[], Any] | None = None,
+          frame_states: Callable[[str], Any] | None = None,
+          frame_mask: Callable[[str, int], Any] | None = None,
+          on_review_item: Callable[..., Any] | None = None,
+          max_points: int | None = None, prefix: str = "/viewer") -> None:
+    """Add the ``/viewer/`` proxy routes and the viser server's lifecycle to ``fastapi_app``.
+
+    The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
+    """
+    from app.viewer.proxy import add_routes
+
+    if max_points is None:
+        max_points = int(getattr(settings, "viewer_max_points", DEFAULT_MAX_POINTS))
+    if scenes is None:
+        scenes = default_scenes(Path(getattr(settings, "data_dir", "data")))
+    service = ViewerService(
+        scenes=scenes, frame_states=frame_states, frame_mask=frame_mask,
+        on_review_item=on_review_item if on_review_item is not None else _default_review_hook(),
+        max_points=max_points,
+    )
+    fastapi_app.state.viewer = service
+    add_routes(fastapi_app, service, authorize=authorize, identify=identify, prefix=prefix)
+
+    inner = fastapi_app.router.lifespan_context
+
+    @asynccontextmanager
+    async def lifespan(app: Any):  # noqa: ANN202
+        from starlette.concurrency import run_in_threadpool
+
+        async with inner(app) as state:
+            try:
+                await run_in_threadpool(service.start)
+            except Exception:  # noqa: BLE001 - the rest of the app must still come up
+                log.exception("viewer: viser server did not start; /viewer/ will retry")
+            try:
+                yield state
+            finally:
+                await run_in_threadpool(service.stop)
+
+    fastapi_app.router.lifespan_context = lifespan

@@ -1,0 +1,176 @@
+"""Reverse proxy: the viser page and websocket under ``/viewer/``, for authorised users only.
+
+- ``GET /viewer/`` and ``GET /viewer/{path}`` go to viser's HTTP server with httpx (cookies and
+  ``Authorization`` are *not* forwarded). ``?scene=<id>`` on the page is remembered in the
+  cookie ``occufly_viewer_scene`` (path ``/viewer``) because viser's client opens its
+  websocket at the page URL without the query string.
+- The websocket (``/viewer`` -- viser's client strips the trailing slash -- and ``/viewer/``)
+  is accepted only after ``authorize``; the upstream connection carries a one-time ticket
+  naming the user and scene (see :mod:`app.viewer.server`), then frames are pumped both ways.
+
+Refusals: HTTP 401 without credentials, 403 with credentials that ``authorize`` rejects (or the
+status of an ``HTTPException`` it raises); websockets are accepted and closed with code 1008.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import httpx
+from fastapi import FastAPI, HTTPException, Request, WebSocket
+from fastapi.responses import JSONResponse, RedirectResponse, Response
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocketDisconnect
+
+from app.viewer.server import TICKET_HEADER, ViewerService
+
+log = logging.getLogger(__name__)
+
+SCENE_COOKIE = "occufly_viewer_scene"
+SESSION_COOKIE = "occufly_session"
+POLICY_VIOLATION = 1008
+
+
+async def check_access(authorize: Callable[[Any], Any], conn: Request | WebSocket) -> int:
+    """200 when ``authorize(conn)`` admits the caller, else 401 (no credentials) or 403."""
+    try:
+        if inspect.iscoroutinefunction(authorize):
+            ok = await authorize(conn)
+        else:
+            ok = await run_in_threadpool(authorize, conn)
+            if inspect.isawaitable(ok):
+                ok = await ok
+    except HTTPException as e:
+        return int(e.status_code)
+    if ok:
+        return 200
+    has_credentials = SESSION_COOKIE in conn.cookies or bool(conn.headers.get("authorization"))
+    return 403 if has_credentials else 401
+
+
+def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any], Any],
+               identify: Callable[[Any], Any] | None = None, prefix: str = "/viewer") -> None:
+    """Register the proxy routes on ``app``."""
+    prefix = prefix.rstrip("/")
+    state: dict[str, httpx.AsyncClient] = {}
+
+    def http_client() -> httpx.AsyncClient:
+        if "c" not in state:
+            state["c"] = httpx.AsyncClient(timeout=30.0)
+        return state["c"]
+
+    def refusal(status: int) -> JSONResponse:
+        detail = ("log in to open the 3D viewer" if status == 401
+                  else "the 3D viewer is for reviewers and admins")
+        return JSONResponse({"detail": detail}, status_code=status)
+
+    async def page(request: Request, path: str = "") -> Response:
+        status = await check_access(authorize, request)
+        if status != 200:
+            return refusal(status)
+        if not service.running:
+            await run_in_threadpool(service.start)
+        url = f"http://127.0.0.1:{service.port}/{path}"
+        headers = {}
+        if "accept-encoding" in request.headers:
+            headers["accept-encoding"] = request.headers["accept-encoding"]
+        try:  # forward the raw (possibly gzip-encoded) body unchanged
+            client = http_client()
+            up = await client.send(client.build_request("GET", url, headers=headers), stream=True)
+            try:
+                body = b"".join([chunk async for chunk in up.aiter_raw()])
+            finally:
+                await up.aclose()
+        except httpx.HTTPError as e:
+            return JSONResponse({"detail": f"3D viewer is not reachable: {e}"}, status_code=502)
+        keep = {k: v for k, v in up.headers.items()
+                if k.lower() in ("content-type", "content-encoding", "cache-control", "etag")}
+        keep["X-Content-Type-Options"] = "nosniff"
+        resp = Response(body, status_code=up.status_code, headers=keep)
+        scene = request.query_params.get("scene")
+        if scene is not None and path in ("", "index.html"):
+            resp.set_cookie(SCENE_COOKIE, scene, path=prefix, httponly=True, samesite="lax")
+        return resp
+
+    async def redirect(request: Request) -> Response:
+        q = request.url.query
+        return RedirectResponse(f"{prefix}/" + (f"?{q}" if q else ""), status_code=307)
+
+    async def socket(websocket: WebSocket) -> None:
+        status = await check_access(authorize, websocket)
+        if status != 200:
+            await websocket.accept()
+            await websocket.close(code=POLICY_VIOLATION,
+                                  reason="not logged in" if status == 401 else "forbidden")
+            return
+        if not service.running:
+            await run_in_threadpool(service.start)
+        user = None
+        if identify is not None:
+            user = identify(websocket)
+            if inspect.isawaitable(user):
+                user = await user
+        else:
+            user = getattr(websocket.state, "user", None)
+        scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
+        ticket = service.issue_ticket(user, scene_id)
+        await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket)
+
+    app.add_api_route(f"{prefix}/", page, methods=["GET"], include_in_schema=False)
+    app.add_api_route(f"{prefix}/{{path:path}}", page, methods=["GET"], include_in_schema=False)
+    app.add_api_route(prefix, redirect, methods=["GET"], include_in_schema=False)
+    app.add_api_websocket_route(prefix, socket)
+    app.add_api_websocket_route(f"{prefix}/", socket)
+
+
+async def pump(websocket: WebSocket, upstream_url: str, ticket: str) -> None:
+    """Connect upstream with the ticket, accept the browser, forward frames both ways."""
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    protocols = list(websocket.scope.get("subprotocols") or [])
+    try:
+        upstream = await connect(upstream_url, subprotocols=protocols or None,
+                                 additional_headers={TICKET_HEADER: ticket}, max_size=None,
+                                 compression=None, open_timeout=10, ping_interval=None)
+    except (OSError, asyncio.TimeoutError, Exception) as e:  # noqa: BLE001
+        log.warning("viewer proxy: upstream connect failed: %s", e)
+        await websocket.accept()
+        await websocket.close(code=1011, reason="3D viewer is not reachable")
+        return
+    await websocket.accept(subprotocol=upstream.subprotocol)
+
+    async def browser_to_viser() -> None:
+        while True:
+            msg = await websocket.receive()
+            if msg["type"] == "websocket.disconnect":
+                return
+            if msg.get("bytes") is not None:
+                await upstream.send(msg["bytes"])
+            elif msg.get("text") is not None:
+                await upstream.send(msg["text"])
+
+    async def viser_to_browser() -> None:
+        async for m in upstream:
+            if isinstance(m, bytes):
+                await websocket.send_bytes(m)
+            else:
+                await websocket.send_text(m)
+
+    tasks = [asyncio.create_task(browser_to_viser()), asyncio.create_task(viser_to_browser())]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await upstream.close()
+        code = upstream.close_code or 1000
+        try:
+            await websocket.close(code=code if code != 1006 else 1011)
+        except (RuntimeError, WebSocketDisconnect, ConnectionClosed):
+            pass

@@ -1,0 +1,682 @@
+"""The viser server behind ``/viewer/``: per-client state, GUI, review from 3D, live refresh.
+
+The server binds 127.0.0.1 on a free port and never requests a share link. A browser reaches
+it only through the app's proxy (:mod:`app.viewer.proxy`), which authenticates the user and
+hands the upstream connection a one-time *ticket* (header ``X-Occufly-Viewer-Ticket``) naming
+the user and the scene. A connection without a valid ticket (e.g. another local process
+talking to the loopback port directly) gets nothing but a notice and is closed.
+
+Each client has its own scene (``client.scene``) so reviewers can pick colour modes, classes
+and LOD independently. Heavy work (loading, subsampling, colouring) runs in viser's thread
+pool; live refreshes run in one background thread and are coalesced per scene.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.viewer import scene_builder as sb
+
+log = logging.getLogger(__name__)
+
+TICKET_HEADER = "X-Occufly-Viewer-Ticket"
+TICKET_TTL_S = 60.0
+
+# scene id -> (display name, workspace folder)
+ScenesFn = Callable[[], Mapping[str, tuple[str, Path]]]
+# scene id -> {frame index: viewer state}
+FrameStatesFn = Callable[[str], Mapping[int, str]]
+# (scene id, frame index) -> (h, w) uint8 raw-id mask or None
+FrameMaskFn = Callable[[str, int], np.ndarray | None]
+ReviewItemFn = Callable[[str, list[int], str, Any], Any]
+
+
+@dataclass
+class Ticket:
+    user: Any
+    scene_id: str | None
+    expires: float
+
+
+@dataclass
+class ClientState:
+    """Everything one browser tab sees."""
+
+    client: Any
+    user: Any = None
+    scene_id: str | None = None
+    data: sb.ViewerData | None = None
+    subsample: np.ndarray | None = None
+    mode: str = "semantic"
+    point_size: float = 0.05
+    max_points: int = sb.DEFAULT_MAX_POINTS
+    class_visible: dict[int, bool] = field(default_factory=dict)
+    point_handles: dict[int, Any] = field(default_factory=dict)
+    point_nodes: dict[int, sb.PointNode] = field(default_factory=dict)
+    grid_handles: dict[str, Any] = field(default_factory=dict)
+    frustum_handles: dict[int, Any] = field(default_factory=dict)
+    selection: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_index: int | None = None
+    gui: dict[str, Any] = field(default_factory=dict)
+    class_boxes: dict[int, Any] = field(default_factory=dict)
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    sent_points: int = 0
+    ready: threading.Event = field(default_factory=threading.Event)
+
+
+def default_scenes(data_dir: Path) -> ScenesFn:
+    """Scenes found on disk: every ``scene.json`` up to three levels below ``data_dir``;
+    the id is the workspace folder name."""
+
+    def scan() -> dict[str, tuple[str, Path]]:
+        out: dict[str, tuple[str, Path]] = {}
+        root = Path(data_dir)
+        for pattern in ("*/scene.json", "*/*/scene.json", "*/*/*/scene.json"):
+            for p in sorted(root.glob(pattern)):
+                out.setdefault(p.parent.name, (p.parent.name, p.parent))
+        return out
+
+    return scan
+
+
+class ViewerService:
+    """Owns the viser server and the per-client state."""
+
+    def __init__(self, *, scenes: ScenesFn, frame_states: FrameStatesFn | None = None,
+                 frame_mask: FrameMaskFn | None = None,
+                 on_review_item: ReviewItemFn | None = None,
+                 max_points: int = sb.DEFAULT_MAX_POINTS, host: str = "127.0.0.1",
+                 watch_interval_s: float = 2.0, require_ticket: bool = True) -> None:
+        if host not in ("127.0.0.1", "localhost", "::1"):
+            raise ValueError(f"the viewer binds loopback only, got host {host!r}")
+        self.scenes = scenes
+        self.frame_states = frame_states
+        self.frame_mask = frame_mask
+        self.on_review_item = on_review_item
+        self.max_points = int(max_points)
+        self.host = host
+        self.watch_interval_s = watch_interval_s
+        self.require_ticket = require_ticket
+        self.server: Any = None
+        self.filed_items: list[dict] = []
+        self._tickets: dict[str, Ticket] = {}
+        self._clients: dict[int, ClientState] = {}
+        self._data: dict[str, sb.ViewerData] = {}
+        self._stamps: dict[str, tuple] = {}
+        self._lock = threading.RLock()
+        self._start_lock = threading.Lock()
+        self._pending: dict[str, set[int] | None] = {}
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self.server is not None
+
+    @property
+    def port(self) -> int:
+        self.start()
+        return int(self.server.get_port())
+
+    def start(self) -> None:
+        """Start viser on a free loopback port (idempotent, thread safe)."""
+        with self._start_lock:
+            if self.server is not None:
+                return
+            import viser
+
+            server = viser.ViserServer(host=self.host, port=0, verbose=False)
+            server.gui.configure_theme(control_layout="floating", show_share_button=False,
+                                       dark_mode=False, brand_color=(40, 120, 255))
+            server.scene.set_up_direction("+z")
+            server.on_client_connect(self._on_connect)
+            server.on_client_disconnect(self._on_disconnect)
+            self.server = server
+            self._stop.clear()
+            self._worker = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
+                                            daemon=True)
+            self._worker.start()
+
+    def stop(self) -> None:
+        with self._start_lock:
+            if self.server is None:
+                return
+            self._stop.set()
+            self._wake.set()
+            if self._worker is not None:
+                self._worker.join(timeout=5)
+            self.server.stop()
+            self.server = None
+            self._clients.clear()
+
+    # ---- tickets ---------------------------------------------------------------------------
+    def issue_ticket(self, user: Any, scene_id: str | None) -> str:
+        """A one-time token the proxy sends upstream; valid for :data:`TICKET_TTL_S`."""
+        tok = secrets.token_urlsafe(24)
+        now = time.monotonic()
+        with self._lock:
+            for k in [k for k, t in self._tickets.items() if t.expires < now]:
+                del self._tickets[k]
+            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S)
+        return tok
+
+    def _take_ticket(self, client_id: int) -> Ticket | None:
+        try:  # viser keeps the raw websocket per client; its handshake carries our header
+            conn = self.server._websock_server._live_connections[client_id]
+            tok = conn.request.headers.get(TICKET_HEADER)
+        except (AttributeError, KeyError):
+            return None
+        if not tok:
+            return None
+        with self._lock:
+            t = self._tickets.pop(tok, None)
+        if t is None or t.expires < time.monotonic():
+            return None
+        return t
+
+    def _close_client(self, client_id: int, reason: str) -> None:
+        try:
+            ws = self.server._websock_server
+            conn = ws._live_connections[client_id]
+            asyncio.run_coroutine_threadsafe(conn.close(1008, reason), ws._background_event_loop)
+        except (AttributeError, KeyError):
+            pass
+
+    # ---- data ------------------------------------------------------------------------------
+    def scene_data(self, scene_id: str, *, reload: bool = False) -> sb.ViewerData:
+        with self._lock:
+            if not reload and scene_id in self._data:
+                return self._data[scene_id]
+        table = self.scenes()
+        if scene_id not in table:
+            raise KeyError(scene_id)
+        ws = Path(table[scene_id][1])
+        data = sb.ViewerData.load(ws)
+        with self._lock:
+            self._data[scene_id] = data
+            self._stamps[scene_id] = _stamp(ws)
+        return data
+
+    def clients_of(self, scene_id: str) -> list[ClientState]:
+        with self._lock:
+            return [c for c in self._clients.values() if c.scene_id == scene_id]
+
+    def client_states(self) -> list[ClientState]:
+        with self._lock:
+            return list(self._clients.values())
+
+    # ---- connection ------------------------------------------------------------------------
+    def _on_connect(self, client: Any) -> None:
+        ticket = self._take_ticket(client.client_id)
+        if ticket is None and self.require_ticket:
+            client.add_notification("Not authorised", "Open the viewer through OccuFly Studio.",
+                                    color="red", auto_close_seconds=False)
+            self._close_client(client.client_id, "viewer requires a ticket from the app")
+            return
+        st = ClientState(client=client, max_points=self.max_points)
+        st.user = ticket.user if ticket else None
+        with self._lock:
+            self._clients[client.client_id] = st
+        scenes = self.scenes()
+        scene_id = ticket.scene_id if ticket and ticket.scene_id in scenes else None
+        if scene_id is None and scenes:
+            scene_id = next(iter(scenes))
+        self._build_gui(st, scenes, scene_id)
+        if scene_id is not None:
+            self.open_scene(st, scene_id)
+        else:
+            st.gui["status"].content = "No scene has been imported yet."
+            st.ready.set()
+
+    def _on_disconnect(self, client: Any) -> None:
+        with self._lock:
+            self._clients.pop(client.client_id, None)
+
+    # ---- GUI -------------------------------------------------------------------------------
+    def _build_gui(self, st: ClientState, scenes: Mapping[str, tuple[str, Path]],
+                   scene_id: str | None) -> None:
+        gui = st.client.gui
+        g = st.gui
+        ids = list(scenes)
+        labels = [f"{scenes[s][0]} ({s})" for s in ids]
+        g["status"] = gui.add_markdown("Loading...")
+        g["scene"] = gui.add_dropdown("Scene", labels or ["(none)"],
+                                      initial_value=labels[ids.index(scene_id)] if scene_id in ids else None)
+        g["mode"] = gui.add_dropdown("Colour", list(sb.COLOUR_MODES), initial_value=st.mode)
+        g["size"] = gui.add_slider("Point size", min=0.005, max=1.0, step=0.005,
+                                   initial_value=st.point_size)
+        g["lod"] = gui.add_number("LOD max points", initial_value=st.max_points, min=1000,
+                                  max=50_000_000, step=1000)
+        g["classes"] = gui.add_folder("Classes")
+        with gui.add_folder("Voxel grids", expand_by_default=False):
+            g["grid_scene"] = gui.add_checkbox("Scene grid", initial_value=False)
+            g["grid_frame"] = gui.add_dropdown("Camera grid of frame", ["(none)"])
+            g["grid_surface"] = gui.add_checkbox("Surface voxels only", initial_value=False)
+        with gui.add_folder("Review"):
+            g["sel_info"] = gui.add_markdown("No points selected.")
+            g["sel_btn"] = gui.add_button("Select points (drag a rectangle)")
+            g["comment"] = gui.add_text("Comment", initial_value="")
+            g["file_btn"] = gui.add_button("File review item", disabled=True)
+        with gui.add_folder("Camera"):
+            g["cam_info"] = gui.add_markdown("Click a camera frustum.")
+            g["goto"] = gui.add_button("Move view to camera", disabled=True)
+        g["image"] = None
+        g["mask"] = None
+
+        @g["scene"].on_update
+        def _(_e: Any) -> None:
+            if g["scene"].value in labels:
+                self.open_scene(st, ids[labels.index(g["scene"].value)])
+
+        @g["mode"].on_update
+        def _(_e: Any) -> None:
+            st.mode = g["mode"].value
+            self.send_points(st)
+
+        @g["size"].on_update
+        def _(_e: Any) -> None:
+            st.point_size = float(g["size"].value)
+            with st.lock:
+                for h in st.point_handles.values():
+                    h.point_size = st.point_size
+
+        @g["lod"].on_update
+        def _(_e: Any) -> None:
+            st.max_points = max(1000, int(g["lod"].value))
+            st.subsample = None
+            self.send_points(st)
+
+        @g["grid_scene"].on_update
+        def _(_e: Any) -> None:
+            self.send_grids(st)
+
+        @g["grid_frame"].on_update
+        def _(_e: Any) -> None:
+            self.send_grids(st)
+
+        @g["grid_surface"].on_update
+        def _(_e: Any) -> None:
+            self.send_grids(st)
+
+        @g["sel_btn"].on_click
+        def _(_e: Any) -> None:
+            self._arm_rect_select(st)
+
+        @g["file_btn"].on_click
+        def _(_e: Any) -> None:
+            self.file_review_item(st, g["comment"].value)
+
+        @g["goto"].on_click
+        def _(_e: Any) -> None:
+            if st.frame_index is not None:
+                self.move_to_camera(st, st.frame_index)
+
+    def _arm_rect_select(self, st: ClientState) -> None:
+        scene = st.client.scene
+        st.gui["sel_info"].content = "Drag a rectangle on the view..."
+
+        def on_rect(event: Any) -> None:
+            scene.remove_rect_select_callback(on_rect)
+            cam = event.client.camera
+            ids = self.select_rect(st, np.asarray(cam.position), np.asarray(cam.wxyz),
+                                   float(cam.fov), float(cam.aspect), event.screen_min,
+                                   event.screen_max)
+            st.gui["sel_info"].content = f"**{len(ids)}** points selected."
+            st.gui["file_btn"].disabled = len(ids) == 0
+
+        scene.on_rect_select()(on_rect)
+
+    def _rebuild_class_boxes(self, st: ClientState) -> None:
+        for b in st.class_boxes.values():
+            b.remove()
+        st.class_boxes.clear()
+        data = st.data
+        if data is None:
+            return
+        lab = data.labels
+        counts = (np.bincount(np.asarray(lab), minlength=256) if lab is not None
+                  else np.bincount(np.zeros(1, np.int64), minlength=256) * data.scene.n_points)
+        with st.gui["classes"]:
+            for cid in np.flatnonzero(counts).tolist():
+                name = sb.class_name(data.taxonomy, cid)
+                box = st.client.gui.add_checkbox(f"{name} ({int(counts[cid]):,})",
+                                                 initial_value=st.class_visible.get(cid, True))
+
+                def toggle(_e: Any, cid: int = cid, box: Any = box) -> None:
+                    self.set_class_visible(st, cid, bool(box.value))
+
+                box.on_update(toggle)
+                st.class_boxes[cid] = box
+
+    # ---- scene content ---------------------------------------------------------------------
+    def open_scene(self, st: ClientState, scene_id: str) -> None:
+        st.ready.clear()
+        with st.lock:
+            st.scene_id = scene_id
+            st.gui["status"].content = f"Loading scene **{scene_id}**..."
+            try:
+                st.data = self.scene_data(scene_id)
+            except Exception as e:  # noqa: BLE001 - show the reason to the reviewer
+                log.exception("viewer: cannot open scene %s", scene_id)
+                st.gui["status"].content = f"Cannot open scene {scene_id}: {e}"
+                st.ready.set()
+                return
+            st.client.scene.reset()
+            st.client.scene.set_up_direction("+z")
+            st.point_handles.clear()
+            st.point_nodes.clear()
+            st.grid_handles.clear()
+            st.frustum_handles.clear()
+            st.subsample = None
+            st.selection = np.zeros(0, np.int64)
+            st.class_visible = {}
+            self._rebuild_class_boxes(st)
+            frames = ["(none)"] + [f.stem for f in st.data.scene.frames]
+            st.gui["grid_frame"].options = frames
+            self._place_camera(st)
+            self.send_points(st)
+            self.send_frusta(st)
+            self.send_grids(st)
+            d = st.data
+            lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
+            st.gui["status"].content = (
+                f"**{scene_id}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
+                f"{lifted}; showing {st.sent_points:,} points."
+            )
+        st.ready.set()
+
+    def _place_camera(self, st: ClientState) -> None:
+        xyz = np.asarray(st.data.scene.xyz[:: max(1, st.data.scene.n_points // 50_000)], np.float64)
+        if len(xyz) == 0:
+            return
+        c = xyz.mean(axis=0)
+        ext = sb.scene_extent(st.data)
+        cam = st.client.camera
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = tuple(c + np.array([0.0, -0.9 * ext, 0.8 * ext]))
+        cam.look_at = tuple(c)
+
+    def send_points(self, st: ClientState, classes: set[int] | None = None) -> list[sb.PointNode]:
+        """(Re)send point nodes of ``classes`` (all when None) to this client."""
+        with st.lock:
+            d = st.data
+            if d is None:
+                return []
+            if st.subsample is None:
+                st.subsample = sb.stratified_subsample(d.labels, d.scene.n_points, st.max_points)
+            nodes = sb.build_point_nodes(d, mode=st.mode, classes=classes, subsample=st.subsample)
+            present = {nd.class_id for nd in nodes}
+            stale = [cid for cid in st.point_handles if (classes is None or cid in classes)
+                     and cid not in present]
+            for cid in stale:
+                st.point_handles.pop(cid).remove()
+                st.point_nodes.pop(cid, None)
+            with st.client.atomic():
+                st.point_handles.update(sb.send_point_nodes(
+                    st.client.scene, nodes, point_size=st.point_size, visible=st.class_visible))
+            st.point_nodes.update({nd.class_id: nd for nd in nodes})
+            st.client.flush()
+            st.sent_points = int(sum(len(nd.point_ids) for nd in st.point_nodes.values()))
+            return nodes
+
+    def send_frusta(self, st: ClientState) -> None:
+        with st.lock:
+            d = st.data
+            states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
+            nodes = sb.frustum_nodes(d.scene, states)
+            scale = 0.04 * sb.scene_extent(d)
+            st.frustum_handles = sb.send_frustum_nodes(st.client.scene, nodes, scale=scale)
+            for idx, h in st.frustum_handles.items():
+                def clicked(_e: Any, idx: int = idx) -> None:
+                    self.show_frame(st, idx)
+
+                h.on_click(clicked)
+
+    def send_grids(self, st: ClientState) -> None:
+        with st.lock:
+            for h in st.grid_handles.values():
+                h.remove()
+            st.grid_handles.clear()
+            d = st.data
+            if d is None:
+                return
+            surface_only = bool(st.gui["grid_surface"].value)
+            nodes: list[sb.VoxelNode] = []
+            if st.gui["grid_scene"].value and d.grid is not None:
+                nodes += sb.scene_grid_nodes(d.grid, d.scene.origin, d.taxonomy)
+            frame = st.gui["grid_frame"].value
+            if frame and frame != "(none)":
+                cg = load_camera_grid(d, d.scene.frame_index(frame))
+                if cg is not None:
+                    nodes += sb.camera_grid_nodes(*cg, taxonomy=d.taxonomy,
+                                                  surface_only=surface_only)
+            st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, st.class_visible)
+
+    def set_class_visible(self, st: ClientState, class_id: int, visible: bool) -> None:
+        with st.lock:
+            st.class_visible[class_id] = visible
+            if class_id in st.point_handles:
+                st.point_handles[class_id].visible = visible
+            name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
+            for n, h in st.grid_handles.items():
+                if n.rsplit("/", 1)[-1] == name:
+                    h.visible = visible
+
+    # ---- cameras ---------------------------------------------------------------------------
+    def show_frame(self, st: ClientState, frame_index: int) -> None:
+        d = st.data
+        fr = d.scene.frames[frame_index]
+        st.frame_index = frame_index
+        states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
+        state = states.get(frame_index, "not_selected")
+        st.gui["cam_info"].content = f"**{fr.stem}** - {state.replace('_', ' ')}"
+        st.gui["goto"].disabled = False
+        img = _frame_image(d, frame_index)
+        mask = self.frame_mask(st.scene_id, frame_index) if self.frame_mask else None
+        gui = st.client.gui
+        for key in ("image", "mask"):
+            if st.gui.get(key) is not None:
+                st.gui[key].remove()
+                st.gui[key] = None
+        if img is not None:
+            st.gui["image"] = gui.add_image(img, label="image", format="jpeg")
+        if mask is not None:
+            rgb = d.taxonomy.colour_lut()[np.asarray(mask, np.uint8)]
+            st.gui["mask"] = gui.add_image(_thumb(rgb), label="mask", format="png")
+
+    def move_to_camera(self, st: ClientState, frame_index: int) -> None:
+        fr = st.data.scene.frames[frame_index]
+        T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        cam = st.client.camera
+        with st.client.atomic():
+            cam.wxyz = sb.matrix_to_quat(T[:3, :3])
+            cam.position = tuple(T[:3, 3])
+            cam.look_at = tuple(T[:3, 3] + 20.0 * T[:3, 2])
+
+    # ---- review ----------------------------------------------------------------------------
+    def select_rect(self, st: ClientState, position: np.ndarray, wxyz: np.ndarray, fov: float,
+                    aspect: float, screen_min: tuple[float, float],
+                    screen_max: tuple[float, float]) -> np.ndarray:
+        """Point ids (into the full cloud) of visible, sent points inside the rectangle."""
+        with st.lock:
+            parts = []
+            for cid, nd in st.point_nodes.items():
+                if not st.class_visible.get(cid, True):
+                    continue
+                inside = sb.points_in_screen_rect(nd.xyz, position, wxyz, fov, aspect,
+                                                  screen_min, screen_max)
+                parts.append(nd.point_ids[inside])
+            st.selection = np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+            return st.selection
+
+    def file_review_item(self, st: ClientState, comment: str) -> dict | None:
+        ids = [int(i) for i in st.selection]
+        if not ids or st.scene_id is None:
+            return None
+        item = {"scene_id": st.scene_id, "point_ids": ids, "comment": comment, "user": st.user}
+        result = None
+        if self.on_review_item is not None:
+            try:
+                result = self.on_review_item(st.scene_id, ids, comment, st.user)
+            except Exception as e:  # noqa: BLE001 - tell the reviewer instead of dying
+                log.exception("viewer: filing a review item failed")
+                st.client.add_notification("Review item not filed", str(e), color="red")
+                return None
+        self.filed_items.append(item)
+        st.client.add_notification("Review item filed",
+                                   f"{len(ids)} points in scene {st.scene_id}", color="green")
+        st.gui["sel_info"].content = "No points selected."
+        st.gui["file_btn"].disabled = True
+        st.selection = np.zeros(0, np.int64)
+        return {"item": item, "result": result}
+
+    # ---- live ------------------------------------------------------------------------------
+    def refresh(self, scene_id: str, classes: set[int] | list[int] | None = None) -> None:
+        """Queue a re-send of the affected class nodes of ``scene_id`` to its open viewers.
+
+        ``classes`` None means: work out which classes changed by comparing old and new
+        labels/confidence/origin. Returns at once; the work runs in the refresh thread and
+        several calls for one scene within a cycle are merged.
+        """
+        with self._lock:
+            prev = self._pending.get(scene_id, set())
+            if classes is None or prev is None:
+                self._pending[scene_id] = None
+            else:
+                self._pending[scene_id] = set(prev) | {int(c) for c in classes}
+        self._wake.set()
+
+    def refresh_now(self, scene_id: str, classes: set[int] | None = None) -> set[int]:
+        """Synchronous refresh; returns the class ids re-sent."""
+        with self._lock:
+            old = self._data.get(scene_id)
+        if old is None:
+            return set()  # nobody has it open
+        new = self.scene_data(scene_id, reload=True)
+        affected = set(classes) if classes is not None else changed_classes(old, new)
+        for st in self.clients_of(scene_id):
+            with st.lock:
+                st.data = new
+                if new.labels is not None and old.labels is None:
+                    st.subsample = None
+                    affected = None  # first labels: everything changes
+                if affected is None or affected:
+                    self._rebuild_class_boxes(st)
+                    self.send_points(st, None if affected is None else affected)
+        return set() if affected is None else affected
+
+    def _refresh_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(timeout=self.watch_interval_s)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                pending, self._pending = self._pending, {}
+                open_scenes = {c.scene_id for c in self._clients.values() if c.scene_id}
+                stamps = dict(self._stamps)
+                table = None
+            for sid in open_scenes - set(pending):
+                try:
+                    table = table if table is not None else self.scenes()
+                    if sid in table and _stamp(Path(table[sid][1])) != stamps.get(sid):
+                        pending[sid] = None
+                except Exception:  # noqa: BLE001
+                    log.exception("viewer: watching scene %s failed", sid)
+            for sid, classes in pending.items():
+                try:
+                    self.refresh_now(sid, classes)
+                except Exception:  # noqa: BLE001 - keep the refresh thread alive
+                    log.exception("viewer: refresh of scene %s failed", sid)
+
+
+# ---- helpers ---------------------------------------------------------------------------------
+def _stamp(ws: Path) -> tuple:
+    out = []
+    for rel in ("lifting/labels.npy", "lifting/confidence.npy", "lifting/origin.npy",
+                "grid/scene_grid.npz"):
+        p = ws / rel
+        try:
+            s = p.stat()
+            out.append((rel, s.st_mtime_ns, s.st_size))
+        except OSError:
+            out.append((rel, None, None))
+    return tuple(out)
+
+
+def changed_classes(old: sb.ViewerData, new: sb.ViewerData) -> set[int] | None:
+    """Classes whose points changed label, confidence or origin; None = everything."""
+    if (old.labels is None) != (new.labels is None) or old.scene.n_points != new.scene.n_points:
+        return None
+    if new.labels is None:
+        return set()
+    ol, nl = np.asarray(old.labels), np.asarray(new.labels)
+    changed = ol != nl
+    for a, b in ((old.confidence, new.confidence), (old.origin, new.origin),
+                 (old.direct, new.direct)):
+        if (a is None) != (b is None):
+            return None
+        if a is not None:
+            changed |= np.asarray(a) != np.asarray(b)
+    return {int(c) for c in np.union1d(np.unique(ol[changed]), np.unique(nl[changed]))}
+
+
+def _thumb(img: np.ndarray, max_side: int = 320) -> np.ndarray:
+    h, w = img.shape[:2]
+    step = max(1, int(np.ceil(max(h, w) / max_side)))
+    return np.ascontiguousarray(img[::step, ::step])
+
+
+def _frame_image(d: sb.ViewerData, frame_index: int) -> np.ndarray | None:
+    fr = d.scene.frames[frame_index]
+    if not fr.image_path:
+        return None
+    p = Path(fr.image_path)
+    if not p.is_absolute() and d.workspace is not None:
+        p = d.workspace / p
+    if not p.is_file():
+        return None
+    from PIL import Image
+
+    with Image.open(p) as im:
+        im.draft("RGB", (640, 640))
+        im = im.convert("RGB")
+        im.thumbnail((320, 320))
+        return np.asarray(im)
+
+
+def load_camera_grid(d: sb.ViewerData, frame_index: int) -> tuple | None:
+    """(labels, invalid, occluded, surface, T_cam_world, voxel_size) of a frame, or None.
+
+    Uses ``occufly.sampling`` when it and a scene grid are available.
+    """
+    if d.grid is None:
+        return None
+    try:
+        from occufly import sampling
+    except ImportError:
+        return None
+    fn = getattr(sampling, "sample_frame", None)
+    if fn is None:
+        return None
+    fr = d.scene.frames[frame_index]
+    try:
+        out = fn(d.scene, frame_index, d.grid)
+    except TypeError:
+        out = fn(fr, d.grid, d.scene.origin)
+    get = (lambda k: out[k]) if isinstance(out, Mapping) else (lambda k: getattr(out, k))
+    return (get("labels"), get("invalid"), get("occluded"), get("surface"), fr.T_cam_world,
+            float(getattr(out, "voxel_size", 0.5) if not isinstance(out, Mapping)
+                  else out.get("voxel_size", 0.5)))

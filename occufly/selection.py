@@ -1,0 +1,210 @@
+"""Frame selection: stratified ground cells (the method) and a coverage-greedy extension.
+
+Stratified (paper 3.3.2): the ground plane (scene-local x, y; z is up) is cut into square cells
+of edge ``cell`` metres (default 25 m; the method uses 23-28 m) anchored at the minimum corner
+of the point cloud. Only cells that contain points count. For each cell the frame whose camera
+centre is closest (in x, y) to the cell centre is selected; for a *border* cell (one whose
+4-neighbour lies outside the grid or holds no points) the target moves from the centre to the
+middle of the cell's outer edge(s), i.e. onto the scene border, and the frame closest to that
+point is selected. Frames may be restricted to one nominal flight altitude.
+
+Coverage rho(J) is the share of all scene points seen by at least one selected frame (through
+the scene's visibility). Greedy mode starts from the stratified set and adds, one at a time,
+the frame that sees the most not-yet-covered points until rho reaches ``target_coverage`` (or
+no frame adds anything). Gains only shrink as coverage grows, so a lazy max-heap re-evaluates
+only the top candidate: each step costs about one frame's points, not the scene's.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+from occufly.scene import Scene
+
+METHOD_CELL_RANGE = (23.0, 28.0)
+
+
+@dataclass
+class SelectionResult:
+    """Selected frames and their coverage.
+
+    frames: selected frame indices (stratified ones first, then greedy additions in order);
+    ratio: |J| / number of candidate frames; coverage: rho(J) over all scene points;
+    curve: (number of frames, coverage) after the stratified set and after each addition.
+    """
+
+    frames: list[int]
+    ratio: float
+    coverage: float
+    curve: list[tuple[int, float]]
+    mode: str = "stratified"
+    cell: float = 25.0
+    altitude: int | None = None
+    n_candidates: int = 0
+    n_points: int = 0
+    max_coverage: float = 0.0
+    stratified_frames: list[int] = field(default_factory=list)
+    cells: int = 0
+    frame_names: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {
+            "mode": self.mode,
+            "cell": self.cell,
+            "cell_in_method_range": METHOD_CELL_RANGE[0] <= self.cell <= METHOD_CELL_RANGE[1],
+            "altitude": self.altitude,
+            "frames": list(self.frames),
+            "frame_names": list(self.frame_names),
+            "selected": len(self.frames),
+            "candidates": self.n_candidates,
+            "ratio": self.ratio,
+            "coverage": self.coverage,
+            "max_coverage": self.max_coverage,
+            "points": self.n_points,
+            "cells": self.cells,
+            "stratified_frames": list(self.stratified_frames),
+            "curve": [[int(n), float(c)] for n, c in self.curve],
+        }
+
+
+def candidate_frames(scene: Scene, altitude: int | None) -> np.ndarray:
+    """(K,) int frame indices usable for selection (all, or those at one nominal altitude)."""
+    if altitude is None:
+        return np.arange(len(scene.frames))
+    idx = [i for i, f in enumerate(scene.frames) if f.nominal_altitude == int(altitude)]
+    if not idx:
+        have = sorted({f.nominal_altitude for f in scene.frames if f.nominal_altitude is not None})
+        raise InputFormatError(
+            f"altitude: no frame flies at nominal altitude {altitude} m; the scene has "
+            f"{have or 'no assigned altitudes'}"
+        )
+    return np.asarray(idx)
+
+
+def coverage_mask(scene: Scene, frames: list[int] | np.ndarray) -> np.ndarray:
+    """(N,) bool: points seen by at least one of ``frames``."""
+    seen = np.zeros(scene.n_points, dtype=bool)
+    vis = scene.visibility
+    for f in frames:
+        a, b = int(vis.offsets[f]), int(vis.offsets[f + 1])
+        seen[vis.point_ids[a:b]] = True
+    return seen
+
+
+def coverage(scene: Scene, frames: list[int] | np.ndarray) -> float:
+    """rho(J): share of all scene points seen by at least one frame of ``frames``."""
+    if scene.n_points == 0:
+        return 0.0
+    return float(coverage_mask(scene, frames).sum()) / scene.n_points
+
+
+def stratified(scene: Scene, candidates: np.ndarray, cell: float, *, max_points: int = 2_000_000
+               ) -> tuple[list[int], int]:
+    """Stratified selection over ``candidates``; returns (frames, number of occupied cells)."""
+    if cell <= 0:
+        raise InputFormatError(f"cell: the cell edge must be positive, got {cell}")
+    if len(candidates) == 0 or scene.n_points == 0:
+        return [], 0
+    step = max(1, scene.n_points // max_points)
+    xy = np.asarray(scene.xyz[::step, :2], dtype=np.float64)
+    lo = xy.min(axis=0)
+    hi = xy.max(axis=0)
+    nx, ny = (np.maximum(np.ceil((hi - lo) / cell), 1)).astype(int)
+    ij = np.minimum(((xy - lo) / cell).astype(int), [nx - 1, ny - 1])
+    occ = np.bincount(ij[:, 0] * ny + ij[:, 1], minlength=nx * ny).reshape(nx, ny) > 0
+    # a border cell has a 4-neighbour outside the grid or without points
+    pad = np.zeros((nx + 2, ny + 2), bool)
+    pad[1:-1, 1:-1] = occ
+    out_w, out_e = ~pad[:-2, 1:-1], ~pad[2:, 1:-1]
+    out_s, out_n = ~pad[1:-1, :-2], ~pad[1:-1, 2:]
+    ci, cj = np.nonzero(occ)
+    centre = lo + (np.column_stack([ci, cj]) + 0.5) * cell
+    shift = np.zeros_like(centre)
+    shift[:, 0] = (out_e[ci, cj].astype(float) - out_w[ci, cj]) * cell / 2
+    shift[:, 1] = (out_n[ci, cj].astype(float) - out_s[ci, cj]) * cell / 2
+    target = centre + shift
+    # clamp onto the cloud's extent: the scene border for cells that stick out of it
+    target = np.clip(target, lo, hi)
+    cam_xy = scene.centers()[candidates, :2]
+    d2 = ((target[:, None, :] - cam_xy[None, :, :]) ** 2).sum(axis=2)
+    best = candidates[np.argmin(d2, axis=1)]
+    seen: dict[int, None] = {}
+    for f in best.tolist():
+        seen.setdefault(int(f), None)
+    return list(seen), int(len(ci))
+
+
+def greedy(scene: Scene, candidates: np.ndarray, start: list[int], target: float
+           ) -> tuple[list[int], list[tuple[int, float]]]:
+    """Add frames by largest coverage gain until ``target`` coverage; returns (added, curve)."""
+    n = scene.n_points
+    vis = scene.visibility
+    covered = coverage_mask(scene, start)
+    n_cov = int(covered.sum())
+    curve = [(len(start), n_cov / n if n else 0.0)]
+    if n == 0:
+        return [], curve
+    chosen = set(start)
+    cand = np.array([c for c in candidates if int(c) not in chosen], dtype=np.int64)
+    if not len(cand) or n_cov / n >= target:
+        return [], curve
+    # initial gains of all candidates with one bincount over the CSR visibility
+    frame_of = vis.frames_of_entries()
+    gains = np.bincount(frame_of, weights=~covered[np.asarray(vis.point_ids)],
+                        minlength=len(scene.frames))
+    heap = [(-float(gains[c]), int(c)) for c in cand if gains[c] > 0]
+    heapq.heapify(heap)
+    added: list[int] = []
+    while heap and n_cov / n < target:
+        neg, f = heapq.heappop(heap)
+        pids = vis.point_ids[int(vis.offsets[f]):int(vis.offsets[f + 1])]
+        g = int(np.count_nonzero(~covered[pids]))
+        if g == 0:
+            continue
+        if heap and g < -heap[0][0]:
+            heapq.heappush(heap, (-float(g), f))  # stale: re-insert with its true gain
+            continue
+        covered[pids] = True
+        n_cov += g
+        added.append(f)
+        curve.append((len(start) + len(added), n_cov / n))
+    return added, curve
+
+
+def select_frames(scene: Scene, *, cell: float = 25.0, mode: str = "stratified",
+                  target_coverage: float = 0.99, altitude: int | None = None) -> SelectionResult:
+    """Select frames to annotate (see the module docstring). Returns a :class:`SelectionResult`."""
+    if mode not in ("stratified", "greedy"):
+        raise InputFormatError(f"mode: expected 'stratified' or 'greedy', got {mode!r}")
+    if not 0.0 < target_coverage <= 1.0:
+        raise InputFormatError(f"target coverage must be in (0, 1], got {target_coverage}")
+    cand = candidate_frames(scene, altitude)
+    frames, cells = stratified(scene, cand, float(cell))
+    strat = list(frames)
+    if mode == "greedy":
+        added, curve = greedy(scene, cand, frames, target_coverage)
+        frames = frames + added
+        cov = curve[-1][1]
+    else:
+        cov = coverage(scene, frames)
+        curve = [(len(frames), cov)]
+    max_cov = coverage(scene, cand)
+    return SelectionResult(
+        frames=[int(f) for f in frames],
+        ratio=len(frames) / len(cand) if len(cand) else 0.0,
+        coverage=float(cov),
+        curve=[(int(a), float(b)) for a, b in curve],
+        mode=mode,
+        cell=float(cell),
+        altitude=None if altitude is None else int(altitude),
+        n_candidates=int(len(cand)),
+        n_points=scene.n_points,
+        max_coverage=max_cov,
+        stratified_frames=strat,
+        cells=cells,
+        frame_names=[scene.frames[f].name for f in frames],
+    )

@@ -1,0 +1,87 @@
+"""CLI: ``voxelize``, ``eval-grid``, ``grid-preview`` (densification and the scene grid)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from occufly.cli import command
+
+
+def _voxelize(args: argparse.Namespace) -> dict:
+    from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
+    from occufly.progress import tqdm_progress
+
+    opts = DensifyOptions(voxel_size=args.voxel, carve=not args.no_carve, poisson=not args.no_poisson)
+    with tqdm_progress("voxelize") as bar:
+        report = voxelize_workspace(args.workspace, labels_path=args.labels, options=opts, out_path=args.out, progress=bar)
+    if args.preview:
+        _write_preview(Path(report["grid"]), Path(args.workspace), Path(args.preview))
+        report["preview"] = args.preview
+    return report
+
+
+def _load_taxonomy(ws: Path | None):
+    from occufly.taxonomy import Taxonomy, default_taxonomy
+
+    if ws is not None and (ws / "taxonomy.json").is_file():
+        return Taxonomy.load(ws / "taxonomy.json")
+    return default_taxonomy()
+
+
+def _grid_path(arg: str) -> Path:
+    """A grid file, or a workspace whose grid/scene_grid.npz is meant."""
+    from occufly.grid import workspace_grid_path
+
+    p = Path(arg)
+    return workspace_grid_path(p) if p.is_dir() else p
+
+
+def _eval(args: argparse.Namespace) -> dict:
+    from occufly.densify.evaluate import evaluate_grids
+    from occufly.grid import SceneGrid
+
+    ws = Path(args.workspace)
+    pred_path = Path(args.grid) if args.grid else _grid_path(str(ws))
+    pred = SceneGrid.load(pred_path)
+    truth = SceneGrid.load(_grid_path(args.truth))
+    out = evaluate_grids(pred, truth, _load_taxonomy(ws if ws.is_dir() else None))
+    out["pred"] = str(pred_path)
+    out["truth"] = str(_grid_path(args.truth))
+    return out
+
+
+def _write_preview(grid_path: Path, ws: Path | None, out: Path) -> None:
+    from occufly.densify.preview import save_preview
+    from occufly.grid import SceneGrid
+
+    save_preview(SceneGrid.load(grid_path), _load_taxonomy(ws), out)
+
+
+def _preview(args: argparse.Namespace) -> dict:
+    src = Path(args.source)
+    ws = src if src.is_dir() else None
+    grid_path = _grid_path(args.source)
+    out = Path(args.out) if args.out else grid_path.with_suffix(".png")
+    _write_preview(grid_path, ws, out)
+    return {"grid": str(grid_path), "preview": str(out)}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = command(sub, "voxelize", _voxelize, help="densify the labelled cloud into WS/grid/scene_grid.npz")
+    p.add_argument("workspace", help="scene workspace")
+    p.add_argument("--voxel", type=float, default=0.5, help="voxel edge in metres (default 0.5)")
+    p.add_argument("--labels", help="(N,) uint8 point labels .npy (default WS/lifting/labels.npy)")
+    p.add_argument("--out", help="grid path (default WS/grid/scene_grid.npz)")
+    p.add_argument("--no-carve", action="store_true", help="ablation: instance points binned, no DBSCAN/carving")
+    p.add_argument("--no-poisson", action="store_true", help="ablation: ground points binned, no Poisson")
+    p.add_argument("--preview", help="also write a PNG preview here")
+
+    p = command(sub, "eval-grid", _eval, help="completion IoU, per-class IoU and mIoU vs a truth grid")
+    p.add_argument("workspace", help="scene workspace (its grid/scene_grid.npz and taxonomy)")
+    p.add_argument("--truth", required=True, help="truth grid .npz (or a folder holding grid/scene_grid.npz)")
+    p.add_argument("--grid", help="evaluate this grid instead of the workspace's")
+
+    p = command(sub, "grid-preview", _preview, help="PNG preview (top-down + oblique) of a scene grid")
+    p.add_argument("source", help="workspace or grid .npz")
+    p.add_argument("--out", help="PNG path (default: next to the grid)")

@@ -1,0 +1,240 @@
+"""Visual-hull carving of one instance from α-shape silhouettes seen by virtual cameras.
+
+Conventions (documented because papers and libraries differ):
+
+- **Cameras.** K (default 24) virtual cameras sit quasi-uniformly on a sphere around the
+  instance (Fibonacci lattice directions, :func:`fibonacci_sphere`) and look at its centre.
+  They are *orthographic*: a camera at direction d projects along d onto the plane
+  perpendicular to it, so the hull does not depend on the sphere radius and the pixel
+  footprint is the same everywhere in the instance (``pixel = voxel_size * pixel_fraction``,
+  default half a voxel). Orthographic silhouettes from d and -d are mirror images, so the 24
+  cameras give at most 24 distinct constraints, never fewer than a perspective rig would.
+- **α.** ``alpha`` is in inverse *pixels* of that virtual image, following the
+  circumradius convention of the 2-D α-shape: a Delaunay triangle of the projected points is
+  kept when its circumradius is < 1/α. With α = 0.05 and the default half-voxel pixel that is
+  20 px = 10 voxels = 5 m at a 0.5 m grid: concavities wider than ~10 m (courtyards, the gap
+  between two wings) stay open, smaller gaps between points are bridged.
+- **Silhouette.** The kept triangles and the projected points themselves are rasterised
+  (pixel centres inside a triangle); the mask can be dilated by ``dilation`` voxel edges.
+  The default is no dilation: thin surfaces (a wall seen edge-on projects to a line) are
+  already covered because the voxels holding the instance's points are always kept, and a
+  half-voxel dilation adds a layer of voxels that do not touch the object (measured: a
+  4 x 2 x 1.5 m box gives exactly its 180 intersected voxels without dilation, 224 with).
+- **Carving.** Candidate voxels fill the instance's bounding box dilated by ``margin`` voxels;
+  a voxel is kept when its centre projects inside *every* silhouette. The voxels holding the
+  instance's own points are always kept.
+
+Everything is vectorised over points, triangles, pixels and voxels; the only Python loop is
+over the K cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import Delaunay, QhullError
+
+from occufly.densify.voxelize import GridSpec
+
+
+@dataclass(frozen=True)
+class CarveParams:
+    """Tolerances of the visual-hull carving (one place for all of them)."""
+
+    n_views: int = 24
+    alpha: float = 0.05  # 1/pixels; triangles with circumradius < 1/alpha are kept
+    pixel_fraction: float = 0.5  # virtual pixel edge / voxel edge
+    margin: int = 2  # bounding-box dilation in voxels
+    max_image: int = 1024  # cap on the virtual image side (pixels grow for huge instances)
+    dilation: float = 0.0  # silhouette dilation in voxel edges (see module docstring)
+    max_candidates: int = 4_000_000  # candidate voxels processed per batch
+
+
+def fibonacci_sphere(k: int) -> np.ndarray:
+    """(k, 3) float64 unit vectors spread quasi-uniformly on the sphere (Fibonacci lattice)."""
+    if k < 1:
+        raise ValueError(f"need at least one view, got {k}")
+    i = np.arange(k, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / k
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def view_axes(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (3,) float64 orthonormal image axes perpendicular to a unit viewing direction."""
+    d = np.asarray(direction, dtype=np.float64)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, d)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    return e1, e2
+
+
+def circumradius(tri: np.ndarray) -> np.ndarray:
+    """tri: (T, 3, 2) float64 triangle vertices -> (T,) circumradius (inf for degenerate)."""
+    a = np.linalg.norm(tri[:, 1] - tri[:, 2], axis=1)
+    b = np.linalg.norm(tri[:, 0] - tri[:, 2], axis=1)
+    c = np.linalg.norm(tri[:, 0] - tri[:, 1], axis=1)
+    d1 = tri[:, 1] - tri[:, 0]
+    d2 = tri[:, 2] - tri[:, 0]
+    area2 = np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])  # twice the area
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = a * b * c / (2.0 * area2)
+    return np.where(area2 > 1e-12, r, np.inf)
+
+
+def rasterize_triangles(tri: np.ndarray, shape: tuple[int, int], chunk: int = 4_000_000) -> np.ndarray:
+    """Pixels whose centres lie inside (or on the edge of) any triangle.
+
+    tri: (T, 3, 2) float64 vertices in pixel units (x = column, y = row; pixel (r, c) has its
+    centre at (c + 0.5, r + 0.5)). Returns an (H, W) bool mask.
+    """
+    h, w = shape
+    mask = np.zeros(shape, dtype=bool)
+    if len(tri) == 0:
+        return mask
+    lo = np.floor(tri.min(axis=1) - 0.5).astype(np.int64)
+    hi = np.ceil(tri.max(axis=1) - 0.5).astype(np.int64)
+    lo = np.clip(lo, 0, [w - 1, h - 1])
+    hi = np.clip(hi, 0, [w - 1, h - 1])
+    nx = hi[:, 0] - lo[:, 0] + 1
+    ny = hi[:, 1] - lo[:, 1] + 1
+    n = nx * ny
+    # orientation so that inside means all edge functions >= 0
+    d1 = tri[:, 1] - tri[:, 0]
+    d2 = tri[:, 2] - tri[:, 0]
+    sign = np.sign(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ends = np.cumsum(n)
+    starts = ends - n
+    t0 = 0
+    while t0 < len(tri):
+        # take triangles until the candidate budget is used
+        t1 = int(np.searchsorted(ends, starts[t0] + chunk, side="right"))
+        t1 = max(t1, t0 + 1)
+        sel = np.arange(t0, t1)
+        cnt = n[sel]
+        tid = np.repeat(sel, cnt)
+        local = np.arange(int(cnt.sum()), dtype=np.int64) - np.repeat(starts[sel] - starts[t0], cnt)
+        px = lo[tid, 0] + local % nx[tid]
+        py = lo[tid, 1] + local // nx[tid]
+        cx = px + 0.5
+        cy = py + 0.5
+        inside = np.ones(len(tid), dtype=bool)
+        v = tri[tid]
+        s = sign[tid]
+        for e in range(3):
+            p0 = v[:, e]
+            p1 = v[:, (e + 1) % 3]
+            edge = (p1[:, 0] - p0[:, 0]) * (cy - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (cx - p0[:, 0])
+            inside &= edge * s >= -1e-9
+        mask[py[inside], px[inside]] = True
+        t0 = t1
+    return mask
+
+
+def alpha_silhouette(uv: np.ndarray, shape: tuple[int, int], alpha: float) -> np.ndarray:
+    """Rasterised 2-D α-shape of projected points.
+
+    uv: (M, 2) float64 pixel coordinates (x = column, y = row); shape: (H, W).
+    alpha: inverse pixels; Delaunay triangles with circumradius < 1/alpha are kept.
+    Returns (H, W) bool: kept triangles plus the pixels the points fall in. Fewer than three
+    distinct points or collinear points give the point pixels only.
+    """
+    h, w = shape
+    mask = np.zeros(shape, dtype=bool)
+    if len(uv) == 0:
+        return mask
+    pix = np.floor(uv).astype(np.int64)
+    ok = (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
+    pix = pix[ok]
+    mask[pix[:, 1], pix[:, 0]] = True
+    # one vertex per occupied pixel (its centre): bounds the Delaunay size by the image area
+    rows, cols = np.nonzero(mask)
+    if len(rows) < 3:
+        return mask
+    pts = np.stack([cols + 0.5, rows + 0.5], axis=1).astype(np.float64)
+    try:
+        tri = Delaunay(pts)
+    except (QhullError, ValueError):
+        return mask  # collinear / degenerate projection: the points are the silhouette
+    verts = pts[tri.simplices]
+    keep = circumradius(verts) < 1.0 / alpha
+    mask |= rasterize_triangles(verts[keep], shape)
+    return mask
+
+
+def _disk(radius: float) -> np.ndarray:
+    r = int(np.floor(radius))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    return (xx * xx + yy * yy) <= radius * radius + 1e-9
+
+
+def carve_instance(
+    xyz: np.ndarray, spec: GridSpec, params: CarveParams = CarveParams()
+) -> np.ndarray:
+    """Voxels of the visual hull of one instance.
+
+    xyz: (N, 3) float32, scene-local metres (N ≥ 1). Returns (V,) int64 sorted linear keys of
+    ``spec`` (voxels outside the grid are dropped).
+    """
+    pts = np.asarray(xyz, dtype=np.float64)
+    vs = spec.voxel_size
+    own_ijk, own_in = spec.ijk_of_local(pts)
+    own = np.unique(spec.linear(own_ijk[own_in]))
+    center = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    radius = float(np.sqrt(((pts - center) ** 2).sum(axis=1).max())) if len(pts) else 0.0
+
+    # candidate voxels: dilated bounding box, clipped to the grid
+    shape = np.asarray(spec.shape)
+    lo = np.floor((pts.min(axis=0) - spec.local_origin) / vs).astype(np.int64) - params.margin
+    hi = np.floor((pts.max(axis=0) - spec.local_origin) / vs).astype(np.int64) + params.margin
+    lo = np.clip(lo, 0, shape - 1)
+    hi = np.clip(hi, 0, shape - 1)
+    ext = hi - lo + 1
+
+    pixel = vs * params.pixel_fraction
+    dil = params.dilation * vs
+    half = radius + dil + 2.0 * pixel + np.sqrt(3.0) * params.margin * vs
+    side = int(np.ceil(2.0 * half / pixel))
+    if side > params.max_image:
+        pixel = 2.0 * half / params.max_image
+        side = params.max_image
+    img_shape = (side, side)
+    disk = _disk(dil / pixel) if dil > 0 else None
+
+    dirs = fibonacci_sphere(params.n_views)
+    axes = [view_axes(d) for d in dirs]
+    sils = []
+    for e1, e2 in axes:
+        rel = pts - center
+        uv = np.stack([rel @ e1, rel @ e2], axis=1) / pixel + side / 2.0
+        sil = alpha_silhouette(uv, img_shape, params.alpha)
+        if disk is not None and disk.size > 1:
+            sil = ndimage.binary_dilation(sil, structure=disk)
+        sils.append(sil)
+
+    kept: list[np.ndarray] = [own]
+    # iterate over slabs of x so that at most max_candidates voxels are alive at once
+    slab = max(1, params.max_candidates // max(1, int(ext[1] * ext[2])))
+    for x0 in range(int(lo[0]), int(hi[0]) + 1, slab):
+        x1 = min(int(hi[0]) + 1, x0 + slab)
+        gi, gj, gk = np.meshgrid(
+            np.arange(x0, x1), np.arange(lo[1], hi[1] + 1), np.arange(lo[2], hi[2] + 1), indexing="ij"
+        )
+        ijk = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], axis=1)
+        c = spec.centers_local(ijk) - center
+        alive = np.arange(len(ijk))
+        for (e1, e2), sil in zip(axes, sils, strict=True):
+            cc = c[alive]
+            u = np.floor(cc @ e1 / pixel + side / 2.0).astype(np.int64)
+            v = np.floor(cc @ e2 / pixel + side / 2.0).astype(np.int64)
+            inside = (u >= 0) & (u < side) & (v >= 0) & (v < side)
+            inside[inside] = sil[v[inside], u[inside]]
+            alive = alive[inside]
+            if len(alive) == 0:
+                break
+        kept.append(spec.linear(ijk[alive]))
+    return np.unique(np.concatenate(kept))

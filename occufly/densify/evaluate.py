@@ -1,0 +1,88 @@
+"""Scene-grid evaluation against a truth grid (FORMATS.md section 5 definitions).
+
+The two grids are aligned by their WORLD origins; they may have different extents. The
+evaluation box is the union of both extents and a voxel outside a grid's extent counts as
+empty in that grid. Voxels whose truth is 255 (invalid) are ignored. Per-class IoU =
+TP / (TP + FP + FN) from one confusion matrix; a class absent from both grids is reported as
+``None`` (n/a) and left out of the mIoU; the mIoU averages the classes present in either grid.
+Completion IoU / precision / recall are over occupied-vs-empty.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+from occufly.grid import SceneGrid
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+
+
+def _offset(pred: SceneGrid, truth: SceneGrid) -> np.ndarray:
+    """(3,) int64 index offset of pred's voxel (0,0,0) in truth's lattice."""
+    if abs(pred.voxel_size - truth.voxel_size) > 1e-9 * truth.voxel_size:
+        raise InputFormatError(
+            f"grids have different voxel sizes ({pred.voxel_size} vs truth {truth.voxel_size}); "
+            "voxelize with --voxel matching the truth grid"
+        )
+    off = (pred.origin - truth.origin) / truth.voxel_size
+    r = np.round(off)
+    if np.any(np.abs(off - r) > 1e-3):
+        raise InputFormatError(
+            f"grid origins {pred.origin.tolist()} and {truth.origin.tolist()} are not on the same "
+            f"{truth.voxel_size} m lattice"
+        )
+    return r.astype(np.int64)
+
+
+def aligned_pair(pred: SceneGrid, truth: SceneGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Both grids' labels resampled onto the union box: two (X, Y, Z) uint8 arrays."""
+    off = _offset(pred, truth)
+    ps, ts = np.asarray(pred.shape), np.asarray(truth.shape)
+    lo = np.minimum(0, off)
+    hi = np.maximum(ts, off + ps)
+    shape = tuple(int(s) for s in hi - lo)
+    a = np.zeros(shape, np.uint8)
+    b = np.zeros(shape, np.uint8)
+    po = off - lo
+    to = -lo
+    a[po[0] : po[0] + ps[0], po[1] : po[1] + ps[1], po[2] : po[2] + ps[2]] = pred.labels
+    b[to[0] : to[0] + ts[0], to[1] : to[1] + ts[1], to[2] : to[2] + ts[2]] = truth.labels
+    return a, b
+
+
+def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy) -> dict:
+    """Completion IoU / precision / recall, per-class IoU and mIoU of ``pred`` vs ``truth``."""
+    a, b = aligned_pair(pred, truth)
+    valid = b != INVALID
+    p = a[valid].astype(np.int64)
+    g = b[valid].astype(np.int64)
+    del a, b
+    p[p == INVALID] = EMPTY
+    cm = np.bincount(g * 256 + p, minlength=256 * 256).reshape(256, 256)  # [truth, pred]
+    tp_occ = int(cm[1:, 1:].sum())
+    fp_occ = int(cm[0, 1:].sum())
+    fn_occ = int(cm[1:, 0].sum())
+    comp_iou = tp_occ / max(1, tp_occ + fp_occ + fn_occ)
+    per_class: dict[str, float | None] = {}
+    ious = []
+    for c in taxonomy.classes:
+        tp = int(cm[c.id, c.id])
+        fp = int(cm[:, c.id].sum() - tp)
+        fn = int(cm[c.id, :].sum() - tp)
+        if tp + fp + fn == 0:
+            per_class[c.name] = None
+            continue
+        iou = tp / (tp + fp + fn)
+        per_class[c.name] = round(iou, 4)
+        ious.append(iou)
+    return {
+        "completion_iou": round(comp_iou, 4),
+        "precision": round(tp_occ / max(1, tp_occ + fp_occ), 4),
+        "recall": round(tp_occ / max(1, tp_occ + fn_occ), 4),
+        "miou": round(float(np.mean(ious)), 4) if ious else None,
+        "classes_evaluated": len(ious),
+        "per_class_iou": per_class,
+        "voxels_pred": int(cm[:, 1:].sum()),
+        "voxels_truth": int(cm[1:, :].sum()),
+        "evaluated_voxels": int(cm.sum()),
+    }

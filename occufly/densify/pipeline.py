@@ -1,0 +1,337 @@
+"""Class-aware densification and scene voxelisation (paper section 3.3.3).
+
+Groups come from the taxonomy (``instance`` / ``ground`` / ``other``):
+
+- instance classes: DBSCAN per class (the class's ε, minPts; :mod:`.dbscan`), each instance
+  carved as a visual hull from 24 α-shape silhouettes (:mod:`.carve`); DBSCAN noise points and
+  degenerate instances (fewer than 4 distinct points, or flat / collinear: thinner than
+  ``degenerate_thickness`` voxel edges along a principal axis) are binned directly with a
+  logged warning;
+- ground classes: Poisson surface, scan-converted, majority ground class (:mod:`.ground`);
+- other classes: direct binning with a majority vote.
+
+Aggregation: ground, then other over it, then instance over both (instance ≻ other ≻ ground);
+within the instance layer a voxel holding instance points takes their majority class, and a
+voxel only carved takes the carving class ranked first in the taxonomy's tie order. 0 = empty.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occufly.densify.carve import CarveParams, carve_instance
+from occufly.densify.dbscan import dbscan
+from occufly.densify.ground import PoissonParams, voxelize_ground
+from occufly.densify.voxelize import GridSpec, bin_points, grid_spec_for, majority_vote
+from occufly.errors import InputFormatError
+from occufly.grid import SceneGrid
+from occufly.progress import ProgressFn, noop
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DensifyOptions:
+    """What to run and with which tolerances (``carve``/``poisson`` False = ablations)."""
+
+    voxel_size: float = 0.5
+    carve: bool = True
+    poisson: bool = True
+    dbscan_cell_fraction: float = 0.25  # DBSCAN reduction cell = fraction * eps (0 = exact)
+    degenerate_thickness: float = 0.05  # in voxel edges; thinner instances are binned directly
+    carve_params: CarveParams = field(default_factory=CarveParams)
+    poisson_params: PoissonParams = field(default_factory=PoissonParams)
+    pad: int = 2  # voxels around the labelled points' bounding box
+
+
+@dataclass
+class DensifyResult:
+    grid: SceneGrid
+    report: dict
+
+
+class _Warnings:
+    """Collects warnings for the report and logs each one."""
+
+    def __init__(self) -> None:
+        self.items: list[str] = []
+
+    def __call__(self, msg: str) -> None:
+        log.warning(msg)
+        self.items.append(msg)
+
+
+def _is_degenerate(pts: np.ndarray, thickness: float) -> str | None:
+    """Why an instance cannot be carved (None when it can). pts: (n, 3) float64."""
+    uniq = np.unique(pts, axis=0) if len(pts) < 64 else pts
+    if len(uniq) < 4:
+        return f"only {len(uniq)} distinct points"
+    c = pts - pts.mean(axis=0)
+    # principal axes from the 3x3 covariance (cheap for any n); extent along the thinnest one
+    _, vecs = np.linalg.eigh(c.T @ c)
+    proj = c @ vecs
+    ext = proj.max(axis=0) - proj.min(axis=0)
+    if ext[1] < thickness:
+        return "collinear (thinner than %.3g m in two directions)" % thickness
+    if ext[0] < thickness:
+        return "flat (thinner than %.3g m)" % thickness
+    return None
+
+
+def densify(
+    xyz: np.ndarray,
+    labels: np.ndarray,
+    taxonomy: Taxonomy,
+    *,
+    scene_origin: np.ndarray | None = None,
+    options: DensifyOptions = DensifyOptions(),
+    progress: ProgressFn | None = None,
+) -> DensifyResult:
+    """Build the semantic scene grid from a labelled point cloud.
+
+    xyz: (N, 3) float32, scene-local metres; labels: (N,) uint8 raw ids (0 / 255 / ids not
+    in ``taxonomy`` are ignored); scene_origin: (3,) float64 world offset of the local frame.
+    Returns the grid (origin in WORLD coordinates, snapped to the voxel lattice) and a report
+    with per-stage timings and voxel counts.
+    """
+    report_progress = progress or noop
+    warn = _Warnings()
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    scene_origin = np.zeros(3) if scene_origin is None else np.asarray(scene_origin, np.float64)
+    labels = np.asarray(labels)
+    if labels.shape != (len(xyz),):
+        raise InputFormatError(
+            f"labels: expected shape ({len(xyz)},) (one raw class id per point), got {labels.shape}"
+        )
+    labels = labels.astype(np.uint8, copy=False)
+    vs = float(options.voxel_size)
+    if not vs > 0:
+        raise InputFormatError(f"voxel size must be > 0, got {options.voxel_size}")
+    prio = taxonomy.priority_lut()
+
+    # ---- groups ------------------------------------------------------------------------
+    t = time.perf_counter()
+    group_of = np.zeros(256, dtype=np.uint8)  # 0 none, 1 instance, 2 ground, 3 other
+    for gi, g in enumerate(("instance", "ground", "other"), start=1):
+        group_of[taxonomy.group_ids(g)] = gi
+    gl = group_of[labels]
+    unknown = (gl == 0) & (labels != EMPTY) & (labels != INVALID)
+    if unknown.any():
+        bad = np.unique(labels[unknown])
+        warn(f"{int(unknown.sum())} points have ids {bad.tolist()} not in taxonomy {taxonomy.name!r}; ignored")
+    labelled = gl > 0
+    if not labelled.any():
+        raise InputFormatError(
+            "labels: no point carries a class of the taxonomy (all empty/unknown); nothing to voxelize"
+        )
+    idx_lab = np.flatnonzero(labelled)
+    sub = np.asarray(xyz[idx_lab], dtype=np.float32)
+    lo, hi = sub.min(axis=0), sub.max(axis=0)
+    del sub
+    spec = grid_spec_for(lo, hi, scene_origin, vs, pad=options.pad)
+    counts_per_class = np.bincount(labels[labelled], minlength=256)
+    for c in taxonomy.classes:
+        if counts_per_class[c.id] == 0:
+            log.info("class %s (%d) has no points", c.name, c.id)
+    timings["groups"] = time.perf_counter() - t
+    report_progress(0.02, "groups")
+
+    # ---- instances ---------------------------------------------------------------------
+    t = time.perf_counter()
+    inst_point_keys: list[np.ndarray] = []
+    inst_point_labels: list[np.ndarray] = []
+    carved: dict[int, np.ndarray] = {}
+    inst_stats: dict[str, dict] = {}
+    inst_ids = [int(c) for c in taxonomy.group_ids("instance") if counts_per_class[c] > 0]
+    t_dbscan = t_carve = 0.0
+    for ci, cid in enumerate(inst_ids):
+        cls = taxonomy[cid]
+        sel = np.flatnonzero(labels == cid)
+        pts = np.asarray(xyz[sel], dtype=np.float32)
+        k, ins = spec.keys_of_local(pts)
+        inst_point_keys.append(k[ins])
+        inst_point_labels.append(np.full(int(ins.sum()), cid, np.uint8))
+        st = {"points": int(len(sel))}
+        if not options.carve:
+            inst_stats[cls.name] = st
+            continue
+        t0 = time.perf_counter()
+        eps, minpts = float(cls.dbscan_eps), int(cls.dbscan_min_points)
+        cl = dbscan(pts, eps, minpts, cell=options.dbscan_cell_fraction * eps)
+        t_dbscan += time.perf_counter() - t0
+        n_inst = int(cl.max()) + 1 if len(cl) else 0
+        noise = int((cl < 0).sum())
+        st.update({"instances": n_inst, "noise_points": noise, "fallback_instances": 0})
+        if noise:
+            msg = (
+                f"{cls.name}: {noise} of {len(pts)} points are DBSCAN noise "
+                f"(eps={eps}, minPts={minpts}); they are binned directly"
+            )
+            if n_inst == 0:
+                warn(msg)
+            else:
+                log.info(msg)
+        t0 = time.perf_counter()
+        order = np.argsort(cl, kind="stable")
+        bounds = np.searchsorted(cl[order], np.arange(n_inst + 1))
+        keys_c: list[np.ndarray] = []
+        for j in range(n_inst):
+            p = pts[order[bounds[j] : bounds[j + 1]]].astype(np.float64)
+            why = _is_degenerate(p, options.degenerate_thickness * vs)
+            if why is not None:
+                warn(f"{cls.name} instance {j} ({len(p)} points) is degenerate: {why}; binned directly")
+                st["fallback_instances"] += 1
+                continue  # its points are already in the direct layer
+            keys_c.append(carve_instance(p, spec, options.carve_params))
+        if keys_c:
+            carved[cid] = np.unique(np.concatenate(keys_c))
+        st["carved_voxels"] = int(len(carved.get(cid, ())))
+        t_carve += time.perf_counter() - t0
+        inst_stats[cls.name] = st
+        report_progress(0.02 + 0.6 * (ci + 1) / max(1, len(inst_ids)), f"instances: {cls.name}")
+    timings["instances"] = time.perf_counter() - t
+    timings["instances_dbscan"] = t_dbscan
+    timings["instances_carve"] = t_carve
+
+    # ---- other -------------------------------------------------------------------------
+    t = time.perf_counter()
+    sel = np.flatnonzero(gl == 3)
+    other_k, other_l = bin_points(spec, np.asarray(xyz[sel], np.float32), labels[sel], prio)
+    timings["other"] = time.perf_counter() - t
+    report_progress(0.65, "other")
+
+    # ---- ground ------------------------------------------------------------------------
+    t = time.perf_counter()
+    sel = np.flatnonzero(gl == 2)
+    ground = voxelize_ground(
+        spec, np.asarray(xyz[sel], np.float32), labels[sel], prio,
+        poisson=options.poisson, params=options.poisson_params,
+    )
+    if "fallback" in ground.stats:
+        warn(f"ground: {ground.stats['fallback']}; binned directly")
+    timings["ground"] = time.perf_counter() - t
+    report_progress(0.9, "ground")
+
+    # ---- aggregate: ground < other < instance -------------------------------------------
+    t = time.perf_counter()
+    flat = np.zeros(spec.n_voxels, dtype=np.uint8)
+    flat[ground.keys] = ground.labels
+    flat[other_k] = other_l
+    # carved voxels: least preferred class first, so the preferred one ends on top
+    for cid in sorted(carved, key=lambda c: -int(prio[c])):
+        flat[carved[cid]] = cid
+    if inst_point_keys:
+        k, lab, _ = majority_vote(np.concatenate(inst_point_keys), np.concatenate(inst_point_labels), prio)
+        flat[k] = lab
+    grid = SceneGrid(flat.reshape(spec.shape), spec.origin, vs)
+    timings["aggregate"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    report_progress(1.0, "done")
+
+    counts = grid.class_counts()
+    occupied = int(sum(counts.values()))
+    if occupied == 0:  # cannot happen with labelled points inside the grid; never hide it
+        raise InputFormatError("labels: the densified grid is empty")
+    report = {
+        "voxel_size": vs,
+        "grid_shape": list(spec.shape),
+        "grid_origin_world": spec.origin.tolist(),
+        "points": int(len(xyz)),
+        "labelled_points": int(labelled.sum()),
+        "options": {"carve": options.carve, "poisson": options.poisson},
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "occupied_voxels": occupied,
+        "voxels_per_class": {taxonomy[c].name if c in taxonomy else str(c): n for c, n in sorted(counts.items())},
+        "voxels_per_stage": {
+            "instance_points": int(len(np.unique(np.concatenate(inst_point_keys)))) if inst_point_keys else 0,
+            "instance_carved": int(sum(len(v) for v in carved.values())),
+            "other": int(len(other_k)),
+            "ground_points": int(ground.stats.get("voxels_from_points", 0)),
+            "ground_total": int(len(ground.keys)),
+        },
+        "instances": inst_stats,
+        "ground": ground.stats,
+        "warnings": warn.items,
+    }
+    return DensifyResult(grid, report)
+
+
+LABELS_RELPATH = "lifting/labels.npy"
+
+
+def load_point_labels(path: str | Path, n_points: int) -> np.ndarray:
+    """(N,) uint8 labels from an ``.npy`` file, checked against the cloud size."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFormatError(
+            f"{path}: point labels not found (run the lifting step, or pass --labels PATH to an "
+            f".npy with one raw class id per point)"
+        )
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except Exception as e:  # noqa: BLE001
+        raise InputFormatError(f"{path}: not a readable .npy array ({e})") from None
+    if arr.shape != (n_points,):
+        raise InputFormatError(f"{path}: expected shape ({n_points},) to match the cloud, got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise InputFormatError(f"{path}: expected integer raw class ids, got dtype {arr.dtype}")
+    if arr.dtype != np.uint8:
+        a = np.asarray(arr)
+        if len(a) and (a.min() < 0 or a.max() > 255):
+            raise InputFormatError(f"{path}: class ids must be 0..255")
+        return a.astype(np.uint8)
+    return np.asarray(arr)
+
+
+def voxelize_workspace(
+    ws: str | Path,
+    *,
+    labels_path: str | Path | None = None,
+    options: DensifyOptions = DensifyOptions(),
+    out_path: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> dict:
+    """Densify a workspace's labelled cloud and save ``WS/grid/scene_grid.npz`` (atomic).
+
+    Labels default to ``WS/lifting/labels.npy``. Returns the report (also written next to
+    the grid as ``voxelize_report.json``).
+    """
+    import json
+
+    from occufly.fsutil import atomic_write_text
+    from occufly.grid import workspace_grid_path
+    from occufly.scene import Scene
+
+    ws = Path(ws)
+    t = time.perf_counter()
+    scene = Scene.load(ws)
+    lp = Path(labels_path) if labels_path is not None else ws / LABELS_RELPATH
+    labels = load_point_labels(lp, scene.n_points)
+    t_load = time.perf_counter() - t
+    res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin, options=options, progress=progress)
+    out = Path(out_path) if out_path is not None else workspace_grid_path(ws)
+    t = time.perf_counter()
+    res.grid.save(out)
+    res.report["timings_s"]["load"] = round(t_load, 3)
+    res.report["timings_s"]["save"] = round(time.perf_counter() - t, 3)
+    res.report["labels"] = str(lp)
+    res.report["grid"] = str(out)
+    atomic_write_text(out.with_name(out.stem + "_report.json"), json.dumps(res.report, indent=1))
+    return res.report
+
+
+def spec_of_grid(grid: SceneGrid, scene_origin: np.ndarray) -> GridSpec:
+    """The :class:`GridSpec` of an existing grid, for a scene with ``scene_origin`` (3,)."""
+    return GridSpec(
+        origin=grid.origin.copy(),
+        local_origin=grid.origin - np.asarray(scene_origin, np.float64),
+        shape=grid.shape,
+        voxel_size=grid.voxel_size,
+    )

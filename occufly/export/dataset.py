@@ -1,0 +1,377 @@
+"""``export_dataset``: per-frame ground truth for a scene workspace, written in the OccuFly or
+SSCBench layout through the executor interface.
+
+Guarantees
+- Everything that can be checked is checked before anything is written: the target (it must
+  be empty / absent, an export root of the same layout, or an earlier export of *this* scene
+  -- same scene fingerprint), every selected frame's pose, altitude and image.
+- Each frame's files are written atomically one by one, then a done marker (in
+  ``<root>/.occufly_export/<layout>/<scene_id>/done/``) recording the config hash and file
+  sizes. A rerun skips frames whose marker matches and whose files have the recorded sizes,
+  so an interrupted export resumes; a frame that failed half-way has its placed files
+  removed, and a frame without a marker is rewritten.
+- Disk full raises :class:`ExportError` with a clear message; completed frames are kept.
+- The manifest (taxonomy, provenance, sampling parameters, frames) is written before the
+  frames with ``complete: false`` and rewritten with ``complete: true`` at the end.
+
+Grids per altitude: ``grid`` may be a :class:`SceneGrid` (used for every frame) or a dict
+``{altitude: SceneGrid}``; when None, ``WS/grid/scene_grid_<alt>.npz`` files are used if
+present, else ``WS/grid/scene_grid.npz``. ``grid_for_altitude`` maps a frame's altitude to
+the altitude whose grid it samples; by default every frame samples the grid of the highest
+altitude available ("frames at 40/30 m sample the grid built from the 50 m data").
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import re
+import shutil
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+from occufly.export import occufly as occufly_layout
+from occufly.export import sscbench as sscbench_layout
+from occufly.export.common import (
+    EXPORT_FORMAT_VERSION,
+    ExportError,
+    cached,
+    clean_stray_temporaries,
+    frame_done,
+    grid_digest,
+    is_disk_full,
+    scene_fingerprint,
+    sha256_bytes,
+    write_frame_files,
+)
+from occufly.fsutil import atomic_write_bytes, atomic_write_text
+from occufly.grid import SceneGrid, workspace_grid_path
+from occufly.progress import ProgressFn
+from occufly.sampling import GridSpec, check_pose, frame_depth_map, sample_frame
+
+LAYOUTS = {"occufly": occufly_layout, "sscbench": sscbench_layout}
+SCENE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def frame_id_of(index: int) -> str:
+    return f"{index:06d}"
+
+
+def frame_altitude(frame, where: str) -> int:
+    if frame.nominal_altitude is not None:
+        return int(frame.nominal_altitude)
+    if frame.altitude is not None and math.isfinite(frame.altitude):
+        return int(round(frame.altitude))
+    raise ExportError(f"{where}: frame {frame.name!r} has no altitude (run import / altitudes first)")
+
+
+def _resolve_grids(ws: Path, grid, altitudes: set[int], grid_for_altitude: dict[int, int] | None
+                   ) -> tuple[dict[int, SceneGrid], dict[int, int], dict[int, str]]:
+    """-> (grids by source altitude or -1 for the single grid, frame altitude -> grid key,
+    grid key -> provenance string)."""
+    grids: dict[int, SceneGrid] = {}
+    source: dict[int, str] = {}
+    if isinstance(grid, SceneGrid):
+        grids[-1], source[-1] = grid, "given"
+    elif isinstance(grid, dict):
+        for k, g in grid.items():
+            if not isinstance(g, SceneGrid):
+                raise TypeError("grid dict values must be SceneGrid")
+            grids[int(k)], source[int(k)] = g, "given"
+    elif grid is None:
+        for p in sorted((ws / "grid").glob("scene_grid_*.npz")):
+            m = re.match(r"scene_grid_(\d+)\.npz$", p.name)
+            if m:
+                grids[int(m.group(1))], source[int(m.group(1))] = SceneGrid.load(p), str(p)
+        if not grids:
+            p = workspace_grid_path(ws)
+            if not p.is_file():
+                raise ExportError(
+                    f"{p}: no scene grid in the workspace; run `occufly voxelize` first "
+                    "(or pass a grid)")
+            grids[-1], source[-1] = SceneGrid.load(p), str(p)
+    else:
+        raise TypeError(f"grid must be a SceneGrid, a dict or None, got {type(grid).__name__}")
+    mapping: dict[int, int] = {}
+    keys = sorted(k for k in grids if k >= 0)
+    for alt in altitudes:
+        want = (grid_for_altitude or {}).get(alt)
+        if want is not None:
+            if want in grids:
+                mapping[alt] = want
+            elif -1 in grids:
+                mapping[alt] = -1
+            else:
+                raise ExportError(f"grid_for_altitude asks for the {want} m grid; available: {keys}")
+        elif -1 in grids:
+            mapping[alt] = -1
+        else:
+            mapping[alt] = max(keys)  # the highest flight's grid
+    return grids, mapping, source
+
+
+def _image_png(path: str | None, where: str) -> bytes:
+    if not path or not Path(path).is_file():
+        raise ExportError(f"{where}: image file {path!r} not found")
+    p = Path(path)
+    if p.suffix.lower() == ".png":
+        return p.read_bytes()
+    from PIL import Image
+
+    try:
+        with Image.open(p) as im:
+            buf = io.BytesIO()
+            im.save(buf, format="PNG", compress_level=1)
+            return buf.getvalue()
+    except OSError as e:
+        raise InputFormatError(f"{p}: cannot read image ({e})") from None
+
+
+# ---- the per-frame task (runs in a worker process or on a Dask worker) ---------------------
+def export_frame_task(task: dict) -> dict:
+    """Compute and write one frame. ``task`` holds only paths and small values."""
+    from occufly.scene import Scene
+
+    t0 = time.perf_counter()
+    ws, root = Path(task["ws"]), Path(task["out"])
+    scene = cached(("scene", task["ws"], task["scene_mtime"]), lambda: Scene.load(ws))
+    grid = cached(("grid", task["grid_path"], task["grid_digest"]),
+                  lambda: SceneGrid.load(task["grid_path"]))
+    f = task["frame_index"]
+    frame = scene.frames[f]
+    spec = GridSpec(**task["spec"])
+    gt = sample_frame(grid, frame.camera, frame.T_cam_world, scene.origin, spec)
+    t_sample = time.perf_counter() - t0
+    depth, depth_src = frame_depth_map(scene, f)
+    image = _image_png(frame.image_path, f"frame {frame.name}")
+    layout = LAYOUTS[task["layout"]]
+    pose = np.linalg.inv(frame.T_cam_world).astype(np.float32)
+    prio = scene.taxonomy.priority_lut()
+    kw = {"taxonomy": scene.taxonomy} if task["layout"] == "sscbench" else {}
+    files = layout.frame_files(root, task["scene_id"], task["altitude"], task["frame_id"], gt,
+                               pose, image, depth, prio, **kw)
+    t_compute = time.perf_counter() - t0
+    marker = layout.marker(root, task["scene_id"], task["altitude"], task["frame_id"])
+    nbytes = write_frame_files(files, marker, {
+        "config": task["config"], "frame": frame.name,
+        "files": {str(p.relative_to(root)): len(b) for p, b in files.items()}})
+    return {
+        "frame_id": task["frame_id"], "altitude": task["altitude"], "name": frame.name,
+        "occupied": gt.stats["occupied"], "valid": gt.stats["valid"],
+        "surface": int(gt.surface.sum()), "occluded": int(gt.occluded.sum()),
+        "depth_source": depth_src, "depth_pixels": int(np.count_nonzero(depth)),
+        "bytes": nbytes, "seconds_sample": round(t_sample, 4),
+        "seconds_compute": round(t_compute, 4), "seconds": round(time.perf_counter() - t0, 4),
+    }
+
+
+# ---- target checks ---------------------------------------------------------------------------
+def _check_target(out: Path, layout, scene_id: str, fingerprint: str, layout_name: str) -> dict | None:
+    """Raise unless ``out`` may receive this export; return the earlier manifest if any."""
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"{out}: export target exists and is not a directory")
+    if not out.exists() or not any(out.iterdir()):
+        return None
+    mpath = layout.manifest_path(out, scene_id)
+    if mpath.is_file():
+        try:
+            old = json.loads(mpath.read_text())
+        except ValueError:
+            raise ExportError(f"{mpath}: unreadable manifest; refusing to write into {out}") from None
+        if old.get("layout") != layout_name or old.get("scene_fingerprint") != fingerprint:
+            raise ExportError(
+                f"{out}: holds an export of a different scene or layout under {scene_id!r} "
+                f"(manifest {mpath}); choose another target or scene id")
+        return old
+    if layout.is_export_root(out):
+        if layout_name == "occufly" and layout.scene_dir(out, scene_id).exists():
+            raise ExportError(f"{layout.scene_dir(out, scene_id)}: exists without a manifest; "
+                              "it is not an earlier export of this scene")
+        return None
+    raise ExportError(
+        f"{out}: export target exists and is not an earlier {layout_name} export of this scene "
+        "(no matching manifest); choose an empty or new folder")
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as e:
+        if is_disk_full(e):
+            raise ExportError(f"disk full while writing {path}; nothing of this export was "
+                              "changed beyond completed frames -- free space and rerun") from None
+        raise
+
+
+# ---- entry point -------------------------------------------------------------------------------
+def export_dataset(
+    ws: Path,
+    out: Path,
+    *,
+    scene_id: str = "scene_01",
+    layout: str = "occufly",
+    grid: SceneGrid | dict[int, SceneGrid] | None = None,
+    frames: list[int] | None = None,
+    executor=None,
+    progress: ProgressFn | None = None,
+    spec: GridSpec | None = None,
+    grid_for_altitude: dict[int, int] | None = None,
+    workers: int | None = None,
+) -> dict:
+    """Export per-frame ground truth of workspace ``ws`` into ``out``; returns a summary.
+
+    frames: frame indices (default all); executor: from :func:`occufly.parallel.get_executor`
+    (default: a local pool with ``workers`` processes, closed afterwards).
+    """
+    from occufly.scene import Scene
+
+    t_start = time.perf_counter()
+    ws, out = Path(ws).absolute(), Path(out).absolute()
+    if layout not in LAYOUTS:
+        raise ExportError(f"unknown layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
+    if not SCENE_ID_RE.match(scene_id):
+        raise ExportError(f"scene id {scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
+    lay = LAYOUTS[layout]
+    spec = spec or GridSpec()
+    scene = Scene.load(ws)
+    n = len(scene.frames)
+    idx = list(range(n)) if frames is None else [int(i) for i in frames]
+    bad = [i for i in idx if not 0 <= i < n]
+    if bad:
+        raise ExportError(f"frame index {bad[0]} out of range: the scene has {n} frames")
+    if len(set(idx)) != len(idx):
+        raise ExportError("frame list has duplicates")
+    # -- validate every frame before writing anything
+    alts: dict[int, int] = {}
+    for i in idx:
+        fr = scene.frames[i]
+        check_pose(fr.T_cam_world, f"{ws}: frame {i} ({fr.name})")
+        alts[i] = frame_altitude(fr, f"{ws}: frame {i}")
+        if not fr.image_path or not Path(fr.image_path).is_file():
+            raise ExportError(f"{ws}: frame {i} ({fr.name}): image file {fr.image_path!r} not found")
+    grids, mapping, grid_src = _resolve_grids(ws, grid, set(alts.values()), grid_for_altitude)
+    fingerprint = scene_fingerprint(scene)
+    old = _check_target(out, lay, scene_id, fingerprint, layout)
+
+    # -- grids used, stored next to the export state so workers (local or remote) load them
+    sdir = lay.state_dir(out, scene_id)
+    grid_paths: dict[int, tuple[str, str]] = {}
+    digests = {}
+    for key, g in grids.items():
+        if key not in set(mapping.values()):
+            continue
+        dg = grid_digest(g)
+        p = sdir / f"grid_{'all' if key < 0 else key}_{dg[:12]}.npz"
+        if not p.is_file():
+            _atomic_write(p, g.to_bytes())
+        grid_paths[key] = (str(p), dg)
+        digests[key] = dg
+    config = sha256_bytes(json.dumps({
+        "v": EXPORT_FORMAT_VERSION, "layout": layout, "spec": spec.to_dict(), "scene": fingerprint,
+        "grids": {str(a): digests[mapping[a]] for a in sorted(mapping)},
+    }, sort_keys=True).encode())[:32]
+
+    by_alt_cam: dict[int, object] = {}
+    for i in idx:
+        by_alt_cam.setdefault(alts[i], scene.frames[i].camera)
+    manifest = {
+        "format": "occufly-export", "version": EXPORT_FORMAT_VERSION, "layout": layout,
+        "scene_id": scene_id, "scene_fingerprint": fingerprint, "complete": False,
+        "created": (old or {}).get("created") or datetime.now(UTC).isoformat(timespec="seconds"),
+        "updated": datetime.now(UTC).isoformat(timespec="seconds"),
+        "taxonomy": scene.taxonomy.to_dict(),
+        "learning_map": {str(k): v for k, v in scene.taxonomy.learning_map().items()},
+        "grid_spec": spec.to_dict(),
+        "conventions": {
+            "frame_grid": "camera-centric, x right, y down, z forward; voxel (i,j,k) centre "
+                          "((i-X/2+.5)r, (j-Y/2+.5)r, (k+.5)r); C order",
+            "label": "raw class ids, 0 empty, 255 invalid",
+            "masks": "numpy.packbits of the flattened bool array, MSB first",
+            "pose": "pkl 'pose' = (4,4) float32 camera-to-world, scene-local metres",
+            "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened",
+            "pooling": "most common non-empty valid class per block; ties by taxonomy tie order; "
+                       "no non-empty valid voxel -> 0 if any valid voxel else 255",
+        },
+        "provenance": {
+            "workspace": str(ws), "scene_origin": scene.origin.tolist(),
+            "scene_meta": {k: scene.meta.get(k) for k in ("source", "cloud", "depth_maps",
+                                                          "georeferenced", "synthetic")
+                           if k in scene.meta},
+            "grids": {("all" if k < 0 else str(k)): {
+                "source": grid_src[k], "digest": digests[k], "shape": list(grids[k].shape),
+                "origin": grids[k].origin.tolist(), "voxel_size": grids[k].voxel_size}
+                for k in digests},
+            "grid_for_altitude": {str(a): ("all" if k < 0 else k) for a, k in sorted(mapping.items())},
+            "config_hash": config,
+        },
+        "cameras": {str(a): c.to_dict() for a, c in sorted(by_alt_cam.items())},
+    }
+    frames_index = dict((old or {}).get("frames", {}))
+    for i in idx:
+        fr = scene.frames[i]
+        frames_index[frame_id_of(i)] = {"name": fr.name, "altitude": alts[i],
+                                        "camera": fr.camera.to_dict()}
+    manifest["frames"] = dict(sorted(frames_index.items()))
+    mpath = lay.manifest_path(out, scene_id)
+    clean_stray_temporaries(out)
+    _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
+    for p, data in lay.static_files(out, scene_id, by_alt_cam, scene.taxonomy).items():
+        _atomic_write(p, data)
+
+    # -- tasks for frames that are not done yet
+    scene_mtime = (ws / "scene.json").stat().st_mtime_ns
+    tasks, skipped = [], 0
+    for i in idx:
+        fid = frame_id_of(i)
+        if frame_done(lay.marker(out, scene_id, alts[i], fid), config, out):
+            skipped += 1
+            continue
+        gp, gd = grid_paths[mapping[alts[i]]]
+        tasks.append({
+            "ws": str(ws), "out": str(out), "scene_mtime": scene_mtime, "scene_id": scene_id,
+            "layout": layout, "frame_index": i, "frame_id": fid, "altitude": alts[i],
+            "grid_path": gp, "grid_digest": gd, "spec": {
+                "shape": spec.shape, "voxel_size": spec.voxel_size, "near": spec.near,
+                "far": spec.far, "oversample": spec.oversample, "max_raster": spec.max_raster},
+            "config": config,
+        })
+    own = executor is None
+    if own:
+        from occufly.parallel import get_executor
+
+        executor = get_executor(None, workers if workers is not None else min(len(tasks), 2) or 1)
+    try:
+        results = executor.map(export_frame_task, tasks, progress=progress) if tasks else []
+    except OSError as e:
+        if is_disk_full(e):
+            raise ExportError(f"disk full while exporting into {out}; completed frames are kept, "
+                              "free space and rerun to resume") from None
+        raise
+    finally:
+        if own:
+            executor.close()
+    manifest["complete"] = all(
+        frame_done(lay.marker(out, scene_id, a["altitude"], fid), config, out)
+        for fid, a in manifest["frames"].items())
+    manifest["updated"] = datetime.now(UTC).isoformat(timespec="seconds")
+    _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
+    total_bytes = sum(r["bytes"] for r in results)
+    secs = [r["seconds_sample"] for r in results]
+    return {
+        "out": str(out), "layout": layout, "scene_id": scene_id,
+        "frames": len(idx), "written": len(results), "skipped_done": skipped,
+        "complete": manifest["complete"], "bytes": total_bytes,
+        "seconds": round(time.perf_counter() - t_start, 3),
+        "sample_seconds_mean": round(float(np.mean(secs)), 4) if secs else None,
+        "grid_for_altitude": manifest["provenance"]["grid_for_altitude"],
+        "results": results,
+    }
+
+
+def remove_export(out: Path) -> None:  # pragma: no cover - convenience for tests/CLI
+    shutil.rmtree(out, ignore_errors=True)

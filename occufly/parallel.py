@@ -1,0 +1,144 @@
+"""One executor interface for fan-out work (per-frame export, evaluation).
+
+``get_executor()`` returns an object with
+
+- ``map(fn, items, progress=None) -> list``: results in the order of ``items``; ``progress``
+  (a :data:`occufly.progress.ProgressFn`) is called as tasks *complete*;
+- ``submit(fn, *args, **kwargs) -> future`` with ``.result()``;
+- ``close()`` / context manager.
+
+Backends: :class:`SerialExecutor` (``workers=0`` or ``1``: in-process, for debugging and
+small jobs), :class:`LocalExecutor` (a ``ProcessPoolExecutor``, the default) and
+:class:`DaskExecutor` (``dask.distributed.Client`` connected to ``dask_address``). The same
+task functions run on all of them: they must be importable top-level functions whose
+arguments and results pickle; workers on a cluster must see the same file paths.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from typing import Any
+
+from occufly.errors import OccuflyError
+from occufly.progress import ProgressFn
+
+
+class SerialExecutor:
+    """Runs everything in the calling process."""
+
+    kind = "serial"
+    workers = 1
+
+    def submit(self, fn: Callable, *args: Any, **kwargs: Any) -> Future:
+        fut: Future = Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # noqa: BLE001 - delivered through the future
+            fut.set_exception(e)
+        return fut
+
+    def map(self, fn: Callable, items: Iterable, progress: ProgressFn | None = None) -> list:
+        items = list(items)
+        out = []
+        for i, item in enumerate(items):
+            out.append(fn(item))
+            if progress:
+                progress((i + 1) / max(len(items), 1), f"{i + 1}/{len(items)}")
+        return out
+
+    def close(self) -> None:
+        return None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class LocalExecutor(SerialExecutor):
+    """A local process pool."""
+
+    kind = "local"
+
+    def __init__(self, workers: int | None = None) -> None:
+        self.workers = int(workers or os.cpu_count() or 1)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers)
+
+    def submit(self, fn: Callable, *args: Any, **kwargs: Any) -> Future:
+        return self._pool.submit(fn, *args, **kwargs)
+
+    def map(self, fn: Callable, items: Iterable, progress: ProgressFn | None = None) -> list:
+        items = list(items)
+        futs = {self._pool.submit(fn, item): i for i, item in enumerate(items)}
+        out: list = [None] * len(items)
+        try:
+            for n, fut in enumerate(as_completed(futs), start=1):
+                out[futs[fut]] = fut.result()
+                if progress:
+                    progress(n / max(len(items), 1), f"{n}/{len(items)}")
+        except BaseException:
+            for f in futs:
+                f.cancel()
+            raise
+        return out
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor(SerialExecutor):
+    """A ``dask.distributed`` cluster (scheduler address such as ``tcp://host:8786``)."""
+
+    kind = "dask"
+
+    def __init__(self, address: str) -> None:
+        try:
+            from distributed import Client
+        except ImportError as e:  # pragma: no cover - distributed is a dependency
+            raise OccuflyError(f"--dask needs the 'distributed' package ({e})") from None
+        try:
+            self.client = Client(address, timeout="10s")
+        except (OSError, TimeoutError) as e:
+            raise OccuflyError(f"cannot connect to the Dask scheduler at {address!r}: {e}") from None
+        self.address = address
+        self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+
+    def submit(self, fn: Callable, *args: Any, **kwargs: Any):
+        return self.client.submit(fn, *args, pure=False, **kwargs)
+
+    def map(self, fn: Callable, items: Iterable, progress: ProgressFn | None = None) -> list:
+        from distributed import as_completed as dask_completed
+
+        items = list(items)
+        if not items:
+            return []
+        futs = self.client.map(fn, items, pure=False)
+        index = {f.key: i for i, f in enumerate(futs)}
+        out: list = [None] * len(items)
+        try:
+            for n, fut in enumerate(dask_completed(futs), start=1):
+                out[index[fut.key]] = fut.result()
+                if progress:
+                    progress(n / len(items), f"{n}/{len(items)}")
+        except BaseException:
+            self.client.cancel(futs)
+            raise
+        return out
+
+    def close(self) -> None:
+        self.client.close()
+
+
+def get_executor(dask_address: str | None = None, workers: int | None = None) -> SerialExecutor:
+    """The executor for fan-out work: Dask when ``dask_address`` is given (or the
+    ``OCCUFLY_DASK`` environment variable is set), else a local process pool with ``workers``
+    processes (default: CPU count); ``workers`` 0 or 1 runs in-process."""
+    address = dask_address or os.environ.get("OCCUFLY_DASK") or None
+    if address:
+        return DaskExecutor(address)
+    if workers is not None and workers <= 1:
+        return SerialExecutor()
+    return LocalExecutor(workers)

@@ -1,0 +1,393 @@
+// Admin console: users, scene import, frame selection (coverage curve + top-down map), jobs
+// with live progress and log tails, exports with downloads, metric tables, class histograms.
+
+import { api } from "../core/api.js";
+import { el, showError, toast, pct, fmtDate, table } from "../core/ui.js";
+import { linePlot, barPlot, mapPlot, cellRect } from "./plots.js";
+
+const ACTIVE = new Set(["queued", "running"]);
+
+export async function mount(root, ctx) {
+  const p = new AdminPage(root, ctx);
+  await p.start();
+  return p;
+}
+
+function section(id, title, ...children) {
+  return el("section", { class: "card", id, "aria-labelledby": `${id}-h` }, el("h2", { id: `${id}-h` }, title), ...children);
+}
+
+function field(label, input, hint = null) {
+  const id = input.id;
+  return el("div", { class: "field" }, el("label", { for: id }, label), input, hint ? el("small", {}, hint) : null);
+}
+
+class AdminPage {
+  constructor(root, ctx) {
+    this.root = root;
+    this.ctx = ctx;
+    this.timer = null;
+    this.alive = true;
+    this.jobs = [];
+  }
+
+  async start() {
+    this.usersEl = el("div");
+    this.scenesEl = el("div");
+    this.selectionEl = el("div", { class: "plots" });
+    this.jobsEl = el("div", { id: "jobs" });
+    this.exportsEl = el("div");
+    this.histEl = el("div");
+    this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
+    this.sceneSel.addEventListener("change", () => {
+      this.ctx.setParams({ scene: this.sceneSel.value });
+      this.loadScene();
+    });
+    this.root.append(
+      el(
+        "div",
+        { class: "admin" },
+        el("div", { class: "row admin-head" }, el("h1", {}, "Admin console"), el("label", { for: "admin-scene" }, "Scene"), this.sceneSel),
+        el(
+          "nav",
+          { class: "subnav", "aria-label": "Admin sections" },
+          ["users", "scenes", "selection", "jobs", "exports", "labels"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+        ),
+        section("sec-users", "Users", this.usersEl, this.userForm()),
+        section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
+        section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
+        section("sec-jobs", "Jobs", this.jobsEl),
+        section("sec-exports", "Exports and metrics", this.exportForm(), this.exportsEl),
+        section("sec-labels", "Labels: class histogram", this.histEl),
+      ),
+    );
+    await Promise.all([this.loadUsers(), this.loadScenes()]);
+    await this.loadScene();
+    this.poll();
+  }
+
+  unmount() {
+    this.alive = false;
+    clearTimeout(this.timer);
+  }
+
+  get sid() {
+    return this.sceneSel.value;
+  }
+
+  async guard(fn) {
+    try {
+      return await fn();
+    } catch (e) {
+      showError(e);
+      return null;
+    }
+  }
+
+  // ---- users ---------------------------------------------------------------------------
+  async loadUsers() {
+    await this.guard(async () => {
+      const users = (await api.get("/users")) || [];
+      this.usersEl.replaceChildren(
+        table(users, [
+          { key: "username", label: "User" },
+          { key: "role", label: "Role" },
+          { key: "created_at", label: "Created", fmt: fmtDate },
+        ]),
+      );
+    });
+  }
+
+  userForm() {
+    const name = el("input", { id: "new-username", required: true, autocomplete: "off" });
+    const pw = el("input", { id: "new-password", type: "password", required: true, autocomplete: "new-password", minlength: 8 });
+    const role = el("select", { id: "new-role" }, ["annotator", "reviewer", "admin"].map((r) => el("option", { value: r }, r)));
+    const f = el("form", { class: "inline-form", "aria-label": "Create user" }, field("User name", name), field("Password", pw), field("Role", role), el("button", { type: "submit" }, "Create user"));
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const r = await this.guard(() => api.post("/users", { username: name.value.trim(), password: pw.value, role: role.value }));
+      if (r) {
+        toast(`User ${name.value} created.`);
+        f.reset();
+        this.loadUsers();
+      }
+    });
+    return f;
+  }
+
+  // ---- scenes ----------------------------------------------------------------------------
+  async loadScenes() {
+    await this.guard(async () => {
+      const scenes = (await api.get("/scenes")) || [];
+      this.scenes = scenes;
+      const keep = this.sceneSel.value || this.ctx.params.scene;
+      this.sceneSel.replaceChildren(...scenes.map((s) => el("option", { value: s.id }, s.name)));
+      if (keep && scenes.some((s) => String(s.id) === String(keep))) this.sceneSel.value = keep;
+      this.scenesEl.replaceChildren(
+        scenes.length
+          ? table(scenes, [
+              { key: "name", label: "Scene" },
+              { key: "status", label: "Status" },
+              { key: "n_frames", label: "Frames" },
+              { key: "n_points", label: "Points", fmt: (v) => (v == null ? "" : Number(v).toLocaleString()) },
+              { key: "n_selected", label: "Selected" },
+              { key: "coverage", label: "Coverage", fmt: (v) => pct(v) },
+              { key: "created_at", label: "Imported", fmt: fmtDate },
+            ])
+          : el("p", {}, "No scenes yet: import one below."),
+      );
+    });
+  }
+
+  importForm() {
+    const name = el("input", { id: "imp-name", required: true });
+    const source = el("input", { id: "imp-source", required: true, placeholder: "/data/surveys/site_01" });
+    const cloud = el("input", { id: "imp-cloud", placeholder: "optional: dense cloud (.ply/.las/.laz)" });
+    const depth = el("input", { id: "imp-depth", placeholder: "optional: depth map folder" });
+    const f = el(
+      "form",
+      { class: "inline-form", "aria-label": "Import a scene" },
+      field("Name", name),
+      field("Reconstruction folder", source, "must be inside an allowed import root on the server"),
+      field("Cloud", cloud),
+      field("Depth maps", depth),
+      el("button", { type: "submit" }, "Import"),
+    );
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const body = { name: name.value.trim(), source: source.value.trim() };
+      if (cloud.value.trim()) body.cloud = cloud.value.trim();
+      if (depth.value.trim()) body.depth_maps = depth.value.trim();
+      const job = await this.guard(() => api.post("/scenes/import", body));
+      if (job) {
+        toast(`Import job ${job.id} started.`);
+        this.track(job);
+      }
+    });
+    return f;
+  }
+
+  async loadScene() {
+    if (!this.sid) return;
+    await Promise.all([this.loadSelection(), this.loadJobs(), this.loadMetrics(), this.loadHistogram()]);
+  }
+
+  // ---- selection ---------------------------------------------------------------------------
+  selectionForm() {
+    this.selCell = el("input", { id: "sel-cell", type: "number", min: 1, step: "any", value: 25 });
+    this.selMode = el("select", { id: "sel-mode" }, ["stratified", "coverage"].map((m) => el("option", { value: m }, m)));
+    this.selTarget = el("input", { id: "sel-target", type: "number", min: 0, max: 1, step: 0.01, value: 0.99 });
+    this.selAlt = el("input", { id: "sel-alt", type: "number", step: "any", placeholder: "all" });
+    const f = el(
+      "form",
+      { class: "inline-form", "aria-label": "Selection parameters" },
+      field("Cell edge (m)", this.selCell, "23–28 m in the paper"),
+      field("Mode", this.selMode),
+      field("Target coverage", this.selTarget),
+      field("Altitude (m)", this.selAlt, "empty = all altitudes"),
+      el("button", { type: "submit" }, "Run selection"),
+    );
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const body = { cell: Number(this.selCell.value), mode: this.selMode.value, target_coverage: Number(this.selTarget.value) };
+      if (this.selAlt.value) body.altitude = Number(this.selAlt.value);
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/selection`, body));
+      if (job) {
+        toast(`Selection job ${job.id} started.`);
+        this.track(job, () => this.loadSelection());
+      }
+    });
+    return f;
+  }
+
+  async loadSelection() {
+    const sid = this.sid;
+    let sel = null;
+    try {
+      sel = await api.get(`/scenes/${sid}/selection`);
+    } catch (e) {
+      if (e.status !== 404) showError(e);
+    }
+    if (!sel) {
+      this.selectionEl.replaceChildren(el("p", {}, "No selection yet for this scene."));
+      return;
+    }
+    const frames = (await api.get(`/scenes/${sid}/frames?sort=name`).catch(() => [])) || [];
+    const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
+    const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.frames;
+    const curveC = el("canvas", { id: "coverage-plot" });
+    const mapC = el("canvas", { id: "camera-map" });
+    // Selected camera indices: match frame ids / indices / names from the result, else use
+    // the frames' `selected` flags (frames sorted by index, like `cameras`).
+    const selected = new Set();
+    const byIndex = [...frames].sort((a, b) => (a.index ?? 0) - (b.index ?? 0));
+    const ids = new Set((Array.isArray(sel.frames) ? sel.frames : []).map((v) => (typeof v === "object" ? v.id ?? v.index : v)).map(String));
+    byIndex.forEach((f, i) => {
+      if (f.selected || ids.has(String(f.id)) || ids.has(f.name)) selected.add(i);
+    });
+    if (!selected.size && Array.isArray(sel.frames) && !frames.length) sel.frames.forEach((v) => typeof v === "number" && selected.add(v));
+    const cells = (sel.cells || []).map((c) => cellRect(c, sel.cell ?? Number(this.selCell.value))).filter(Boolean);
+    this.selectionEl.replaceChildren(
+      el(
+        "p",
+        { id: "selection-summary" },
+        `${nSel ?? "?"} frames selected (${pct(sel.ratio)} of all), coverage ${pct(sel.coverage, 2)}.`,
+      ),
+      el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, "Top-down map: cameras (blue), selected frames (red), grid cells"))),
+    );
+    linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", yMin: 0, yMax: 1, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
+    mapPlot(mapC, { cameras: sel.cameras || [], selected, cells });
+  }
+
+  // ---- jobs ----------------------------------------------------------------------------------
+  async loadJobs() {
+    const sid = this.sid;
+    const jobs = await api.get(`/jobs${sid ? `?scene_id=${sid}` : ""}`).catch((e) => {
+      showError(e);
+      return null;
+    });
+    if (!jobs) return;
+    this.jobs = jobs;
+    this.renderJobs();
+  }
+
+  renderJobs() {
+    const jobs = [...this.jobs].sort((a, b) => String(b.created_at).localeCompare(String(a.created_at)) || b.id - a.id);
+    if (!jobs.length) {
+      this.jobsEl.replaceChildren(el("p", {}, "No jobs yet."));
+      return;
+    }
+    this.jobsEl.replaceChildren(
+      el(
+        "ul",
+        { class: "jobs" },
+        jobs.map((j) =>
+          el(
+            "li",
+            { class: `job status-${j.status}`, "data-job": j.id, "data-status": j.status },
+            el(
+              "div",
+              { class: "row" },
+              el("strong", {}, `#${j.id} ${j.kind}`),
+              el("span", { class: "badge" }, j.status),
+              el("progress", { max: 1, value: j.progress ?? 0, "aria-label": `job ${j.id} progress` }),
+              el("span", {}, `${Math.round(100 * (j.progress ?? 0))} %`),
+              el("span", { class: "muted" }, j.message || ""),
+              el("span", { class: "spacer" }),
+              ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
+              ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
+              j.kind === "export" && j.status === "done" ? el("a", { href: `/api/jobs/${j.id}/download`, class: "button", download: "" }, "Download") : null,
+            ),
+            j.log_tail && j.log_tail.length ? el("details", { open: ACTIVE.has(j.status) || j.status === "failed" }, el("summary", {}, "log"), el("pre", { class: "log" }, j.log_tail.join("\n"))) : null,
+          ),
+        ),
+      ),
+    );
+  }
+
+  async jobAction(j, action) {
+    const r = await this.guard(() => api.post(`/jobs/${j.id}/${action}`));
+    if (r) toast(`Job ${j.id}: ${action} requested.`);
+    this.loadJobs();
+  }
+
+  /** Remember a started job so it shows at once; `then` runs when it finishes. */
+  track(job, then = null) {
+    this.jobs = [job, ...this.jobs.filter((j) => j.id !== job.id)];
+    this.renderJobs();
+    if (then) (this.onDone ||= new Map()).set(job.id, then);
+  }
+
+  async poll() {
+    if (!this.alive) return;
+    const active = this.jobs.filter((j) => ACTIVE.has(j.status));
+    if (active.length) {
+      const fresh = await Promise.all(active.map((j) => api.get(`/jobs/${j.id}`).catch(() => j)));
+      for (const f of fresh) {
+        const i = this.jobs.findIndex((j) => j.id === f.id);
+        if (i >= 0) this.jobs[i] = f;
+        if (!ACTIVE.has(f.status)) {
+          const cb = this.onDone?.get(f.id);
+          this.onDone?.delete(f.id);
+          if (f.status === "failed") showError(`Job ${f.id} (${f.kind}) failed: ${f.message || "see its log"}`);
+          else toast(`Job ${f.id} (${f.kind}) ${f.status}.`);
+          if (cb) cb(f);
+          if (f.kind === "import") this.loadScenes();
+          if (f.kind === "export" || f.kind === "eval") this.loadMetrics();
+        }
+      }
+      if (this.alive) this.renderJobs();
+    }
+    if (this.alive) this.timer = setTimeout(() => this.poll(), active.length ? 700 : 3000);
+  }
+
+  // ---- exports, metrics ------------------------------------------------------------------
+  exportForm() {
+    const layout = el("select", { id: "export-layout" }, ["occufly", "sscbench"].map((l) => el("option", { value: l }, l)));
+    const go = el("button", { type: "submit", id: "start-export" }, "Start export");
+    const vox = el("button", { type: "button", id: "start-voxelize" }, "Voxelize scene");
+    vox.addEventListener("click", async () => {
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/voxelize`));
+      if (job) this.track(job);
+    });
+    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), go, vox);
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value }));
+      if (job) {
+        toast(`Export job ${job.id} started.`);
+        this.track(job);
+      }
+    });
+    return f;
+  }
+
+  async loadMetrics() {
+    let m = null;
+    try {
+      m = await api.get(`/scenes/${this.sid}/metrics`);
+    } catch (e) {
+      if (e.status !== 404) showError(e);
+    }
+    this.exportsEl.replaceChildren(el("h3", {}, "Metrics"), m ? metricsView(m) : el("p", {}, "No evaluation results yet."));
+  }
+
+  async loadHistogram() {
+    try {
+      const [st, scene] = await Promise.all([api.get(`/scenes/${this.sid}/labels/status`), api.get(`/scenes/${this.sid}`)]);
+      const classes = (scene.taxonomy && scene.taxonomy.classes) || [];
+      const hist = st.class_histogram || {};
+      const bars = classes.map((c) => ({ label: c.name, value: Number(hist[c.id] ?? hist[String(c.id)] ?? 0), color: `rgb(${c.rgb.join(",")})` }));
+      const extra = Object.keys(hist).filter((k) => !classes.some((c) => String(c.id) === k));
+      for (const k of extra) bars.push({ label: k === "0" ? "unlabelled" : `id ${k}`, value: Number(hist[k]), color: "#999" });
+      const c = el("canvas", { id: "class-histogram" });
+      const nv = Object.keys(st.included_versions || {}).length;
+      this.histEl.replaceChildren(el("p", {}, `Lifted labels include ${nv} mask version(s)${st.pending_fill ? "; kNN fill pending" : ""}.`), c);
+      barPlot(c, bars, { title: "points per class", width: 560 });
+    } catch (e) {
+      this.histEl.replaceChildren(el("p", {}, `No label statistics: ${e.message}`));
+    }
+  }
+}
+
+/** Render an eval result (nested dicts / lists of rows) as tables. */
+export function metricsView(m) {
+  const out = el("div", { class: "metrics", id: "metrics" });
+  const fmt = (v) => (typeof v === "number" ? (Math.abs(v) <= 1 && !Number.isInteger(v) ? v.toFixed(4) : v.toLocaleString()) : v === null ? "n/a" : typeof v === "object" ? JSON.stringify(v) : String(v));
+  const walk = (obj, title) => {
+    if (Array.isArray(obj) && obj.length && typeof obj[0] === "object") {
+      const cols = [...new Set(obj.flatMap((r) => Object.keys(r)))].map((k) => ({ key: k, label: k, fmt }));
+      out.append(table(obj, cols, { caption: title }));
+      return;
+    }
+    if (obj && typeof obj === "object" && !Array.isArray(obj)) {
+      const scalars = Object.entries(obj).filter(([, v]) => v === null || typeof v !== "object");
+      if (scalars.length) out.append(table(scalars.map(([k, v]) => ({ k, v })), [{ key: "k", label: "metric" }, { key: "v", label: "value", fmt }], { caption: title }));
+      for (const [k, v] of Object.entries(obj)) if (v && typeof v === "object") walk(v, title ? `${title} / ${k}` : k);
+      return;
+    }
+    out.append(el("p", {}, `${title}: ${fmt(obj)}`));
+  };
+  walk(m, "");
+  return out;
+}

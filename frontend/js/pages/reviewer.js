@@ -1,0 +1,363 @@
+// Reviewer page: frames sorted by disagreement; image, painted mask, rendered 3D labels and
+// the disagreement overlay side by side or blended; agreement %; pin a comment to a pixel;
+// accept / reject; link to the 3D viewer on this frame.
+
+import { api } from "../core/api.js";
+import { el, showError, toast, pct, table } from "../core/ui.js";
+import { decodeIdPng } from "../core/png.js";
+import { buildLut } from "../paint/mask.js";
+
+const LAYERS = [
+  { key: "image", label: "Image" },
+  { key: "mask", label: "Painted mask" },
+  { key: "render", label: "Rendered 3D labels" },
+  { key: "disagreement", label: "Disagreement" },
+];
+
+export async function mount(root, ctx) {
+  const p = new ReviewerPage(root, ctx);
+  await p.start();
+  return p;
+}
+
+function idsToCanvas(ids, w, h, lut) {
+  const c = document.createElement("canvas");
+  c.width = w;
+  c.height = h;
+  const img = new ImageData(w, h);
+  const out = new Uint32Array(img.data.buffer);
+  for (let i = 0; i < ids.length; i++) out[i] = lut[ids[i]];
+  c.getContext("2d").putImageData(img, 0, 0);
+  return c;
+}
+
+class ReviewerPage {
+  constructor(root, ctx) {
+    this.root = root;
+    this.ctx = ctx;
+    this.layers = {};
+    this.mode = "side";
+    this.pin = null;
+    this.opacity = { image: 1, mask: 0.5, render: 0, disagreement: 0.8 };
+    this.loadSeq = 0;
+  }
+
+  async start() {
+    const scenes = (await api.get("/scenes")) || [];
+    this.sceneSel = el("select", { id: "review-scene", "aria-label": "Scene" }, scenes.map((s) => el("option", { value: s.id }, s.name)));
+    if (this.ctx.params.scene) this.sceneSel.value = this.ctx.params.scene;
+    this.stateSel = el(
+      "select",
+      { id: "review-state", "aria-label": "Frame state filter" },
+      ["submitted", "", "in_progress", "accepted", "rejected"].map((s) => el("option", { value: s }, s || "all states")),
+    );
+    this.stateSel.value = this.ctx.params.state ?? "";
+    this.listEl = el("div", { class: "frame-list", id: "frame-list" });
+    this.detailEl = el("div", { class: "review-detail", id: "review-detail" }, el("p", { class: "empty-hint" }, "Choose a frame on the left. Frames are sorted by disagreement between the painted mask and the 3D labels (worst first)."));
+    this.sceneSel.addEventListener("change", () => {
+      this.ctx.setParams({ scene: this.sceneSel.value, frame: null });
+      this.loadList();
+    });
+    this.stateSel.addEventListener("change", () => {
+      this.ctx.setParams({ state: this.stateSel.value });
+      this.loadList();
+    });
+    this.root.append(
+      el(
+        "section",
+        { class: "reviewer" },
+        el("aside", { class: "list-pane" }, el("h1", {}, "Review"), el("div", { class: "row" }, this.sceneSel, this.stateSel), this.listEl),
+        this.detailEl,
+      ),
+    );
+    if (!scenes.length) {
+      this.listEl.replaceChildren(el("p", {}, "No scenes yet."));
+      return;
+    }
+    await this.loadList();
+    if (this.ctx.params.frame) await this.openFrame(Number(this.ctx.params.frame));
+  }
+
+  unmount() {
+    this.loadSeq++;
+  }
+
+  async loadList() {
+    const sid = this.sceneSel.value;
+    const q = new URLSearchParams({ sort: "disagreement" });
+    if (this.stateSel.value) q.set("state", this.stateSel.value);
+    try {
+      const frames = (await api.get(`/scenes/${sid}/frames?${q}`)) || [];
+      this.frames = frames;
+      if (!frames.length) {
+        this.listEl.replaceChildren(el("p", {}, "No frames in this state."));
+        return;
+      }
+      this.listEl.replaceChildren(
+        table(
+          frames,
+          [
+            { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
+            { key: "agreement", label: "Agreement", fmt: (v) => pct(v) },
+            { key: "state", label: "State" },
+            { key: "assignee", label: "Annotator", fmt: (v) => (v && typeof v === "object" ? v.username : v ?? "") },
+          ],
+          { caption: `${frames.length} frames, lowest agreement first`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
+        ),
+      );
+    } catch (e) {
+      showError(e);
+    }
+  }
+
+  async openFrame(fid) {
+    const seq = ++this.loadSeq;
+    this.frameId = fid;
+    this.pin = null;
+    this.ctx.setParams({ scene: this.sceneSel.value, frame: fid });
+    this.listEl.querySelectorAll("tr[data-frame]").forEach((tr) => tr.classList.toggle("current", tr.dataset.frame === String(fid)));
+    this.detailEl.replaceChildren(el("p", { class: "loading" }, "Loading frame…"));
+    try {
+      const frame = await api.get(`/frames/${fid}`);
+      const sid = frame.scene_id ?? this.sceneSel.value;
+      const [scene, agreement, items, imgR, maskR, renderR, disR] = await Promise.all([
+        api.get(`/scenes/${sid}`),
+        api.get(`/frames/${fid}/agreement`).catch((e) => ({ error: e.message })),
+        api.get(`/scenes/${sid}/review-items`).catch(() => []),
+        api.blob(`/frames/${fid}/image?size=preview`).then((r) => r || api.blob(`/frames/${fid}/image`)),
+        api.blob(`/frames/${fid}/mask`).catch((e) => ({ error: e.message })),
+        api.blob(`/frames/${fid}/render`).catch((e) => ({ error: e.message })),
+        api.blob(`/frames/${fid}/disagreement`).catch((e) => ({ error: e.message })),
+      ]);
+      if (seq !== this.loadSeq) return;
+      const lut = buildLut((scene.taxonomy && scene.taxonomy.classes) || []);
+      this.classes = (scene.taxonomy && scene.taxonomy.classes) || [];
+      this.frame = frame;
+      this.W = frame.width;
+      this.H = frame.height;
+      this.layers = {};
+      this.layerErrors = {};
+      this.layers.image = imgR ? await createImageBitmap(imgR.blob) : null;
+      for (const [key, r] of [["mask", maskR], ["render", renderR]]) {
+        if (!r) this.layerErrors[key] = key === "mask" ? "no mask saved yet" : "nothing rendered";
+        else if (r.error) this.layerErrors[key] = r.error;
+        else {
+          const d = await decodeIdPng(r.blob);
+          this.layers[key] = idsToCanvas(d.ids, d.width, d.height, lut);
+        }
+      }
+      if (!disR) this.layerErrors.disagreement = "not available";
+      else if (disR.error) this.layerErrors.disagreement = disR.error;
+      else this.layers.disagreement = await createImageBitmap(disR.blob);
+      this.items = (items || []).filter((it) => String(it.frame_id) === String(fid));
+      this.agreement = agreement;
+      if (seq !== this.loadSeq) return;
+      this.renderDetail();
+    } catch (e) {
+      this.detailEl.replaceChildren(el("p", { class: "error" }, `Could not open frame ${fid}: ${e.message}`));
+      showError(e);
+    }
+  }
+
+  renderDetail() {
+    const f = this.frame;
+    const a = this.agreement || {};
+    const agreeText = a.error ? `agreement unavailable: ${a.error}` : pct(a.agreement);
+    const modeBtns = [
+      el("button", { type: "button", "aria-pressed": String(this.mode === "side"), onclick: () => this.setMode("side") }, "Side by side"),
+      el("button", { type: "button", "aria-pressed": String(this.mode === "blend"), onclick: () => this.setMode("blend") }, "Blended"),
+    ];
+    this.panelsEl = el("div", { class: `panels mode-${this.mode}`, id: "panels" });
+    this.comment = el("textarea", { id: "review-comment", rows: 3, placeholder: "Comment (click the image to pin it to a pixel)" });
+    this.pinText = el("span", { id: "pin-text" }, "No pixel pinned: click on any panel to pin.");
+    const perClass = a.per_class && typeof a.per_class === "object" ? Object.entries(a.per_class) : [];
+    const name = (id) => this.classes.find((c) => String(c.id) === String(id))?.name ?? `id ${id}`;
+    this.detailEl.replaceChildren(
+      el(
+        "div",
+        { class: "review-head" },
+        el("h2", {}, f.name),
+        el("span", { class: `badge state-${f.state}` }, f.state),
+        el("span", { class: "agreement", id: "agreement", "data-value": a.agreement ?? "" }, `Agreement ${agreeText}`),
+        a.pixels != null ? el("span", {}, `over ${Number(a.pixels).toLocaleString()} pixels`) : null,
+        el("a", { href: `/viewer/?frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
+        el("span", { class: "spacer" }),
+        ...modeBtns,
+      ),
+      this.panelsEl,
+      el(
+        "div",
+        { class: "review-actions" },
+        el("label", { for: "review-comment" }, "Comment"),
+        this.comment,
+        this.pinText,
+        el(
+          "div",
+          { class: "row" },
+          el("button", { type: "button", id: "pin-comment", onclick: () => this.pinComment().then((it) => it && this.renderDetail()).catch(showError) }, "Pin comment"),
+          el("button", { type: "button", id: "accept", class: "primary", onclick: () => this.decide("accept") }, "Accept"),
+          el("button", { type: "button", id: "reject", class: "danger", onclick: () => this.decide("reject") }, "Reject with comment"),
+        ),
+      ),
+      perClass.length
+        ? el("details", {}, el("summary", {}, "Agreement per class"), table(perClass.map(([k, v]) => ({ k, v })), [{ key: "k", label: "Class", fmt: (k) => name(k) }, { key: "v", label: "Agreement", fmt: (v) => (typeof v === "number" ? pct(v) : typeof v === "object" ? pct(v.agreement) + (v.pixels != null ? ` (${v.pixels} px)` : "") : String(v)) }]))
+        : null,
+      this.itemsList(),
+    );
+    this.drawPanels();
+  }
+
+  itemsList() {
+    if (!this.items.length) return el("p", { id: "review-items" }, "No review items for this frame.");
+    return el(
+      "ul",
+      { class: "comments", id: "review-items" },
+      this.items.map((it) =>
+        el(
+          "li",
+          {},
+          `${it.status ?? ""} `,
+          it.pixel ? el("strong", {}, `(${Math.round(it.pixel[0])}, ${Math.round(it.pixel[1])}) `) : "",
+          it.comment ?? it.text ?? "",
+          ...(it.comments || []).map((c) => el("div", { class: "reply" }, `${c.author ?? ""}: ${c.text ?? ""}`)),
+          it.status !== "resolved"
+            ? el("button", { type: "button", class: "link", onclick: () => this.resolve(it) }, "mark resolved")
+            : null,
+        ),
+      ),
+    );
+  }
+
+  setMode(m) {
+    this.mode = m;
+    this.renderDetail();
+  }
+
+  drawPanels() {
+    const panels = this.panelsEl;
+    panels.className = `panels mode-${this.mode}`;
+    panels.replaceChildren();
+    this.canvases = [];
+    if (this.mode === "side") {
+      for (const L of LAYERS) {
+        const c = el("canvas", { class: "panel-canvas", "data-layer": L.key, role: "img", "aria-label": L.label });
+        const err = this.layerErrors[L.key];
+        panels.append(el("figure", {}, c, el("figcaption", {}, L.label, err ? el("span", { class: "muted" }, ` (${err})`) : null)));
+        this.canvases.push({ c, layers: [[L.key, 1]] });
+      }
+    } else {
+      const c = el("canvas", { class: "panel-canvas blend", "data-layer": "blend", role: "img", "aria-label": "Blended layers" });
+      const controls = LAYERS.map((L) => {
+        const r = el("input", { type: "range", min: 0, max: 100, value: Math.round(this.opacity[L.key] * 100), id: `op-${L.key}` });
+        r.addEventListener("input", () => {
+          this.opacity[L.key] = Number(r.value) / 100;
+          this.paint();
+        });
+        return el("label", { for: `op-${L.key}` }, `${L.label} `, r);
+      });
+      panels.append(el("figure", {}, c, el("figcaption", { class: "blend-controls" }, controls)));
+      this.canvases.push({ c, layers: null });
+    }
+    for (const { c } of this.canvases) {
+      c.addEventListener("click", (e) => this.onPick(e, c));
+      c.tabIndex = 0;
+    }
+    requestAnimationFrame(() => this.paint());
+  }
+
+  /** Fit the W x H frame into the canvas; returns {s, ox, oy}. */
+  fitOf(c) {
+    const s = Math.min(c.width / this.W, c.height / this.H);
+    return { s, ox: (c.width - this.W * s) / 2, oy: (c.height - this.H * s) / 2 };
+  }
+
+  paint() {
+    for (const entry of this.canvases || []) {
+      const c = entry.c;
+      const r = c.getBoundingClientRect();
+      c.width = Math.max(10, Math.round(r.width));
+      c.height = Math.max(10, Math.round((r.width * this.H) / this.W));
+      const g = c.getContext("2d");
+      g.fillStyle = "#20232a";
+      g.fillRect(0, 0, c.width, c.height);
+      const { s, ox, oy } = this.fitOf(c);
+      const layers = entry.layers || LAYERS.map((L) => [L.key, this.opacity[L.key]]);
+      for (const [key, alpha] of layers) {
+        const src = this.layers[key];
+        if (!src || alpha <= 0) continue;
+        g.globalAlpha = alpha;
+        g.imageSmoothingEnabled = key === "image";
+        g.drawImage(src, ox, oy, this.W * s, this.H * s);
+      }
+      g.globalAlpha = 1;
+      const pins = this.items.filter((it) => it.pixel).map((it) => it.pixel);
+      if (this.pin) pins.push(this.pin);
+      for (const p of pins) {
+        g.fillStyle = p === this.pin ? "#ffcc00" : "#ff3b30";
+        g.strokeStyle = "#000";
+        g.beginPath();
+        g.arc(ox + (p[0] + 0.5) * s, oy + (p[1] + 0.5) * s, 6, 0, Math.PI * 2);
+        g.fill();
+        g.stroke();
+      }
+    }
+  }
+
+  onPick(e, c) {
+    const r = c.getBoundingClientRect();
+    const { s, ox, oy } = this.fitOf(c);
+    const x = Math.floor(((e.clientX - r.left) * (c.width / r.width) - ox) / s);
+    const y = Math.floor(((e.clientY - r.top) * (c.height / r.height) - oy) / s);
+    if (x < 0 || y < 0 || x >= this.W || y >= this.H) return;
+    this.pin = [x, y];
+    this.pinText.textContent = `Pinned pixel (${x}, ${y}).`;
+    this.comment.focus();
+    this.paint();
+  }
+
+  async pinComment() {
+    const text = this.comment.value.trim();
+    if (!text) {
+      showError("Write a comment first.");
+      this.comment.focus();
+      return null;
+    }
+    const body = { frame_id: this.frame.id, comment: text };
+    if (this.pin) body.pixel = this.pin;
+    const item = await api.post(`/scenes/${this.frame.scene_id ?? this.sceneSel.value}/review-items`, body);
+    this.items.push(item || body);
+    this.pin = null;
+    toast("Comment pinned.");
+    return item;
+  }
+
+  async decide(decision) {
+    try {
+      const text = this.comment.value.trim();
+      if (decision === "reject" && !text) {
+        showError("A rejection needs a comment so the annotator knows what to fix.");
+        this.comment.focus();
+        return;
+      }
+      if (text && (this.pin || decision === "reject")) await this.pinComment();
+      const f = await api.post(`/frames/${this.frame.id}/review`, { decision, comment: text || undefined });
+      this.frame = { ...this.frame, ...(f || {}), state: (f && f.state) || (decision === "accept" ? "accepted" : "rejected") };
+      this.comment.value = "";
+      toast(decision === "accept" ? `Accepted ${this.frame.name}.` : `Rejected ${this.frame.name}; it goes back to its annotator.`);
+      this.renderDetail();
+      this.loadList();
+    } catch (e) {
+      showError(e);
+    }
+  }
+
+  async resolve(it) {
+    try {
+      await api.patch(`/review-items/${it.id}`, { status: "resolved" });
+      it.status = "resolved";
+      this.renderDetail();
+    } catch (e) {
+      showError(e);
+    }
+  }
+}

@@ -1,0 +1,218 @@
+"""Live lifting: each stored mask version updates the scene's point votes in the background.
+
+One worker thread per scene owns that scene's :class:`occufly.lifting.LiftState` (which is
+not safe for concurrent writers). A notification only says "frame F of scene S changed"; the
+worker then reads the frame's *current* version from the database, so notifications may
+arrive out of order or be coalesced without ever applying an older mask over a newer one.
+After votes change, kNN fill + denoise is rerun once the scene has been quiet for
+``fill_debounce_s`` seconds.
+
+:meth:`LiftingManager.apply` is the single call into the lifting library.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from app.context import AppContext
+
+log = logging.getLogger("occufly.lifting")
+
+
+@dataclass
+class _SceneWorker:
+    scene_id: int
+    dirty_frames: set[int] = field(default_factory=set)  # frame ids
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    busy: bool = False
+    fill_due: float | None = None
+    filling: bool = False
+    state: object | None = None
+    last_error: str | None = None
+    thread: threading.Thread | None = None
+    fills: int = 0
+    included: dict | None = None  # snapshot of state.included_versions(), updated by the worker
+
+
+class LiftingManager:
+    def __init__(self, ctx_getter, *, debounce_s: float = 5.0, enabled: bool = True) -> None:
+        self._ctx_getter = ctx_getter
+        self.debounce_s = debounce_s
+        self.enabled = enabled
+        self._workers: dict[int, _SceneWorker] = {}
+        self._lock = threading.Lock()
+        self._stop = False
+
+    @property
+    def ctx(self) -> AppContext:
+        return self._ctx_getter()
+
+    # ---- public -----------------------------------------------------------------------------
+    def notify(self, scene_id: int, frame_id: int) -> None:
+        if not self.enabled or self._stop:
+            return
+        w = self._worker(scene_id)
+        with w.cond:
+            w.dirty_frames.add(frame_id)
+            w.cond.notify_all()
+
+    def status(self, scene_id: int) -> dict:
+        w = self._workers.get(scene_id)
+        if w is None:
+            return {"pending_fill": False, "pending_frames": 0, "fill_running": False,
+                    "last_error": None}
+        with w.cond:
+            return {"pending_fill": w.fill_due is not None or w.filling,
+                    "pending_frames": len(w.dirty_frames) + (1 if w.busy else 0),
+                    "fill_running": w.filling, "last_error": w.last_error}
+
+    def included_versions(self, scene_id: int, workspace: str) -> dict[int, str | None] | None:
+        """frame_index -> version tag counted in the votes, or None without lifting."""
+        if not self.enabled:
+            return None
+        w = self._worker(scene_id)
+        if w.included is None:
+            state = self._state(w, workspace)
+            if state is None:
+                return None
+        with w.cond:
+            return dict(w.included or {})
+
+    def wait_idle(self, scene_id: int, timeout: float = 10.0, *, include_fill: bool = False) -> bool:
+        w = self._workers.get(scene_id)
+        if w is None:
+            return True
+        end = time.monotonic() + timeout
+        with w.cond:
+            while w.dirty_frames or w.busy or (include_fill and (w.fill_due or w.filling)):
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                w.cond.wait(min(left, 0.05))
+        return True
+
+    def stop(self) -> None:
+        self._stop = True
+        for w in list(self._workers.values()):
+            with w.cond:
+                w.cond.notify_all()
+        for w in list(self._workers.values()):
+            if w.thread is not None:
+                w.thread.join(timeout=30)
+
+    # ---- internals --------------------------------------------------------------------------
+    def _worker(self, scene_id: int) -> _SceneWorker:
+        with self._lock:
+            w = self._workers.get(scene_id)
+            if w is None:
+                w = _SceneWorker(scene_id)
+                w.thread = threading.Thread(target=self._loop, args=(w,), daemon=True,
+                                            name=f"occufly-lift-{scene_id}")
+                self._workers[scene_id] = w
+                w.thread.start()
+            return w
+
+    def _state(self, w: _SceneWorker, workspace: str):
+        from app import pipeline
+
+        if w.state is None:
+            with w.cond:
+                if w.state is None:
+                    w.state = pipeline.open_lift_state(workspace, self.ctx.load_scene(workspace))
+                    if w.state is not None:
+                        w.included = dict(w.state.included_versions())
+        return w.state
+
+    def _loop(self, w: _SceneWorker) -> None:
+        while not self._stop:
+            with w.cond:
+                while not self._stop and not w.dirty_frames and not (
+                        w.fill_due is not None and time.monotonic() >= w.fill_due):
+                    timeout = None if w.fill_due is None else max(0.0, w.fill_due - time.monotonic())
+                    w.cond.wait(timeout if timeout is not None else 1.0)
+                if self._stop:
+                    return
+                frames = sorted(w.dirty_frames)
+                w.dirty_frames.clear()
+                w.busy = bool(frames)
+                do_fill = not frames and w.fill_due is not None
+                if do_fill:
+                    w.fill_due = None
+                    w.filling = True
+            try:
+                if frames:
+                    changed = self._apply_frames(w, frames)
+                    if changed:
+                        with w.cond:
+                            w.fill_due = time.monotonic() + self.debounce_s
+                elif do_fill:
+                    self._fill(w)
+                w.last_error = None
+            except Exception as e:  # noqa: BLE001 - keep the worker alive, report in status
+                log.exception("live lifting for scene %s", w.scene_id)
+                w.last_error = f"{type(e).__name__}: {e}"
+            finally:
+                with w.cond:
+                    w.busy = False
+                    if do_fill:
+                        w.filling = False
+                    w.cond.notify_all()
+
+    def _apply_frames(self, w: _SceneWorker, frame_ids: list[int]) -> int:
+        from sqlalchemy import select
+
+        from app.annotations.models import MaskVersion
+        from app.scenes.models import Frame, Scene
+
+        ctx = self.ctx
+        with ctx.sessions() as s:
+            scene = s.get(Scene, w.scene_id)
+            rows = s.execute(select(Frame.index, Frame.current_version_id, MaskVersion.sha256)
+                             .outerjoin(MaskVersion, MaskVersion.id == Frame.current_version_id)
+                             .where(Frame.id.in_(frame_ids))).all()
+            workspace = scene.workspace
+        state = self._state(w, workspace)
+        if state is None:
+            return 0
+        changed = 0
+        try:
+            for index, version_id, sha in rows:
+                changed += self.apply(state, ctx, index, version_id, sha)
+        finally:
+            snapshot = dict(state.included_versions())
+            with w.cond:
+                w.included = snapshot
+        return changed
+
+    @staticmethod
+    def apply(state, ctx: AppContext, frame_index: int, version_id: int | None,
+              sha256: str | None) -> int:
+        """Make ``state`` count exactly frame ``frame_index``'s version ``version_id``."""
+        import io
+
+        import numpy as np
+        from PIL import Image
+
+        tag = None if version_id is None else str(version_id)
+        if state.included_versions().get(frame_index) == tag and (
+                tag is not None or frame_index not in state.included_versions()):
+            return 0
+        if version_id is None:
+            state.remove_mask(frame_index)
+            return 1
+        with Image.open(io.BytesIO(ctx.store.get(sha256))) as im:
+            mask = np.asarray(im)
+        state.set_mask(frame_index, mask, version=tag, name=f"mask version {version_id}")
+        return 1
+
+    def _fill(self, w: _SceneWorker) -> None:
+        state = w.state
+        if state is None:
+            return
+        state.fill_and_denoise()
+        w.fills += 1

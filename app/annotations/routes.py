@@ -1,0 +1,125 @@
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+
+from app import pipeline
+from app.annotations import service
+from app.annotations.schemas import LabelsStatus, VersionOut
+from app.deps import AnnotatorUser, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
+from app.errors import Invalid, PayloadTooLarge
+from app.scenes import service as scenes
+from app.scenes.models import Scene
+from app.scenes.schemas import FrameOut
+
+router = APIRouter(prefix="/api", tags=["annotations"])
+
+PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}
+PNG_BODY = {"requestBody": {"required": True, **PNG}}
+
+
+async def png_body(request: Request) -> bytes:
+    """The raw request body, refused with 413 beyond the configured upload limit."""
+    limit = request.app.state.ctx.settings.max_upload_bytes
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > limit:
+        raise PayloadTooLarge(f"mask upload of {declared} bytes exceeds the limit of {limit} bytes")
+    chunks, total = [], 0
+    async for chunk in request.stream():
+        total += len(chunk)
+        if total > limit:
+            raise PayloadTooLarge(f"mask upload exceeds the limit of {limit} bytes")
+        chunks.append(chunk)
+    data = b"".join(chunks)
+    if not data:
+        raise Invalid("empty body: send the mask as image/png")
+    return data
+
+
+BodyDep = Annotated[bytes, Depends(png_body)]
+VidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
+
+
+@router.post("/scenes/{sid}/next", response_model=FrameOut,
+             responses={204: {"description": "no frame left to annotate"}})
+def next_frame(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser):
+    frame = service.next_frame(session=session, ctx=ctx, scene=scene, user=user)
+    if frame is None:
+        return Response(status_code=204)
+    return scenes.frame_out(session=session, frame=frame)
+
+
+@router.post("/frames/{fid}/release", response_model=FrameOut)
+def release_frame(frame: FrameDep, session: SessionDep, user: AnnotatorUser):
+    frame = service.release(session=session, frame=frame, user=user)
+    return scenes.frame_out(session=session, frame=frame)
+
+
+def _png(ctx, sha256: str, version_id: int) -> Response:  # noqa: ANN001
+    return Response(ctx.store.get(sha256), media_type="image/png",
+                    headers={"ETag": f'"{version_id}"', "Cache-Control": "private, no-cache",
+                             "X-Mask-Version": str(version_id)})
+
+
+@router.get("/frames/{fid}/mask", response_class=Response, responses={200: PNG})
+def get_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser):
+    service.check_read(session, frame, user)
+    v = service.current_version(session=session, frame=frame)
+    return _png(ctx, v.sha256, v.id)
+
+
+@router.put("/frames/{fid}/mask", response_model=VersionOut, openapi_extra=PNG_BODY,
+            responses={409: {"description": "stale If-Match; upload kept as a conflict version"},
+                       413: {"description": "too large"}, 428: {"description": "no If-Match"}})
+def put_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser, body: BodyDep,
+             kind: Literal["draft", "submitted"] = "draft",
+             if_match: Annotated[str | None, Header(max_length=100)] = None):
+    expected = service.parse_if_match(if_match)
+    v = service.store_version(session=session, ctx=ctx, frame=frame, user=user, data=body,
+                              kind=kind, expected=expected)
+    return service.version_out(v, user.username)
+
+
+@router.get("/frames/{fid}/mask/versions", response_model=list[VersionOut])
+def list_versions(frame: FrameDep, session: SessionDep, user: CurrentUser):
+    service.check_read(session, frame, user)
+    return service.list_versions(session=session, frame=frame)
+
+
+@router.get("/frames/{fid}/mask/versions/{vid}", response_class=Response, responses={200: PNG})
+def get_version(frame: FrameDep, vid: VidPath,
+                session: SessionDep, ctx: CtxDep, user: CurrentUser):
+    service.check_read(session, frame, user)
+    v = service.get_version(session=session, frame=frame, version_id=vid)
+    return _png(ctx, v.sha256, v.id)
+
+
+@router.post("/frames/{fid}/mask/versions/{vid}/restore", response_model=VersionOut,
+             responses={409: {"description": "stale If-Match"}})
+def restore_version(frame: FrameDep, vid: VidPath, session: SessionDep, ctx: CtxDep,
+                    user: CurrentUser, kind: Literal["draft", "submitted"] = "draft",
+                    if_match: Annotated[str | None, Header(max_length=100)] = None):
+    expected = service.parse_if_match(if_match) if if_match is not None else None
+    v = service.restore(session=session, ctx=ctx, frame=frame, user=user, version_id=vid,
+                        expected=expected, kind=kind)
+    return service.version_out(v, user.username)
+
+
+@router.get("/frames/{fid}/prefill", response_class=Response, responses={200: PNG})
+def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser,
+            downscale: Annotated[int, Query(ge=1, le=64)] = 1):
+    """Lifted labels rendered into the frame: single-channel raw ids (0 = nothing known)."""
+    from app.review.service import rendered
+
+    service.check_read(session, frame, user)
+    scene = session.get(Scene, frame.scene_id)
+    width = frame.width // downscale
+    img = rendered(ctx, scene, frame, width=width)
+    return Response(pipeline.encode_png(img), media_type="image/png",
+                    headers={"Cache-Control": "private, no-cache"})
+
+
+@router.get("/scenes/{sid}/labels/status", response_model=LabelsStatus)
+def labels_status(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: CurrentUser):
+    return service.labels_status(session=session, ctx=ctx, scene=scene)

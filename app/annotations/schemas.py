@@ -1,0 +1,30 @@
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import BaseModel
+
+
+class VersionOut(BaseModel):
+    version: int
+    frame_id: int
+    kind: str
+    author: str | None
+    created_at: datetime
+    sha256: str
+    size_bytes: int
+    width: int
+    height: int
+    base_version: int | None
+    restored_from: int | None
+
+
+class LabelsStatus(BaseModel):
+    lifting_available: bool
+    included_versions: dict[str, int | None]
+    pending_fill: bool
+    pending_frames: int
+    fill_running: bool
+    last_error: str | None
+    class_histogram: dict[str, int]
+    labels_source: str | None

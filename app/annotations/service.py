@@ -1,0 +1,253 @@
+"""Frame leases (``next``), versioned masks with optimistic concurrency, live-lifting hooks.
+
+Concurrency rules (race free on SQLite and PostgreSQL alike, no SELECT ... FOR UPDATE):
+- ``next`` claims a frame with one conditional UPDATE whose WHERE re-checks that the frame
+  is still free; the database serialises concurrent UPDATEs of a row, so exactly one
+  annotator's UPDATE matches.
+- A mask PUT inserts its version row and then moves the frame's ``current_version_id`` with
+  ``UPDATE ... WHERE current_version_id = <If-Match>`` in the same transaction. If that
+  matches no row, someone else won: the version is kept with kind ``conflict`` (so the
+  loser's upload stays recoverable) and the request gets 409.
+"""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+from sqlalchemy import and_, case, or_, select, update
+from sqlalchemy.orm import Session
+
+from app import pipeline
+from app.annotations.models import MaskVersion
+from app.context import AppContext
+from app.db import utcnow
+from app.errors import Conflict, Forbidden, Invalid, NotFound, PreconditionRequired, StaleVersion
+from app.scenes.models import Frame, Scene
+from app.users.models import User
+
+CLAIMABLE = ("unassigned", "in_progress", "rejected")
+
+
+# ---- leases ---------------------------------------------------------------------------------
+def _claimable(user_id: int, now):
+    return and_(Frame.selected.is_(True), Frame.state.in_(CLAIMABLE),
+                or_(Frame.assignee_id.is_(None), Frame.assignee_id == user_id,
+                    Frame.lease_expires_at.is_(None), Frame.lease_expires_at < now))
+
+
+def next_frame(*, session: Session, ctx: AppContext, scene: Scene, user: User) -> Frame | None:
+    """Lease the caller's next frame: own held/rejected frames first, then free ones by index."""
+    now = utcnow()
+    mine = case((Frame.assignee_id == user.id, 0), else_=1)
+    rejected_first = case((Frame.state == "rejected", 0), else_=1)
+    candidates = list(session.scalars(
+        select(Frame.id).where(Frame.scene_id == scene.id, _claimable(user.id, now))
+        .order_by(mine, rejected_first, Frame.index).limit(32)))
+    expires = now + timedelta(seconds=ctx.settings.lease_seconds)
+    for fid in candidates:
+        res = session.execute(
+            update(Frame).where(Frame.id == fid, _claimable(user.id, now))
+            .values(assignee_id=user.id, lease_expires_at=expires,
+                    state=case((Frame.state == "unassigned", "in_progress"), else_=Frame.state))
+            .execution_options(synchronize_session=False))
+        session.commit()
+        if res.rowcount == 1:
+            frame = session.get(Frame, fid)
+            session.refresh(frame)
+            return frame
+    return None
+
+
+def release(*, session: Session, frame: Frame, user: User) -> Frame:
+    if frame.assignee_id != user.id and user.role != "admin":
+        raise Forbidden(f"frame {frame.id} is not leased to you")
+    session.execute(update(Frame).where(Frame.id == frame.id).values(
+        assignee_id=None, lease_expires_at=None,
+        state=case((Frame.current_version_id.is_(None), "unassigned"), else_=Frame.state)))
+    session.commit()
+    session.refresh(frame)
+    return frame
+
+
+# ---- access ---------------------------------------------------------------------------------
+def has_authored(session: Session, frame: Frame, user: User) -> bool:
+    return session.scalar(select(MaskVersion.id).where(
+        MaskVersion.frame_id == frame.id, MaskVersion.author_id == user.id).limit(1)) is not None
+
+
+def check_read(session: Session, frame: Frame, user: User) -> None:
+    """Annotators see the masks of frames they hold or worked on; reviewers/admins all."""
+    if user.role in ("reviewer", "admin"):
+        return
+    if frame.assignee_id == user.id or frame.last_annotator_id == user.id:
+        return
+    if has_authored(session, frame, user):
+        return
+    raise Forbidden(f"frame {frame.id} is not assigned to you")
+
+
+# ---- versions -------------------------------------------------------------------------------
+def parse_if_match(raw: str | None) -> int | None:
+    """'none' -> None, '12' / '"12"' / 'W/"12"' -> 12; missing -> 428."""
+    if raw is None:
+        raise PreconditionRequired(
+            "If-Match header is required: the current mask version id, or 'none' for the first")
+    v = raw.strip()
+    if v.startswith("W/"):
+        v = v[2:]
+    v = v.strip('"').strip()
+    if v.lower() == "none":
+        return None
+    if not v.isdigit() or len(v) > 12:
+        raise Invalid(f"If-Match must be a mask version id or 'none', got {raw!r}")
+    return int(v)
+
+
+def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: bytes):
+    scene = session.get(Scene, frame.scene_id)
+    ws_scene = ctx.load_scene(scene.workspace)
+    sf = ws_scene.frames[frame.index]
+    return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=f"mask upload for {frame.name}")
+
+
+def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
+                  kind: str, expected: int | None, restored_from: int | None = None,
+                  sha256: str | None = None, size: tuple[int, int] | None = None) -> MaskVersion:
+    """Validate, store and (if ``expected`` is still current) make current a new version.
+
+    Raises StaleVersion (409) after keeping the upload as a ``conflict`` version.
+    """
+    if kind not in ("draft", "submitted"):
+        raise Invalid(f"kind must be 'draft' or 'submitted', got {kind!r}")
+    if user.role == "annotator" and frame.assignee_id != user.id:
+        if not has_authored(session, frame, user):
+            raise Forbidden(f"frame {frame.id} is not leased to you; ask for it with 'next'")
+        lost_lease = True
+    else:
+        lost_lease = False
+    if sha256 is None:
+        mask = _decode_for_frame(ctx, session, frame, data)  # MaskError -> 422, nothing stored
+        h, w = mask.shape
+        sha256 = ctx.store.put(data)
+        nbytes = len(data)
+    else:
+        w, h = size
+        nbytes = len(data)
+    version = MaskVersion(frame_id=frame.id, kind="conflict" if lost_lease else kind,
+                          author_id=user.id, sha256=sha256, size_bytes=nbytes, width=w, height=h,
+                          base_version_id=expected, restored_from_id=restored_from,
+                          created_at=utcnow())
+    session.add(version)
+    session.flush()
+    if lost_lease:
+        session.commit()
+        raise Conflict(f"frame {frame.id} is now leased to another annotator; your upload was "
+                       f"kept as conflict version {version.id}",
+                       current_version=frame.current_version_id, conflict_version=version.id)
+    now = utcnow()
+    values: dict = {"current_version_id": version.id}
+    if kind == "submitted":
+        values.update(state="submitted", lease_expires_at=None, assignee_id=None,
+                      last_annotator_id=user.id if user.role == "annotator" else
+                      Frame.last_annotator_id, agreement=None)
+    elif user.role == "annotator":
+        values.update(state="in_progress", last_annotator_id=user.id,
+                      lease_expires_at=now + timedelta(seconds=ctx.settings.lease_seconds))
+    cond = (Frame.current_version_id.is_(None) if expected is None
+            else Frame.current_version_id == expected)
+    res = session.execute(update(Frame).where(Frame.id == frame.id, cond).values(**values)
+                          .execution_options(synchronize_session=False))
+    if res.rowcount != 1:
+        version.kind = "conflict"
+        session.commit()
+        current = session.scalar(select(Frame.current_version_id).where(Frame.id == frame.id))
+        raise StaleVersion(
+            f"mask of frame {frame.id} changed: If-Match {expected if expected is not None else 'none'}"
+            f" is not the current version {current}; your upload was kept as conflict version "
+            f"{version.id}", current_version=current, conflict_version=version.id)
+    session.commit()
+    ctx.lifting.notify(frame.scene_id, frame.id)
+    return version
+
+
+def restore(*, session: Session, ctx: AppContext, frame: Frame, user: User, version_id: int,
+            expected: int | None, kind: str = "draft") -> MaskVersion:
+    old = get_version(session=session, frame=frame, version_id=version_id)
+    data = ctx.store.get(old.sha256)
+    if expected is None:
+        expected = frame.current_version_id
+    return store_version(session=session, ctx=ctx, frame=frame, user=user, data=data, kind=kind,
+                         expected=expected, restored_from=old.id, sha256=old.sha256,
+                         size=(old.width, old.height))
+
+
+def get_version(*, session: Session, frame: Frame, version_id: int) -> MaskVersion:
+    v = session.get(MaskVersion, version_id)
+    if v is None or v.frame_id != frame.id:
+        raise NotFound(f"frame {frame.id} has no mask version {version_id}")
+    return v
+
+
+def current_version(*, session: Session, frame: Frame) -> MaskVersion:
+    if frame.current_version_id is None:
+        raise NotFound(f"frame {frame.id} has no mask yet")
+    return get_version(session=session, frame=frame, version_id=frame.current_version_id)
+
+
+def list_versions(*, session: Session, frame: Frame) -> list[dict]:
+    rows = session.execute(select(MaskVersion, User.username)
+                           .outerjoin(User, User.id == MaskVersion.author_id)
+                           .where(MaskVersion.frame_id == frame.id).order_by(MaskVersion.id))
+    return [version_out(v, name) for v, name in rows]
+
+
+def version_out(v: MaskVersion, author: str | None) -> dict:
+    return dict(version=v.id, frame_id=v.frame_id, kind=v.kind, author=author,
+                created_at=v.created_at, sha256=v.sha256, size_bytes=v.size_bytes, width=v.width,
+                height=v.height, base_version=v.base_version_id, restored_from=v.restored_from_id)
+
+
+# ---- lifted labels --------------------------------------------------------------------------
+def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
+    import numpy as np
+
+    available = pipeline.has("occufly.lifting", "LiftState")
+    st = ctx.lifting.status(scene.id)
+    included_idx = ctx.lifting.included_versions(scene.id, scene.workspace) if available else None
+    idx_to_id = dict(session.execute(select(Frame.index, Frame.id)
+                                     .where(Frame.scene_id == scene.id)).all())
+    included = {}
+    for index, tag in (included_idx or {}).items():
+        if index in idx_to_id:
+            included[str(idx_to_id[index])] = int(tag) if tag and tag.isdigit() else None
+    hist: dict[str, int] = {}
+    source = None
+    labels = None
+    res = pipeline.load_labels(scene.workspace) if available else None
+    if res is not None:
+        labels, source = np.asarray(res.labels), "filled"
+    elif available and ctx.lifting.enabled:
+        w = ctx.lifting._workers.get(scene.id)
+        if w is not None and w.state is not None:
+            labels, source = w.state.direct_labels(), "direct"
+    if labels is not None:
+        counts = np.bincount(labels, minlength=256)
+        hist = {str(i): int(c) for i, c in enumerate(counts) if c and i != 0}
+    return dict(lifting_available=available, included_versions=included,
+                pending_fill=st["pending_fill"], pending_frames=st["pending_frames"],
+                fill_running=st["fill_running"], last_error=st["last_error"],
+                class_histogram=hist, labels_source=source)
+
+
+def current_labels(ctx: AppContext, scene: Scene):
+    """(N,) uint8 lifted labels: filled/denoised if available, else direct votes, else None."""
+    import numpy as np
+
+    res = pipeline.load_labels(scene.workspace)
+    if res is not None:
+        return np.asarray(res.labels)
+    w = ctx.lifting._workers.get(scene.id)
+    if w is not None and w.state is not None:
+        return w.state.direct_labels()
+    state = pipeline.open_lift_state(scene.workspace, ctx.load_scene(scene.workspace))
+    return None if state is None else state.direct_labels()

@@ -1,0 +1,124 @@
+"""Application settings, read from ``OCCUFLY_*`` environment variables.
+
+=============================  ===========================================================
+``OCCUFLY_DATA_DIR``           data directory (default ``./data``): database file, mask
+                               store, scene workspaces, exports
+``OCCUFLY_DATABASE_URL``       SQLAlchemy URL (default ``sqlite:///<data_dir>/occufly.db``;
+                               PostgreSQL: ``postgresql+psycopg://user:pw@host/db``)
+``OCCUFLY_IMPORT_ROOTS``       ``os.pathsep``-separated folders admins may import from
+                               (default ``<data_dir>/imports``)
+``OCCUFLY_SECRET_KEY``         secret for token hashing; the built-in default is refused
+                               unless ``OCCUFLY_ENV=development``
+``OCCUFLY_ENV``                ``production`` (default) or ``development``
+``OCCUFLY_DASK_ADDRESS``       Dask scheduler address; unset = local process pool
+``OCCUFLY_MAX_UPLOAD_MB``      largest accepted mask upload (default 64)
+``OCCUFLY_LEASE_MINUTES``      how long ``next`` holds a frame for an annotator (default 30)
+``OCCUFLY_SESSION_HOURS``      login token lifetime (default 12)
+``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
+``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
+``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
+=============================  ===========================================================
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from occufly.errors import OccuflyError
+
+DEFAULT_SECRET = "occufly-insecure-development-secret"
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class ConfigError(OccuflyError):
+    """The environment does not describe a usable configuration."""
+
+
+@dataclass
+class Settings:
+    data_dir: Path = Path("data")
+    database_url: str = ""
+    import_roots: list[Path] = field(default_factory=list)
+    secret_key: str = DEFAULT_SECRET
+    env: str = "production"
+    dask_address: str | None = None
+    max_upload_bytes: int = 64 * 1024 * 1024
+    lease_seconds: int = 30 * 60
+    reject_hold_seconds: int = 24 * 3600
+    session_seconds: int = 12 * 3600
+    fill_debounce_s: float = 5.0
+    job_workers: int = 2
+    frontend_dir: Path = REPO_ROOT / "frontend"
+    login_free_failures: int = 5  # failures before a key gets locked out
+    login_max_lock_s: int = 300
+    auto_upgrade: bool = True
+    live_lifting: bool = True
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir).absolute()
+        if not self.database_url:
+            self.database_url = f"sqlite:///{self.data_dir / 'occufly.db'}"
+        if not self.import_roots:
+            self.import_roots = [self.data_dir / "imports"]
+        self.import_roots = [Path(p).absolute() for p in self.import_roots]
+        self.frontend_dir = Path(self.frontend_dir)
+        if self.env not in ("production", "development"):
+            raise ConfigError(f"OCCUFLY_ENV must be 'production' or 'development', got {self.env!r}")
+        if self.secret_key == DEFAULT_SECRET and self.env != "development":
+            raise ConfigError(
+                "OCCUFLY_SECRET_KEY is not set: the built-in secret is only allowed with "
+                "OCCUFLY_ENV=development"
+            )
+        if len(self.secret_key) < 16:
+            raise ConfigError("OCCUFLY_SECRET_KEY must be at least 16 characters")
+
+    @property
+    def is_dev(self) -> bool:
+        return self.env == "development"
+
+    @property
+    def workspaces_dir(self) -> Path:
+        return self.data_dir / "scenes"
+
+    @property
+    def mask_store_dir(self) -> Path:
+        return self.data_dir / "masks"
+
+    @property
+    def exports_dir(self) -> Path:
+        return self.data_dir / "exports"
+
+    @classmethod
+    def from_env(cls, environ: dict[str, str] | None = None, **overrides) -> Settings:
+        env = os.environ if environ is None else environ
+
+        def num(name: str, default: float, kind=int):
+            raw = env.get(name)
+            if raw is None or raw == "":
+                return default
+            try:
+                return kind(raw)
+            except ValueError:
+                raise ConfigError(f"{name} must be a number, got {raw!r}") from None
+
+        data_dir = Path(env.get("OCCUFLY_DATA_DIR") or "data")
+        roots = [Path(p) for p in (env.get("OCCUFLY_IMPORT_ROOTS") or "").split(os.pathsep) if p]
+        kw: dict = dict(
+            data_dir=data_dir,
+            database_url=env.get("OCCUFLY_DATABASE_URL", ""),
+            import_roots=roots,
+            secret_key=env.get("OCCUFLY_SECRET_KEY") or DEFAULT_SECRET,
+            env=env.get("OCCUFLY_ENV", "production"),
+            dask_address=env.get("OCCUFLY_DASK_ADDRESS") or None,
+            max_upload_bytes=int(num("OCCUFLY_MAX_UPLOAD_MB", 64, float) * 1024 * 1024),
+            lease_seconds=int(num("OCCUFLY_LEASE_MINUTES", 30, float) * 60),
+            session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
+            fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
+            job_workers=num("OCCUFLY_JOB_WORKERS", 2),
+        )
+        if env.get("OCCUFLY_FRONTEND_DIR"):
+            kw["frontend_dir"] = Path(env["OCCUFLY_FRONTEND_DIR"])
+        kw.update(overrides)
+        return cls(**kw)

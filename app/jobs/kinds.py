@@ -1,0 +1,106 @@
+"""The job kinds: each calls one pipeline entry point and records its result.
+
+Pipeline functions are looked up at run time (``app.pipeline``); a missing one fails the job
+with a message naming it, never a fake result.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from app.jobs.runner import JobContext, kind
+from app.scenes import service as scenes
+from app.scenes.models import Scene
+
+
+@kind("import")
+def run_import(jc: JobContext) -> dict:
+    from app import pipeline
+
+    p = jc.params
+    with jc.ctx.sessions() as s:
+        scene = s.get(Scene, jc.scene_id)
+        ws = Path(scene.workspace)
+        scene.status = "importing"
+        s.commit()
+    jc.progress(0.0, f"importing {p['source']}")
+    ws_scene = pipeline.import_scene(
+        Path(p["source"]), ws, cloud=Path(p["cloud"]) if p.get("cloud") else None,
+        depth_maps=Path(p["depth_maps"]) if p.get("depth_maps") else None,
+        progress=lambda f, m="": jc.progress(0.95 * f, m))
+    jc.ctx.scene_cache.pop(str(ws), None)
+    with jc.ctx.sessions() as s:
+        scene = s.get(Scene, jc.scene_id)
+        scenes.sync_frames(session=s, scene=scene, ws_scene=ws_scene)
+    jc.progress(1.0, "frames registered")
+    return {"frames": len(ws_scene.frames), "points": ws_scene.n_points}
+
+
+def _import_failed(jc: JobContext, message: str) -> None:
+    with jc.ctx.sessions() as s:
+        scene = s.get(Scene, jc.scene_id)
+        if scene is not None and scene.status != "ready":
+            scene.status = "failed"
+            s.commit()
+
+
+run_import.on_failure = _import_failed
+
+
+def _scene(jc: JobContext):
+    with jc.ctx.sessions() as s:
+        scene = s.get(Scene, jc.scene_id)
+        return scene.workspace, jc.ctx.load_scene(scene.workspace)
+
+
+@kind("selection")
+def run_selection(jc: JobContext) -> dict:
+    from app import pipeline
+
+    _ws, ws_scene = _scene(jc)
+    jc.progress(0.1, "selecting frames")
+    params = {k: jc.params[k] for k in ("cell", "mode", "target_coverage", "altitude")
+              if k in jc.params}
+    result = pipeline.select_frames(ws_scene, **params)
+    if "cameras" not in result:
+        result["cameras"] = ws_scene.centers()[:, :2].round(3).tolist()
+    result["params"] = params
+    from app.jobs.runner import _jsonable
+
+    result = _jsonable(result)
+    with jc.ctx.sessions() as s:
+        scenes.apply_selection(session=s, scene=s.get(Scene, jc.scene_id), result=result)
+    jc.progress(1.0, f"{len(result['frames'])} frames selected")
+    return result
+
+
+@kind("voxelize")
+def run_voxelize(jc: JobContext) -> dict:
+    from app import pipeline
+
+    fn = pipeline.pipeline_function("occufly.densify", "voxelize_scene")
+    ws, _scene_obj = _scene(jc)
+    return fn(Path(ws), voxel_size=float(jc.params.get("voxel_size", 0.5)),
+              progress=jc.progress)
+
+
+@kind("export")
+def run_export(jc: JobContext) -> dict:
+    from app import pipeline
+
+    fn = pipeline.pipeline_function("occufly.export", "export_dataset")
+    ws, _scene_obj = _scene(jc)
+    out = jc.ctx.settings.exports_dir / f"job_{jc.job_id}"
+    summary = fn(Path(ws), out, scene_id=f"scene_{jc.scene_id:02d}",
+                 layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
+                 executor=jc.executor(), progress=jc.progress)
+    return {"output": str(out), "summary": summary if isinstance(summary, dict) else {}}
+
+
+@kind("eval")
+def run_eval(jc: JobContext) -> dict:
+    """2D agreement of the lifted labels rendered into every frame that has a current mask."""
+    from app.review import service as review
+
+    return review.evaluate_scene(ctx=jc.ctx, scene_id=jc.scene_id, frames=jc.params.get("frames"),
+                                 progress=jc.progress)

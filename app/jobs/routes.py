@@ -1,0 +1,113 @@
+from __future__ import annotations
+
+from pathlib import Path as FsPath
+from typing import Annotated
+
+from fastapi import APIRouter, Path
+from fastapi.responses import StreamingResponse
+
+from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep
+from app.errors import Conflict, NotFound
+from app.jobs import service
+from app.jobs.schemas import EvalIn, ExportIn, JobOut, VoxelizeIn
+
+router = APIRouter(prefix="/api", tags=["jobs"])
+JidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
+
+
+@router.get("/jobs", response_model=list[JobOut])
+def list_jobs(session: SessionDep, _user: ReviewerUser, scene_id: int | None = None):
+    return [service.out(j) for j in service.list_jobs(session=session, scene_id=scene_id)]
+
+
+@router.get("/jobs/{jid}", response_model=JobOut)
+def get_job(jid: JidPath, session: SessionDep, _user: ReviewerUser):
+    return service.out(service.get(session=session, job_id=jid))
+
+
+@router.post("/jobs/{jid}/cancel", response_model=JobOut)
+def cancel_job(jid: JidPath, session: SessionDep, _user: AdminUser):
+    job = service.request_cancel(session=session, job=service.get(session=session, job_id=jid))
+    return service.out(job)
+
+
+@router.post("/jobs/{jid}/resume", response_model=JobOut)
+def resume_job(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser):
+    job = service.prepare_resume(session=session, job=service.get(session=session, job_id=jid))
+    ctx.jobs.submit(job.id)
+    return service.out(job)
+
+
+def _start(session, ctx, scene, user, kind: str, params: dict) -> dict:  # noqa: ANN001
+    if scene.status != "ready":
+        raise Conflict(f"scene {scene.id} is {scene.status}, not ready")
+    job = service.create(session=session, kind=kind, scene_id=scene.id, params=params,
+                         user_id=user.id)
+    ctx.jobs.submit(job.id)
+    return service.out(job)
+
+
+@router.post("/scenes/{sid}/voxelize", response_model=JobOut, status_code=202)
+def voxelize(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
+             body: VoxelizeIn | None = None):
+    return _start(session, ctx, scene, user, "voxelize", (body or VoxelizeIn()).model_dump())
+
+
+@router.post("/scenes/{sid}/export", response_model=JobOut, status_code=202)
+def export(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
+           body: ExportIn | None = None):
+    return _start(session, ctx, scene, user, "export", (body or ExportIn()).model_dump())
+
+
+@router.post("/scenes/{sid}/eval", response_model=JobOut, status_code=202)
+def evaluate(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
+             body: EvalIn | None = None):
+    return _start(session, ctx, scene, user, "eval", (body or EvalIn()).model_dump())
+
+
+@router.get("/scenes/{sid}/metrics")
+def metrics(scene: SceneDep, session: SessionDep, _user: ReviewerUser) -> dict:
+    jobs = [j for j in service.list_jobs(session=session, scene_id=scene.id)
+            if j.kind == "eval" and j.status == "done"]
+    if not jobs:
+        raise NotFound(f"scene {scene.id} has no evaluation yet; run POST /api/scenes/{scene.id}/eval")
+    return {"job_id": jobs[0].id, "finished_at": jobs[0].finished_at, **(jobs[0].result or {})}
+
+
+@router.get("/jobs/{jid}/download", response_class=StreamingResponse,
+            responses={200: {"content": {"application/x-tar": {}}}})
+def download(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser):
+    job = service.get(session=session, job_id=jid)
+    if job.kind != "export" or job.status != "done":
+        raise Conflict(f"job {jid} is not a finished export")
+    root = FsPath((job.result or {}).get("output", ""))
+    base = ctx.settings.exports_dir.resolve()
+    if not root.is_dir() or not root.resolve().is_relative_to(base):
+        raise NotFound(f"the output of job {jid} is no longer on disk")
+    return StreamingResponse(_tar_stream(root), media_type="application/x-tar", headers={
+        "Content-Disposition": f'attachment; filename="export_job_{jid}.tar"'})
+
+
+def _tar_stream(root: FsPath, chunk: int = 1 << 20):
+    """Stream an uncompressed tar of ``root`` without building it on disk."""
+    import queue
+    import tarfile
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=8)
+
+    class _Writer:
+        def write(self, b: bytes) -> int:
+            q.put(bytes(b))
+            return len(b)
+
+    def produce() -> None:
+        try:
+            with tarfile.open(fileobj=_Writer(), mode="w|", bufsize=chunk) as tar:
+                tar.add(root, arcname=root.name)
+        finally:
+            q.put(None)
+
+    threading.Thread(target=produce, daemon=True).start()
+    while (b := q.get()) is not None:
+        yield b

@@ -1,0 +1,35 @@
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+
+class JobOut(BaseModel):
+    id: int
+    kind: str
+    scene_id: int | None
+    status: str
+    progress: float
+    message: str
+    log_tail: list[str]
+    params: dict[str, Any]
+    result: dict[str, Any] | None
+    attempts: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class ExportIn(BaseModel):
+    layout: Literal["occufly", "sscbench"] = "occufly"
+    frames: list[int] | None = Field(default=None, max_length=100000)
+
+
+class VoxelizeIn(BaseModel):
+    voxel_size: float = Field(default=0.5, gt=0, le=100)
+
+
+class EvalIn(BaseModel):
+    frames: list[int] | None = Field(default=None, max_length=100000)

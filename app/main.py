@@ -1,0 +1,157 @@
+"""The FastAPI application factory: ``create_app(settings)``.
+
+Start-up (inside :func:`create_app`, so a test that builds a second app over the same
+database sees exactly what a restarted server does): Alembic upgrade to head, then every job
+the previous process left ``running``/``queued`` is marked ``interrupted`` (resumable via
+``POST /api/jobs/{id}/resume``).
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from app import db, errors
+from app.annotations.lifting import LiftingManager
+from app.config import Settings
+from app.context import AppContext
+from app.jobs import service as jobs_service
+from app.jobs.runner import JobRunner
+from app.storage import BlobStore
+
+log = logging.getLogger("occufly.app")
+
+
+def build_context(settings: Settings) -> AppContext:
+    engine = db.make_engine(settings.database_url)
+    holder: list[AppContext] = []
+    ctx = AppContext(
+        settings=settings, engine=engine, sessions=db.make_sessionmaker(engine),
+        store=BlobStore(settings.mask_store_dir),
+        lifting=LiftingManager(lambda: holder[0], debounce_s=settings.fill_debounce_s,
+                               enabled=settings.live_lifting),
+        jobs=JobRunner(settings.job_workers))
+    holder.append(ctx)
+    ctx.jobs.bind(ctx)
+    return ctx
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings.from_env()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    if settings.auto_upgrade:
+        db.upgrade(settings.database_url)
+    ctx = build_context(settings)
+    with ctx.sessions() as s:
+        interrupted = jobs_service.mark_interrupted(session=s)
+    if interrupted:
+        log.warning("jobs %s were interrupted by a server stop; resume them via the API",
+                    interrupted)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        yield
+        close(_app)
+
+    app = FastAPI(title="OccuFly Studio", version="0.1.0", lifespan=lifespan,
+                  description="Annotation, lifting, review and export of drone-survey SSC "
+                              "ground truth. Auth: session cookie `occufly_session` or "
+                              "`Authorization: Bearer <token>` from POST /api/auth/login.")
+    app.state.ctx = ctx
+    errors.install(app)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for e in exc.errors():
+            loc = ".".join(str(x) for x in e.get("loc", ()) if x != "body")
+            parts.append(f"{loc}: {e.get('msg')}" if loc else str(e.get("msg")))
+        return JSONResponse({"detail": "; ".join(parts) or "invalid request",
+                             "errors": _plain(exc.errors())}, status_code=422)
+
+    from app.annotations.routes import router as annotations_router
+    from app.jobs.routes import router as jobs_router
+    from app.review.routes import router as review_router
+    from app.scenes.routes import router as scenes_router
+    from app.users.routes import router as users_router
+
+    for r in (users_router, scenes_router, annotations_router, review_router, jobs_router):
+        app.include_router(r)
+
+    @app.get("/api/health", tags=["meta"])
+    def health() -> dict:
+        from sqlalchemy import text
+
+        with ctx.sessions() as s:
+            s.execute(text("SELECT 1"))
+        return {"status": "ok", "database": ctx.engine.dialect.name}
+
+    _mount_viewer(app, ctx)
+    _mount_frontend(app, settings)
+    return app
+
+
+def close(app: FastAPI) -> None:
+    """Stop background work and release the database (idempotent)."""
+    ctx: AppContext = app.state.ctx
+    ctx.jobs.shutdown(wait=True)
+    ctx.lifting.stop()
+    ctx.engine.dispose()
+
+
+def authorize_viewer(ctx: AppContext):
+    """authorize(request_or_websocket) -> bool for the 3D viewer: a logged-in reviewer/admin."""
+    from app.deps import token_from
+    from app.users import service
+
+    def authorize(conn) -> bool:  # noqa: ANN001
+        token = token_from(conn)
+        if not token:
+            return False
+        with ctx.sessions() as s:
+            user = service.user_for_token(session=s, settings=ctx.settings, token=token)
+            return user is not None and user.role in ("reviewer", "admin")
+
+    return authorize
+
+
+def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
+    try:
+        import app.viewer as viewer
+    except ImportError:
+        return
+    mount = getattr(viewer, "mount", None)
+    if mount is None:
+        return
+    from app.review.service import make_viewer_callback
+
+    import inspect
+
+    callback = make_viewer_callback(ctx)
+    app.state.on_review_item = callback  # also reachable from the app for the viewer
+    kw = dict(settings=ctx.settings, authorize=authorize_viewer(ctx))
+    params = inspect.signature(mount).parameters
+    if "on_review_item" in params or any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        kw["on_review_item"] = callback
+    mount(app, **kw)
+
+
+def _mount_frontend(app: FastAPI, settings: Settings) -> None:
+    from fastapi.staticfiles import StaticFiles
+
+    if settings.frontend_dir.is_dir():
+        app.mount("/", StaticFiles(directory=settings.frontend_dir, html=True), name="frontend")
+
+
+def _plain(obj):  # noqa: ANN001, ANN202 - make validation error details JSON-safe
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items() if k != "ctx"}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)

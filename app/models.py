@@ -1,0 +1,13 @@
+"""Every ORM model, imported in one place (Alembic's ``target_metadata``)."""
+
+from app.annotations.models import MaskVersion
+from app.db import Base
+from app.jobs.models import Job
+from app.review.models import ReviewComment, ReviewItem
+from app.scenes.models import Frame, Scene
+from app.users.models import AuthToken, LoginThrottle, User
+
+metadata = Base.metadata
+
+__all__ = ["AuthToken", "Frame", "Job", "LoginThrottle", "MaskVersion", "ReviewComment",
+           "ReviewItem", "Scene", "User", "metadata"]

@@ -1,0 +1,79 @@
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Path, Query, Response
+
+from app import pipeline
+from app.deps import CtxDep, CurrentUser, FrameDep, ReviewerUser, SceneDep, SessionDep
+from app.errors import Forbidden
+from app.review import service
+from app.review.schemas import (AgreementOut, CommentIn, ItemPatch, ReviewDecisionIn,
+                                ReviewItemIn, ReviewItemOut)
+from app.scenes import service as scenes
+from app.scenes.models import Scene
+from app.scenes.schemas import FrameOut
+
+router = APIRouter(prefix="/api", tags=["review"])
+PNG = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}}
+RidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
+
+
+@router.get("/frames/{fid}/render", response_class=Response, responses=PNG)
+def render(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser,
+           width: Annotated[int | None, Query(ge=1, le=100000)] = None):
+    scene = session.get(Scene, frame.scene_id)
+    img = service.rendered(ctx, scene, frame, width=width)
+    return Response(pipeline.encode_png(img), media_type="image/png",
+                    headers={"Cache-Control": "private, no-cache"})
+
+
+@router.get("/frames/{fid}/disagreement", response_class=Response, responses=PNG)
+def disagreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser):
+    scene = session.get(Scene, frame.scene_id)
+    return Response(service.disagreement_png(ctx, session, scene, frame), media_type="image/png",
+                    headers={"Cache-Control": "private, no-cache"})
+
+
+@router.get("/frames/{fid}/agreement", response_model=AgreementOut)
+def agreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser):
+    scene = session.get(Scene, frame.scene_id)
+    return service.frame_agreement(ctx, session, scene, frame)
+
+
+@router.post("/frames/{fid}/review", response_model=FrameOut)
+def review_frame(body: ReviewDecisionIn, frame: FrameDep, session: SessionDep, ctx: CtxDep,
+                 user: ReviewerUser):
+    frame = service.decide(session=session, ctx=ctx, frame=frame, user=user,
+                           decision=body.decision, comment=body.comment)
+    return scenes.frame_out(session=session, frame=frame)
+
+
+@router.get("/scenes/{sid}/review-items", response_model=list[ReviewItemOut])
+def list_items(scene: SceneDep, session: SessionDep, user: CurrentUser,
+               status: Literal["open", "resolved"] | None = None, frame_id: int | None = None):
+    return service.list_items(session=session, scene=scene, user=user, status=status,
+                              frame_id=frame_id)
+
+
+@router.post("/scenes/{sid}/review-items", response_model=ReviewItemOut, status_code=201)
+def create_item(body: ReviewItemIn, scene: SceneDep, session: SessionDep, user: ReviewerUser):
+    item = service.create_item(session=session, scene=scene, user=user, frame_id=body.frame_id,
+                               pixel=body.pixel, point_ids=body.point_ids, comment=body.comment)
+    return service.item_out(session, item)
+
+
+@router.post("/review-items/{rid}/comments", response_model=ReviewItemOut, status_code=201)
+def add_comment(rid: RidPath, body: CommentIn, session: SessionDep, user: CurrentUser):
+    item = service.get_item(session=session, item_id=rid, user=user)
+    service.add_comment(session=session, item=item, user=user, text=body.text)
+    return service.item_out(session, item)
+
+
+@router.patch("/review-items/{rid}", response_model=ReviewItemOut)
+def patch_item(rid: RidPath, body: ItemPatch, session: SessionDep, user: CurrentUser):
+    item = service.get_item(session=session, item_id=rid, user=user)
+    if user.role == "annotator" and body.status == "resolved":
+        raise Forbidden("only reviewers and admins resolve review items")
+    service.set_status(session=session, item=item, status=body.status)
+    return service.item_out(session, item)

@@ -1,0 +1,234 @@
+"""Review: render-back agreement, accept/reject, review items with comment threads."""
+
+from __future__ import annotations
+
+import io
+from datetime import timedelta
+
+import numpy as np
+from sqlalchemy import or_, select
+from sqlalchemy.orm import Session
+
+from app import pipeline
+from app.annotations import service as annotations
+from app.context import AppContext
+from app.db import utcnow
+from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.review.models import ReviewComment, ReviewItem
+from app.scenes.models import Frame, Scene
+from app.users.models import User
+
+
+# ---- render-back and agreement --------------------------------------------------------------
+def _mask_array(ctx: AppContext, sha256: str) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(io.BytesIO(ctx.store.get(sha256))) as im:
+        return np.asarray(im).astype(np.uint8)
+
+
+def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, width: int | None = None) -> np.ndarray:
+    """(h, w) uint8 lifted labels rendered into the frame at width ``width`` (default full)."""
+    labels = annotations.current_labels(ctx, scene)
+    if labels is None:
+        raise NotFound(f"scene {scene.id} has no lifted labels yet")
+    ws_scene = ctx.load_scene(scene.workspace)
+    scale = 1.0 if width is None else width / frame.width
+    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=scale)
+    return np.asarray(img, dtype=np.uint8)
+
+
+def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
+    """(mask, rendered at the mask's size, version id) of the frame's current mask."""
+    v = annotations.current_version(session=session, frame=frame)
+    mask = _mask_array(ctx, v.sha256)
+    return mask, rendered(ctx, scene, frame, width=mask.shape[1]), v.id
+
+
+def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
+    mask, ren, vid = compare(ctx, session, scene, frame)
+    ws_scene = ctx.load_scene(scene.workspace)
+    res = pipeline.agreement(mask, ren, ws_scene.taxonomy)
+    value = res.get("agreement")
+    value = None if value is None or not np.isfinite(value) else float(value)
+    frame.agreement = value
+    session.commit()
+    per_class = {str(k): v for k, v in (res.get("per_class") or {}).items()}
+    return {"agreement": value, "pixels": int(res.get("pixels", 0)), "per_class": per_class,
+            "version": vid}
+
+
+def disagreement_png(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> bytes:
+    mask, ren, _vid = compare(ctx, session, scene, frame)
+    rgba = pipeline.disagreement_image(mask, ren, ctx.load_scene(scene.workspace).taxonomy)
+    return pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))
+
+
+def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None = None,
+                   progress=None) -> dict:
+    """2D agreement of every frame with a current mask (the eval job)."""
+    with ctx.sessions() as s:
+        scene = s.get(Scene, scene_id)
+        q = select(Frame).where(Frame.scene_id == scene_id, Frame.current_version_id.is_not(None))
+        if frames:
+            q = q.where(Frame.index.in_(frames))
+        rows = list(s.scalars(q.order_by(Frame.index)))
+        per_frame = []
+        total_px = 0
+        agree_px = 0.0
+        for i, f in enumerate(rows):
+            if progress:
+                progress(i / max(len(rows), 1), f"agreement {f.name}")
+            r = frame_agreement(ctx, s, scene, f)
+            per_frame.append({"frame_id": f.id, "index": f.index, "name": f.name,
+                              "agreement": r["agreement"], "pixels": r["pixels"]})
+            if r["agreement"] is not None:
+                total_px += r["pixels"]
+                agree_px += r["agreement"] * r["pixels"]
+    return {"table": "agreement_2d", "frames": per_frame, "n_frames": len(per_frame),
+            "pixels": total_px, "agreement": agree_px / total_px if total_px else None}
+
+
+# ---- decisions ------------------------------------------------------------------------------
+def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decision: str,
+           comment: str | None) -> Frame:
+    if frame.state not in ("submitted", "accepted", "rejected"):
+        raise Conflict(f"frame {frame.id} is {frame.state}; only submitted frames can be reviewed")
+    now = utcnow()
+    frame.reviewed_by_id = user.id
+    frame.reviewed_at = now
+    if decision == "accept":
+        frame.state = "accepted"
+        frame.assignee_id = None
+        frame.lease_expires_at = None
+    else:
+        frame.state = "rejected"
+        # back to the annotator's own queue first; others may take it after the hold expires
+        frame.assignee_id = frame.last_annotator_id
+        frame.lease_expires_at = (now + timedelta(seconds=ctx.settings.reject_hold_seconds)
+                                  if frame.last_annotator_id else None)
+    if comment:
+        item = ReviewItem(scene_id=frame.scene_id, frame_id=frame.id, author_id=user.id,
+                          status="open" if decision == "reject" else "resolved",
+                          resolved_at=None if decision == "reject" else now)
+        session.add(item)
+        session.flush()
+        session.add(ReviewComment(item_id=item.id, author_id=user.id,
+                                  text=f"[{decision}] {comment}"))
+    session.commit()
+    return frame
+
+
+# ---- review items ---------------------------------------------------------------------------
+def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | None,
+                pixel: list[int] | None, point_ids: list[int] | None, comment: str) -> ReviewItem:
+    if frame_id is None and not point_ids:
+        raise Invalid("a review item needs a frame_id (optionally with a pixel) or point_ids")
+    if pixel is not None and frame_id is None:
+        raise Invalid("pixel needs a frame_id")
+    if frame_id is not None:
+        frame = session.get(Frame, frame_id)
+        if frame is None or frame.scene_id != scene.id:
+            raise NotFound(f"frame {frame_id} is not in scene {scene.id}")
+        if pixel is not None:
+            x, y = pixel
+            if not (0 <= x < frame.width and 0 <= y < frame.height):
+                raise Invalid(f"pixel {pixel} is outside frame {frame_id} "
+                              f"({frame.width}x{frame.height})")
+    if point_ids:
+        ids = np.asarray(point_ids, dtype=np.int64)
+        if ids.min() < 0 or ids.max() >= scene.n_points:
+            raise Invalid(f"point_ids must be in 0..{scene.n_points - 1}")
+        point_ids = np.unique(ids).tolist()
+    item = ReviewItem(scene_id=scene.id, frame_id=frame_id, author_id=user.id,
+                      pixel_x=pixel[0] if pixel else None, pixel_y=pixel[1] if pixel else None,
+                      point_ids=point_ids or None, status="open")
+    session.add(item)
+    session.flush()
+    session.add(ReviewComment(item_id=item.id, author_id=user.id, text=comment))
+    session.commit()
+    return item
+
+
+def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, sessions) -> int:
+    """Callback for the 3D viewer: file a review item on a set of point ids; returns its id.
+
+    ``user`` is a User row or a user id; ``sessions`` the app's session factory
+    (``ctx.sessions``; :func:`make_viewer_callback` binds it).
+    """
+    with sessions() as s:
+        scene = s.get(Scene, int(scene_id))
+        if scene is None:
+            raise NotFound(f"scene {scene_id} does not exist")
+        uid = user if isinstance(user, int) else getattr(user, "id", None)
+        u = s.get(User, uid) if uid is not None else None
+        if u is None or u.role not in ("reviewer", "admin"):
+            raise Forbidden("only reviewers and admins file review items")
+        item = create_item(session=s, scene=scene, user=u, frame_id=None, pixel=None,
+                           point_ids=[int(i) for i in np.asarray(point_ids).reshape(-1)],
+                           comment=comment)
+        return item.id
+
+
+def make_viewer_callback(ctx: AppContext):
+    def on_review_item(scene_id, point_ids, comment, user):  # noqa: ANN001
+        return create_item_from_3d(scene_id, point_ids, comment, user, sessions=ctx.sessions)
+
+    return on_review_item
+
+
+def _visible_items(session: Session, scene: Scene, user: User):
+    q = select(ReviewItem).where(ReviewItem.scene_id == scene.id)
+    if user.role == "annotator":  # only items about frames they work(ed) on
+        q = q.join(Frame, Frame.id == ReviewItem.frame_id).where(
+            or_(Frame.assignee_id == user.id, Frame.last_annotator_id == user.id))
+    return q
+
+
+def list_items(*, session: Session, scene: Scene, user: User, status: str | None = None,
+               frame_id: int | None = None) -> list[dict]:
+    q = _visible_items(session, scene, user)
+    if status:
+        q = q.where(ReviewItem.status == status)
+    if frame_id is not None:
+        q = q.where(ReviewItem.frame_id == frame_id)
+    items = list(session.scalars(q.order_by(ReviewItem.id)))
+    return [item_out(session, it) for it in items]
+
+
+def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
+    item = session.get(ReviewItem, item_id)
+    if item is None:
+        raise NotFound(f"review item {item_id} does not exist")
+    if user.role == "annotator":
+        frame = session.get(Frame, item.frame_id) if item.frame_id else None
+        if frame is None or user.id not in (frame.assignee_id, frame.last_annotator_id):
+            raise Forbidden(f"review item {item_id} is not about your frames")
+    return item
+
+
+def add_comment(*, session: Session, item: ReviewItem, user: User, text: str) -> ReviewItem:
+    session.add(ReviewComment(item_id=item.id, author_id=user.id, text=text))
+    session.commit()
+    return item
+
+
+def set_status(*, session: Session, item: ReviewItem, status: str) -> ReviewItem:
+    item.status = status
+    item.resolved_at = utcnow() if status == "resolved" else None
+    session.commit()
+    return item
+
+
+def item_out(session: Session, item: ReviewItem) -> dict:
+    names = dict(session.execute(select(User.id, User.username)).all())
+    comments = list(session.scalars(select(ReviewComment).where(ReviewComment.item_id == item.id)
+                                    .order_by(ReviewComment.id)))
+    pts = item.point_ids or None
+    return dict(id=item.id, scene_id=item.scene_id, frame_id=item.frame_id,
+                pixel=[item.pixel_x, item.pixel_y] if item.pixel_x is not None else None,
+                point_ids=pts, n_points=len(pts or []), status=item.status,
+                author=names.get(item.author_id), created_at=item.created_at,
+                resolved_at=item.resolved_at,
+                comments=[dict(id=c.id, author=names.get(c.author_id), text=c.text,
+                               created_at=c.created_at) for c in comments])

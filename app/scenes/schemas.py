@@ -1,0 +1,71 @@
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SceneOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: int
+    name: str
+    status: str
+    n_frames: int
+    n_points: int
+    n_selected: int
+    coverage: float | None
+    created_at: datetime
+
+
+class TaxonomyClass(BaseModel):
+    id: int
+    name: str
+    rgb: list[int]
+    group: str
+
+
+class TaxonomyOut(BaseModel):
+    name: str
+    classes: list[TaxonomyClass]
+
+
+class SceneDetail(SceneOut):
+    taxonomy: TaxonomyOut | None = None
+    frame_states: dict[str, int] = {}
+
+
+class ImportIn(BaseModel):
+    name: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")
+    source: str = Field(min_length=1, max_length=1024)
+    cloud: str | None = Field(default=None, max_length=1024)
+    depth_maps: str | None = Field(default=None, max_length=1024)
+
+
+class SelectionIn(BaseModel):
+    cell: float = Field(default=25.0, gt=0, le=10000)
+    mode: Literal["stratified", "greedy"] = "stratified"
+    target_coverage: float = Field(default=0.99, gt=0, le=1)
+    altitude: int | None = Field(default=None, ge=0, le=100000)
+
+
+class FrameOut(BaseModel):
+    id: int
+    scene_id: int
+    index: int
+    name: str
+    width: int
+    height: int
+    altitude: float | None
+    nominal_altitude: int | None
+    selected: bool
+    state: str
+    assignee: str | None
+    lease_expires_at: datetime | None
+    current_version: int | None
+    agreement: float | None
+
+
+class FrameDetail(FrameOut):
+    center: list[float] | None = None
+    last_annotator: str | None = None

@@ -23,6 +23,7 @@ from occufly.errors import OccuflyError
 COMMAND_MODULES: list[str] = [
     "occufly.cli_core",
     "occufly.cli_voxelize",
+    "occufly.cli_lift",
 ]
 
 

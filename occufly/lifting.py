@@ -760,3 +760,57 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
 
 def params_dict(p: LiftParams) -> dict:
     return asdict(p)
+
+
+# ---- evaluation against per-point truth ---------------------------------------------------
+def evaluate_points(labels: np.ndarray, truth: np.ndarray, taxonomy: Taxonomy,
+                    origin: np.ndarray | None = None) -> dict:
+    """Per-point accuracy and per-class IoU of ``labels`` against ``truth`` (both (N,) uint8).
+
+    Points whose truth is 0 or 255 (or not a taxonomy class) are not evaluated; an unlabelled
+    prediction (0) counts as wrong. With ``origin`` the accuracy is also split by label origin.
+    """
+    labels = np.asarray(labels)
+    truth = np.asarray(truth)
+    if labels.shape != truth.shape:
+        raise ValueError(f"labels {labels.shape} and truth {truth.shape} differ in shape")
+    cls = _Classes(taxonomy)
+    C = cls.C
+    t_col = cls.col_of[truth].astype(np.int64)
+    valid = t_col >= 0
+    p_col = cls.col_of[labels].astype(np.int64)
+    p_idx = np.where(p_col >= 0, p_col, C)  # column C = "no label"
+    conf = np.bincount(t_col[valid] * (C + 1) + p_idx[valid], minlength=C * (C + 1))
+    conf = conf.reshape(C, C + 1)
+    tp = np.diag(conf[:, :C])
+    n_valid = int(valid.sum())
+    per_class = {}
+    ious = []
+    for i, c in enumerate(taxonomy.classes):
+        gt = int(conf[i].sum())
+        pred = int(conf[:, i].sum())
+        if gt == 0 and pred == 0:
+            continue
+        union = gt + pred - int(tp[i])
+        iou = int(tp[i]) / union if union else None
+        per_class[c.name] = {"id": c.id, "truth_points": gt, "predicted_points": pred, "iou": iou}
+        if gt and iou is not None:
+            ious.append(iou)
+    out = {
+        "points": int(len(labels)),
+        "evaluated": n_valid,
+        "accuracy": float(tp.sum() / n_valid) if n_valid else None,
+        "unlabelled": int((valid & (p_col < 0)).sum()),
+        "miou": float(np.mean(ious)) if ious else None,
+        "per_class": per_class,
+    }
+    if origin is not None:
+        origin = np.asarray(origin)
+        by = {}
+        for o, name in ORIGIN_NAMES.items():
+            sel = valid & (origin == o)
+            if sel.any():
+                by[name] = {"points": int(sel.sum()),
+                            "accuracy": float((labels[sel] == truth[sel]).mean())}
+        out["by_origin"] = by
+    return out

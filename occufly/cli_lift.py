@@ -1,0 +1,263 @@
+"""Lifting commands: ``select``, ``lift``, ``agreement``, ``eval-points``, ``export-points``."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from occufly.cli import command
+from occufly.errors import InputFormatError, MaskError, WorkspaceError
+from occufly.progress import tqdm_progress
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = command(sub, "select", _select, help="choose the frames to annotate (stratified / greedy)")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("--cell", type=float, default=25.0, help="ground cell edge in metres (23-28)")
+    p.add_argument("--mode", choices=("stratified", "greedy"), default="stratified")
+    p.add_argument("--target-coverage", type=float, default=0.99, help="greedy target rho")
+    p.add_argument("--altitude", type=int, help="only frames at this nominal altitude (m)")
+
+    p = command(sub, "lift", _lift, help="lift masks (DIR/<image stem>.png) into point labels")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("--masks", type=Path, required=True, help="folder of <image stem>.png masks")
+    p.add_argument("--sync", action="store_true",
+                   help="also remove the votes of frames that have no mask in DIR")
+    p.add_argument("--method", choices=("voxel", "exact"), default="voxel",
+                   help="kNN fill/denoise method (exact = plain cKDTree baseline)")
+    p.add_argument("--no-fill", action="store_true", help="update the votes only")
+
+    p = command(sub, "agreement", _agreement,
+                help="pixel agreement of the rendered labels with masks")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("--masks", type=Path, required=True, help="folder of <image stem>.png masks")
+    p.add_argument("--frames", nargs="*", help="frame names/stems/indices (default: all masks)")
+    p.add_argument("--held-out", action="store_true",
+                   help="only frames whose masks were not lifted")
+    p.add_argument("--out", type=Path, help="write <stem>.disagreement.png overlays here")
+
+    p = command(sub, "eval-points", _eval_points,
+                help="per-point accuracy / IoU against truth labels")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("--truth", type=Path, required=True,
+                   help="(N,) uint8 .npy labels in the source cloud's point order")
+
+    p = command(sub, "export-points", _export_points,
+                help="export the semantic cloud (.ply/.las/.laz, georeferenced)")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("out", type=Path)
+
+
+# ---- select ------------------------------------------------------------------------------
+def _select(args: argparse.Namespace) -> dict:
+    from occufly.fsutil import atomic_write_text
+    from occufly.scene import Scene
+    from occufly.selection import select_frames
+
+    scene = Scene.load(args.workspace)
+    res = select_frames(scene, cell=args.cell, mode=args.mode,
+                        target_coverage=args.target_coverage, altitude=args.altitude)
+    out = res.to_dict()
+    atomic_write_text(args.workspace / "selection.json", json.dumps(out, indent=1))
+    out["written"] = str(args.workspace / "selection.json")
+    return out
+
+
+# ---- lift --------------------------------------------------------------------------------
+def _mask_files(scene, masks: Path) -> dict[int, Path]:
+    """frame index -> mask path; every PNG in ``masks`` must name a frame (MaskError)."""
+    if not masks.is_dir():
+        raise InputFormatError(f"{masks}: mask folder does not exist")
+    by_stem = {f.stem: i for i, f in enumerate(scene.frames)}
+    out: dict[int, Path] = {}
+    unknown = []
+    for p in sorted(masks.iterdir()):
+        if p.suffix.lower() != ".png" or p.name.startswith("."):
+            continue
+        if p.stem not in by_stem:
+            unknown.append(p)
+            continue
+        out[by_stem[p.stem]] = p
+    if unknown:
+        raise MaskError(
+            f"{unknown[0]}: mask for an unknown frame {unknown[0].stem!r}"
+            + (f" (and {len(unknown) - 1} more)" if len(unknown) > 1 else "")
+            + "; masks must be named <image stem>.png after a frame of the scene"
+        )
+    return out
+
+
+def _lift(args: argparse.Namespace) -> dict:
+    from occufly.io.masks import read_mask
+    from occufly.lifting import LiftParams, LiftState
+    from occufly.scene import Scene
+
+    scene = Scene.load(args.workspace)
+    files = _mask_files(scene, args.masks)
+    state = LiftState.open(args.workspace, scene)
+    included = state.included_versions()
+    todo = []
+    for fi, path in files.items():  # validate everything before touching the votes
+        data = path.read_bytes()
+        version = hashlib.sha256(data).hexdigest()[:16]
+        if included.get(fi) == version:
+            continue
+        read_mask(data, scene.frames[fi], scene.taxonomy, name=str(path))
+        todo.append((fi, path, version))
+    changed = 0
+    with tqdm_progress("votes") as bar:
+        for k, (fi, path, version) in enumerate(todo):
+            mask = read_mask(path, scene.frames[fi], scene.taxonomy)
+            changed += state.set_mask(fi, mask, version=version, name=str(path))["points_changed"]
+            bar((k + 1) / max(1, len(todo)), path.name)
+    removed = []
+    if args.sync:
+        for fi in list(state.included_versions()):
+            if fi not in files:
+                state.remove_mask(fi)
+                removed.append(scene.frames[fi].name)
+    out = {
+        "masks": len(files),
+        "updated": len(todo),
+        "unchanged": len(files) - len(todo),
+        "removed": removed,
+        "direct_label_changes": changed,
+        "annotated_frames": len(state.included_versions()),
+    }
+    direct = state.direct_labels()
+    out["directly_labelled"] = float((direct > 0).mean()) if len(direct) else 0.0
+    if not args.no_fill:
+        with tqdm_progress("fill/denoise") as bar:
+            res = state.fill_and_denoise(progress=bar, params=LiftParams(method=args.method))
+        out["labels"] = res.summary(scene.taxonomy)
+        out["labels"].pop("versions", None)
+    return out
+
+
+# ---- agreement ---------------------------------------------------------------------------
+def _frame_ids(scene, names: list[str]) -> list[int]:
+    out = []
+    for n in names:
+        if n.isdigit() and int(n) < len(scene.frames):
+            out.append(int(n))
+            continue
+        try:
+            out.append(scene.frame_index(n))
+        except KeyError:
+            raise InputFormatError(f"--frames: {n!r} is not a frame of the scene") from None
+    return out
+
+
+def _agreement(args: argparse.Namespace) -> dict:
+    from occufly.io.masks import read_mask
+    from occufly.lifting import LiftState, load_labels
+    from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
+    from occufly.scene import Scene
+
+    scene = Scene.load(args.workspace)
+    res = load_labels(args.workspace)
+    if res is None:
+        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+    files = _mask_files(scene, args.masks)
+    frames = sorted(files) if not args.frames else _frame_ids(scene, args.frames)
+    missing = [scene.frames[f].name for f in frames if f not in files]
+    if missing:
+        raise InputFormatError(f"{args.masks}: no mask for frame(s) {', '.join(missing)}")
+    annotated = set(LiftState.open(args.workspace, scene).included_versions())
+    if args.held_out:
+        frames = [f for f in frames if f not in annotated]
+    labels = np.asarray(res.labels)
+    per_frame, held, ann = [], [], []
+    for fi in frames:
+        mask = read_mask(files[fi], scene.frames[fi], scene.taxonomy)
+        rendered, _ = render_for_mask(scene, labels, fi, mask.shape)
+        a = agreement(mask, rendered, scene.taxonomy)
+        (ann if fi in annotated else held).append(a)
+        per_frame.append({"frame": scene.frames[fi].name, "annotated": fi in annotated,
+                          "agreement": a["agreement"], "pixels": a["pixels"],
+                          "coverage": a["coverage"]})
+        if args.out:
+            from PIL import Image
+
+            from occufly.fsutil import atomic_write_bytes
+            import io
+
+            buf = io.BytesIO()
+            Image.fromarray(disagreement_image(mask, rendered, scene.taxonomy)).save(buf, "PNG")
+            atomic_write_bytes(args.out / f"{scene.frames[fi].stem}.disagreement.png",
+                               buf.getvalue())
+    total = merge_agreements(held + ann)
+    names = {int(c.id): c.name for c in scene.taxonomy.classes}
+    total["per_class_iou"] = {names[i]: v for i, v in total.get("per_class_iou", {}).items()}
+    total.pop("confusion", None)
+    return {
+        "frames": len(frames),
+        **total,
+        "held_out": {k: v for k, v in merge_agreements(held).items() if k in
+                     ("agreement", "pixels", "coverage")} | {"frames": len(held)},
+        "annotated": {k: v for k, v in merge_agreements(ann).items() if k in
+                      ("agreement", "pixels", "coverage")} | {"frames": len(ann)},
+        "per_frame": per_frame,
+    }
+
+
+# ---- eval-points -------------------------------------------------------------------------
+def load_truth_labels(ws: Path, truth_path: Path, n_points: int) -> np.ndarray:
+    """Truth labels given in the source cloud's order, reordered to the workspace's points.
+
+    If the workspace has ``points/source_index.npy`` ((N,) int, source index of each point)
+    it is applied; otherwise the workspace keeps the source order and lengths must match.
+    """
+    try:
+        truth = np.load(truth_path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise InputFormatError(f"{truth_path}: cannot read truth labels ({e})") from None
+    truth = np.asarray(truth).reshape(-1)
+    src = ws / "points" / "source_index.npy"
+    if src.is_file():
+        idx = np.load(src, mmap_mode="r")
+        if len(idx) != n_points or (len(idx) and int(np.max(idx)) >= len(truth)):
+            raise InputFormatError(f"{truth_path}: does not match {src} ({len(truth)} labels)")
+        truth = truth[np.asarray(idx)]
+    if len(truth) != n_points:
+        raise InputFormatError(
+            f"{truth_path}: has {len(truth)} labels but the workspace has {n_points} points"
+        )
+    if truth.size and (truth.min() < 0 or truth.max() > 255):
+        raise InputFormatError(f"{truth_path}: labels must be raw class ids 0..255")
+    return truth.astype(np.uint8)
+
+
+def _eval_points(args: argparse.Namespace) -> dict:
+    from occufly.lifting import LiftState, evaluate_points, load_labels
+    from occufly.scene import Scene
+
+    scene = Scene.load(args.workspace)
+    res = load_labels(args.workspace)
+    if res is None:
+        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+    truth = load_truth_labels(args.workspace, args.truth, scene.n_points)
+    out = evaluate_points(np.asarray(res.labels), truth, scene.taxonomy, np.asarray(res.origin))
+    direct = LiftState.open(args.workspace, scene).direct_labels()
+    has = (direct > 0) & (truth > 0) & (truth < 255)
+    out["direct_votes"] = {"points": int(has.sum()),
+                           "accuracy": float((direct[has] == truth[has]).mean()) if has.any() else None}
+    return out
+
+
+# ---- export-points -----------------------------------------------------------------------
+def _export_points(args: argparse.Namespace) -> dict:
+    from occufly.io.pointcloud_export import export_scene_points
+    from occufly.lifting import load_labels
+    from occufly.scene import Scene
+
+    scene = Scene.load(args.workspace)
+    res = load_labels(args.workspace)
+    if res is None:
+        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+    return export_scene_points(scene, np.asarray(res.labels), args.out,
+                               confidence=np.asarray(res.confidence), origin=np.asarray(res.origin))

@@ -175,7 +175,7 @@ class AdminPage {
   // ---- selection ---------------------------------------------------------------------------
   selectionForm() {
     this.selCell = el("input", { id: "sel-cell", type: "number", min: 1, step: "any", value: 25 });
-    this.selMode = el("select", { id: "sel-mode" }, ["stratified", "coverage"].map((m) => el("option", { value: m }, m)));
+    this.selMode = el("select", { id: "sel-mode" }, ["stratified", "greedy"].map((m) => el("option", { value: m }, m)));
     this.selTarget = el("input", { id: "sel-target", type: "number", min: 0, max: 1, step: 0.01, value: 0.99 });
     this.selAlt = el("input", { id: "sel-alt", type: "number", step: "any", placeholder: "all" });
     const f = el(
@@ -212,6 +212,20 @@ class AdminPage {
       this.selectionEl.replaceChildren(el("p", {}, "No selection yet for this scene."));
       return;
     }
+    const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
+    const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.selected;
+    const curveC = el("canvas", { id: "coverage-plot" });
+    const mapC = el("canvas", { id: "camera-map" });
+    // `frames` are frame indices into the scene (the order of `cameras`).
+    const selected = new Set((Array.isArray(sel.frames) ? sel.frames : []).map((v) => (typeof v === "object" ? v.index : v)));
+    // `cells` is either a list of cell geometries or (occufly.selection today) only a count;
+    // then the lattice is drawn with the cell edge, anchored at the cameras' extent.
+    const edge = sel.cell ?? Number(this.selCell.value);
+    const cells = Array.isArray(sel.cells) ? sel.cells.map((c) => cellRect(c, edge)).filter(Boolean) : [];
+    const lattice = Array.isArray(sel.cells) ? null : { edge, count: sel.cells };
+    this.selectionEl.replaceChildren(el("p", {}, "No selection yet for this scene."));
+      return;
+    }
     const frames = (await api.get(`/scenes/${sid}/frames?sort=name`).catch(() => [])) || [];
     const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
     const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.frames;
@@ -231,12 +245,12 @@ class AdminPage {
       el(
         "p",
         { id: "selection-summary" },
-        `${nSel ?? "?"} frames selected (${pct(sel.ratio)} of all), coverage ${pct(sel.coverage, 2)}.`,
+        `${nSel ?? "?"} frames selected (${pct(sel.ratio)} of ${sel.candidates ?? "all"} candidates), coverage ${pct(sel.coverage, 2)}${sel.max_coverage != null ? ` of at most ${pct(sel.max_coverage, 2)}` : ""}; mode ${sel.mode ?? "?"}, cell ${edge} m${typeof sel.cells === "number" ? `, ${sel.cells} occupied cells` : ""}.`,
       ),
       el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, "Top-down map: cameras (blue), selected frames (red), grid cells"))),
     );
     linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", yMin: 0, yMax: 1, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
-    mapPlot(mapC, { cameras: sel.cameras || [], selected, cells });
+    mapPlot(mapC, { cameras: sel.cameras || [], selected, cells, lattice });
   }
 
   // ---- jobs ----------------------------------------------------------------------------------
@@ -330,7 +344,12 @@ class AdminPage {
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/voxelize`));
       if (job) this.track(job);
     });
-    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), go, vox);
+    const ev = el("button", { type: "button", id: "start-eval" }, "Run evaluation");
+    ev.addEventListener("click", async () => {
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/eval`));
+      if (job) this.track(job);
+    });
+    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), go, vox, ev);
     f.addEventListener("submit", async (e) => {
       e.preventDefault();
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value }));

@@ -121,7 +121,7 @@ export function cellRect(c, edge = null) {
  * Top-down map: cameras [[x, y]], selected: Set of indices into cameras, cells: rects.
  * Equal axis scale, +y up.
  */
-export function mapPlot(canvas, { cameras = [], selected = new Set(), cells = [], width = 460, height = 400 } = {}) {
+export function mapPlot(canvas, { cameras = [], selected = new Set(), cells = [], lattice = null, width = 460, height = 400 } = {}) {
   const ctx = setup(canvas, width, height);
   const pts = cameras.filter((p) => Array.isArray(p) && p.length >= 2);
   const xs = pts.map((p) => p[0]).concat(cells.flatMap((c) => [c.x0, c.x1]));
@@ -138,6 +138,21 @@ export function mapPlot(canvas, { cameras = [], selected = new Set(), cells = []
   ctx.strokeStyle = "rgba(0,0,0,0.35)";
   ctx.lineWidth = 1;
   for (const c of cells) ctx.strokeRect(X(c.x0), Y(c.y1), (c.x1 - c.x0) * s, (c.y1 - c.y0) * s);
+  if (lattice && lattice.edge > 0) {
+    // grid lines every `edge` metres across the extent (cell geometry not sent by the API)
+    ctx.setLineDash([4, 4]);
+    ctx.beginPath();
+    for (let x = x0; x <= x1 + 1e-6; x += lattice.edge) {
+      ctx.moveTo(X(x), Y(y0));
+      ctx.lineTo(X(x), Y(y1));
+    }
+    for (let y = y0; y <= y1 + 1e-6; y += lattice.edge) {
+      ctx.moveTo(X(x0), Y(y));
+      ctx.lineTo(X(x1), Y(y));
+    }
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
   cameras.forEach((p, i) => {
     if (!Array.isArray(p)) return;
     const sel = selected.has(i);
@@ -148,7 +163,7 @@ export function mapPlot(canvas, { cameras = [], selected = new Set(), cells = []
     ctx.fill();
   });
   ctx.fillStyle = "#333";
-  ctx.fillText(`${cameras.length} cameras, ${selected.size} selected, ${cells.length} cells; ${(x1 - x0).toFixed(0)}×${(y1 - y0).toFixed(0)} m`, 6, 12);
+  ctx.fillText(`${cameras.length} cameras, ${selected.size} selected, ${cells.length || (lattice ? lattice.count : 0)} cells; ${(x1 - x0).toFixed(0)}×${(y1 - y0).toFixed(0)} m`, 6, 12);
   canvas.setAttribute("role", "img");
   canvas.setAttribute("aria-label", `Top-down map: ${cameras.length} camera positions, ${selected.size} selected frames (red), ${cells.length} grid cells`);
 }

@@ -122,8 +122,8 @@ class ViewerData:
 
 def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
     """Direct (mask-vote) labels if the lifting module and its state exist, else None."""
-    if not (ws / "lifting").is_dir():
-        return None
+    if not (ws / "lifting" / "state.json").is_file():
+        return None  # never create a lifting state from the viewer (LiftState.open would)
     try:
         from occufly.lifting import LiftState  # written by the lifting engineer
     except ImportError:

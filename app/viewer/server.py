@@ -657,26 +657,14 @@ def _frame_image(d: sb.ViewerData, frame_index: int) -> np.ndarray | None:
         return np.asarray(im)
 
 
-def load_camera_grid(d: sb.ViewerData, frame_index: int) -> tuple | None:
-    """(labels, invalid, occluded, surface, T_cam_world, voxel_size) of a frame, or None.
-
-    Uses ``occufly.sampling`` when it and a scene grid are available.
-    """
+def load_camera_grid(d: sb.ViewerData, frame_index: int, spec: Any = None) -> tuple | None:
+    """(labels, invalid, occluded, surface, T_cam_world, voxel_size) of a frame sampled from
+    the scene grid with ``occufly.sampling.sample_frame`` (default GridSpec), or None."""
     if d.grid is None:
         return None
-    try:
-        from occufly import sampling
-    except ImportError:
-        return None
-    fn = getattr(sampling, "sample_frame", None)
-    if fn is None:
-        return None
+    from occufly.sampling import GridSpec, sample_frame
+
+    spec = spec or GridSpec()
     fr = d.scene.frames[frame_index]
-    try:
-        out = fn(d.scene, frame_index, d.grid)
-    except TypeError:
-        out = fn(fr, d.grid, d.scene.origin)
-    get = (lambda k: out[k]) if isinstance(out, Mapping) else (lambda k: getattr(out, k))
-    return (get("labels"), get("invalid"), get("occluded"), get("surface"), fr.T_cam_world,
-            float(getattr(out, "voxel_size", 0.5) if not isinstance(out, Mapping)
-                  else out.get("voxel_size", 0.5)))
+    gt = sample_frame(d.grid, fr.camera, fr.T_cam_world, d.scene.origin, spec)
+    return gt.labels, gt.invalid, gt.occluded, gt.surface, fr.T_cam_world, spec.voxel_size

@@ -24,6 +24,7 @@ COMMAND_MODULES: list[str] = [
     "occufly.cli_core",
     "occufly.cli_voxelize",
     "occufly.cli_lift",
+    "occufly.cli_export",
 ]
 
 

@@ -1,0 +1,125 @@
+"""Export and evaluation commands: ``export``, ``eval-ssc``, ``eval-depth``, ``preview``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from occufly.cli import command
+from occufly.progress import tqdm_progress
+
+
+def _shape(text: str) -> tuple[int, int, int]:
+    try:
+        v = tuple(int(x) for x in text.lower().replace("x", ",").split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"grid shape must look like 192x128x128, got {text!r}") from None
+    if len(v) != 3 or min(v) <= 0:
+        raise argparse.ArgumentTypeError(f"grid shape must be three positive ints, got {text!r}")
+    return v  # type: ignore[return-value]
+
+
+def _alt_map(text: str) -> dict[int, int]:
+    """"40:50,30:50" -> {40: 50, 30: 50}."""
+    out = {}
+    for part in filter(None, text.split(",")):
+        try:
+            a, b = part.split(":")
+            out[int(a)] = int(b)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"--grid-for-altitude expects ALT:GRIDALT pairs like 40:50,30:50, got {part!r}") from None
+    return out
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = command(sub, "export", _export, help="export per-frame SSC ground truth (OccuFly / SSCBench layout)")
+    p.add_argument("workspace", type=Path, help="scene workspace")
+    p.add_argument("out", type=Path, help="export root (created; an earlier export of this scene resumes)")
+    p.add_argument("--scene-id", default="scene_01", help="scene folder / sequence name (default scene_01)")
+    p.add_argument("--layout", choices=("occufly", "sscbench"), default="occufly")
+    p.add_argument("--grid", type=Path, help="scene grid .npz (default WS/grid/scene_grid[_ALT].npz)")
+    p.add_argument("--frames", type=str, help="frame indices, e.g. 0,3,7-12 (default all)")
+    p.add_argument("--grid-shape", type=_shape, default=(192, 128, 128), help="frame grid X,Y,Z")
+    p.add_argument("--voxel-size", type=float, default=0.5, help="frame grid voxel edge (m)")
+    p.add_argument("--near", type=float, default=1.0, help="near clip distance (m)")
+    p.add_argument("--far", type=float, help="far clip distance (m); default grid depth")
+    p.add_argument("--grid-for-altitude", type=_alt_map,
+                   help="which altitude's grid each altitude samples, e.g. 40:50,30:50 "
+                        "(default: the highest altitude's grid)")
+    p.add_argument("--workers", type=int, help="local worker processes (default 2; 1 = in-process)")
+    p.add_argument("--dask", help="Dask scheduler address, e.g. tcp://host:8786 (or OCCUFLY_DASK)")
+
+    p = command(sub, "eval-ssc", _eval_ssc, help="SSC metrics of a prediction export against ground truth")
+    p.add_argument("pred", type=Path, help="prediction export root (OccuFly layout)")
+    p.add_argument("gt", type=Path, help="ground-truth export root (OccuFly layout)")
+
+    p = command(sub, "eval-depth", _eval_depth, help="depth metrics of predicted depth maps against ground truth")
+    p.add_argument("pred", type=Path)
+    p.add_argument("gt", type=Path)
+    p.add_argument("--max-depth", type=float, default=1000.0, help="ignore GT depth at or beyond (m)")
+
+    p = command(sub, "preview", _preview, help="PNG preview of one exported frame")
+    p.add_argument("export", type=Path, help="export root (OccuFly layout)")
+    p.add_argument("--frame", required=True, help="frame id, e.g. 3 or 000003")
+    p.add_argument("--out", type=Path, required=True, help="PNG to write")
+    p.add_argument("--panels", default="image,depth,grid,masks",
+                   help="comma list of image, depth, grid, masks")
+    p.add_argument("--height", type=int, default=256, help="panel height in pixels")
+
+
+def _parse_frames(text: str | None) -> list[int] | None:
+    from occufly.errors import OccuflyError
+
+    if not text:
+        return None
+    out: list[int] = []
+    for part in text.split(","):
+        try:
+            if "-" in part:
+                a, b = part.split("-")
+                out.extend(range(int(a), int(b) + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise OccuflyError(f"--frames: expected indices like 0,3,7-12, got {part!r}") from None
+    return out
+
+
+def _export(args: argparse.Namespace) -> dict:
+    from occufly.export import export_dataset
+    from occufly.grid import SceneGrid
+    from occufly.parallel import get_executor
+    from occufly.sampling import GridSpec
+
+    spec = GridSpec(shape=args.grid_shape, voxel_size=args.voxel_size, near=args.near, far=args.far)
+    grid = SceneGrid.load(args.grid) if args.grid else None
+    with get_executor(args.dask, args.workers if args.workers is not None else 2) as ex, \
+            tqdm_progress("export") as bar:
+        res = export_dataset(args.workspace, args.out, scene_id=args.scene_id, layout=args.layout,
+                             grid=grid, frames=_parse_frames(args.frames), executor=ex,
+                             progress=bar, spec=spec, grid_for_altitude=args.grid_for_altitude)
+    if not args.json:
+        res = {k: v for k, v in res.items() if k != "results"}
+    return res
+
+
+def _eval_ssc(args: argparse.Namespace):
+    from occufly.metrics import evaluate_ssc_dirs, ssc_table
+
+    res = evaluate_ssc_dirs(args.pred, args.gt)
+    return res if args.json else ssc_table(res)
+
+
+def _eval_depth(args: argparse.Namespace):
+    from occufly.metrics import depth_table, evaluate_depth_dirs
+
+    res = evaluate_depth_dirs(args.pred, args.gt, max_depth=args.max_depth)
+    return res if args.json else depth_table(res)
+
+
+def _preview(args: argparse.Namespace) -> dict:
+    from occufly.preview import write_preview
+
+    panels = tuple(p.strip() for p in args.panels.split(",") if p.strip())
+    return write_preview(args.export, args.frame, args.out, panels=panels, height=args.height)

@@ -1,0 +1,267 @@
+"""SSC and depth metrics exactly as FORMATS.md section 5 defines them.
+
+SSC. One confusion matrix over all evaluated frames (``np.bincount`` on ``gt * C + pred``
+over compact class indices), ignoring voxels whose ground truth is 255 or whose ground-truth
+invalid bit is set. Per-class IoU = TP / (TP + FP + FN); mIoU = mean over the semantic
+classes (empty excluded). **A class absent from both prediction and ground truth (TP + FP +
+FN = 0) is reported as n/a (None) and left out of the mIoU.** Completion IoU / precision /
+recall on occupied (label != 0) vs empty. A predicted raw id that is not in the taxonomy is
+counted as a wrong class (its own "other" column), never silently as empty.
+
+Depth. Over pixels with ground truth > 0 and below ``max_depth``: delta_k = share with
+max(gt/pred, pred/gt) < 1.25**k; AbsRel = mean(|pred - gt| / gt); RMSE; MAE;
+SILog = sqrt(mean(d**2) - 0.5 * mean(d)**2) with d = ln pred - ln gt. Per image, then
+averaged over images. Predictions <= 0 at valid pixels are clamped to ``min_pred`` (1e-3 m)
+so ratios and logs stay finite (they count as large errors). Images with no valid pixel are
+skipped (and counted).
+
+Both are computed overall and per altitude; :func:`evaluate_ssc_dirs` /
+:func:`evaluate_depth_dirs` read predictions from the same layout as the ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from occufly.errors import InputFormatError
+from occufly.taxonomy import INVALID, Taxonomy, default_taxonomy
+
+
+# ---- SSC -------------------------------------------------------------------------------------
+@dataclass
+class SSCAccumulator:
+    """Confusion matrix over compact indices: 0 = empty, 1..C = taxonomy classes in table
+    order, C + 1 = any other (unknown) predicted id."""
+
+    class_ids: np.ndarray  # (C,) uint8 raw ids
+    cm: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.class_ids = np.asarray(self.class_ids, dtype=np.uint8)
+        n = len(self.class_ids) + 2
+        self.cm = np.zeros((n, n), dtype=np.int64)
+        self._lut = np.full(256, n - 1, dtype=np.int64)
+        self._lut[0] = 0
+        self._lut[self.class_ids] = np.arange(1, len(self.class_ids) + 1)
+
+    @property
+    def n(self) -> int:
+        return len(self.class_ids) + 2
+
+    def add(self, pred: np.ndarray, gt: np.ndarray, invalid: np.ndarray | None = None) -> None:
+        """pred, gt: (...) uint8 raw ids of the same shape; invalid: same shape bool or None."""
+        pred = np.asarray(pred).reshape(-1)
+        gt = np.asarray(gt).reshape(-1)
+        if pred.shape != gt.shape:
+            raise InputFormatError(f"prediction has {pred.size} voxels, ground truth {gt.size}")
+        keep = gt != INVALID
+        if invalid is not None:
+            keep &= ~np.asarray(invalid, dtype=bool).reshape(-1)
+        g = self._lut[gt[keep]]
+        p = self._lut[pred[keep]]
+        self.cm += np.bincount(g * self.n + p, minlength=self.n * self.n).reshape(self.n, self.n)
+
+    def merge(self, other: SSCAccumulator) -> None:
+        self.cm += other.cm
+
+    def result(self, taxonomy: Taxonomy | None = None) -> dict:
+        cm = self.cm
+        tp = np.diag(cm).astype(np.float64)
+        fp = cm.sum(axis=0) - np.diag(cm)
+        fn = cm.sum(axis=1) - np.diag(cm)
+        names = {c.id: c.name for c in taxonomy.classes} if taxonomy else {}
+        per_class = {}
+        ious = []
+        for ci, cid in enumerate(self.class_ids, start=1):
+            denom = tp[ci] + fp[ci] + fn[ci]
+            name = names.get(int(cid), str(int(cid)))
+            if denom == 0:
+                per_class[name] = None
+            else:
+                iou = float(tp[ci] / denom)
+                per_class[name] = iou
+                ious.append(iou)
+        # completion: occupied = any non-empty (compact index != 0)
+        tp_c = float(cm[1:, 1:].sum())
+        fp_c = float(cm[0, 1:].sum())
+        fn_c = float(cm[1:, 0].sum())
+        return {
+            "voxels": int(cm.sum()),
+            "completion": {
+                "iou": _div(tp_c, tp_c + fp_c + fn_c),
+                "precision": _div(tp_c, tp_c + fp_c),
+                "recall": _div(tp_c, tp_c + fn_c),
+            },
+            "miou": float(np.mean(ious)) if ious else None,
+            "classes_evaluated": len(ious),
+            "per_class_iou": per_class,
+        }
+
+
+def _div(a: float, b: float) -> float | None:
+    return float(a / b) if b > 0 else None
+
+
+# ---- depth -------------------------------------------------------------------------------------
+DEPTH_KEYS = ("d1", "d2", "d3", "abs_rel", "rmse", "mae", "silog")
+
+
+def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, max_depth: float = 1000.0,
+                  min_pred: float = 1e-3) -> dict | None:
+    """Metrics of one image. pred, gt: same-size float arrays in metres. None if no valid pixel."""
+    pred = np.asarray(pred, dtype=np.float64).reshape(-1)
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1)
+    if pred.shape != gt.shape:
+        raise InputFormatError(f"depth prediction has {pred.size} pixels, ground truth {gt.size}")
+    m = (gt > 0) & (gt < max_depth) & np.isfinite(gt)
+    if not m.any():
+        return None
+    g = gt[m]
+    p = np.where(np.isfinite(pred[m]), pred[m], min_pred)
+    p = np.maximum(p, min_pred)
+    ratio = np.maximum(g / p, p / g)
+    d = np.log(p) - np.log(g)
+    return {
+        "d1": float(np.mean(ratio < 1.25)),
+        "d2": float(np.mean(ratio < 1.25**2)),
+        "d3": float(np.mean(ratio < 1.25**3)),
+        "abs_rel": float(np.mean(np.abs(p - g) / g)),
+        "rmse": float(np.sqrt(np.mean((p - g) ** 2))),
+        "mae": float(np.mean(np.abs(p - g))),
+        "silog": float(np.sqrt(max(np.mean(d**2) - 0.5 * np.mean(d) ** 2, 0.0))),
+        "pixels": int(m.sum()),
+    }
+
+
+def average_depth(per_image: list[dict]) -> dict:
+    out: dict = {"images": len(per_image)}
+    for k in DEPTH_KEYS:
+        out[k] = float(np.mean([r[k] for r in per_image])) if per_image else None
+    return out
+
+
+# ---- reading exports -------------------------------------------------------------------------
+def _export_frames(root: Path) -> list[tuple[str, int, str]]:
+    from occufly.export.occufly import list_frames
+
+    if not (root / "OccuFly_Dataset").is_dir():
+        raise InputFormatError(f"{root}: not an OccuFly-layout export (no OccuFly_Dataset folder)")
+    return list_frames(root)
+
+
+def _taxonomy_of(root: Path, scene_id: str) -> Taxonomy:
+    m = root / "OccuFly_Dataset" / scene_id / "manifest.json"
+    if m.is_file():
+        try:
+            return Taxonomy.from_dict(json.loads(m.read_text())["taxonomy"], source=str(m))
+        except (ValueError, KeyError):
+            pass
+    return default_taxonomy()
+
+
+def evaluate_ssc_dirs(pred_root: Path, gt_root: Path) -> dict:
+    """Evaluate every frame of the ground-truth export against the same frames of a
+    prediction export (same OccuFly layout; only ``.label`` files are read from the
+    prediction). Returns overall and per-altitude results."""
+    pred_root, gt_root = Path(pred_root), Path(gt_root)
+    frames = _export_frames(gt_root)
+    if not frames:
+        raise InputFormatError(f"{gt_root}: no ground-truth frames found")
+    tax = _taxonomy_of(gt_root, frames[0][0])
+    overall = SSCAccumulator(tax.ids)
+    per_alt: dict[int, SSCAccumulator] = {}
+    for scene_id, alt, fid in frames:
+        gdir = gt_root / "OccuFly_Dataset" / scene_id / str(alt) / "ground_truth" / fid
+        pfile = pred_root / "OccuFly_Dataset" / scene_id / str(alt) / "ground_truth" / fid / f"{fid}.label"
+        if not pfile.is_file():
+            raise InputFormatError(f"{pfile}: prediction for frame {scene_id}/{alt}/{fid} is missing")
+        gt = np.fromfile(gdir / f"{fid}.label", dtype=np.uint8)
+        pred = np.fromfile(pfile, dtype=np.uint8)
+        if pred.size != gt.size:
+            raise InputFormatError(f"{pfile}: {pred.size} voxels, expected {gt.size} like the ground truth")
+        inv_path = gdir / f"{fid}.invalid"
+        invalid = (np.unpackbits(np.fromfile(inv_path, dtype=np.uint8))[: gt.size].astype(bool)
+                   if inv_path.is_file() else None)
+        acc = per_alt.setdefault(alt, SSCAccumulator(tax.ids))
+        acc.add(pred, gt, invalid)
+    for acc in per_alt.values():
+        overall.merge(acc)
+    return {
+        "frames": len(frames),
+        "overall": overall.result(tax),
+        "per_altitude": {str(a): per_alt[a].result(tax) for a in sorted(per_alt)},
+        "note": "classes absent from both prediction and ground truth are n/a and excluded from mIoU",
+    }
+
+
+def evaluate_depth_dirs(pred_root: Path, gt_root: Path, *, max_depth: float = 1000.0) -> dict:
+    """Depth metrics of ``depth_maps/<frame>.npy`` of a prediction export against the ground
+    truth export, per image then averaged; overall and per altitude."""
+    pred_root, gt_root = Path(pred_root), Path(gt_root)
+    frames = []
+    for d in sorted((gt_root / "OccuFly_Dataset").glob("*/*/depth_maps/*.npy")):
+        frames.append((d.parents[2].name, int(d.parents[1].name), d.stem))
+    if not frames:
+        raise InputFormatError(f"{gt_root}: no ground-truth depth maps found (OccuFly layout)")
+    per_alt: dict[int, list[dict]] = {}
+    skipped = 0
+    for scene_id, alt, fid in frames:
+        rel = Path("OccuFly_Dataset") / scene_id / str(alt) / "depth_maps" / f"{fid}.npy"
+        if not (pred_root / rel).is_file():
+            raise InputFormatError(f"{pred_root / rel}: predicted depth map is missing")
+        try:
+            gt = np.load(gt_root / rel, allow_pickle=False)
+            pred = np.load(pred_root / rel, allow_pickle=False)
+        except ValueError as e:
+            raise InputFormatError(f"{rel}: not a numpy depth map ({e})") from None
+        if pred.size != gt.size:
+            raise InputFormatError(f"{pred_root / rel}: {pred.size} pixels, expected {gt.size}")
+        r = depth_metrics(pred, gt, max_depth=max_depth)
+        if r is None:
+            skipped += 1
+            continue
+        per_alt.setdefault(alt, []).append(r)
+    all_images = [r for rs in per_alt.values() for r in rs]
+    return {
+        "images": len(all_images), "skipped_no_gt": skipped, "max_depth": max_depth,
+        "overall": average_depth(all_images),
+        "per_altitude": {str(a): average_depth(per_alt[a]) for a in sorted(per_alt)},
+    }
+
+
+# ---- tables -------------------------------------------------------------------------------------
+def _fmt(v: float | None, pct: bool = True) -> str:
+    if v is None:
+        return "n/a"
+    return f"{100 * v:.2f}" if pct else f"{v:.3f}"
+
+
+def ssc_table(result: dict) -> str:
+    """A table like the benchmark paper's: rows = overall and per altitude; columns =
+    completion IoU, mIoU and per-class IoU (in %)."""
+    rows = [("all", result["overall"])] + [(f"{a} m", r) for a, r in result["per_altitude"].items()]
+    classes = list(result["overall"]["per_class_iou"])
+    head = ["split", "IoU", "Prec", "Rec", "mIoU"] + classes
+    lines = [head]
+    for name, r in rows:
+        c = r["completion"]
+        lines.append([name, _fmt(c["iou"]), _fmt(c["precision"]), _fmt(c["recall"]), _fmt(r["miou"])]
+                     + [_fmt(r["per_class_iou"].get(k)) for k in classes])
+    widths = [max(len(str(row[i])) for row in lines) for i in range(len(head))]
+    out = ["  ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)) for row in lines]
+    out.append(result.get("note", ""))
+    return "\n".join(out)
+
+
+def depth_table(result: dict) -> str:
+    rows = [("all", result["overall"])] + [(f"{a} m", r) for a, r in result["per_altitude"].items()]
+    head = ["split", "images", "d1", "d2", "d3", "AbsRel", "RMSE", "MAE", "SILog"]
+    lines = [head]
+    for name, r in rows:
+        lines.append([name, str(r["images"])] + [_fmt(r[k], pct=False) for k in DEPTH_KEYS])
+    widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
+    return "\n".join("  ".join(v.rjust(w) for v, w in zip(row, widths, strict=True)) for row in lines)

@@ -1,0 +1,360 @@
+"""Lifting: incremental votes, tie order, masks, bad input, kNN fill/denoise, export, CLI."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from occufly.errors import MaskError
+from occufly.io.masks import encode_mask_png, read_mask, write_mask
+from occufly.lifting import (
+    ORIGIN_DENOISED,
+    ORIGIN_DIRECT,
+    ORIGIN_FILLED,
+    LiftParams,
+    LiftState,
+    evaluate_points,
+    fill_and_denoise,
+    fill_and_denoise_exact,
+    load_labels,
+)
+from occufly.scene import Scene
+from occufly.selection import select_frames
+from occufly.taxonomy import default_taxonomy
+from tests.lift_scene import BUILDING, GRASS, ROAD, make_scene, truth_mask
+
+TAX = default_taxonomy()
+
+
+@pytest.fixture(scope="module")
+def built():
+    return make_scene()
+
+
+@pytest.fixture()
+def ws(tmp_path, built):
+    scene, truth = built
+    scene.save(tmp_path / "ws")
+    return tmp_path / "ws", Scene.load(tmp_path / "ws"), truth
+
+
+def _expected_votes(scene, fi, mask):
+    """(point ids, raw ids) a mask gives by direct lookup, computed independently."""
+    pids, uv, _ = scene.visibility.frame(fi)
+    s = scene.frames[fi].camera.width // mask.shape[1]
+    raw = mask[(np.asarray(uv)[:, 1] // s).astype(int), (np.asarray(uv)[:, 0] // s).astype(int)]
+    keep = (raw != 0) & (raw != 255)
+    return np.asarray(pids)[keep], raw[keep]
+
+
+# ---- votes -------------------------------------------------------------------------------
+def test_votes_are_the_mask_pixels(ws):
+    path, scene, truth = ws
+    st = LiftState.open(path, scene)
+    mask = truth_mask(scene.frames[5])
+    stats = st.set_mask(5, mask, version="v1")
+    pids, raw = _expected_votes(scene, 5, mask)
+    direct = st.direct_labels()
+    assert np.array_equal(direct[pids], raw)
+    unseen = np.ones(scene.n_points, bool)
+    unseen[pids] = False
+    assert (direct[unseen] == 0).all()
+    assert int(np.asarray(st.votes).sum()) == len(pids) == stats["votes_added"]
+    assert stats["points_touched"] == len(pids)
+    # the truth mask agrees with the analytic labels on almost all of the points it sees
+    assert (raw == truth[pids]).mean() > 0.9
+    assert st.included_versions() == {5: "v1"}
+
+
+def test_replace_and_remove_subtract_exactly(ws, tmp_path):
+    path, scene, _ = ws
+    st = LiftState.open(path, scene)
+    st.set_mask(0, truth_mask(scene.frames[0]), version="a")
+    st.set_mask(5, truth_mask(scene.frames[5]), version="b")
+    grass = np.full((scene.frames[0].camera.height, scene.frames[0].camera.width), GRASS, np.uint8)
+    stats = st.set_mask(0, grass, version="c")  # replace
+    assert stats["votes_removed"] > 0 and stats["votes_added"] > 0
+    st.remove_mask(5)
+    # the same final content built from scratch in a second workspace
+    scene.save(tmp_path / "ws2")
+    fresh = LiftState.open(tmp_path / "ws2", Scene.load(tmp_path / "ws2"))
+    fresh.set_mask(0, grass, version="c")
+    assert np.array_equal(np.asarray(st.votes), np.asarray(fresh.votes))
+    assert st.included_versions() == {0: "c"}
+    # reopening from disk gives the same state
+    again = LiftState.open(path)
+    assert np.array_equal(np.asarray(again.votes), np.asarray(fresh.votes))
+    assert again.included_versions() == {0: "c"}
+    again.remove_mask(0)
+    assert int(np.asarray(again.votes).sum()) == 0
+    assert (again.direct_labels() == 0).all()
+    assert again.remove_mask(0)["removed"] is False
+
+
+def test_ties_follow_taxonomy_order(ws):
+    path, scene, _ = ws
+    st = LiftState.open(path, scene)
+    h, w = scene.frames[0].camera.height, scene.frames[0].camera.width
+    st.set_mask(4, np.full((h, w), GRASS, np.uint8))
+    st.set_mask(5, np.full((h, w), ROAD, np.uint8))
+    both = np.intersect1d(scene.visibility.frame(4)[0], scene.visibility.frame(5)[0])
+    assert len(both) > 100
+    order = list(TAX.tie_order)
+    winner = GRASS if order.index(GRASS) < order.index(ROAD) else ROAD
+    assert winner == GRASS  # grass is more frequent than road in the default table
+    assert (st.direct_labels()[both] == winner).all()
+    # a third vote breaks the tie the other way
+    st.set_mask(6, np.full((h, w), ROAD, np.uint8))
+    three = np.intersect1d(both, scene.visibility.frame(6)[0])
+    assert len(three) > 0 and (st.direct_labels()[three] == ROAD).all()
+
+
+def test_downscaled_mask_votes(ws):
+    path, scene, _ = ws
+    st = LiftState.open(path, scene)
+    mask2 = truth_mask(scene.frames[10], scale=2)
+    assert mask2.shape == (60, 80)
+    st.set_mask(10, mask2)
+    pids, raw = _expected_votes(scene, 10, mask2)
+    assert np.array_equal(st.direct_labels()[pids], raw)
+
+
+def _state_bytes(st):
+    return np.asarray(st.votes).tobytes(), st.included_versions()
+
+
+def test_bad_masks_raise_and_leave_state_unchanged(ws, tmp_path):
+    path, scene, _ = ws
+    st = LiftState.open(path, scene)
+    st.set_mask(3, truth_mask(scene.frames[3]), version="ok")
+    before = _state_bytes(st)
+    frame = scene.frames[3]
+    h, w = frame.camera.height, frame.camera.width
+    bad = {
+        "wrong_size.png": encode_mask_png(np.full((h - 1, w), GRASS, np.uint8)),
+        "not_png.png": b"GIF89a this is not a png",
+        "jpeg.png": _jpeg_bytes(h, w),
+        "bad_colour.png": _png_rgb(np.full((h, w, 3), (1, 2, 3), np.uint8)),
+        "bad_id.png": encode_mask_png(np.full((h, w), 10, np.uint8)),
+        "non_integer_scale.png": encode_mask_png(np.full((h // 3 + 1, w // 3), GRASS, np.uint8)),
+    }
+    for name, data in bad.items():
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(MaskError, match=name):
+            read_mask(p, frame, TAX)
+        with pytest.raises(MaskError, match="upload-x"):
+            read_mask(data, frame, TAX, name="upload-x")
+    # arrays handed to set_mask directly are validated too
+    with pytest.raises(MaskError, match="not in taxonomy"):
+        st.set_mask(3, np.full((h, w), 10, np.uint8), name="m.png")
+    with pytest.raises(MaskError, match="m.png"):
+        st.set_mask(3, np.full((h, w + 2), GRASS, np.uint8), name="m.png")
+    with pytest.raises(MaskError, match="not in the scene"):
+        st.set_mask(999, np.full((h, w), GRASS, np.uint8), name="ghost.png")
+    with pytest.raises(MaskError, match="not in the scene"):
+        st.remove_mask(-1)
+    assert _state_bytes(st) == before
+    assert _state_bytes(LiftState.open(path)) == before
+
+
+def _png_rgb(rgb):
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _jpeg_bytes(h, w):
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((h, w), np.uint8)).save(buf, format="JPEG")
+    return buf.getvalue()
+
+
+def test_mask_encodings_round_trip(ws, tmp_path):
+    _, scene, _ = ws
+    frame = scene.frames[5]
+    ids = truth_mask(frame)
+    ids[:5, :5] = 255
+    ids[5:10, :5] = 0
+    write_mask(tmp_path / "m.png", ids)
+    assert np.array_equal(read_mask(tmp_path / "m.png", frame, TAX), ids)
+    # RGB colours of the taxonomy (black = unpainted) decode to the same ids
+    rgb = TAX.colour_lut()[np.where(ids == 255, 0, ids)]
+    got = read_mask(_png_rgb(rgb), frame, TAX)
+    assert np.array_equal(got, np.where(ids == 255, 0, ids))
+    # 16-bit single channel with ids <= 255
+    buf = io.BytesIO()
+    Image.fromarray(ids.astype(np.uint16)).save(buf, format="PNG")
+    assert np.array_equal(read_mask(buf.getvalue(), frame, TAX), ids)
+
+
+def test_interrupted_update_is_repaired_on_open(ws):
+    path, scene, _ = ws
+    st = LiftState.open(path, scene)
+    st.set_mask(2, truth_mask(scene.frames[2]))
+    st.set_mask(7, truth_mask(scene.frames[7]))
+    good = np.asarray(st.votes).copy()
+    # simulate a crash in the middle of an update: dirty flag set, counts half-written
+    st._write_state(dirty=True)
+    st.votes[:100] += 3
+    st.votes.flush()
+    del st
+    again = LiftState.open(path)
+    assert np.array_equal(np.asarray(again.votes), good)
+    assert json.loads((path / "lifting" / "state.json").read_text())["dirty"] is False
+
+
+# ---- fill and denoise --------------------------------------------------------------------
+def test_fill_is_inverse_distance_weighted_and_bounded():
+    rng = np.random.default_rng(1)
+    a = rng.uniform([0, 0, 0], [1, 1, 0.01], (200, 3))
+    b = rng.uniform([5, 0, 0], [6, 1, 0.01], (200, 3))
+    q = np.array([[1.6, 0.5, 0.0], [4.2, 0.5, 0.0], [30.0, 0.5, 0.0]])
+    xyz = np.vstack([a, b, q]).astype(np.float32)
+    direct = np.concatenate([np.full(200, ROAD), np.full(200, BUILDING), np.zeros(3)]).astype(np.uint8)
+    params = LiftParams(fill_k=400, fill_radius=10.0, denoise_k=5, denoise_radius=10.0)
+    for method in ("voxel", "exact"):
+        res = fill_and_denoise(xyz, direct, TAX, params=LiftParams(**{**params.__dict__, "method": method}))
+        # with k covering both clusters, the nearer cluster wins only through 1/d weights
+        assert res.labels[400] == ROAD and res.labels[401] == BUILDING, method
+        assert res.labels[402] == 0 and res.origin[402] == 0, method  # beyond the radius
+        assert res.origin[400] == ORIGIN_FILLED and res.origin[0] == ORIGIN_DIRECT
+    # same sizes, unweighted, the tie would go to building (more frequent): weights matter
+    assert list(TAX.tie_order).index(BUILDING) < list(TAX.tie_order).index(ROAD)
+
+
+def test_denoise_relabels_isolated_noise():
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 20, 20000), rng.uniform(0, 20, 20000),
+                           np.zeros(20000)]).astype(np.float32)
+    direct = np.full(20000, GRASS, np.uint8)
+    noisy = rng.choice(20000, 100, replace=False)
+    direct[noisy] = BUILDING
+    for method in ("voxel", "exact"):
+        res = fill_and_denoise(xyz, direct, TAX, params=LiftParams(method=method))
+        assert (res.labels == GRASS).all(), method
+        assert (res.origin[noisy] == ORIGIN_DENOISED).all()
+        others = np.setdiff1d(np.arange(20000), noisy)
+        assert (res.origin[others] == ORIGIN_DIRECT).all()
+        assert res.confidence[others].min() > 0.9
+
+
+@pytest.mark.parametrize("k", [(100, 200), (10, 30)])
+def test_voxel_method_matches_exact_baseline(built, k):
+    scene, truth = built
+    rng = np.random.default_rng(3)
+    direct = truth.copy()
+    flip = rng.random(len(direct)) < 0.05
+    direct[flip] = rng.choice(TAX.ids, int(flip.sum()))
+    direct[rng.random(len(direct)) < 0.1] = 0
+    p = dict(fill_k=k[0], denoise_k=k[1])
+    fast = fill_and_denoise(scene.xyz, direct, TAX, params=LiftParams(**p))
+    exact = fill_and_denoise_exact(scene.xyz, direct, TAX, params=LiftParams(**p))
+    assert (fast.labels == exact.labels).mean() >= 0.99
+    assert np.array_equal(fast.origin > 0, exact.origin > 0)
+    if k[1] == 30:  # dense enough for whole voxels to be certified
+        assert fast.stats["certified_voxels"] > 0
+        assert fast.stats["exact_denoise_points"] < 0.8 * len(direct)
+
+
+def test_lift_truth_masks_of_selected_frames(ws):
+    path, scene, truth = ws
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    assert sel.coverage >= 0.99
+    st = LiftState.open(path, scene)
+    for fi in sel.frames:
+        st.set_mask(fi, truth_mask(scene.frames[fi]), version=str(fi))
+    res = st.fill_and_denoise()
+    ev = evaluate_points(res.labels, truth, TAX, res.origin)
+    assert ev["accuracy"] >= 0.97
+    assert ev["per_class"]["grass"]["iou"] > 0.98
+    assert ev["per_class"]["building"]["iou"] > 0.8
+    loaded = load_labels(path)
+    assert np.array_equal(np.asarray(loaded.labels), res.labels)
+    assert np.array_equal(np.asarray(loaded.origin), res.origin)
+    assert loaded.stats["annotated_frames"] == len(sel.frames)
+    # lifting wrong masks is measurably wrong
+    st2 = LiftState.open(path, scene)
+    for fi in sel.frames:
+        st2.set_mask(fi, np.full_like(truth_mask(scene.frames[fi]), ROAD))
+    bad = evaluate_points(st2.fill_and_denoise().labels, truth, TAX)
+    assert bad["accuracy"] < 0.2
+
+
+def test_evaluate_points_analytic():
+    truth = np.array([6, 6, 6, 16, 16, 0, 255], np.uint8)
+    pred = np.array([6, 6, 16, 16, 0, 6, 6], np.uint8)
+    ev = evaluate_points(pred, truth, TAX)
+    assert ev["evaluated"] == 5 and ev["unlabelled"] == 1
+    assert ev["accuracy"] == pytest.approx(3 / 5)
+    assert ev["per_class"]["grass"]["iou"] == pytest.approx(2 / 3)
+    assert ev["per_class"]["building"]["iou"] == pytest.approx(1 / 3)
+    assert ev["miou"] == pytest.approx(0.5)
+
+
+# ---- export and CLI ----------------------------------------------------------------------
+def test_export_round_trips_georeferenced(built, tmp_path):
+    import laspy
+
+    from occufly.io.pointcloud_export import export_scene_points, read_semantic_ply
+
+    scene, truth = built
+    world = scene.xyz_world()
+    assert world[:, 1].min() > 5e6  # UTM-like northing
+    for ext in ("ply", "las", "laz"):
+        out = tmp_path / f"cloud.{ext}"
+        info = export_scene_points(scene, truth, out)
+        assert info["points"] == scene.n_points
+        if ext == "ply":
+            d = read_semantic_ply(out)
+            xyz = np.column_stack([d["x"], d["y"], d["z"]])
+            labels = d["label"]
+            assert np.array_equal(xyz, world)
+        else:
+            las = laspy.read(out)
+            xyz = np.column_stack([las.x, las.y, las.z])
+            labels = np.asarray(las.classification)
+            assert np.abs(xyz - world).max() <= 0.0005 + 1e-9
+            assert list(las.header.scales) == [0.001] * 3
+            assert las.header.point_format.id == 7
+        assert np.array_equal(labels, truth)
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_cli_select_lift_agreement_eval_export(ws, tmp_path, capsys):
+    from occufly.cli import main
+
+    path, scene, truth = ws
+    assert main(["select", str(path), "--mode", "greedy", "--json"]) == 0
+    sel = json.loads(capsys.readouterr().out)
+    assert sel["coverage"] >= 0.99 and (path / "selection.json").is_file()
+    masks, held = tmp_path / "masks", tmp_path / "held"
+    for fi in sel["frames"]:
+        write_mask(masks / f"{scene.frames[fi].stem}.png", truth_mask(scene.frames[fi]))
+    others = [i for i in range(len(scene.frames)) if i not in sel["frames"]]
+    for fi in others:
+        write_mask(held / f"{scene.frames[fi].stem}.png", truth_mask(scene.frames[fi]))
+    assert main(["lift", str(path), "--masks", str(masks), "--json"]) == 0
+    lift = json.loads(capsys.readouterr().out)
+    assert lift["updated"] == len(sel["frames"]) and lift["labels"]["points"] == scene.n_points
+    np.save(tmp_path / "truth.npy", truth)
+    assert main(["eval-points", str(path), "--truth", str(tmp_path / "truth.npy"), "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["accuracy"] >= 0.97
+    assert main(["agreement", str(path), "--masks", str(held), "--out", str(tmp_path / "dis"),
+                 "--json"]) == 0
+    ag = json.loads(capsys.readouterr().out)
+    assert ag["held_out"]["frames"] == len(others) and ag["agreement"] >= 0.95
+    assert len(list((tmp_path / "dis").glob("*.disagreement.png"))) == len(others)
+    assert main(["export-points", str(path), str(tmp_path / "o.laz"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["points"] == scene.n_points
+    # a mask for an unknown frame: error naming the file, votes unchanged
+    before = np.asarray(LiftState.open(path).votes).copy()
+    write_mask(masks / "no_such_frame.png", truth_mask(scene.frames[0]))
+    assert main(["lift", str(path), "--masks", str(masks)]) == 2
+    assert "no_such_frame.png" in capsys.readouterr().err
+    assert np.array_equal(np.asarray(LiftState.open(path).votes), before)

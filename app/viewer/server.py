@@ -178,8 +178,10 @@ class ViewerService:
             tok = conn.request.headers.get(TICKET_HEADER)
         except (AttributeError, KeyError):
             return None
-        if not tok:
-            return None
+        return self.redeem_ticket(tok) if tok else None
+
+    def redeem_ticket(self, tok: str) -> Ticket | None:
+        """The ticket's user and scene, once; None for unknown, used or expired tickets."""
         with self._lock:
             t = self._tickets.pop(tok, None)
         if t is None or t.expires < time.monotonic():

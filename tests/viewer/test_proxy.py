@@ -1,0 +1,146 @@
+"""The /viewer/ proxy: refusals, the page, the websocket with tickets, direct access refused."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import msgspec
+import numpy as np
+import pytest
+import viser
+from fastapi import FastAPI, HTTPException
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+from viewer_fixtures import COUNTS
+from viewer_live import ANNOTATOR, REVIEWER, FakeSettings, LiveServer, make_app
+
+from app import viewer
+from app.viewer import server as vserver
+
+PROTO = f"viser-v{viser.__version__}"
+
+
+def camera_message() -> bytes:
+    from viser._messages import ViewerCameraMessage
+
+    msg = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(1000.0, 0.0, 50.0), fov=1.0,
+                              near=0.01, far=1000.0, image_height=600, image_width=800,
+                              look_at=(1000.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
+    return msgspec.msgpack.encode(msg.as_serializable_dict())
+
+
+@pytest.fixture
+def client(tiny):
+    app = make_app(tiny.ws.parent)
+    c = TestClient(app)
+    yield c
+    app.state.viewer.stop()
+
+
+def test_http_refusals(client):
+    r = client.get("/viewer/")
+    assert r.status_code == 401 and "log in" in r.json()["detail"]
+    r = client.get("/viewer/some/asset.js")
+    assert r.status_code == 401
+    r = client.get("/viewer/", headers={"Authorization": f"Bearer {ANNOTATOR}"})
+    assert r.status_code == 403
+    client.cookies.set("occufly_session", ANNOTATOR)
+    r = client.get("/viewer/")
+    assert r.status_code == 403 and "reviewers" in r.json()["detail"]
+    assert not client.app.state.viewer.running  # nothing started for refused requests
+
+
+def test_http_exception_from_authorize_is_passed_through(tmp_path):
+    def authorize(conn):
+        raise HTTPException(status_code=403, detail="nope")
+
+    app = FastAPI()
+    viewer.mount(app, settings=FakeSettings(tmp_path), authorize=authorize)
+    assert TestClient(app).get("/viewer/").status_code == 403
+
+
+def test_websocket_refused_with_1008(client):
+    with pytest.raises(WebSocketDisconnect) as e:
+        with client.websocket_connect("/viewer", subprotocols=[PROTO]) as ws:
+            ws.receive_bytes()
+    assert e.value.code == 1008
+    client.cookies.set("occufly_session", ANNOTATOR)
+    with pytest.raises(WebSocketDisconnect) as e:
+        with client.websocket_connect("/viewer/", subprotocols=[PROTO]) as ws:
+            ws.receive_bytes()
+    assert e.value.code == 1008
+
+
+def test_page_for_reviewer_and_scene_cookie(client):
+    r = client.get("/viewer", params={"scene": "tiny"}, follow_redirects=False)
+    assert r.status_code == 307 and r.headers["location"] == "/viewer/?scene=tiny"
+    client.cookies.set("occufly_session", REVIEWER)
+    r = client.get("/viewer/?scene=tiny")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/html")
+    assert "<canvas" in r.text or "viser" in r.text.lower()
+    assert "occufly_viewer_scene=tiny" in r.headers["set-cookie"]
+    assert "Path=/viewer" in r.headers["set-cookie"]
+    svc = client.app.state.viewer
+    assert svc.running and svc.server.get_host() == "127.0.0.1"
+
+
+def test_proxied_socket_sends_float32_cloud_and_direct_socket_is_refused(tiny):
+    """Through the proxy a reviewer's socket gets every point as float32 (>= 12 bytes each);
+    the same viser port reached directly (no ticket) gets a 1008 close and no scene."""
+    from websockets.asyncio.client import connect
+
+    app = make_app(tiny.ws.parent)
+    n = sum(COUNTS.values())
+    with LiveServer(app) as srv:
+        svc = app.state.viewer
+
+        async def session(url: str, headers: dict) -> tuple[int, int | None]:
+            received = 0
+            async with connect(url, subprotocols=[PROTO], additional_headers=headers,
+                               max_size=None) as ws:
+                await ws.send(camera_message())
+                t0 = time.time()
+                try:
+                    while time.time() - t0 < 4:
+                        m = await asyncio.wait_for(ws.recv(), timeout=1.0)
+                        received += len(m)
+                except (asyncio.TimeoutError, Exception):  # noqa: BLE001
+                    pass
+                return received, ws.close_code
+
+        proxied, _ = asyncio.run(session(f"ws://127.0.0.1:{srv.port}/viewer",
+                                         {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"}))
+        states = svc.client_states()
+        assert len(states) == 1 and states[0].scene_id == "tiny"
+        assert states[0].user == {"username": "rita", "role": "reviewer"}
+        assert states[0].sent_points == n
+        assert proxied >= n * (12 + 3)  # float32 xyz + uint8 rgb per point, at least
+        direct, code = asyncio.run(session(f"ws://127.0.0.1:{svc.port}/", {}))
+        assert code == 1008
+        assert direct < n * 12
+        time.sleep(0.3)
+        assert all(s.scene_id == "tiny" for s in svc.client_states())  # no ticketless client
+
+
+def test_tickets_are_single_use_and_expire(tiny, monkeypatch):
+    svc = vserver.ViewerService(scenes=vserver.default_scenes(tiny.ws.parent))
+    tok = svc.issue_ticket("u", "tiny")
+    t = svc.redeem_ticket(tok)
+    assert t is not None and t.user == "u" and t.scene_id == "tiny"
+    assert svc.redeem_ticket(tok) is None  # single use
+    assert svc.redeem_ticket("forged") is None
+    monkeypatch.setattr(vserver, "TICKET_TTL_S", -1.0)
+    assert svc.redeem_ticket(svc.issue_ticket("v", None)) is None  # expired
+
+
+def test_viewer_refuses_non_loopback_host(tiny):
+    with pytest.raises(ValueError, match="loopback"):
+        vserver.ViewerService(scenes=vserver.default_scenes(tiny.ws.parent), host="0.0.0.0")
+
+
+def test_default_scenes_finds_workspaces(tiny):
+    table = vserver.default_scenes(tiny.ws.parent)()
+    assert list(table) == ["tiny"] and table["tiny"][1] == tiny.ws
+    assert np.isfinite(len(table))

@@ -1,0 +1,95 @@
+"""Frame selection: stratified cells (centre / border targets), coverage, greedy, altitude."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from occufly.camera import Camera, look_at
+from occufly.errors import InputFormatError
+from occufly.scene import Frame, Scene, Visibility
+from occufly.selection import coverage, select_frames
+
+CAM = Camera("PINHOLE", 100, 100, np.array([100.0, 100.0, 50.0, 50.0]))
+
+
+def _scene(cam_xy, alts, *, see_radius=20.0, extent=75.0, step=1.0):
+    """Points on [0, extent]^2; camera i sees the points within ``see_radius`` (x, y)."""
+    g = np.arange(step / 2, extent, step)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]).astype(np.float32)
+    frames, parts = [], []
+    for i, ((x, y), a) in enumerate(zip(cam_xy, alts, strict=True)):
+        T = look_at([x, y, a], [x, y, 0.0], up=(0.0, 1.0, 0.0))
+        frames.append(Frame(f"f{i:03d}.jpg", CAM, T, nominal_altitude=int(a)))
+        d = np.hypot(xyz[:, 0] - x, xyz[:, 1] - y)
+        ids = np.flatnonzero(d < see_radius).astype(np.int32)
+        parts.append((ids, np.zeros((len(ids), 2), np.float32), np.ones(len(ids), np.float32)))
+    return Scene(frames=frames, xyz=xyz, rgb=np.zeros_like(xyz, np.uint8),
+                 visibility=Visibility.from_parts(parts))
+
+
+def test_stratified_picks_centre_and_border_targets():
+    # 75 m square -> 3 x 3 cells of 25 m: the centre cell targets its centre, edge cells the
+    # middle of their outer edge, corner cells the scene corner
+    targets = [(x, y) for x in (0.0, 37.5, 75.0) for y in (0.0, 37.5, 75.0)]
+    rng = np.random.default_rng(0)
+    distract = [tuple(p) for p in rng.uniform(3, 72, (60, 2))
+                if min(np.hypot(p[0] - tx, p[1] - ty) for tx, ty in targets) > 4]
+    # cell centres are distractors too: border cells must not pick them
+    distract += [(12.5, 12.5), (12.5, 37.5), (37.5, 12.5), (62.5, 62.5)]
+    xy = distract + targets
+    scene = _scene(xy, [50] * len(xy))
+    res = select_frames(scene, cell=25.0)
+    picked = sorted(tuple(np.round(scene.frames[f].center[:2], 3)) for f in res.frames)
+    assert picked == sorted(targets)
+    assert res.cells == 9 and res.mode == "stratified"
+    assert res.ratio == pytest.approx(9 / len(xy))
+    assert res.coverage == pytest.approx(coverage(scene, res.frames))
+
+
+def test_coverage_is_share_of_points_seen():
+    scene = _scene([(10.0, 10.0), (60.0, 60.0)], [50, 50], see_radius=10.0)
+    seen = np.zeros(scene.n_points, bool)
+    for f in range(2):
+        p = scene.xyz
+        seen |= np.hypot(p[:, 0] - scene.frames[f].center[0], p[:, 1] - scene.frames[f].center[1]) < 10
+    assert coverage(scene, [0, 1]) == pytest.approx(seen.mean())
+    assert coverage(scene, []) == 0.0
+
+
+def test_greedy_reaches_target_with_max_gain_steps():
+    rng = np.random.default_rng(1)
+    xy = [tuple(p) for p in rng.uniform(0, 75, (80, 2))]
+    scene = _scene(xy, [50] * 80, see_radius=9.0)
+    strat = select_frames(scene, cell=25.0)
+    res = select_frames(scene, cell=25.0, mode="greedy", target_coverage=0.95)
+    assert res.frames[: len(strat.frames)] == strat.frames
+    assert res.coverage >= 0.95 or res.coverage == pytest.approx(res.max_coverage)
+    cov = [c for _, c in res.curve]
+    assert all(b > a for a, b in zip(cov, cov[1:]))
+    assert res.curve[0] == (len(strat.frames), pytest.approx(strat.coverage))
+    assert res.coverage == pytest.approx(coverage(scene, res.frames))
+    # the first added frame has the largest gain (brute force over all candidates)
+    base = coverage(scene, strat.frames)
+    gains = {f: coverage(scene, strat.frames + [f]) - base for f in range(80) if f not in strat.frames}
+    first = res.frames[len(strat.frames)]
+    assert gains[first] == pytest.approx(max(gains.values()))
+    # stopping: one frame fewer would miss the target
+    assert coverage(scene, res.frames[:-1]) < 0.95
+
+
+def test_altitude_restriction():
+    xy = [(12.5, 12.5), (37.5, 37.5), (62.5, 62.5), (12.5, 62.5)] * 2
+    alts = [50] * 4 + [30] * 4
+    scene = _scene(xy, alts)
+    for a in (50, 30):
+        res = select_frames(scene, altitude=a, mode="greedy")
+        assert res.n_candidates == 4
+        assert all(scene.frames[f].nominal_altitude == a for f in res.frames)
+    with pytest.raises(InputFormatError, match="40"):
+        select_frames(scene, altitude=40)
+    with pytest.raises(InputFormatError):
+        select_frames(scene, mode="random")
+    d = select_frames(scene, cell=25.0, mode="greedy").to_dict()
+    assert d["cell_in_method_range"] and d["selected"] == len(d["frames"])

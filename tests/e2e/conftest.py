@@ -1,0 +1,199 @@
+"""End-to-end fixtures: the real app (``app.main.create_app``) served by uvicorn on a free
+loopback port, seeded through its own REST API (admin imports a reconstruction, runs the
+selection), and Debian's Chromium driven by Playwright.
+
+Seed data: the synthetic ``tiny`` scene (``occufly.synthetic.generate``) when it exists,
+otherwise the small COLMAP reconstruction of ``tests/recon_builder.py`` (ground + a box).
+"""
+
+from __future__ import annotations
+
+import io
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+REPO = Path(__file__).resolve().parents[2]
+ARTIFACTS = REPO / "test-artifacts"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--no-first-run", "--disable-sync"]
+PASSWORDS = {"admin": "admin-password-1", "reviewer": "reviewer-password-1",
+             "annotator": "annotator-password-1"}
+ROLES = {"admin": "admin", "reviewer": "reviewer", "annotator": "annotator"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def build_source(root: Path) -> tuple[Path, str]:
+    """Write a reconstruction under ``root``; returns (folder, description)."""
+    try:
+        from occufly.synthetic import generate  # type: ignore[attr-defined]
+    except ImportError:
+        generate = None
+    if generate is not None:
+        out = root / "tiny"
+        generate(out, preset="tiny", seed=0)
+        return out, "synthetic tiny"
+    from tests.recon_builder import make_reconstruction
+
+    out = root / "recon"
+    make_reconstruction(out, n_cams=4, vis=True)
+    return out, "recon_builder"
+
+
+def png_ids(data: bytes) -> np.ndarray:
+    """Decode a mask PNG to (H, W) uint8 ids; fails unless it is single-channel 8-bit."""
+    im = Image.open(io.BytesIO(data))
+    assert im.mode == "L", f"mask PNG must be single-channel 8-bit, got mode {im.mode}"
+    return np.asarray(im)
+
+
+def grey_png(ids: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(ids.astype(np.uint8), mode="L").save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@dataclass
+class Live:
+    base_url: str
+    app: object
+    source_kind: str
+    scene_id: int = 0
+    clients: dict[str, httpx.Client] = field(default_factory=dict)
+
+    def client(self, role: str) -> httpx.Client:
+        """An httpx client logged in as the seeded user of that role (bearer token)."""
+        if role not in self.clients:
+            c = httpx.Client(base_url=self.base_url, timeout=60)
+            r = c.post("/api/auth/login", json={"username": role, "password": PASSWORDS[role]})
+            r.raise_for_status()
+            c.headers["Authorization"] = f"Bearer {r.json()['token']}"
+            self.clients[role] = c
+        return self.clients[role]
+
+    def wait_job(self, job: dict, timeout: float = 120.0) -> dict:
+        c = self.client("admin")
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            j = c.get(f"/api/jobs/{job['id']}").json()
+            if j["status"] not in ("queued", "running"):
+                return j
+            time.sleep(0.2)
+        raise AssertionError(f"job {job['id']} ({job['kind']}) did not finish in {timeout} s")
+
+    def wait_until(self, fn, timeout: float = 30.0, what: str = "condition"):
+        t_end = time.monotonic() + timeout
+        last = None
+        while time.monotonic() < t_end:
+            last = fn()
+            if last:
+                return last
+            time.sleep(0.25)
+        raise AssertionError(f"timed out waiting for {what} (last value {last!r})")
+
+
+@pytest.fixture(scope="session")
+def live(tmp_path_factory):
+    import uvicorn
+
+    from app.config import Settings
+    from app.main import create_app
+    from app.users import service as users
+
+    root = tmp_path_factory.mktemp("e2e")
+    imports = root / "imports"
+    imports.mkdir()
+    source, kind = build_source(imports)
+    settings = Settings(data_dir=root / "data", env="development", import_roots=[imports],
+                        fill_debounce_s=0.3, job_workers=2, frontend_dir=REPO / "frontend")
+    app = create_app(settings)
+    with app.state.ctx.sessions() as s:
+        for name, role in ROLES.items():
+            users.create_user(session=s, username=name, password=PASSWORDS[name], role=role)
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
+                                           log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    t_end = time.monotonic() + 20
+    while not server.started:
+        if time.monotonic() > t_end or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.05)
+    lv = Live(base_url=f"http://127.0.0.1:{port}", app=app, source_kind=kind)
+    admin = lv.client("admin")
+    r = admin.post("/api/scenes/import", json={"name": "e2e_scene", "source": str(source)})
+    assert r.status_code in (200, 202), r.text
+    job = lv.wait_job(r.json())
+    assert job["status"] == "done", job
+    lv.scene_id = job["scene_id"]
+    r = admin.post(f"/api/scenes/{lv.scene_id}/selection",
+                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
+    assert r.status_code in (200, 202), r.text
+    job = lv.wait_job(r.json())
+    assert job["status"] == "done", job
+    yield lv
+    for c in lv.clients.values():
+        c.close()
+    server.should_exit = True
+    thread.join(timeout=15)
+
+
+@pytest.fixture(scope="session")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture()
+def new_page(browser, live):
+    """Factory: a fresh browser context + page logged in as `role` (via the login form)."""
+    contexts = []
+    errors: list[str] = []
+
+    def make(role: str | None, *, viewport=(1366, 800)):
+        ctx = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]},
+                                  accept_downloads=True)
+        contexts.append(ctx)
+        page = ctx.new_page()
+        page.on("pageerror", lambda e: errors.append(f"{role}: {e}"))
+        page.set_default_timeout(20_000)
+        if role is not None:
+            login(page, live, role)
+        return page
+
+    yield make
+    for c in contexts:
+        c.close()
+    assert not errors, f"uncaught errors in the page: {errors}"
+
+
+def login(page, live: Live, role: str) -> None:
+    page.goto(f"{live.base_url}/#/login")
+    page.fill("#username", role)
+    page.fill("#password", PASSWORDS[role])
+    page.click("button[type=submit]")
+    page.wait_for_selector(f"#whoami:has-text('{role}')")
+
+
+def shot(page, name: str) -> Path:
+    ARTIFACTS.mkdir(exist_ok=True)
+    p = ARTIFACTS / f"{name}.png"
+    page.screenshot(path=str(p), full_page=False)
+    return p

@@ -9,11 +9,13 @@ Conventions (documented because papers and libraries differ):
   footprint is the same everywhere in the instance (``pixel = voxel_size * pixel_fraction``,
   default half a voxel). Orthographic silhouettes from d and -d are mirror images, so the 24
   cameras give at most 24 distinct constraints, never fewer than a perspective rig would.
-- **α.** ``alpha`` is in inverse *pixels* of that virtual image, following the
-  circumradius convention of the 2-D α-shape: a Delaunay triangle of the projected points is
-  kept when its circumradius is < 1/α. With α = 0.05 and the default half-voxel pixel that is
-  20 px = 10 voxels = 5 m at a 0.5 m grid: concavities wider than ~10 m (courtyards, the gap
-  between two wings) stay open, smaller gaps between points are bridged.
+- **α.** ``alpha`` is in inverse *metres* of the (metric, orthographic) image plane,
+  following the circumradius convention of the 2-D α-shape: a Delaunay triangle of the
+  projected points is kept when its circumradius is < 1/α. With α = 0.05 that is 20 m:
+  gaps between points up to ~40 m are bridged (a building seen from above is filled even
+  when only its walls carry points), concavities larger than that stay open. (Some
+  libraries use α as the radius itself, or α² -- not here.) Internally the threshold is
+  converted to pixels (1/α / pixel).
 - **Silhouette.** The kept triangles and the projected points themselves are rasterised
   (pixel centres inside a triangle); the mask can be dilated by ``dilation`` voxel edges.
   The default is no dilation: thin surfaces (a wall seen edge-on projects to a line) are
@@ -44,7 +46,7 @@ class CarveParams:
     """Tolerances of the visual-hull carving (one place for all of them)."""
 
     n_views: int = 24
-    alpha: float = 0.05  # 1/pixels; triangles with circumradius < 1/alpha are kept
+    alpha: float = 0.05  # 1/metres; triangles with circumradius < 1/alpha are kept
     pixel_fraction: float = 0.5  # virtual pixel edge / voxel edge
     margin: int = 2  # bounding-box dilation in voxels
     max_image: int = 1024  # cap on the virtual image side (pixels grow for huge instances)
@@ -211,7 +213,7 @@ def carve_instance(
     for e1, e2 in axes:
         rel = pts - center
         uv = np.stack([rel @ e1, rel @ e2], axis=1) / pixel + side / 2.0
-        sil = alpha_silhouette(uv, img_shape, params.alpha)
+        sil = alpha_silhouette(uv, img_shape, params.alpha * pixel)  # 1/m -> 1/px
         if disk is not None and disk.size > 1:
             sil = ndimage.binary_dilation(sil, structure=disk)
         sils.append(sil)

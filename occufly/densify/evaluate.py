@@ -73,13 +73,13 @@ def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy) -> dic
             per_class[c.name] = None
             continue
         iou = tp / (tp + fp + fn)
-        per_class[c.name] = round(iou, 4)
+        per_class[c.name] = iou
         ious.append(iou)
     return {
-        "completion_iou": round(comp_iou, 4),
-        "precision": round(tp_occ / max(1, tp_occ + fp_occ), 4),
-        "recall": round(tp_occ / max(1, tp_occ + fn_occ), 4),
-        "miou": round(float(np.mean(ious)), 4) if ious else None,
+        "completion_iou": comp_iou,
+        "precision": tp_occ / max(1, tp_occ + fp_occ),
+        "recall": tp_occ / max(1, tp_occ + fn_occ),
+        "miou": float(np.mean(ious)) if ious else None,
         "classes_evaluated": len(ious),
         "per_class_iou": per_class,
         "voxels_pred": int(cm[:, 1:].sum()),

@@ -4,10 +4,12 @@
    half a voxel (centroid), normals are estimated and oriented up (+z, photogrammetric ground
    is seen from above).
 2. Open3D screened Poisson reconstruction, depth 8, scale 1.2.
-3. Trimming: vertices whose Poisson density is below the ``density_quantile`` of all
-   densities (low support) and vertices farther than ``max_extrapolation`` metres from every
-   input point (the closed surface Poisson invents away from the data) are removed with
-   their triangles.
+3. Trimming: vertices whose Poisson density (Open3D's per-vertex octree support, roughly
+   log2 of the local sample density) is more than ``density_drop`` below the median (low
+   support), and vertices farther than ``max_extrapolation`` metres from every input point
+   (the closed surface Poisson invents away from the data) are removed with their
+   triangles. A quantile rule was rejected: on a ground plane with a hole, the hole's
+   vertices *are* the lowest few percent, and filling them is the point of this step.
 4. Scan conversion: each remaining triangle is sampled with barycentric points on a lattice
    whose spacing is ≤ ``sample_spacing`` voxel edges (default 0.5), vectorised over all
    triangles in chunks; every sample marks its voxel.
@@ -35,7 +37,7 @@ log = logging.getLogger(__name__)
 class PoissonParams:
     depth: int = 8
     scale: float = 1.2
-    density_quantile: float = 0.02
+    density_drop: float = 4.0  # trim vertices with density < median density - density_drop
     max_extrapolation: float = 2.0  # metres from the nearest input point
     sample_spacing: float = 0.5  # barycentric sample spacing, in voxel edges (<= 0.5)
     min_points: int = 100  # fewer ground points -> direct binning
@@ -85,7 +87,7 @@ def poisson_mesh(
     stats = {"poisson_input_points": len(thin), "mesh_vertices": len(verts), "mesh_triangles": len(tris)}
     if len(verts) == 0 or len(tris) == 0:
         raise RuntimeError("Poisson reconstruction returned an empty mesh")
-    bad = dens < np.quantile(dens, params.density_quantile)
+    bad = dens < np.median(dens) - params.density_drop
     d, _ = cKDTree(thin).query(verts, k=1, distance_upper_bound=params.max_extrapolation)
     bad |= ~np.isfinite(d)
     keep_tri = ~bad[tris].any(axis=1)

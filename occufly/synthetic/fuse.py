@@ -1,0 +1,157 @@
+"""The dense cloud as MVS fusion would produce it: back-projected noisy depth, voxel-hash fusion.
+
+Samples from every image (a pixel grid of the noisy depth maps) are fused one point per hash
+cell (mean position, colour and normal); each point's true label is the majority of the true
+classes of its contributing pixels, and its visibility is the set of contributing images plus,
+optionally, every image whose depth map agrees with the fused point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occufly.camera import Camera
+
+
+@dataclass
+class Samples:
+    """Back-projected depth samples of all images.
+
+    xyz: (S, 3) float32 scene-local metres; rgb: (S, 3) uint8; cls: (S,) uint8 true class of
+    the pixel; normal: (S, 3) float32 world; frame: (S,) int32 image index (0-based).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    cls: np.ndarray
+    normal: np.ndarray
+    frame: np.ndarray
+
+
+@dataclass
+class FusedCloud:
+    """xyz: (N, 3) float64 scene-local; rgb (N, 3) uint8; normal (N, 3) float32 unit;
+    label (N,) uint8 majority true class; n_samples (N,) int32; vis_offsets (N + 1,) int64
+    and vis_frames (M,) uint32: CSR list of the images that see each point (0-based indices)."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normal: np.ndarray
+    label: np.ndarray
+    n_samples: np.ndarray
+    vis_offsets: np.ndarray
+    vis_frames: np.ndarray
+
+
+def sample_grid(camera: Camera, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel grid every ``stride`` pixels -> rows (K,), cols (K,) int64 and unit-z rays (K, 3) float32."""
+    rows = np.arange(stride // 2, camera.height, stride)
+    cols = np.arange(stride // 2, camera.width, stride)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    rr, cc = rr.ravel(), cc.ravel()
+    rays = camera.unproject(np.column_stack([cc + 0.5, rr + 0.5]), 1.0).astype(np.float32)
+    return rr, cc, rays
+
+
+def back_project(depth: np.ndarray, rays: np.ndarray, rr: np.ndarray, cc: np.ndarray,
+                 T_cam_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """depth (H, W) float32 z-depth; rays (K, 3) unit-z camera rays of pixels (rr, cc).
+    -> (xyz (K', 3) float32 local, keep (K,) bool: pixels with depth > 0)."""
+    d = depth[rr, cc]
+    keep = d > 0
+    R = T_cam_world[:3, :3]
+    c = -R.T @ T_cam_world[:3, 3]
+    ray = rays[keep] * d[keep, None]
+    xyz = ray[:, 0:1] * R[0].astype(np.float32) + ray[:, 1:2] * R[1].astype(np.float32) \
+        + ray[:, 2:3] * R[2].astype(np.float32) + c.astype(np.float32)
+    return xyz.astype(np.float32), keep
+
+
+def _majority(cell: np.ndarray, cls: np.ndarray, n_cells: int, priority: np.ndarray) -> np.ndarray:
+    """Most frequent class per cell; ties go to the lower ``priority`` rank (taxonomy tie order).
+
+    cell: (S,) int64 in [0, n_cells); cls: (S,) uint8; priority: (256,) int16 rank per id.
+    """
+    pair = cell.astype(np.int64) * 256 + cls
+    u, counts = np.unique(pair, return_counts=True)
+    pc = u // 256
+    pcls = (u % 256).astype(np.uint8)
+    order = np.lexsort((priority[pcls], -counts, pc))
+    pc, pcls = pc[order], pcls[order]
+    first = np.ones(len(pc), bool)
+    first[1:] = pc[1:] != pc[:-1]
+    out = np.zeros(n_cells, np.uint8)
+    out[pc[first]] = pcls[first]
+    return out
+
+
+def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray) -> tuple[FusedCloud, np.ndarray]:
+    """Fuse samples one point per ``voxel`` cell. Returns the cloud and the (P, 2) int64
+    (point, frame) pairs of the contributing images (visibility is filled from them)."""
+    xyz = samples.xyz
+    lo = xyz.min(axis=0).astype(np.float64) - voxel
+    ijk = np.floor((xyz - lo) / voxel).astype(np.int64)
+    dims = ijk.max(axis=0) + 1
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    n = len(cnt)
+    out_xyz = np.empty((n, 3), np.float64)
+    for k in range(3):
+        out_xyz[:, k] = np.bincount(inv, weights=xyz[:, k], minlength=n) / cnt
+    rgb = np.empty((n, 3), np.uint8)
+    for k in range(3):
+        rgb[:, k] = np.round(np.bincount(inv, weights=samples.rgb[:, k], minlength=n) / cnt).astype(np.uint8)
+    nrm = np.empty((n, 3), np.float64)
+    for k in range(3):
+        nrm[:, k] = np.bincount(inv, weights=samples.normal[:, k], minlength=n)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    label = _majority(inv, samples.cls, n, priority)
+    pairs = np.unique(inv.astype(np.int64) * n_frames + samples.frame)
+    contrib = np.column_stack([pairs // n_frames, pairs % n_frames])
+    cloud = FusedCloud(out_xyz, rgb, nrm.astype(np.float32), label, cnt.astype(np.int32),
+                       np.zeros(n + 1, np.int64), np.zeros(0, np.uint32))
+    return cloud, contrib
+
+
+def depth_agreement(xyz: np.ndarray, order_x: np.ndarray, xs_sorted: np.ndarray, camera: Camera,
+                    T_cam_world: np.ndarray, depth: np.ndarray, bbox: tuple[float, float, float, float],
+                    tol: float) -> np.ndarray:
+    """Indices of the points whose projection into the image lands on a depth within ``tol``
+    (relative) of the point's own camera depth.
+
+    xyz: (N, 3) float64 local points; order_x / xs_sorted: argsort of x and the sorted x;
+    depth: (H, W) float32 the image's (noisy) depth map; bbox: local (x0, x1, y0, y1) of the
+    surface the image sees (a superset filter).
+    """
+    i0, i1 = np.searchsorted(xs_sorted, [bbox[0], bbox[1]])
+    cand = order_x[i0:i1]
+    p = xyz[cand]
+    m = (p[:, 1] >= bbox[2]) & (p[:, 1] <= bbox[3])
+    cand, p = cand[m], p[m]
+    R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
+    xc = p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2] + t
+    z = xc[:, 2]
+    front = z > 1e-6
+    fx, fy = camera.focal
+    cx, cy = camera.principal_point
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = fx * xc[:, 0] / z + cx
+        v = fy * xc[:, 1] / z + cy
+    inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    cand, z, u, v = cand[inside], z[inside], u[inside], v[inside]
+    d = depth[v.astype(np.int64), u.astype(np.int64)]
+    ok = (d > 0) & (np.abs(d - z) <= tol * z)
+    return cand[ok]
+
+
+def build_visibility(n_points: int, n_frames: int, pairs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Union of (point, frame) pair arrays -> CSR (offsets (N + 1,) int64, frames (M,) uint32)
+    with each point's frames sorted ascending."""
+    keys = np.unique(np.concatenate([p[:, 0].astype(np.int64) * n_frames + p[:, 1] for p in pairs]))
+    pts = keys // n_frames
+    frames = (keys % n_frames).astype(np.uint32)
+    offsets = np.zeros(n_points + 1, np.int64)
+    np.cumsum(np.bincount(pts, minlength=n_points), out=offsets[1:])
+    return offsets, frames

@@ -25,6 +25,7 @@ COMMAND_MODULES: list[str] = [
     "occufly.cli_voxelize",
     "occufly.cli_lift",
     "occufly.cli_export",
+    "occufly.cli_synth",
 ]
 
 

@@ -112,14 +112,16 @@ def is_disk_full(e: BaseException) -> bool:
 
 
 def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict,
-                      write: Callable[[Path, bytes], None] = atomic_write_bytes) -> int:
+                      write: Callable[[Path, bytes], None] | None = None) -> int:
     """Write one frame: every file atomically, the done marker last.
 
     On any failure the files of this frame that were already placed are removed again (they
     belong to a frame with no marker, so nothing complete is lost) and the error re-raised
     (disk full as :class:`ExportError`). Returns the number of bytes written.
     """
+    write = write or (lambda p, b: atomic_write_bytes(p, b))  # looked up at call time
     placed: list[Path] = []
+    path = marker
     try:
         marker.unlink(missing_ok=True)
         for path, data in files.items():

@@ -254,7 +254,11 @@ def export_dataset(
         alts[i] = frame_altitude(fr, f"{ws}: frame {i}")
         if not fr.image_path or not Path(fr.image_path).is_file():
             raise ExportError(f"{ws}: frame {i} ({fr.name}): image file {fr.image_path!r} not found")
-    grids, mapping, grid_src = _resolve_grids(ws, grid, set(alts.values()), grid_for_altitude)
+    all_alts = set(alts.values())
+    for fr in scene.frames:  # map every altitude of the scene so earlier frames stay checkable
+        if fr.nominal_altitude is not None:
+            all_alts.add(int(fr.nominal_altitude))
+    grids, mapping, grid_src = _resolve_grids(ws, grid, all_alts, grid_for_altitude)
     fingerprint = scene_fingerprint(scene)
     old = _check_target(out, lay, scene_id, fingerprint, layout)
 
@@ -271,10 +275,14 @@ def export_dataset(
             _atomic_write(p, g.to_bytes())
         grid_paths[key] = (str(p), dg)
         digests[key] = dg
-    config = sha256_bytes(json.dumps({
-        "v": EXPORT_FORMAT_VERSION, "layout": layout, "spec": spec.to_dict(), "scene": fingerprint,
-        "grids": {str(a): digests[mapping[a]] for a in sorted(mapping)},
-    }, sort_keys=True).encode())[:32]
+    # per-altitude config hash: what a frame's files depend on (not the frame selection)
+    configs = {
+        a: sha256_bytes(json.dumps({
+            "v": EXPORT_FORMAT_VERSION, "layout": layout, "spec": spec.to_dict(),
+            "scene": fingerprint, "grid": digests[mapping[a]]}, sort_keys=True).encode())[:32]
+        for a in mapping
+    }
+    config = sha256_bytes(json.dumps(configs, sort_keys=True).encode())[:32]
 
     by_alt_cam: dict[int, object] = {}
     for i in idx:
@@ -328,7 +336,7 @@ def export_dataset(
     tasks, skipped = [], 0
     for i in idx:
         fid = frame_id_of(i)
-        if frame_done(lay.marker(out, scene_id, alts[i], fid), config, out):
+        if frame_done(lay.marker(out, scene_id, alts[i], fid), configs[alts[i]], out):
             skipped += 1
             continue
         gp, gd = grid_paths[mapping[alts[i]]]
@@ -338,7 +346,7 @@ def export_dataset(
             "grid_path": gp, "grid_digest": gd, "spec": {
                 "shape": spec.shape, "voxel_size": spec.voxel_size, "near": spec.near,
                 "far": spec.far, "oversample": spec.oversample, "max_raster": spec.max_raster},
-            "config": config,
+            "config": configs[alts[i]],
         })
     own = executor is None
     if own:
@@ -356,7 +364,8 @@ def export_dataset(
         if own:
             executor.close()
     manifest["complete"] = all(
-        frame_done(lay.marker(out, scene_id, a["altitude"], fid), config, out)
+        a["altitude"] in configs
+        and frame_done(lay.marker(out, scene_id, a["altitude"], fid), configs[a["altitude"]], out)
         for fid, a in manifest["frames"].items())
     manifest["updated"] = datetime.now(UTC).isoformat(timespec="seconds")
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())

@@ -1,0 +1,237 @@
+"""Export: read back literally per FORMATS.md, pooling, resume, refusal, disk full, bad frames,
+SSCBench layout, per-altitude grids."""
+
+from __future__ import annotations
+
+import errno
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.export_fixtures import SPEC, make_grid, make_workspace
+from occufly.errors import WorkspaceError
+from occufly.export import ExportError, export_dataset
+from occufly.export.common import majority_pool
+from occufly.grid import SceneGrid
+from occufly.sampling import sample_frame
+from occufly.scene import Scene
+from occufly.taxonomy import default_taxonomy
+
+
+@pytest.fixture(scope="module")
+def ws(tmp_path_factory) -> Path:
+    return make_workspace(tmp_path_factory.mktemp("exp"), n_frames=4)
+
+
+@pytest.fixture(scope="module")
+def exported(ws, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("out") / "dataset"
+    res = export_dataset(ws, out, spec=SPEC, workers=1)
+    return out, res
+
+
+def slow_pool(label: np.ndarray, f: int, tie_order: list[int]) -> np.ndarray:
+    """Independent reference of the pooling rule: Python loops over blocks."""
+    X, Y, Z = label.shape
+    out = np.zeros((X // f, Y // f, Z // f), np.uint8)
+    for a in range(X // f):
+        for b in range(Y // f):
+            for c in range(Z // f):
+                blk = label[a * f:(a + 1) * f, b * f:(b + 1) * f, c * f:(c + 1) * f].ravel().tolist()
+                counts: dict[int, int] = {}
+                for v in blk:
+                    if v not in (0, 255):
+                        counts[v] = counts.get(v, 0) + 1
+                if counts:
+                    best = max(counts.values())
+                    out[a, b, c] = min((k for k, n in counts.items() if n == best), key=tie_order.index)
+                else:
+                    out[a, b, c] = 0 if any(v != 255 for v in blk) else 255
+    return out
+
+
+def test_read_back_literally(ws, exported):
+    out, res = exported
+    assert res["written"] == 4 and res["complete"]
+    scene = Scene.load(ws)
+    grid = make_grid()
+    N = 64 * 48 * 64
+    for i, frame in enumerate(scene.frames):
+        fid = f"{i:06d}"
+        alt = frame.nominal_altitude
+        base = out / "OccuFly_Dataset" / "scene_01" / str(alt)
+        gtd = base / "ground_truth" / fid
+        expect = sample_frame(grid, frame.camera, frame.T_cam_world, scene.origin, SPEC)
+        label = np.fromfile(gtd / f"{fid}.label", dtype=np.uint8)
+        assert label.size == N
+        assert np.array_equal(label.reshape(64, 48, 64), expect.label_with_invalid())
+        for name in ("invalid", "occluded", "surface"):
+            bits = np.unpackbits(np.fromfile(gtd / f"{fid}.{name}", dtype=np.uint8))[:N]
+            assert np.array_equal(bits.reshape(64, 48, 64).astype(bool), getattr(expect, name))
+        with open(base / "preprocess" / f"{fid}.pkl", "rb") as fh:
+            pkl = pickle.load(fh)
+        assert pkl["frame_id"] == fid and pkl["sequence"] == "scene_01" and pkl["altitude"] == alt
+        assert pkl["pose"].dtype == np.float32 and pkl["pose"].shape == (4, 4)
+        assert np.allclose(pkl["pose"], np.linalg.inv(frame.T_cam_world), atol=1e-4)
+        for f, shape in ((1, (64, 48, 64)), (2, (32, 24, 32)), (4, (16, 12, 16)),
+                         (8, (8, 6, 8)), (16, (4, 3, 4))):
+            assert pkl[f"1_{f}"].dtype == np.uint8 and pkl[f"1_{f}"].shape == shape
+        assert np.array_equal(pkl["1_1"], label.reshape(64, 48, 64))
+        tie = [int(v) for v in default_taxonomy().tie_order]
+        assert np.array_equal(pkl["1_8"], slow_pool(pkl["1_1"], 8, tie))
+        assert np.array_equal(pkl["1_16"], slow_pool(pkl["1_1"], 16, tie))
+        depth = np.load(base / "depth_maps" / f"{fid}.npy")
+        cal = np.loadtxt(base / "calibration.txt")
+        assert cal.shape == (6,) and tuple(cal) == (40.0, 40.0, 32.0, 24.0, 64, 48)
+        assert depth.dtype == np.float32 and depth.shape == (16 * 12,)
+        # the nearly nadir camera sees voxel centres of the ground (z = -0.5) or of the
+        # building / tree tops (z = 13.5 / 6.5): depth ~ altitude - height, within tilt
+        d = depth[depth > 0]
+        assert d.size > 100 and d.min() > alt - 15.0 and d.max() < alt + 1.5
+        png = (base / "images" / "visual" / f"{fid}.png").read_bytes()
+        assert png == Path(frame.image_path).read_bytes()
+    manifest = json.loads((out / "OccuFly_Dataset" / "scene_01" / "manifest.json").read_text())
+    assert manifest["complete"] and len(manifest["frames"]) == 4
+    assert [c["id"] for c in manifest["taxonomy"]["classes"]] == [int(v) for v in default_taxonomy().ids]
+
+
+def test_pooling_ties_and_invalid_blocks():
+    lab = np.zeros((4, 2, 2), np.uint8)
+    lab[0:2] = [[[8, 16], [0, 0]], [[8, 16], [255, 255]]]  # tie 8 vs 16: building more frequent
+    lab[2:4] = 255  # all invalid
+    prio = default_taxonomy().priority_lut()
+    out = majority_pool(lab, 2, prio)
+    assert out.ravel().tolist() == [16, 255]
+    lab2 = np.zeros((2, 2, 2), np.uint8)
+    lab2[0, 0, 0] = 255
+    assert majority_pool(lab2, 2, prio).ravel().tolist() == [0]
+
+
+def test_resume_rewrites_only_incomplete_frames(ws, tmp_path):
+    out = tmp_path / "d"
+    export_dataset(ws, out, spec=SPEC, workers=1)
+    base = out / "OccuFly_Dataset" / "scene_01"
+    f1 = base / "30" / "ground_truth" / "000001" / "000001.label"
+    f0 = base / "50" / "ground_truth" / "000000" / "000000.label"
+    m0 = f0.stat().st_mtime_ns
+    # simulate an interruption in frame 1: marker missing, one file truncated
+    (out / ".occufly_export" / "occufly" / "scene_01" / "done" / "30_000001.json").unlink()
+    good = f1.read_bytes()
+    f1.write_bytes(good[:100])
+    (base / "30" / "preprocess" / ".000001.pkl.abc.tmp").write_bytes(b"junk")
+    res = export_dataset(ws, out, spec=SPEC, workers=1)
+    assert res["written"] == 1 and res["skipped_done"] == 3 and res["complete"]
+    assert f1.read_bytes() == good
+    assert f0.stat().st_mtime_ns == m0  # completed frames untouched
+    assert not (base / "30" / "preprocess" / ".000001.pkl.abc.tmp").exists()
+    # a file of a completed frame changed size -> detected and rewritten
+    f0.write_bytes(b"x")
+    res = export_dataset(ws, out, spec=SPEC, workers=1)
+    assert res["written"] == 1 and f0.stat().st_size == 64 * 48 * 64
+
+
+def test_refuses_foreign_target(ws, tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ExportError, match="not an earlier occufly export"):
+        export_dataset(ws, out, spec=SPEC, workers=1)
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    # an export of another scene under the same scene id is refused, and left untouched
+    other = make_workspace(tmp_path / "other", n_frames=2)
+    sc = Scene.load(other)
+    sc.frames[0].T_cam_world[0, 3] += 1.0
+    sc.save(other, overwrite=True)
+    make_grid().save(other / "grid" / "scene_grid.npz")
+    out2 = tmp_path / "d2"
+    export_dataset(ws, out2, spec=SPEC, workers=1, frames=[0])
+    before = {p: p.read_bytes() for p in out2.rglob("*") if p.is_file()}
+    with pytest.raises(ExportError, match="different scene"):
+        export_dataset(other, out2, spec=SPEC, workers=1)
+    assert {p: p.read_bytes() for p in out2.rglob("*") if p.is_file()} == before
+    # but another scene id in the same root is fine
+    res = export_dataset(other, out2, scene_id="scene_02", spec=SPEC, workers=1)
+    assert res["written"] == 2
+
+
+def test_disk_full_leaves_no_half_frame(ws, tmp_path, monkeypatch):
+    out = tmp_path / "full"
+    export_dataset(ws, out, spec=SPEC, workers=1, frames=[0])
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name not in ("manifest.json", "calibration.txt")}
+    import occufly.export.common as common
+
+    real = common.atomic_write_bytes
+    calls = {"n": 0}
+
+    def failing(path, data):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, data)
+
+    monkeypatch.setattr(common, "atomic_write_bytes", failing)
+    with pytest.raises(ExportError, match="disk full"):
+        export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1])
+    monkeypatch.undo()
+    after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name not in ("manifest.json", "calibration.txt")}
+    assert after == before  # frame 1 has no file at all, frame 0 untouched
+    assert not list(out.rglob("*.tmp"))
+    res = export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1])
+    assert res["written"] == 1 and res["complete"]
+
+
+def test_frame_without_pose_writes_nothing(tmp_path):
+    ws = make_workspace(tmp_path / "np", n_frames=2)
+    sc = Scene.load(ws)
+    sc.frames[1].T_cam_world = np.full((4, 4), np.nan)
+    sc.save(ws, overwrite=True)
+    make_grid().save(ws / "grid" / "scene_grid.npz")
+    with pytest.raises(WorkspaceError, match=r"frame 1 \(img_001.png\).*no valid pose"):
+        export_dataset(ws, tmp_path / "o", spec=SPEC, workers=1)
+    assert not (tmp_path / "o").exists()
+
+
+def test_sscbench_layout(ws, tmp_path):
+    out = tmp_path / "ssc"
+    export_dataset(ws, out, spec=SPEC, workers=1, layout="sscbench", frames=[0, 1])
+    doc = yaml.safe_load((out / "occufly.yaml").read_text())
+    lm = doc["learning_map"]
+    inv = doc["learning_map_inv"]
+    assert lm[0] == 0 and lm[255] == 255 and lm[16] == 14 and inv[14] == 16  # building: row 14
+    scene = Scene.load(ws)
+    grid = make_grid()
+    fr = scene.frames[1]
+    seq = out / "data_2d_raw" / "scene_01_30"
+    assert sorted(p.name for p in (seq / "voxels").glob("*.bin")) == ["000001.bin"]
+    expect = sample_frame(grid, fr.camera, fr.T_cam_world, scene.origin, SPEC)
+    raw = np.fromfile(seq / "voxels" / "000001.label", dtype=np.uint16).reshape(64, 48, 64)
+    assert np.array_equal(raw, expect.label_with_invalid())
+    N = raw.size
+    occ = np.unpackbits(np.fromfile(seq / "voxels" / "000001.bin", np.uint8))[:N].reshape(raw.shape)
+    assert np.array_equal(occ.astype(bool), (expect.labels != 0) & ~expect.occluded)
+    lab11 = np.load(out / "preprocess" / "labels" / "scene_01_30" / "000001_1_1.npy")
+    back = np.vectorize(lambda v: 255 if v == 255 else inv[int(v)])(lab11)
+    assert np.array_equal(back, expect.label_with_invalid())
+    lab18 = np.load(out / "preprocess" / "labels" / "scene_01_30" / "000001_1_8.npy")
+    assert lab18.shape == (8, 6, 8)
+    assert (seq / "image_00" / "data_rect" / "000001.png").is_file()
+    assert np.load(out / "depth" / "scene_01_30" / "000001.npy").shape == (12, 16)
+
+
+def test_lower_altitudes_sample_the_highest_grid(ws, tmp_path):
+    g50 = make_grid()
+    g30 = SceneGrid(np.zeros_like(g50.labels), g50.origin, g50.voxel_size)  # empty
+    out = tmp_path / "alt"
+    res = export_dataset(ws, out, spec=SPEC, workers=1, grid={50: g50, 30: g30}, frames=[1])
+    assert res["grid_for_altitude"] == {"30": 50, "50": 50}
+    lab = np.fromfile(out / "OccuFly_Dataset/scene_01/30/ground_truth/000001/000001.label", np.uint8)
+    assert np.count_nonzero((lab != 0) & (lab != 255)) > 1000
+    out2 = tmp_path / "alt2"
+    export_dataset(ws, out2, spec=SPEC, workers=1, grid={50: g50, 30: g30}, frames=[1],
+                   grid_for_altitude={30: 30})
+    lab = np.fromfile(out2 / "OccuFly_Dataset/scene_01/30/ground_truth/000001/000001.label", np.uint8)
+    assert not np.any((lab != 0) & (lab != 255))

@@ -620,6 +620,70 @@ class _VoxelGrid:
         return cur
 
 
+def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _VoxelGrid,
+               todo: np.ndarray, k: int, radius: float, cls: _Classes,
+               progress: ProgressFn | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact k-NN majority for the labelled points of voxels ``todo`` by brute force over
+    each voxel's 3x3x3 block of labelled points.
+
+    cols: (N,) column per point (-1 = unlabelled); lab_idx: indices of labelled points.
+    Returns (column (N,), share (N,), unsafe (N,) bool) -- filled for the points of ``todo``;
+    ``unsafe`` marks points whose k-th neighbour is farther than the block reaches (they need
+    a query against a larger neighbourhood).
+    """
+    n = len(xyz)
+    out_c = np.full(n, -1, dtype=np.int64)
+    out_s = np.zeros(n, dtype=np.float32)
+    unsafe = np.zeros(n, dtype=bool)
+    vox = grid.inverse
+    V = grid.n_voxels
+    C = cls.C
+    order = lab_idx[np.argsort(vox[lab_idx], kind="stable")]
+    vs = vox[order]
+    starts = np.searchsorted(vs, np.arange(V))
+    ends = np.searchsorted(vs, np.arange(V), side="right")
+    offs = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    nb = np.stack([grid.neighbour(todo, *o) for o in offs], axis=1)  # (T, 27)
+    e = grid.edge
+    r2 = radius * radius
+    report = progress or noop
+    every = max(1, len(todo) // 50)
+    for t, u in enumerate(todo.tolist()):
+        if t % every == 0:
+            report(t / len(todo), "denoise: exact k-NN at boundaries")
+        q = order[starts[u]:ends[u]]
+        if not len(q):
+            continue
+        cand = np.concatenate([order[starts[j]:ends[j]] for j in nb[t] if j >= 0])
+        centre = xyz[q[0]]
+        P = (xyz[q] - centre).astype(np.float32)
+        Q = (xyz[cand] - centre).astype(np.float32)
+        d2 = (P * P).sum(1)[:, None] + (Q * Q).sum(1)[None, :] - 2.0 * (P @ Q.T)
+        kk = min(k, len(cand))
+        if kk < len(cand):
+            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+            dsel = np.take_along_axis(d2, part, axis=1)
+        else:
+            part = np.broadcast_to(np.arange(len(cand)), d2.shape)
+            dsel = d2
+        within = dsel <= r2
+        ccols = cols[cand][part]
+        rows = np.broadcast_to(np.arange(len(q))[:, None], part.shape)
+        votes = np.bincount((rows * C + ccols)[within], minlength=len(q) * C).reshape(len(q), C)
+        c, s = _scores_to_cols(cls, votes)
+        out_c[q], out_s[q] = c, s
+        dsel_max = dsel.max(axis=1)
+        # safe if the k-th neighbour (or the radius) is within the block around the point
+        lo = (np.floor((xyz[q] - grid.mn) / e) - 1 + 1) * e + grid.mn  # own voxel's low corner
+        frac = np.minimum(xyz[q] - lo, lo + e - xyz[q]).min(axis=1)
+        border = e + np.maximum(frac, 0.0)
+        reach = np.sqrt(np.maximum(dsel_max, 0.0)) if kk == k else np.full(len(q), np.inf)
+        unsafe[q] = ~((reach <= border * 0.999) | (radius <= border * 0.999))
+    report(1.0, "denoise: exact k-NN at boundaries")
+    return out_c, out_s, unsafe
+
+
 def typical_knn_radius(xyz: np.ndarray, k: int, *, quantile: float = 0.75, sample: int = 2000,
                        seed: int = 0) -> float:
     """Estimate the ``quantile`` of the k-NN radius over the cloud from a random subsample.
@@ -738,18 +802,26 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     agree[cert_pts] = bshare[vox[cert_pts]]
     rest = np.flatnonzero(lab & ~certified[vox])
     stats["certified_voxels"] = int(certified.sum())
-    stats["exact_denoise_points"] = int(len(rest))
+    stats["block_denoise_points"] = int(len(rest))
     if len(rest):
         report(0.5, "denoise: exact k-NN at boundaries")
-        near = grid.dilate(np.unique(vox[rest]), 1)
-        in_near = np.zeros(V, bool)
-        in_near[near] = True
-        src = np.flatnonzero(lab & in_near[vox])
-        tree = cKDTree(xyz[src])
-        c, s = _knn_vote(tree, filled[src], xyz[rest], k, p.denoise_radius, cls,
-                         weighted=False, workers=p.workers)
-        final[rest], agree[rest] = c, s
-        stats["denoise_tree_points"] = int(len(src))
+        todo = np.unique(vox[rest])
+        c, s, unsafe = _block_knn(xyz, filled, lab_idx, grid, todo, k, p.denoise_radius, cls,
+                                  progress=lambda f, m: report(0.5 + 0.4 * f, m))
+        final[rest], agree[rest] = c[rest], s[rest]
+        # points whose k-th neighbour could lie outside their 3x3x3 block: cKDTree
+        tree_q = np.flatnonzero(unsafe)
+        stats["tree_denoise_points"] = int(len(tree_q))
+        if len(tree_q):
+            r = int(math.ceil(p.denoise_radius / edge))
+            near = grid.dilate(np.unique(vox[tree_q]), r)
+            in_near = np.zeros(V, bool)
+            in_near[near] = True
+            src = np.flatnonzero(lab & in_near[vox])
+            tree = cKDTree(xyz[src])
+            c2, s2 = _knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
+                               weighted=False, workers=p.workers)
+            final[tree_q], agree[tree_q] = c2, s2
     stats["denoise_seconds"] = time.perf_counter() - t_den
     res = _finish(cls, direct, filled, final, agree, vote_margin)
     stats["seconds"] = time.perf_counter() - t0

@@ -47,7 +47,7 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(
         name="tiny", core=40.0, margin=35.0, width=240, height=160,
-        forward_overlap=0.55, side_overlap=0.45, pixel_stride=2, fuse_voxel=0.6,
+        forward_overlap=0.55, side_overlap=0.45, pixel_stride=2, fuse_voxel=0.7,
         image_ext=".png", sparse_points=400,
     ),
     "small": Preset(

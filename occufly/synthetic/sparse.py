@@ -51,6 +51,7 @@ def write_sparse_model(
     for xyz, col, elems in zip(points_world, colors, obs_index):
         track = pycolmap.Track([pycolmap.TrackElement(f + 1, k) for f, k in elems])
         rec.add_point3D(np.asarray(xyz, np.float64), track, np.asarray(col, np.uint8))
+    rec.update_point_3d_errors()
     out_dir.mkdir(parents=True, exist_ok=True)
     rec.write(str(out_dir))
     return {"images": rec.num_images(), "points3D": rec.num_points3D(),

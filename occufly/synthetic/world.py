@@ -194,6 +194,7 @@ class _Builder:
         self.next_inst = 1
         self.taken: list[tuple[float, float, float, float]] = []
         self.taken_dyn: list[tuple[float, float, float, float]] = []  # traffic on the roads
+        self.n_buildings = 0
 
     # -- bookkeeping --
     def inst(self) -> int:
@@ -351,7 +352,10 @@ class _Builder:
         wall = self.colour([(205, 195, 175), (180, 180, 178), (200, 170, 140), (150, 140, 130)], 10)
         top = zb + 0.5 + h
         self.add(Box(BUILDING, i, center=[cx, cy, (zb + top) / 2], size=[wx, wy, top - zb], rgb=wall))
-        if rng.random() < 0.5:
+        self.n_buildings += 1
+        # the first building gets a flat roof, the second a gable roof, then random
+        flat = self.n_buildings == 1 or (self.n_buildings > 2 and rng.random() < 0.5)
+        if flat:
             roof_rgb = self.colour([(90, 90, 95), (120, 120, 118), (70, 75, 80)], 8)
             self.add(Box(ROOF, i, center=[cx, cy, top + 0.3], size=[wx + 0.2, wy + 0.2, 0.6], rgb=roof_rgb))
         else:

@@ -258,7 +258,7 @@ def test_voxel_method_matches_exact_baseline(built, k):
     assert np.array_equal(fast.origin > 0, exact.origin > 0)
     if k[1] == 30:  # dense enough for whole voxels to be certified
         assert fast.stats["certified_voxels"] > 0
-        assert fast.stats["exact_denoise_points"] < 0.8 * len(direct)
+        assert fast.stats["block_denoise_points"] < 0.8 * len(direct)
 
 
 def test_lift_truth_masks_of_selected_frames(ws):

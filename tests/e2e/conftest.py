@@ -161,10 +161,19 @@ def browser():
         b.close()
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    setattr(item, f"rep_{rep.when}", rep)
+
+
 @pytest.fixture()
-def new_page(browser, live):
-    """Factory: a fresh browser context + page logged in as `role` (via the login form)."""
+def new_page(browser, live, request):
+    """Factory: a fresh browser context + page logged in as `role` (via the login form).
+    On failure every page of the test is screenshotted to test-artifacts/FAILED_*.png."""
     contexts = []
+    pages = []
     errors: list[str] = []
 
     def make(role: str | None, *, viewport=(1366, 800)):
@@ -174,11 +183,23 @@ def new_page(browser, live):
         page = ctx.new_page()
         page.on("pageerror", lambda e: errors.append(f"{role}: {e}"))
         page.set_default_timeout(20_000)
+        # 4xx answers the page handles (e.g. 404 "no mask yet") are logged by Chromium as
+        # "Failed to load resource"; any other console error fails the test.
+        page.on("console", lambda m: m.type == "error" and not m.text.startswith("Failed to load resource")
+                and errors.append(f"{role} console: {m.text}"))
+        pages.append(page)
         if role is not None:
             login(page, live, role)
         return page
 
     yield make
+    rep = getattr(request.node, "rep_call", None)
+    if rep is not None and rep.failed:
+        for i, p in enumerate(pages):
+            try:
+                shot(p, f"FAILED_{request.node.name}_{i}")
+            except Exception:  # noqa: BLE001 - best effort
+                pass
     for c in contexts:
         c.close()
     assert not errors, f"uncaught errors in the page: {errors}"

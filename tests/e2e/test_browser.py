@@ -103,3 +103,163 @@ def test_annotator_paint_undo_redo_submit_reload(live, new_page):
         return st if inc.get(str(fid)) == version and hist.get(str(cls), 0) > 0 else None
     live.wait_until(lifted, timeout=60, what="lifted labels to include the submitted mask")
     STATE.update(frame_a=fid, cls=cls, ids_a=ids1)
+
+
+def neighbour_of(live, fid: int) -> int:
+    """The frame whose camera centre is closest to frame `fid`'s."""
+    c = live.client("admin")
+    frames = c.get(f"/api/scenes/{live.scene_id}/frames").json()
+    centers = {f["id"]: np.array(c.get(f"/api/frames/{f['id']}").json()["center"]) for f in frames}
+    others = [f for f in centers if f != fid]
+    return min(others, key=lambda f: float(np.linalg.norm(centers[f] - centers[fid])))
+
+
+def test_prefill_from_3d_on_neighbouring_frame(live, new_page):
+    fa = STATE["frame_a"]
+    fb = neighbour_of(live, fa)
+    admin = live.client("admin")
+    live.wait_until(lambda: not admin.get(f"/api/scenes/{live.scene_id}/labels/status").json()["pending_fill"],
+                    timeout=60, what="kNN fill of the lifted labels")
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame={fb}")
+    wait_opened(page, fb)
+    assert painted_share(page) == 0.0
+    page.click("#prefill")
+    page.wait_for_function("() => Number(document.querySelector('#painted').dataset.share) > 0")
+    ids = editor_ids(page)
+    # exactly the server's rendering of the lifted labels, and it carries the painted class
+    server = png_ids(admin.get(f"/api/frames/{fb}/prefill").content)
+    assert server.shape == ids.shape
+    assert np.array_equal(ids, server)
+    assert (ids == STATE["cls"]).sum() > 0
+    shot(page, "03_annotator_prefill_from_3d")
+    # prefill is one undoable command
+    page.click("#undo")
+    assert painted_share(page) == 0.0
+    page.click("#redo")
+    assert np.array_equal(editor_ids(page), server)
+    # idle autosave stores it as a draft (If-Match none -> first version)
+    page.wait_for_selector("#save-state[data-state='saved']:has-text('version')", timeout=15_000)
+    r = admin.get(f"/api/frames/{fb}/mask")
+    assert np.array_equal(png_ids(r.content), server)
+    STATE.update(frame_b=fb, version_b=int(r.headers["etag"].strip('"')))
+
+
+def test_conflict_dialog_keeps_both_versions(live, new_page):
+    fb, base = STATE["frame_b"], STATE["version_b"]
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame={fb}")
+    wait_opened(page, fb)
+    # someone else saves a different mask meanwhile (a reviewer's correction)
+    theirs = editor_ids(page).copy()
+    theirs[: theirs.shape[0] // 4] = STATE["cls"]
+    rev = live.client("reviewer")
+    r = rev.put(f"/api/frames/{fb}/mask?kind=draft", content=grey_png(theirs),
+                headers={"Content-Type": "image/png", "If-Match": str(base)})
+    assert r.status_code == 200, r.text
+    theirs_version = r.json()["version"]
+    # we paint and save on top of the stale version -> 409 -> dialog
+    page.keyboard.press("e")  # eraser
+    drag(page, [(0.2, 0.5), (0.8, 0.5)])
+    mine = editor_ids(page)
+    assert not np.array_equal(mine, theirs)
+    page.keyboard.press("Control+s")
+    dlg = page.locator("dialog.modal")
+    dlg.wait_for()
+    assert "changed by someone else" in dlg.inner_text()
+    shot(page, "04_conflict_dialog")
+    with page.expect_download() as dl:
+        dlg.get_by_role("button", name="Download mine").click()
+    path = dl.value.path()
+    assert np.array_equal(png_ids(open(path, "rb").read()), mine)
+    dlg = page.locator("dialog.modal")
+    dlg.wait_for()
+    dlg.get_by_role("button", name="Keep mine as new version").click()
+    page.wait_for_selector("#save-state[data-state='saved']")
+    cur = rev.get(f"/api/frames/{fb}/mask")
+    assert np.array_equal(png_ids(cur.content), mine)
+    assert int(cur.headers["etag"].strip('"')) > theirs_version
+    # theirs is still there, and our stale upload was kept as a conflict version too
+    old = rev.get(f"/api/frames/{fb}/mask/versions/{theirs_version}")
+    assert np.array_equal(png_ids(old.content), theirs)
+    kinds = [v["kind"] for v in rev.get(f"/api/frames/{fb}/mask/versions").json()]
+    assert "conflict" in kinds
+
+
+def test_reviewer_rejects_with_pinned_comment_annotator_gets_it_back(live, new_page):
+    fa = STATE["frame_a"]
+    page = new_page("reviewer")
+    page.goto(f"{live.base_url}/#/review?scene={live.scene_id}")
+    row = page.locator(f"#frame-list tr[data-frame='{fa}'] a")
+    row.click()
+    page.wait_for_selector("#agreement[data-value]")
+    agreement = live.client("reviewer").get(f"/api/frames/{fa}/agreement").json()["agreement"]
+    text = page.locator("#agreement").inner_text()
+    assert f"{100 * agreement:.1f} %" in text
+    page.wait_for_selector("canvas[data-layer='image']")
+    page.wait_for_timeout(300)
+    shot(page, "05_reviewer_side_by_side")
+    # pin a comment to the pixel at 25 %/40 % of the image panel
+    cv = page.locator("canvas[data-layer='image']")
+    box = cv.bounding_box()
+    page.mouse.click(box["x"] + 0.25 * box["width"], box["y"] + 0.40 * box["height"])
+    pin = page.locator("#pin-text").inner_text()
+    x, y = map(int, re.search(r"\((\d+), (\d+)\)", pin).groups())
+    W, H = STATE["ids_a"].shape[1], STATE["ids_a"].shape[0]
+    assert abs(x - 0.25 * W) <= 1 + W / box["width"] and abs(y - 0.40 * H) <= 1 + H / box["height"]
+    comment = "Roof edge is off by a few pixels here; please fix."
+    page.fill("#review-comment", comment)
+    page.click("#reject")
+    page.wait_for_selector(".badge.state-rejected")
+    page.click("button:has-text('Blended')")
+    page.wait_for_timeout(300)
+    shot(page, "06_reviewer_rejected_blended")
+    rev = live.client("reviewer")
+    assert rev.get(f"/api/frames/{fa}").json()["state"] == "rejected"
+    items = [it for it in rev.get(f"/api/scenes/{live.scene_id}/review-items").json()
+             if it["frame_id"] == fa]
+    assert any(it["pixel"] == [x, y] and any(c["text"] == comment for c in it["comments"])
+               for it in items), items
+    # the annotator asks for the next frame and gets the rejected one back, with the comment
+    ann = new_page("annotator")
+    ann.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}")
+    ann.click("#next-frame")
+    wait_opened(ann, fa)
+    assert comment in ann.locator("#review-comments").inner_text()
+    assert np.array_equal(editor_ids(ann), STATE["ids_a"])
+    shot(ann, "07_annotator_got_rejected_frame_back")
+
+
+def test_admin_export_job_completes(live, new_page):
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/admin?scene={live.scene_id}")
+    page.wait_for_selector("#coverage-plot")
+    page.wait_for_selector("#camera-map")
+    assert "frames selected" in page.locator("#selection-summary").inner_text()
+    shot(page, "08_admin")
+    admin = live.client("admin")
+
+    def run_job(button: str, kind: str) -> int:
+        before = {j["id"] for j in admin.get("/api/jobs").json()}
+        page.click(button)
+        new = live.wait_until(lambda: [j for j in admin.get("/api/jobs").json()
+                                       if j["id"] not in before and j["kind"] == kind],
+                              timeout=20, what=f"a new {kind} job")
+        jid = new[0]["id"]
+        # the page's job list follows the job live until it ends
+        page.wait_for_selector(f"li.job[data-job='{jid}'][data-status='done'], "
+                               f"li.job[data-job='{jid}'][data-status='failed']", timeout=180_000)
+        j = admin.get(f"/api/jobs/{jid}").json()
+        assert j["status"] == "done", f"{kind} failed: {j['message']} {j['log_tail'][-5:]}"
+        return jid
+
+    run_job("#start-voxelize", "voxelize")
+    page.select_option("#export-layout", "occufly")
+    jid = run_job("#start-export", "export")
+    page.locator(f"li.job[data-job='{jid}']").scroll_into_view_if_needed()
+    shot(page, "09_admin_export_finished")
+    assert page.locator(f"li.job[data-job='{jid}'] progress").get_attribute("value") == "1"
+    link = page.locator(f"li.job[data-job='{jid}'] a:has-text('Download')")
+    assert link.get_attribute("href") == f"/api/jobs/{jid}/download"
+    r = live.client("admin").get(f"/api/jobs/{jid}/download")
+    assert r.status_code == 200 and len(r.content) > 1000

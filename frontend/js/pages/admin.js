@@ -223,24 +223,6 @@ class AdminPage {
     const edge = sel.cell ?? Number(this.selCell.value);
     const cells = Array.isArray(sel.cells) ? sel.cells.map((c) => cellRect(c, edge)).filter(Boolean) : [];
     const lattice = Array.isArray(sel.cells) ? null : { edge, count: sel.cells };
-    this.selectionEl.replaceChildren(el("p", {}, "No selection yet for this scene."));
-      return;
-    }
-    const frames = (await api.get(`/scenes/${sid}/frames?sort=name`).catch(() => [])) || [];
-    const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
-    const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.frames;
-    const curveC = el("canvas", { id: "coverage-plot" });
-    const mapC = el("canvas", { id: "camera-map" });
-    // Selected camera indices: match frame ids / indices / names from the result, else use
-    // the frames' `selected` flags (frames sorted by index, like `cameras`).
-    const selected = new Set();
-    const byIndex = [...frames].sort((a, b) => (a.index ?? 0) - (b.index ?? 0));
-    const ids = new Set((Array.isArray(sel.frames) ? sel.frames : []).map((v) => (typeof v === "object" ? v.id ?? v.index : v)).map(String));
-    byIndex.forEach((f, i) => {
-      if (f.selected || ids.has(String(f.id)) || ids.has(f.name)) selected.add(i);
-    });
-    if (!selected.size && Array.isArray(sel.frames) && !frames.length) sel.frames.forEach((v) => typeof v === "number" && selected.add(v));
-    const cells = (sel.cells || []).map((c) => cellRect(c, sel.cell ?? Number(this.selCell.value))).filter(Boolean);
     this.selectionEl.replaceChildren(
       el(
         "p",

@@ -429,6 +429,7 @@ class AnnotatorPage {
   /** 409: another session saved first. Keep both versions; let the user choose. */
   async conflict(kind, mine, err) {
     const theirs = err.body && err.body.current_version != null ? String(err.body.current_version) : null;
+    const kept = err.body && err.body.conflict_version != null ? ` as conflict version ${err.body.conflict_version}` : "";
     for (;;) {
       const choice = await dialog({
         title: "This mask was changed by someone else",
@@ -436,7 +437,8 @@ class AnnotatorPage {
           "div",
           {},
           el("p", {}, `While you were painting, version ${theirs ?? "?"} of ${this.frame.name} was saved from another session.`),
-          el("p", {}, "Nothing is lost: your painting is still in this editor (the server also keeps your upload as a conflict version), and theirs is stored on the server. Choose what to do:"),
+          el("p", {}, `Nothing is lost: your painting is still in this editor (the server also kept your upload${kept || " as a conflict version"}), and theirs is stored on the server. Choose what to do:`),
+          el("p", { class: "muted" }, err.message),
           el("ul", {}, el("li", {}, "Keep mine: save your mask as a new version on top of theirs."), el("li", {}, "Load theirs: show their version here; Undo (Ctrl+Z) brings yours back."), el("li", {}, "Download mine: save your mask as a PNG file, then choose again.")),
         ),
         buttons: [

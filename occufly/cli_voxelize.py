@@ -12,13 +12,28 @@ def _voxelize(args: argparse.Namespace) -> dict:
     from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
     from occufly.progress import tqdm_progress
 
-    opts = DensifyOptions(voxel_size=args.voxel, carve=not args.no_carve, poisson=not args.no_poisson)
+    scale = None if args.min_points_scale == "auto" else _positive_float(args.min_points_scale)
+    opts = DensifyOptions(
+        voxel_size=args.voxel, carve=not args.no_carve, poisson=not args.no_poisson, min_points_scale=scale
+    )
     with tqdm_progress("voxelize") as bar:
         report = voxelize_workspace(args.workspace, labels_path=args.labels, options=opts, out_path=args.out, progress=bar)
     if args.preview:
         _write_preview(Path(report["grid"]), Path(args.workspace), Path(args.preview))
         report["preview"] = args.preview
     return report
+
+
+def _positive_float(text: str) -> float:
+    from occufly.errors import OccuflyError
+
+    try:
+        v = float(text)
+    except ValueError:
+        v = -1.0
+    if not v > 0:
+        raise OccuflyError(f"--min-points-scale: expected 'auto' or a number > 0, got {text!r}")
+    return v
 
 
 def _load_taxonomy(ws: Path | None):
@@ -76,6 +91,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-carve", action="store_true", help="ablation: instance points binned, no DBSCAN/carving")
     p.add_argument("--no-poisson", action="store_true", help="ablation: ground points binned, no Poisson")
     p.add_argument("--preview", help="also write a PNG preview here")
+    p.add_argument(
+        "--min-points-scale", default="1",
+        help="multiply the taxonomy's DBSCAN minPts (default 1); 'auto' scales by the cloud's "
+        "surface density relative to 400 points/m^2",
+    )
 
     p = command(sub, "eval-grid", _eval, help="completion IoU, per-class IoU and mIoU vs a truth grid")
     p.add_argument("workspace", help="scene workspace (its grid/scene_grid.npz and taxonomy)")

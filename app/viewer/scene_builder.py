@@ -554,3 +554,14 @@ def scene_extent(data: ViewerData) -> float:
     if len(xyz) == 0:
         return 10.0
     return float(max(np.ptp(xyz, axis=0).max(), 1.0))
+
+
+def default_point_size(data: ViewerData, n_shown: int) -> float:
+    """Point size (metres) close to the spacing of the shown points on the scene footprint."""
+    xyz = np.asarray(data.scene.xyz[:: max(1, data.scene.n_points // 100_000)])
+    if len(xyz) == 0 or n_shown <= 0:
+        return 0.05
+    span = np.ptp(xyz[:, :2], axis=0)
+    area = float(max(span[0], 1.0) * max(span[1], 1.0))
+    return float(np.clip(0.8 * np.sqrt(area / n_shown), 0.01, 2.0))
+

@@ -59,6 +59,7 @@ class ClientState:
     subsample: np.ndarray | None = None
     mode: str = "semantic"
     point_size: float = 0.05
+    point_size_set: bool = False
     max_points: int = sb.DEFAULT_MAX_POINTS
     class_visible: dict[int, bool] = field(default_factory=dict)
     point_handles: dict[int, Any] = field(default_factory=dict)
@@ -257,7 +258,7 @@ class ViewerService:
         g["scene"] = gui.add_dropdown("Scene", labels or ["(none)"],
                                       initial_value=labels[ids.index(scene_id)] if scene_id in ids else None)
         g["mode"] = gui.add_dropdown("Colour", list(sb.COLOUR_MODES), initial_value=st.mode)
-        g["size"] = gui.add_slider("Point size", min=0.005, max=1.0, step=0.005,
+        g["size"] = gui.add_slider("Point size", min=0.005, max=3.0, step=0.005,
                                    initial_value=st.point_size)
         g["lod"] = gui.add_number("LOD max points", initial_value=st.max_points, min=1000,
                                   max=50_000_000, step=1000)
@@ -289,6 +290,9 @@ class ViewerService:
 
         @g["size"].on_update
         def _(_e: Any) -> None:
+            if abs(float(g["size"].value) - st.point_size) < 1e-9:
+                return  # our own default being applied
+            st.point_size_set = True
             st.point_size = float(g["size"].value)
             with st.lock:
                 for h in st.point_handles.values():
@@ -385,6 +389,10 @@ class ViewerService:
             st.selection = np.zeros(0, np.int64)
             st.class_visible = {}
             self._rebuild_class_boxes(st)
+            if not st.point_size_set:
+                shown = min(st.max_points, st.data.scene.n_points)
+                st.point_size = round(sb.default_point_size(st.data, shown), 3)
+                st.gui["size"].value = st.point_size
             frames = ["(none)"] + [f.stem for f in st.data.scene.frames]
             st.gui["grid_frame"].options = frames
             self._place_camera(st)

@@ -17,6 +17,8 @@
 ``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
 ``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
 ``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
+``OCCUFLY_ARGON2_MEMORY_KIB``  argon2id memory cost (default 65536 = argon2-cffi's default)
+``OCCUFLY_ARGON2_TIME_COST``   argon2id iterations (default 3)
 =============================  ===========================================================
 """
 
@@ -53,6 +55,8 @@ class Settings:
     frontend_dir: Path = REPO_ROOT / "frontend"
     login_free_failures: int = 5  # failures before a key gets locked out
     login_max_lock_s: int = 300
+    argon2_memory_kib: int = 65536
+    argon2_time_cost: int = 3
     auto_upgrade: bool = True
     live_lifting: bool = True
 
@@ -117,6 +121,8 @@ class Settings:
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
+            argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),
+            argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
         )
         if env.get("OCCUFLY_FRONTEND_DIR"):
             kw["frontend_dir"] = Path(env["OCCUFLY_FRONTEND_DIR"])

@@ -43,6 +43,9 @@ def build_context(settings: Settings) -> AppContext:
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    from app import security
+
+    security.configure(time_cost=settings.argon2_time_cost, memory_kib=settings.argon2_memory_kib)
     if settings.auto_upgrade:
         db.upgrade(settings.database_url)
     ctx = build_context(settings)

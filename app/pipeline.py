@@ -112,6 +112,9 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
     source = Path(source)
     if (source / "scene.json").is_file():
         scene = Scene.load(source, mmap=False)
+        for f in scene.frames:  # images stay where they are: make their paths absolute
+            if f.image_path and not Path(f.image_path).is_absolute():
+                f.image_path = str((source / f.image_path).resolve())
         scene.save(workspace, overwrite=True)
         return Scene.load(workspace)
     fn = pipeline_function("occufly.io.importer", "import_scene")
@@ -143,6 +146,12 @@ def load_labels(workspace: Path):
 def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0):
     return pipeline_function("occufly.render", "render_labels")(scene, labels, frame_index,
                                                                  scale=scale)
+
+
+def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int,
+                    mask_shape: tuple[int, int]):
+    return pipeline_function("occufly.render", "render_for_mask")(scene, labels, frame_index,
+                                                                   tuple(mask_shape))
 
 
 def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dict:

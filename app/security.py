@@ -15,6 +15,15 @@ _hasher = PasswordHasher()  # argon2id with the library's current recommended pa
 _DUMMY_HASH = _hasher.hash("not-a-real-password-0")
 
 
+def configure(*, time_cost: int, memory_kib: int) -> None:
+    """Set the argon2id cost for new hashes (existing hashes carry their own parameters)."""
+    global _hasher, _DUMMY_HASH
+    if (_hasher.time_cost, _hasher.memory_cost) == (time_cost, memory_kib):
+        return
+    _hasher = PasswordHasher(time_cost=time_cost, memory_cost=memory_kib)
+    _DUMMY_HASH = _hasher.hash("not-a-real-password-0")
+
+
 def hash_password(password: str) -> str:
     return _hasher.hash(password)
 

@@ -114,8 +114,7 @@ def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser
 
     service.check_read(session, frame, user)
     scene = session.get(Scene, frame.scene_id)
-    width = frame.width // downscale
-    img = rendered(ctx, scene, frame, width=width)
+    img = rendered(ctx, scene, frame, downscale=downscale)
     return Response(pipeline.encode_png(img), media_type="image/png",
                     headers={"Cache-Control": "private, no-cache"})
 

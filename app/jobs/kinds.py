@@ -78,9 +78,15 @@ def run_selection(jc: JobContext) -> dict:
 def run_voxelize(jc: JobContext) -> dict:
     from app import pipeline
 
-    fn = pipeline.pipeline_function("occufly.densify", "voxelize_scene")
+    fn = pipeline.pipeline_function("occufly.densify.pipeline", "voxelize_workspace")
+    options_cls = pipeline.pipeline_function("occufly.densify.pipeline", "DensifyOptions")
     ws, _scene_obj = _scene(jc)
-    return fn(Path(ws), voxel_size=float(jc.params.get("voxel_size", 0.5)),
+    if not (Path(ws) / "lifting" / "labels.npy").is_file():
+        from occufly.errors import WorkspaceError
+
+        raise WorkspaceError(f"scene {jc.scene_id} has no lifted labels yet (lifting/labels.npy); "
+                             "save masks and let fill/denoise finish first")
+    return fn(Path(ws), options=options_cls(voxel_size=float(jc.params.get("voxel_size", 0.5))),
               progress=jc.progress)
 
 

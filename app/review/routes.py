@@ -21,9 +21,9 @@ RidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
 
 @router.get("/frames/{fid}/render", response_class=Response, responses=PNG)
 def render(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser,
-           width: Annotated[int | None, Query(ge=1, le=100000)] = None):
+           downscale: Annotated[int, Query(ge=1, le=64)] = 1):
     scene = session.get(Scene, frame.scene_id)
-    img = service.rendered(ctx, scene, frame, width=width)
+    img = service.rendered(ctx, scene, frame, downscale=downscale)
     return Response(pipeline.encode_png(img), media_type="image/png",
                     headers={"Cache-Control": "private, no-cache"})
 

@@ -27,14 +27,13 @@ def _mask_array(ctx: AppContext, sha256: str) -> np.ndarray:
         return np.asarray(im).astype(np.uint8)
 
 
-def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, width: int | None = None) -> np.ndarray:
-    """(h, w) uint8 lifted labels rendered into the frame at width ``width`` (default full)."""
+def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> np.ndarray:
+    """(H/s, W/s) uint8 lifted labels rendered into the frame (s = ``downscale``)."""
     labels = annotations.current_labels(ctx, scene)
     if labels is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")
     ws_scene = ctx.load_scene(scene.workspace)
-    scale = 1.0 if width is None else width / frame.width
-    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=scale)
+    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
     return np.asarray(img, dtype=np.uint8)
 
 
@@ -42,7 +41,12 @@ def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tu
     """(mask, rendered at the mask's size, version id) of the frame's current mask."""
     v = annotations.current_version(session=session, frame=frame)
     mask = _mask_array(ctx, v.sha256)
-    return mask, rendered(ctx, scene, frame, width=mask.shape[1]), v.id
+    labels = annotations.current_labels(ctx, scene)
+    if labels is None:
+        raise NotFound(f"scene {scene.id} has no lifted labels yet")
+    ren, _depth = pipeline.render_for_mask(ctx.load_scene(scene.workspace), labels, frame.index,
+                                           mask.shape)
+    return mask, np.asarray(ren, dtype=np.uint8), v.id
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:

@@ -139,11 +139,14 @@ def check_pose(T_cam_world: np.ndarray, where: str) -> np.ndarray:
 
 # ---- sampling -------------------------------------------------------------------------------
 def sample_labels(
-    grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: GridSpec
+    grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: GridSpec,
+    rects: list[tuple[int, int, int, int, int]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sample the scene grid at every frame-grid voxel centre.
+    """Sample the scene grid at frame-grid voxel centres.
 
-    T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64.
+    T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64;
+    rects: optional [(k, i0, i1, j0, j1)] per-slice index rectangles to sample (default:
+    everything); voxels outside them get label 0 and inside False.
     Returns (labels (X, Y, Z) uint8, inside (X, Y, Z) bool: centre inside the scene grid).
     """
     T_world_cam = np.linalg.inv(np.asarray(T_cam_world, dtype=np.float64))
@@ -151,26 +154,73 @@ def sample_labels(
     # camera centre in scene-grid voxel units (float64 before anything gets small)
     p0 = (np.asarray(scene_origin, np.float64) + T_world_cam[:3, 3] - grid.origin) / grid.voxel_size
     cx, cy, cz = spec.axis_centers()
+    X, Y, Z = spec.shape
+    if rects is None:
+        rects = [(k, 0, X, 0, Y) for k in range(Z)]
+    # world axis d of every centre in scene-grid voxel units is separable in (i, j, k);
+    # float32 is exact enough here: values are small (relative to the grid origin)
+    A = [(p0[d] + R[d, 0] * cx / grid.voxel_size).astype(np.float32) for d in range(3)]
+    B = [(R[d, 1] * cy / grid.voxel_size).astype(np.float32) for d in range(3)]
+    C = [(R[d, 2] * cz / grid.voxel_size).astype(np.float32) for d in range(3)]
     sx, sy, sz = grid.shape
     itype = np.int32 if grid.labels.size < 2**31 else np.int64
-    flat = np.zeros(spec.shape, dtype=itype)
-    inside = np.ones(spec.shape, dtype=bool)
     strides = (sy * sz, sz, 1)
-    for d, (n, stride) in enumerate(zip(grid.shape, strides, strict=True)):
-        # world axis d of every centre in scene-grid voxel units, separable in (i, j, k);
-        # float32 is exact enough here: values are small (relative to the grid origin)
-        a = (p0[d] + R[d, 0] * cx / grid.voxel_size).astype(np.float32)
-        b = (R[d, 1] * cy / grid.voxel_size).astype(np.float32)
-        c = (R[d, 2] * cz / grid.voxel_size).astype(np.float32)
-        f = a[:, None, None] + b[None, :, None]
-        f = f + c[None, None, :]
-        inside &= f >= 0
-        inside &= f < n
-        np.clip(f, 0, n - 1, out=f)  # after clipping, truncation == floor
-        flat += f.astype(itype) * itype(stride)
-    labels = np.take(grid.labels.reshape(-1), flat)
-    labels[~inside] = 0
+    flat_labels = grid.labels.reshape(-1)
+    labels = np.zeros(spec.shape, dtype=np.uint8)
+    inside = np.zeros(spec.shape, dtype=bool)
+    for k, i0, i1, j0, j1 in rects:
+        flat = np.zeros((i1 - i0, j1 - j0), dtype=itype)
+        ins = np.ones((i1 - i0, j1 - j0), dtype=bool)
+        for d, (n, stride) in enumerate(zip(grid.shape, strides, strict=True)):
+            f = A[d][i0:i1, None] + B[d][None, j0:j1]
+            f += C[d][k]
+            ins &= f >= 0
+            ins &= f < n
+            np.clip(f, 0, n - 1, out=f)  # after clipping, truncation == floor
+            flat += f.astype(itype) * itype(stride)
+        lab = np.take(flat_labels, flat)
+        lab[~ins] = 0
+        labels[i0:i1, j0:j1, k] = lab
+        inside[i0:i1, j0:j1, k] = ins
     return labels, inside
+
+
+def region_rects(camera: Camera, spec: GridSpec) -> list[tuple[int, int, int, int, int]]:
+    """Per-slice rectangles [(k, i0, i1, j0, j1)] covering every voxel that sampling needs:
+    the widened frustum (:func:`frustum_mask` with ``margin``), dilated by one slice in z so
+    that every valid voxel's 6 neighbours are sampled. Full slices for distorted cameras."""
+    X, Y, Z = spec.shape
+    if camera.has_distortion:
+        return [(k, 0, X, 0, Y) for k in range(Z)]
+    uok, vok, zok = _margin_parts(camera, spec)
+    iu = uok & zok[None, :]
+    jv = vok & zok[None, :]
+    out = []
+    for k in range(Z):
+        ks = slice(max(k - 1, 0), min(k + 2, Z))
+        ii = np.flatnonzero(iu[:, ks].any(axis=1))
+        jj = np.flatnonzero(jv[:, ks].any(axis=1))
+        if len(ii) and len(jj):
+            out.append((k, int(ii[0]), int(ii[-1]) + 1, int(jj[0]), int(jj[-1]) + 1))
+    return out
+
+
+def _margin_parts(camera: Camera, spec: GridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Separable widened frustum test for pinhole cameras: (X, Z), (Y, Z), (Z,) bool."""
+    cx, cy, cz = spec.axis_centers()
+    fx, fy = camera.focal
+    px, py = camera.principal_point
+    r = spec.voxel_size
+    u = fx * cx[:, None] / cz[None, :] + px  # (X, Z)
+    v = fy * cy[:, None] / cz[None, :] + py  # (Y, Z)
+    zf = np.maximum(cz - r / 2, 1e-6)[None, :]
+    # a box's projection extends at most this far beyond its centre's (+1 voxel of slack)
+    mu = fx * (np.abs(cx)[:, None] + r) / zf - fx * np.abs(cx)[:, None] / cz[None, :]
+    mv = fy * (np.abs(cy)[:, None] + r) / zf - fy * np.abs(cy)[:, None] / cz[None, :]
+    uok = (u >= -mu) & (u < camera.width + mu)
+    vok = (v >= -mv) & (v < camera.height + mv)
+    zok = cz + 1.5 * r >= spec.near
+    return uok, vok, zok
 
 
 def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.ndarray:
@@ -184,20 +234,14 @@ def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.
     zok = (cz >= spec.near) & (cz <= spec.far_m)
     if margin and camera.has_distortion:
         return np.ones(spec.shape, dtype=bool)
+    if margin:
+        uok, vok, zmk = _margin_parts(camera, spec)
+        return uok[:, None, :] & vok[None, :, :] & zmk[None, None, :]
     if not camera.has_distortion:
         fx, fy = camera.focal
         px, py = camera.principal_point
         u = fx * cx[:, None] / cz[None, :] + px  # (X, Z)
         v = fy * cy[:, None] / cz[None, :] + py  # (Y, Z)
-        if margin:
-            r = spec.voxel_size
-            zf = np.maximum(cz - r / 2, 1e-6)[None, :]
-            mu = fx * (np.abs(cx)[:, None] + r) / zf - fx * np.abs(cx)[:, None] / cz[None, :]
-            mv = fy * (np.abs(cy)[:, None] + r) / zf - fy * np.abs(cy)[:, None] / cz[None, :]
-            uok = (u >= -mu) & (u < camera.width + mu)
-            vok = (v >= -mv) & (v < camera.height + mv)
-            zok = cz + r / 2 >= spec.near
-            return uok[:, None, :] & vok[None, :, :] & zok[None, None, :]
         uok = (u >= 0) & (u < camera.width)
         vok = (v >= 0) & (v < camera.height)
         return uok[:, None, :] & vok[None, :, :] & zok[None, None, :]
@@ -336,8 +380,18 @@ def _slab_entry(a, b, x0, x1, y0, y1, z0, z1) -> np.ndarray:
     return np.where(lo <= hi, lo, np.inf)
 
 
+def _nonzero_ijk(mask: np.ndarray) -> np.ndarray:
+    """(M, 3) int64 indices of True voxels (faster than np.argwhere on large grids)."""
+    flat = np.flatnonzero(mask.reshape(-1))
+    X, Y, Z = mask.shape
+    i, rem = np.divmod(flat, Y * Z)
+    j, k = np.divmod(rem, Z)
+    return np.column_stack([i, j, k])
+
+
 def occlusion_mask(
-    occupied: np.ndarray, surface_all: np.ndarray, valid: np.ndarray, camera: Camera, spec: GridSpec
+    occupied: np.ndarray, surface_all: np.ndarray, valid: np.ndarray, camera: Camera, spec: GridSpec,
+    near_frustum: np.ndarray | None = None,
 ) -> np.ndarray:
     """(X, Y, Z) bool occluded mask (see the module docstring)."""
     X, Y, Z = spec.shape
@@ -345,11 +399,13 @@ def occlusion_mask(
     raster = Raster.for_camera(camera, spec)
     kmin = int(math.ceil(spec.near / r - 1e-9))
     kmin = max(kmin, 1)  # slice 0 touches the camera centre
-    near_frustum = frustum_mask(camera, spec, margin=True)[:, :, kmin:]
-    occ_ijk = np.argwhere(surface_all[:, :, kmin:] & near_frustum)
-    occ_ijk[:, 2] += kmin
+    if near_frustum is None:
+        near_frustum = frustum_mask(camera, spec, margin=True)
+    cand = surface_all & near_frustum
+    cand[:, :, :kmin] = False
+    occ_ijk = _nonzero_ijk(cand)
     zbuf = first_hit_zbuffer(occ_ijk, spec, raster)
-    targets = np.argwhere(occupied & valid)
+    targets = _nonzero_ijk(occupied & valid)
     out = np.zeros(spec.shape, dtype=bool)
     if len(targets) == 0:
         return out
@@ -376,11 +432,13 @@ def sample_frame(
     T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64.
     """
     spec = spec or GridSpec()
-    labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec)
+    rects = region_rects(camera, spec)
+    labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec, rects)
     occupied_all = labels_all != 0
-    surface_all = surface_mask(occupied_all)
+    surface_all = surface_mask(occupied_all)  # unsampled voxels count as empty: see docstring
     valid = frustum_mask(camera, spec) & inside
-    occluded = occlusion_mask(occupied_all, surface_all, valid, camera, spec)
+    near_frustum = frustum_mask(camera, spec, margin=True)
+    occluded = occlusion_mask(occupied_all, surface_all, valid, camera, spec, near_frustum)
     labels = np.where(valid, labels_all, np.uint8(0)).astype(np.uint8)
     surface = surface_all & valid
     return FrameGT(labels=labels, invalid=~valid, surface=surface, occluded=occluded,

@@ -213,8 +213,8 @@ def login(page, live: Live, role: str) -> None:
     page.wait_for_selector(f"#whoami:has-text('{role}')")
 
 
-def shot(page, name: str) -> Path:
+def shot(page, name: str, *, full_page: bool = False) -> Path:
     ARTIFACTS.mkdir(exist_ok=True)
     p = ARTIFACTS / f"{name}.png"
-    page.screenshot(path=str(p), full_page=False)
+    page.screenshot(path=str(p), full_page=full_page)
     return p

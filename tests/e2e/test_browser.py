@@ -236,7 +236,7 @@ def test_admin_export_job_completes(live, new_page):
     page.wait_for_selector("#coverage-plot")
     page.wait_for_selector("#camera-map")
     assert "frames selected" in page.locator("#selection-summary").inner_text()
-    shot(page, "08_admin")
+    shot(page, "08_admin", full_page=True)
     admin = live.client("admin")
 
     def run_job(button: str, kind: str) -> int:
@@ -257,7 +257,7 @@ def test_admin_export_job_completes(live, new_page):
     page.select_option("#export-layout", "occufly")
     jid = run_job("#start-export", "export")
     page.locator(f"li.job[data-job='{jid}']").scroll_into_view_if_needed()
-    shot(page, "09_admin_export_finished")
+    shot(page, "09_admin_export_finished", full_page=True)
     assert page.locator(f"li.job[data-job='{jid}'] progress").get_attribute("value") == "1"
     link = page.locator(f"li.job[data-job='{jid}'] a:has-text('Download')")
     assert link.get_attribute("href") == f"/api/jobs/{jid}/download"

@@ -213,23 +213,35 @@ class AdminPage {
       return;
     }
     const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
+    if (curve.length && curve[0][0] > 0) curve.unshift([0, 0]); // no frame covers nothing
     const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.selected;
+    // show the parameters of the selection on display in the form
+    const prm = sel.params || sel;
+    if (prm.cell != null) this.selCell.value = prm.cell;
+    if (prm.mode) this.selMode.value = prm.mode;
+    if (prm.target_coverage != null) this.selTarget.value = prm.target_coverage;
+    this.selAlt.value = prm.altitude ?? "";
     const curveC = el("canvas", { id: "coverage-plot" });
     const mapC = el("canvas", { id: "camera-map" });
     // `frames` are frame indices into the scene (the order of `cameras`).
     const selected = new Set((Array.isArray(sel.frames) ? sel.frames : []).map((v) => (typeof v === "object" ? v.index : v)));
-    // `cells` is either a list of cell geometries or (occufly.selection today) only a count;
-    // then the lattice is drawn with the cell edge, anchored at the cameras' extent.
+    // Cells: a list of cell geometries ([x0, y0, x1, y1], {center, size}, ...), or occupied
+    // grid indices with the grid origin (`occupied_cells` + `cell_origin`). occufly.selection
+    // currently reports only the number of occupied cells; then no cells can be drawn.
     const edge = sel.cell ?? Number(this.selCell.value);
-    const cells = Array.isArray(sel.cells) ? sel.cells.map((c) => cellRect(c, edge)).filter(Boolean) : [];
-    const lattice = Array.isArray(sel.cells) ? null : { edge, count: sel.cells };
+    let cells = Array.isArray(sel.cells) ? sel.cells.map((c) => cellRect(c, edge)).filter(Boolean) : [];
+    if (!cells.length && Array.isArray(sel.occupied_cells) && Array.isArray(sel.cell_origin)) {
+      const [ox, oy] = sel.cell_origin;
+      cells = sel.occupied_cells.map(([i, j]) => ({ x0: ox + i * edge, y0: oy + j * edge, x1: ox + (i + 1) * edge, y1: oy + (j + 1) * edge }));
+    }
+    const lattice = null;
     this.selectionEl.replaceChildren(
       el(
         "p",
         { id: "selection-summary" },
         `${nSel ?? "?"} frames selected (${pct(sel.ratio)} of ${sel.candidates ?? "all"} candidates), coverage ${pct(sel.coverage, 2)}${sel.max_coverage != null ? ` of at most ${pct(sel.max_coverage, 2)}` : ""}; mode ${sel.mode ?? "?"}, cell ${edge} m${typeof sel.cells === "number" ? `, ${sel.cells} occupied cells` : ""}.`,
       ),
-      el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, "Top-down map: cameras (blue), selected frames (red), grid cells"))),
+      el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, cells.length ? "Top-down map: cameras (blue), selected frames (red), occupied grid cells" : `Top-down map: cameras (blue), selected frames (red); the API sent no cell geometry (${typeof sel.cells === "number" ? sel.cells : "?"} occupied cells of ${edge} m)`))),
     );
     linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", yMin: 0, yMax: 1, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
     mapPlot(mapC, { cameras: sel.cameras || [], selected, cells, lattice });
@@ -358,13 +370,19 @@ class AdminPage {
       const [st, scene] = await Promise.all([api.get(`/scenes/${this.sid}/labels/status`), api.get(`/scenes/${this.sid}`)]);
       const classes = (scene.taxonomy && scene.taxonomy.classes) || [];
       const hist = st.class_histogram || {};
-      const bars = classes.map((c) => ({ label: c.name, value: Number(hist[c.id] ?? hist[String(c.id)] ?? 0), color: `rgb(${c.rgb.join(",")})` }));
+      let bars = classes.map((c) => ({ label: c.name, value: Number(hist[c.id] ?? hist[String(c.id)] ?? 0), color: `rgb(${c.rgb.join(",")})` }));
       const extra = Object.keys(hist).filter((k) => !classes.some((c) => String(c.id) === k));
       for (const k of extra) bars.push({ label: k === "0" ? "unlabelled" : `id ${k}`, value: Number(hist[k]), color: "#999" });
+      const zero = bars.filter((b) => !b.value).map((b) => b.label);
+      bars = bars.filter((b) => b.value).sort((a, b) => b.value - a.value);
       const c = el("canvas", { id: "class-histogram" });
       const nv = Object.keys(st.included_versions || {}).length;
-      this.histEl.replaceChildren(el("p", {}, `Lifted labels include ${nv} mask version(s)${st.pending_fill ? "; kNN fill pending" : ""}.`), c);
-      barPlot(c, bars, { title: "points per class", width: 560 });
+      this.histEl.replaceChildren(
+        el("p", {}, `Lifted labels include ${nv} mask version(s)${st.pending_fill ? "; kNN fill pending" : ""}. Points per class:`),
+        bars.length ? c : el("p", {}, "No labelled points yet."),
+        zero.length ? el("p", { class: "muted" }, `No points: ${zero.join(", ")}.`) : null,
+      );
+      if (bars.length) barPlot(c, bars, { title: "points per class", width: 560 });
     } catch (e) {
       this.histEl.replaceChildren(el("p", {}, `No label statistics: ${e.message}`));
     }

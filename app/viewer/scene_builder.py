@@ -271,6 +271,9 @@ def build_point_nodes(data: ViewerData, *, mode: str = "semantic",
     n = data.scene.n_points
     idx = subsample if subsample is not None else stratified_subsample(data.labels, n, max_points, seed=seed)
     lab = np.asarray(data.labels[idx]) if data.labels is not None else np.zeros(len(idx), np.uint8)
+    if classes is not None:  # colour and copy only what is re-sent
+        keep = np.isin(lab, np.fromiter(classes, dtype=np.int64))
+        idx, lab = idx[keep], lab[keep]
     order = np.argsort(lab, kind="stable")
     idx, lab = idx[order], lab[order]
     ids, starts = np.unique(lab, return_index=True)

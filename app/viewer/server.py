@@ -345,26 +345,36 @@ class ViewerService:
         scene.on_rect_select()(on_rect)
 
     def _rebuild_class_boxes(self, st: ClientState) -> None:
-        for b in st.class_boxes.values():
-            b.remove()
-        st.class_boxes.clear()
+        """One checkbox per class present; existing boxes are kept (only their counts are
+        relabelled) so a reviewer's click is never lost to a live refresh."""
         data = st.data
         if data is None:
             return
         lab = data.labels
-        counts = (np.bincount(np.asarray(lab), minlength=256) if lab is not None
-                  else np.bincount(np.zeros(1, np.int64), minlength=256) * data.scene.n_points)
-        with st.gui["classes"]:
-            for cid in np.flatnonzero(counts).tolist():
-                name = sb.class_name(data.taxonomy, cid)
-                box = st.client.gui.add_checkbox(f"{name} ({int(counts[cid]):,})",
-                                                 initial_value=st.class_visible.get(cid, True))
+        if lab is not None:
+            counts = np.bincount(np.asarray(lab), minlength=256)
+        else:
+            counts = np.zeros(256, np.int64)
+            counts[0] = data.scene.n_points
+        present = set(np.flatnonzero(counts).tolist())
+        for cid in [c for c in st.class_boxes if c not in present]:
+            st.class_boxes.pop(cid).remove()
+        for cid in sorted(present):
+            name = sb.class_name(data.taxonomy, cid)
+            label = f"{name} ({int(counts[cid]):,})"
+            box = st.class_boxes.get(cid)
+            if box is not None:
+                if box.label != label:
+                    box.label = label
+                continue
+            with st.gui["classes"]:
+                box = st.client.gui.add_checkbox(label, initial_value=st.class_visible.get(cid, True))
 
-                def toggle(_e: Any, cid: int = cid, box: Any = box) -> None:
-                    self.set_class_visible(st, cid, bool(box.value))
+            def toggle(_e: Any, cid: int = cid, box: Any = box) -> None:
+                self.set_class_visible(st, cid, bool(box.value))
 
-                box.on_update(toggle)
-                st.class_boxes[cid] = box
+            box.on_update(toggle)
+            st.class_boxes[cid] = box
 
     # ---- scene content ---------------------------------------------------------------------
     def open_scene(self, st: ClientState, scene_id: str) -> None:
@@ -388,6 +398,9 @@ class ViewerService:
             st.subsample = None
             st.selection = np.zeros(0, np.int64)
             st.class_visible = {}
+            for b in st.class_boxes.values():
+                b.remove()
+            st.class_boxes.clear()
             self._rebuild_class_boxes(st)
             if not st.point_size_set:
                 shown = min(st.max_points, st.data.scene.n_points)
@@ -475,14 +488,16 @@ class ViewerService:
             st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, st.class_visible)
 
     def set_class_visible(self, st: ClientState, class_id: int, visible: bool) -> None:
-        with st.lock:
-            st.class_visible[class_id] = visible
-            if class_id in st.point_handles:
-                st.point_handles[class_id].visible = visible
-            name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
-            for n, h in st.grid_handles.items():
-                if n.rsplit("/", 1)[-1] == name:
-                    h.visible = visible
+        """Show/hide a class's points and voxels. Takes no lock on purpose: a toggle must
+        not wait for a refresh that is re-sending other classes (dict reads are atomic)."""
+        st.class_visible[class_id] = visible
+        h = st.point_handles.get(class_id)
+        if h is not None:
+            h.visible = visible
+        name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
+        for n, gh in list(st.grid_handles.items()):
+            if n.rsplit("/", 1)[-1] == name:
+                gh.visible = visible
 
     # ---- cameras ---------------------------------------------------------------------------
     def show_frame(self, st: ClientState, frame_index: int) -> None:

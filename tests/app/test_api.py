@@ -320,13 +320,15 @@ def test_concurrent_writers_exactly_one_wins(world):
         base = results[winner].json()["version"]
 
 
-@pytest.mark.parametrize("case", ["corrupt", "not_png", "wrong_size", "bad_scale", "unknown_id",
-                                  "rgb_unknown", "oversize", "empty"])
-def test_bad_uploads_are_4xx_and_store_nothing(world, case):
+BAD_CASES = ["corrupt", "not_png", "wrong_size", "bad_scale", "unknown_id", "rgb_unknown",
+             "oversize", "empty"]
+
+
+def test_bad_uploads_are_4xx_and_store_nothing(world):
     env, hdr, scene, _ = world
     fid = _lease(env, hdr, scene)
     good = mask_png(6)
-    body = {
+    bodies = {
         "corrupt": good[:60] + b"\x00" * 40 + good[100:],
         "not_png": b"GIF89a" + b"\x00" * 100,
         "wrong_size": mask_png(6, w=W + 2, h=H),
@@ -335,17 +337,27 @@ def test_bad_uploads_are_4xx_and_store_nothing(world, case):
         "rgb_unknown": png(np.full((H, W, 3), 7, np.uint8)),
         "oversize": b"\x89PNG\r\n\x1a\n" + b"\x00" * (env.settings.max_upload_bytes + 1),
         "empty": b"",
-    }[case]
-    blobs_before = env.app.state.ctx.store.count()
-    r = env.client.put(f"/api/frames/{fid}/mask", content=body,
-                       headers={**hdr["annotator"], "If-Match": "none"})
-    expected = 413 if case == "oversize" else 422
-    assert r.status_code == expected, r.text
-    assert isinstance(r.json()["detail"], str) and r.json()["detail"]
-    assert _count(env, MaskVersion) == 0
-    assert env.app.state.ctx.store.count() == blobs_before == 0
+    }
+    for case in BAD_CASES:
+        r = env.client.put(f"/api/frames/{fid}/mask", content=bodies[case],
+                           headers={**hdr["annotator"], "If-Match": "none"})
+        expected = 413 if case == "oversize" else 422
+        assert r.status_code == expected, (case, r.text)
+        assert isinstance(r.json()["detail"], str) and r.json()["detail"], case
+        assert _count(env, MaskVersion) == 0, case
+        assert env.app.state.ctx.store.count() == 0, case
     f = env.client.get(f"/api/frames/{fid}", headers=hdr["annotator"]).json()
-    assert f["current_version"] is None
+    assert f["current_version"] is None and f["state"] == "in_progress"
+    # unknown frame / version ids
+    r = env.client.put("/api/frames/999999/mask", content=good,
+                       headers={**hdr["annotator"], "If-Match": "none"})
+    assert r.status_code == 404
+    assert env.client.get(f"/api/frames/{fid}/mask", headers=hdr["annotator"]).status_code == 404
+    assert env.client.get(f"/api/frames/{fid}/mask/versions/12345",
+                          headers=hdr["annotator"]).status_code == 404
+    r = env.client.put(f"/api/frames/{fid}/mask", content=good,
+                       headers={**hdr["annotator"], "If-Match": "abc"})
+    assert r.status_code == 422 and _count(env, MaskVersion) == 0
 
 
 def test_downscaled_mask_is_accepted(world):

@@ -553,8 +553,11 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     final = filled.copy()
     agree = fill_share.copy()
     agree[dcols >= 0] = 1.0
+    t_build = 0.0
     if len(lab2):
+        tb = time.perf_counter()
         tree2 = cKDTree(xyz[lab2])
+        t_build = time.perf_counter() - tb
         q = lab2 if query_index is None else np.intersect1d(np.asarray(query_index), lab2)
         report(0.4, "denoise: querying")
         c, s = _knn_vote(tree2, filled[lab2], xyz[q], p.denoise_k, p.denoise_radius, cls,
@@ -563,6 +566,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     t2 = time.perf_counter()
     res = _finish(cls, direct, filled, final, agree, vote_margin)
     res.stats = {"method": "exact", "fill_seconds": t1 - t0, "denoise_seconds": t2 - t1,
+                 "denoise_build_seconds": t_build, "denoise_points": int(len(lab2)),
                  "unlabelled_before_fill": int(len(un_idx))}
     report(1.0, "done")
     return res

@@ -1,0 +1,168 @@
+"""Web-app commands: ``serve``, ``db upgrade|current``, ``users create|list``, ``demo``.
+
+Settings come from ``OCCUFLY_*`` environment variables (see ``app/config.py``), e.g.
+``OCCUFLY_DATABASE_URL``, ``OCCUFLY_DATA_DIR``, ``OCCUFLY_SECRET_KEY``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import sys
+
+from occufly.cli import command
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = command(sub, "serve", _serve, help="run the web app (uvicorn) on the configured database")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+
+    p = command(sub, "db", _db, help="database schema: 'upgrade' to the newest, 'current' revision")
+    p.add_argument("action", choices=["upgrade", "current"])
+
+    p = command(sub, "users", _users, help="manage users: 'create NAME --role R', 'list'")
+    p.add_argument("action", choices=["create", "list"])
+    p.add_argument("name", nargs="?")
+    p.add_argument("--role", choices=["annotator", "reviewer", "admin"])
+    p.add_argument("--password", help="default: $OCCUFLY_NEW_PASSWORD, else prompt (or generate "
+                                      "one when stdin is not a terminal)")
+
+    p = command(sub, "demo", _demo, help="synthesize a scene, import it, select frames, create "
+                                        "one user per role, and serve")
+    p.add_argument("--preset", default="small", help="synthetic preset (tiny|small|bench)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--source", help="import this reconstruction instead of synthesizing")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--no-serve", action="store_true", help="seed only")
+
+
+def _settings():
+    from app.config import Settings
+
+    return Settings.from_env()
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from app.main import create_app
+
+    app = create_app(_settings())
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    return 0
+
+
+def _db(args: argparse.Namespace) -> dict:
+    from app import db
+
+    s = _settings()
+    if args.action == "upgrade":
+        db.upgrade(s.database_url)
+    return {"database": _redact(s.database_url), "revision": db.current_revision(s.database_url)}
+
+
+def _users(args: argparse.Namespace) -> dict | list:
+    from app import db, security
+    from app.users import service
+    from occufly.errors import OccuflyError
+
+    s = _settings()
+    db.upgrade(s.database_url)
+    security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
+    engine = db.make_engine(s.database_url, pooled=False)
+    try:
+        with db.make_sessionmaker(engine)() as session:
+            if args.action == "list":
+                return {"users": [{"id": u.id, "username": u.username, "role": u.role}
+                                  for u in service.list_users(session=session)]}
+            if not args.name or not args.role:
+                raise OccuflyError("users create needs NAME and --role annotator|reviewer|admin")
+            password, generated = _password(args)
+            try:
+                user = service.create_user(session=session, username=args.name,
+                                           password=password, role=args.role)
+            except Exception as e:  # domain errors (duplicate, short password) -> one line
+                from app.errors import DomainError
+
+                if isinstance(e, DomainError):
+                    raise OccuflyError(f"users create {args.name}: {e.detail}") from None
+                raise
+            out = {"id": user.id, "username": user.username, "role": user.role}
+            if generated:
+                out["password"] = password
+            return out
+    finally:
+        engine.dispose()
+
+
+def _password(args: argparse.Namespace) -> tuple[str, bool]:
+    if args.password:
+        return args.password, False
+    if os.environ.get("OCCUFLY_NEW_PASSWORD"):
+        return os.environ["OCCUFLY_NEW_PASSWORD"], False
+    if sys.stdin.isatty():
+        import getpass
+
+        return getpass.getpass(f"password for {args.name}: "), False
+    return secrets.token_urlsafe(12), True
+
+
+def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
+         host: str = "127.0.0.1", port: int = 8000, serve: bool = True) -> dict:
+    """The README's main command: synthesize ``preset``, import it, select frames, create one
+    user per role (credentials printed), then serve on ``host:port``.
+
+    Without ``OCCUFLY_SECRET_KEY`` the demo runs in development mode with a random secret.
+    """
+    from pathlib import Path
+
+    from app.config import Settings
+    from app.demo import seed as seed_demo
+    from app.main import create_app
+    from occufly.progress import tqdm_progress
+
+    env = dict(os.environ)
+    if not env.get("OCCUFLY_SECRET_KEY"):
+        env.setdefault("OCCUFLY_ENV", "development")
+        env["OCCUFLY_SECRET_KEY"] = secrets.token_urlsafe(32)
+    settings = Settings.from_env(env)
+    app = create_app(settings)
+    with tqdm_progress(f"synthesizing {preset}") as bar:
+        info = seed_demo(settings, Path(source) if source else None, preset=preset,
+                         seed_value=seed, app=app, progress=bar)
+    print(f"OccuFly Studio demo: scene {info['scene_id']} from {info['source']}", file=sys.stderr)
+    sel = info["selection"]
+    if sel.get("frames") is not None:
+        print(f"  selected {len(sel['frames'])} frames (coverage {sel['coverage']:.3f})",
+              file=sys.stderr)
+    print("  log in with:", file=sys.stderr)
+    for user, pw in info["users"].items():
+        print(f"    {user:10s} password {pw}", file=sys.stderr)
+    if serve:
+        import uvicorn
+
+        print(f"  open http://{host}:{port}/", file=sys.stderr)
+        uvicorn.run(app, host=host, port=port, log_level="info")
+    else:
+        from app.main import close
+
+        close(app)
+    return info
+
+
+def _demo(args: argparse.Namespace) -> dict | int:
+    info = demo(preset=args.preset, seed=args.seed, source=args.source, host=args.host,
+                port=args.port, serve=not args.no_serve)
+    return info if args.no_serve else 0
+
+
+def _redact(url: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # noqa: BLE001
+        return url

@@ -1,0 +1,41 @@
+"""``occufly db upgrade`` / ``occufly users create`` against a real database file."""
+
+from __future__ import annotations
+
+import json
+
+from occufly.cli import main
+
+
+def test_db_upgrade_and_users_create(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("OCCUFLY_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("OCCUFLY_ENV", "development")
+    monkeypatch.setenv("OCCUFLY_ARGON2_MEMORY_KIB", "1024")
+    monkeypatch.setenv("OCCUFLY_ARGON2_TIME_COST", "1")
+    assert main(["db", "upgrade", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["revision"] == "0001"
+    assert main(["users", "create", "carol", "--role", "admin", "--password", "s3cret-pass",
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"id": 1, "username": "carol", "role": "admin"}
+    assert main(["users", "create", "carol", "--role", "admin", "--password", "s3cret-pass"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(["users", "create", "dave", "--role", "reviewer", "--password", "short"]) == 2
+    # the created account logs in through the app
+    from fastapi.testclient import TestClient
+
+    from app.config import Settings
+    from app.main import close, create_app
+
+    app = create_app(Settings.from_env())
+    with TestClient(app) as c:
+        r = c.post("/api/auth/login", json={"username": "carol", "password": "s3cret-pass"})
+        assert r.status_code == 200 and r.json()["user"]["role"] == "admin"
+    close(app)
+
+
+def test_default_secret_refused_outside_development(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("OCCUFLY_DATA_DIR", str(tmp_path))
+    monkeypatch.delenv("OCCUFLY_ENV", raising=False)
+    monkeypatch.delenv("OCCUFLY_SECRET_KEY", raising=False)
+    assert main(["db", "upgrade"]) == 2
+    assert "OCCUFLY_SECRET_KEY" in capsys.readouterr().err

@@ -22,6 +22,7 @@ from occufly.errors import OccuflyError
 
 COMMAND_MODULES: list[str] = [
     "occufly.cli_core",
+    "occufly.cli_app",
     "occufly.cli_voxelize",
     "occufly.cli_lift",
     "occufly.cli_export",

@@ -85,8 +85,73 @@ export async function decodeRgba(blob) {
   return out;
 }
 
+/**
+ * Decode an 8-bit greyscale, non-interlaced PNG directly (native inflate via
+ * DecompressionStream + the five PNG row filters); returns null for any other PNG flavour.
+ * Much cheaper than drawing to a canvas and reading back 4 bytes per pixel.
+ */
+export async function decodeGreyPngFast(buf) {
+  const b = new Uint8Array(buf);
+  const dv = new DataView(b.buffer, b.byteOffset, b.byteLength);
+  if (b.length < 33 || dv.getUint32(0) !== 0x89504e47) return null;
+  let off = 8;
+  let width = 0, height = 0;
+  const idat = [];
+  while (off + 8 <= b.length) {
+    const len = dv.getUint32(off);
+    const type = String.fromCharCode(b[off + 4], b[off + 5], b[off + 6], b[off + 7]);
+    const data = b.subarray(off + 8, off + 8 + len);
+    if (type === "IHDR") {
+      width = dv.getUint32(off + 8);
+      height = dv.getUint32(off + 12);
+      const depth = data[8], ctype = data[9], interlace = data[12];
+      if (depth !== 8 || ctype !== 0 || interlace !== 0) return null;
+    } else if (type === "IDAT") idat.push(data);
+    else if (type === "IEND") break;
+    off += 12 + len;
+  }
+  if (!width || !idat.length) return null;
+  const raw = new Uint8Array(await new Response(new Blob(idat).stream().pipeThrough(new DecompressionStream("deflate"))).arrayBuffer());
+  const stride = width + 1;
+  if (raw.length < stride * height) throw new Error(`PNG data too short: ${raw.length} < ${stride * height}`);
+  const ids = new Uint8Array(width * height);
+  for (let y = 0; y < height; y++) {
+    const f = raw[y * stride];
+    const src = y * stride + 1;
+    const o = y * width;
+    const p = o - width; // previous output row
+    switch (f) {
+      case 0:
+        ids.set(raw.subarray(src, src + width), o);
+        break;
+      case 1:
+        for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + (x ? ids[o + x - 1] : 0)) & 255;
+        break;
+      case 2:
+        if (y === 0) ids.set(raw.subarray(src, src + width), o);
+        else for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + ids[p + x]) & 255;
+        break;
+      case 3:
+        for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + (((x ? ids[o + x - 1] : 0) + (y ? ids[p + x] : 0)) >> 1)) & 255;
+        break;
+      case 4:
+        for (let x = 0; x < width; x++) {
+          const a = x ? ids[o + x - 1] : 0, bb = y ? ids[p + x] : 0, c = x && y ? ids[p + x - 1] : 0;
+          const pa = Math.abs(bb - c), pb = Math.abs(a - c), pc = Math.abs(a + bb - 2 * c);
+          ids[o + x] = (raw[src + x] + (pa <= pb && pa <= pc ? a : pb <= pc ? bb : c)) & 255;
+        }
+        break;
+      default:
+        throw new Error(`PNG row ${y} has unknown filter type ${f}`);
+    }
+  }
+  return { width, height, ids };
+}
+
 /** Decode a greyscale id PNG to {width, height, ids: Uint8Array}. */
 export async function decodeIdPng(blob) {
+  const fast = await decodeGreyPngFast(await blob.arrayBuffer());
+  if (fast) return fast;
   const { width, height, data } = await decodeRgba(blob);
   const ids = new Uint8Array(width * height);
   for (let i = 0, j = 0; i < ids.length; i++, j += 4) ids[i] = data[j];

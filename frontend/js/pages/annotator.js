@@ -141,17 +141,21 @@ class AnnotatorPage {
 
   async open(fid) {
     const t0 = performance.now();
+    this.stats.openMs = null;
     this.status("Opening frame…");
     const frame = await api.get(`/frames/${fid}`);
     const sid = frame.scene_id ?? this.sceneSel.value;
     if (frame.scene_id !== undefined) this.sceneSel.value = String(frame.scene_id);
-    const [scene, imgRes, maskRes, items] = await Promise.all([
-      this.sceneDetail(sid),
-      api.send("GET", `/frames/${fid}/image`).then((r) => r.blob()),
-      api.blob(`/frames/${fid}/mask`),
+    const ph = { detail: performance.now() - t0 };
+    const mark = (k) => (x) => ((ph[k] = performance.now() - t0), x);
+    // image and mask are fetched and decoded concurrently (image decoding runs off-thread)
+    const [scene, bitmap, maskRes, items] = await Promise.all([
+      this.sceneDetail(sid).then(mark("scene")),
+      api.send("GET", `/frames/${fid}/image`).then((r) => r.blob()).then(mark("imageFetched")).then((b) => createImageBitmap(b)).then(mark("imageDecoded")),
+      api.blob(`/frames/${fid}/mask`).then(mark("maskFetched")).then(async (r) => (r ? { etag: r.etag, decoded: await decodeIdPng(r.blob) } : null)).then(mark("maskDecoded")),
       api.get(`/scenes/${sid}/review-items`).catch(() => []),
     ]);
-    const [bitmap, decoded] = await Promise.all([createImageBitmap(imgRes), maskRes ? decodeIdPng(maskRes.blob) : null]);
+    const decoded = maskRes ? maskRes.decoded : null;
     const classes = (scene.taxonomy && scene.taxonomy.classes) || [];
     if (!classes.length) throw new Error(`Scene ${scene.name} has no taxonomy classes; cannot paint.`);
     const W = frame.width || bitmap.width;
@@ -162,7 +166,9 @@ class AnnotatorPage {
     const ed = new Editor(this.host, { width: W, height: H, classes });
     this.editor = ed;
     ed.setPhoto(bitmap);
+    ph.editor = performance.now() - t0;
     if (decoded) ed.mask.setAll(resizeIds(decoded.ids, decoded.width, decoded.height, W, H));
+    ph.maskColoured = performance.now() - t0;
     this.version = maskRes ? maskRes.etag || "none" : "none";
     this.editSeq = this.savedSeq = 0;
     ed.signals.edited.add(() => this.onEdited());
@@ -180,6 +186,8 @@ class AnnotatorPage {
     this.updateSaveState();
     await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
     this.stats.openMs = performance.now() - t0;
+    ph.painted = this.stats.openMs;
+    this.stats.openPhases = Object.fromEntries(Object.entries(ph).map(([k, v]) => [k, Math.round(v)]));
     this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, H pan, [ ] size, 1–0 classes, Ctrl+Z undo.`);
   }
 

@@ -25,7 +25,7 @@ function idsToCanvas(ids, w, h, lut) {
   c.width = w;
   c.height = h;
   const img = new ImageData(w, h);
-  const out = new Uint32Array(img.data.buffer);
+  const out = new Int32Array(img.data.buffer);
   for (let i = 0; i < ids.length; i++) out[i] = lut[ids[i]];
   c.getContext("2d").putImageData(img, 0, 0);
   return c;

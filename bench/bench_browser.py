@@ -1,0 +1,275 @@
+"""Browser benchmark of the annotator on a 5472x3648 frame (issue 7, "Performance").
+
+Runs the real app (``app.main.create_app``) under uvicorn on loopback with a reconstruction
+whose two images are 5472x3648 JPEGs, drives Debian's Chromium with Playwright and prints ONE
+JSON object:
+
+* ``stroke``: a 200-segment brush stroke (one pointer segment per animation frame, brush 60 px,
+  view fitted to a 1366x800 window, and again at 1:1 zoom) -> frames per second, per-frame
+  paint+render time; baseline = an empty requestAnimationFrame loop in the same page (the
+  display-rate ceiling); ratio = stroke fps / baseline fps.  Target: >= 30 fps.
+* ``open``: opening the frame (frame detail + full-resolution image + saved mask PNG, decode,
+  first paint) -> seconds (median of 3 page loads); baseline = fetch + decode of the image
+  alone; ratio = open / baseline.  Target: <= 2 s.
+* ``save``: encoding + PUT of the mask -> bytes sent vs raw id bytes (compression ratio),
+  milliseconds; baseline = canvas.toBlob('image/png') of the RGBA colour canvas (what a naive
+  editor would upload; it is also rejected by the API as not single-channel) -> size and
+  time ratios; and the server-side check that the stored PNG is single-channel and equals the
+  editor's ids.
+* ``zoom``: 60 wheel-zoom steps (full redraw of photo + mask each frame) -> fps.
+
+Usage: .venv/bin/python bench/bench_browser.py [--segments 200] [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import re
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+W, H = 5472, 3648
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--no-first-run", "--disable-sync"]
+
+
+def photo(seed: int) -> Image.Image:
+    """A 5472x3648 'aerial photo': smooth fields, roads and fine grain (JPEG ~ real size)."""
+    rng = np.random.default_rng(seed)
+    small = rng.integers(40, 200, size=(H // 64 + 1, W // 64 + 1, 3), dtype=np.uint8)
+    base = np.asarray(Image.fromarray(small).resize((W, H), Image.BILINEAR), dtype=np.int16)
+    base[1500:1700, :] = 70  # a road
+    base[:, 2600:2760] = 75
+    grain = rng.integers(-18, 18, size=(H, W, 1), dtype=np.int16)
+    return Image.fromarray(np.clip(base + grain, 0, 255).astype(np.uint8))
+
+
+def build_reconstruction(root: Path) -> Path:
+    """The recon_builder model (ground + box, 2 cameras) scaled up to 5472x3648 images."""
+    from tests.recon_builder import make_reconstruction
+
+    src = root / "big"
+    make_reconstruction(src, n_cams=2, vis=True, depth_maps=False)
+    k = W // 96
+    assert (96 * k, 64 * k) == (W, H)
+    cams = src / "sparse" / "cameras.txt"
+    head, line = cams.read_text().strip().split("\n")
+    p = line.split()
+    params = [float(v) * k for v in p[4:]]
+    cams.write_text(f"{head}\n1 PINHOLE {W} {H} " + " ".join(repr(v) for v in params) + "\n")
+    imgs = src / "sparse" / "images.txt"
+    lines = imgs.read_text().split("\n")
+    out = [lines[0]]
+    for i, ln in enumerate(lines[1:]):
+        if i % 2 == 1 and ln.strip():  # observation line: u v point3D_id triples
+            v = ln.split()
+            for j in range(0, len(v), 3):
+                v[j] = repr(float(v[j]) * k)
+                v[j + 1] = repr(float(v[j + 1]) * k)
+            ln = " ".join(v)
+        out.append(ln)
+    imgs.write_text("\n".join(out))
+    for i, f in enumerate(sorted((src / "images").iterdir())):
+        photo(i).save(f.with_suffix(".jpg"), quality=90)
+        f.unlink()
+    imgs.write_text(imgs.read_text().replace(".png", ".jpg"))
+    return src
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--segments", type=int, default=200)
+    ap.add_argument("--keep", type=Path, default=None, help="keep the data directory here")
+    args = ap.parse_args()
+
+    import httpx
+    import uvicorn
+    from playwright.sync_api import sync_playwright
+
+    from app.config import Settings
+    from app.main import create_app
+    from app.users import service as users
+
+    tmp = Path(args.keep or tempfile.mkdtemp(prefix="bench_browser_"))
+    imports = tmp / "imports"
+    imports.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    source = build_reconstruction(imports)
+    t_build = time.perf_counter() - t0
+    settings = Settings(data_dir=tmp / "data", env="development", import_roots=[imports],
+                        frontend_dir=REPO / "frontend", live_lifting=False)
+    app = create_app(settings)
+    with app.state.ctx.sessions() as s:
+        users.create_user(session=s, username="admin", password="admin-password-1", role="admin")
+    from tests.e2e.conftest import free_port
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    th = threading.Thread(target=server.run, daemon=True)
+    th.start()
+    while not server.started:
+        time.sleep(0.05)
+    base = f"http://127.0.0.1:{port}"
+    c = httpx.Client(base_url=base, timeout=120)
+    tok = c.post("/api/auth/login", json={"username": "admin", "password": "admin-password-1"}).json()["token"]
+    c.headers["Authorization"] = f"Bearer {tok}"
+    job = c.post("/api/scenes/import", json={"name": "big", "source": str(source)}).json()
+    while (j := c.get(f"/api/jobs/{job['id']}").json())["status"] in ("queued", "running"):
+        time.sleep(0.2)
+    assert j["status"] == "done", j
+    sid = j["scene_id"]
+    frame = c.get(f"/api/scenes/{sid}/frames").json()[0]
+    fid = frame["id"]
+    assert (frame["width"], frame["height"]) == (W, H), frame
+    # a saved mask so "open" loads image + mask: a third of the frame painted as class 6
+    ids = np.zeros((H, W), np.uint8)
+    ids[: H // 3] = 6
+    buf = io.BytesIO()
+    Image.fromarray(ids, mode="L").save(buf, format="PNG")
+    r = c.put(f"/api/frames/{fid}/mask?kind=draft", content=buf.getvalue(),
+              headers={"Content-Type": "image/png", "If-Match": "none"})
+    assert r.status_code == 200, r.text
+    image_bytes = (imports / "big" / "images").glob("*.jpg").__next__().stat().st_size
+
+    result: dict = {"image": [W, H], "image_jpeg_bytes": image_bytes, "build_s": round(t_build, 1)}
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+        ctx = browser.new_context(viewport={"width": 1366, "height": 800})
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.set_default_timeout(60_000)
+        page.goto(f"{base}/#/login")
+        page.fill("#username", "admin")
+        page.fill("#password", "admin-password-1")
+        page.click("button[type=submit]")
+        page.wait_for_selector("#whoami:has-text('admin')")
+
+        # ---- open: median of 3 loads; baseline = image fetch + decode alone -------------
+        opens = []
+        for _ in range(3):
+            page.goto(f"{base}/#/annotate?scene={sid}&frame={fid}")
+            page.reload()
+            page.wait_for_function("() => window.__occufly && window.__occufly.page.stats.openMs !== null")
+            opens.append(page.evaluate("() => window.__occufly.page.stats.openMs") / 1000)
+            phases = page.evaluate("() => window.__occufly.page.stats.openPhases")
+        base_open = []
+        for _ in range(3):
+            base_open.append(page.evaluate(
+                """async (fid) => { const t = performance.now();
+                     const b = await (await fetch(`/api/frames/${fid}/image`, {cache: 'no-store'})).blob();
+                     const bmp = await createImageBitmap(b); bmp.close();
+                     return (performance.now() - t) / 1000; }""", fid))
+        mo, mb = statistics.median(opens), statistics.median(base_open)
+        result["open"] = {"seconds": round(mo, 3), "all": [round(x, 3) for x in opens],
+                          "baseline_image_only_s": round(mb, 3), "ratio": round(mo / mb, 2),
+                          "target_s": 2.0, "ok": mo <= 2.0,
+                          "phases_ms_last_load": phases}
+
+        # ---- stroke fps ------------------------------------------------------------------
+        stroke_js = """async ([n, zoom]) => {
+          const pg = window.__occufly.page, ed = pg.editor, v = ed.view;
+          if (zoom) { v.scale = 1; v.tx = -1500; v.ty = -1000; v.invalidate(); } else v.fit();
+          ed.selectClass(ed.classes[0].id); ed.setTool('brush'); ed.setSize(60);
+          await new Promise(requestAnimationFrame); await new Promise(requestAnimationFrame);
+          const ov = v.overlay, r = ov.getBoundingClientRect();
+          const pts = [];
+          for (let i = 0; i <= n; i++) {   // a zig-zag over the middle of the window
+            const t = i / n;
+            pts.push([r.left + r.width * (0.15 + 0.7 * t), r.top + r.height * (0.3 + 0.4 * Math.abs(Math.sin(t * 12)))]);
+          }
+          const fire = (type, [x, y]) => ov.dispatchEvent(new PointerEvent(type, {clientX: x, clientY: y,
+              pointerId: 1, pointerType: 'mouse', isPrimary: true, button: 0, buttons: 1, bubbles: true}));
+          const work = [];
+          const off = v.rendered.add((ms) => work.push(ms));
+          const undos = ed.history.undos.length;
+          fire('pointerdown', pts[0]);
+          const t0 = performance.now();
+          for (let i = 1; i <= n; i++) {
+            const s = performance.now();
+            fire('pointermove', pts[i]);
+            work.push(-(performance.now() - s));   // input handling (stamp) time, negative tag
+            await new Promise(requestAnimationFrame);
+          }
+          await new Promise(requestAnimationFrame);
+          const el = performance.now() - t0;
+          fire('pointerup', pts[n]);
+          off();
+          const stamp = work.filter((x) => x < 0).map((x) => -x), render = work.filter((x) => x >= 0);
+          const q = (a, p) => a.slice().sort((x, y) => x - y)[Math.min(a.length - 1, Math.floor(p * a.length))];
+          return {fps: n / (el / 1000), elapsed_ms: el, segments: n, frames_rendered: render.length,
+                  stamp_ms_p50: q(stamp, 0.5), stamp_ms_p95: q(stamp, 0.95),
+                  render_ms_p50: q(render, 0.5), render_ms_p95: q(render, 0.95),
+                  one_undo_step: ed.history.undos.length === undos + 1,
+                  painted_share: ed.mask.paintedShare, scale: v.scale};
+        }"""
+        base_js = """async (n) => { const t = performance.now();
+            for (let i = 0; i < n; i++) await new Promise(requestAnimationFrame);
+            return n / ((performance.now() - t) / 1000); }"""
+        baseline_fps = page.evaluate(base_js, args.segments)
+        fit = page.evaluate(stroke_js, [args.segments, False])
+        one = page.evaluate(stroke_js, [args.segments, True])
+        for d in (fit, one):
+            for k2, v2 in list(d.items()):
+                if isinstance(v2, float):
+                    d[k2] = round(v2, 3)
+        result["stroke"] = {"fit_view": fit, "zoom_1to1": one, "baseline_raf_fps": round(baseline_fps, 1),
+                            "ratio_fit": round(fit["fps"] / baseline_fps, 3),
+                            "ratio_1to1": round(one["fps"] / baseline_fps, 3),
+                            "target_fps": 30, "ok": min(fit["fps"], one["fps"]) >= 30}
+
+        # ---- zoom: full redraws --------------------------------------------------------
+        zoom = page.evaluate("""async () => { const v = window.__occufly.page.editor.view; v.fit();
+            await new Promise(requestAnimationFrame);
+            const t = performance.now(); const n = 60;
+            for (let i = 0; i < n; i++) { v.zoomAt(i < 30 ? 1.08 : 1 / 1.08, v.cssW / 2, v.cssH / 2);
+                                          await new Promise(requestAnimationFrame); }
+            return n / ((performance.now() - t) / 1000); }""")
+        result["zoom"] = {"fps": round(zoom, 1), "steps": 60, "baseline_raf_fps": round(baseline_fps, 1),
+                          "ratio": round(zoom / baseline_fps, 3)}
+
+        # ---- save: grey PNG vs canvas.toBlob of the colour canvas -------------------------
+        save = page.evaluate("""async () => { const pg = window.__occufly.page; const m = pg.editor.mask;
+            await pg.save('draft', {force: true});
+            const s = pg.stats.saves[pg.stats.saves.length - 1];
+            const t = performance.now();
+            const naive = await new Promise((res) => m.canvas.toBlob(res, 'image/png'));
+            return {...s, naive_bytes: naive.size, naive_ms: performance.now() - t,
+                    painted: m.painted}; }""")
+        r = c.get(f"/api/frames/{fid}/mask")
+        im = Image.open(io.BytesIO(r.content))
+        stored = np.asarray(im)
+        result["save"] = {
+            "bytes_sent": save["bytes"], "raw_id_bytes": save["rawBytes"],
+            "compression_ratio": round(save["rawBytes"] / save["bytes"], 1),
+            "encode_ms": round(save["encodeMs"], 1), "total_ms": round(save["totalMs"], 1),
+            "baseline_canvas_toBlob_rgba_bytes": save["naive_bytes"],
+            "baseline_canvas_toBlob_ms": round(save["naive_ms"], 1),
+            "size_ratio_vs_baseline": round(save["bytes"] / save["naive_bytes"], 3),
+            "time_ratio_vs_baseline": round(save["encodeMs"] / save["naive_ms"], 3),
+            "stored_mode": im.mode, "stored_size": list(im.size),
+            "stored_painted_pixels_match": int((stored != 0).sum()) == save["painted"],
+            "content_type_png": r.headers.get("content-type") == "image/png",
+        }
+        result["page_errors"] = errors
+        browser.close()
+    server.should_exit = True
+    th.join(timeout=10)
+    print(json.dumps(result))
+    return 0 if not errors else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

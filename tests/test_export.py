@@ -82,8 +82,8 @@ def test_read_back_literally(ws, exported):
             assert pkl[f"1_{f}"].dtype == np.uint8 and pkl[f"1_{f}"].shape == shape
         assert np.array_equal(pkl["1_1"], label.reshape(64, 48, 64))
         tie = [int(v) for v in default_taxonomy().tie_order]
-        assert np.array_equal(pkl["1_8"], slow_pool(pkl["1_1"], 8, tie))
-        assert np.array_equal(pkl["1_16"], slow_pool(pkl["1_1"], 16, tie))
+        for f in (2, 4, 8, 16) if i == 0 else (8, 16):
+            assert np.array_equal(pkl[f"1_{f}"], slow_pool(pkl["1_1"], f, tie)), f
         depth = np.load(base / "depth_maps" / f"{fid}.npy")
         cal = np.loadtxt(base / "calibration.txt")
         assert cal.shape == (6,) and tuple(cal) == (40.0, 40.0, 32.0, 24.0, 64, 48)

@@ -48,33 +48,60 @@ def majority_pool(labels: np.ndarray, factor: int, priority_lut: np.ndarray) -> 
     priority_lut: (256,) int rank of each raw id in the tie order (0 = most preferred).
     Returns (X/f, Y/f, Z/f) uint8 following the rule in the module docstring.
     """
-    if factor == 1:
-        return labels.copy()
+    return majority_pyramid(labels, (factor,), priority_lut)[factor]
+
+
+def majority_pyramid(labels: np.ndarray, factors: tuple[int, ...], priority_lut: np.ndarray
+                     ) -> dict[int, np.ndarray]:
+    """Majority pooling for several power-of-two factors at once.
+
+    Sparse: only the non-empty valid voxels (a few per cent of a frame grid) are counted,
+    per (block, class) with ``np.unique``; "all invalid" blocks come from an any-reduction
+    of the valid mask, done hierarchically (exact for *any*). Every level is pooled from
+    the full-resolution grid, never from a pooled grid.
+    """
+    labels = np.ascontiguousarray(labels, dtype=np.uint8)
     X, Y, Z = labels.shape
-    if X % factor or Y % factor or Z % factor:
-        raise ValueError(f"grid shape {labels.shape} is not divisible by {factor}")
-    f = factor
-    blocks = labels.reshape(X // f, f, Y // f, f, Z // f, f).transpose(0, 2, 4, 1, 3, 5)
-    blocks = blocks.reshape(-1, f * f * f)
-    nb = blocks.shape[0]
-    present = np.flatnonzero(np.bincount(labels.reshape(-1), minlength=256))
-    classes = present[(present != 0) & (present != 255)]
-    out = np.zeros(nb, dtype=np.uint8)
-    any_valid = (blocks != 255).any(axis=1)
-    out[~any_valid] = 255
-    if len(classes):
-        compact = np.full(256, len(classes), dtype=np.int64)  # empty/invalid -> spare column
-        compact[classes] = np.arange(len(classes))
-        idx = compact[blocks] + (np.arange(nb) * (len(classes) + 1))[:, None]
-        counts = np.bincount(idx.reshape(-1), minlength=nb * (len(classes) + 1))
-        counts = counts.reshape(nb, len(classes) + 1)[:, :-1]
-        rank = np.asarray(priority_lut, dtype=np.int64)[classes]
-        rank = np.where(rank < 0, 255 + classes, rank)  # ids outside the taxonomy: last, by id
-        score = counts * 1024 - rank[None, :]
-        best = score.argmax(axis=1)
-        has = counts.max(axis=1) > 0
-        out[has] = classes[best[has]].astype(np.uint8)
-    return out.reshape(X // f, Y // f, Z // f)
+    out: dict[int, np.ndarray] = {}
+    for f in factors:
+        if f < 1 or f & (f - 1):
+            raise ValueError(f"pooling factor must be a power of two, got {f}")
+        if X % f or Y % f or Z % f:
+            raise ValueError(f"grid shape {labels.shape} is not divisible by {f}")
+        if f == 1:
+            out[1] = labels.copy()
+    coarse = sorted(f for f in factors if f > 1)
+    if not coarse:
+        return out
+    flat = labels.reshape(-1)
+    occ = np.flatnonzero((flat != 0) & (flat != 255))
+    cls = flat[occ].astype(np.int64)
+    i, rem = np.divmod(occ, Y * Z)
+    j, k = np.divmod(rem, Z)
+    rank_lut = np.asarray(priority_lut, dtype=np.int64).copy()
+    unknown = rank_lut < 0
+    rank_lut[unknown] = 255 + np.flatnonzero(unknown)  # ids outside the taxonomy: last, by id
+    valid_any = labels != 255
+    cur_f = 1
+    for f in coarse:
+        while cur_f < f:
+            s = valid_any.shape
+            valid_any = valid_any.reshape(s[0] // 2, 2, s[1] // 2, 2, s[2] // 2, 2).any(axis=(1, 3, 5))
+            cur_f *= 2
+        b, c = Y // f, Z // f
+        res = np.where(valid_any, np.uint8(0), np.uint8(255)).astype(np.uint8).reshape(-1)
+        if len(occ):
+            bid = ((i // f) * b + j // f) * c + k // f
+            keys, counts = np.unique(bid * 256 + cls, return_counts=True)
+            kb, kc = keys // 256, keys % 256
+            # per block: highest count first, then the most preferred class
+            order = np.lexsort((rank_lut[kc], -counts, kb))
+            kb, kc = kb[order], kc[order]
+            first = np.ones(len(kb), dtype=bool)
+            first[1:] = kb[1:] != kb[:-1]
+            res[kb[first]] = kc[first].astype(np.uint8)
+        out[f] = res.reshape(X // f, Y // f, Z // f)
+    return out
 
 
 # ---- hashing / identity ------------------------------------------------------------------------

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occufly.export.common import STATE_DIR, majority_pool, pack_bits
+from occufly.export.common import STATE_DIR, majority_pyramid, pack_bits
 
 NAME = "occufly"
 POOL_FACTORS = (1, 2, 4, 8, 16)
@@ -87,8 +87,8 @@ def frame_files(
         "altitude": int(altitude),
         "pose": np.asarray(pose, dtype=np.float32),
     }
-    for f in POOL_FACTORS:
-        pkl[f"1_{f}"] = majority_pool(label, f, priority_lut)
+    for f, grid in majority_pyramid(label, POOL_FACTORS, priority_lut).items():
+        pkl[f"1_{f}"] = grid
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(depth, dtype=np.float32).reshape(-1), allow_pickle=False)
     return {

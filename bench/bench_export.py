@@ -1,0 +1,103 @@
+"""Benchmark: whole export of the synthetic ``bench`` scene with 2 workers, against writing
+the same bytes with no computation, in the same run.
+
+1. ``export_dataset`` (OccuFly layout, default 192x128x128 @ 0.5 m, local pool of 2
+   processes) into a fresh folder: wall time T_export.
+2. Baseline: every file the export produced (same paths under a fresh folder, same bytes)
+   written by 2 processes with the same atomic write (temp file, fsync, rename) and the same
+   per-frame done markers: wall time T_write.
+
+Prints one JSON object with both times, the ratio T_export / T_write (target <= 3), bytes,
+frames and the per-frame compute split reported by the export.
+
+    .venv/bin/python bench/bench_export.py [--root /tmp/occufly_bench] [--preset bench]
+        [--frames N] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_sampling import ensure_scene  # noqa: E402
+
+
+def write_chunk(items: list[tuple[str, bytes]]) -> int:
+    from occufly.fsutil import atomic_write_bytes, fsync_dir
+
+    dirs = set()
+    for path, data in items:
+        atomic_write_bytes(path, data)
+        dirs.add(str(Path(path).parent))
+    for d in dirs:
+        fsync_dir(Path(d))
+    return sum(len(b) for _, b in items)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--root", type=Path, default=Path("/tmp/occufly_bench"))
+    ap.add_argument("--preset", default="bench")
+    ap.add_argument("--frames", type=int, help="export only the first N frames (default all)")
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    out, ws = ensure_scene(args.root, args.preset)
+
+    from occufly.export import export_dataset
+    from occufly.grid import SceneGrid
+    from occufly.parallel import LocalExecutor
+    from occufly.scene import Scene
+
+    grid = SceneGrid.load(out / "truth" / "scene_grid.npz")
+    n = len(Scene.load(ws).frames)
+    frames = list(range(min(n, args.frames))) if args.frames else None
+    exp = args.root / f"export_{args.preset}"
+    base = args.root / f"baseline_{args.preset}"
+    shutil.rmtree(exp, ignore_errors=True)
+    shutil.rmtree(base, ignore_errors=True)
+
+    with LocalExecutor(args.workers) as ex:
+        ex.map(abs, [0, 1])  # start the worker processes outside the timing
+        t0 = time.perf_counter()
+        res = export_dataset(ws, exp, grid=grid, frames=frames, executor=ex)
+        t_export = time.perf_counter() - t0
+
+    # the same bytes, grouped per frame like the export, written with no computation
+    files = [p for p in sorted(exp.rglob("*")) if p.is_file()]
+    payload = [(str(base / p.relative_to(exp)), p.read_bytes()) for p in files]
+    chunks = [payload[i::args.workers] for i in range(args.workers)]
+    with ProcessPoolExecutor(args.workers) as pool:
+        list(pool.map(abs, [0, 1]))
+        t0 = time.perf_counter()
+        written = sum(pool.map(write_chunk, chunks))
+        t_write = time.perf_counter() - t0
+
+    r = res["results"]
+    print(json.dumps({
+        "bench": "export", "preset": args.preset, "workers": args.workers,
+        "frames": res["frames"], "bytes_export": res["bytes"], "bytes_baseline": written,
+        "files": len(files),
+        "export_s": round(t_export, 2), "write_only_s": round(t_write, 2),
+        "ratio_export_vs_write": round(t_export / t_write, 2), "target_ratio": 3.0,
+        "per_frame_s_median": round(float(np.median([x["seconds"] for x in r])), 3) if r else None,
+        "per_frame_sample_s_median": round(float(np.median([x["seconds_sample"] for x in r])), 3) if r else None,
+        "cpu_count": os.cpu_count(), "loadavg_1m": round(os.getloadavg()[0], 2),
+    }))
+    shutil.rmtree(base, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -20,7 +20,8 @@ Masks (all (X, Y, Z) bool):
 - **surface**: valid, occupied, and at least one of its 6 neighbours is empty. Neighbours are
   looked up in the *sampled* grid before the frustum crop (so a voxel is not "surface" just
   because its neighbour is outside the image); a neighbour outside the frame grid counts as
-  not empty.
+  not empty. (Only a widened frustum, dilated by one slice, is sampled -- see
+  :func:`region_rects` -- which always contains every valid voxel's 6 neighbours.)
 - **occluded**: valid, occupied, and its pixel's ray hits an occupied voxel in an earlier
   depth slice first. Rays: an angular raster over undistorted normalised image coordinates
   (a = x/z, b = y/z) with cell size ``voxel_size / (oversample * far)`` (default
@@ -439,10 +440,11 @@ def sample_frame(
     valid = frustum_mask(camera, spec) & inside
     near_frustum = frustum_mask(camera, spec, margin=True)
     occluded = occlusion_mask(occupied_all, surface_all, valid, camera, spec, near_frustum)
-    labels = np.where(valid, labels_all, np.uint8(0)).astype(np.uint8)
+    labels = labels_all
+    labels[~valid] = 0
     surface = surface_all & valid
     return FrameGT(labels=labels, invalid=~valid, surface=surface, occluded=occluded,
-                   stats={"occupied": int(np.count_nonzero(labels)), "valid": int(valid.sum())})
+                   stats={"occupied": int(np.count_nonzero(labels)), "valid": int(np.count_nonzero(valid))})
 
 
 # ---- depth maps ---------------------------------------------------------------------------------

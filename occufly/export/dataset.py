@@ -163,7 +163,7 @@ def export_frame_task(task: dict) -> dict:
     return {
         "frame_id": task["frame_id"], "altitude": task["altitude"], "name": frame.name,
         "occupied": gt.stats["occupied"], "valid": gt.stats["valid"],
-        "surface": int(gt.surface.sum()), "occluded": int(gt.occluded.sum()),
+        "surface": int(np.count_nonzero(gt.surface)), "occluded": int(np.count_nonzero(gt.occluded)),
         "depth_source": depth_src, "depth_pixels": int(np.count_nonzero(depth)),
         "bytes": nbytes, "seconds_sample": round(t_sample, 4),
         "seconds_compute": round(t_compute, 4), "seconds": round(time.perf_counter() - t0, 4),

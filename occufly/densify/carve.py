@@ -17,7 +17,7 @@ Conventions (documented because papers and libraries differ):
   libraries use α as the radius itself, or α² -- not here.) Internally the threshold is
   converted to pixels (1/α / pixel).
 - **Silhouette.** The kept triangles and the projected points themselves are rasterised
-  (pixel centres inside a triangle); the mask can be dilated by ``dilation`` voxel edges.
+  (pixel centres inside a kept triangle, scan-converted row spans); the mask can be dilated by ``dilation`` voxel edges.
   The default is no dilation: thin surfaces (a wall seen edge-on projects to a line) are
   already covered because the voxels holding the instance's points are always kept, and a
   half-voxel dilation adds a layer of voxels that do not touch the object (measured: a
@@ -26,7 +26,7 @@ Conventions (documented because papers and libraries differ):
   a voxel is kept when its centre projects inside *every* silhouette. The voxels holding the
   instance's own points are always kept.
 
-Everything is vectorised over points, triangles, pixels and voxels; the only Python loop is
+Everything is vectorised over points, pixels and voxels; the only Python loop is
 over the K cameras.
 """
 
@@ -88,53 +88,52 @@ def circumradius(tri: np.ndarray) -> np.ndarray:
     return np.where(area2 > 1e-12, r, np.inf)
 
 
-def rasterize_triangles(tri: np.ndarray, shape: tuple[int, int], chunk: int = 4_000_000) -> np.ndarray:
+def rasterize_triangles(tri: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Pixels whose centres lie inside (or on the edge of) any triangle.
 
     tri: (T, 3, 2) float64 vertices in pixel units (x = column, y = row; pixel (r, c) has its
     centre at (c + 0.5, r + 0.5)). Returns an (H, W) bool mask.
+
+    Scan conversion without per-pixel work: each triangle is cut by the rows of pixel centres
+    it spans into one [x_left, x_right] span per row; the spans are accumulated in a
+    difference image (+1 at the first pixel, -1 after the last) whose running sum along the
+    rows is the coverage. Cost O(sum of triangle heights), vectorised over all triangles.
     """
     h, w = shape
-    mask = np.zeros(shape, dtype=bool)
     if len(tri) == 0:
-        return mask
-    lo = np.floor(tri.min(axis=1) - 0.5).astype(np.int64)
-    hi = np.ceil(tri.max(axis=1) - 0.5).astype(np.int64)
-    lo = np.clip(lo, 0, [w - 1, h - 1])
-    hi = np.clip(hi, 0, [w - 1, h - 1])
-    nx = hi[:, 0] - lo[:, 0] + 1
-    ny = hi[:, 1] - lo[:, 1] + 1
-    n = nx * ny
-    # orientation so that inside means all edge functions >= 0
-    d1 = tri[:, 1] - tri[:, 0]
-    d2 = tri[:, 2] - tri[:, 0]
-    sign = np.sign(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-    ends = np.cumsum(n)
-    starts = ends - n
-    t0 = 0
-    while t0 < len(tri):
-        # take triangles until the candidate budget is used
-        t1 = int(np.searchsorted(ends, starts[t0] + chunk, side="right"))
-        t1 = max(t1, t0 + 1)
-        sel = np.arange(t0, t1)
-        cnt = n[sel]
-        tid = np.repeat(sel, cnt)
-        local = np.arange(int(cnt.sum()), dtype=np.int64) - np.repeat(starts[sel] - starts[t0], cnt)
-        px = lo[tid, 0] + local % nx[tid]
-        py = lo[tid, 1] + local // nx[tid]
-        cx = px + 0.5
-        cy = py + 0.5
-        inside = np.ones(len(tid), dtype=bool)
-        v = tri[tid]
-        s = sign[tid]
-        for e in range(3):
-            p0 = v[:, e]
-            p1 = v[:, (e + 1) % 3]
-            edge = (p1[:, 0] - p0[:, 0]) * (cy - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (cx - p0[:, 0])
-            inside &= edge * s >= -1e-9
-        mask[py[inside], px[inside]] = True
-        t0 = t1
-    return mask
+        return np.zeros(shape, dtype=bool)
+    y = tri[:, :, 1]
+    r0 = np.clip(np.ceil(y.min(axis=1) - 0.5), 0, h).astype(np.int64)
+    r1 = np.clip(np.floor(y.max(axis=1) - 0.5), -1, h - 1).astype(np.int64)
+    nrow = np.maximum(0, r1 - r0 + 1)
+    tid = np.repeat(np.arange(len(tri)), nrow)
+    row = r0[tid] + (np.arange(int(nrow.sum())) - np.repeat(np.cumsum(nrow) - nrow, nrow))
+    cy = row + 0.5
+    xl = np.full(len(tid), np.inf)
+    xr = np.full(len(tid), -np.inf)
+    v = tri[tid]
+    for e in range(3):
+        p0 = v[:, e]
+        p1 = v[:, (e + 1) % 3]
+        ya, yb = np.minimum(p0[:, 1], p1[:, 1]), np.maximum(p0[:, 1], p1[:, 1])
+        hit = (cy >= ya - 1e-9) & (cy <= yb + 1e-9)
+        dy = p1[:, 1] - p0[:, 1]
+        flat = np.abs(dy) < 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = p0[:, 0] + (cy - p0[:, 1]) * (p1[:, 0] - p0[:, 0]) / dy
+        xa = np.where(flat, np.minimum(p0[:, 0], p1[:, 0]), x)
+        xb = np.where(flat, np.maximum(p0[:, 0], p1[:, 0]), x)
+        xl = np.where(hit, np.minimum(xl, xa), xl)
+        xr = np.where(hit, np.maximum(xr, xb), xr)
+    ok = np.isfinite(xl) & np.isfinite(xr)
+    c0 = np.clip(np.ceil(xl[ok] - 0.5 - 1e-9), 0, w).astype(np.int64)
+    c1 = np.clip(np.floor(xr[ok] - 0.5 + 1e-9), -1, w - 1).astype(np.int64)
+    row = row[ok]
+    good = c1 >= c0
+    diff = np.zeros((h, w + 1), dtype=np.int32)
+    np.add.at(diff, (row[good], c0[good]), 1)
+    np.add.at(diff, (row[good], c1[good] + 1), -1)
+    return np.cumsum(diff[:, :w], axis=1) > 0
 
 
 def alpha_silhouette(uv: np.ndarray, shape: tuple[int, int], alpha: float) -> np.ndarray:

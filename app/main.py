@@ -122,6 +122,57 @@ def authorize_viewer(ctx: AppContext):
     return authorize
 
 
+def viewer_callbacks(ctx: AppContext) -> dict:
+    """The optional hooks of ``app.viewer.mount``: who is asking, which scenes, frame states,
+    current masks, and filing review items from 3D (scene ids are ``str(scene.id)``)."""
+    import io
+
+    import numpy as np
+    from sqlalchemy import select
+
+    from app.deps import token_from
+    from app.review.service import make_viewer_callback
+    from app.scenes.models import Frame, Scene
+    from app.users import service as users
+
+    def identify(conn):  # noqa: ANN001, ANN202
+        token = token_from(conn)
+        if not token:
+            return None
+        with ctx.sessions() as s:
+            return users.user_for_token(session=s, settings=ctx.settings, token=token)
+
+    def scenes() -> dict:
+        with ctx.sessions() as s:
+            return {str(sc.id): (sc.name, sc.workspace)
+                    for sc in s.scalars(select(Scene).where(Scene.status == "ready"))}
+
+    def frame_states(scene_id) -> dict:  # noqa: ANN001
+        from app.viewer.scene_builder import viewer_state
+
+        with ctx.sessions() as s:
+            rows = s.execute(select(Frame.index, Frame.selected, Frame.state)
+                             .where(Frame.scene_id == int(scene_id))).all()
+        return {i: viewer_state(sel, st) for i, sel, st in rows}
+
+    def frame_mask(scene_id, frame_index):  # noqa: ANN001, ANN202
+        from PIL import Image
+
+        from app.annotations.models import MaskVersion
+
+        with ctx.sessions() as s:
+            sha = s.scalar(select(MaskVersion.sha256).join(
+                Frame, Frame.current_version_id == MaskVersion.id).where(
+                Frame.scene_id == int(scene_id), Frame.index == int(frame_index)))
+        if sha is None:
+            return None
+        with Image.open(io.BytesIO(ctx.store.get(sha))) as im:
+            return np.asarray(im).astype(np.uint8)
+
+    return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
+            "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx)}
+
+
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     try:
         import app.viewer as viewer
@@ -130,17 +181,14 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     mount = getattr(viewer, "mount", None)
     if mount is None:
         return
-    from app.review.service import make_viewer_callback
-
     import inspect
 
-    callback = make_viewer_callback(ctx)
-    app.state.on_review_item = callback  # also reachable from the app for the viewer
-    kw = dict(settings=ctx.settings, authorize=authorize_viewer(ctx))
+    hooks = viewer_callbacks(ctx)
+    app.state.on_review_item = hooks["on_review_item"]
     params = inspect.signature(mount).parameters
-    if "on_review_item" in params or any(p.kind is p.VAR_KEYWORD for p in params.values()):
-        kw["on_review_item"] = callback
-    mount(app, **kw)
+    accepts_all = any(p.kind is p.VAR_KEYWORD for p in params.values())
+    kw = {k: v for k, v in hooks.items() if accepts_all or k in params}
+    mount(app, settings=ctx.settings, authorize=authorize_viewer(ctx), **kw)
 
 
 def _mount_frontend(app: FastAPI, settings: Settings) -> None:

@@ -569,3 +569,76 @@ def test_voxelize_without_labels_fails_with_a_clear_message(world):
     j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=hdr["admin"]).json()
     assert j["status"] == "failed" and "no lifted labels" in j["message"]
     assert env.client.get(f"/api/jobs/{j['id']}/download", headers=hdr["admin"]).status_code == 409
+
+
+def test_eval_job_metrics_and_viewer_hooks(world):
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    fid = _lease(env, hdr, scene)
+    m = np.full((H, W), 6, np.uint8)
+    v = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                       headers={**hdr["annotator"], "If-Match": "none"}).json()["version"]
+    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=10)
+    assert env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["admin"]).status_code == 404
+    r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
+    assert met["n_frames"] == 1 and met["frames"][0]["frame_id"] == fid
+    assert met["agreement"] == pytest.approx(1.0)
+    # hooks handed to the 3D viewer
+    from app.main import authorize_viewer, viewer_callbacks
+
+    hooks = viewer_callbacks(env.app.state.ctx)
+    assert hooks["scenes"]() == {str(sid): ("tiny", str(env.settings.workspaces_dir / "tiny"))}
+    index = next(f["index"] for f in frames if f["id"] == fid)
+    states = hooks["frame_states"](str(sid))
+    assert states[index] == "annotated" and set(states.values()) == {"annotated", "selected"}
+    assert np.array_equal(hooks["frame_mask"](str(sid), index), m)
+    assert hooks["frame_mask"](str(sid), (index + 1) % 4) is None
+
+    class Conn:
+        def __init__(self, h):
+            self.headers = {k.lower(): v for k, v in h.items()}
+            self.cookies = {}
+
+    auth = authorize_viewer(env.app.state.ctx)
+    assert [auth(Conn(hdr[r])) for r in ("admin", "reviewer", "annotator")] == [True, True, False]
+    assert auth(Conn({})) is False
+    assert hooks["identify"](Conn(hdr["reviewer"])).username == "reviewer"
+    assert v > 0
+
+
+def test_export_download_streams_the_output(world):
+    import io
+    import tarfile
+
+    env, hdr, scene, _ = world
+    from app.jobs.models import Job
+
+    out = env.settings.exports_dir / "job_x"
+    (out / "OccuFly_Dataset" / "scene_01").mkdir(parents=True)
+    (out / "OccuFly_Dataset" / "scene_01" / "a.bin").write_bytes(b"\x01\x02" * 1000)
+    with env.app.state.ctx.sessions() as s:
+        job = Job(kind="export", scene_id=scene["id"], status="done", params={},
+                  result={"output": str(out)}, progress=1.0, message="done", log="")
+        s.add(job)
+        s.commit()
+        jid = job.id
+    r = env.client.get(f"/api/jobs/{jid}/download", headers=hdr["admin"])
+    assert r.status_code == 200
+    with tarfile.open(fileobj=io.BytesIO(r.content)) as tar:
+        member = tar.extractfile("job_x/OccuFly_Dataset/scene_01/a.bin").read()
+    assert member == b"\x01\x02" * 1000
+    assert env.client.get(f"/api/jobs/{jid}/download", headers=hdr["reviewer"]).status_code == 403
+    # a job whose recorded output points outside the exports folder is never served
+    with env.app.state.ctx.sessions() as s:
+        s.get(Job, jid).result = {"output": str(env.import_root)}
+        s.commit()
+    assert env.client.get(f"/api/jobs/{jid}/download", headers=hdr["admin"]).status_code == 404
+
+
+def test_frontend_and_viewer_are_mounted(env):
+    r = env.client.get("/")
+    assert r.status_code == 200 and "<html" in r.text.lower()
+    assert env.client.get("/viewer/").status_code == 401
+    assert env.client.get("/viewer/", headers=env.bearer("annotator")).status_code == 403

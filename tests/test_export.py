@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.export_fixtures import SPEC, make_grid, make_workspace
 from occufly.errors import WorkspaceError
 from occufly.export import ExportError, export_dataset
 from occufly.export.common import majority_pool
@@ -20,6 +19,7 @@ from occufly.grid import SceneGrid
 from occufly.sampling import sample_frame
 from occufly.scene import Scene
 from occufly.taxonomy import default_taxonomy
+from tests.export_fixtures import SPEC, make_grid, make_workspace
 
 
 @pytest.fixture(scope="module")

@@ -59,7 +59,7 @@ def slow_ssc(pred_root: Path, gt_root: Path) -> dict:
         gl = np.fromfile(g, np.uint8).tolist()
         pl = np.fromfile(pred_root / rel, np.uint8).tolist()
         inv = np.unpackbits(np.fromfile(g.with_suffix(".invalid"), np.uint8))[: len(gl)].tolist()
-        for gv, pv, iv in zip(gl, pl, inv):
+        for gv, pv, iv in zip(gl, pl, inv, strict=True):
             if gv == 255 or iv:
                 continue
             if gv != 0 and pv != 0:
@@ -123,7 +123,7 @@ def slow_depth(pred: np.ndarray, gt: np.ndarray) -> dict:
     d1 = d2 = d3 = 0
     s_abs = s_sq = s_ae = s_d = s_d2 = 0.0
     n = 0
-    for p, g in zip(pred.ravel().tolist(), gt.ravel().tolist()):
+    for p, g in zip(pred.ravel().tolist(), gt.ravel().tolist(), strict=True):
         if not g > 0:
             continue
         p = max(p, 1e-3)

@@ -22,7 +22,7 @@ SPEC = GridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
 CAM = Camera("PINHOLE", 320, 240, [200.0, 200.0, 160.0, 120.0])
 
 
-def aligned_grid(labels: np.ndarray, spec: GridSpec = SPEC, origin=np.zeros(3)) -> SceneGrid:
+def aligned_grid(labels: np.ndarray, spec: GridSpec = SPEC, origin=(0.0, 0.0, 0.0)) -> SceneGrid:
     """A scene grid whose voxels coincide with the frame grid of a camera at the origin with
     identity pose (camera axes = world axes)."""
     X, Y, _ = spec.shape

@@ -49,7 +49,7 @@ from occufly.export.common import (
     sha256_bytes,
     write_frame_files,
 )
-from occufly.fsutil import atomic_write_bytes, atomic_write_text
+from occufly.fsutil import atomic_write_bytes
 from occufly.grid import SceneGrid, workspace_grid_path
 from occufly.progress import ProgressFn
 from occufly.sampling import GridSpec, check_pose, frame_depth_map, sample_frame

@@ -393,12 +393,12 @@ class AnnotatorPage {
   }
 
   /** Encode the mask and PUT it; one save at a time. Returns the server's answer. */
-  async save(kind = "draft", { force = false } = {}) {
+  async save(kind = "draft", { force = false, keepalive = false } = {}) {
     if (!this.editor || !this.frame) return null;
     clearTimeout(this.idleTimer);
     while (this.saving) await this.saving.catch(() => {});
     if (kind === "draft" && !this.unsaved && !force) return null;
-    const run = this._save(kind);
+    const run = this._save(kind, { keepalive });
     this.saving = run;
     this.updateSaveState();
     try {
@@ -409,7 +409,7 @@ class AnnotatorPage {
     }
   }
 
-  async _save(kind) {
+  async _save(kind, { keepalive = false } = {}) {
     const ed = this.editor;
     const seq = this.editSeq;
     const frame = this.frame;
@@ -420,6 +420,7 @@ class AnnotatorPage {
       const res = await api.send("PUT", `/frames/${frame.id}/mask?kind=${kind}`, {
         body: blob,
         headers: { "Content-Type": "image/png", "If-Match": String(this.version ?? "none") },
+        keepalive: keepalive && blob.size < 60000, // browsers cap keepalive bodies at 64 KiB
       });
       const body = await res.json();
       this.version = String(body.version);
@@ -430,6 +431,9 @@ class AnnotatorPage {
       return body;
     } catch (e) {
       if (e instanceof ApiError && e.status === 409) return this.conflict(kind, blob, e);
+      if (e instanceof ApiError && e.status === 401) {
+        throw new ApiError(401, "Your session has expired, so the mask was not saved. Your painting is still here: log in again in another tab (this address with #/login), then press Save draft.");
+      }
       throw e;
     }
   }
@@ -481,10 +485,15 @@ class AnnotatorPage {
     }
   }
 
-  /** Best effort when the tab is hidden or closed: keepalive PUT if small enough. */
+  /**
+   * Leaving: when the tab is hidden the page keeps running, so a normal draft save completes;
+   * when it is being closed, the PUT is sent with keepalive (if under the browser's 64 KiB
+   * limit, typical for masks: large uniform areas compress ~400x) and beforeunload asks the
+   * user to stay while there are unsaved changes.
+   */
   saveOnLeave() {
     if (!this.editor || this.saving) return;
-    this.save("draft").catch(() => {});
+    this.save("draft", { keepalive: true }).catch((e) => showError(e));
   }
 
   async submit() {

@@ -49,7 +49,7 @@ class ReviewerPage {
     this.stateSel = el(
       "select",
       { id: "review-state", "aria-label": "Frame state filter" },
-      ["submitted", "", "in_progress", "accepted", "rejected"].map((s) => el("option", { value: s }, s || "all states")),
+      ["", "submitted", "in_progress", "accepted", "rejected"].map((s) => el("option", { value: s }, s || "all states")),
     );
     this.stateSel.value = this.ctx.params.state ?? "";
     this.listEl = el("div", { class: "frame-list", id: "frame-list" });

@@ -87,9 +87,10 @@ def _majority(cell: np.ndarray, cls: np.ndarray, n_cells: int, priority: np.ndar
     return out
 
 
-def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray) -> tuple[FusedCloud, np.ndarray]:
-    """Fuse samples one point per ``voxel`` cell. Returns the cloud and the (P, 2) int64
-    (point, frame) pairs of the contributing images (visibility is filled from them)."""
+def fuse(samples: Samples, voxel: float, n_frames: int,
+         priority: np.ndarray) -> tuple[FusedCloud, tuple[np.ndarray, np.ndarray]]:
+    """Fuse samples one point per ``voxel`` cell. Returns the cloud and the (point ids (P,)
+    int64, frame ids (P,) int32) pairs of the contributing images."""
     xyz = samples.xyz
     lo = xyz.min(axis=0).astype(np.float64) - voxel
     ijk = np.floor((xyz - lo) / voxel).astype(np.int64)
@@ -109,27 +110,51 @@ def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray) ->
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     label = _majority(inv, samples.cls, n, priority)
     pairs = np.unique(inv.astype(np.int64) * n_frames + samples.frame)
-    contrib = np.column_stack([pairs // n_frames, pairs % n_frames])
+    contrib = (pairs // n_frames, (pairs % n_frames).astype(np.int32))
     cloud = FusedCloud(out_xyz, rgb, nrm.astype(np.float32), label, cnt.astype(np.int32),
                        np.zeros(n + 1, np.int64), np.zeros(0, np.uint32))
     return cloud, contrib
 
 
-def depth_agreement(xyz: np.ndarray, order_x: np.ndarray, xs_sorted: np.ndarray, camera: Camera,
-                    T_cam_world: np.ndarray, depth: np.ndarray, bbox: tuple[float, float, float, float],
-                    tol: float) -> np.ndarray:
-    """Indices of the points whose projection into the image lands on a depth within ``tol``
-    (relative) of the point's own camera depth.
+class TileIndex:
+    """Points bucketed into square xy tiles, for cheap "points inside this xy box" queries.
 
-    xyz: (N, 3) float64 local points; order_x / xs_sorted: argsort of x and the sorted x;
-    depth: (H, W) float32 the image's (noisy) depth map; bbox: local (x0, x1, y0, y1) of the
-    surface the image sees (a superset filter).
+    xyz: (N, 3) float64 scene-local metres.
     """
-    i0, i1 = np.searchsorted(xs_sorted, [bbox[0], bbox[1]])
-    cand = order_x[i0:i1]
+
+    def __init__(self, xyz: np.ndarray, tile: float = 8.0) -> None:
+        self.tile = tile
+        self.lo = xyz[:, :2].min(axis=0)
+        ij = np.floor((xyz[:, :2] - self.lo) / tile).astype(np.int64)
+        self.shape = ij.max(axis=0) + 1
+        tid = ij[:, 0] * self.shape[1] + ij[:, 1]
+        self.order = np.argsort(tid, kind="stable").astype(np.int64)
+        self.starts = np.searchsorted(tid[self.order], np.arange(int(np.prod(self.shape)) + 1))
+
+    def query(self, x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
+        """(K,) int64 indices of the points in the tiles overlapping [x0, x1] x [y0, y1]."""
+        i0, j0 = np.floor((np.array([x0, y0]) - self.lo) / self.tile).astype(np.int64)
+        i1, j1 = np.floor((np.array([x1, y1]) - self.lo) / self.tile).astype(np.int64)
+        i0, i1 = max(i0, 0), min(i1, self.shape[0] - 1)
+        j0, j1 = max(j0, 0), min(j1, self.shape[1] - 1)
+        if i1 < i0 or j1 < j0:
+            return np.zeros(0, np.int64)
+        parts = [self.order[self.starts[i * self.shape[1] + j0] : self.starts[i * self.shape[1] + j1 + 1]]
+                 for i in range(i0, i1 + 1)]
+        return np.concatenate(parts)
+
+
+def depth_agreement(xyz: np.ndarray, index: TileIndex, camera: Camera, T_cam_world: np.ndarray,
+                    depth: np.ndarray, bbox: tuple[float, float, float, float], tol: float) -> np.ndarray:
+    """(K,) int64 indices of the points whose projection into the image lands on a depth within
+    ``tol`` (relative) of the point's own camera depth.
+
+    xyz: (N, 3) float64 local points; index: a :class:`TileIndex` of them; depth: (H, W)
+    float32 the image's (noisy) depth map; bbox: local (x0, x1, y0, y1) of the surface the
+    image sees (a superset filter).
+    """
+    cand = index.query(*bbox)
     p = xyz[cand]
-    m = (p[:, 1] >= bbox[2]) & (p[:, 1] <= bbox[3])
-    cand, p = cand[m], p[m]
     R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
     xc = p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2] + t
     z = xc[:, 2]
@@ -146,12 +171,14 @@ def depth_agreement(xyz: np.ndarray, order_x: np.ndarray, xs_sorted: np.ndarray,
     return cand[ok]
 
 
-def build_visibility(n_points: int, n_frames: int, pairs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Union of (point, frame) pair arrays -> CSR (offsets (N + 1,) int64, frames (M,) uint32)
-    with each point's frames sorted ascending."""
-    keys = np.unique(np.concatenate([p[:, 0].astype(np.int64) * n_frames + p[:, 1] for p in pairs]))
+def build_visibility(n_points: int, n_frames: int, point_ids: list[np.ndarray],
+                     frame_ids: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Union of (point, frame) pairs -> CSR (offsets (N + 1,) int64, frames (M,) uint32),
+    each point's frames sorted ascending and unique."""
+    keys = np.concatenate([p.astype(np.int64) * n_frames + f for p, f in zip(point_ids, frame_ids)])
+    keys = np.unique(keys)
     pts = keys // n_frames
-    frames = (keys % n_frames).astype(np.uint32)
+    frames = (keys - pts * n_frames).astype(np.uint32)
     offsets = np.zeros(n_points + 1, np.int64)
     np.cumsum(np.bincount(pts, minlength=n_points), out=offsets[1:])
     return offsets, frames

@@ -52,12 +52,12 @@ PRESETS: dict[str, Preset] = {
     ),
     "small": Preset(
         name="small", core=80.0, margin=40.0, width=480, height=320,
-        forward_overlap=0.75, side_overlap=0.70, pixel_stride=2, fuse_voxel=0.2,
+        forward_overlap=0.75, side_overlap=0.70, pixel_stride=2, fuse_voxel=0.3,
         image_ext=".jpg", sparse_points=2000,
     ),
     "bench": Preset(
         name="bench", core=115.0, margin=50.0, width=600, height=400,
-        forward_overlap=0.80, side_overlap=0.75, pixel_stride=3, fuse_voxel=0.1,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=3, fuse_voxel=0.17,
         image_ext=".jpg", sparse_points=5000, vis_depth_check=False,
     ),
 }

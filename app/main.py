@@ -125,9 +125,6 @@ def authorize_viewer(ctx: AppContext):
 def viewer_callbacks(ctx: AppContext) -> dict:
     """The optional hooks of ``app.viewer.mount``: who is asking, which scenes, frame states,
     current masks, and filing review items from 3D (scene ids are ``str(scene.id)``)."""
-    import io
-
-    import numpy as np
     from sqlalchemy import select
 
     from app.deps import token_from
@@ -156,18 +153,17 @@ def viewer_callbacks(ctx: AppContext) -> dict:
         return {i: viewer_state(sel, st) for i, sel, st in rows}
 
     def frame_mask(scene_id, frame_index):  # noqa: ANN001, ANN202
-        from PIL import Image
-
         from app.annotations.models import MaskVersion
+        from app.pipeline import stored_mask_ids
 
         with ctx.sessions() as s:
-            sha = s.scalar(select(MaskVersion.sha256).join(
-                Frame, Frame.current_version_id == MaskVersion.id).where(
-                Frame.scene_id == int(scene_id), Frame.index == int(frame_index)))
-        if sha is None:
+            row = s.execute(select(MaskVersion.sha256, Scene.workspace).join(
+                Frame, Frame.current_version_id == MaskVersion.id).join(
+                Scene, Scene.id == Frame.scene_id).where(
+                Frame.scene_id == int(scene_id), Frame.index == int(frame_index))).first()
+        if row is None:
             return None
-        with Image.open(io.BytesIO(ctx.store.get(sha))) as im:
-            return np.asarray(im).astype(np.uint8)
+        return stored_mask_ids(ctx.store.get(row[0]), ctx.load_scene(row[1]).taxonomy)
 
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
             "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx)}

@@ -57,6 +57,19 @@ def decode_mask(data: bytes, frame: SceneFrame, taxonomy: Taxonomy, *, name: str
     single-channel raw-id format (frame size or an exact integer downscale, ids in taxonomy,
     0 and 255 allowed).
     """
+    if has("occufly.io.masks", "decode_mask_png"):
+        # read_mask's steps, with the id check done as a 256-entry lookup (no int64 copy of a
+        # 20 MP mask per upload); on failure occufly's own validate_ids raises its message
+        from occufly.io import masks
+
+        ids = masks.decode_mask_png(data, taxonomy, name=name)
+        masks.mask_scale(ids.shape, frame, name=name)
+        ok = taxonomy.valid_lut().copy()
+        ok[0] = ok[255] = True
+        if not ok[ids].all():
+            masks.validate_ids(ids, taxonomy, name=name)
+            raise MaskError(f"{name}: class ids not in taxonomy {taxonomy.name!r}")
+        return ids
     if has("occufly.io.masks", "read_mask"):
         return pipeline_function("occufly.io.masks", "read_mask")(data, frame, taxonomy, name=name)
     from PIL import Image, UnidentifiedImageError
@@ -92,6 +105,18 @@ def decode_mask(data: bytes, frame: SceneFrame, taxonomy: Taxonomy, *, name: str
     return arr
 
 
+def stored_mask_ids(data: bytes, taxonomy: Taxonomy) -> np.ndarray:
+    """(h, w) uint8 raw ids of a stored (already validated) mask PNG, raw-id or colour."""
+    if has("occufly.io.masks", "decode_mask_png"):
+        from occufly.io import masks
+
+        return masks.decode_mask_png(data, taxonomy, name="stored mask")
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im).astype(np.uint8)
+
+
 def encode_png(arr: np.ndarray) -> bytes:
     """(h, w) uint8 or (h, w, 3|4) uint8 to PNG bytes."""
     from PIL import Image
@@ -118,8 +143,9 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
         scene.save(workspace, overwrite=True)
         return Scene.load(workspace)
     fn = pipeline_function("occufly.io.importer", "import_scene")
+    # the workspace belongs to this scene: a resumed import replaces a partial earlier one
     return fn(source, workspace, cloud=cloud, depth_maps=depth_maps, taxonomy=None,
-              progress=progress)
+              overwrite=True, progress=progress)
 
 
 def select_frames(scene: Scene, **params) -> dict:

@@ -87,13 +87,14 @@ def _mask(width: int, height: int, seed: int) -> bytes:
 
 
 def _seed(env: dict, n_annotators: int, src: Path) -> int:
+    from sqlalchemy import update
+
     from app.config import Settings
     from app.jobs import service as jobs
     from app.main import close, create_app
     from app.scenes import service as scenes
-    from app.users import service as users
-    from sqlalchemy import update
     from app.scenes.models import Frame
+    from app.users import service as users
 
     settings = Settings.from_env(env)
     app = create_app(settings)

@@ -37,6 +37,7 @@ class _SceneWorker:
     thread: threading.Thread | None = None
     fills: int = 0
     included: dict | None = None  # snapshot of state.included_versions(), updated by the worker
+    decoded: dict = field(default_factory=dict)  # frame id -> (version id, (h, w) uint8 mask)
 
 
 class LiftingManager:
@@ -53,11 +54,16 @@ class LiftingManager:
         return self._ctx_getter()
 
     # ---- public -----------------------------------------------------------------------------
-    def notify(self, scene_id: int, frame_id: int) -> None:
+    def notify(self, scene_id: int, frame_id: int, *, version_id: int | None = None,
+               mask=None) -> None:  # noqa: ANN001
+        """Frame ``frame_id`` changed; ``mask`` (the decoded upload of ``version_id``) saves the
+        worker a second PNG decode."""
         if not self.enabled or self._stop:
             return
         w = self._worker(scene_id)
         with w.cond:
+            if mask is not None and version_id is not None:
+                w.decoded[frame_id] = (version_id, mask)
             w.dirty_frames.add(frame_id)
             w.cond.notify_all()
 
@@ -172,7 +178,8 @@ class LiftingManager:
         ctx = self.ctx
         with ctx.sessions() as s:
             scene = s.get(Scene, w.scene_id)
-            rows = s.execute(select(Frame.index, Frame.current_version_id, MaskVersion.sha256)
+            rows = s.execute(select(Frame.index, Frame.current_version_id, MaskVersion.sha256,
+                                    Frame.id)
                              .outerjoin(MaskVersion, MaskVersion.id == Frame.current_version_id)
                              .where(Frame.id.in_(frame_ids))).all()
             workspace = scene.workspace
@@ -181,8 +188,11 @@ class LiftingManager:
             return 0
         changed = 0
         try:
-            for index, version_id, sha in rows:
-                changed += self.apply(state, ctx, index, version_id, sha)
+            for index, version_id, sha, fid in rows:
+                with w.cond:
+                    hit = w.decoded.pop(fid, None)
+                mask = hit[1] if hit is not None and hit[0] == version_id else None
+                changed += self.apply(state, ctx, index, version_id, sha, mask=mask)
         finally:
             snapshot = dict(state.included_versions())
             with w.cond:
@@ -191,13 +201,8 @@ class LiftingManager:
 
     @staticmethod
     def apply(state, ctx: AppContext, frame_index: int, version_id: int | None,
-              sha256: str | None) -> int:
+              sha256: str | None, *, mask=None) -> int:  # noqa: ANN001
         """Make ``state`` count exactly frame ``frame_index``'s version ``version_id``."""
-        import io
-
-        import numpy as np
-        from PIL import Image
-
         tag = None if version_id is None else str(version_id)
         if state.included_versions().get(frame_index) == tag and (
                 tag is not None or frame_index not in state.included_versions()):
@@ -205,8 +210,10 @@ class LiftingManager:
         if version_id is None:
             state.remove_mask(frame_index)
             return 1
-        with Image.open(io.BytesIO(ctx.store.get(sha256))) as im:
-            mask = np.asarray(im)
+        if mask is None:
+            from app.pipeline import stored_mask_ids
+
+            mask = stored_mask_ids(ctx.store.get(sha256), state.scene.taxonomy)
         state.set_mask(frame_index, mask, version=tag, name=f"mask version {version_id}")
         return 1
 

@@ -125,6 +125,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         lost_lease = True
     else:
         lost_lease = False
+    mask = None
     if sha256 is None:
         mask = _decode_for_frame(ctx, session, frame, data)  # MaskError -> 422, nothing stored
         h, w = mask.shape
@@ -141,7 +142,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     session.flush()
     if lost_lease:
         session.commit()
-        raise Conflict(f"frame {frame.id} is now leased to another annotator; your upload was "
+        raise Conflict(f"frame {frame.id} is no longer leased to you; your upload was "
                        f"kept as conflict version {version.id}",
                        current_version=frame.current_version_id, conflict_version=version.id)
     now = utcnow()
@@ -166,7 +167,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
             f" is not the current version {current}; your upload was kept as conflict version "
             f"{version.id}", current_version=current, conflict_version=version.id)
     session.commit()
-    ctx.lifting.notify(frame.scene_id, frame.id)
+    ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
     return version
 
 

@@ -8,8 +8,14 @@ from app import pipeline
 from app.deps import CtxDep, CurrentUser, FrameDep, ReviewerUser, SceneDep, SessionDep
 from app.errors import Forbidden
 from app.review import service
-from app.review.schemas import (AgreementOut, CommentIn, ItemPatch, ReviewDecisionIn,
-                                ReviewItemIn, ReviewItemOut)
+from app.review.schemas import (
+    AgreementOut,
+    CommentIn,
+    ItemPatch,
+    ReviewDecisionIn,
+    ReviewItemIn,
+    ReviewItemOut,
+)
 from app.scenes import service as scenes
 from app.scenes.models import Scene
 from app.scenes.schemas import FrameOut

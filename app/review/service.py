@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from datetime import timedelta
 
 import numpy as np
@@ -20,11 +19,8 @@ from app.users.models import User
 
 
 # ---- render-back and agreement --------------------------------------------------------------
-def _mask_array(ctx: AppContext, sha256: str) -> np.ndarray:
-    from PIL import Image
-
-    with Image.open(io.BytesIO(ctx.store.get(sha256))) as im:
-        return np.asarray(im).astype(np.uint8)
+def _mask_array(ctx: AppContext, scene: Scene, sha256: str) -> np.ndarray:
+    return pipeline.stored_mask_ids(ctx.store.get(sha256), ctx.load_scene(scene.workspace).taxonomy)
 
 
 def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> np.ndarray:
@@ -40,7 +36,7 @@ def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1)
 def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
     """(mask, rendered at the mask's size, version id) of the frame's current mask."""
     v = annotations.current_version(session=session, frame=frame)
-    mask = _mask_array(ctx, v.sha256)
+    mask = _mask_array(ctx, scene, v.sha256)
     labels = annotations.current_labels(ctx, scene)
     if labels is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")

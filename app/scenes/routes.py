@@ -11,8 +11,7 @@ from app.jobs import service as jobs
 from app.jobs.schemas import JobOut
 from app.scenes import service
 from app.scenes.models import Scene
-from app.scenes.schemas import (FrameDetail, FrameOut, ImportIn, SceneDetail, SceneOut,
-                                SelectionIn)
+from app.scenes.schemas import FrameDetail, FrameOut, ImportIn, SceneDetail, SceneOut, SelectionIn
 
 router = APIRouter(prefix="/api", tags=["scenes"])
 CACHE = "private, max-age=86400"

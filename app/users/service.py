@@ -57,8 +57,9 @@ def _record_failure(session: Session, settings: Settings, keys: list[str]) -> No
             session.add(row)
         row.failures += 1
         row.updated_at = now
-        lock = security.lock_duration(row.failures, settings.login_free_failures,
-                                      settings.login_max_lock_s)
+        # an address (office NAT) is shared by many people: it gets 4x the free failures
+        free = settings.login_free_failures * (4 if key.startswith("ip:") else 1)
+        lock = security.lock_duration(row.failures, free, settings.login_max_lock_s)
         row.locked_until = now + lock if lock else None
     try:
         session.commit()

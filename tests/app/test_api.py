@@ -62,6 +62,12 @@ def test_login_bruteforce_is_throttled(env):
     r = env.client.post("/api/auth/login", json={"username": "admin",
                                                  "password": "correct-horse-battery"})
     assert r.status_code == 429
+    # spraying many user names from one address locks the address (after 4x the failures)
+    for i in range(12 - 3):  # the address already has 3 failures (admin, above)
+        r = env.client.post("/api/auth/login", json={"username": f"u{i}", "password": "nope-nope"})
+        assert r.status_code == 401, i
+    r = env.client.post("/api/auth/login", json={"username": "reviewer", "password": "nope-nope"})
+    assert r.status_code == 429
 
 
 def test_admin_creates_users_and_duplicates_conflict(env):
@@ -488,8 +494,9 @@ def test_agreement_render_and_disagreement(world):
     img = env.client.get(f"/api/frames/{fid}/disagreement", headers=hdr["reviewer"])
     assert img.status_code == 200 and img.content.startswith(b"\x89PNG")
     pre = env.client.get(f"/api/frames/{fid}/prefill", headers=hdr["annotator"])
-    from PIL import Image
     import io
+
+    from PIL import Image
 
     arr = np.asarray(Image.open(io.BytesIO(pre.content)))
     assert arr.shape == (H, W) and set(np.unique(arr)) <= {0, 6} and (arr == 6).any()

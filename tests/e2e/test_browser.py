@@ -184,6 +184,12 @@ def test_conflict_dialog_keeps_both_versions(live, new_page):
     assert np.array_equal(png_ids(old.content), theirs)
     kinds = [v["kind"] for v in rev.get(f"/api/frames/{fb}/mask/versions").json()]
     assert "conflict" in kinds
+    # the version history restores theirs as the newest version (and the editor shows it)
+    page.click("details.versions summary")
+    page.click(f".version-list li[data-version='{theirs_version}'] button:has-text('restore')")
+    page.wait_for_function(f"() => window.__occufly.page.version !== '{cur.headers['etag'].strip(chr(34))}' && window.__occufly.page.stats.openMs !== null")
+    assert np.array_equal(editor_ids(page), theirs)
+    assert np.array_equal(png_ids(rev.get(f"/api/frames/{fb}/mask").content), theirs)
 
 
 def test_reviewer_rejects_with_pinned_comment_annotator_gets_it_back(live, new_page):
@@ -263,3 +269,27 @@ def test_admin_export_job_completes(live, new_page):
     assert link.get_attribute("href") == f"/api/jobs/{jid}/download"
     r = live.client("admin").get(f"/api/jobs/{jid}/download")
     assert r.status_code == 200 and len(r.content) > 1000
+
+
+def test_errors_are_readable_never_a_blank_page(live, new_page):
+    page = new_page(None)
+    page.goto(f"{live.base_url}/#/login")
+    page.fill("#username", "annotator")
+    page.fill("#password", "wrong-password")
+    page.click("button[type=submit]")
+    alert = page.locator("#alert")
+    alert.wait_for()
+    msg = alert.inner_text()
+    assert msg.strip() and "{" not in msg  # a sentence from the API's detail, not JSON
+    shot(page, "00_login_error")
+    page.fill("#password", "annotator-password-1")
+    page.click("button[type=submit]")
+    page.wait_for_selector("#whoami:has-text('annotator')")
+    # a page the role may not use
+    page.goto(f"{live.base_url}/#/admin")
+    page.wait_for_selector("main h1:has-text('Not available')")
+    # a frame that does not exist: the API's 404 message is shown, the page stays usable
+    page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame=987654")
+    page.wait_for_selector("#alert:not(:empty)")
+    assert "987654" in page.locator("#alert").inner_text() or "not found" in page.locator("#alert").inner_text().lower()
+    assert page.locator("#next-frame").is_visible()

@@ -29,7 +29,8 @@ export function showError(err, where = null) {
     el("button", { class: "link", type: "button", "aria-label": "Dismiss message", onclick: () => box.replaceChildren() }, "×"),
   );
   box.hidden = false;
-  if (err && !(typeof err === "string")) console.error(err);
+  // API errors are expected answers (shown above); anything else is a bug worth a console error
+  if (err && typeof err !== "string") (err.name === "ApiError" ? console.warn : console.error)(err);
 }
 
 export function clearError() {

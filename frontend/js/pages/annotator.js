@@ -93,7 +93,19 @@ class AnnotatorPage {
       this.nextBtn.disabled = true;
       return;
     }
-    if (this.ctx.params.frame) await this.open(Number(this.ctx.params.frame));
+    if (this.ctx.params.frame) await this.openOrExplain(Number(this.ctx.params.frame));
+  }
+
+  /** Open a frame; on failure explain it and keep the page usable ("Next frame" still works). */
+  async openOrExplain(fid) {
+    try {
+      await this.open(fid);
+    } catch (e) {
+      showError(e);
+      this.status("");
+      this.host.replaceChildren(el("p", { class: "empty-hint" }, `Frame ${fid} could not be opened: ${e.message} Press "Next frame" to get one from the queue.`));
+      this.ctx.setParams({ frame: null });
+    }
   }
 
   async unmount() {
@@ -131,7 +143,7 @@ class AnnotatorPage {
         return;
       }
       this.ctx.setParams({ scene: this.sceneSel.value, frame: f.id });
-      await this.open(f.id);
+      await this.openOrExplain(f.id);
     } catch (e) {
       showError(e);
     } finally {
@@ -296,7 +308,7 @@ class AnnotatorPage {
               vs.map((v) =>
                 el(
                   "li",
-                  {},
+                  { "data-version": v.version },
                   `v${v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
                   el("button", { type: "button", class: "link", onclick: () => this.restore(v.version) }, "restore"),
                   el("a", { href: `/api/frames/${this.frame.id}/mask/versions/${v.version}`, download: `${this.frame.name}_v${v.version}.png` }, "download"),
@@ -310,11 +322,19 @@ class AnnotatorPage {
     }
   }
 
+  /** Make an old version current again (as a new version; If-Match guards against races). */
   async restore(vid) {
-    if (this.unsaved) await this.save("draft");
-    const r = await api.post(`/frames/${this.frame.id}/mask/versions/${vid}/restore`);
-    toast(`Restored version ${vid} as version ${r?.version ?? "?"}.`);
-    await this.open(this.frame.id);
+    try {
+      if (this.unsaved) await this.save("draft");
+      const res = await api.send("POST", `/frames/${this.frame.id}/mask/versions/${vid}/restore`, {
+        headers: { "If-Match": String(this.version ?? "none") },
+      });
+      const r = await res.json();
+      toast(`Restored version ${vid} as version ${r?.version ?? "?"}.`);
+      await this.openOrExplain(this.frame.id);
+    } catch (e) {
+      showError(e);
+    }
   }
 
   jumpTo(px) {

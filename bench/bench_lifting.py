@@ -5,6 +5,7 @@ imported once into ``--cache`` (default /tmp/occufly-bench) through the CLI in s
 their memory does not count towards this process' peak RSS.
 
     .venv/bin/python bench/bench_lifting.py [--preset bench] [--sample 40000]
+    .venv/bin/python bench/bench_lifting.py --quality --preset small   # the quality bars
 
 The baseline is the plain exact method (scipy cKDTree, k=100 IDW fill of unvoted points, then
 k=200 majority over every labelled point, one worker, same radii). Its fill and both tree
@@ -45,9 +46,10 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def ensure_scene(cache: Path, preset: str, seed: int) -> tuple[Path, Path]:
-    syn = cache / f"{preset}-{seed}"
-    ws = cache / f"{preset}-{seed}-ws"
+def ensure_scene(cache: Path, preset: str, seed: int, synthetic: Path | None = None
+                 ) -> tuple[Path, Path]:
+    syn = synthetic or cache / f"{preset}-{seed}"
+    ws = cache / f"{syn.name}-{preset}-{seed}-ws"
     py = sys.executable
     if not (syn / "truth" / "point_labels.npy").is_file():
         subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset,
@@ -68,18 +70,145 @@ def shifted(mask: np.ndarray, px: int) -> np.ndarray:
     return out
 
 
+def degrade(mask: np.ndarray, rng: np.random.Generator, *, shift_px: float = 3.0,
+            min_blob: int = 60, cell: int = 64) -> np.ndarray:
+    """Paint a mask the way people do: boundaries shifted by a few pixels, small blobs missed.
+
+    Boundaries: the mask is resampled through a smooth random displacement field (up to
+    ``shift_px`` pixels, varying over ``cell``-pixel blocks), so borders move by different
+    amounts in different directions. Blobs: connected components smaller than ``min_blob``
+    pixels are painted over with the nearest surrounding class.
+    """
+    from scipy import ndimage
+
+    h, w = mask.shape
+    gh, gw = h // cell + 2, w // cell + 2
+    field = rng.uniform(-shift_px, shift_px, (2, gh, gw))
+    zy, zx = (h / (gh - 1)), (w / (gw - 1))
+    rows = np.arange(h) / zy
+    cols = np.arange(w) / zx
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    dy = ndimage.map_coordinates(field[0], [rr, cc], order=1)
+    dx = ndimage.map_coordinates(field[1], [rr, cc], order=1)
+    r = np.clip(np.rint(np.arange(h)[:, None] + dy), 0, h - 1).astype(int)
+    c = np.clip(np.rint(np.arange(w)[None, :] + dx), 0, w - 1).astype(int)
+    out = mask[r, c]
+    drop = np.zeros(mask.shape, bool)
+    for cid in np.unique(out):
+        if cid in (0, 255):
+            continue
+        lab, n = ndimage.label(out == cid)
+        if n == 0:
+            continue
+        sizes = np.bincount(lab.ravel())
+        small = np.flatnonzero(sizes < min_blob)
+        small = small[small > 0]
+        if len(small):
+            drop |= np.isin(lab, small)
+    if drop.any() and not drop.all():
+        _, (ir, ic) = ndimage.distance_transform_edt(drop, return_indices=True)
+        out = out[ir, ic]
+    return out
+
+
+def lift_params(args: argparse.Namespace) -> LiftParams:
+    p = LiftParams()
+    if args.keep_share >= 0:
+        p.denoise_keep_share = args.keep_share or None
+    if args.denoise_radius is not None:
+        p.denoise_radius = args.denoise_radius
+    return p
+
+
+def quality(args: argparse.Namespace) -> dict:
+    """Quality bars on a synthetic scene: selection, point accuracy, held-out agreement,
+    with truth and with degraded masks."""
+    from occufly.lifting import load_labels  # noqa: F401
+    from occufly.render import agreement, merge_agreements, render_for_mask
+
+    syn, ws = ensure_scene(args.cache, args.preset, args.seed, args.synthetic)
+    scene = Scene.load(ws)
+    tax = scene.taxonomy
+    truth = np.load(syn / "truth" / "point_labels.npy")
+    out: dict = {"bench": "lifting-quality", "preset": args.preset, "seed": args.seed,
+                 "params": lift_params(args).__dict__,
+                 "points": scene.n_points, "frames": len(scene.frames)}
+    strat = select_frames(scene, mode="stratified", cell=args.cell)
+    sel = select_frames(scene, mode="greedy", cell=args.cell, target_coverage=0.99)
+    out["stratified"] = {"selected": len(strat.frames), "ratio": strat.ratio,
+                         "coverage": strat.coverage}
+    out["greedy"] = {"selected": len(sel.frames), "ratio": sel.ratio, "coverage": sel.coverage,
+                     "curve": sel.curve}
+    held = [i for i in range(len(scene.frames)) if i not in set(sel.frames)]
+    mask_of = {}
+    for i in range(len(scene.frames)):
+        mask_of[i] = read_mask(syn / "truth" / "masks" / f"{scene.frames[i].stem}.png",
+                               scene.frames[i], tax)
+    rng = np.random.default_rng(args.seed)
+    for variant in ("truth", "degraded"):
+        shutil.rmtree(ws / "lifting", ignore_errors=True)
+        st = LiftState.open(ws, scene)
+        dis = []
+        for fi in sel.frames:
+            m = mask_of[fi] if variant == "truth" else degrade(mask_of[fi], rng)
+            dis.append(float((m != mask_of[fi]).mean()))
+            st.set_mask(fi, m, version=variant)
+        direct = st.direct_labels()
+        res = st.fill_and_denoise(params=lift_params(args))
+        ev = evaluate_points(res.labels, truth, tax, res.origin)
+        has = (direct > 0) & (truth > 0) & (truth < 255)
+        ags = []
+        for fi in held:
+            rendered, _ = render_for_mask(scene, np.asarray(res.labels), fi, mask_of[fi].shape)
+            ags.append(agreement(mask_of[fi], rendered, tax))
+        ag = merge_agreements(ags)
+        names = {c.id: c.name for c in tax.classes}
+        out[variant] = {
+            "mask_pixels_changed": float(np.mean(dis)),
+            "direct_accuracy": float((direct[has] == truth[has]).mean()),
+            "accuracy": ev["accuracy"],
+            "miou": ev["miou"],
+            "per_class_iou": {k: (round(v["iou"], 4) if v["iou"] is not None else None)
+                              for k, v in ev["per_class"].items()},
+            "by_origin": ev["by_origin"],
+            "held_out_frames": len(held),
+            "held_out_agreement": ag["agreement"],
+            "held_out_coverage": ag["coverage"],
+            "held_out_class_iou": {names[int(k)]: round(v, 4)
+                                   for k, v in ag.get("per_class_iou", {}).items() if v is not None},
+            "lift_stats": {k: v for k, v in res.stats.items() if k != "versions"},
+        }
+    out["degradation_drop"] = {
+        "accuracy": out["truth"]["accuracy"] - out["degraded"]["accuracy"],
+        "held_out_agreement": out["truth"]["held_out_agreement"]
+        - out["degraded"]["held_out_agreement"],
+    }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quality", action="store_true",
+                    help="measure the quality bars instead (use with --preset small)")
+    ap.add_argument("--cell", type=float, default=25.0)
+    ap.add_argument("--synthetic", type=Path,
+                    help="an already generated synthetic scene (skips `occufly synth`)")
+    ap.add_argument("--keep-share", type=float, default=-1.0,
+                    help="denoise keep share (default: the library default; 0 = method rule)")
+    ap.add_argument("--denoise-radius", type=float, default=None)
     ap.add_argument("--preset", default="bench")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-bench"))
     ap.add_argument("--sample", type=int, default=40_000, help="baseline denoise query sample")
     ap.add_argument("--full-baseline", action="store_true")
     args = ap.parse_args()
+    if args.quality:
+        print(json.dumps(quality(args), default=_json_default))
+        return
 
     out: dict = {"bench": "lifting", "preset": args.preset, "seed": args.seed}
     t = time.perf_counter()
-    syn, ws = ensure_scene(args.cache, args.preset, args.seed)
+    syn, ws = ensure_scene(args.cache, args.preset, args.seed, args.synthetic)
     out["scene_prepare_seconds"] = round(time.perf_counter() - t, 2)
     shutil.rmtree(ws / "lifting", ignore_errors=True)
     scene = Scene.load(ws)
@@ -141,7 +270,8 @@ def main() -> None:
     rss0 = rss_mb()
 
     # ---- fast fill + denoise ------------------------------------------------------------
-    params = LiftParams()
+    params = lift_params(args)
+    out["params"] = params.__dict__
     t = time.perf_counter()
     fast = fill_and_denoise(np.asarray(scene.xyz), direct, scene.taxonomy, params=params,
                             vote_margin=margin)
@@ -189,7 +319,11 @@ def main() -> None:
         "miou_fast": ev_fast["miou"],
     }
     out["peak_rss_mb"] = round(rss_mb(), 1)
-    print(json.dumps(out, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+    print(json.dumps(out, default=_json_default))
+
+
+def _json_default(o):
+    return o.item() if isinstance(o, np.generic) else str(o)
 
 
 if __name__ == "__main__":

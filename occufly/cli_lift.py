@@ -18,7 +18,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "select", _select, help="choose the frames to annotate (stratified / greedy)")
     p.add_argument("workspace", type=Path)
     p.add_argument("--cell", type=float, default=25.0, help="ground cell edge in metres (23-28)")
-    p.add_argument("--mode", choices=("stratified", "greedy"), default="stratified")
+    p.add_argument("--mode", choices=("stratified", "greedy", "cover"), default="stratified",
+                   help="greedy: stratified + coverage-greedy; cover: coverage-greedy only")
+    p.add_argument("--no-prune", action="store_true",
+                   help="keep frames the target coverage does not need (greedy modes)")
     p.add_argument("--target-coverage", type=float, default=0.99, help="greedy target rho")
     p.add_argument("--altitude", type=int, help="only frames at this nominal altitude (m)")
 
@@ -60,7 +63,8 @@ def _select(args: argparse.Namespace) -> dict:
 
     scene = Scene.load(args.workspace)
     res = select_frames(scene, cell=args.cell, mode=args.mode,
-                        target_coverage=args.target_coverage, altitude=args.altitude)
+                        target_coverage=args.target_coverage, altitude=args.altitude,
+                        prune_redundant=not args.no_prune)
     out = res.to_dict()
     atomic_write_text(args.workspace / "selection.json", json.dumps(out, indent=1))
     out["written"] = str(args.workspace / "selection.json")

@@ -80,6 +80,9 @@ class LiftParams:
     voxel: float | None = None  # voxel edge of the fast method; None = from the point density
     voxel_factor: float = 1.0  # auto voxel = factor * typical denoise k-NN radius
     certify_min_points: float = 1.5  # a block needs >= this * k points to be certified
+    # None: the method's rule, every point takes its neighbourhood's dominant class. A value
+    # s in (0, 1]: a point keeps its own class if that holds >= s of its neighbourhood.
+    denoise_keep_share: float | None = None
     workers: int = 1  # cKDTree query workers
 
 
@@ -470,11 +473,14 @@ def _scores_to_cols(cls: _Classes, scores: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
-              cls: _Classes, *, weighted: bool, workers: int = 1, chunk: int = 50_000
+              cls: _Classes, *, weighted: bool, workers: int = 1, chunk: int = 50_000,
+              own: np.ndarray | None = None, keep_share: float | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-NN (within ``radius``) vote of ``queries`` against a cKDTree of labelled points.
 
     tree_cols: (n_tree,) column of each tree point. Returns (column (q,) int64, share (q,)).
+    With ``own`` ((q,) columns of the queries) and ``keep_share``, a query keeps its own
+    column when that holds at least ``keep_share`` of its neighbourhood.
     """
     q = len(queries)
     cols = np.full(q, -1, dtype=np.int64)
@@ -497,8 +503,27 @@ def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: 
         else:
             w = None
         scores = np.bincount(rows * C + c, weights=w, minlength=(b - a) * C).reshape(b - a, C)
-        cols[a:b], share[a:b] = _scores_to_cols(cls, scores)
+        cols[a:b], share[a:b] = _keep_own(cls, scores, None if own is None else own[a:b],
+                                          keep_share)
     return cols, share
+
+
+def _keep_own(cls: _Classes, scores: np.ndarray, own: np.ndarray | None,
+              keep_share: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Winner per row of ``scores``; rows whose own column has >= keep_share keep it."""
+    col, share = _scores_to_cols(cls, scores)
+    if own is None or keep_share is None:
+        return col, share
+    total = scores.sum(axis=1)
+    ok = own >= 0
+    own_sc = np.zeros(len(own), dtype=np.float64)
+    own_sc[ok] = scores[np.flatnonzero(ok), own[ok]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        own_share = np.where(total > 0, own_sc / total, 0.0)
+    keep = ok & (own_share >= keep_share)
+    col[keep] = own[keep]
+    share[keep] = own_share[keep]
+    return col, share
 
 
 def _finish(cls: _Classes, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
@@ -561,7 +586,8 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
         q = lab2 if query_index is None else np.intersect1d(np.asarray(query_index), lab2)
         report(0.4, "denoise: querying")
         c, s = _knn_vote(tree2, filled[lab2], xyz[q], p.denoise_k, p.denoise_radius, cls,
-                         weighted=False, workers=p.workers)
+                         weighted=False, workers=p.workers, own=filled[q],
+                         keep_share=p.denoise_keep_share)
         final[q], agree[q] = c, s
     t2 = time.perf_counter()
     res = _finish(cls, direct, filled, final, agree, vote_margin)
@@ -626,7 +652,8 @@ class _VoxelGrid:
 
 def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _VoxelGrid,
                todo: np.ndarray, k: int, radius: float, cls: _Classes,
-               progress: ProgressFn | None = None
+               progress: ProgressFn | None = None, keep_share: float | None = None,
+               only: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact k-NN majority for the labelled points of voxels ``todo`` by brute force over
     each voxel's 3x3x3 block of labelled points.
@@ -657,6 +684,8 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         if t % every == 0:
             report(t / len(todo), "denoise: exact k-NN at boundaries")
         q = order[starts[u]:ends[u]]
+        if only is not None:
+            q = q[only[q]]
         if not len(q):
             continue
         cand = np.concatenate([order[starts[j]:ends[j]] for j in nb[t] if j >= 0])
@@ -675,7 +704,7 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         ccols = cols[cand][part]
         rows = np.broadcast_to(np.arange(len(q))[:, None], part.shape)
         votes = np.bincount((rows * C + ccols)[within], minlength=len(q) * C).reshape(len(q), C)
-        c, s = _scores_to_cols(cls, votes)
+        c, s = _keep_own(cls, votes, cols[q], keep_share)
         out_c[q], out_s[q] = c, s
         dsel_max = dsel.max(axis=1)
         # safe if the k-th neighbour (or the radius) is within the block around the point
@@ -800,18 +829,27 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     certified = (btotal >= p.certify_min_points * k) & ((btotal - btop) * 2 < k) & (bcol >= 0)
     final = filled.copy()
     cert_pts = lab & certified[vox]
+    if p.denoise_keep_share is not None:
+        # a point whose own class differs from the block's winner keeps it if it may hold
+        # keep_share of its k neighbours: the block count of that class bounds it from above
+        own = np.maximum(filled, 0)
+        maybe_keep = cert_pts & (filled != bcol[vox]) & (
+            block[vox, own] >= p.denoise_keep_share * k)
+        cert_pts &= ~maybe_keep
     final[cert_pts] = bcol[vox[cert_pts]]
     with np.errstate(divide="ignore", invalid="ignore"):
         bshare = np.where(btotal > 0, btop / np.maximum(btotal, 1), 0.0).astype(np.float32)
     agree[cert_pts] = bshare[vox[cert_pts]]
-    rest = np.flatnonzero(lab & ~certified[vox])
+    need = lab & ~cert_pts
+    rest = np.flatnonzero(need)
     stats["certified_voxels"] = int(certified.sum())
     stats["block_denoise_points"] = int(len(rest))
     if len(rest):
         report(0.5, "denoise: exact k-NN at boundaries")
         todo = np.unique(vox[rest])
         c, s, unsafe = _block_knn(xyz, filled, lab_idx, grid, todo, k, p.denoise_radius, cls,
-                                  progress=lambda f, m: report(0.5 + 0.4 * f, m))
+                                  progress=lambda f, m: report(0.5 + 0.4 * f, m),
+                                  keep_share=p.denoise_keep_share, only=need)
         final[rest], agree[rest] = c[rest], s[rest]
         # points whose k-th neighbour could lie outside their 3x3x3 block: cKDTree
         tree_q = np.flatnonzero(unsafe)
@@ -824,7 +862,8 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
             src = np.flatnonzero(lab & in_near[vox])
             tree = cKDTree(xyz[src])
             c2, s2 = _knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
-                               weighted=False, workers=p.workers)
+                               weighted=False, workers=p.workers, own=filled[tree_q],
+                               keep_share=p.denoise_keep_share)
             final[tree_q], agree[tree_q] = c2, s2
     stats["denoise_seconds"] = time.perf_counter() - t_den
     res = _finish(cls, direct, filled, final, agree, vote_margin)

@@ -13,6 +13,9 @@ the scene's visibility). Greedy mode starts from the stratified set and adds, on
 the frame that sees the most not-yet-covered points until rho reaches ``target_coverage`` (or
 no frame adds anything). Gains only shrink as coverage grows, so a lazy max-heap re-evaluates
 only the top candidate: each step costs about one frame's points, not the scene's.
+Afterwards (``prune_redundant``, default on) frames are dropped, least unique contribution
+first, while rho stays at the target: stratified frames that later additions made redundant
+go. Mode "cover" runs the same greedy from an empty set (no stratified seed).
 """
 
 from __future__ import annotations
@@ -175,20 +178,61 @@ def greedy(scene: Scene, candidates: np.ndarray, start: list[int], target: float
     return added, curve
 
 
+def prune(scene: Scene, frames: list[int], target: float) -> list[int]:
+    """Drop frames whose points are all seen by the others while coverage stays >= target.
+
+    Repeatedly removes the frame that sees the fewest points no other selected frame sees, as
+    long as the coverage without it still reaches ``target``. Order of the rest is kept.
+    """
+    n = scene.n_points
+    if n == 0 or len(frames) < 2:
+        return list(frames)
+    vis = scene.visibility
+    ids = {f: np.asarray(vis.point_ids[int(vis.offsets[f]):int(vis.offsets[f + 1])]) for f in frames}
+    count = np.zeros(n, dtype=np.int32)
+    for f in frames:
+        count[ids[f]] += 1
+    covered = int((count > 0).sum())
+    keep = list(frames)
+    while len(keep) > 1:
+        unique = np.array([int(np.count_nonzero(count[ids[f]] == 1)) for f in keep])
+        i = int(np.argmin(unique))
+        if (covered - unique[i]) / n < target:
+            break
+        f = keep.pop(i)
+        count[ids[f]] -= 1
+        covered -= int(unique[i])
+    return keep
+
+
 def select_frames(scene: Scene, *, cell: float = 25.0, mode: str = "stratified",
-                  target_coverage: float = 0.99, altitude: int | None = None) -> SelectionResult:
-    """Select frames to annotate (see the module docstring). Returns a :class:`SelectionResult`."""
-    if mode not in ("stratified", "greedy"):
-        raise InputFormatError(f"mode: expected 'stratified' or 'greedy', got {mode!r}")
+                  target_coverage: float = 0.99, altitude: int | None = None,
+                  prune_redundant: bool = True) -> SelectionResult:
+    """Select frames to annotate (see the module docstring). Returns a :class:`SelectionResult`.
+
+    mode: "stratified" (the method), "greedy" (stratified + coverage-greedy additions), or
+    "cover" (coverage-greedy from an empty set). In the greedy modes, ``prune_redundant`` then
+    drops frames (stratified ones included) that the target coverage does not need.
+    """
+    if mode not in ("stratified", "greedy", "cover"):
+        raise InputFormatError(
+            f"mode: expected 'stratified', 'greedy' or 'cover', got {mode!r}")
     if not 0.0 < target_coverage <= 1.0:
         raise InputFormatError(f"target coverage must be in (0, 1], got {target_coverage}")
     cand = candidate_frames(scene, altitude)
     frames, cells = stratified(scene, cand, float(cell))
     strat = list(frames)
-    if mode == "greedy":
-        added, curve = greedy(scene, cand, frames, target_coverage)
-        frames = frames + added
+    if mode in ("greedy", "cover"):
+        start = frames if mode == "greedy" else []
+        added, curve = greedy(scene, cand, start, target_coverage)
+        frames = start + added
         cov = curve[-1][1]
+        if prune_redundant and cov >= target_coverage:
+            pruned = prune(scene, frames, target_coverage)
+            if len(pruned) < len(frames):
+                frames = pruned
+                cov = coverage(scene, frames)
+                curve = curve + [(len(frames), cov)]
     else:
         cov = coverage(scene, frames)
         curve = [(len(frames), cov)]

@@ -358,3 +358,48 @@ def test_cli_select_lift_agreement_eval_export(ws, tmp_path, capsys):
     assert main(["lift", str(path), "--masks", str(masks)]) == 2
     assert "no_such_frame.png" in capsys.readouterr().err
     assert np.array_equal(np.asarray(LiftState.open(path).votes), before)
+
+
+# ---- the synthetic tiny scene (generator + importer, exact truth) -------------------------
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from occufly.io.importer import import_scene
+    from occufly.synthetic import generate
+
+    root = tmp_path_factory.mktemp("tiny")
+    generate(root / "syn", preset="tiny", seed=0)
+    scene = import_scene(root / "syn", root / "ws")
+    truth = np.load(root / "syn" / "truth" / "point_labels.npy")
+    masks = {i: read_mask(root / "syn" / "truth" / "masks" / f"{f.stem}.png", f, scene.taxonomy)
+             for i, f in enumerate(scene.frames)}
+    return root / "ws", Scene.load(root / "ws"), truth, masks
+
+
+def test_tiny_scene_lifting_quality(tiny):
+    from occufly.render import agreement, merge_agreements, render_labels
+
+    path, scene, truth, masks = tiny
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    assert sel.coverage >= 0.99 and sel.ratio < 0.6
+    st = LiftState.open(path, scene)
+    for fi in sel.frames:
+        st.set_mask(fi, masks[fi], version="truth")
+    direct = st.direct_labels()
+    voted = direct > 0
+    assert voted.mean() >= 0.98
+    assert (direct[voted] == truth[voted]).mean() >= 0.99
+    res = st.fill_and_denoise()
+    ev = evaluate_points(res.labels, truth, scene.taxonomy, res.origin)
+    assert ev["accuracy"] >= 0.97, ev["by_origin"]
+    held = [i for i in range(len(scene.frames)) if i not in set(sel.frames)][::3]
+    ag = merge_agreements([agreement(masks[i], render_labels(scene, res.labels, i)[0],
+                                     scene.taxonomy) for i in held])
+    assert ag["agreement"] >= 0.88 and ag["coverage"] >= 0.8
+    # masks swapped between frames lift to measurably wrong labels
+    st2 = LiftState.open(path, scene)
+    frames = list(sel.frames)
+    for fi, other in zip(frames, frames[1:] + frames[:1]):
+        m = masks[other]
+        st2.set_mask(fi, m if m.shape == masks[fi].shape else masks[fi][::-1])
+    bad = evaluate_points(st2.fill_and_denoise().labels, truth, scene.taxonomy)
+    assert bad["accuracy"] < ev["accuracy"] - 0.2

@@ -19,11 +19,12 @@ def _scene(cam_xy, alts, *, see_radius=20.0, extent=75.0, step=1.0):
     gx, gy = np.meshgrid(g, g)
     xyz = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]).astype(np.float32)
     frames, parts = [], []
+    radii = np.broadcast_to(np.asarray(see_radius, dtype=float), (len(cam_xy),))
     for i, ((x, y), a) in enumerate(zip(cam_xy, alts, strict=True)):
         T = look_at([x, y, a], [x, y, 0.0], up=(0.0, 1.0, 0.0))
         frames.append(Frame(f"f{i:03d}.jpg", CAM, T, nominal_altitude=int(a)))
         d = np.hypot(xyz[:, 0] - x, xyz[:, 1] - y)
-        ids = np.flatnonzero(d < see_radius).astype(np.int32)
+        ids = np.flatnonzero(d < radii[i]).astype(np.int32)
         parts.append((ids, np.zeros((len(ids), 2), np.float32), np.ones(len(ids), np.float32)))
     return Scene(frames=frames, xyz=xyz, rgb=np.zeros_like(xyz, np.uint8),
                  visibility=Visibility.from_parts(parts))
@@ -93,3 +94,19 @@ def test_altitude_restriction():
         select_frames(scene, mode="random")
     d = select_frames(scene, cell=25.0, mode="greedy").to_dict()
     assert d["cell_in_method_range"] and d["selected"] == len(d["frames"])
+
+
+def test_prune_drops_frames_the_target_does_not_need():
+    targets = [(x, y) for x in (0.0, 37.5, 75.0) for y in (0.0, 37.5, 75.0)]
+    # a wide view (sees everything) placed away from every cell target
+    xy = targets + [(20.0, 55.0)]
+    radii = [12.0] * 9 + [200.0]
+    scene = _scene(xy, [50] * 10, see_radius=radii)
+    strat = select_frames(scene, cell=25.0)
+    assert sorted(strat.frames) == list(range(9)) and strat.coverage < 0.9
+    res = select_frames(scene, cell=25.0, mode="greedy", target_coverage=0.99)
+    assert res.frames == [9] and res.coverage == 1.0
+    assert res.curve[-2] == (10, 1.0) and res.curve[-1] == (1, 1.0)
+    keep_all = select_frames(scene, cell=25.0, mode="greedy", prune_redundant=False)
+    assert len(keep_all.frames) == 10
+    assert select_frames(scene, mode="cover").frames == [9]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -118,7 +119,9 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
             user = getattr(websocket.state, "user", None)
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
         ticket = service.issue_ticket(user, scene_id)
-        await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket)
+        stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None}
+        service.proxy_stats.append(stats)
+        await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket, stats)
 
     app.add_api_route(f"{prefix}/", page, methods=["GET"], include_in_schema=False)
     app.add_api_route(f"{prefix}/{{path:path}}", page, methods=["GET"], include_in_schema=False)
@@ -127,8 +130,13 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
     app.add_api_websocket_route(f"{prefix}/", socket)
 
 
-async def pump(websocket: WebSocket, upstream_url: str, ticket: str) -> None:
-    """Connect upstream with the ticket, accept the browser, forward frames both ways."""
+async def pump(websocket: WebSocket, upstream_url: str, ticket: str,
+               stats: dict | None = None) -> None:
+    """Connect upstream with the ticket, accept the browser, forward frames both ways.
+
+    ``stats`` (optional) is updated with bytes/frames sent to the browser and the
+    ``time.perf_counter()`` of the last frame (the benchmark reads it)."""
+    stats = stats if stats is not None else {"bytes": 0, "frames": 0, "last": None}
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed
 
@@ -160,6 +168,9 @@ async def pump(websocket: WebSocket, upstream_url: str, ticket: str) -> None:
                 await websocket.send_bytes(m)
             else:
                 await websocket.send_text(m)
+            stats["bytes"] += len(m)
+            stats["frames"] += 1
+            stats["last"] = time.perf_counter()
 
     tasks = [asyncio.create_task(browser_to_viser()), asyncio.create_task(viser_to_browser())]
     try:

@@ -18,6 +18,7 @@ import logging
 import secrets
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,6 +111,8 @@ class ViewerService:
         self.require_ticket = require_ticket
         self.server: Any = None
         self.filed_items: list[dict] = []
+        # per proxied websocket: bytes/frames sent to the browser, perf_counter of the last
+        self.proxy_stats: deque[dict] = deque(maxlen=64)
         self._tickets: dict[str, Ticket] = {}
         self._clients: dict[int, ClientState] = {}
         self._data: dict[str, sb.ViewerData] = {}

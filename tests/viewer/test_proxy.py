@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import time
 
-import msgspec
 import numpy as np
 import pytest
 import viser
@@ -13,21 +12,12 @@ from fastapi import FastAPI, HTTPException
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 from viewer_fixtures import COUNTS
-from viewer_live import ANNOTATOR, REVIEWER, FakeSettings, LiveServer, make_app
+from viewer_live import ANNOTATOR, REVIEWER, FakeSettings, LiveServer, fake_client, make_app
 
 from app import viewer
 from app.viewer import server as vserver
 
 PROTO = f"viser-v{viser.__version__}"
-
-
-def camera_message() -> bytes:
-    from viser._messages import ViewerCameraMessage
-
-    msg = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(1000.0, 0.0, 50.0), fov=1.0,
-                              near=0.01, far=1000.0, image_height=600, image_width=800,
-                              look_at=(1000.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
-    return msgspec.msgpack.encode(msg.as_serializable_dict())
 
 
 @pytest.fixture
@@ -96,28 +86,16 @@ def test_proxied_socket_sends_float32_cloud_and_direct_socket_is_refused(tiny):
     with LiveServer(app) as srv:
         svc = app.state.viewer
 
-        async def session(url: str, headers: dict) -> tuple[int, int | None]:
-            received = 0
-            async with connect(url, subprotocols=[PROTO], additional_headers=headers,
-                               max_size=None) as ws:
-                await ws.send(camera_message())
-                t0 = time.time()
-                try:
-                    while time.time() - t0 < 4:
-                        m = await asyncio.wait_for(ws.recv(), timeout=1.0)
-                        received += len(m)
-                except (asyncio.TimeoutError, Exception):  # noqa: BLE001
-                    pass
-                return received, ws.close_code
-
-        proxied, _ = asyncio.run(session(f"ws://127.0.0.1:{srv.port}/viewer",
-                                         {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"}))
+        proxied = asyncio.run(fake_client(
+            f"ws://127.0.0.1:{srv.port}/viewer",
+            {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"}))["bytes"]
         states = svc.client_states()
         assert len(states) == 1 and states[0].scene_id == "tiny"
         assert states[0].user == {"username": "rita", "role": "reviewer"}
         assert states[0].sent_points == n
         assert proxied >= n * (12 + 3)  # float32 xyz + uint8 rgb per point, at least
-        direct, code = asyncio.run(session(f"ws://127.0.0.1:{svc.port}/", {}))
+        d = asyncio.run(fake_client(f"ws://127.0.0.1:{svc.port}/", {}))
+        direct, code = d["bytes"], d["close_code"]
         assert code == 1008
         assert direct < n * 12
         time.sleep(0.3)

@@ -83,3 +83,43 @@ class LiveServer:
         self.server.should_exit = True
         self.thread.join(timeout=15)
         self.sock.close()
+
+
+def camera_message(position=(0.0, 0.0, 50.0), look_at=(0.0, 0.0, 0.0)) -> bytes:
+    """What viser's browser client sends first: its camera (a client counts as connected
+    only after this). msgpack of the message's serializable dict."""
+    import msgspec
+    from viser._messages import ViewerCameraMessage
+
+    msg = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=tuple(position), fov=1.0,
+                              near=0.01, far=1000.0, image_height=600, image_width=800,
+                              look_at=tuple(look_at), up_direction=(0.0, 0.0, 1.0))
+    return msgspec.msgpack.encode(msg.as_serializable_dict())
+
+
+async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
+                      max_s: float = 60.0) -> dict:
+    """Connect like viser's client, send the camera, read until ``quiet_s`` of silence.
+
+    Returns bytes, frames, seconds from connect to the last frame, and the close code."""
+    import asyncio
+    import time
+
+    import viser
+    from websockets.asyncio.client import connect
+
+    out = {"bytes": 0, "frames": 0, "last_s": None, "close_code": None}
+    t0 = time.perf_counter()
+    async with connect(url, subprotocols=[f"viser-v{viser.__version__}"],
+                       additional_headers=headers, max_size=None) as ws:
+        await ws.send(camera_message())
+        try:
+            while time.perf_counter() - t0 < max_s:
+                m = await asyncio.wait_for(ws.recv(), timeout=quiet_s)
+                out["bytes"] += len(m)
+                out["frames"] += 1
+                out["last_s"] = time.perf_counter() - t0
+        except (asyncio.TimeoutError, Exception):  # noqa: BLE001 - silence or close ends it
+            pass
+        out["close_code"] = ws.close_code
+    return out

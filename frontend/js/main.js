@@ -103,6 +103,7 @@ async function doRoute() {
     return;
   }
   document.title = `${page.title} · OccuFly Studio`;
+  document.body.dataset.page = name;
   renderNav();
   main.replaceChildren(el("p", { class: "loading" }, `Loading ${page.title}…`));
   try {

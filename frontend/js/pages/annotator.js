@@ -63,13 +63,14 @@ class AnnotatorPage {
     this.toolsEl = el("div", { class: "tools", role: "toolbar", "aria-label": "Painting tools" });
     this.paletteEl = el("div", { class: "palette", role: "radiogroup", "aria-label": "Class palette" });
     this.sideEl = el("div", { class: "side-info" });
+    this.versionsEl = el("div", { class: "side-versions" });
     this.statusEl = el("div", { class: "statusline", id: "status" }, "");
     this.root.append(
       el(
         "section",
         { class: "annotator", "aria-label": "Annotator" },
         el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.frameInfo, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.prefillBtn, this.draftBtn, this.submitBtn),
-        el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right" }, el("h2", {}, "Classes"), this.paletteEl, this.sideEl)),
+        el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right", "aria-label": "Classes and review comments" }, this.sideEl, el("h2", {}, "Classes"), this.paletteEl, this.versionsEl)),
         this.statusEl,
       ),
     );
@@ -284,7 +285,7 @@ class AnnotatorPage {
               el("strong", {}, it.pixel ? `at (${Math.round(it.pixel[0])}, ${Math.round(it.pixel[1])}) ` : ""),
               it.comment ?? it.text ?? "",
               ...(it.comments || []).map((c) => el("div", { class: "reply" }, `${c.author ?? ""}: ${c.text ?? c.comment ?? ""}`)),
-              el("button", { type: "button", class: "link", onclick: () => this.jumpTo(it.pixel) }, it.pixel ? "show" : ""),
+              it.pixel ? el("button", { type: "button", class: "link", onclick: () => this.jumpTo(it.pixel) }, "show") : null,
             ),
           ),
         ),
@@ -292,7 +293,7 @@ class AnnotatorPage {
     }
     const versions = el("details", { class: "versions" }, el("summary", {}, "Version history"));
     versions.addEventListener("toggle", () => versions.open && this.loadVersions(versions));
-    parts.push(versions);
+    this.versionsEl.replaceChildren(versions);
     this.sideEl.replaceChildren(...parts);
   }
 

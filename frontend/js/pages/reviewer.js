@@ -260,7 +260,9 @@ class ReviewerPage {
     }
     for (const { c } of this.canvases) {
       c.addEventListener("click", (e) => this.onPick(e, c));
+      c.addEventListener("keydown", (e) => this.onPinKey(e));
       c.tabIndex = 0;
+      c.title = "Click, or use the arrow keys (Shift = 10 px), to pin a comment to a pixel";
     }
     requestAnimationFrame(() => this.paint());
   }
@@ -312,6 +314,18 @@ class ReviewerPage {
     this.pin = [x, y];
     this.pinText.textContent = `Pinned pixel (${x}, ${y}).`;
     this.comment.focus();
+    this.paint();
+  }
+
+  /** Keyboard pinning: arrows move the pin (from the centre), Shift moves 10 px. */
+  onPinKey(e) {
+    const d = { ArrowLeft: [-1, 0], ArrowRight: [1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] }[e.key];
+    if (!d) return;
+    e.preventDefault();
+    const step = e.shiftKey ? 10 : 1;
+    const p = this.pin || [Math.floor(this.W / 2), Math.floor(this.H / 2)];
+    this.pin = [Math.min(this.W - 1, Math.max(0, p[0] + d[0] * step)), Math.min(this.H - 1, Math.max(0, p[1] + d[1] * step))];
+    this.pinText.textContent = `Pinned pixel (${this.pin[0]}, ${this.pin[1]}).`;
     this.paint();
   }
 

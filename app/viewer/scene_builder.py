@@ -121,15 +121,26 @@ class ViewerData:
 
 
 def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
-    """Direct (mask-vote) labels if the lifting module and its state exist, else None."""
-    if not (ws / "lifting" / "state.json").is_file():
-        return None  # never create a lifting state from the viewer (LiftState.open would)
+    """Direct (mask-vote majority) labels from ``lifting/votes.npy``, read-only, or None.
+
+    Built without ``LiftState.open`` on purpose: that may create or repair the state (writes),
+    and the backend's lifting worker owns the workspace. A torn read during a concurrent
+    update only affects the display until the next refresh.
+    """
+    votes_path = ws / "lifting" / "votes.npy"
+    if not votes_path.is_file():
+        return None
     try:
-        from occufly.lifting import LiftState  # written by the lifting engineer
+        from occufly.lifting import LiftState  # the lifting engineer's vote semantics
     except ImportError:
         return None
     try:
-        return np.asarray(LiftState.open(ws, scene).direct_labels(), dtype=np.uint8)
+        votes = np.load(votes_path, mmap_mode="r", allow_pickle=False)
+        if votes.shape != (scene.n_points, len(scene.taxonomy)):
+            log.warning("viewer: %s has shape %s, expected (%d, %d)", votes_path, votes.shape,
+                        scene.n_points, len(scene.taxonomy))
+            return None
+        return np.asarray(LiftState(ws, scene, votes, {}).direct_labels(), dtype=np.uint8)
     except Exception as e:  # noqa: BLE001 - a half-written lifting state must not kill the viewer
         log.warning("viewer: cannot read direct votes in %s: %s", ws, e)
         return None

@@ -634,7 +634,7 @@ class ViewerService:
 def _stamp(ws: Path) -> tuple:
     out = []
     for rel in ("lifting/labels.npy", "lifting/confidence.npy", "lifting/origin.npy",
-                "grid/scene_grid.npz"):
+                "lifting/state.json", "grid/scene_grid.npz"):
         p = ws / rel
         try:
             s = p.stat()

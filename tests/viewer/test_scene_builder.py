@@ -227,3 +227,18 @@ def test_changed_classes_detects_relabelled_points(tiny):
     conf[np.flatnonzero(labels == 11)[0]] = 0.0
     assert changed_classes(old, sb.ViewerData(old.scene, labels, conf, old.origin, old.direct)) == {6, 11, 13}
     assert changed_classes(old, sb.ViewerData(old.scene, None)) is None
+
+
+def test_direct_votes_read_only_from_lifting_state(tiny):
+    n, ids = tiny.scene.n_points, list(TAX.ids)
+    votes = np.zeros((n, len(ids)), np.uint16)
+    votes[0, ids.index(16)] = 3  # building wins 3:1
+    votes[0, ids.index(6)] = 1
+    votes[1, ids.index(13)] = 2
+    np.save(tiny.ws / "lifting" / "votes.npy", votes)
+    before = sorted(p.name for p in (tiny.ws / "lifting").iterdir())
+    data = sb.ViewerData.load(tiny.ws)
+    assert data.direct[0] == 16 and data.direct[1] == 13 and np.all(data.direct[2:] == 0)
+    assert sorted(p.name for p in (tiny.ws / "lifting").iterdir()) == before  # nothing written
+    np.save(tiny.ws / "lifting" / "votes.npy", votes[:10])  # wrong shape: ignored, not fatal
+    assert sb.ViewerData.load(tiny.ws).direct is None

@@ -16,6 +16,8 @@
 ``OCCUFLY_SESSION_HOURS``      login token lifetime (default 12)
 ``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
 ``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
+``OCCUFLY_JOB_PROCESSES``      1 (default): heavy jobs run in worker processes (or on Dask);
+                               0: in threads of the server process (debugging)
 ``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
 ``OCCUFLY_ARGON2_MEMORY_KIB``  argon2id memory cost (default 65536 = argon2-cffi's default)
 ``OCCUFLY_ARGON2_TIME_COST``   argon2id iterations (default 3)
@@ -52,6 +54,7 @@ class Settings:
     session_seconds: int = 12 * 3600
     fill_debounce_s: float = 5.0
     job_workers: int = 2
+    job_processes: bool = True
     frontend_dir: Path = REPO_ROOT / "frontend"
     login_free_failures: int = 5  # failures before a key gets locked out
     login_max_lock_s: int = 300
@@ -121,6 +124,7 @@ class Settings:
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
+            job_processes=bool(num("OCCUFLY_JOB_PROCESSES", 1)),
             argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
         )

@@ -34,7 +34,7 @@ def build_context(settings: Settings) -> AppContext:
         store=BlobStore(settings.mask_store_dir),
         lifting=LiftingManager(lambda: holder[0], debounce_s=settings.fill_debounce_s,
                                enabled=settings.live_lifting),
-        jobs=JobRunner(settings.job_workers))
+        jobs=JobRunner(settings.job_workers, processes=settings.job_processes))
     holder.append(ctx)
     ctx.jobs.bind(ctx)
     return ctx

@@ -45,6 +45,7 @@ def _import_failed(jc: JobContext, message: str) -> None:
 
 
 run_import.on_failure = _import_failed
+run_import.remote = True
 
 
 def _scene(jc: JobContext):
@@ -74,6 +75,9 @@ def run_selection(jc: JobContext) -> dict:
     return result
 
 
+run_selection.remote = True
+
+
 @kind("voxelize")
 def run_voxelize(jc: JobContext) -> dict:
     from app import pipeline
@@ -90,6 +94,9 @@ def run_voxelize(jc: JobContext) -> dict:
               progress=jc.progress)
 
 
+run_voxelize.remote = True
+
+
 @kind("export")
 def run_export(jc: JobContext) -> dict:
     from app import pipeline
@@ -101,6 +108,9 @@ def run_export(jc: JobContext) -> dict:
                  layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
                  executor=jc.executor(), progress=jc.progress)
     return {"output": str(out), "summary": summary if isinstance(summary, dict) else {}}
+
+
+run_export.remote = True
 
 
 @kind("eval")

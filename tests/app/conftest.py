@@ -177,6 +177,7 @@ def env(request, tmp_path: Path):
     root.mkdir()
     settings = Settings(data_dir=tmp_path / "data", database_url=url, import_roots=[root],
                         env="development", fill_debounce_s=0.2, job_workers=2,
+                        job_processes=request.node.get_closest_marker("job_processes") is not None,
                         login_free_failures=3, max_upload_bytes=1 << 20,
                         # argon2id at a test cost (production default: 64 MiB, 3 passes)
                         argon2_memory_kib=1024, argon2_time_cost=1)
@@ -189,3 +190,8 @@ def env(request, tmp_path: Path):
     yield e
     e.client.close()
     close(e.app)
+
+
+def pytest_configure(config) -> None:  # noqa: ANN001
+    config.addinivalue_line(
+        "markers", "job_processes: run remote job kinds in spawned worker processes")

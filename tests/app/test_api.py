@@ -506,6 +506,7 @@ def test_agreement_render_and_disagreement(world):
 
 
 # ---- jobs -----------------------------------------------------------------------------------
+@pytest.mark.job_processes  # the resumed import runs in a spawned worker process
 def test_job_interrupted_by_restart_is_reported_and_resumable(env):
     adm = env.bearer("admin")
     src = env.import_root / "tiny_src"

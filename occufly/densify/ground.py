@@ -1,7 +1,7 @@
 """Ground classes: Poisson surface -> mesh -> voxels by triangle scan conversion.
 
-1. The ground points (all ground classes together) are thinned to one point per cell of
-   half a voxel (centroid), normals are estimated and oriented up (+z, photogrammetric ground
+1. The ground points (all ground classes together) are thinned to one point per voxel-sized
+   cell (centroid), normals are estimated and oriented up (+z, photogrammetric ground
    is seen from above).
 2. Open3D screened Poisson reconstruction, depth 8, scale 1.2.
 3. Trimming: vertices whose Poisson density (Open3D's per-vertex octree support, roughly
@@ -13,8 +13,11 @@
 4. Scan conversion: each remaining triangle is sampled with barycentric points on a lattice
    whose spacing is ≤ ``sample_spacing`` voxel edges (default 0.5), vectorised over all
    triangles in chunks; every sample marks its voxel.
-5. Labels: each sample takes the ground class of its nearest ground point; each voxel gets
-   the majority over its samples and its own points (ties by the taxonomy order).
+5. Voxels: the mesh decides which voxels are ground (MVS depth noise would make binned points
+   2-3 layers thick); points off the surface are dropped except in columns the trimmed mesh
+   does not reach, which keep their binned points. Labels: each sample takes the ground
+   class of its nearest ground point; each voxel gets the majority over its samples and the
+   points in it (ties by the taxonomy order).
 
 Bad input (too few points, a failed or empty reconstruction) falls back to direct binning of
 the ground points with a logged warning, never an empty result.
@@ -63,8 +66,8 @@ def poisson_mesh(
     import open3d as o3d
 
     pts = np.asarray(xyz, dtype=np.float64)
-    # thin to one centroid per half-voxel cell: Poisson at depth 8 is coarser anyway
-    cell = voxel_size / 2.0
+    # thin to one centroid per voxel cell: Poisson at depth 8 is coarser anyway
+    cell = voxel_size
     lo = pts.min(axis=0)
     q = np.floor((pts - lo) / cell).astype(np.int64)
     dims = q.max(axis=0) + 1
@@ -189,8 +192,20 @@ def voxelize_ground(
                     sample_labels.append(lab_all[nn])
                     n_samples += int(ins.sum())
                 stats["mesh_samples"] = n_samples
-    all_k = np.concatenate([keys_p, *sample_keys]) if sample_keys else keys_p
-    all_l = np.concatenate([lab_p, *sample_labels]) if sample_labels else lab_p
+    if sample_keys:
+        # the surface decides WHICH voxels are ground: points off the mesh (MVS depth noise
+        # thickens a binned ground to 2-3 layers) only vote inside mesh voxels; columns the
+        # trimmed mesh does not reach keep their binned points
+        mesh_k = np.unique(np.concatenate(sample_keys))
+        nz = spec.shape[2]
+        on_mesh = np.isin(keys_p, mesh_k)
+        uncovered = ~np.isin(keys_p // nz, np.unique(mesh_k // nz))
+        use = on_mesh | uncovered
+        stats["points_off_surface_dropped"] = int((~use).sum())
+        all_k = np.concatenate([keys_p[use], *sample_keys])
+        all_l = np.concatenate([lab_p[use], *sample_labels])
+    else:
+        all_k, all_l = keys_p, lab_p
     k, lab, _ = majority_vote(all_k, all_l, priority_lut)
     stats["voxels_from_points"] = int(len(np.unique(keys_p)))
     stats["voxels"] = int(len(k))

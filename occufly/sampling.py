@@ -336,8 +336,16 @@ def first_hit_zbuffer(
     ib_hi = np.clip(np.floor((bmax - raster.b0) / s - 0.5), -1, raster.nb - 1).astype(np.int64)
     na_ = np.maximum(ia_hi - ia_lo + 1, 0)
     nb_ = np.maximum(ib_hi - ib_lo + 1, 0)
-    counts = na_ * nb_
-    order = np.argsort(z0, kind="stable")  # near boxes first: chunks stay depth-coherent
+    # fast path for the common small footprints: the slab test is separable in (a, b), so
+    # per box compute the z-interval of each footprint column and row once, then combine
+    small = (na_ <= _FAST_FOOTPRINT) & (nb_ <= _FAST_FOOTPRINT)
+    fs = np.flatnonzero(small)
+    if len(fs):
+        _zbuffer_small(zbuf, raster, fs, ia_lo, ib_lo, na_, nb_, x0, x1, y0, y1, z0, z1)
+    big = np.flatnonzero(~small)
+    counts = np.zeros(len(ijk), dtype=np.int64)
+    counts[big] = na_[big] * nb_[big]
+    order = big[np.argsort(z0[big], kind="stable")]  # near boxes first
     cum = np.cumsum(counts[order])
     start = 0
     while start < len(order):
@@ -360,6 +368,44 @@ def first_hit_zbuffer(
         hit = np.isfinite(entry)
         np.minimum.at(zbuf, ia[hit] * raster.nb + ib[hit], entry[hit])
     return zbuf.reshape(raster.na, raster.nb)
+
+
+_FAST_FOOTPRINT = 6
+
+
+def _axis_interval(s: np.ndarray, c0: np.ndarray, c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """z-interval where s * z lies in [c0, c1] (empty interval = (inf, -inf))."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = c0 / s
+        t1 = c1 / s
+    tl = np.minimum(t0, t1)
+    th = np.maximum(t0, t1)
+    zero = s == 0
+    if zero.any():
+        inside0 = (c0 <= 0) & (c1 >= 0)
+        tl = np.where(zero, np.where(inside0, -np.inf, np.inf), tl)
+        th = np.where(zero, np.where(inside0, np.inf, -np.inf), th)
+    return tl, th
+
+
+def _zbuffer_small(zbuf, raster, sel, ia_lo, ib_lo, na_, nb_, x0, x1, y0, y1, z0, z1) -> None:
+    M = _FAST_FOOTPRINT
+    ial, ibl, na_s, nb_s = ia_lo[sel], ib_lo[sel], na_[sel], nb_[sel]
+    z0s, z1s = z0[sel], z1[sel]
+    xs = [_axis_interval(raster.a0 + (ial + dx + 0.5) * raster.step, x0[sel], x1[sel])
+          for dx in range(min(M, int(na_s.max(initial=0))))]
+    ys = [_axis_interval(raster.b0 + (ibl + dy + 0.5) * raster.step, y0[sel], y1[sel])
+          for dy in range(min(M, int(nb_s.max(initial=0))))]
+    for dx, (xl, xh) in enumerate(xs):
+        okx = na_s > dx
+        lo_x = np.maximum(z0s, xl)
+        hi_x = np.minimum(z1s, xh)
+        for dy, (yl, yh) in enumerate(ys):
+            lo = np.maximum(lo_x, yl)
+            hit = okx & (nb_s > dy) & (lo <= np.minimum(hi_x, yh))
+            if hit.any():
+                cell = (ial[hit] + dx) * raster.nb + (ibl[hit] + dy)
+                np.minimum.at(zbuf, cell, lo[hit])
 
 
 def _slab_entry(a, b, x0, x1, y0, y1, z0, z1) -> np.ndarray:

@@ -69,13 +69,40 @@ def back_project(depth: np.ndarray, rays: np.ndarray, rr: np.ndarray, cc: np.nda
     return xyz.astype(np.float32), keep
 
 
+def unique_sorted(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique values of a 1-D integer array and their counts (sort based; numpy's
+    hash-based ``np.unique`` is far slower on millions of distinct values)."""
+    a = np.sort(x)
+    if not len(a):
+        return a, np.zeros(0, np.int64)
+    flag = np.empty(len(a), bool)
+    flag[0] = True
+    np.not_equal(a[1:], a[:-1], out=flag[1:])
+    starts = np.flatnonzero(flag)
+    return a[starts], np.diff(np.append(starts, len(a)))
+
+
+def unique_inverse(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sorted unique values, inverse (N,) int64, counts) of a 1-D integer array."""
+    order = np.argsort(x)
+    a = x[order]
+    flag = np.empty(len(a), bool)
+    flag[:1] = True
+    np.not_equal(a[1:], a[:-1], out=flag[1:])
+    ids = np.cumsum(flag) - 1
+    inv = np.empty(len(x), np.int64)
+    inv[order] = ids
+    starts = np.flatnonzero(flag)
+    return a[starts], inv, np.diff(np.append(starts, len(a)))
+
+
 def _majority(cell: np.ndarray, cls: np.ndarray, n_cells: int, priority: np.ndarray) -> np.ndarray:
     """Most frequent class per cell; ties go to the lower ``priority`` rank (taxonomy tie order).
 
     cell: (S,) int64 in [0, n_cells); cls: (S,) uint8; priority: (256,) int16 rank per id.
     """
     pair = cell.astype(np.int64) * 256 + cls
-    u, counts = np.unique(pair, return_counts=True)
+    u, counts = unique_sorted(pair)
     pc = u // 256
     pcls = (u % 256).astype(np.uint8)
     order = np.lexsort((priority[pcls], -counts, pc))
@@ -96,7 +123,7 @@ def fuse(samples: Samples, voxel: float, n_frames: int,
     ijk = np.floor((xyz - lo) / voxel).astype(np.int64)
     dims = ijk.max(axis=0) + 1
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    _, inv, cnt = unique_inverse(key)
     n = len(cnt)
     out_xyz = np.empty((n, 3), np.float64)
     for k in range(3):
@@ -109,7 +136,7 @@ def fuse(samples: Samples, voxel: float, n_frames: int,
         nrm[:, k] = np.bincount(inv, weights=samples.normal[:, k], minlength=n)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     label = _majority(inv, samples.cls, n, priority)
-    pairs = np.unique(inv.astype(np.int64) * n_frames + samples.frame)
+    pairs, _ = unique_sorted(inv * n_frames + samples.frame)
     contrib = (pairs // n_frames, (pairs % n_frames).astype(np.int32))
     cloud = FusedCloud(out_xyz, rgb, nrm.astype(np.float32), label, cnt.astype(np.int32),
                        np.zeros(n + 1, np.int64), np.zeros(0, np.uint32))
@@ -176,7 +203,7 @@ def build_visibility(n_points: int, n_frames: int, point_ids: list[np.ndarray],
     """Union of (point, frame) pairs -> CSR (offsets (N + 1,) int64, frames (M,) uint32),
     each point's frames sorted ascending and unique."""
     keys = np.concatenate([p.astype(np.int64) * n_frames + f for p, f in zip(point_ids, frame_ids)])
-    keys = np.unique(keys)
+    keys, _ = unique_sorted(keys)
     pts = keys // n_frames
     frames = (keys - pts * n_frames).astype(np.uint32)
     offsets = np.zeros(n_points + 1, np.int64)

@@ -99,7 +99,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
                 img.save(tmp / "images" / fr.name, quality=92)
             Image.fromarray(res.cls, mode="L").save(tmp / "truth" / "masks" / f"{stem}.png", compress_level=1)
             write_depth_map(depth_dir / f"{fr.name}.geometric.bin", dn)
-            mask_classes[np.unique(res.cls)] = True
+            mask_classes[np.bincount(res.cls.ravel(), minlength=256) > 0] = True
             xyz, keep = back_project(dn, rays, rr, cc, fr.T_cam_world)
             r_, c_ = rr[keep], cc[keep]
             chunks["xyz"].append(xyz)
@@ -198,8 +198,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         classes = {
             "world": world.classes_present(),
             "masks": [int(i) for i in np.flatnonzero(mask_classes) if i != 0],
-            "points": [int(i) for i in np.unique(cloud.label)],
-            "grid": [int(i) for i in np.unique(grid.labels) if i != 0],
+            "points": [int(i) for i in np.flatnonzero(np.bincount(cloud.label, minlength=256))],
+            "grid": [int(i) for i in np.flatnonzero(np.bincount(grid.labels.ravel(), minlength=256)) if i != 0],
         }
         summary = {
             "out": str(out),

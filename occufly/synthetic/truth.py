@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from occufly.grid import SceneGrid
-from occufly.synthetic.fuse import _majority
+from occufly.synthetic.fuse import unique_inverse, unique_sorted
 from occufly.synthetic.world import World
 from occufly.taxonomy import Taxonomy
 
@@ -58,7 +58,7 @@ def _vote(world_grid: tuple[np.ndarray, np.ndarray, float], chunks, priority: np
         ijk, cls = ijk[ok], cls[ok]
         lin = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
         # reduce each chunk to unique (voxel, class) pairs with counts, repeated by count later
-        pair, cnt = np.unique(lin * 256 + cls, return_counts=True)
+        pair, cnt = unique_sorted(lin * 256 + cls)
         cells.append(pair)
         classes.append(cnt)
     out = np.zeros(int(np.prod(dims)), np.uint8)
@@ -66,7 +66,7 @@ def _vote(world_grid: tuple[np.ndarray, np.ndarray, float], chunks, priority: np
         return out.reshape(dims)
     pair = np.concatenate(cells)
     cnt = np.concatenate(classes)
-    u, inv = np.unique(pair, return_inverse=True)
+    u, inv, _ = unique_inverse(pair)
     tot = np.bincount(inv, weights=cnt).astype(np.int64)
     vox, cl = u // 256, (u % 256).astype(np.uint8)
     # majority per voxel with tie order: sort by (voxel, -count, priority)

@@ -177,7 +177,7 @@ class World:
         self.n_terrain_tris = n_terrain
 
     def classes_present(self) -> list[int]:
-        ids = set(int(v) for v in np.unique(self.ground.labels))
+        ids = set(int(v) for v in np.flatnonzero(np.bincount(self.ground.labels.ravel(), minlength=256)))
         ids |= {int(p.cls) for p in self.prims}
         return sorted(ids)
 

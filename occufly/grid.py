@@ -118,9 +118,9 @@ class SceneGrid:
         return {int(i): int(counts[i]) for i in np.flatnonzero(counts) if i != 0}
 
     # ---- I/O ---------------------------------------------------------------------------
-    def to_bytes(self) -> bytes:
+    def to_bytes(self, *, compress: bool = True) -> bytes:
         buf = io.BytesIO()
-        np.savez_compressed(
+        (np.savez_compressed if compress else np.savez)(
             buf,
             labels=np.ascontiguousarray(self.labels, dtype=np.uint8),
             origin=self.origin.astype(np.float64),

@@ -124,7 +124,7 @@ def scene_fingerprint(scene) -> str:
 
 def grid_digest(grid: SceneGrid) -> str:
     h = hashlib.sha256()
-    h.update(np.ascontiguousarray(grid.labels).tobytes())
+    h.update(memoryview(np.ascontiguousarray(grid.labels)).cast("B"))  # no copy
     h.update(grid.origin.tobytes())
     h.update(np.float64(grid.voxel_size).tobytes())
     h.update(str(grid.shape).encode())

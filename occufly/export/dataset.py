@@ -272,7 +272,7 @@ def export_dataset(
         dg = grid_digest(g)
         p = sdir / f"grid_{'all' if key < 0 else key}_{dg[:12]}.npz"
         if not p.is_file():
-            _atomic_write(p, g.to_bytes())
+            _atomic_write(p, g.to_bytes(compress=False))  # a working copy: speed over size
         grid_paths[key] = (str(p), dg)
         digests[key] = dg
     # per-altitude config hash: what a frame's files depend on (not the frame selection)

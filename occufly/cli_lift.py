@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("voxel", "exact"), default="voxel",
                    help="kNN fill/denoise method (exact = plain cKDTree baseline)")
     p.add_argument("--no-fill", action="store_true", help="update the votes only")
+    p.add_argument("--keep-share", type=float, default=0.25,
+                   help="denoise: a point keeps its class if it holds this share of its k=200 "
+                        "neighbours (0 = the paper's rule: always the dominant class)")
 
     p = command(sub, "agreement", _agreement,
                 help="pixel agreement of the rendered labels with masks")
@@ -136,7 +139,8 @@ def _lift(args: argparse.Namespace) -> dict:
     out["directly_labelled"] = float((direct > 0).mean()) if len(direct) else 0.0
     if not args.no_fill:
         with tqdm_progress("fill/denoise") as bar:
-            res = state.fill_and_denoise(progress=bar, params=LiftParams(method=args.method))
+            res = state.fill_and_denoise(progress=bar, params=LiftParams(
+                method=args.method, denoise_keep_share=args.keep_share or None))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
     return out

@@ -22,12 +22,20 @@ Fill and denoise (:func:`fill_and_denoise`)
     nearest *directly labelled* points within ``fill_radius`` (exact, cKDTree over the
     labelled points near unlabelled ones only). Denoise: every labelled point takes the
     dominant class of its k=200 nearest labelled points (itself included) within
-    ``denoise_radius``. The fast method certifies whole voxels at once: with voxel edge ``v``
+    ``denoise_radius``, unless its own class holds at least ``denoise_keep_share`` (default
+    0.25) of that neighbourhood. The keep rule is our addition: the paper's plain rule
+    (``denoise_keep_share=None``) relabels every point, which on the synthetic ``small`` scene
+    lowers point accuracy from 0.991 to 0.986 and mIoU from 0.918 to 0.827 (persons, bicycles,
+    cables are smaller than 200 points' neighbourhoods); isolated mislabels (own share ~1/k)
+    are still relabelled. The fast method certifies whole voxels at once: with voxel edge ``v``
     near the typical k-NN radius, a point's k nearest neighbours lie in the 3x3x3 voxel block
     around its voxel; if that block holds at least ``k`` points and fewer than k/2 of them
-    disagree with the block's dominant class, that class must win the k-NN vote. Only points of
-    uncertified voxels (class boundaries, sparse areas) run an exact k-NN query against the
-    labelled points of their neighbourhood. :func:`fill_and_denoise_exact` is the plain
+    disagree with the block's dominant class, that class must win the k-NN vote (with the keep
+    rule, a point of another class is certified only if the block holds fewer than
+    ``keep_share * k`` points of its class). Points of uncertified voxels (class boundaries,
+    sparse areas) get their exact k nearest neighbours by brute force over their voxel's
+    3x3x3 block (vectorised per voxel); where the k-th neighbour is farther than the block
+    reaches, a cKDTree over the surrounding labelled points answers instead. :func:`fill_and_denoise_exact` is the plain
     cKDTree baseline used by tests and the benchmark.
 
 Confidence (float32 in [0, 1])
@@ -80,9 +88,10 @@ class LiftParams:
     voxel: float | None = None  # voxel edge of the fast method; None = from the point density
     voxel_factor: float = 1.0  # auto voxel = factor * typical denoise k-NN radius
     certify_min_points: float = 1.5  # a block needs >= this * k points to be certified
-    # None: the method's rule, every point takes its neighbourhood's dominant class. A value
-    # s in (0, 1]: a point keeps its own class if that holds >= s of its neighbourhood.
-    denoise_keep_share: float | None = None
+    # A point keeps its own class if that holds >= this share of its denoise neighbourhood;
+    # otherwise it takes the dominant class. None = the paper's rule (always the dominant
+    # class), which on the synthetic scenes erases small objects (see the module docstring).
+    denoise_keep_share: float | None = 0.25
     workers: int = 1  # cKDTree query workers
 
 

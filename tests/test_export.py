@@ -235,3 +235,18 @@ def test_lower_altitudes_sample_the_highest_grid(ws, tmp_path):
                    grid_for_altitude={30: 30})
     lab = np.fromfile(out2 / "OccuFly_Dataset/scene_01/30/ground_truth/000001/000001.label", np.uint8)
     assert not np.any((lab != 0) & (lab != 255))
+
+
+def test_preview_png(exported, tmp_path):
+    from PIL import Image
+
+    from occufly.cli import main
+
+    out, _ = exported
+    png = tmp_path / "p.png"
+    assert main(["preview", str(out), "--frame", "2", "--out", str(png), "--height", "96"]) == 0
+    im = np.asarray(Image.open(png).convert("RGB"))
+    assert im.shape[0] == 96 + 16 + 12
+    colours = {tuple(c) for c in im.reshape(-1, 3)}
+    assert (255, 0, 0) in colours and (0, 255, 0) in colours  # building and grass voxels drawn
+    assert main(["preview", str(out), "--frame", "999", "--out", str(png)]) == 2

@@ -180,3 +180,22 @@ def test_bad_pose_is_a_clear_error():
     T[0, 0] = 2.0
     with pytest.raises(WorkspaceError, match="not a rigid"):
         check_pose(T, "frame 8")
+
+
+def test_depth_map_prefers_mvs_then_renders(tmp_path):
+    from occufly.io.colmap_dense import write_depth_map
+    from occufly.sampling import frame_depth_map
+    from occufly.scene import Frame, Scene
+
+    cam = Camera("PINHOLE", 16, 12, [10, 10, 8, 6])
+    frames = [Frame(name=f"im{i}.jpg", camera=cam, T_cam_world=np.eye(4)) for i in range(2)]
+    xyz = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 9.0]], np.float32)  # both on the optical axis
+    scene = Scene(frames=frames, xyz=xyz, rgb=np.zeros((2, 3), np.uint8),
+                  meta={"depth_maps": str(tmp_path)})
+    mvs = np.arange(16 * 12, dtype=np.float32).reshape(12, 16)  # COLMAP map at full resolution
+    write_depth_map(tmp_path / "im0.jpg.geometric.bin", mvs)
+    d0, src0 = frame_depth_map(scene, 0)
+    assert src0 == "mvs" and d0.shape == (3, 4)
+    assert np.array_equal(d0, mvs[2::4, 2::4])  # nearest sample at the 1/4-res pixel centres
+    d1, src1 = frame_depth_map(scene, 1)  # no depth map: rendered from the points (z-buffer)
+    assert src1 == "rendered" and d1[1, 2] == 5.0 and np.count_nonzero(d1) == 1

@@ -50,7 +50,38 @@ export class View {
 
   setPhoto(source) {
     this.photo = source;
+    this.pyramid = [];
     this.invalidate();
+    this._buildPyramid(source);
+  }
+
+  /**
+   * Half, quarter, eighth... resolution copies of the photo, made off the main thread after
+   * the first paint; zoomed-out redraws sample the smallest level that still has at least one
+   * source pixel per screen pixel, which keeps pan/zoom smooth on 20-megapixel images.
+   */
+  async _buildPyramid(source) {
+    const levels = [];
+    let w = source.width, h = source.height, src = source;
+    try {
+      while (w > 1024 && h > 1024) {
+        w = Math.round(w / 2);
+        h = Math.round(h / 2);
+        src = await createImageBitmap(src, { resizeWidth: w, resizeHeight: h, resizeQuality: "medium" });
+        if (this.photo !== source) return;
+        levels.push({ factor: source.width / w, img: src });
+      }
+    } catch {
+      return; // no resize support: draw the full image
+    }
+    this.pyramid = levels;
+  }
+
+  _photoLevel() {
+    const px = this.scale * (this.dpr || 1); // screen pixels per image pixel
+    let best = this.photo;
+    for (const l of this.pyramid || []) if (px * l.factor <= 1) best = l.img;
+    return best;
   }
 
   setMask(mask) {
@@ -157,7 +188,7 @@ export class View {
         this._applyTransform(pc);
         pc.imageSmoothingEnabled = this.scale < 2;
         pc.imageSmoothingQuality = "medium";
-        pc.drawImage(this.photo, 0, 0, this.width, this.height);
+        pc.drawImage(this._photoLevel(), 0, 0, this.width, this.height);
       }
     }
     const mc = this.maskCanvas.getContext("2d");

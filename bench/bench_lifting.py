@@ -139,7 +139,7 @@ def quality(args: argparse.Namespace) -> dict:
                          "coverage": strat.coverage}
     out["greedy"] = {"selected": len(sel.frames), "ratio": sel.ratio, "coverage": sel.coverage,
                      "curve": sel.curve}
-    held = [i for i in range(len(scene.frames)) if i not in set(sel.frames)]
+    held = [i for i in range(len(scene.frames)) if i not in set(sel.frames)][::args.held_out_step]
     mask_of = {}
     for i in range(len(scene.frames)):
         mask_of[i] = read_mask(syn / "truth" / "masks" / f"{scene.frames[i].stem}.png",
@@ -196,6 +196,8 @@ def main() -> None:
     ap.add_argument("--keep-share", type=float, default=-1.0,
                     help="denoise keep share (default: the library default; 0 = method rule)")
     ap.add_argument("--denoise-radius", type=float, default=None)
+    ap.add_argument("--held-out-step", type=int, default=1,
+                    help="quality: evaluate every n-th non-annotated frame")
     ap.add_argument("--preset", default="bench")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-bench"))

@@ -66,7 +66,7 @@ def scene_point_spacing(scene: Scene) -> float:
 def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
                   surface_tol: float = 3.0,
-                  chunk: int = 2_000_000
+                  chunk: int = 500_000
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Render per-point labels into frame ``frame_index``.
 
@@ -81,54 +81,53 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
     h, w = cam.height, cam.width
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
     f = 0.5 * sum(cam.focal)
-    # project once; keep points whose largest splat could touch the image
-    pix_l, lab_l, zl, d2l = [], [], [], []
-    for a in range(0, scene.n_points, chunk):
-        b = min(scene.n_points, a + chunk)
-        xyz_cam = transform(frame.T_cam_world, scene.xyz[a:b])
-        idx = np.flatnonzero(xyz_cam[:, 2] > 1e-6)
-        uv, z = cam.project(xyz_cam[idx])
-        ok = ((uv[:, 0] >= -MAX_SPLAT) & (uv[:, 0] < w + MAX_SPLAT)
-              & (uv[:, 1] >= -MAX_SPLAT) & (uv[:, 1] < h + MAX_SPLAT))
-        idx, uv, z = idx[ok], uv[ok], z[ok]
-        if not len(idx):
-            continue
-        size = np.clip(np.ceil(splat_factor * f * spacing / z), 1, MAX_SPLAT).astype(np.int64)
-        # the s x s pixels whose centres lie within s/2 of the projected point
-        col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
-        row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
-        lab = labels[a:b][idx]
-        for dy in range(MAX_SPLAT):
-            for dx in range(MAX_SPLAT):
-                sel = np.flatnonzero(size > max(dx, dy))
-                if not len(sel):
-                    break
-                r = row0[sel] + dy
-                c = col0[sel] + dx
-                inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-                sel, r, c = sel[inside], r[inside], c[inside]
-                pix_l.append(r * w + c)
-                lab_l.append(lab[sel])
-                zl.append(z[sel].astype(np.float32))
-                d2l.append(((c + 0.5 - uv[sel, 0]) ** 2 + (r + 0.5 - uv[sel, 1]) ** 2)
-                           .astype(np.float32))
+
+    def fragments():
+        """Per chunk of points and splat offset: (pixel, depth, d2 to pixel centre, label)."""
+        for a in range(0, scene.n_points, chunk):
+            b = min(scene.n_points, a + chunk)
+            xyz_cam = transform(frame.T_cam_world, scene.xyz[a:b])
+            idx = np.flatnonzero(xyz_cam[:, 2] > 1e-6)
+            uv, z = cam.project(xyz_cam[idx])
+            # keep points whose largest splat could touch the image
+            ok = ((uv[:, 0] >= -MAX_SPLAT) & (uv[:, 0] < w + MAX_SPLAT)
+                  & (uv[:, 1] >= -MAX_SPLAT) & (uv[:, 1] < h + MAX_SPLAT))
+            idx, uv, z = idx[ok], uv[ok], z[ok].astype(np.float32)
+            if not len(idx):
+                continue
+            size = np.clip(np.ceil(splat_factor * f * spacing / z), 1, MAX_SPLAT).astype(np.int64)
+            # the s x s pixels whose centres lie within s/2 of the projected point
+            col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
+            row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
+            lab = labels[a:b][idx]
+            for dy in range(MAX_SPLAT):
+                for dx in range(MAX_SPLAT):
+                    sel = np.flatnonzero(size > max(dx, dy))
+                    if not len(sel):
+                        break
+                    r = row0[sel] + dy
+                    c = col0[sel] + dx
+                    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+                    sel, r, c = sel[inside], r[inside], c[inside]
+                    d2 = (c + 0.5 - uv[sel, 0]) ** 2 + (r + 0.5 - uv[sel, 1]) ** 2
+                    yield r * w + c, z[sel], d2.astype(np.float32), lab[sel]
+
+    # pass 1: nearest depth per pixel
     depth = np.full(h * w, np.inf, dtype=np.float32)
-    cls = np.zeros(h * w, dtype=np.uint8)
-    if pix_l:
-        pix = np.concatenate(pix_l)
-        zz = np.concatenate(zl)
-        # pass 1: nearest depth per pixel
+    for pix, zz, _, _ in fragments():
         np.minimum.at(depth, pix, zz)
-        # pass 2: among the splats of the front surface (depth within a tolerance of the
-        # nearest), the point projecting closest to the pixel centre gives the label
-        front = zz <= depth[pix] + (surface_tol * spacing + 0.005 * depth[pix])
-        d2 = np.concatenate(d2l)[front]
-        key = (np.minimum(d2 * 65536.0, 2**31).astype(np.uint64) << np.uint64(8)) | \
-            np.concatenate(lab_l)[front].astype(np.uint64)
-        best = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
+    # pass 2: among the fragments of the front surface (depth within a tolerance of the
+    # nearest), the point projecting closest to the pixel centre gives the label
+    best = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
+    for pix, zz, d2, lab in fragments():
+        zf = depth[pix]
+        front = zz <= zf + (surface_tol * spacing + 0.005 * zf)
+        key = (np.minimum(d2[front] * 65536.0, 2**31).astype(np.uint64) << np.uint64(8)) | \
+            lab[front].astype(np.uint64)
         np.minimum.at(best, pix[front], key)
-        hit = best != np.iinfo(np.uint64).max
-        cls[hit] = (best[hit] & np.uint64(255)).astype(np.uint8)
+    hit = best != np.iinfo(np.uint64).max
+    cls = np.zeros(h * w, dtype=np.uint8)
+    cls[hit] = (best[hit] & np.uint64(255)).astype(np.uint8)
     depth[~np.isfinite(depth)] = 0.0
     return cls.reshape(h, w), depth.reshape(h, w)
 

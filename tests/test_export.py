@@ -164,7 +164,7 @@ def test_disk_full_leaves_no_half_frame(ws, tmp_path, monkeypatch):
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name not in ("manifest.json", "calibration.txt")}
     import occufly.export.common as common
 
-    real = common.atomic_write_bytes
+    real = common.write_tmp
     calls = {"n": 0}
 
     def failing(path, data):
@@ -173,7 +173,7 @@ def test_disk_full_leaves_no_half_frame(ws, tmp_path, monkeypatch):
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(path, data)
 
-    monkeypatch.setattr(common, "atomic_write_bytes", failing)
+    monkeypatch.setattr(common, "write_tmp", failing)
     with pytest.raises(ExportError, match="disk full"):
         export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1])
     monkeypatch.undo()

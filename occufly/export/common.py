@@ -13,6 +13,7 @@ import errno
 import hashlib
 import json
 import os
+import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import WorkspaceError
-from occufly.fsutil import atomic_write_bytes, fsync_dir
+from occufly.fsutil import fsync_dir
 from occufly.grid import SceneGrid
 
 EXPORT_FORMAT_VERSION = 1
@@ -139,26 +140,53 @@ def is_disk_full(e: BaseException) -> bool:
     return isinstance(e, OSError) and e.errno in DISK_FULL
 
 
-def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict,
-                      write: Callable[[Path, bytes], None] | None = None) -> int:
-    """Write one frame: every file atomically, the done marker last.
+def write_tmp(path: Path, data: bytes) -> Path:
+    """Write ``data`` to a hidden temporary sibling of ``path`` (fsynced); return its name."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return Path(tmp)
 
-    On any failure the files of this frame that were already placed are removed again (they
-    belong to a frame with no marker, so nothing complete is lost) and the error re-raised
-    (disk full as :class:`ExportError`). Returns the number of bytes written.
+
+def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict) -> int:
+    """Write one frame so that it never appears half-written.
+
+    1. the old done marker (if any) is removed;
+    2. every file is written and fsynced under a hidden temporary name next to its target
+       (``.<name>.*.tmp``; leftovers of a killed run are swept by the next run);
+    3. only then are all of them renamed into place (a burst of renames, no data writes),
+       their folders fsynced, and the done marker written last.
+
+    A failure before step 3 (disk full, an error, a kill) leaves no file of this frame; on a
+    failure during the renames the already placed files are removed. Disk full is raised as
+    :class:`ExportError`. Returns the number of bytes written.
     """
-    write = write or (lambda p, b: atomic_write_bytes(p, b))  # looked up at call time
+    staged: list[tuple[Path, Path]] = []
     placed: list[Path] = []
     path = marker
     try:
         marker.unlink(missing_ok=True)
         for path, data in files.items():
-            write(path, data)
+            staged.append((write_tmp(path, data), path))
+        for tmp, path in staged:
+            os.replace(tmp, path)
             placed.append(path)
         for d in {p.parent for p in files}:
             fsync_dir(d)
-        write(marker, json.dumps(marker_data).encode())
+        path = marker
+        tmp = write_tmp(marker, json.dumps(marker_data).encode())
+        os.replace(tmp, marker)
+        fsync_dir(marker.parent)
     except BaseException as e:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
         for p in placed:
             try:
                 p.unlink(missing_ok=True)

@@ -5,11 +5,12 @@ Guarantees
 - Everything that can be checked is checked before anything is written: the target (it must
   be empty / absent, an export root of the same layout, or an earlier export of *this* scene
   -- same scene fingerprint), every selected frame's pose, altitude and image.
-- Each frame's files are written atomically one by one, then a done marker (in
-  ``<root>/.occufly_export/<layout>/<scene_id>/done/``) recording the config hash and file
-  sizes. A rerun skips frames whose marker matches and whose files have the recorded sizes,
-  so an interrupted export resumes; a frame that failed half-way has its placed files
-  removed, and a frame without a marker is rewritten.
+- Each frame's files are all written to hidden temporary names first, then renamed into
+  place together, then a done marker (in ``<root>/.occufly_export/<layout>/<scene_id>/done/``)
+  recording the config hash and file sizes is written last
+  (:func:`occufly.export.common.write_frame_files`). A rerun sweeps leftover temporaries,
+  skips frames whose marker matches and whose files have the recorded sizes, and rewrites
+  the rest, so an interrupted export resumes where it stopped.
 - Disk full raises :class:`ExportError` with a clear message; completed frames are kept.
 - The manifest (taxonomy, provenance, sampling parameters, frames) is written before the
   frames with ``complete: false`` and rewritten with ``complete: true`` at the end.

@@ -51,7 +51,9 @@ def _serve(args: argparse.Namespace) -> int:
     from app.main import create_app
 
     app = create_app(_settings())
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    # no permessage-deflate: the /viewer/ socket carries ~15 B/point of float data, which
+    # barely compresses and costs ~5 s per 2 M points (bench/bench_viewer.py)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info", ws_per_message_deflate=False)
     return 0
 
 
@@ -145,7 +147,7 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
         import uvicorn
 
         print(f"  open http://{host}:{port}/", file=sys.stderr)
-        uvicorn.run(app, host=host, port=port, log_level="info")
+        uvicorn.run(app, host=host, port=port, log_level="info", ws_per_message_deflate=False)
     else:
         from app.main import close
 

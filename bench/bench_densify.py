@@ -82,12 +82,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--labels", choices=("truth", "lifting"), default="truth")
     ap.add_argument("--min-points-scale", default="auto")
     ap.add_argument("--voxel", type=float, default=0.5)
+    ap.add_argument("--synth", help="use this existing synthetic output (OUT) instead of generating")
+    ap.add_argument("--workspace", help="use this existing workspace (imported from --synth)")
     args = ap.parse_args(argv)
 
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    out, ws = _ensure_scene(root, args.preset)
+    if args.synth and args.workspace:
+        out, ws = Path(args.synth), Path(args.workspace)
+    else:
+        out, ws = _ensure_scene(root, args.preset)
     t_prepare = time.perf_counter() - t
 
     from occufly.densify.evaluate import evaluate_grids

@@ -60,7 +60,7 @@ def _eval(args: argparse.Namespace) -> dict:
     pred_path = Path(args.grid) if args.grid else _grid_path(str(ws))
     pred = SceneGrid.load(pred_path)
     truth = SceneGrid.load(_grid_path(args.truth))
-    out = evaluate_grids(pred, truth, _load_taxonomy(ws if ws.is_dir() else None))
+    out = evaluate_grids(pred, truth, _load_taxonomy(ws if ws.is_dir() else None), region=args.region)
     out["pred"] = str(pred_path)
     out["truth"] = str(_grid_path(args.truth))
     return out
@@ -101,6 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("workspace", help="scene workspace (its grid/scene_grid.npz and taxonomy)")
     p.add_argument("--truth", required=True, help="truth grid .npz (or a folder holding grid/scene_grid.npz)")
     p.add_argument("--grid", help="evaluate this grid instead of the workspace's")
+    p.add_argument("--region", choices=("truth", "union"), default="truth",
+                   help="evaluate inside the truth grid's extent (default) or the union of both")
 
     p = command(sub, "grid-preview", _preview, help="PNG preview (top-down + oblique) of a scene grid")
     p.add_argument("source", help="workspace or grid .npz")

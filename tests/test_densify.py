@@ -271,11 +271,15 @@ def test_eval_aligns_by_world_origin_and_counts_exactly():
     # one FP road voxel outside the truth extent, one FN vehicle voxel
     big[0, 0, 0] = IDS["road"]
     big[6, 5, 3] = 0
-    r = evaluate_grids(SceneGrid(big, pred.origin, 0.5), truth, TAX)
+    r = evaluate_grids(SceneGrid(big, pred.origin, 0.5), truth, TAX, region="union")
     assert r["per_class_iou"]["road"] == pytest.approx(4 / 5)
     assert r["per_class_iou"]["vehicle"] == 0.0
     assert r["completion_iou"] == pytest.approx(4 / 6)
     assert r["miou"] == pytest.approx(0.4)
+    # default: only the truth's extent is judged; the outside voxel is counted, not an FP
+    r = evaluate_grids(SceneGrid(big, pred.origin, 0.5), truth, TAX)
+    assert r["per_class_iou"]["road"] == 1.0 and r["pred_voxels_outside_truth"] == 1
+    assert r["completion_iou"] == pytest.approx(4 / 5) and r["miou"] == pytest.approx(0.5)
     with pytest.raises(InputFormatError, match="lattice"):
         evaluate_grids(SceneGrid(big, pred.origin + 0.2, 0.5), truth, TAX)
     with pytest.raises(InputFormatError, match="voxel size"):

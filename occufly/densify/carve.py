@@ -52,6 +52,8 @@ class CarveParams:
     max_image: int = 1024  # cap on the virtual image side (pixels grow for huge instances)
     dilation: float = 0.0  # silhouette dilation in voxel edges (see module docstring)
     max_candidates: int = 4_000_000  # candidate voxels processed per batch
+    keep_point_voxels: bool = True  # always keep the voxels holding the instance's points
+    point_voxel_min_points: int = 1  # ... when they hold at least this many points
 
 
 def fibonacci_sphere(k: int) -> np.ndarray:
@@ -184,7 +186,8 @@ def carve_instance(
     pts = np.asarray(xyz, dtype=np.float64)
     vs = spec.voxel_size
     own_ijk, own_in = spec.ijk_of_local(pts)
-    own = np.unique(spec.linear(own_ijk[own_in]))
+    own, own_n = np.unique(spec.linear(own_ijk[own_in]), return_counts=True)
+    own = own[own_n >= params.point_voxel_min_points]
     center = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
     radius = float(np.sqrt(((pts - center) ** 2).sum(axis=1).max())) if len(pts) else 0.0
 
@@ -217,7 +220,7 @@ def carve_instance(
             sil = ndimage.binary_dilation(sil, structure=disk)
         sils.append(sil)
 
-    kept: list[np.ndarray] = [own]
+    kept: list[np.ndarray] = [own] if params.keep_point_voxels else []
     # iterate over slabs of x so that at most max_candidates voxels are alive at once
     slab = max(1, params.max_candidates // max(1, int(ext[1] * ext[2])))
     for x0 in range(int(lo[0]), int(hi[0]) + 1, slab):
@@ -238,4 +241,4 @@ def carve_instance(
             if len(alive) == 0:
                 break
         kept.append(spec.linear(ijk[alive]))
-    return np.unique(np.concatenate(kept))
+    return np.unique(np.concatenate(kept)) if kept else np.zeros(0, np.int64)

@@ -1,8 +1,10 @@
 """Scene-grid evaluation against a truth grid (FORMATS.md section 5 definitions).
 
-The two grids are aligned by their WORLD origins; they may have different extents. The
-evaluation box is the union of both extents and a voxel outside a grid's extent counts as
-empty in that grid. Voxels whose truth is 255 (invalid) are ignored. Per-class IoU =
+The two grids are aligned by their WORLD origins; they may have different extents. By default
+(``region="truth"``) the evaluation covers the truth grid's extent -- the truth says nothing
+beyond it -- and predicted voxels outside it are only counted (``pred_voxels_outside_truth``);
+with ``region="union"`` the box is the union of both extents and a voxel outside a grid's
+extent counts as empty in that grid. Voxels whose truth is 255 (invalid) are ignored. Per-class IoU =
 TP / (TP + FP + FN) from one confusion matrix; a class absent from both grids is reported as
 ``None`` (n/a) and left out of the mIoU; the mIoU averages the classes present in either grid.
 Completion IoU / precision / recall are over occupied-vs-empty.
@@ -50,9 +52,19 @@ def aligned_pair(pred: SceneGrid, truth: SceneGrid) -> tuple[np.ndarray, np.ndar
     return a, b
 
 
-def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy) -> dict:
+def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy, *, region: str = "truth") -> dict:
     """Completion IoU / precision / recall, per-class IoU and mIoU of ``pred`` vs ``truth``."""
+    if region not in ("truth", "union"):
+        raise ValueError(f"region must be 'truth' or 'union', got {region!r}")
     a, b = aligned_pair(pred, truth)
+    outside = 0
+    if region == "truth":
+        off = _offset(pred, truth)
+        to = -np.minimum(0, off)
+        ts = truth.shape
+        crop = (slice(to[0], to[0] + ts[0]), slice(to[1], to[1] + ts[1]), slice(to[2], to[2] + ts[2]))
+        outside = int((a != 0).sum() - (a[crop] != 0).sum())
+        a, b = a[crop], b[crop]
     valid = b != INVALID
     p = a[valid].astype(np.int64)
     g = b[valid].astype(np.int64)
@@ -85,4 +97,6 @@ def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy) -> dic
         "voxels_pred": int(cm[:, 1:].sum()),
         "voxels_truth": int(cm[1:, :].sum()),
         "evaluated_voxels": int(cm.sum()),
+        "region": region,
+        "pred_voxels_outside_truth": outside,
     }

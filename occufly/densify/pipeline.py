@@ -179,6 +179,7 @@ def densify(
     t = time.perf_counter()
     inst_point_keys: list[np.ndarray] = []
     inst_point_labels: list[np.ndarray] = []
+    direct_keys: list[np.ndarray] = []  # voxels of instance points binned directly (fallbacks)
     carved: dict[int, np.ndarray] = {}
     inst_stats: dict[str, dict] = {}
     inst_ids = [int(c) for c in taxonomy.group_ids("instance") if counts_per_class[c] > 0]
@@ -197,6 +198,7 @@ def densify(
         inst_point_labels.append(np.full(int(ins.sum()), cid, np.uint8))
         st = {"points": int(len(sel))}
         if not options.carve:
+            direct_keys.append(k[ins])
             inst_stats[cls.name] = st
             continue
         t0 = time.perf_counter()
@@ -218,17 +220,22 @@ def densify(
                 warn(msg)
             else:
                 log.info(msg)
+        if noise:
+            nz = (cl < 0) & ins
+            direct_keys.append(k[nz])
         t0 = time.perf_counter()
         order = np.argsort(cl, kind="stable")
         bounds = np.searchsorted(cl[order], np.arange(n_inst + 1))
         keys_c: list[np.ndarray] = []
         for j in range(n_inst):
-            p = pts[order[bounds[j] : bounds[j + 1]]].astype(np.float64)
+            members = order[bounds[j] : bounds[j + 1]]
+            p = pts[members].astype(np.float64)
             why = _is_degenerate(p, options.degenerate_thickness * vs)
             if why is not None:
                 warn(f"{cls.name} instance {j} ({len(p)} points) is degenerate: {why}; binned directly")
                 st["fallback_instances"] += 1
-                continue  # its points are already in the direct layer
+                direct_keys.append(k[members[ins[members]]])
+                continue
             keys_c.append(carve_instance(p, spec, options.carve_params))
         if keys_c:
             carved[cid] = np.unique(np.concatenate(keys_c))
@@ -264,12 +271,23 @@ def densify(
     flat = np.zeros(spec.n_voxels, dtype=np.uint8)
     flat[ground.keys] = ground.labels
     flat[other_k] = other_l
-    # carved voxels: least preferred class first, so the preferred one ends on top
+    # instance layer = carved voxels + directly binned fallback voxels. Carved voxels: least
+    # preferred class first, so the preferred one ends on top; then every layer voxel holding
+    # instance points takes their majority class.
+    inst = np.zeros(spec.n_voxels, dtype=np.uint8)
     for cid in sorted(carved, key=lambda c: -int(prio[c])):
-        flat[carved[cid]] = cid
+        inst[carved[cid]] = cid
     if inst_point_keys:
         k, lab, _ = majority_vote(np.concatenate(inst_point_keys), np.concatenate(inst_point_labels), prio)
-        flat[k] = lab
+        layer = inst > 0
+        if direct_keys:
+            layer[np.concatenate(direct_keys)] = True
+        m = layer[k]
+        inst[k[m]] = lab[m]
+        del layer
+    occ = inst > 0
+    flat[occ] = inst[occ]
+    del inst, occ
     grid = SceneGrid(flat.reshape(spec.shape), spec.origin, vs)
     timings["aggregate"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
@@ -296,6 +314,7 @@ def densify(
         "voxels_per_class": {taxonomy[c].name if c in taxonomy else str(c): n for c, n in sorted(counts.items())},
         "voxels_per_stage": {
             "instance_points": int(len(np.unique(np.concatenate(inst_point_keys)))) if inst_point_keys else 0,
+            "instance_direct": int(len(np.unique(np.concatenate(direct_keys)))) if direct_keys else 0,
             "instance_carved": int(sum(len(v) for v in carved.values())),
             "other": int(len(other_k)),
             "ground_points": int(ground.stats.get("voxels_from_points", 0)),

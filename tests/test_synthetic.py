@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from occufly.camera import Camera, camera_center
+from occufly.camera import Camera, camera_center, project_world
 from occufly.cli import main as cli_main
 from occufly.grid import SceneGrid
 from occufly.io.colmap_dense import read_depth_map, read_fused_ply, read_fused_vis
@@ -331,3 +331,30 @@ def test_import_reports_frames_and_points_of_the_truth(synth, tmp_path):
     assert s["visibility"]["frames_without_points"] == 0
     np.testing.assert_allclose(scene.origin + scene.xyz.mean(axis=0),
                                read_fused_ply(synth["out"] / "dense" / "fused.ply")[0].mean(axis=0), atol=1e-3)
+
+
+def test_visibility_lists_images_that_see_the_point(synth):
+    """Each (point, image) pair of fused.ply.vis projects into that image onto a depth that
+    agrees with the point (contributing images are within one fusion cell of it)."""
+    out, meta = synth["out"], synth["meta"]
+    rec = _colmap(out)
+    camera = _camera(rec)
+    poses = _local_poses(rec, synth["offset"])
+    xyz, _, _ = read_fused_ply(out / "dense" / "fused.ply")
+    local = xyz - synth["offset"]
+    offsets, frames = read_fused_vis(out / "dense" / "fused.ply.vis", len(xyz))
+    pt = np.repeat(np.arange(len(xyz)), np.diff(offsets))
+    inside = agree = total = 0
+    for f, (name, T) in enumerate(poses):
+        m = pt[frames == f]
+        uv, z, vis = project_world(camera, T, local[m])
+        depth = read_depth_map(out / "dense" / "stereo" / "depth_maps" / f"{name}.geometric.bin")
+        ij = np.floor(uv[vis]).astype(int)
+        d = depth[ij[:, 1], ij[:, 0]]
+        tol = meta["preset_params"]["vis_tolerance"]
+        agree += int(np.sum((d > 0) & (np.abs(d - z[vis]) <= tol * z[vis])))
+        inside += int(vis.sum())
+        total += len(m)
+    assert total == len(frames)
+    assert inside / total > 0.99
+    assert agree / total > 0.9

@@ -202,7 +202,7 @@ def build_visibility(n_points: int, n_frames: int, point_ids: list[np.ndarray],
                      frame_ids: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Union of (point, frame) pairs -> CSR (offsets (N + 1,) int64, frames (M,) uint32),
     each point's frames sorted ascending and unique."""
-    keys = np.concatenate([p.astype(np.int64) * n_frames + f for p, f in zip(point_ids, frame_ids)])
+    keys = np.concatenate([p.astype(np.int64) * n_frames + f for p, f in zip(point_ids, frame_ids, strict=False)])
     keys, _ = unique_sorted(keys)
     pts = keys // n_frames
     frames = (keys - pts * n_frames).astype(np.uint32)

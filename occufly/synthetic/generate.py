@@ -29,7 +29,13 @@ from occufly.io.colmap_dense import write_depth_map, write_fused_ply, write_fuse
 from occufly.progress import ProgressFn, noop
 from occufly.synthetic.flight import make_camera, plan_flight
 from occufly.synthetic.fuse import (
-    Samples, TileIndex, back_project, build_visibility, depth_agreement, fuse, sample_grid,
+    Samples,
+    TileIndex,
+    back_project,
+    build_visibility,
+    depth_agreement,
+    fuse,
+    sample_grid,
 )
 from occufly.synthetic.presets import get_preset
 from occufly.synthetic.render import Renderer, noisy_depth

@@ -15,8 +15,21 @@ import open3d as o3d
 
 from occufly.camera import Camera, camera_center
 from occufly.synthetic.world import (
-    BUILDING, DIRT, GRASS, GRAVEL, GROUND_RGB, PARKING, ROAD, ROCK, ROOF, TERRAIN, TREE, VEGETATION,
-    WALKWAY, WATER, World,
+    BUILDING,
+    DIRT,
+    GRASS,
+    GRAVEL,
+    GROUND_RGB,
+    PARKING,
+    ROAD,
+    ROCK,
+    ROOF,
+    TERRAIN,
+    TREE,
+    VEGETATION,
+    WALKWAY,
+    WATER,
+    World,
 )
 
 SKY_RGB = np.array([178.0, 198.0, 226.0])

@@ -38,17 +38,17 @@ def write_sparse_model(
     counts = np.zeros(len(names), np.int64)
     for frames, uv in tracks:
         elems = []
-        for f, p in zip(frames.tolist(), uv):
+        for f, p in zip(frames.tolist(), uv, strict=False):
             per_image[f].append(p)
             elems.append((f, int(counts[f])))
             counts[f] += 1
         obs_index.append(elems)
-    for f, (name, T) in enumerate(zip(names, poses_world)):
+    for f, (name, T) in enumerate(zip(names, poses_world, strict=False)):
         kp = np.array(per_image[f], dtype=np.float64).reshape(-1, 2)
         img = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=f + 1)
         pose = pycolmap.Rigid3d(np.asarray(T[:3, :4], dtype=np.float64))
         rec.add_image_with_trivial_frame(img, pose)
-    for xyz, col, elems in zip(points_world, colors, obs_index):
+    for xyz, col, elems in zip(points_world, colors, obs_index, strict=False):
         track = pycolmap.Track([pycolmap.TrackElement(f + 1, k) for f, k in elems])
         rec.add_point3D(np.asarray(xyz, np.float64), track, np.asarray(col, np.uint8))
     rec.update_point_3d_errors()

@@ -336,7 +336,7 @@ class _Builder:
         pts = a + t[:, None] * (b - a)
         zs = self.w.ground_z(pts[:, 0], pts[:, 1])
         col = (150, 150, 155)
-        for (x, y), z in zip(pts, zs):
+        for (x, y), z in zip(pts, zs, strict=False):
             self.add(Cylinder(OBSTACLE, i, p0=[x, y, z - 0.1], p1=[x, y, z + 1.5], radius=0.06, sides=6, rgb=col))
         yaw = float(np.arctan2(b[1] - a[1], b[0] - a[0]))
         mid = (a + b) / 2
@@ -411,7 +411,7 @@ class _Builder:
                 Box(CABLE_TOWER, i, center=[x, y, z + H + 0.6], size=[0.6, 0.6, 1.6], rgb=col),
             )
             tops.append(np.array([x, y, z + H - 1.0]))
-        for a, b in zip(tops[:-1], tops[1:]):
+        for a, b in zip(tops[:-1], tops[1:], strict=False):
             for side in (-arm, arm):
                 i = self.inst()
                 pa, pb = a + [0, side, 0], b + [0, side, 0]
@@ -419,7 +419,7 @@ class _Builder:
                 sag = 1.5
                 pts = pa + t[:, None] * (pb - pa)
                 pts[:, 2] -= 4 * sag * t * (1 - t)
-                for p0, p1 in zip(pts[:-1], pts[1:]):
+                for p0, p1 in zip(pts[:-1], pts[1:], strict=False):
                     self.add(Cylinder(CABLE, i, p0=p0, p1=p1, radius=0.13, sides=6, rgb=(35, 35, 38)))
 
 

@@ -64,8 +64,14 @@ class LocalExecutor(SerialExecutor):
     kind = "local"
 
     def __init__(self, workers: int | None = None) -> None:
+        import multiprocessing as mp
+
         self.workers = int(workers or os.cpu_count() or 1)
-        self._pool = ProcessPoolExecutor(max_workers=self.workers)
+        # forkserver: workers start from a clean process, never a fork of a threaded caller
+        # (web server, Dask client, progress bars); spawn where forkserver does not exist
+        methods = mp.get_all_start_methods()
+        ctx = mp.get_context("forkserver" if "forkserver" in methods else "spawn")
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
 
     def submit(self, fn: Callable, *args: Any, **kwargs: Any) -> Future:
         return self._pool.submit(fn, *args, **kwargs)

@@ -2,7 +2,7 @@
 
 Rendering is a z-buffered splat of every point (labelled or not: unlabelled points still
 occlude and render as 0). A point at depth z covers the ``s x s`` pixels whose centres lie within
-``s / 2`` of its projection, ``s = clip(ceil(1.2 * f * spacing / z), 1, 8)`` (``f`` focal
+``s / 2`` of its projection, ``s = clip(ceil(1.5 * f * spacing / z), 1, 8)`` (``f`` focal
 length in pixels at the render scale, ``spacing`` the typical point spacing), so surfaces stay
 closed while far points stay sharp.  Two passes
 of ``np.minimum.at`` over the splat fragments: the nearest depth per pixel, then, among the
@@ -23,7 +23,7 @@ from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
 MAX_SPLAT = 8  # largest splat side in pixels (radius 4)
-SPLAT_FACTOR = 1.2
+SPLAT_FACTOR = 1.5
 _SPACING_CACHE: dict[tuple[int, int], float] = {}
 
 

@@ -189,10 +189,11 @@ def _agreement(args: argparse.Namespace) -> dict:
                           "agreement": a["agreement"], "pixels": a["pixels"],
                           "coverage": a["coverage"]})
         if args.out:
+            import io
+
             from PIL import Image
 
             from occufly.fsutil import atomic_write_bytes
-            import io
 
             buf = io.BytesIO()
             Image.fromarray(disagreement_image(mask, rendered, scene.taxonomy)).save(buf, "PNG")

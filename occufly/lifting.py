@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import MaskError, WorkspaceError
-from occufly.fsutil import atomic_save_npy, atomic_write_bytes, atomic_write_text, npy_bytes
+from occufly.fsutil import atomic_save_npy, atomic_write_bytes, atomic_write_text
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy

@@ -398,7 +398,7 @@ def test_tiny_scene_lifting_quality(tiny):
     # masks swapped between frames lift to measurably wrong labels
     st2 = LiftState.open(path, scene)
     frames = list(sel.frames)
-    for fi, other in zip(frames, frames[1:] + frames[:1]):
+    for fi, other in zip(frames, frames[1:] + frames[:1], strict=True):
         m = masks[other]
         st2.set_mask(fi, m if m.shape == masks[fi].shape else masks[fi][::-1])
     bad = evaluate_points(st2.fill_and_denoise().labels, truth, scene.taxonomy)

@@ -68,7 +68,7 @@ def test_greedy_reaches_target_with_max_gain_steps():
     assert res.frames[: len(strat.frames)] == strat.frames
     assert res.coverage >= 0.95 or res.coverage == pytest.approx(res.max_coverage)
     cov = [c for _, c in res.curve]
-    assert all(b > a for a, b in zip(cov, cov[1:]))
+    assert all(b > a for a, b in zip(cov, cov[1:], strict=False))
     assert res.curve[0] == (len(strat.frames), pytest.approx(strat.coverage))
     assert res.coverage == pytest.approx(coverage(scene, res.frames))
     # the first added frame has the largest gain (brute force over all candidates)

@@ -58,6 +58,14 @@ def pg_url():
     admin.dispose()
 
 
+@pytest.fixture(scope="session")
+def sqlite_template(tmp_path_factory) -> Path:
+    """A migrated SQLite file, copied per test (Alembic runs once per session)."""
+    path = tmp_path_factory.mktemp("sqlite-template") / "template.db"
+    db.upgrade(f"sqlite:///{path}")
+    return path
+
+
 def _truncate_pg(url: str) -> None:
     from app.models import metadata
 
@@ -137,7 +145,10 @@ class Env:
         """Simulate a server restart: a new app over the same database and data dir."""
         self.client.close()
         close(self.app)
-        self.app = create_app(self.settings)
+        import dataclasses
+
+        # a real start-up, including the Alembic upgrade (a no-op at head)
+        self.app = create_app(dataclasses.replace(self.settings, auto_upgrade=True))
         self.client = TestClient(self.app)
 
     def import_tiny(self, admin: dict, name: str = "tiny", n_frames: int = 4) -> dict:
@@ -169,6 +180,9 @@ class Env:
 def env(request, tmp_path: Path):
     backend = request.param
     if backend == "sqlite":
+        import shutil
+
+        shutil.copy(request.getfixturevalue("sqlite_template"), tmp_path / "occufly.db")
         url = f"sqlite:///{tmp_path / 'occufly.db'}"
     else:
         url = request.getfixturevalue("pg_url")
@@ -180,7 +194,8 @@ def env(request, tmp_path: Path):
                         job_processes=request.node.get_closest_marker("job_processes") is not None,
                         login_free_failures=3, max_upload_bytes=1 << 20,
                         # argon2id at a test cost (production default: 64 MiB, 3 passes)
-                        argon2_memory_kib=1024, argon2_time_cost=1)
+                        argon2_memory_kib=1024, argon2_time_cost=1,
+                        auto_upgrade=False)  # migrated once per session (see above)
     app = create_app(settings)
     with app.state.ctx.sessions() as s:
         for role in ("admin", "reviewer", "annotator"):

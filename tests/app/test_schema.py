@@ -82,7 +82,7 @@ def test_schemathesis_finds_no_server_errors(world_for_fuzz):
         if op.path == "/api/auth/logout":
             continue  # would end the admin session the rest of the run uses
 
-        @settings(max_examples=3, deadline=None, database=None,
+        @settings(max_examples=2, deadline=None, database=None,
                   suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy())
         def run(case):
@@ -97,7 +97,7 @@ def test_schemathesis_finds_no_server_errors(world_for_fuzz):
     assert n_ops >= 30
     assert failures == []
     # the run really exercised the API: many calls, some of them successful
-    assert len(codes) >= 2 * n_ops and sum(200 <= c < 300 for c in codes) >= 10, sorted(set(codes))
+    assert len(codes) >= n_ops and sum(200 <= c < 300 for c in codes) >= 10, sorted(set(codes))
 
 
 @pytest.fixture

@@ -138,7 +138,7 @@ def export_frame_task(task: dict) -> dict:
     """Compute and write one frame. ``task`` holds only paths and small values."""
     from occufly.scene import Scene
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ws, root = Path(task["ws"]), Path(task["out"])
     scene = cached(("scene", task["ws"], task["scene_mtime"]), lambda: Scene.load(ws))
     grid = cached(("grid", task["grid_path"], task["grid_digest"]),
@@ -168,6 +168,7 @@ def export_frame_task(task: dict) -> dict:
         "depth_source": depth_src, "depth_pixels": int(np.count_nonzero(depth)),
         "bytes": nbytes, "seconds_sample": round(t_sample, 4),
         "seconds_compute": round(t_compute, 4), "seconds": round(time.perf_counter() - t0, 4),
+        "cpu_seconds": round(time.process_time() - c0, 4),
     }
 
 

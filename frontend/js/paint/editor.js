@@ -47,6 +47,9 @@ export class Editor {
   destroy() {
     this.view.destroy();
     this.history.clear();
+    // free the decoded 20-megapixel bitmaps now rather than at the next GC
+    for (const l of this.view.pyramid || []) l.img.close?.();
+    this.photo?.close?.();
   }
 
   classCss(id) {

@@ -353,7 +353,9 @@ class ReviewerPage {
         this.comment.focus();
         return;
       }
-      if (text && (this.pin || decision === "reject")) await this.pinComment();
+      // a pinned pixel becomes its own review item; the decision's comment is recorded by the
+      // review call itself (so an unpinned rejection does not create the comment twice)
+      if (text && this.pin) await this.pinComment();
       const f = await api.post(`/frames/${this.frame.id}/review`, { decision, comment: text || undefined });
       this.frame = { ...this.frame, ...(f || {}), state: (f && f.state) || (decision === "accept" ? "accepted" : "rejected") };
       this.comment.value = "";

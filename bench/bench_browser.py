@@ -15,7 +15,8 @@ JSON object:
   milliseconds; baseline = canvas.toBlob('image/png') of the RGBA colour canvas (what a naive
   editor would upload; it is also rejected by the API as not single-channel) -> size and
   time ratios; and the server-side check that the stored PNG is single-channel and equals the
-  editor's ids.
+  editor's ids; and the longest gap between animation frames while encoding in the worker
+  (what the painter feels) vs encoding on the main thread (baseline).
 * ``zoom``: 60 zoom steps (full redraw of photo + mask each frame) -> fps with the photo
   pyramid; baseline = the same with the full-resolution photo only (ABBA order).
 
@@ -249,6 +250,21 @@ def main() -> int:
                           "ratio_vs_raf": round(zp / baseline_fps, 3)}
 
         # ---- save: grey PNG vs canvas.toBlob of the colour canvas -------------------------
+        stall_js = """async (offThread) => { const m = window.__occufly.page.editor.mask;
+            const png = await import('/js/core/png.js');
+            let run = true, last = performance.now(), worst = 0;
+            const loop = () => { const t = performance.now(); worst = Math.max(worst, t - last); last = t;
+                                 if (run) requestAnimationFrame(loop); };
+            requestAnimationFrame(loop); await new Promise((r) => setTimeout(r, 100)); worst = 0;
+            const t0 = performance.now();
+            const blob = await (offThread ? png.encodeGreyPngOffThread : png.encodeGreyPng)(m.ids, m.width, m.height);
+            const ms = performance.now() - t0;
+            await new Promise((r) => setTimeout(r, 50)); run = false;
+            return {worst_frame_gap_ms: worst, encode_ms: ms, bytes: blob.size}; }"""
+        stall_main = page.evaluate(stall_js, False)
+        stall_worker = page.evaluate(stall_js, True)
+        stall_main2 = page.evaluate(stall_js, False)
+        stall_worker2 = page.evaluate(stall_js, True)
         save = page.evaluate("""async () => { const pg = window.__occufly.page; const m = pg.editor.mask;
             await pg.save('draft', {force: true});
             const s = pg.stats.saves[pg.stats.saves.length - 1];
@@ -267,6 +283,8 @@ def main() -> int:
             "baseline_canvas_toBlob_ms": round(save["naive_ms"], 1),
             "size_ratio_vs_baseline": round(save["bytes"] / save["naive_bytes"], 3),
             "time_ratio_vs_baseline": round(save["encodeMs"] / save["naive_ms"], 3),
+            "worst_frame_gap_during_encode_ms_worker": round(max(stall_worker["worst_frame_gap_ms"], stall_worker2["worst_frame_gap_ms"]), 1),
+            "worst_frame_gap_during_encode_ms_main_thread_baseline": round(max(stall_main["worst_frame_gap_ms"], stall_main2["worst_frame_gap_ms"]), 1),
             "stored_mode": im.mode, "stored_size": list(im.size),
             "stored_painted_pixels_match": int((stored != 0).sum()) == save["painted"],
             "content_type_png": r.headers.get("content-type") == "image/png",

@@ -44,7 +44,10 @@ def png_std(b: bytes) -> float:
 
     from PIL import Image
 
-    return float(np.asarray(Image.open(io.BytesIO(b)).convert("L"), np.float32).std())
+    img = np.asarray(Image.open(io.BytesIO(b)).convert("L"), np.float32)
+    h, w = img.shape
+    # the left 60 % below the top quarter: clear of the GUI panel and the notification
+    return float(img[h // 4:, : int(0.6 * w)].std())
 
 
 def open_in_browser(browser, srv: LiveServer, svc: ViewerService, *, quiet_s: float = 1.0,
@@ -67,13 +70,17 @@ def open_in_browser(browser, srv: LiveServer, svc: ViewerService, *, quiet_s: fl
         raise RuntimeError("viewer did not load the scene")
     t_sent = time.perf_counter() - t0
     stats = svc.proxy_stats[n_before]
-    while stats["last"] is None or time.perf_counter() - stats["last"] < quiet_s:
+    need = 15 * st.sent_points  # float32 xyz + uint8 rgb per point
+    while (stats["bytes"] < need or stats["last"] is None
+           or time.perf_counter() - stats["last"] < quiet_s):
+        if time.perf_counter() - t0 > timeout_s:
+            raise RuntimeError(f"only {stats['bytes']} of >= {need} bytes arrived")
         page.wait_for_timeout(50)
     first_cloud = stats["last"] - t0
-    canvas = page.locator("canvas").first
     first_picture = None
     while time.perf_counter() - t0 < timeout_s:
-        if png_std(canvas.screenshot()) > 20:
+        # page screenshot (no element-stability wait: software WebGL frames are slow)
+        if png_std(page.screenshot(timeout=120_000)) > 20:  # crop: see png_std
             first_picture = time.perf_counter() - t0
             break
         page.wait_for_timeout(200)
@@ -110,11 +117,14 @@ def main() -> None:
             direct = ViewerService(scenes=default_scenes(root), max_points=args.points,
                                    require_ticket=False)
             direct.start()
-            base = asyncio.run(fake_client(f"ws://127.0.0.1:{direct.port}/", {}))
+            need = 15 * args.points  # float32 xyz + uint8 rgb per point
+            base = asyncio.run(fake_client(f"ws://127.0.0.1:{direct.port}/", {},
+                                           min_bytes=need, max_s=300))
             direct.stop()
             via = asyncio.run(fake_client(
                 f"ws://127.0.0.1:{srv.port}/viewer",
-                {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=bench"}))
+                {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=bench"},
+                min_bytes=need, max_s=300))
             result["socket_direct"] = {"s": round(base["last_s"], 3), "bytes": base["bytes"]}
             result["socket_via_proxy"] = {"s": round(via["last_s"], 3), "bytes": via["bytes"]}
             result["ratio_proxy_vs_direct_time"] = round(via["last_s"] / base["last_s"], 3)

@@ -31,13 +31,14 @@ Live update: ``app.state.viewer.refresh(scene_id, classes=None)`` re-sends the a
 nodes to open viewers (also triggered automatically within ~2 s when ``lifting/labels.npy``,
 ``confidence.npy``, ``origin.npy`` or ``grid/scene_grid.npz`` change on disk).
 
-The viser server binds 127.0.0.1 on a free port, starts with the app (or on the first
-``/viewer/`` request) and never creates a share link.
+The viser server binds 127.0.0.1 on a free port, starts in the background when the app
+starts (or on the first ``/viewer/`` request) and never creates a share link.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -58,6 +59,13 @@ def _default_review_hook() -> Callable[..., Any] | None:
     except ImportError:
         return None
     return getattr(review_service, "create_item_from_3d", None)
+
+
+def _start_quietly(service: ViewerService) -> None:
+    try:
+        service.start()
+    except Exception:  # noqa: BLE001 - the rest of the app must still come up
+        log.exception("viewer: viser server did not start; /viewer/ will retry")
 
 
 def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
@@ -92,13 +100,15 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         from starlette.concurrency import run_in_threadpool
 
         async with inner(app) as state:
-            try:
-                await run_in_threadpool(service.start)
-            except Exception:  # noqa: BLE001 - the rest of the app must still come up
-                log.exception("viewer: viser server did not start; /viewer/ will retry")
+            # start viser in the background so the app is up at once; a /viewer/ request
+            # that arrives first waits for the same start (ViewerService.start is locked)
+            starter = threading.Thread(target=_start_quietly, args=(service,),
+                                       name="viewer-start", daemon=True)
+            starter.start()
             try:
                 yield state
             finally:
+                await run_in_threadpool(starter.join)
                 await run_in_threadpool(service.stop)
 
     fastapi_app.router.lifespan_context = lifespan

@@ -57,13 +57,6 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                identify: Callable[[Any], Any] | None = None, prefix: str = "/viewer") -> None:
     """Register the proxy routes on ``app``."""
     prefix = prefix.rstrip("/")
-    state: dict[str, httpx.AsyncClient] = {}
-
-    def http_client() -> httpx.AsyncClient:
-        if "c" not in state:
-            state["c"] = httpx.AsyncClient(timeout=30.0)
-        return state["c"]
-
     def refusal(status: int) -> JSONResponse:
         detail = ("log in to open the 3D viewer" if status == 401
                   else "the 3D viewer is for reviewers and admins")
@@ -79,13 +72,15 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         headers = {}
         if "accept-encoding" in request.headers:
             headers["accept-encoding"] = request.headers["accept-encoding"]
-        try:  # forward the raw (possibly gzip-encoded) body unchanged
-            client = http_client()
-            up = await client.send(client.build_request("GET", url, headers=headers), stream=True)
-            try:
-                body = b"".join([chunk async for chunk in up.aiter_raw()])
-            finally:
-                await up.aclose()
+        try:  # forward the raw (possibly gzip-encoded) body unchanged; no pooled
+            # connection is kept open to viser (page loads are rare, shutdown stays fast)
+            async with httpx.AsyncClient(timeout=30.0) as client:
+                up = await client.send(client.build_request("GET", url, headers=headers),
+                                       stream=True)
+                try:
+                    body = b"".join([chunk async for chunk in up.aiter_raw()])
+                finally:
+                    await up.aclose()
         except httpx.HTTPError as e:
             return JSONResponse({"detail": f"3D viewer is not reachable: {e}"}, status_code=502)
         keep = {k: v for k, v in up.headers.items()

@@ -248,7 +248,11 @@ class ViewerService:
 
     def _on_disconnect(self, client: Any) -> None:
         with self._lock:
-            self._clients.pop(client.client_id, None)
+            st = self._clients.pop(client.client_id, None)
+            if st is not None and st.scene_id is not None and not any(
+                    c.scene_id == st.scene_id for c in self._clients.values()):
+                self._data.pop(st.scene_id, None)  # nobody looks at it any more
+                self._stamps.pop(st.scene_id, None)
 
     # ---- GUI -------------------------------------------------------------------------------
     def _build_gui(self, st: ClientState, scenes: Mapping[str, tuple[str, Path]],

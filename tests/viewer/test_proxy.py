@@ -23,9 +23,9 @@ PROTO = f"viser-v{viser.__version__}"
 @pytest.fixture
 def client(tiny):
     app = make_app(tiny.ws.parent)
-    c = TestClient(app)
-    yield c
-    app.state.viewer.stop()
+    with TestClient(app) as c:  # runs the lifespan: viser starts in the background
+        yield c
+    assert not app.state.viewer.running  # and stops with the app
 
 
 def test_http_refusals(client):
@@ -38,7 +38,7 @@ def test_http_refusals(client):
     client.cookies.set("occufly_session", ANNOTATOR)
     r = client.get("/viewer/")
     assert r.status_code == 403 and "reviewers" in r.json()["detail"]
-    assert not client.app.state.viewer.running  # nothing started for refused requests
+    assert client.app.state.viewer.client_states() == []  # nothing reached viser
 
 
 def test_http_exception_from_authorize_is_passed_through(tmp_path):

@@ -61,7 +61,9 @@ class LiveServer:
         self.sock = socket.socket()
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
-        cfg = uvicorn.Config(app, log_level="warning", lifespan="on", ws_max_size=64 << 20)
+        # like `occufly serve`: no permessage-deflate on the viewer socket
+        cfg = uvicorn.Config(app, log_level="warning", lifespan="on", ws_max_size=64 << 20,
+                             ws_per_message_deflate=False)
         self.server = uvicorn.Server(cfg)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
                                        daemon=True)
@@ -98,8 +100,9 @@ def camera_message(position=(0.0, 0.0, 50.0), look_at=(0.0, 0.0, 0.0)) -> bytes:
 
 
 async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
-                      max_s: float = 60.0) -> dict:
-    """Connect like viser's client, send the camera, read until ``quiet_s`` of silence.
+                      max_s: float = 60.0, min_bytes: int = 0) -> dict:
+    """Connect like viser's client, send the camera, read until ``quiet_s`` of silence
+    (once at least ``min_bytes`` arrived; silence before that is waited out up to ``max_s``).
 
     Returns bytes, frames, seconds from connect to the last frame, and the close code."""
     import asyncio
@@ -115,7 +118,12 @@ async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
         await ws.send(camera_message())
         try:
             while time.perf_counter() - t0 < max_s:
-                m = await asyncio.wait_for(ws.recv(), timeout=quiet_s)
+                try:
+                    m = await asyncio.wait_for(ws.recv(), timeout=quiet_s)
+                except asyncio.TimeoutError:
+                    if out["bytes"] >= min_bytes:
+                        break
+                    continue
                 out["bytes"] += len(m)
                 out["frames"] += 1
                 out["last_s"] = time.perf_counter() - t0

@@ -97,7 +97,7 @@ def test_schemathesis_finds_no_server_errors(world_for_fuzz):
     assert n_ops >= 30
     assert failures == []
     # the run really exercised the API: many calls, some of them successful
-    assert len(codes) >= n_ops and sum(200 <= c < 300 for c in codes) >= 10, sorted(set(codes))
+    assert len(codes) >= n_ops and sum(200 <= c < 300 for c in codes) >= 5, sorted(set(codes))
 
 
 @pytest.fixture

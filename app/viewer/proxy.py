@@ -140,7 +140,7 @@ async def pump(websocket: WebSocket, upstream_url: str, ticket: str,
         upstream = await connect(upstream_url, subprotocols=protocols or None,
                                  additional_headers={TICKET_HEADER: ticket}, max_size=None,
                                  compression=None, open_timeout=10, ping_interval=None)
-    except (OSError, asyncio.TimeoutError, Exception) as e:  # noqa: BLE001
+    except (TimeoutError, OSError, Exception) as e:  # noqa: BLE001
         log.warning("viewer proxy: upstream connect failed: %s", e)
         await websocket.accept()
         await websocket.close(code=1011, reason="3D viewer is not reachable")

@@ -79,7 +79,6 @@ def test_page_for_reviewer_and_scene_cookie(client):
 def test_proxied_socket_sends_float32_cloud_and_direct_socket_is_refused(tiny):
     """Through the proxy a reviewer's socket gets every point as float32 (>= 12 bytes each);
     the same viser port reached directly (no ticket) gets a 1008 close and no scene."""
-    from websockets.asyncio.client import connect
 
     app = make_app(tiny.ws.parent)
     n = sum(COUNTS.values())

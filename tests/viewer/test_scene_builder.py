@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from viewer_fixtures import COUNTS, ORIGIN, build_tiny
 
 from app.viewer import scene_builder as sb
 from app.viewer.server import changed_classes
 from occufly.errors import WorkspaceError
 from occufly.taxonomy import default_taxonomy
-
-from viewer_fixtures import COUNTS, ORIGIN, build_tiny
 
 TAX = default_taxonomy()
 

@@ -120,14 +120,14 @@ async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
             while time.perf_counter() - t0 < max_s:
                 try:
                     m = await asyncio.wait_for(ws.recv(), timeout=quiet_s)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     if out["bytes"] >= min_bytes:
                         break
                     continue
                 out["bytes"] += len(m)
                 out["frames"] += 1
                 out["last_s"] = time.perf_counter() - t0
-        except (asyncio.TimeoutError, Exception):  # noqa: BLE001 - silence or close ends it
+        except (TimeoutError, Exception):  # noqa: BLE001 - silence or close ends it
             pass
         out["close_code"] = ws.close_code
     return out

@@ -114,10 +114,12 @@ def _majority(cell: np.ndarray, cls: np.ndarray, n_cells: int, priority: np.ndar
     return out
 
 
-def fuse(samples: Samples, voxel: float, n_frames: int,
-         priority: np.ndarray) -> tuple[FusedCloud, tuple[np.ndarray, np.ndarray]]:
-    """Fuse samples one point per ``voxel`` cell. Returns the cloud and the (point ids (P,)
-    int64, frame ids (P,) int32) pairs of the contributing images."""
+def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray,
+         min_views: int = 1) -> tuple[FusedCloud, tuple[np.ndarray, np.ndarray]]:
+    """Fuse samples one point per ``voxel`` cell. Cells with samples from fewer than
+    ``min_views`` distinct images are dropped (as COLMAP's fusion drops points with too few
+    consistent pixels: the rarely seen periphery and isolated outliers). Returns the cloud and
+    the (point ids (P,) int64, frame ids (P,) int32) pairs of the contributing images."""
     xyz = samples.xyz
     lo = xyz.min(axis=0).astype(np.float64) - voxel
     ijk = np.floor((xyz - lo) / voxel).astype(np.int64)
@@ -137,9 +139,15 @@ def fuse(samples: Samples, voxel: float, n_frames: int,
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     label = _majority(inv, samples.cls, n, priority)
     pairs, _ = unique_sorted(inv * n_frames + samples.frame)
-    contrib = (pairs // n_frames, (pairs % n_frames).astype(np.int32))
-    cloud = FusedCloud(out_xyz, rgb, nrm.astype(np.float32), label, cnt.astype(np.int32),
-                       np.zeros(n + 1, np.int64), np.zeros(0, np.uint32))
+    pc = pairs // n_frames
+    pf = (pairs - pc * n_frames).astype(np.int32)
+    keep = np.bincount(pc, minlength=n) >= min_views
+    new_id = np.cumsum(keep) - 1
+    m = keep[pc]
+    contrib = (new_id[pc[m]], pf[m])
+    cloud = FusedCloud(out_xyz[keep], rgb[keep], nrm[keep].astype(np.float32), label[keep],
+                       cnt[keep].astype(np.int32), np.zeros(int(keep.sum()) + 1, np.int64),
+                       np.zeros(0, np.uint32))
     return cloud, contrib
 
 

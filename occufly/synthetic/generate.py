@@ -129,7 +129,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         samples = Samples(*(np.concatenate(chunks[k]) for k in ("xyz", "rgb", "cls", "normal", "frame")))
         n_samples = len(samples.xyz)
         del chunks
-        cloud, contrib = fuse(samples, P.fuse_voxel, F, priority)
+        cloud, contrib = fuse(samples, P.fuse_voxel, F, priority, min_views=P.min_views)
         del samples
         timings["fuse"] = time.perf_counter() - t0
         report(0.78, "visibility")
@@ -233,7 +233,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             "up_axis": "z",
             "depth_noise": {"relative_sigma": P.depth_noise, "invalid_near_discontinuities": 0.5,
                             "invalid_random": 0.005, "invalid_water": 0.3},
-            "fusion": {"voxel": P.fuse_voxel, "pixel_stride": P.pixel_stride,
+            "fusion": {"voxel": P.fuse_voxel, "pixel_stride": P.pixel_stride, "min_views": P.min_views,
                        "visibility": "contributing images" + (
                            f" + depth agreement (relative tolerance {P.vis_tolerance})" if P.vis_depth_check else "")},
             "grid_voxel": P.grid_voxel,

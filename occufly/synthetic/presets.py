@@ -19,6 +19,7 @@ class Preset:
     fuse_voxel: edge (m) of the voxel hash that fuses back-projected samples to one point.
     vis_depth_check: add images whose depth map agrees with a fused point to its visibility
     (besides the images that contributed to it).
+    min_views: a fused point needs samples from at least this many distinct images.
     """
 
     name: str
@@ -39,6 +40,7 @@ class Preset:
     grid_voxel: float = 0.5
     vis_depth_check: bool = True
     vis_tolerance: float = 0.01
+    min_views: int = 3
 
     def to_dict(self) -> dict:
         return asdict(self)

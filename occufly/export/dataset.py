@@ -28,7 +28,6 @@ import io
 import json
 import math
 import re
-import shutil
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -382,7 +381,3 @@ def export_dataset(
         "grid_for_altitude": manifest["provenance"]["grid_for_altitude"],
         "results": results,
     }
-
-
-def remove_export(out: Path) -> None:  # pragma: no cover - convenience for tests/CLI
-    shutil.rmtree(out, ignore_errors=True)

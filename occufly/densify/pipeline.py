@@ -214,7 +214,11 @@ def densify(
             msg = (
                 f"{cls.name}: {noise} of {len(pts)} points are DBSCAN noise "
                 f"(eps={eps}, minPts={minpts}); they are binned directly"
-                + ("" if n_inst else "; for a sparse cloud try min_points_scale auto (--min-points-scale auto)")
+                + (
+                    "; for a sparse cloud try min_points_scale auto (--min-points-scale auto)"
+                    if n_inst == 0 and options.min_points_scale is not None
+                    else ""
+                )
             )
             if n_inst == 0:
                 warn(msg)

@@ -89,6 +89,14 @@ class LiftingManager:
         with w.cond:
             return dict(w.included or {})
 
+    def state_for(self, scene_id: int, workspace: str):
+        """The scene's LiftState shared with its worker (opened once), or None without lifting."""
+        if not self.enabled:
+            from app import pipeline
+
+            return pipeline.open_lift_state(workspace, self.ctx.load_scene(workspace))
+        return self._state(self._worker(scene_id), workspace)
+
     def wait_idle(self, scene_id: int, timeout: float = 10.0, *, include_fill: bool = False) -> bool:
         w = self._workers.get(scene_id)
         if w is None:

@@ -21,7 +21,8 @@ class VersionOut(BaseModel):
 
 class LabelsStatus(BaseModel):
     lifting_available: bool
-    included_versions: dict[str, int | None]
+    included_versions: dict[str, int | None]  # frame id -> version counted in the point votes
+    filled_versions: dict[str, int | None]  # frame id -> version in the filled/denoised labels
     pending_fill: bool
     pending_frames: int
     fill_running: bool

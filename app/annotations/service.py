@@ -225,16 +225,19 @@ def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
     source = None
     labels = None
     res = pipeline.load_labels(scene.workspace) if available else None
+    filled: dict[str, int | None] = {}
     if res is not None:
         labels, source = np.asarray(res.labels), "filled"
-    elif available and ctx.lifting.enabled:
-        w = ctx.lifting._workers.get(scene.id)
-        if w is not None and w.state is not None:
-            labels, source = w.state.direct_labels(), "direct"
+        for index, tag in (res.stats.get("versions") or {}).items():
+            if int(index) in idx_to_id:
+                filled[str(idx_to_id[int(index)])] = int(tag) if tag and str(tag).isdigit() else None
+    elif available and included_idx:
+        labels, source = current_labels(ctx, scene), "direct"
     if labels is not None:
         counts = np.bincount(labels, minlength=256)
         hist = {str(i): int(c) for i, c in enumerate(counts) if c and i != 0}
     return dict(lifting_available=available, included_versions=included,
+                filled_versions=filled,
                 pending_fill=st["pending_fill"], pending_frames=st["pending_frames"],
                 fill_running=st["fill_running"], last_error=st["last_error"],
                 class_histogram=hist, labels_source=source)
@@ -247,8 +250,5 @@ def current_labels(ctx: AppContext, scene: Scene):
     res = pipeline.load_labels(scene.workspace)
     if res is not None:
         return np.asarray(res.labels)
-    w = ctx.lifting._workers.get(scene.id)
-    if w is not None and w.state is not None:
-        return w.state.direct_labels()
-    state = pipeline.open_lift_state(scene.workspace, ctx.load_scene(scene.workspace))
+    state = ctx.lifting.state_for(scene.id, scene.workspace)
     return None if state is None else state.direct_labels()

@@ -397,6 +397,7 @@ def test_live_lifting_tracks_versions(world):
     assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
     st = env.client.get(f"/api/scenes/{scene['id']}/labels/status", headers=a).json()
     assert st["included_versions"] == {str(fid): v2} and not st["pending_fill"]
+    assert st["filled_versions"] == {str(fid): v2}
     assert st["labels_source"] == "filled"
     # the one annotated frame votes road everywhere: every labelled point is road, and fill
     # reached beyond the points the frame sees

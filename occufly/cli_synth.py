@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 from pathlib import Path
 
 from occufly.cli import command
@@ -21,12 +22,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace a non-empty OUT")
 
 
+def _interrupt(_signum, _frame) -> None:
+    raise KeyboardInterrupt
+
+
 def _synth(args: argparse.Namespace) -> dict:
     from occufly.synthetic import generate
 
-    with tqdm_progress("synth") as bar:
-        summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
-                           overwrite=args.force)
+    # SIGTERM (e.g. a job runner stopping us) unwinds like Ctrl-C, so the temporary output
+    # folder is removed and OUT is left as it was
+    old = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        with tqdm_progress("synth") as bar:
+            summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
+                               overwrite=args.force)
+    finally:
+        signal.signal(signal.SIGTERM, old)
     if not args.json:  # readable: class names instead of four id lists
         from occufly.taxonomy import default_taxonomy
 

@@ -186,3 +186,42 @@ export function resizeIds(ids, w, h, W, H) {
   }
   return out;
 }
+
+let worker = null;
+let workerFailed = false;
+let nextId = 1;
+const pending = new Map();
+
+/**
+ * encodeGreyPng in a module worker (a snapshot of `ids` is copied and transferred, so the
+ * caller may keep editing). Falls back to the main thread where workers are unavailable.
+ */
+export async function encodeGreyPngOffThread(ids, width, height) {
+  if (!workerFailed && typeof Worker !== "undefined") {
+    try {
+      if (!worker) {
+        worker = new Worker(new URL("./png-worker.js", import.meta.url), { type: "module" });
+        worker.onmessage = (e) => {
+          const p = pending.get(e.data.id);
+          pending.delete(e.data.id);
+          if (p) e.data.error ? p.reject(new Error(e.data.error)) : p.resolve(e.data.blob);
+        };
+        worker.onerror = (e) => {
+          workerFailed = true;
+          for (const p of pending.values()) p.reject(new Error(`PNG worker failed: ${e.message}`));
+          pending.clear();
+          worker = null;
+        };
+      }
+      const id = nextId++;
+      const copy = ids.slice();
+      const done = new Promise((resolve, reject) => pending.set(id, { resolve, reject }));
+      worker.postMessage({ id, ids: copy, width, height }, [copy.buffer]);
+      return await done;
+    } catch (e) {
+      if (!workerFailed) throw e;
+    }
+  }
+  return encodeGreyPng(ids, width, height);
+}
+

@@ -4,7 +4,7 @@
 
 import { api, ApiError } from "../core/api.js";
 import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.js";
-import { encodeGreyPng, decodeIdPng, resizeIds } from "../core/png.js";
+import { encodeGreyPngOffThread, decodeIdPng, resizeIds } from "../core/png.js";
 import { Editor } from "../paint/editor.js";
 
 const IDLE_SAVE_MS = 2500;
@@ -435,7 +435,7 @@ class AnnotatorPage {
     const seq = this.editSeq;
     const frame = this.frame;
     const t0 = performance.now();
-    const blob = await encodeGreyPng(ed.mask.ids, ed.mask.width, ed.mask.height);
+    const blob = await encodeGreyPngOffThread(ed.mask.ids, ed.mask.width, ed.mask.height);
     const tEnc = performance.now();
     try {
       const res = await api.send("PUT", `/frames/${frame.id}/mask?kind=${kind}`, {

@@ -52,7 +52,10 @@ export class View {
     this.photo = source;
     this.pyramid = [];
     this.invalidate();
-    this._buildPyramid(source);
+    // after the first paint, when the page is idle: do not compete with opening the frame
+    const start = () => this.photo === source && this._buildPyramid(source);
+    if (window.requestIdleCallback) requestIdleCallback(start, { timeout: 2000 });
+    else setTimeout(start, 500);
   }
 
   /**

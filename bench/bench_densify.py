@@ -63,16 +63,51 @@ def _binning_vs_open3d(xyz: np.ndarray, labels: np.ndarray, prio: np.ndarray, vo
     keys, inside = spec.keys_of_local(xyz)
     k, _, _ = majority_vote(keys[inside], labels[inside], prio)
     t_ours = time.perf_counter() - t
+    t = time.perf_counter()
+    keys, inside = spec.keys_of_local(xyz)
+    n_occ = len(np.unique(keys[inside]))
+    t_occ = time.perf_counter() - t
     return {
         "points": int(len(xyz)),
         "open3d_voxelgrid_s": round(t_o3d, 3),
         "ours_binning_majority_s": round(t_ours, 3),
         "ratio_ours_over_open3d": round(t_ours / max(t_o3d, 1e-9), 3),
+        "ours_occupancy_only_s": round(t_occ, 3),
+        "ratio_occupancy_only_over_open3d": round(t_occ / max(t_o3d, 1e-9), 3),
+        "voxels_ours_occupancy_only": int(n_occ),
         "voxels_open3d": n_o3d,
         "voxels_ours": int(len(k)),
         "same_voxel_count": n_o3d == int(len(k)),
         "note": "Open3D builds occupancy only (colour average); ours also votes the majority class",
     }
+
+
+def _ablation(out: Path, ws: Path, labels_path: Path, voxel: float, scale: float | None, args) -> dict:
+    from occufly.densify.evaluate import evaluate_grids
+    from occufly.densify.pipeline import DensifyOptions, densify, load_point_labels
+    from occufly.grid import SceneGrid
+    from occufly.scene import Scene
+
+    scene = Scene.load(ws)
+    labels = load_point_labels(labels_path, scene.n_points)
+    truth = SceneGrid.load(out / "truth" / "scene_grid.npz")
+    runs = {}
+    for name, carve, poisson in (("points_only", False, False), ("plus_instances", True, False),
+                                 ("plus_poisson", True, True)):
+        t = time.perf_counter()
+        res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin,
+                      options=DensifyOptions(voxel_size=voxel, carve=carve, poisson=poisson, min_points_scale=scale))
+        ev = evaluate_grids(res.grid, truth, scene.taxonomy)
+        runs[name] = {
+            "seconds": round(time.perf_counter() - t, 1),
+            "completion_iou": round(ev["completion_iou"], 4),
+            "precision": round(ev["precision"], 4),
+            "recall": round(ev["recall"], 4),
+            "miou": round(ev["miou"], 4),
+            "per_class_iou": {k: (None if v is None else round(v, 3)) for k, v in ev["per_class_iou"].items()},
+        }
+    return {"bench": "densify-ablation", "preset": args.preset, "labels": args.labels,
+            "labels_path": str(labels_path), "points": scene.n_points, "runs": runs}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--voxel", type=float, default=0.5)
     ap.add_argument("--synth", help="use this existing synthetic output (OUT) instead of generating")
     ap.add_argument("--workspace", help="use this existing workspace (imported from --synth)")
+    ap.add_argument("--ablation", action="store_true",
+                    help="instead: quality of points only / + instances / + Poisson (no timing budget)")
     args = ap.parse_args(argv)
 
     root = Path(args.root)
@@ -102,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
 
     labels_path = out / "truth" / "point_labels.npy" if args.labels == "truth" else ws / "lifting" / "labels.npy"
     scale = None if args.min_points_scale == "auto" else float(args.min_points_scale)
+    if args.ablation:
+        print(json.dumps(_ablation(out, ws, labels_path, args.voxel, scale, args)))
+        return 0
     rss0 = _peak_rss_gb()
     t = time.perf_counter()
     report = voxelize_workspace(

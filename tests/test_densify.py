@@ -331,6 +331,27 @@ def test_densify_precedence_carving_and_report():
     assert r2.grid.lookup(UTM + both[2].astype(float))[0] == IDS["person"]
 
 
+def test_surface_density_and_auto_min_points_scale(caplog):
+    from occufly.densify.pipeline import REFERENCE_SURFACE_DENSITY, surface_density
+
+    rng = np.random.default_rng(8)
+    plane = np.c_[rng.uniform(0, 30, (27000, 2)), np.zeros(27000)].astype(np.float32)  # 30 / m^2
+    assert surface_density(plane) == pytest.approx(30.0, rel=0.15)
+    # a sparse car (~40 points/m^2): the table's minPts (500 within 1 m) makes it noise ...
+    car = box_surface(rng, [5.1, 5.1, 0.1], [9.6, 7.1, 1.6], 1500).astype(np.float32)
+    lab = np.full(len(car), IDS["vehicle"], np.uint8)
+    fixed = _bad(car, lab, caplog)
+    assert fixed.report["instances"]["vehicle"]["instances"] == 0
+    assert any("--min-points-scale auto" in m for m in fixed.report["warnings"])
+    # ... "auto" scales minPts by density / reference and carves one instance
+    auto = _bad(car, lab, caplog, min_points_scale=None)
+    st = auto.report["instances"]["vehicle"]
+    scale = auto.report["options"]["min_points_scale"]
+    assert scale == pytest.approx(auto.report["options"]["surface_density_per_m2"] / REFERENCE_SURFACE_DENSITY)
+    assert st["min_points"] == max(2, round(500 * scale)) and st["instances"] == 1
+    assert auto.grid.class_counts()[IDS["vehicle"]] > fixed.grid.class_counts()[IDS["vehicle"]]
+
+
 # ---- bad input -----------------------------------------------------------------------------------
 def _bad(xyz, labels, caplog, **kw):
     with caplog.at_level(logging.WARNING, logger="occufly.densify"):

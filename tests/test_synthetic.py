@@ -67,7 +67,8 @@ def _camera(rec) -> Camera:
 def test_layout_counts_and_classes(synth):
     out, s, meta = synth["out"], synth["summary"], synth["meta"]
     n = s["frames"]
-    assert 30 <= n <= 40 and meta["frames"] == n
+    assert 30 <= n <= 40 and meta["frames"] == meta["n_frames"] == n
+    assert meta["n_points"] == s["points"]
     images = sorted((out / "images").iterdir())
     assert [p.name for p in images] == [f"frame_{i:06d}.png" for i in range(n)]
     assert len(list((out / "truth" / "masks").glob("*.png"))) == n

@@ -63,6 +63,9 @@ def test_annotator_paint_undo_redo_submit_reload(live, new_page):
     scene = live.client("annotator").get(f"/api/scenes/{live.scene_id}").json()
     classes = [c["id"] for c in scene["taxonomy"]["classes"]]
     cls = 16 if 16 in classes else classes[0]
+    page.locator(".layer-overlay").focus()
+    page.keyboard.press("3")  # number keys pick palette entries
+    assert page.get_attribute(f".swatch-btn[data-class='{classes[2]}']", "aria-checked") == "true"
     page.click(f".swatch-btn[data-class='{cls}']")
     assert page.get_attribute(f".swatch-btn[data-class='{cls}']", "aria-checked") == "true"
     page.evaluate("() => window.__occufly.page.editor.setSize(30)")
@@ -318,3 +321,43 @@ def test_errors_are_readable_never_a_blank_page(live, new_page):
     page.wait_for_selector("#alert:not(:empty)")
     assert "987654" in page.locator("#alert").inner_text() or "not found" in page.locator("#alert").inner_text().lower()
     assert page.locator("#next-frame").is_visible()
+
+
+def test_polygon_and_flood_fill_tools_in_the_page(live, new_page):
+    used = {STATE["frame_a"], STATE["frame_b"]}
+    frames = live.client("admin").get(f"/api/scenes/{live.scene_id}/frames").json()
+    fc = next(f["id"] for f in frames if f["id"] not in used and f["current_version"] is None)
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame={fc}")
+    wait_opened(page, fc)
+    ov = page.locator(".layer-overlay")
+    ov.focus()
+    page.keyboard.press("p")
+    assert page.get_attribute("button[data-tool='polygon']", "aria-pressed") == "true"
+    box = ov.bounding_box()
+    # a rectangle: corners at image pixels (40, 30) .. (120, 90), clicked through the view
+    corners = page.evaluate("""() => { const v = window.__occufly.page.editor.view;
+        return [[40, 30], [120, 30], [120, 90], [40, 90]].map(([x, y]) => v.toScreen(x, y)); }""")
+    for x, y in corners:
+        page.mouse.click(box["x"] + x, box["y"] + y)
+    page.keyboard.press("Enter")
+    ids = editor_ids(page)
+    cls = page.evaluate("() => window.__occufly.page.editor.state.classId")
+    assert (ids == cls).sum() == 80 * 60  # exactly the rectangle's pixels
+    assert (ids[30:90, 40:120] == cls).all()
+    # flood fill from a photo pixel outside the rectangle adds a connected similar region
+    page.keyboard.press("f")
+    page.keyboard.press("2")  # another class (switches back to the brush) ...
+    page.keyboard.press("f")  # ... so pick the flood tool again
+    cls2 = page.evaluate("() => window.__occufly.page.editor.state.classId")
+    x, y = page.evaluate("() => window.__occufly.page.editor.view.toScreen(200.5, 140.5)")
+    page.mouse.click(box["x"] + x, box["y"] + y)
+    page.wait_for_function(f"() => window.__occufly.page.editor.mask.ids.some((v) => v === {cls2})")
+    ids2 = editor_ids(page)
+    assert ids2[140, 200] == cls2 and (ids2 == cls).sum() <= 80 * 60
+    # two undo steps: flood fill, then the polygon
+    page.keyboard.press("Control+z")
+    assert np.array_equal(editor_ids(page), ids)
+    page.keyboard.press("Control+z")
+    assert not editor_ids(page).any()
+    shot(page, "10_annotator_tools")

@@ -244,7 +244,8 @@ def ssc_table(result: dict) -> str:
     """A table like the benchmark paper's: rows = overall and per altitude; columns =
     completion IoU, mIoU and per-class IoU (in %)."""
     rows = [("all", result["overall"])] + [(f"{a} m", r) for a, r in result["per_altitude"].items()]
-    classes = list(result["overall"]["per_class_iou"])
+    # classes that are n/a overall (absent from prediction and ground truth) are not shown
+    classes = [k for k, v in result["overall"]["per_class_iou"].items() if v is not None]
     head = ["split", "IoU", "Prec", "Rec", "mIoU"] + classes
     lines = [head]
     for name, r in rows:

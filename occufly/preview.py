@@ -5,8 +5,9 @@ colour ramp, black = no depth), ``grid`` (two projections of the camera-centric 
 coloured by class: *view* = the first occupied valid voxel along +z per (i, j) column, i.e.
 what the camera sees, drawn with x right / y down like the image; *side* = the first occupied
 valid voxel looking along +y per (i, k), depth increasing downwards) and the three masks
-side by side (per (i, j) column: share of invalid voxels, and whether any voxel is surface /
-occluded, grey levels, same orientation as the view panel). ``panels`` picks any subset in any order.
+side by side (per (i, j) column, grey levels, same orientation as the view panel: share of
+invalid voxels; nearness of the first surface voxel; number of occluded voxels).
+``panels`` picks any subset in any order.
 """
 
 from __future__ import annotations
@@ -100,9 +101,17 @@ def render_preview(export_root: str | Path, frame: str, *, panels: tuple[str, ..
             side = lut[_first_hit(occ, label, axis=1)]  # (X, Z, 3)
             tiles.append(("grid: side", _fit(Image.fromarray(side.transpose(1, 0, 2).copy()), height)))
         else:
+            Z = shape[2]
             for k in ("invalid", "surface", "occluded"):
-                frac = masks[k].mean(axis=2) if k == "invalid" else masks[k].any(axis=2)
-                g = (255 * np.asarray(frac, float)).astype(np.uint8).T
+                mk = masks[k]
+                if k == "invalid":
+                    v = mk.mean(axis=2)
+                elif k == "surface":  # nearness of the first surface voxel (white = near)
+                    v = np.where(mk.any(axis=2), 1.0 - np.argmax(mk, axis=2) / Z, 0.0)
+                else:  # number of occluded voxels in the column
+                    c = mk.sum(axis=2)
+                    v = c / max(int(c.max()), 1)
+                g = (255 * np.asarray(v, float)).astype(np.uint8).T
                 tiles.append((k, _fit(Image.fromarray(g).convert("RGB"), height)))
     if not tiles:
         raise InputFormatError(f"{alt_dir}: nothing to preview for frame {fid}")

@@ -39,3 +39,31 @@ def test_default_secret_refused_outside_development(tmp_path, monkeypatch, capsy
     monkeypatch.delenv("OCCUFLY_SECRET_KEY", raising=False)
     assert main(["db", "upgrade"]) == 2
     assert "OCCUFLY_SECRET_KEY" in capsys.readouterr().err
+
+
+def test_demo_seed_imports_selects_and_creates_users(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from app.config import Settings
+    from app.demo import seed
+    from app.main import close, create_app
+    from tests.app.conftest import write_tiny_workspace
+
+    roots = tmp_path / "imports"
+    src = write_tiny_workspace(roots / "tiny_ws")
+    settings = Settings(data_dir=tmp_path / "data", import_roots=[roots], env="development",
+                        job_processes=False, argon2_memory_kib=1024, argon2_time_cost=1)
+    info = seed(settings, src)
+    again = seed(settings, src)  # idempotent: same scene, same users
+    assert again["scene_id"] == info["scene_id"]
+    assert set(info["users"]) == {"admin", "reviewer", "annotator"}
+    assert 1 <= len(info["selection"]["frames"]) <= 4
+    app = create_app(settings)
+    with TestClient(app) as c:
+        for role, pw in info["users"].items():
+            r = c.post("/api/auth/login", json={"username": role, "password": pw})
+            assert r.json()["user"]["role"] == role
+        scenes = c.get("/api/scenes").json()
+        assert len(scenes) == 1 and scenes[0]["status"] == "ready"
+        assert scenes[0]["n_selected"] == len(info["selection"]["frames"])
+    close(app)

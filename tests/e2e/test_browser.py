@@ -297,6 +297,17 @@ def test_admin_export_job_completes(live, new_page):
     assert link.get_attribute("href") == f"/api/jobs/{jid}/download"
     r = live.client("admin").get(f"/api/jobs/{jid}/download")
     assert r.status_code == 200 and len(r.content) > 1000
+    # evaluation job -> metric tables on the page
+    run_job("#start-eval", "eval")
+    metrics = page.locator("#metrics")
+    metrics.wait_for()
+    assert metrics.locator("table").count() >= 1
+    m = admin.get(f"/api/scenes/{live.scene_id}/metrics").json()
+    scalars = {k: v for k, v in m.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    for k in list(scalars)[:3]:  # the page shows the API's numbers
+        assert metrics.locator(f"td:text-is('{k}')").count() >= 1
+    metrics.scroll_into_view_if_needed()
+    shot(page, "11_admin_metrics", full_page=True)
 
 
 def test_errors_are_readable_never_a_blank_page(live, new_page):

@@ -392,10 +392,24 @@ class AdminPage {
 /** Render an eval result (nested dicts / lists of rows) as tables. */
 export function metricsView(m) {
   const out = el("div", { class: "metrics", id: "metrics" });
-  const fmt = (v) => (typeof v === "number" ? (Math.abs(v) <= 1 && !Number.isInteger(v) ? v.toFixed(4) : v.toLocaleString()) : v === null ? "n/a" : typeof v === "object" ? JSON.stringify(v) : String(v));
+  // shares (agreement, IoU, precision, recall, delta_k, coverage) as percentages
+  const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
+  const fmtv = (v, key = "") =>
+    typeof v === "number"
+      ? SHARE.test(key) && v >= 0 && v <= 1
+        ? `${(100 * v).toFixed(2)} %`
+        : Math.abs(v) <= 1 && !Number.isInteger(v)
+          ? v.toFixed(4)
+          : v.toLocaleString()
+      : v === null
+        ? "n/a"
+        : typeof v === "object"
+          ? JSON.stringify(v)
+          : String(v);
+  const fmt = (v, row) => fmtv(v, row && row.k !== undefined ? row.k : "");
   const walk = (obj, title) => {
     if (Array.isArray(obj) && obj.length && typeof obj[0] === "object") {
-      const cols = [...new Set(obj.flatMap((r) => Object.keys(r)))].map((k) => ({ key: k, label: k, fmt }));
+      const cols = [...new Set(obj.flatMap((r) => Object.keys(r)))].map((k) => ({ key: k, label: k, fmt: (v) => fmtv(v, k) }));
       out.append(table(obj, cols, { caption: title }));
       return;
     }
@@ -405,7 +419,7 @@ export function metricsView(m) {
       for (const [k, v] of Object.entries(obj)) if (v && typeof v === "object") walk(v, title ? `${title} / ${k}` : k);
       return;
     }
-    out.append(el("p", {}, `${title}: ${fmt(obj)}`));
+    out.append(el("p", {}, `${title}: ${fmtv(obj, title)}`));
   };
   walk(m, "");
   return out;

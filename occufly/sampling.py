@@ -189,13 +189,11 @@ def sample_labels(
 def region_rects(camera: Camera, spec: GridSpec) -> list[tuple[int, int, int, int, int]]:
     """Per-slice rectangles [(k, i0, i1, j0, j1)] covering every voxel that sampling needs:
     the widened frustum (:func:`frustum_mask` with ``margin``), dilated by one slice in z so
-    that every valid voxel's 6 neighbours are sampled. Full slices for distorted cameras."""
+    that every valid voxel's 6 neighbours are sampled."""
     X, Y, Z = spec.shape
-    if camera.has_distortion:
-        return [(k, 0, X, 0, Y) for k in range(Z)]
-    uok, vok, zok = _margin_parts(camera, spec)
-    iu = uok & zok[None, :]
-    jv = vok & zok[None, :]
+    aok, bok, zok = _margin_parts(camera, spec)
+    iu = aok & zok[None, :]
+    jv = bok & zok[None, :]
     out = []
     for k in range(Z):
         ks = slice(max(k - 1, 0), min(k + 2, Z))
@@ -206,38 +204,64 @@ def region_rects(camera: Camera, spec: GridSpec) -> list[tuple[int, int, int, in
     return out
 
 
-def _margin_parts(camera: Camera, spec: GridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Separable widened frustum test for pinhole cameras: (X, Z), (Y, Z), (Z,) bool."""
+def normalized_bounds(camera: Camera) -> tuple[float, float, float, float]:
+    """(a_lo, a_hi, b_lo, b_hi): bounds of the image in undistorted normalised coordinates
+    (a = x/z, b = y/z). Exact for pinhole cameras; for distorted ones the extremes of the
+    unprojected image border (65 samples per edge) widened by 1e-4, which bounds the image
+    for the usual monotonic distortion."""
+    if not camera.has_distortion:
+        fx, fy = camera.focal
+        px, py = camera.principal_point
+        return -px / fx, (camera.width - px) / fx, -py / fy, (camera.height - py) / fy
+    W, H = camera.width, camera.height
+    t = np.linspace(0, 1, 65)
+    border = np.concatenate([
+        np.column_stack([t * W, np.zeros_like(t)]), np.column_stack([t * W, np.full_like(t, H)]),
+        np.column_stack([np.zeros_like(t), t * H]), np.column_stack([np.full_like(t, W), t * H]),
+    ])
+    ab = camera.unproject(border, 1.0)[:, :2]
+    lo, hi = ab.min(axis=0) - 1e-4, ab.max(axis=0) + 1e-4
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
+def _bounds_parts(camera: Camera, spec: GridSpec, *, margin: bool
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Separable test of voxel-centre directions against :func:`normalized_bounds`:
+    (X, Z) and (Y, Z) bool. With ``margin`` each box's angular half-extent (+1 voxel of
+    slack) is added so any box that may intersect the frustum passes."""
     cx, cy, cz = spec.axis_centers()
-    fx, fy = camera.focal
-    px, py = camera.principal_point
+    a_lo, a_hi, b_lo, b_hi = normalized_bounds(camera)
+    a = cx[:, None] / cz[None, :]  # (X, Z)
+    b = cy[:, None] / cz[None, :]  # (Y, Z)
+    if not margin:
+        return (a >= a_lo) & (a <= a_hi), (b >= b_lo) & (b <= b_hi)
     r = spec.voxel_size
-    u = fx * cx[:, None] / cz[None, :] + px  # (X, Z)
-    v = fy * cy[:, None] / cz[None, :] + py  # (Y, Z)
     zf = np.maximum(cz - r / 2, 1e-6)[None, :]
-    # a box's projection extends at most this far beyond its centre's (+1 voxel of slack)
-    mu = fx * (np.abs(cx)[:, None] + r) / zf - fx * np.abs(cx)[:, None] / cz[None, :]
-    mv = fy * (np.abs(cy)[:, None] + r) / zf - fy * np.abs(cy)[:, None] / cz[None, :]
-    uok = (u >= -mu) & (u < camera.width + mu)
-    vok = (v >= -mv) & (v < camera.height + mv)
-    zok = cz + 1.5 * r >= spec.near
-    return uok, vok, zok
+    ma = (np.abs(cx)[:, None] + r) / zf - np.abs(cx)[:, None] / cz[None, :]
+    mb = (np.abs(cy)[:, None] + r) / zf - np.abs(cy)[:, None] / cz[None, :]
+    return (a >= a_lo - ma) & (a <= a_hi + ma), (b >= b_lo - mb) & (b <= b_hi + mb)
+
+
+def _margin_parts(camera: Camera, spec: GridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Separable widened frustum test: (X, Z), (Y, Z), (Z,) bool."""
+    aok, bok = _bounds_parts(camera, spec, margin=True)
+    _, _, cz = spec.axis_centers()
+    zok = cz + 1.5 * spec.voxel_size >= spec.near
+    return aok, bok, zok
 
 
 def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.ndarray:
     """(X, Y, Z) bool: voxel centre inside the image and with near <= z <= far.
 
-    With ``margin`` (pinhole cameras only; others return all True) the test is widened so
-    that every voxel whose *box* may intersect the image frustum beyond the near plane is
-    kept (used to select occluders).
+    With ``margin`` the test is widened (separably, in normalised coordinates) so that every
+    voxel whose *box* may intersect the image frustum beyond the near plane is kept (used to
+    select occluders and the region to sample).
     """
     cx, cy, cz = spec.axis_centers()
-    zok = (cz >= spec.near) & (cz <= spec.far_m)
-    if margin and camera.has_distortion:
-        return np.ones(spec.shape, dtype=bool)
     if margin:
-        uok, vok, zmk = _margin_parts(camera, spec)
-        return uok[:, None, :] & vok[None, :, :] & zmk[None, None, :]
+        aok, bok, zmk = _margin_parts(camera, spec)
+        return aok[:, None, :] & bok[None, :, :] & zmk[None, None, :]
+    zok = (cz >= spec.near) & (cz <= spec.far_m)
     if not camera.has_distortion:
         fx, fy = camera.focal
         px, py = camera.principal_point
@@ -246,14 +270,20 @@ def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.
         uok = (u >= 0) & (u < camera.width)
         vok = (v >= 0) & (v < camera.height)
         return uok[:, None, :] & vok[None, :, :] & zok[None, None, :]
-    X, Y, Z = spec.shape
+    # distorted: exact projection, but only of the centres inside the bounding directions
+    aok, bok = _bounds_parts(camera, spec, margin=False)
     out = np.zeros(spec.shape, dtype=bool)
-    ii, jj = np.meshgrid(cx, cy, indexing="ij")
     for k in np.flatnonzero(zok):  # one slice at a time keeps memory small
-        xyz = np.column_stack([ii.ravel(), jj.ravel(), np.full(X * Y, cz[k])])
-        uv, z = camera.project(xyz)
+        ii = np.flatnonzero(aok[:, k])
+        jj = np.flatnonzero(bok[:, k])
+        if not len(ii) or not len(jj):
+            continue
+        gi, gj = np.meshgrid(ii, jj, indexing="ij")
+        xyz = np.column_stack([cx[gi.ravel()], cy[gj.ravel()], np.full(gi.size, cz[k])])
+        uv, _z = camera.project(xyz)
         with np.errstate(invalid="ignore"):
-            out[:, :, k] = camera.in_image(uv).reshape(X, Y)
+            ok = camera.in_image(uv)
+        out[gi.ravel()[ok], gj.ravel()[ok], k] = True
     return out
 
 

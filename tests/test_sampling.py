@@ -199,3 +199,23 @@ def test_depth_map_prefers_mvs_then_renders(tmp_path):
     assert np.array_equal(d0, mvs[2::4, 2::4])  # nearest sample at the 1/4-res pixel centres
     d1, src1 = frame_depth_map(scene, 1)  # no depth map: rendered from the points (z-buffer)
     assert src1 == "rendered" and d1[1, 2] == 5.0 and np.count_nonzero(d1) == 1
+
+
+def test_distorted_camera_region_loses_nothing():
+    """Sampling only the widened frustum gives the same labels and surface as sampling the
+    whole frame grid, for a distorted camera too."""
+    from occufly.sampling import sample_labels, surface_mask
+
+    cam = Camera("OPENCV", 160, 120, [100, 100, 80, 60, -0.2, 0.05, 0.001, -0.002])
+    spec = GridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
+    rng = np.random.default_rng(7)
+    lab = (rng.random((80, 80, 70)) < 0.95).astype(np.uint8) * 8  # dense: surface hinges on each neighbour
+    grid = SceneGrid(lab, [-20.0, -20.0, -2.0], 0.5)
+    T = look_at([0.2, 0.1, 0.0], [1.0, -0.5, 20.0], up=(0.0, -1.0, 0.0))
+    gt = sample_frame(grid, cam, T, np.zeros(3), spec)
+    full, inside = sample_labels(grid, T, np.zeros(3), spec)  # every voxel, no region
+    valid = frustum_mask(cam, spec) & inside
+    assert np.array_equal(gt.invalid, ~valid)
+    assert np.array_equal(gt.labels, np.where(valid, full, 0))
+    assert np.array_equal(gt.surface, surface_mask(full != 0) & valid)
+    assert 1000 < gt.surface.sum() < 0.5 * np.count_nonzero(gt.labels)

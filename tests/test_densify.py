@@ -20,7 +20,7 @@ from occufly.densify.dbscan import dbscan, partition_agreement
 from occufly.densify.evaluate import evaluate_grids
 from occufly.densify.ground import sample_triangles, voxelize_ground
 from occufly.densify.pipeline import DensifyOptions, densify, load_point_labels
-from occufly.densify.preview import render_preview, surface_mask
+from occufly.densify.preview import surface_mask
 from occufly.densify.voxelize import grid_spec_for, majority_vote
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid

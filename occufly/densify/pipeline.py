@@ -110,9 +110,9 @@ def _is_degenerate(pts: np.ndarray, thickness: float) -> str | None:
     proj = c @ vecs
     ext = proj.max(axis=0) - proj.min(axis=0)
     if ext[1] < thickness:
-        return "collinear (thinner than %.3g m in two directions)" % thickness
+        return f"collinear (thinner than {thickness:.3g} m in two directions)"
     if ext[0] < thickness:
-        return "flat (thinner than %.3g m)" % thickness
+        return f"flat (thinner than {thickness:.3g} m)"
     return None
 
 

@@ -1,7 +1,9 @@
 """Live lifting: each stored mask version updates the scene's point votes in the background.
 
-One worker thread per scene owns that scene's :class:`occufly.lifting.LiftState` (which is
-not safe for concurrent writers). A notification only says "frame F of scene S changed"; the
+One vote thread per scene owns that scene's :class:`occufly.lifting.LiftState` (which is
+not safe for concurrent writers); a second thread per scene runs kNN fill + denoise on a
+snapshot of the vote majority taken under the state lock, so a long fill never delays the
+next mask's votes. A notification only says "frame F of scene S changed"; the
 worker then reads the frame's *current* version from the database, so notifications may
 arrive out of order or be coalesced without ever applying an older mask over a newer one.
 After votes change, kNN fill + denoise is rerun once the scene has been quiet for
@@ -35,6 +37,8 @@ class _SceneWorker:
     state: object | None = None
     last_error: str | None = None
     thread: threading.Thread | None = None
+    fill_thread: threading.Thread | None = None
+    state_lock: threading.Lock = field(default_factory=threading.Lock)
     fills: int = 0
     included: dict | None = None  # snapshot of state.included_versions(), updated by the worker
     decoded: dict = field(default_factory=dict)  # frame id -> (version id, (h, w) uint8 mask)
@@ -116,8 +120,9 @@ class LiftingManager:
             with w.cond:
                 w.cond.notify_all()
         for w in list(self._workers.values()):
-            if w.thread is not None:
-                w.thread.join(timeout=30)
+            for t in (w.thread, w.fill_thread):
+                if t is not None:
+                    t.join(timeout=60)
 
     # ---- internals --------------------------------------------------------------------------
     def _worker(self, scene_id: int) -> _SceneWorker:
@@ -127,8 +132,11 @@ class LiftingManager:
                 w = _SceneWorker(scene_id)
                 w.thread = threading.Thread(target=self._loop, args=(w,), daemon=True,
                                             name=f"occufly-lift-{scene_id}")
+                w.fill_thread = threading.Thread(target=self._fill_loop, args=(w,), daemon=True,
+                                                 name=f"occufly-fill-{scene_id}")
                 self._workers[scene_id] = w
                 w.thread.start()
+                w.fill_thread.start()
             return w
 
     def _state(self, w: _SceneWorker, workspace: str):
@@ -143,29 +151,20 @@ class LiftingManager:
         return w.state
 
     def _loop(self, w: _SceneWorker) -> None:
+        """Vote thread: apply changed frames as soon as they are notified."""
         while not self._stop:
             with w.cond:
-                while not self._stop and not w.dirty_frames and not (
-                        w.fill_due is not None and time.monotonic() >= w.fill_due):
-                    timeout = None if w.fill_due is None else max(0.0, w.fill_due - time.monotonic())
-                    w.cond.wait(timeout if timeout is not None else 1.0)
+                while not self._stop and not w.dirty_frames:
+                    w.cond.wait(1.0)
                 if self._stop:
                     return
                 frames = sorted(w.dirty_frames)
                 w.dirty_frames.clear()
-                w.busy = bool(frames)
-                do_fill = not frames and w.fill_due is not None
-                if do_fill:
-                    w.fill_due = None
-                    w.filling = True
+                w.busy = True
             try:
-                if frames:
-                    changed = self._apply_frames(w, frames)
-                    if changed:
-                        with w.cond:
-                            w.fill_due = time.monotonic() + self.debounce_s
-                elif do_fill:
-                    self._fill(w)
+                if self._apply_frames(w, frames):
+                    with w.cond:
+                        w.fill_due = time.monotonic() + self.debounce_s
                 w.last_error = None
             except Exception as e:  # noqa: BLE001 - keep the worker alive, report in status
                 log.exception("live lifting for scene %s", w.scene_id)
@@ -173,8 +172,28 @@ class LiftingManager:
             finally:
                 with w.cond:
                     w.busy = False
-                    if do_fill:
-                        w.filling = False
+                    w.cond.notify_all()
+
+    def _fill_loop(self, w: _SceneWorker) -> None:
+        """Fill thread: rerun fill + denoise once votes have been quiet for ``debounce_s``."""
+        while not self._stop:
+            with w.cond:
+                while not self._stop and (w.fill_due is None or w.busy or w.dirty_frames
+                                          or time.monotonic() < w.fill_due):
+                    wait = 1.0 if w.fill_due is None else max(0.01, w.fill_due - time.monotonic())
+                    w.cond.wait(min(wait, 1.0))
+                if self._stop:
+                    return
+                w.fill_due = None
+                w.filling = True
+            try:
+                self._fill(w)
+            except Exception as e:  # noqa: BLE001
+                log.exception("fill/denoise for scene %s", w.scene_id)
+                w.last_error = f"{type(e).__name__}: {e}"
+            finally:
+                with w.cond:
+                    w.filling = False
                     w.cond.notify_all()
 
     def _apply_frames(self, w: _SceneWorker, frame_ids: list[int]) -> int:
@@ -200,7 +219,8 @@ class LiftingManager:
                 with w.cond:
                     hit = w.decoded.pop(fid, None)
                 mask = hit[1] if hit is not None and hit[0] == version_id else None
-                changed += self.apply(state, ctx, index, version_id, sha, mask=mask)
+                with w.state_lock:
+                    changed += self.apply(state, ctx, index, version_id, sha, mask=mask)
         finally:
             snapshot = dict(state.included_versions())
             with w.cond:
@@ -226,8 +246,27 @@ class LiftingManager:
         return 1
 
     def _fill(self, w: _SceneWorker) -> None:
+        """Snapshot the vote majority under the state lock, then fill/denoise without it."""
+        import numpy as np
+
         state = w.state
         if state is None:
             return
-        state.fill_and_denoise()
+        try:
+            from occufly.lifting import fill_and_denoise, save_result
+            snapshot = state._direct  # noqa: SLF001 - the first step of state.fill_and_denoise
+        except (ImportError, AttributeError):
+            with w.state_lock:  # older lifting: whole fill under the lock
+                state.fill_and_denoise()
+            w.fills += 1
+            return
+        with w.state_lock:
+            direct, margin = snapshot()
+            versions = {str(k): v for k, v in state.included_versions().items()}
+        scene = state.scene
+        result = fill_and_denoise(np.asarray(scene.xyz), direct, scene.taxonomy,
+                                  vote_margin=margin)
+        result.stats["annotated_frames"] = len(versions)
+        result.stats["versions"] = versions
+        save_result(state.ws, result)
         w.fills += 1

@@ -651,3 +651,40 @@ def test_frontend_and_viewer_are_mounted(env):
     assert r.status_code == 200 and "<html" in r.text.lower()
     assert env.client.get("/viewer/").status_code == 401
     assert env.client.get("/viewer/", headers=env.bearer("annotator")).status_code == 403
+
+
+def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
+    import time
+
+    import occufly.lifting as lifting
+
+    env, hdr, scene, _ = world
+    sid = scene["id"]
+    release = threading.Event()
+    real = lifting.fill_and_denoise
+
+    def slow_fill(*a, **k):
+        release.wait(20)
+        return real(*a, **k)
+
+    monkeypatch.setattr(lifting, "fill_and_denoise", slow_fill)
+    f1 = _lease(env, hdr, scene, "annotator")
+    f2 = _lease(env, hdr, scene, "annotator2")
+    v1 = env.client.put(f"/api/frames/{f1}/mask", content=mask_png(6),
+                        headers={**hdr["annotator"], "If-Match": "none"}).json()["version"]
+    lm = env.app.state.ctx.lifting
+    end = time.monotonic() + 10
+    while not lm.status(sid)["fill_running"] and time.monotonic() < end:
+        time.sleep(0.02)
+    assert lm.status(sid)["fill_running"]
+    t0 = time.monotonic()
+    v2 = env.client.put(f"/api/frames/{f2}/mask", content=mask_png(8),
+                        headers={**hdr["annotator2"], "If-Match": "none"}).json()["version"]
+    assert lm.wait_idle(sid, timeout=5)  # votes only
+    st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
+    assert st["included_versions"] == {str(f1): v1, str(f2): v2}
+    assert st["fill_running"] and time.monotonic() - t0 < 5
+    release.set()
+    assert lm.wait_idle(sid, timeout=30, include_fill=True)
+    st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
+    assert st["filled_versions"] == {str(f1): v1, str(f2): v2}  # a second, debounced fill

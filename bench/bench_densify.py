@@ -82,6 +82,25 @@ def _binning_vs_open3d(xyz: np.ndarray, labels: np.ndarray, prio: np.ndarray, vo
     }
 
 
+def _dbscan_scale(n: int) -> dict:
+    """DBSCAN on n points spread over 400 flat 20 x 20 m roofs 6 m apart (eps 1 m, minPts 500)."""
+    from occufly.densify.dbscan import dbscan
+
+    rng = np.random.default_rng(0)
+    roof = rng.integers(0, 400, n)
+    xy = rng.uniform(0, 20, (n, 2)).astype(np.float32) + np.stack([(roof % 20) * 26.0, (roof // 20) * 26.0], 1)
+    xyz = np.concatenate([xy, (roof[:, None] % 3).astype(np.float32) * 3.0], axis=1).astype(np.float32)
+    del xy, roof
+    rss0 = _peak_rss_gb()
+    t = time.perf_counter()
+    lab = dbscan(xyz, 1.0, 500)
+    dt = time.perf_counter() - t
+    return {"bench": "dbscan-scale", "points": n, "eps": 1.0, "min_points": 500, "seconds": round(dt, 2),
+            "clusters": int(lab.max()) + 1, "noise": int((lab < 0).sum()),
+            "peak_rss_gb": round(_peak_rss_gb(), 3), "rss_before_gb": round(rss0, 3),
+            "open3d_estimate_gb": "every neighbourhood stored: ~n * pi * eps^2 * density * 4 B"}
+
+
 def _ablation(out: Path, ws: Path, labels_path: Path, voxel: float, scale: float | None, args) -> dict:
     from occufly.densify.evaluate import evaluate_grids
     from occufly.densify.pipeline import DensifyOptions, densify, load_point_labels
@@ -119,10 +138,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--voxel", type=float, default=0.5)
     ap.add_argument("--synth", help="use this existing synthetic output (OUT) instead of generating")
     ap.add_argument("--workspace", help="use this existing workspace (imported from --synth)")
+    ap.add_argument("--dbscan-points", type=int, default=0,
+                    help="instead: DBSCAN alone on this many synthetic roof points (eps 1 m), peak memory")
     ap.add_argument("--ablation", action="store_true",
                     help="instead: quality of points only / + instances / + Poisson (no timing budget)")
     args = ap.parse_args(argv)
 
+    if args.dbscan_points:
+        print(json.dumps(_dbscan_scale(args.dbscan_points)))
+        return 0
     root = Path(args.root)
     root.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()

@@ -6,6 +6,7 @@ import { api, ApiError } from "../core/api.js";
 import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.js";
 import { encodeGreyPngOffThread, decodeIdPng, resizeIds } from "../core/png.js";
 import { Editor } from "../paint/editor.js";
+import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
 
 const IDLE_SAVE_MS = 2500;
 
@@ -162,17 +163,21 @@ class AnnotatorPage {
     const ph = { detail: performance.now() - t0 };
     const mark = (k) => (x) => ((ph[k] = performance.now() - t0), x);
     // image and mask are fetched and decoded concurrently (image decoding runs off-thread)
+    const W = frame.width;
+    const H = frame.height;
+    const scenePromise = this.sceneDetail(sid).then(mark("scene"));
     const [scene, bitmap, maskRes, items] = await Promise.all([
-      this.sceneDetail(sid).then(mark("scene")),
+      scenePromise,
       api.send("GET", `/frames/${fid}/image`).then((r) => r.blob()).then(mark("imageFetched")).then((b) => createImageBitmap(b)).then(mark("imageDecoded")),
-      api.blob(`/frames/${fid}/mask`).then(mark("maskFetched")).then(async (r) => (r ? { etag: r.etag, decoded: await decodeIdPng(r.blob) } : null)).then(mark("maskDecoded")),
+      // the saved mask is decoded and coloured in a worker while the image decodes
+      Promise.all([api.blob(`/frames/${fid}/mask`).then(mark("maskFetched")), scenePromise]).then(async ([r, sc]) =>
+        r ? { etag: r.etag, decoded: await decodeMaskOffThread(r.blob, W, H, buildLut((sc.taxonomy && sc.taxonomy.classes) || [])) } : null,
+      ).then(mark("maskDecoded")),
       api.get(`/scenes/${sid}/review-items`).catch(() => []),
     ]);
     const decoded = maskRes ? maskRes.decoded : null;
     const classes = (scene.taxonomy && scene.taxonomy.classes) || [];
     if (!classes.length) throw new Error(`Scene ${scene.name} has no taxonomy classes; cannot paint.`);
-    const W = frame.width || bitmap.width;
-    const H = frame.height || bitmap.height;
     this.editor?.destroy();
     this.host.replaceChildren();
     this.frame = frame;
@@ -180,7 +185,7 @@ class AnnotatorPage {
     this.editor = ed;
     ed.setPhoto(bitmap);
     ph.editor = performance.now() - t0;
-    if (decoded) ed.mask.setAll(resizeIds(decoded.ids, decoded.width, decoded.height, W, H));
+    if (decoded) ed.mask.adopt(decoded.ids, decoded.rgba, decoded.painted);
     ph.maskColoured = performance.now() - t0;
     this.version = maskRes ? maskRes.etag || "none" : "none";
     this.editSeq = this.savedSeq = 0;

@@ -54,6 +54,18 @@ export class MaskModel {
   }
 
   /**
+   * Load a mask decoded and coloured elsewhere (see decodeMaskOffThread): ids (W*H raw ids),
+   * rgba (their colours, W*H*4) and the painted count. No undo.
+   */
+  adopt(ids, rgba, painted) {
+    if (ids.length !== this.ids.length || rgba.length !== 4 * this.ids.length) throw new Error("mask size mismatch");
+    this.ids.set(ids);
+    this.painted = painted;
+    this.ctx.putImageData(new ImageData(rgba, this.width, this.height), 0, 0);
+    this.changed.dispatch({ x0: 0, y0: 0, x1: this.width, y1: this.height });
+  }
+
+  /**
    * Recolour the canvas in a rectangle (exclusive ends) from the ids and notify views.
    * Returns the number of painted (non-zero) pixels in the rectangle.
    */
@@ -328,3 +340,52 @@ export function floodFill(mask, patch, rgba, scratch, sx, sy, tol, v) {
   mask.painted += delta;
   return { rect: [minX, minY, maxX + 1, maxY + 1], count };
 }
+
+let maskWorker = null;
+let maskWorkerFailed = false;
+let maskJob = 1;
+const maskJobs = new Map();
+
+/**
+ * Decode a mask PNG (Blob) to raw ids at width x height and colour them with `lut` in a module
+ * worker. Resolves {ids, rgba, painted}; falls back to the main thread without workers.
+ */
+export async function decodeMaskOffThread(blob, width, height, lut) {
+  const png = await blob.arrayBuffer();
+  if (!maskWorkerFailed && typeof Worker !== "undefined") {
+    try {
+      if (!maskWorker) {
+        maskWorker = new Worker(new URL("./mask-worker.js", import.meta.url), { type: "module" });
+        maskWorker.onmessage = (e) => {
+          const p = maskJobs.get(e.data.id);
+          maskJobs.delete(e.data.id);
+          if (p) e.data.error ? p.reject(new Error(e.data.error)) : p.resolve(e.data);
+        };
+        maskWorker.onerror = (e) => {
+          maskWorkerFailed = true;
+          for (const p of maskJobs.values()) p.reject(new Error(`mask worker failed: ${e.message}`));
+          maskJobs.clear();
+          maskWorker = null;
+        };
+      }
+      const id = maskJob++;
+      const done = new Promise((resolve, reject) => maskJobs.set(id, { resolve, reject }));
+      maskWorker.postMessage({ id, png, width, height, lut }, [png]);
+      return await done;
+    } catch (e) {
+      if (!maskWorkerFailed) throw e;
+    }
+  }
+  const { decodeIdPng, resizeIds } = await import("../core/png.js");
+  const d = await decodeIdPng(blob);
+  const ids = resizeIds(d.ids, d.width, d.height, width, height);
+  const rgba = new Uint8ClampedArray(width * height * 4);
+  const out = new Int32Array(rgba.buffer);
+  let painted = 0;
+  for (let i = 0; i < ids.length; i++) {
+    out[i] = lut[ids[i]];
+    painted += ids[i] !== 0 ? 1 : 0;
+  }
+  return { ids, rgba, painted };
+}
+

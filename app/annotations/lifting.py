@@ -270,3 +270,31 @@ class LiftingManager:
         result.stats["versions"] = versions
         save_result(state.ws, result)
         w.fills += 1
+        self._refresh_agreement(w)
+
+    MAX_AGREEMENT_FRAMES = 200
+
+    def _refresh_agreement(self, w: _SceneWorker) -> None:
+        """Recompute the stored per-frame agreement (the frame list's disagreement sort) of
+        submitted/reviewed frames against the new labels; off the vote path, best effort."""
+        from sqlalchemy import select
+
+        from app.review.service import frame_agreement
+        from app.scenes.models import Frame, Scene
+
+        ctx = self.ctx
+        with ctx.sessions() as s:
+            scene = s.get(Scene, w.scene_id)
+            frames = list(s.scalars(
+                select(Frame).where(Frame.scene_id == w.scene_id,
+                                    Frame.current_version_id.is_not(None),
+                                    Frame.state.in_(("submitted", "accepted", "rejected")))
+                .order_by(Frame.index).limit(self.MAX_AGREEMENT_FRAMES)))
+            for f in frames:
+                if self._stop:
+                    return
+                try:
+                    frame_agreement(ctx, s, scene, f)
+                except Exception:  # noqa: BLE001 - a frame that cannot be rendered keeps its value
+                    log.warning("agreement of frame %s failed", f.id, exc_info=True)
+                    s.rollback()

@@ -396,6 +396,12 @@ def test_live_lifting_tracks_versions(world):
                         headers={**a, "If-Match": str(v1)}).json()["version"]
     assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
     st = env.client.get(f"/api/scenes/{scene['id']}/labels/status", headers=a).json()
+    # a submitted frame gets its agreement refreshed after each fill (the disagreement sort)
+    env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                   headers={**a, "If-Match": str(v2)})
+    assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement", headers=a).json()
+    assert fl[0]["id"] == fid and fl[0]["agreement"] == pytest.approx(1.0)
     assert st["included_versions"] == {str(fid): v2} and not st["pending_fill"]
     assert st["filled_versions"] == {str(fid): v2}
     assert st["labels_source"] == "filled"
@@ -688,3 +694,6 @@ def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
     assert lm.wait_idle(sid, timeout=30, include_fill=True)
     st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
     assert st["filled_versions"] == {str(f1): v1, str(f2): v2}  # a second, debounced fill
+    # drafts are not reviewed, so no agreement is stored for them by the fill
+    frames = env.client.get(f"/api/scenes/{sid}/frames", headers=hdr["admin"]).json()
+    assert all(f["agreement"] is None for f in frames)

@@ -42,7 +42,7 @@ def png(b: bytes) -> np.ndarray:
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     root = tmp_path_factory.mktemp("viewer_e2e")
-    make_demo_workspace(root / "demo", 60_000, seed=5)
+    make_demo_workspace(root / "demo", 60_000, seed=5, voxel_size=4.0)
     filed: list[tuple] = []
     masks: list[tuple] = []
 
@@ -122,12 +122,33 @@ def test_reviewer_sees_scene_toggles_classes_selects_and_gets_live_updates(env):
     # 3. colour mode from the dropdown
     page.get_by_text("grass (", exact=False).first.click()  # back on
     assert wait_for(lambda: st.class_visible.get(6) is True, 5)
-    svc.show_frame(st, 0)
+    # 4. click the apex of frame 0's frustum (accepted, green): the panel shows it and its mask
+    cam = st.client.camera
+    R = sb.quat_to_matrix(cam.wxyz)
+    pc = R.T @ (st.data.scene.frames[0].center - np.asarray(cam.position))
+    t = np.tan(cam.fov / 2)
+    u, v = 0.5 + pc[0] / (pc[2] * t * cam.aspect) / 2, 0.5 + pc[1] / (pc[2] * t) / 2
+    box = canvas.bounding_box()
+    assert 0.05 < u < 0.6 and 0.25 < v < 0.95  # on screen, clear of the panels
+    page.mouse.click(box["x"] + u * box["width"], box["y"] + v * box["height"])
+    assert wait_for(lambda: st.frame_index == 0, 5), "frustum click did not arrive"
     page_text = wait_for(lambda: "accepted" in page.inner_text("body") and page.inner_text("body"), 5)
     assert page_text and "img_0000" in page_text
     assert env["masks"] == [("demo", 0)]
+    assert st.gui["mask"] is not None  # the mask image is in the side panel
 
-    # 4. rectangle select from a nadir camera, file a review item
+    # 5. the scene voxel grid as instanced boxes, toggled from the panel
+    page.get_by_text("Voxel grids").click()
+    grid_box = page.locator("div.mantine-Flex-root", has=page.get_by_text("Scene grid")).locator("input").last
+    grid_box.evaluate("e => e.click()")  # JS click: boxes make software frames slow
+    assert wait_for(lambda: "/grid/scene/building" in st.grid_handles, 10)
+    # (no screenshot here: lit boxes take >10 s per software-rendered frame; see
+    # examples/02_voxel_grids.py for a look)
+    assert len(st.grid_handles["/grid/scene/building"].batched_positions) > 0
+    grid_box.evaluate("e => e.click()")
+    assert wait_for(lambda: not st.grid_handles, 10)
+
+    # 6. rectangle select from a nadir camera, file a review item
     svc.move_to_camera(st, 4)
     cam = st.client.camera
     assert wait_for(lambda: np.allclose(cam.position, st.data.scene.frames[4].center, atol=1e-3), 5)
@@ -169,7 +190,7 @@ def test_reviewer_sees_scene_toggles_classes_selects_and_gets_live_updates(env):
     assert comment == "roof looks like road here"
     assert user == {"username": "rita", "role": "reviewer"}
 
-    # 5. live: a mask save relabels vehicles as trucks on disk; the viewer follows
+    # 7. live: a mask save relabels vehicles as trucks on disk; the viewer follows
     ws = env["ws"]
     labels = np.load(ws / "lifting" / "labels.npy")
     n_vehicle = int((labels == 13).sum())

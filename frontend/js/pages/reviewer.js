@@ -180,7 +180,8 @@ class ReviewerPage {
         el("span", { class: `badge state-${f.state}` }, f.state),
         el("span", { class: "agreement", id: "agreement", "data-value": a.agreement ?? "" }, `Agreement ${agreeText}`),
         a.pixels != null ? el("span", {}, `over ${Number(a.pixels).toLocaleString()} pixels`) : null,
-        el("a", { href: `/viewer/?frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
+        // the viewer picks its scene from ?scene=; ?frame= names the frame (contract link)
+        el("a", { href: `/viewer/?scene=${f.scene_id ?? this.sceneSel.value}&frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
         el("span", { class: "spacer" }),
         ...modeBtns,
       ),

@@ -83,7 +83,11 @@ def _binning_vs_open3d(xyz: np.ndarray, labels: np.ndarray, prio: np.ndarray, vo
 
 
 def _dbscan_scale(n: int) -> dict:
-    """DBSCAN on n points spread over 400 flat 20 x 20 m roofs 6 m apart (eps 1 m, minPts 500)."""
+    """DBSCAN on n points spread over 400 flat 20 x 20 m roofs 6 m apart (eps 1 m, minPts 100).
+
+    At n = 10 M that is 62 points/m^2, ~196 neighbours per eps-ball: Open3D would store ~2 G
+    neighbour indices (8+ GB); the expected result is 400 clusters and no noise.
+    """
     from occufly.densify.dbscan import dbscan
 
     rng = np.random.default_rng(0)
@@ -93,12 +97,54 @@ def _dbscan_scale(n: int) -> dict:
     del xy, roof
     rss0 = _peak_rss_gb()
     t = time.perf_counter()
-    lab = dbscan(xyz, 1.0, 500)
+    lab = dbscan(xyz, 1.0, 100)
     dt = time.perf_counter() - t
-    return {"bench": "dbscan-scale", "points": n, "eps": 1.0, "min_points": 500, "seconds": round(dt, 2),
+    return {"bench": "dbscan-scale", "points": n, "eps": 1.0, "min_points": 100, "seconds": round(dt, 2),
             "clusters": int(lab.max()) + 1, "noise": int((lab < 0).sum()),
             "peak_rss_gb": round(_peak_rss_gb(), 3), "rss_before_gb": round(rss0, 3),
             "open3d_estimate_gb": "every neighbourhood stored: ~n * pi * eps^2 * density * 4 B"}
+
+
+def _dbscan_compare(ws: Path, labels_path: Path, scale: float | None) -> dict:
+    """Our DBSCAN (default cells, and exact point mode) vs Open3D's exact cluster_dbscan."""
+    import open3d as o3d
+
+    from occufly.densify.dbscan import dbscan, partition_agreement
+    from occufly.densify.pipeline import (
+        REFERENCE_SURFACE_DENSITY,
+        load_point_labels,
+        surface_density,
+    )
+    from occufly.scene import Scene
+
+    scene = Scene.load(ws)
+    labels = load_point_labels(labels_path, scene.n_points)
+    if scale is None:
+        scale = min(1.0, surface_density(scene.xyz) / REFERENCE_SURFACE_DENSITY)
+    out = {}
+    for c in scene.taxonomy.classes:
+        if c.group != "instance":
+            continue
+        p = np.asarray(scene.xyz[labels == c.id])
+        if len(p) == 0 or len(p) > 200_000:
+            continue
+        mp = max(2, round(c.dbscan_min_points * scale))
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p.astype(np.float64)))
+        t = time.perf_counter()
+        ref = np.asarray(pc.cluster_dbscan(c.dbscan_eps, mp))
+        t_ref = time.perf_counter() - t
+        t = time.perf_counter()
+        lab = dbscan(p, c.dbscan_eps, mp)
+        t_ours = time.perf_counter() - t
+        exact = dbscan(p, c.dbscan_eps, mp, cell=0)
+        out[c.name] = {
+            "points": int(len(p)), "eps": c.dbscan_eps, "min_points": mp,
+            "open3d": {"clusters": int(ref.max()) + 1, "noise": int((ref < 0).sum()), "s": round(t_ref, 2)},
+            "ours": {"clusters": int(lab.max()) + 1, "noise": int((lab < 0).sum()), "s": round(t_ours, 2)},
+            "agreement_cells": round(partition_agreement(lab, ref), 5),
+            "agreement_exact_mode": round(partition_agreement(exact, ref), 5),
+        }
+    return {"bench": "dbscan-vs-open3d", "min_points_scale": scale, "classes": out}
 
 
 def _ablation(out: Path, ws: Path, labels_path: Path, voxel: float, scale: float | None, args) -> dict:
@@ -140,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workspace", help="use this existing workspace (imported from --synth)")
     ap.add_argument("--dbscan-points", type=int, default=0,
                     help="instead: DBSCAN alone on this many synthetic roof points (eps 1 m), peak memory")
+    ap.add_argument("--dbscan-compare", action="store_true",
+                    help="instead: our DBSCAN (cells and exact mode) vs Open3D per instance class")
     ap.add_argument("--ablation", action="store_true",
                     help="instead: quality of points only / + instances / + Poisson (no timing budget)")
     args = ap.parse_args(argv)
@@ -165,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     scale = None if args.min_points_scale == "auto" else float(args.min_points_scale)
     if args.ablation:
         print(json.dumps(_ablation(out, ws, labels_path, args.voxel, scale, args)))
+        return 0
+    if args.dbscan_compare:
+        print(json.dumps(_dbscan_compare(ws, labels_path, scale)))
         return 0
     rss0 = _peak_rss_gb()
     t = time.perf_counter()

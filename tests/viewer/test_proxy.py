@@ -12,7 +12,15 @@ from fastapi import FastAPI, HTTPException
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 from viewer_fixtures import COUNTS
-from viewer_live import ANNOTATOR, REVIEWER, FakeSettings, LiveServer, fake_client, make_app
+from viewer_live import (
+    ANNOTATOR,
+    REVIEWER,
+    FakeSettings,
+    LiveServer,
+    camera_message,
+    fake_client,
+    make_app,
+)
 
 from app import viewer
 from app.viewer import server as vserver
@@ -121,3 +129,43 @@ def test_default_scenes_finds_workspaces(tiny):
     table = vserver.default_scenes(tiny.ws.parent)()
     assert list(table) == ["tiny"] and table["tiny"][1] == tiny.ws
     assert np.isfinite(len(table))
+
+
+def test_refresh_resends_only_the_affected_classes(tiny):
+    """Three grass points become vehicle: refresh() re-sends grass + vehicle (655 points),
+    not the 1000-point cloud, to the open viewer."""
+    from websockets.asyncio.client import connect
+
+    from occufly.fsutil import atomic_save_npy
+
+    app = make_app(tiny.ws.parent)
+    with LiveServer(app) as srv:
+        svc = app.state.viewer
+        headers = {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"}
+
+        async def drain(ws, quiet: float) -> int:
+            got = 0
+            try:
+                while True:
+                    got += len(await asyncio.wait_for(ws.recv(), timeout=quiet))
+            except TimeoutError:
+                return got
+
+        async def run() -> tuple[int, int]:
+            async with connect(f"ws://127.0.0.1:{srv.port}/viewer", subprotocols=[PROTO],
+                               additional_headers=headers, max_size=None) as ws:
+                await ws.send(camera_message())
+                first = await drain(ws, 1.0)
+                labels = tiny.labels.copy()
+                labels[np.flatnonzero(labels == 6)[:3]] = 13
+                atomic_save_npy(tiny.ws / "lifting" / "labels.npy", labels)
+                svc.refresh("tiny")
+                second = await drain(ws, 1.5)
+                st = svc.client_states()[0]
+                return first, second, len(st.point_nodes[13].point_ids), st.class_boxes[13].label
+
+        first, second, n_vehicle, box_label = asyncio.run(run())
+        n = sum(COUNTS.values())
+        assert first >= 15 * n
+        assert 15 * (597 + 58) <= second < 15 * n  # only grass and vehicle went again
+        assert n_vehicle == 58 and box_label == "vehicle (58)"

@@ -213,6 +213,8 @@ def test_reviewer_rejects_with_pinned_comment_annotator_gets_it_back(live, new_p
     text = page.locator("#agreement").inner_text()
     assert f"{100 * agreement:.1f} %" in text
     assert page.get_attribute("#open-3d", "href") == f"/viewer/?scene={live.scene_id}&frame={fa}"
+    viewer = live.client("reviewer").get(f"/viewer/?scene={live.scene_id}&frame={fa}", follow_redirects=True)
+    assert viewer.status_code == 200 and "html" in viewer.headers.get("content-type", "")
     page.wait_for_selector("canvas[data-layer='image']")
     page.wait_for_timeout(300)
     shot(page, "05_reviewer_side_by_side")

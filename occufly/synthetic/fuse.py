@@ -20,7 +20,7 @@ class Samples:
     """Back-projected depth samples of all images.
 
     xyz: (S, 3) float32 scene-local metres; rgb: (S, 3) uint8; cls: (S,) uint8 true class of
-    the pixel; normal: (S, 3) float32 world; frame: (S,) int32 image index (0-based).
+    the pixel; normal: (S, 3) float16 or float32 world; frame: (S,) int32 image index (0-based).
     """
 
     xyz: np.ndarray
@@ -122,9 +122,11 @@ def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray,
     the (point ids (P,) int64, frame ids (P,) int32) pairs of the contributing images."""
     xyz = samples.xyz
     lo = xyz.min(axis=0).astype(np.float64) - voxel
-    ijk = np.floor((xyz - lo) / voxel).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    dims = np.floor((xyz.max(axis=0) - lo) / voxel).astype(np.int64) + 2
+    key = np.zeros(len(xyz), np.int64)  # built column by column (no (S, 3) int64 temporary)
+    for k in range(3):
+        key *= dims[k]
+        key += np.floor((xyz[:, k] - lo[k]) / voxel).astype(np.int64)
     _, inv, cnt = unique_inverse(key)
     n = len(cnt)
     out_xyz = np.empty((n, 3), np.float64)

@@ -111,7 +111,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             chunks["xyz"].append(xyz)
             chunks["rgb"].append(res.rgb[r_, c_])
             chunks["cls"].append(res.cls[r_, c_])
-            chunks["normal"].append(res.normal[r_, c_].astype(np.float32))
+            chunks["normal"].append(res.normal[r_, c_].astype(np.float16))
             chunks["frame"].append(np.full(len(xyz), f, np.int32))
             hit = res.depth > 0
             if hit.any():

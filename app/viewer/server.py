@@ -532,7 +532,9 @@ class ViewerService:
         fr = st.data.scene.frames[frame_index]
         T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
         cam = st.client.camera
+        fov = 2.0 * float(np.arctan2(fr.camera.height / 2.0, fr.camera.focal[1]))
         with st.client.atomic():
+            cam.fov = fov  # the view then matches the frame's image (vertical fov)
             cam.wxyz = sb.matrix_to_quat(T[:3, :3])
             cam.position = tuple(T[:3, 3])
             cam.look_at = tuple(T[:3, 3] + 20.0 * T[:3, 2])

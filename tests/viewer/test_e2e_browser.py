@@ -152,6 +152,7 @@ def test_reviewer_sees_scene_toggles_classes_selects_and_gets_live_updates(env):
     svc.move_to_camera(st, 4)
     cam = st.client.camera
     assert wait_for(lambda: np.allclose(cam.position, st.data.scene.frames[4].center, atol=1e-3), 5)
+    assert cam.fov == pytest.approx(2 * np.arctan(300 / 700), rel=1e-3)  # demo camera 800x600, f=700
     settle_shot("03_nadir")
     page.get_by_text("Select points (drag a rectangle)").click()
     assert wait_for(lambda: "Drag" in st.gui["sel_info"].content, 5)

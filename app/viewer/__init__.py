@@ -25,7 +25,9 @@ frame_mask=None, on_review_item=None, max_points=None, prefix="/viewer") -> None
 - ``on_review_item(scene_id, point_ids, comment, user)``: called when a reviewer files a
   review item from a rectangle selection; default ``app.review.service.create_item_from_3d``
   if that exists.
-- ``max_points``: LOD default (else ``settings.viewer_max_points``, else 2,000,000).
+- ``max_points``: LOD default (else ``settings.viewer_max_points``, else 2,000,000). Scenes
+  showing more than 4x ``settings.viewer_preview_points`` (default 150,000) first get a
+  stratified preview of that size, then the full LOD.
 
 Live update: ``app.state.viewer.refresh(scene_id, classes=None)`` re-sends the affected class
 nodes to open viewers (also triggered automatically within ~2 s when ``lifting/labels.npy``,
@@ -89,6 +91,7 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         scenes=scenes, frame_states=frame_states, frame_mask=frame_mask,
         on_review_item=on_review_item if on_review_item is not None else _default_review_hook(),
         max_points=max_points,
+        preview_points=int(getattr(settings, "viewer_preview_points", 150_000)),
     )
     fastapi_app.state.viewer = service
     add_routes(fastapi_app, service, authorize=authorize, identify=identify, prefix=prefix)

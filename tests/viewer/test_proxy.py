@@ -169,3 +169,17 @@ def test_refresh_resends_only_the_affected_classes(tiny):
         assert first >= 15 * n
         assert 15 * (597 + 58) <= second < 15 * n  # only grass and vehicle went again
         assert n_vehicle == 58 and box_label == "vehicle (58)"
+
+
+def test_large_scene_gets_a_preview_first_then_the_full_lod(tiny):
+    app = make_app(tiny.ws.parent, preview_points=100)  # 1000 points > 4 x 100: preview
+    n = sum(COUNTS.values())
+    with LiveServer(app) as srv:
+        svc = app.state.viewer
+        r = asyncio.run(fake_client(
+            f"ws://127.0.0.1:{srv.port}/viewer",
+            {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"},
+            min_bytes=15 * (n + 100)))
+        assert r["bytes"] >= 15 * (n + 100)  # the preview's 100 points, then all 1000
+        assert r["bytes"] < 15 * (2 * n)
+        assert svc.preview_points == 100

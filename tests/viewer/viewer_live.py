@@ -22,9 +22,11 @@ CHROMIUM_ARGS = [
 
 
 class FakeSettings:
-    def __init__(self, data_dir: Path, viewer_max_points: int = 2_000_000) -> None:
+    def __init__(self, data_dir: Path, viewer_max_points: int = 2_000_000,
+                 viewer_preview_points: int = 150_000) -> None:
         self.data_dir = Path(data_dir)
         self.viewer_max_points = viewer_max_points
+        self.viewer_preview_points = viewer_preview_points
 
 
 def test_authorize(conn) -> bool:  # noqa: ANN001 - Request or WebSocket
@@ -42,14 +44,15 @@ def test_authorize(conn) -> bool:  # noqa: ANN001 - Request or WebSocket
 test_authorize.__test__ = False  # not a pytest test
 
 
-def make_app(data_dir: Path, **kw) -> FastAPI:
+def make_app(data_dir: Path, *, preview_points: int = 150_000, **kw) -> FastAPI:
     app = FastAPI()
 
     @app.get("/api/ping")
     def ping(request: Request) -> dict:
         return {"ok": True}
 
-    viewer.mount(app, settings=FakeSettings(data_dir), authorize=test_authorize, **kw)
+    viewer.mount(app, settings=FakeSettings(data_dir, viewer_preview_points=preview_points),
+                 authorize=test_authorize, **kw)
     return app
 
 

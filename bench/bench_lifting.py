@@ -275,9 +275,11 @@ def main() -> None:
     params = lift_params(args)
     out["params"] = params.__dict__
     t = time.perf_counter()
+    c0 = time.process_time()
     fast = fill_and_denoise(np.asarray(scene.xyz), direct, scene.taxonomy, params=params,
                             vote_margin=margin)
     t_fast = time.perf_counter() - t
+    cpu_fast = time.process_time() - c0
     rss_fast = rss_mb()
     ev_fast = evaluate_points(fast.labels, truth, scene.taxonomy, fast.origin)
 
@@ -287,9 +289,11 @@ def main() -> None:
     q = None if args.full_baseline else np.sort(rng.choice(n, size=min(args.sample, n),
                                                            replace=False))
     t = time.perf_counter()
+    c0 = time.process_time()
     base = fill_and_denoise_exact(np.asarray(scene.xyz), direct, scene.taxonomy,
                                   params=params, vote_margin=margin, query_index=q)
     t_base_run = time.perf_counter() - t
+    cpu_base_run = time.process_time() - c0
     if q is None:
         t_base = t_base_run
         cmp_idx = np.arange(n)
@@ -306,6 +310,10 @@ def main() -> None:
     same = float((fast.labels[cmp_idx] == base.labels[cmp_idx]).mean())
     out["fill_denoise"] = {
         "fast_seconds": round(t_fast, 2),
+        "fast_cpu_seconds": round(cpu_fast, 2),
+        "baseline_run_seconds": round(t_base_run, 2),
+        "baseline_run_cpu_seconds": round(cpu_base_run, 2),
+        "load_average": list(__import__("os").getloadavg()),
         "fast_stats": {k: v for k, v in fast.stats.items()},
         "baseline_seconds": round(t_base, 2),
         "baseline_extrapolated": q is not None,

@@ -860,7 +860,18 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                                   progress=lambda f, m: report(0.5 + 0.4 * f, m),
                                   keep_share=p.denoise_keep_share, only=need)
         final[rest], agree[rest] = c[rest], s[rest]
-        # points whose k-th neighbour could lie outside their 3x3x3 block: cKDTree
+        # points whose k-th neighbour could lie outside their 3x3x3 block (sparse areas):
+        # the same brute force on a coarser grid, then a cKDTree for what is still unsafe
+        stats["coarse_denoise_points"] = int(unsafe.sum())
+        if unsafe.any():
+            coarse = _VoxelGrid(xyz, min(2.5 * edge, max(p.denoise_radius, edge)), pad=2)
+            todo2 = np.unique(coarse.inverse[unsafe])
+            c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
+                                         p.denoise_radius, cls, keep_share=p.denoise_keep_share,
+                                         only=unsafe)
+            sel2 = np.flatnonzero(unsafe)
+            final[sel2], agree[sel2] = c2[sel2], s2[sel2]
+            unsafe = unsafe2
         tree_q = np.flatnonzero(unsafe)
         stats["tree_denoise_points"] = int(len(tree_q))
         if len(tree_q):

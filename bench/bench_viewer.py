@@ -70,13 +70,16 @@ def open_in_browser(browser, srv: LiveServer, svc: ViewerService, *, quiet_s: fl
         raise RuntimeError("viewer did not load the scene")
     t_sent = time.perf_counter() - t0
     stats = svc.proxy_stats[n_before]
-    need = 15 * st.sent_points  # float32 xyz + uint8 rgb per point
+    preview = svc.preview_points if st.sent_points > 4 * svc.preview_points else 0
+    need = 15 * (st.sent_points + preview)  # float32 xyz + uint8 rgb per point
     while (stats["bytes"] < need or stats["last"] is None
            or time.perf_counter() - stats["last"] < quiet_s):
         if time.perf_counter() - t0 > timeout_s:
             raise RuntimeError(f"only {stats['bytes']} of >= {need} bytes arrived")
         page.wait_for_timeout(50)
     first_cloud = stats["last"] - t0
+    first_preview = next((t - t0 for t, b in stats["log"] if b >= 15 * preview), None) \
+        if preview else None
     first_picture = None
     while time.perf_counter() - t0 < timeout_s:
         # page screenshot (no element-stability wait: software WebGL frames are slow)
@@ -86,6 +89,8 @@ def open_in_browser(browser, srv: LiveServer, svc: ViewerService, *, quiet_s: fl
         page.wait_for_timeout(200)
     out = {
         "first_cloud_s": round(first_cloud, 3),
+        "preview_points": preview,
+        "first_preview_s": None if first_preview is None else round(first_preview, 3),
         "server_sent_s": round(t_sent, 3),
         "first_picture_s": None if first_picture is None else round(first_picture, 3),
         "ws_bytes": int(stats["bytes"]),
@@ -117,7 +122,7 @@ def main() -> None:
             direct = ViewerService(scenes=default_scenes(root), max_points=args.points,
                                    require_ticket=False)
             direct.start()
-            need = 15 * args.points  # float32 xyz + uint8 rgb per point
+            need = 15 * args.points  # float32 xyz + uint8 rgb per point (plus a preview)
             base = asyncio.run(fake_client(f"ws://127.0.0.1:{direct.port}/", {},
                                            min_bytes=need, max_s=300))
             direct.stop()

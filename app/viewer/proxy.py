@@ -18,6 +18,7 @@ import asyncio
 import inspect
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -114,7 +115,8 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
             user = getattr(websocket.state, "user", None)
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
         ticket = service.issue_ticket(user, scene_id)
-        stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None}
+        stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
+                 "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)
         await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket, stats)
 
@@ -166,6 +168,8 @@ async def pump(websocket: WebSocket, upstream_url: str, ticket: str,
             stats["bytes"] += len(m)
             stats["frames"] += 1
             stats["last"] = time.perf_counter()
+            if "log" in stats:
+                stats["log"].append((stats["last"], stats["bytes"]))
 
     tasks = [asyncio.create_task(browser_to_viser()), asyncio.create_task(viser_to_browser())]
     try:

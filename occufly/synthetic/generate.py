@@ -126,7 +126,12 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
         # ---- fuse the dense cloud --------------------------------------------------------
         t0 = time.perf_counter()
-        samples = Samples(*(np.concatenate(chunks[k]) for k in ("xyz", "rgb", "cls", "normal", "frame")))
+        fields = {}
+        for k in ("xyz", "rgb", "cls", "normal", "frame"):  # one field at a time: lower peak memory
+            fields[k] = np.concatenate(chunks[k])
+            chunks[k] = []
+        samples = Samples(**fields)
+        del fields
         n_samples = len(samples.xyz)
         del chunks
         cloud, contrib = fuse(samples, P.fuse_voxel, F, priority, min_views=P.min_views)

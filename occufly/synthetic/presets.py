@@ -59,7 +59,7 @@ PRESETS: dict[str, Preset] = {
     ),
     "bench": Preset(
         name="bench", core=115.0, margin=50.0, width=600, height=400,
-        forward_overlap=0.80, side_overlap=0.75, pixel_stride=2, fuse_voxel=0.15,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=2, fuse_voxel=0.14,
         image_ext=".jpg", sparse_points=5000, vis_depth_check=False,
     ),
 }

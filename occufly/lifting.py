@@ -862,9 +862,14 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         final[rest], agree[rest] = c[rest], s[rest]
         # points whose k-th neighbour could lie outside their 3x3x3 block (sparse areas):
         # the same brute force on a coarser grid, then a cKDTree for what is still unsafe
+        # (edge 2.5 v, then the denoise radius itself, where every point is safe)
         stats["coarse_denoise_points"] = int(unsafe.sum())
-        if unsafe.any():
-            coarse = _VoxelGrid(xyz, min(2.5 * edge, max(p.denoise_radius, edge)), pad=2)
+        for level, coarse_edge in enumerate((2.5 * edge, p.denoise_radius)):
+            if not unsafe.any() or coarse_edge <= edge:
+                continue
+            if level == 0 and coarse_edge >= p.denoise_radius:
+                continue
+            coarse = _VoxelGrid(xyz, coarse_edge, pad=2)
             todo2 = np.unique(coarse.inverse[unsafe])
             c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
                                          p.denoise_radius, cls, keep_share=p.denoise_keep_share,
@@ -872,6 +877,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
             sel2 = np.flatnonzero(unsafe)
             final[sel2], agree[sel2] = c2[sel2], s2[sel2]
             unsafe = unsafe2
+            stats[f"coarse{level + 2}_unsafe_points"] = int(unsafe.sum())
         tree_q = np.flatnonzero(unsafe)
         stats["tree_denoise_points"] = int(len(tree_q))
         if len(tree_q):

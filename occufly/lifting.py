@@ -698,24 +698,27 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         if not len(q):
             continue
         cand = np.concatenate([order[starts[j]:ends[j]] for j in nb[t] if j >= 0])
+        # candidates grouped by class, so per-class neighbour counts are segment sums
+        ccol = cols[cand]
+        by = np.argsort(ccol, kind="stable")
+        cand, ccol = cand[by], ccol[by]
+        seg = np.flatnonzero(np.r_[True, ccol[1:] != ccol[:-1]])
         centre = xyz[q[0]]
         P = (xyz[q] - centre).astype(np.float32)
         Q = (xyz[cand] - centre).astype(np.float32)
         d2 = (P * P).sum(1)[:, None] + (Q * Q).sum(1)[None, :] - 2.0 * (P @ Q.T)
         kk = min(k, len(cand))
         if kk < len(cand):
-            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-            dsel = np.take_along_axis(d2, part, axis=1)
+            kth = np.partition(d2, kk - 1, axis=1)[:, kk - 1]
         else:
-            part = np.broadcast_to(np.arange(len(cand)), d2.shape)
-            dsel = d2
-        within = dsel <= r2
-        ccols = cols[cand][part]
-        rows = np.broadcast_to(np.arange(len(q))[:, None], part.shape)
-        votes = np.bincount((rows * C + ccols)[within], minlength=len(q) * C).reshape(len(q), C)
+            kth = d2.max(axis=1)
+        # the k nearest (one more on an exact distance tie), within the radius
+        within = (d2 <= np.minimum(kth, r2)[:, None]).view(np.uint8)
+        votes = np.zeros((len(q), C), dtype=np.int64)
+        votes[:, ccol[seg]] = np.add.reduceat(within, seg, axis=1, dtype=np.int64)
         c, s = _keep_own(cls, votes, cols[q], keep_share)
         out_c[q], out_s[q] = c, s
-        dsel_max = dsel.max(axis=1)
+        dsel_max = kth
         # safe if the k-th neighbour (or the radius) is within the block around the point
         lo = (np.floor((xyz[q] - grid.mn) / e) - 1 + 1) * e + grid.mn  # own voxel's low corner
         frac = np.minimum(xyz[q] - lo, lo + e - xyz[q]).min(axis=1)

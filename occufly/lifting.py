@@ -136,6 +136,14 @@ class _Classes:
         self.perm = np.argsort(prio, kind="stable")  # columns, most preferred first
         self.perm_ids = self.ids[self.perm]
 
+    def winner(self, counts: np.ndarray) -> np.ndarray:
+        """counts: (n, C) -> winner column (n,) int64 (tie order), -1 where all counts are 0."""
+        c = np.asarray(counts)[:, self.perm]
+        arg = np.argmax(c, axis=1)
+        col = self.perm[arg].astype(np.int64)
+        col[np.take_along_axis(c, arg[:, None], axis=1)[:, 0] <= 0] = -1
+        return col
+
     def majority(self, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """counts: (n, C) -> (winner column (n,) int64, top (n,), second (n,)) in count units.
 
@@ -290,8 +298,7 @@ class LiftState:
 
     def labels_of_points(self, point_ids: np.ndarray) -> np.ndarray:
         """(m,) uint8 direct labels of the given points (cost ~ m)."""
-        col, _, _ = self._cls.majority(self.votes[np.asarray(point_ids, dtype=np.int64)])
-        return self._cls.labels_of(col)
+        return self._cls.labels_of(self._cls.winner(self.votes[np.asarray(point_ids, np.int64)]))
 
     # -- updates
     def _check_frame(self, frame_index: int, name: str) -> int:
@@ -345,7 +352,10 @@ class LiftState:
 
     def _apply(self, old: tuple[np.ndarray, np.ndarray], new: tuple[np.ndarray, np.ndarray]) -> dict:
         C = self._cls.C
-        touched = np.unique(np.concatenate([old[0], new[0]]).astype(np.int64))
+        mark = np.zeros(self.scene.n_points, dtype=bool)  # O(N) bytes, no sort
+        mark[old[0]] = True
+        mark[new[0]] = True
+        touched = np.flatnonzero(mark)
         before = self.labels_of_points(touched)
         flat = self.votes.reshape(-1)
         if len(old[0]):

@@ -440,10 +440,12 @@ def _npz_bytes(**arrays: np.ndarray) -> bytes:
 
 def save_result(ws: str | Path, result: LiftResult) -> None:
     d = Path(ws) / LIFT_DIR
-    atomic_save_npy(d / "labels.npy", result.labels.astype(np.uint8))
+    # labels.npy is what readers test for: write it last so a reader that finds it finds
+    # the companion arrays too (the first fill used to expose labels without confidence)
     atomic_save_npy(d / "confidence.npy", result.confidence.astype(np.float32))
     atomic_save_npy(d / "origin.npy", result.origin.astype(np.uint8))
     atomic_write_text(d / "labels.json", json.dumps(result.stats, indent=1, default=_jsonable))
+    atomic_save_npy(d / "labels.npy", result.labels.astype(np.uint8))
 
 
 def _jsonable(o):

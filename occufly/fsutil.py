@@ -25,21 +25,42 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the whole new one."""
+def write_tmp(path: Path, data: bytes | None = None, *, writer=None) -> Path:
+    """Write a hidden, fsynced temporary sibling of ``path`` and return its name.
+
+    Either ``data`` is written, or ``writer(file)`` is called to stream into the file.
+    The caller renames it into place (``os.replace``) or removes it.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            if writer is not None:
+                writer(f)
+            else:
+                f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return Path(tmp)
+
+
+def _replace_into(tmp: Path, path: Path) -> None:
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     fsync_dir(path.parent)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the whole new one."""
+    path = Path(path)
+    _replace_into(write_tmp(path, data), path)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -49,17 +70,8 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 def atomic_save_npy(path: str | Path, array: np.ndarray) -> None:
     """np.save to ``path`` atomically (streams large arrays without an extra copy)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, np.asarray(array), allow_pickle=False)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    arr = np.asarray(array)
+    _replace_into(write_tmp(path, writer=lambda f: np.save(f, arr, allow_pickle=False)), path)
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

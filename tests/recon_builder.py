@@ -63,7 +63,6 @@ def make_reconstruction(
         centre = -R.T @ t
         d_world = rays @ R  # camera -> world directions (scaled so camera z = 1)
         t_ground = (offset[2] - centre[2]) / d_world[:, 2]
-        hit = centre + t_ground[:, None] * d_world
         t_roof = (offset[2] + 6.0 - centre[2]) / d_world[:, 2]
         hit_r = centre + t_roof[:, None] * d_world
         on_roof = (np.abs(hit_r[:, 0] - offset[0]) < 5.2) & (np.abs(hit_r[:, 1] - offset[1]) < 5.2)
@@ -99,7 +98,7 @@ def make_reconstruction(
 
 def _write_text_model(sparse: Path, cam: Camera, names, poses, pts) -> None:
     (sparse / "cameras.txt").write_text(
-        "# Camera list\n1 PINHOLE %d %d %s\n" % (cam.width, cam.height, _fmt(cam.params))
+        f"# Camera list\n1 PINHOLE {cam.width} {cam.height} {_fmt(cam.params)}\n"
     )
     lines = ["# Image list"]
     tracks: dict[int, list[tuple[int, int]]] = {}

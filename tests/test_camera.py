@@ -2,8 +2,15 @@ import numpy as np
 import pytest
 
 from occufly.camera import (
-    CAMERA_MODELS, Camera, camera_center, frustum_corners, look_at, project_world,
-    quaternion_to_rotation, rotation_to_quaternion, viewing_direction,
+    CAMERA_MODELS,
+    Camera,
+    camera_center,
+    frustum_corners,
+    look_at,
+    project_world,
+    quaternion_to_rotation,
+    rotation_to_quaternion,
+    viewing_direction,
 )
 from occufly.errors import InputFormatError
 

@@ -13,7 +13,6 @@ import errno
 import hashlib
 import json
 import os
-import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import WorkspaceError
-from occufly.fsutil import fsync_dir
+from occufly.fsutil import fsync_dir, write_tmp
 from occufly.grid import SceneGrid
 
 EXPORT_FORMAT_VERSION = 1
@@ -138,21 +137,6 @@ DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 def is_disk_full(e: BaseException) -> bool:
     return isinstance(e, OSError) and e.errno in DISK_FULL
-
-
-def write_tmp(path: Path, data: bytes) -> Path:
-    """Write ``data`` to a hidden temporary sibling of ``path`` (fsynced); return its name."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return Path(tmp)
 
 
 def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict) -> int:

@@ -151,8 +151,10 @@ def live(tmp_path_factory):
     thread.join(timeout=15)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def browser():
+    # package scope: the sync API keeps an event loop running in this thread while it is
+    # open, which would break later asyncio.run() users (the viewer tests) in the same run
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:

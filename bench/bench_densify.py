@@ -17,25 +17,14 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-
-def _ensure_scene(root: Path, preset: str) -> tuple[Path, Path]:
-    out = root / f"synth_{preset}"
-    ws = root / f"ws_{preset}"
-    py = sys.executable
-    if not (out / "truth" / "scene_grid.npz").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(out), "--preset", preset, "--force"],
-                       check=True, stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(out), "--workspace", str(ws), "--force"],
-                       check=True, stdout=subprocess.DEVNULL)
-    return out, ws
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _scene import ensure_scene  # noqa: E402
 
 
 def _peak_rss_gb() -> float:
@@ -201,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.synth and args.workspace:
         out, ws = Path(args.synth), Path(args.workspace)
     else:
-        out, ws = _ensure_scene(root, args.preset)
+        out, ws = ensure_scene(root, args.preset)
     t_prepare = time.perf_counter() - t
 
     from occufly.densify.evaluate import evaluate_grids

@@ -32,7 +32,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sampling import ensure_scene  # noqa: E402
+from _scene import ensure_scene  # noqa: E402
 
 
 def warm_import(name: str) -> bool:

@@ -25,25 +25,14 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-
-def ensure_scene(root: Path, preset: str) -> tuple[Path, Path]:
-    out = root / f"synth_{preset}"
-    ws = root / f"ws_{preset}"
-    py = sys.executable
-    if not (out / "truth" / "scene_grid.npz").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(out), "--preset", preset, "--force"],
-                       check=True, stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(out), "--workspace", str(ws), "--force"],
-                       check=True, stdout=subprocess.DEVNULL)
-    return out, ws
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _scene import ensure_scene  # noqa: E402
 
 
 def box_mesh(ijk: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray]:

@@ -204,6 +204,17 @@ def region_rects(camera: Camera, spec: GridSpec) -> list[tuple[int, int, int, in
     return out
 
 
+def _border_normalised(camera: Camera, n: int = 65) -> np.ndarray:
+    """(4n, 2) float64 undistorted normalised coords (x/z, y/z) of n samples per image edge."""
+    W, H = camera.width, camera.height
+    t = np.linspace(0, 1, n)
+    border = np.concatenate([
+        np.column_stack([t * W, np.zeros_like(t)]), np.column_stack([t * W, np.full_like(t, H)]),
+        np.column_stack([np.zeros_like(t), t * H]), np.column_stack([np.full_like(t, W), t * H]),
+    ])
+    return camera.unproject(border, 1.0)[:, :2]
+
+
 def normalized_bounds(camera: Camera) -> tuple[float, float, float, float]:
     """(a_lo, a_hi, b_lo, b_hi): bounds of the image in undistorted normalised coordinates
     (a = x/z, b = y/z). Exact for pinhole cameras; for distorted ones the extremes of the
@@ -213,13 +224,7 @@ def normalized_bounds(camera: Camera) -> tuple[float, float, float, float]:
         fx, fy = camera.focal
         px, py = camera.principal_point
         return -px / fx, (camera.width - px) / fx, -py / fy, (camera.height - py) / fy
-    W, H = camera.width, camera.height
-    t = np.linspace(0, 1, 65)
-    border = np.concatenate([
-        np.column_stack([t * W, np.zeros_like(t)]), np.column_stack([t * W, np.full_like(t, H)]),
-        np.column_stack([np.zeros_like(t), t * H]), np.column_stack([np.full_like(t, W), t * H]),
-    ])
-    ab = camera.unproject(border, 1.0)[:, :2]
+    ab = _border_normalised(camera)
     lo, hi = ab.min(axis=0) - 1e-4, ab.max(axis=0) + 1e-4
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
@@ -312,13 +317,7 @@ class Raster:
 
     @classmethod
     def for_camera(cls, camera: Camera, spec: GridSpec) -> Raster:
-        W, H = camera.width, camera.height
-        t = np.linspace(0, 1, 65)
-        border = np.concatenate([
-            np.column_stack([t * W, np.zeros_like(t)]), np.column_stack([t * W, np.full_like(t, H)]),
-            np.column_stack([np.zeros_like(t), t * H]), np.column_stack([np.full_like(t, W), t * H]),
-        ])
-        ab = camera.unproject(border, 1.0)[:, :2]
+        ab = _border_normalised(camera)
         lo, hi = ab.min(axis=0), ab.max(axis=0)
         step = spec.voxel_size / (spec.oversample * spec.far_m)
         step = max(step, float((hi - lo).max()) / spec.max_raster)

@@ -267,7 +267,7 @@ def main() -> None:
         "target_seconds": 1.0,
     }
 
-    direct, margin = st._direct()
+    direct, margin, top = st._direct()
     out["directly_labelled"] = float((direct > 0).mean())
     rss0 = rss_mb()
 
@@ -277,7 +277,7 @@ def main() -> None:
     t = time.perf_counter()
     c0 = time.process_time()
     fast = fill_and_denoise(np.asarray(scene.xyz), direct, scene.taxonomy, params=params,
-                            vote_margin=margin)
+                            vote_margin=margin, vote_top=top)
     t_fast = time.perf_counter() - t
     cpu_fast = time.process_time() - c0
     rss_fast = rss_mb()
@@ -291,7 +291,7 @@ def main() -> None:
     t = time.perf_counter()
     c0 = time.process_time()
     base = fill_and_denoise_exact(np.asarray(scene.xyz), direct, scene.taxonomy,
-                                  params=params, vote_margin=margin, query_index=q)
+                                  params=params, vote_margin=margin, vote_top=top, query_index=q)
     t_base_run = time.perf_counter() - t
     cpu_base_run = time.process_time() - c0
     if q is None:

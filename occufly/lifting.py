@@ -92,6 +92,11 @@ class LiftParams:
     # otherwise it takes the dominant class. None = the paper's rule (always the dominant
     # class), which on the synthetic scenes erases small objects (see the module docstring).
     denoise_keep_share: float | None = 0.25
+    # A directly labelled point whose winning class has >= confirm_views votes and a vote
+    # margin >= confirm_margin keeps it through the denoise (None = off): agreement of several
+    # annotated views is stronger evidence than the spatial neighbourhood (see module docstring).
+    confirm_views: int | None = 2
+    confirm_margin: float = 0.5
     workers: int = 1  # cKDTree query workers
 
 
@@ -281,20 +286,23 @@ class LiftState:
         """(N,) uint8 raw ids of the vote majority, 0 where a point has no votes."""
         return self._direct()[0]
 
-    def _direct(self) -> tuple[np.ndarray, np.ndarray]:
-        """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes)."""
+    def _direct(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes,
+        top (N,) uint16 = votes of the winning class)."""
         n = self.scene.n_points
         labels = np.zeros(n, dtype=np.uint8)
         margin = np.zeros(n, dtype=np.float32)
+        top_votes = np.zeros(n, dtype=np.uint16)
         for a in range(0, n, _CHUNK_ROWS):
             b = min(n, a + _CHUNK_ROWS)
             c = np.asarray(self.votes[a:b])
             col, top, second = self._cls.majority(c)
             labels[a:b] = self._cls.labels_of(col)
+            top_votes[a:b] = top
             total = c.sum(axis=1, dtype=np.int64)
             with np.errstate(divide="ignore", invalid="ignore"):
                 margin[a:b] = np.where(total > 0, (top.astype(np.float64) - second) / total, 0.0)
-        return labels, margin
+        return labels, margin, top_votes
 
     def labels_of_points(self, point_ids: np.ndarray) -> np.ndarray:
         """(m,) uint8 direct labels of the given points (cost ~ m)."""
@@ -416,10 +424,10 @@ class LiftState:
         """kNN fill + denoise of the current votes; writes labels/confidence/origin .npy files."""
         report = progress or noop
         report(0.0, "majority vote")
-        direct, margin = self._direct()
+        direct, margin, top = self._direct()
         result = fill_and_denoise(
             np.asarray(self.scene.xyz), direct, self.scene.taxonomy, params=params,
-            vote_margin=margin,
+            vote_margin=margin, vote_top=top,
             progress=lambda f, m: report(0.05 + 0.9 * f, m),
         )
         result.stats["annotated_frames"] = len(self._versions)
@@ -547,8 +555,25 @@ def _keep_own(cls: _Classes, scores: np.ndarray, own: np.ndarray | None,
     return col, share
 
 
+def _confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
+               p: LiftParams) -> np.ndarray | None:
+    """(N,) bool: direct labels confirmed by several views (kept through the denoise), or None."""
+    if p.confirm_views is None or vote_margin is None or vote_top is None:
+        return None
+    return (direct > 0) & (np.asarray(vote_top) >= p.confirm_views) & (
+        np.asarray(vote_margin) >= p.confirm_margin)
+
+
 def _finish(cls: _Classes, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
-            agree: np.ndarray, vote_margin: np.ndarray | None) -> LiftResult:
+            agree: np.ndarray, vote_margin: np.ndarray | None, confirmed: np.ndarray | None = None
+            ) -> LiftResult:
+    if confirmed is not None and confirmed.any():
+        # confirmed points the denoise relabelled get their direct class back; their
+        # neighbourhood share is unknown for that class, so their confidence is the vote margin
+        reverted = confirmed & (final_cols != cls.col_of[direct])
+        final_cols = final_cols.copy()
+        final_cols[reverted] = cls.col_of[direct[reverted]]
+        agree = np.where(reverted, np.asarray(vote_margin, np.float32), agree)
     labels = cls.labels_of(final_cols)
     filled = cls.labels_of(filled_cols)
     origin = np.zeros(len(labels), dtype=np.uint8)
@@ -566,6 +591,7 @@ def _finish(cls: _Classes, direct: np.ndarray, filled_cols: np.ndarray, final_co
 
 def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                            params: LiftParams | None = None, vote_margin: np.ndarray | None = None,
+                           vote_top: np.ndarray | None = None,
                            query_index: np.ndarray | None = None,
                            progress: ProgressFn | None = None) -> LiftResult:
     """Baseline: plain cKDTree k=100 IDW fill then k=200 majority denoise over all points.
@@ -611,7 +637,8 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
                          keep_share=p.denoise_keep_share)
         final[q], agree[q] = c, s
     t2 = time.perf_counter()
-    res = _finish(cls, direct, filled, final, agree, vote_margin)
+    res = _finish(cls, direct, filled, final, agree, vote_margin,
+                  _confirmed(direct, vote_margin, vote_top, p))
     res.stats = {"method": "exact", "fill_seconds": t1 - t0, "denoise_seconds": t2 - t1,
                  "denoise_build_seconds": t_build, "denoise_points": int(len(lab2)),
                  "unlabelled_before_fill": int(len(un_idx))}
@@ -768,6 +795,7 @@ def typical_knn_radius(xyz: np.ndarray, k: int, *, quantile: float = 0.75, sampl
 
 def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                      params: LiftParams | None = None, vote_margin: np.ndarray | None = None,
+                     vote_top: np.ndarray | None = None,
                      progress: ProgressFn | None = None) -> LiftResult:
     """kNN fill (k=100, IDW, bounded radius) then kNN denoise (k=200) of per-point labels.
 
@@ -781,6 +809,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     p = params or LiftParams()
     if p.method == "exact":
         return fill_and_denoise_exact(xyz, direct, taxonomy, params=p, vote_margin=vote_margin,
+                                      vote_top=vote_top,
                                       progress=progress)
     if p.method != "voxel":
         raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
@@ -907,7 +936,8 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                                keep_share=p.denoise_keep_share)
             final[tree_q], agree[tree_q] = c2, s2
     stats["denoise_seconds"] = time.perf_counter() - t_den
-    res = _finish(cls, direct, filled, final, agree, vote_margin)
+    res = _finish(cls, direct, filled, final, agree, vote_margin,
+                  _confirmed(direct, vote_margin, vote_top, p))
     stats["seconds"] = time.perf_counter() - t0
     res.stats = stats
     report(1.0, "done")

@@ -261,11 +261,11 @@ class LiftingManager:
             w.fills += 1
             return
         with w.state_lock:
-            direct, margin = snapshot()
+            direct, margin, top = snapshot()
             versions = {str(k): v for k, v in state.included_versions().items()}
         scene = state.scene
         result = fill_and_denoise(np.asarray(scene.xyz), direct, scene.taxonomy,
-                                  vote_margin=margin)
+                                  vote_margin=margin, vote_top=top)
         result.stats["annotated_frames"] = len(versions)
         result.stats["versions"] = versions
         save_result(state.ws, result)

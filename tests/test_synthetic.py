@@ -19,6 +19,7 @@ from occufly.synthetic import PRESETS, generate
 from occufly.synthetic.flight import make_camera, plan_flight
 from occufly.synthetic.primitives import Box
 from occufly.synthetic.render import Renderer
+from occufly.synthetic.truth import column_terrain_range, survey_views
 from occufly.synthetic.world import BUILDING, ROOF, WATER, build_world
 from occufly.taxonomy import default_taxonomy
 
@@ -273,27 +274,63 @@ def test_scene_grid_building_is_solid_with_expected_count(synth):
     lo, hi = world.bounds
     g_lo, g_hi = grid.bounds
     assert np.all(g_lo <= lo + offset) and np.all(g_hi >= hi + offset)
+    vs = grid.voxel_size
+    local_origin = grid.origin - offset
+    z_lo, _ = column_terrain_range(world, local_origin, np.array(grid.shape), vs)
+    k_lo = np.floor((z_lo - local_origin[2]) / vs).astype(int)  # first voxel the terrain touches
     boxes = [p for p in world.prims if p.cls == BUILDING and isinstance(p, Box) and p.yaw == 0.0]
     assert boxes
+    n_buried = 0
     for b in boxes:
         lo_w = b.center - b.size / 2 + offset
         hi_w = b.center + b.size / 2 + offset
-        centres = [grid.origin[k] + (np.arange(grid.shape[k]) + 0.5) * grid.voxel_size for k in range(3)]
+        centres = [grid.origin[k] + (np.arange(grid.shape[k]) + 0.5) * vs for k in range(3)]
         ins = [np.flatnonzero((centres[k] >= lo_w[k]) & (centres[k] <= hi_w[k])) for k in range(3)]
-        n_inside = np.prod([len(i) for i in ins])
         block = grid.labels[np.ix_(*ins)]
-        assert np.all(block == BUILDING), "every voxel centre inside the box is building"
+        buried = ins[2][None, None, :] < k_lo[np.ix_(ins[0], ins[1])][:, :, None]
+        # the box is sunk into the terrain: its buried part is empty like the soil around it
+        assert buried.any()
+        n_buried += int(buried.sum())
+        assert np.all(block[buried] == 0), "voxels wholly below the terrain are empty"
+        assert np.all(block[~buried] == BUILDING), "every voxel centre inside the box above ground is building"
+        n_inside = int((~buried).sum())
         # around it: at most one extra layer of boundary voxels (the wall surfaces)
         s = [slice(max(i[0] - 1, 0), i[-1] + 2) for i in ins]
         n_bld = int(np.sum(grid.labels[s[0], s[1], s[2]] == BUILDING))
         nx, ny, nz = (len(i) for i in ins)
-        boundary = (nx + 2) * (ny + 2) * (nz + 2) - n_inside
+        boundary = (nx + 2) * (ny + 2) * (nz + 2) - nx * ny * nz
         assert n_inside <= n_bld <= n_inside + boundary
+    assert n_buried > 0
     # the flat roof slab sits on top of its building
     for p in world.prims:
         if p.cls == ROOF and isinstance(p, Box):
             top = grid.lookup((p.center + offset)[None])
             assert top[0] == ROOF
+
+
+def test_scene_grid_marks_columns_outside_the_survey_invalid(synth):
+    """Columns whose terrain point fewer than min_views images see are 255, all others not."""
+    grid = SceneGrid.load(synth["out"] / "truth" / "scene_grid.npz")
+    world, offset, meta = synth["world"], synth["offset"], synth["meta"]
+    P = PRESETS["tiny"]
+    camera = make_camera(P)
+    frames = plan_flight(P, world, camera)
+    views = survey_views(world, grid.origin - offset, np.array(grid.shape), grid.voxel_size, camera,
+                         [f.T_cam_world for f in frames])
+    invalid = grid.labels == 255
+    col_invalid = invalid.all(axis=2)
+    assert np.array_equal(invalid.any(axis=2), col_invalid), "invalid is a whole-column property"
+    assert np.array_equal(col_invalid, views < P.min_views)
+    assert 0 < col_invalid.sum() < 0.5 * col_invalid.size  # the corners, never most of the world
+    assert meta["truth_grid"]["invalid_columns"] == int(col_invalid.sum())
+    # brute-force check of a few columns against an independent projection of the terrain point
+    rng = np.random.default_rng(1)
+    for i, j in zip(rng.integers(0, grid.shape[0], 40), rng.integers(0, grid.shape[1], 40), strict=True):
+        x = grid.origin[0] - offset[0] + (i + 0.5) * grid.voxel_size
+        y = grid.origin[1] - offset[1] + (j + 0.5) * grid.voxel_size
+        p = np.array([[x, y, float(world.ground_z(np.array([x]), np.array([y]))[0])]])
+        n = sum(bool(project_world(camera, f.T_cam_world, p)[2][0]) for f in frames)
+        assert (n < P.min_views) == col_invalid[i, j]
 
 
 # ---- determinism ------------------------------------------------------------------------------

@@ -202,7 +202,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
         # ---- truth grid ---------------------------------------------------------------------
         t0 = time.perf_counter()
-        grid = truth_grid(world, tax, P.grid_voxel, seed)
+        grid = truth_grid(world, tax, P.grid_voxel, seed, camera=camera,
+                          poses=[fr.T_cam_world for fr in frames], min_views=P.min_views)
         grid.save(tmp / "truth" / "scene_grid.npz")
         timings["truth_grid"] = time.perf_counter() - t0
 
@@ -210,7 +211,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             "world": world.classes_present(),
             "masks": [int(i) for i in np.flatnonzero(mask_classes) if i != 0],
             "points": [int(i) for i in np.flatnonzero(np.bincount(cloud.label, minlength=256))],
-            "grid": [int(i) for i in np.flatnonzero(np.bincount(grid.labels.ravel(), minlength=256)) if i != 0],
+            "grid": [int(i) for i in np.flatnonzero(np.bincount(grid.labels.ravel(), minlength=256)) if i not in (0, 255)],
         }
         summary = {
             "out": str(out),
@@ -244,6 +245,12 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
                        "visibility": "contributing images" + (
                            f" + depth agreement (relative tolerance {P.vis_tolerance})" if P.vis_depth_check else "")},
             "grid_voxel": P.grid_voxel,
+            "truth_grid": {
+                "above_terrain_only": True,
+                "invalid_255": f"columns whose terrain point is inside fewer than {P.min_views} images",
+                "invalid_columns": int((grid.labels[:, :, 0] == 255).sum()),
+                "columns": int(grid.shape[0] * grid.shape[1]),
+            },
             "frames_detail": [
                 {"name": fr.name, "image_id": i + 1, "nominal_altitude": fr.nominal_altitude,
                  "altitude_above_ground": round(fr.altitude_above_ground, 3), "pitch_deg": fr.pitch_deg,

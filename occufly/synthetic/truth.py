@@ -6,7 +6,15 @@
 - other classes: **surface** -- voxels the mesh surface passes through (dense area-weighted
   samples, <= 0.1 m apart), majority class per voxel;
 - ground classes: the terrain surface sampled on a regular 0.1 m lattice, majority per voxel;
-- precedence instance > other > ground; 0 is empty.
+- precedence instance > other > ground; 0 is empty;
+- the grid holds the world *above the terrain*: the ground is a surface one voxel thick, so
+  object voxels that lie wholly below the terrain surface (the 0.5 m a building box is sunk
+  into the slope, the buried foot of a trunk, a post or a tower leg) are empty like the soil
+  around them; no camera and no LiDAR can observe them;
+- columns outside the survey are 255 (invalid, ignored by every metric): a column is surveyed
+  when its terrain point lies inside the image of at least ``min_views`` frames of the flight
+  (the number of views the dense reconstruction needs for a point at all). Occlusion is not
+  considered: a column under a roof or a canopy is surveyed, its hidden parts count.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ import numpy as np
 from occufly.grid import SceneGrid
 from occufly.synthetic.fuse import unique_inverse, unique_sorted
 from occufly.synthetic.world import World
-from occufly.taxonomy import Taxonomy
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
 SURFACE_SPACING = 0.1  # metres between surface samples (terrain lattice)
 SURFACE_DENSITY = 200.0  # random surface samples per square metre on object meshes
@@ -78,8 +86,51 @@ def _vote(world_grid: tuple[np.ndarray, np.ndarray, float], chunks, priority: np
     return out.reshape(dims)
 
 
-def truth_grid(world: World, taxonomy: Taxonomy, voxel: float, seed: int) -> SceneGrid:
-    """The exact scene grid, origin in WORLD (georeferenced) coordinates."""
+def column_terrain_range(world: World, origin: np.ndarray, dims: np.ndarray, voxel: float,
+                         sub: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) float64 lowest and highest terrain height over each voxel column's footprint.
+
+    The terrain is piecewise linear on a lattice the voxel edges divide, so the extremes lie
+    on the footprint's corners and edges: ``sub`` x ``sub`` samples including the corners.
+    """
+    cx = origin[0] + np.arange(dims[0]) * voxel
+    cy = origin[1] + np.arange(dims[1]) * voxel
+    X, Y = np.meshgrid(cx, cy, indexing="ij")
+    lo = np.full(X.shape, np.inf)
+    hi = np.full(X.shape, -np.inf)
+    for dx in np.linspace(0.0, voxel, sub):
+        for dy in np.linspace(0.0, voxel, sub):
+            z = world.ground_z((X + dx).ravel(), (Y + dy).ravel()).reshape(X.shape)
+            lo = np.minimum(lo, z)
+            hi = np.maximum(hi, z)
+    return lo, hi
+
+
+def survey_views(world: World, origin: np.ndarray, dims: np.ndarray, voxel: float, camera,
+                 poses: list[np.ndarray]) -> np.ndarray:
+    """(X, Y) int32: frames whose image holds the terrain point at each column's centre.
+
+    poses: (4, 4) float64 local world-to-camera matrices; camera: :class:`occufly.camera.Camera`.
+    """
+    from occufly.camera import project_world
+
+    cx = origin[0] + (np.arange(dims[0]) + 0.5) * voxel
+    cy = origin[1] + (np.arange(dims[1]) + 0.5) * voxel
+    X, Y = np.meshgrid(cx, cy, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel(), world.ground_z(X.ravel(), Y.ravel())])
+    count = np.zeros(len(pts), np.int32)
+    for T in poses:
+        count += project_world(camera, T, pts)[2]
+    return count.reshape(X.shape)
+
+
+def truth_grid(world: World, taxonomy: Taxonomy, voxel: float, seed: int, *, camera=None,
+               poses: list[np.ndarray] | None = None, min_views: int = 1) -> SceneGrid:
+    """The exact scene grid, origin in WORLD (georeferenced) coordinates.
+
+    With ``camera`` and ``poses`` (the flight), columns seen by fewer than ``min_views``
+    frames are 255 (outside the survey); without them every column counts.
+    """
     rng = np.random.default_rng([seed, 0x6121D])
     lo, hi = world.bounds
     lo = lo - np.array([0.0, 0.0, voxel])
@@ -132,4 +183,11 @@ def truth_grid(world: World, taxonomy: Taxonomy, voxel: float, seed: int) -> Sce
     labels = ground
     labels[other > 0] = other[other > 0]
     labels[inst > 0] = inst[inst > 0]
+    # nothing below the terrain: voxels wholly under the lowest terrain point of their column
+    z_lo, _ = column_terrain_range(world, origin, dims, voxel)
+    k_lo = np.floor((z_lo - origin[2]) / voxel).astype(np.int64)
+    labels[np.arange(dims[2])[None, None, :] < k_lo[:, :, None]] = EMPTY
+    if camera is not None and poses is not None:
+        views = survey_views(world, origin, dims, voxel, camera, poses)
+        labels[views < min_views] = INVALID
     return SceneGrid(labels=labels, origin=origin + world.offset, voxel_size=voxel)

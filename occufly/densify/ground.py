@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from occufly.densify.smooth import project_to_planes
 from occufly.densify.voxelize import GridSpec, majority_vote
 
 log = logging.getLogger(__name__)
@@ -95,39 +96,6 @@ def thin_ground(pts: np.ndarray, cell: float, band: float) -> tuple[np.ndarray, 
     return cen, cnt.astype(np.float64)
 
 
-def smooth_heights(cen: np.ndarray, weight: np.ndarray, radius: float, k: int = 24) -> np.ndarray:
-    """Move each centroid onto the weighted least-squares plane of its neighbours.
-
-    cen: (M, 3) float64 centroids, weight: (M,) point counts; neighbours are the ``k`` nearest
-    centroids within ``radius`` (itself included). The point moves along the plane's normal
-    only, so a smooth surface keeps its shape while the per-centroid depth noise averages
-    out over the neighbourhood. Vectorised over all centroids (k-NN arrays of (M, k)).
-    """
-    m = len(cen)
-    if m < 4:
-        return cen
-    tree = cKDTree(cen)
-    out = cen.copy()
-    step = 200_000
-    for a in range(0, m, step):
-        q = cen[a : a + step]
-        d, nn = tree.query(q, k=min(k, m), distance_upper_bound=radius)
-        ok = np.isfinite(d)
-        nn = np.where(ok, nn, 0)
-        w = np.where(ok, weight[nn], 0.0)
-        ws = w.sum(axis=1, keepdims=True)
-        nb = cen[nn]  # (b, k, 3)
-        mu = (w[..., None] * nb).sum(axis=1) / ws
-        c = nb - mu[:, None, :]
-        cov = np.einsum("bk,bki,bkj->bij", w, c, c) / ws[..., None]
-        _, vecs = np.linalg.eigh(cov)
-        nrm = vecs[:, :, 0]  # smallest eigenvalue: plane normal
-        enough = ok.sum(axis=1) >= 4
-        off = ((q - mu) * nrm).sum(axis=1)
-        out[a : a + step] = np.where(enough[:, None], q - off[:, None] * nrm, q)
-    return out
-
-
 def poisson_mesh(
     xyz: np.ndarray, voxel_size: float, params: PoissonParams = PoissonParams()
 ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -141,7 +109,7 @@ def poisson_mesh(
     pts = np.asarray(xyz, dtype=np.float64)
     thin, weight = thin_ground(pts, voxel_size, params.layer_band * voxel_size)
     if params.smooth_radius > 0:
-        thin = smooth_heights(thin, weight, params.smooth_radius * voxel_size)
+        thin = project_to_planes(thin, params.smooth_radius * voxel_size, weight=weight)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(thin))
     pcd.estimate_normals(
         o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_voxels * voxel_size, max_nn=30)

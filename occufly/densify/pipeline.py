@@ -27,6 +27,7 @@ import numpy as np
 from occufly.densify.carve import CarveParams, carve_instance
 from occufly.densify.dbscan import dbscan
 from occufly.densify.ground import PoissonParams, voxelize_ground
+from occufly.densify.smooth import project_to_planes
 from occufly.densify.voxelize import GridSpec, bin_points, grid_spec_for, majority_vote
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid
@@ -51,6 +52,12 @@ class DensifyOptions:
     carve_params: CarveParams = field(default_factory=CarveParams)
     poisson_params: PoissonParams = field(default_factory=PoissonParams)
     pad: int = 2  # voxels around the labelled points' bounding box
+    # instance classes: points are projected onto the least-squares plane of their same-class
+    # neighbours within this many voxel edges (capped at the class's DBSCAN eps, so persons
+    # and bicycles keep their shape) before clustering and carving (:mod:`.smooth`; 0 = off).
+    # Other classes use ``smooth_radius_other``; ground classes are smoothed in :mod:`.ground`.
+    smooth_radius: float = 3.0
+    smooth_radius_other: float = 0.0
 
 
 @dataclass
@@ -97,6 +104,15 @@ def surface_density(xyz: np.ndarray, *, radius: float = 0.5, samples: int = 2000
     q = sub[rng.choice(m, min(samples, m), replace=False)]
     cnt = tree.query_ball_point(q, r=radius, return_length=True) * (n / m)
     return float(np.median(cnt) / (np.pi * radius * radius))
+
+
+def _smoothed(xyz: np.ndarray, sel: np.ndarray, radius: float) -> np.ndarray:
+    """(len(sel), 3) float32 points of one class, projected onto local planes within
+    ``radius`` metres (as they are for radius 0)."""
+    pts = np.asarray(xyz[sel], dtype=np.float32)
+    if radius > 0 and len(pts) >= 4:
+        pts = project_to_planes(pts, radius)
+    return pts
 
 
 def _is_degenerate(pts: np.ndarray, thickness: float) -> str | None:
@@ -192,7 +208,7 @@ def densify(
     for ci, cid in enumerate(inst_ids):
         cls = taxonomy[cid]
         sel = np.flatnonzero(labels == cid)
-        pts = np.asarray(xyz[sel], dtype=np.float32)
+        pts = _smoothed(xyz, sel, min(options.smooth_radius * vs, float(cls.dbscan_eps)))
         k, ins = spec.keys_of_local(pts)
         inst_point_keys.append(k[ins])
         inst_point_labels.append(np.full(int(ins.sum()), cid, np.uint8))
@@ -254,7 +270,13 @@ def densify(
     # ---- other -------------------------------------------------------------------------
     t = time.perf_counter()
     sel = np.flatnonzero(gl == 3)
-    other_k, other_l = bin_points(spec, np.asarray(xyz[sel], np.float32), labels[sel], prio)
+    sel = sel[np.argsort(labels[sel], kind="stable")]  # class by class, for the smoothing
+    cuts = np.flatnonzero(np.diff(labels[sel].astype(np.int16))) + 1
+    r_other = options.smooth_radius_other * vs
+    pts = np.concatenate([_smoothed(xyz, part, r_other) for part in np.split(sel, cuts)]) if len(sel) else \
+        np.zeros((0, 3), np.float32)
+    other_k, other_l = bin_points(spec, pts, labels[sel], prio)
+    del pts
     timings["other"] = time.perf_counter() - t
     report_progress(0.65, "other")
 

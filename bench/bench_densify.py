@@ -145,12 +145,18 @@ def _ablation(out: Path, ws: Path, labels_path: Path, voxel: float, scale: float
     scene = Scene.load(ws)
     labels = load_point_labels(labels_path, scene.n_points)
     truth = SceneGrid.load(out / "truth" / "scene_grid.npz")
+    from occufly.densify.freespace import FrameDepths
+
+    views = FrameDepths(scene.frames, scene.visibility, voxel)
     runs = {}
-    for name, carve, poisson in (("points_only", False, False), ("plus_instances", True, False),
-                                 ("plus_poisson", True, True)):
+    for name, kw in (("points_only", dict(carve=False, poisson=False)),
+                     ("plus_instances", dict(poisson=False, free_space=False)),
+                     ("plus_poisson", dict(free_space=False)),
+                     ("plus_free_space", {}),
+                     ("without_point_smoothing", dict(smooth_radius=0.0))):
         t = time.perf_counter()
-        res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin,
-                      options=DensifyOptions(voxel_size=voxel, carve=carve, poisson=poisson, min_points_scale=scale))
+        res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin, views=views,
+                      options=DensifyOptions(voxel_size=voxel, min_points_scale=scale, **kw))
         ev = evaluate_grids(res.grid, truth, scene.taxonomy)
         runs[name] = {
             "seconds": round(time.perf_counter() - t, 1),

@@ -13,8 +13,13 @@ def _voxelize(args: argparse.Namespace) -> dict:
     from occufly.progress import tqdm_progress
 
     scale = None if args.min_points_scale == "auto" else _positive_float(args.min_points_scale)
+    if args.smooth_radius < 0:
+        from occufly.errors import OccuflyError
+
+        raise OccuflyError(f"--smooth-radius: expected a number >= 0 (voxel edges), got {args.smooth_radius}")
     opts = DensifyOptions(
-        voxel_size=args.voxel, carve=not args.no_carve, poisson=not args.no_poisson, min_points_scale=scale
+        voxel_size=args.voxel, carve=not args.no_carve, poisson=not args.no_poisson, min_points_scale=scale,
+        free_space=not args.no_free_space, smooth_radius=args.smooth_radius,
     )
     with tqdm_progress("voxelize") as bar:
         report = voxelize_workspace(args.workspace, labels_path=args.labels, options=opts, out_path=args.out, progress=bar)
@@ -90,6 +95,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="grid path (default WS/grid/scene_grid.npz)")
     p.add_argument("--no-carve", action="store_true", help="ablation: instance points binned, no DBSCAN/carving")
     p.add_argument("--no-poisson", action="store_true", help="ablation: ground points binned, no Poisson")
+    p.add_argument("--no-free-space", action="store_true",
+                   help="ablation: keep carved voxels the survey's cameras saw through")
+    p.add_argument("--smooth-radius", type=float, default=3.0,
+                   help="instance points: plane-projection radius in voxel edges, capped at the "
+                   "class's DBSCAN eps (default 3; 0 = off)")
     p.add_argument("--preview", help="also write a PNG preview here")
     p.add_argument(
         "--min-points-scale", default="1",

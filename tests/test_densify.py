@@ -462,3 +462,112 @@ def test_cli_voxelize_eval_preview_round_trip(tmp_path):
     assert teal.sum() > 50 and vehicle_rgb[0] == 0
     # a missing labels file is a user error: exit 2 with the path in the message
     assert main(["voxelize", str(ws), "--json"]) == 2
+
+
+# ---- surface denoising, ground thinning, free space -------------------------------------------
+def test_project_to_planes_removes_normal_noise_and_keeps_the_surface():
+    from occufly.densify.smooth import project_to_planes
+
+    rng = np.random.default_rng(11)
+    n = 20_000
+    xy = rng.uniform(0, 20, (n, 2))
+    z_true = 0.1 * xy[:, 0] + 2.0  # a tilted plane
+    xyz = np.column_stack([xy, z_true + rng.normal(0, 0.15, n)])
+    out = project_to_planes(xyz, 1.0)
+    res_before = xyz[:, 2] - z_true
+    res_after = out[:, 2] - (0.1 * out[:, 0] + 2.0)
+    assert res_before.std() > 0.14
+    assert res_after.std() < 0.5 * res_before.std()  # k = 24 neighbours: ~0.4 measured
+    assert abs(res_after.mean()) < 0.005  # no bias
+    # points move (nearly) along the surface normal (-0.1, 0, 1), not along the surface
+    d = out - xyz
+    nrm = np.array([-0.1, 0.0, 1.0]) / np.linalg.norm([-0.1, 0.0, 1.0])
+    along = np.abs(d @ nrm)
+    tangential = np.linalg.norm(d - (d @ nrm)[:, None] * nrm, axis=1)
+    assert np.median(tangential) < 0.25 * np.median(along)
+    # too few neighbours within the radius: the point stays where it is
+    lone = np.array([[100.0, 100.0, 100.0]])
+    assert np.array_equal(project_to_planes(np.concatenate([xyz, lone]), 1.0)[-1], lone[0])
+
+
+def test_ground_thinning_has_no_bias_that_follows_the_voxel_lattice():
+    """3-D cube thinning pulls centroids towards cube faces; the column thinning does not."""
+    from occufly.densify.ground import thin_ground
+
+    rng = np.random.default_rng(12)
+    vs = 0.5
+    for frac in (0.05, 0.25, 0.5, 0.75, 0.95):
+        h = 10.0 + frac * vs
+        xy = rng.uniform(0, 10, (40_000, 2))
+        pts = np.column_stack([xy, h + rng.normal(0, 0.18, len(xy))])
+        pts[0] = [0.0, 0.0, 9.0]  # pins the thinning lattice to z = 9 + k * vs
+        cen, w = thin_ground(pts, vs, 2.0 * vs)
+        assert w.sum() == len(pts)
+        err = np.average(cen[1:, 2] - h, weights=w[1:])
+        assert abs(err) < 0.01, (frac, err)
+        assert np.abs(cen[w > 20, 2] - h).max() < 0.2
+    # a second layer (a bridge 5 m above) stays a separate set of centroids
+    up = np.column_stack([rng.uniform(0, 10, (5000, 2)), np.full(5000, h + 5.0)])
+    cen, w = thin_ground(np.concatenate([pts, up]), vs, 2.0 * vs)
+    assert (cen[:, 2] > h + 4.5).sum() > 100 and (np.abs(cen[:, 2] - h) < 0.3).sum() > 300
+
+
+def _survey(xyz: np.ndarray):
+    """Frames over a scene (nadir + obliques) and their z-buffer visibility of ``xyz``."""
+    from occufly.camera import Camera, look_at, project_world
+    from occufly.scene import Frame, Visibility
+    from occufly.visibility import render_depth
+
+    cam = Camera("PINHOLE", 400, 300, np.array([300.0, 300.0, 200.0, 150.0]))
+    c = xyz.mean(axis=0)
+    frames, parts = [], []
+    for dx, dy in [(0, 0), (-25, 0), (25, 0), (0, -25), (0, 25), (-18, -18), (18, 18), (-18, 18), (18, -18)]:
+        centre = c + np.array([dx, dy, 40.0])
+        T = look_at(centre, c, up=(0.0, 1.0, 0.0))
+        uv, z, vis = project_world(cam, T, xyz)
+        idx = np.flatnonzero(vis)
+        zbuf = render_depth(cam, uv[idx], z[idx], 1.0)
+        front = z[idx] <= zbuf[uv[idx, 1].astype(int), uv[idx, 0].astype(int)] + 0.3
+        idx = idx[front]
+        frames.append(Frame(f"f{len(frames)}.jpg", cam, T))
+        parts.append((idx.astype(np.int32), uv[idx], z[idx]))
+    return frames, Visibility.from_parts(parts)
+
+
+def test_free_space_removes_the_hull_between_two_merged_boxes_and_keeps_solids():
+    from occufly.densify.freespace import FrameDepths
+    from occufly.densify.pipeline import spec_of_grid
+
+    rng = np.random.default_rng(13)
+    ground = _plane(rng, size=40.0, density=40)
+    # two buildings 3 m apart: one DBSCAN instance at eps 4 m, their hull bridges the gap
+    boxes = [(np.array([10.1, 12.1, 0.0]), np.array([18.1, 28.1, 6.0])),
+             (np.array([21.1, 12.1, 0.0]), np.array([29.1, 28.1, 9.0]))]
+    walls = [box_surface(rng, lo, hi, 30_000) for lo, hi in boxes]
+    xyz = np.concatenate([ground, *walls]).astype(np.float32)
+    labels = np.concatenate([np.full(len(ground), IDS["road"]),
+                             np.full(sum(len(w) for w in walls), IDS["building"])]).astype(np.uint8)
+    frames, vis = _survey(xyz.astype(np.float64))
+    opts = DensifyOptions(poisson=False, smooth_radius=0.0)
+    plain = densify(xyz, labels, TAX, scene_origin=UTM, options=opts)
+    views = FrameDepths(frames, vis, 0.5)
+    free = densify(xyz, labels, TAX, scene_origin=UTM, options=opts, views=views)
+    assert plain.report["instances"]["building"]["instances"] == 1
+    assert free.report["options"]["free_space"] and not plain.report["options"]["free_space"]
+
+    def gap_voxels(res):
+        spec = spec_of_grid(res.grid, UTM)
+        keys = np.flatnonzero(res.grid.labels.reshape(-1) == IDS["building"])
+        c = spec.centers_local(spec.unravel(keys))
+        return int(((c[:, 0] > 18.7) & (c[:, 0] < 20.5) & (c[:, 1] > 13) & (c[:, 1] < 27) & (c[:, 2] > 1)).sum())
+
+    assert gap_voxels(plain) > 100  # the hull fills the alley between the buildings
+    assert gap_voxels(free) < 0.1 * gap_voxels(plain)
+    assert free.report["voxels_per_stage"]["instance_free_space_removed"] > 0
+    # the buildings themselves stay solid: every voxel centre inside a box is still building
+    spec = spec_of_grid(free.grid, UTM)
+    flat = free.grid.labels.reshape(-1)
+    for lo, hi in boxes:
+        inner = np.array(sorted(box_voxels(spec, lo + 0.3, hi - 0.3)))
+        inner = inner[spec.centers_local(spec.unravel(inner))[:, 2] > 0.5]
+        assert (flat[inner] == IDS["building"]).mean() > 0.99

@@ -26,6 +26,7 @@ import numpy as np
 
 from occufly.densify.carve import CarveParams, carve_instance
 from occufly.densify.dbscan import dbscan
+from occufly.densify.freespace import FrameDepths, FreeSpaceParams
 from occufly.densify.ground import PoissonParams, voxelize_ground
 from occufly.densify.smooth import project_to_planes
 from occufly.densify.voxelize import GridSpec, bin_points, grid_spec_for, majority_vote
@@ -58,6 +59,10 @@ class DensifyOptions:
     # Other classes use ``smooth_radius_other``; ground classes are smoothed in :mod:`.ground`.
     smooth_radius: float = 3.0
     smooth_radius_other: float = 0.0
+    # remove carved voxels the survey's cameras saw through (:mod:`.freespace`); needs the
+    # scene's frames and visibility (``views``), skipped without them
+    free_space: bool = True
+    free_space_params: FreeSpaceParams = field(default_factory=FreeSpaceParams)
 
 
 @dataclass
@@ -139,12 +144,15 @@ def densify(
     *,
     scene_origin: np.ndarray | None = None,
     options: DensifyOptions = DensifyOptions(),
+    views: FrameDepths | None = None,
     progress: ProgressFn | None = None,
 ) -> DensifyResult:
     """Build the semantic scene grid from a labelled point cloud.
 
     xyz: (N, 3) float32, scene-local metres; labels: (N,) uint8 raw ids (0 / 255 / ids not
-    in ``taxonomy`` are ignored); scene_origin: (3,) float64 world offset of the local frame.
+    in ``taxonomy`` are ignored); scene_origin: (3,) float64 world offset of the local frame;
+    views: the survey's observed depths (:class:`.freespace.FrameDepths`) for the free-space
+    check of carved voxels (skipped when None).
     Returns the grid (origin in WORLD coordinates, snapped to the voxel lattice) and a report
     with per-stage timings and voxel counts.
     """
@@ -267,6 +275,27 @@ def densify(
     timings["instances_dbscan"] = t_dbscan
     timings["instances_carve"] = t_carve
 
+    # ---- free space: carved voxels (without points) the cameras saw through ------------
+    t = time.perf_counter()
+    free_removed: dict[str, int] = {}
+    if carved and options.free_space and views is not None and views.n_frames:
+        held = np.unique(np.concatenate(inst_point_keys + direct_keys)) if inst_point_keys else \
+            np.zeros(0, np.int64)
+        for cid in list(carved):
+            keys = carved[cid]
+            test = keys[~np.isin(keys, held)]
+            if not len(test):
+                continue
+            free = views.free_mask(spec.centers_local(spec.unravel(test)))
+            if free.any():
+                carved[cid] = np.setdiff1d(keys, test[free], assume_unique=True)
+                inst_stats[taxonomy[cid].name]["carved_voxels"] = int(len(carved[cid]))
+            free_removed[taxonomy[cid].name] = int(free.sum())
+        report_progress(0.64, "free space")
+    elif carved and options.free_space:
+        log.info("free-space check skipped: no frames with visibility given")
+    timings["free_space"] = time.perf_counter() - t
+
     # ---- other -------------------------------------------------------------------------
     t = time.perf_counter()
     sel = np.flatnonzero(gl == 3)
@@ -333,6 +362,7 @@ def densify(
             "carve": options.carve,
             "poisson": options.poisson,
             "min_points_scale": mp_scale if options.carve else None,
+            "free_space": bool(options.free_space and views is not None and views.n_frames),
             "surface_density_per_m2": density,
         },
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
@@ -342,6 +372,7 @@ def densify(
             "instance_points": int(len(np.unique(np.concatenate(inst_point_keys)))) if inst_point_keys else 0,
             "instance_direct": int(len(np.unique(np.concatenate(direct_keys)))) if direct_keys else 0,
             "instance_carved": int(sum(len(v) for v in carved.values())),
+            "instance_free_space_removed": int(sum(free_removed.values())),
             "other": int(len(other_k)),
             "ground_points": int(ground.stats.get("voxels_from_points", 0)),
             "ground_total": int(len(ground.keys)),
@@ -405,7 +436,13 @@ def voxelize_workspace(
     lp = Path(labels_path) if labels_path is not None else ws / LABELS_RELPATH
     labels = load_point_labels(lp, scene.n_points)
     t_load = time.perf_counter() - t
-    res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin, options=options, progress=progress)
+    views = None
+    if options.carve and options.free_space:
+        t = time.perf_counter()
+        views = FrameDepths(scene.frames, scene.visibility, options.voxel_size, options.free_space_params)
+        t_load += time.perf_counter() - t
+    res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin, options=options,
+                  views=views, progress=progress)
     out = Path(out_path) if out_path is not None else workspace_grid_path(ws)
     t = time.perf_counter()
     res.grid.save(out)

@@ -27,7 +27,14 @@ Fill and denoise (:func:`fill_and_denoise`)
     (``denoise_keep_share=None``) relabels every point, which on the synthetic ``small`` scene
     lowers point accuracy from 0.991 to 0.986 and mIoU from 0.918 to 0.827 (persons, bicycles,
     cables are smaller than 200 points' neighbourhoods); isolated mislabels (own share ~1/k)
-    are still relabelled. The fast method certifies whole voxels at once: with voxel edge ``v``
+    are still relabelled. Second addition, the confirmation rule: a directly labelled point
+    whose winning class holds >= ``confirm_views`` (default 2) votes and a vote margin
+    >= ``confirm_margin`` (0.5) keeps that class whatever its neighbourhood says -- several
+    annotated views agreeing are stronger evidence than the 200 nearest points, which around a
+    person are mostly ground. Measured on ``small`` with truth masks (same votes, same run):
+    stratified selection, accuracy 0.9809 -> 0.9828, mIoU 0.820 -> 0.900; greedy selection
+    0.9884 -> 0.9906, mIoU 0.826 -> 0.922 (persons, bicycles, benches survive the denoise).
+    ``confirm_views=None`` turns it off. The fast method certifies whole voxels at once: with voxel edge ``v``
     near the typical k-NN radius, a point's k nearest neighbours lie in the 3x3x3 voxel block
     around its voxel; if that block holds at least ``k`` points and fewer than k/2 of them
     disagree with the block's dominant class, that class must win the k-NN vote (with the keep

@@ -221,8 +221,14 @@ def test_fill_is_inverse_distance_weighted_and_bounded():
         res = fill_and_denoise(xyz, direct, TAX, params=LiftParams(**{**params.__dict__, "method": method}))
         # with k covering both clusters, the nearer cluster wins only through 1/d weights
         assert res.labels[400] == ROAD and res.labels[401] == BUILDING, method
-        assert res.labels[402] == 0 and res.origin[402] == 0, method  # beyond the radius
+        # beyond the radius: the far pass fills it from the nearest cluster (24 m vs 29 m away)
+        assert res.labels[402] == BUILDING and res.origin[402] == ORIGIN_FILLED, method
         assert res.origin[400] == ORIGIN_FILLED and res.origin[0] == ORIGIN_DIRECT
+        # with the far pass off it stays unlabelled
+        bounded = fill_and_denoise(xyz, direct, TAX,
+                                   params=LiftParams(**{**params.__dict__, "method": method, "fill_far": False}))
+        assert bounded.labels[402] == 0 and bounded.origin[402] == 0, method
+        assert np.array_equal(bounded.labels[:402], res.labels[:402])
     # same sizes, unweighted, the tie would go to building (more frequent): weights matter
     assert list(TAX.tie_order).index(BUILDING) < list(TAX.tie_order).index(ROAD)
 

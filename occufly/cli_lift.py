@@ -33,6 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("voxel", "exact"), default="voxel",
                    help="kNN fill/denoise method (exact = plain cKDTree baseline)")
     p.add_argument("--no-fill", action="store_true", help="update the votes only")
+    p.add_argument("--no-far-fill", action="store_true",
+                   help="leave points with no labelled point within 3 m unlabelled (default: "
+                   "they take the vote of their 100 nearest labelled points at any distance)")
+    p.add_argument("--confirm-views", type=int, default=2,
+                   help="a direct label with this many agreeing views (and margin >= 0.5) survives "
+                   "the denoise (0 = off)")
     p.add_argument("--keep-share", type=float, default=0.25,
                    help="denoise: a point keeps its class if it holds this share of its k=200 "
                         "neighbours (0 = the paper's rule: always the dominant class)")
@@ -140,7 +146,8 @@ def _lift(args: argparse.Namespace) -> dict:
     if not args.no_fill:
         with tqdm_progress("fill/denoise") as bar:
             res = state.fill_and_denoise(progress=bar, params=LiftParams(
-                method=args.method, denoise_keep_share=args.keep_share or None))
+                method=args.method, denoise_keep_share=args.keep_share or None,
+                fill_far=not args.no_far_fill, confirm_views=args.confirm_views or None))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
     return out

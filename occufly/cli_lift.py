@@ -109,6 +109,10 @@ def _lift(args: argparse.Namespace) -> dict:
     from occufly.lifting import LiftParams, LiftState
     from occufly.scene import Scene
 
+    if args.confirm_views < 0:
+        raise InputFormatError(f"--confirm-views: expected a number of views >= 0 (0 = off), got {args.confirm_views}")
+    if not 0 <= args.keep_share <= 1:
+        raise InputFormatError(f"--keep-share: expected a share in [0, 1], got {args.keep_share}")
     scene = Scene.load(args.workspace)
     files = _mask_files(scene, args.masks)
     state = LiftState.open(args.workspace, scene)

@@ -15,7 +15,9 @@ Masks (all (X, Y, Z) bool):
 - **invalid**: the centre is outside the truncated frustum -- it does not project inside the
   image (``0 <= u < W``, ``0 <= v < H`` with the camera's distortion) or its camera depth
   ``z`` is not in ``[near, far]`` -- *or* the reconstruction has no data there, which we take
-  as: the centre lies outside the scene grid's bounding box. Invalid voxels have label 0 in
+  as: the centre lies outside the scene grid's bounding box, or in a scene-grid voxel marked
+  255 (unknown; the synthetic truth grid marks the columns outside the survey so). Such
+  voxels are empty for the surface and occlusion tests. Invalid voxels have label 0 in
   :attr:`FrameGT.labels` (255 in the exported ``.label``, see :meth:`FrameGT.label_with_invalid`).
 - **surface**: valid, occupied, and at least one of its 6 neighbours is empty. Neighbours are
   looked up in the *sampled* grid before the frustum crop (so a voxel is not "surface" just
@@ -54,6 +56,7 @@ import numpy as np
 from occufly.camera import Camera
 from occufly.errors import WorkspaceError
 from occufly.grid import SceneGrid
+from occufly.taxonomy import INVALID
 
 
 @dataclass(frozen=True)
@@ -510,6 +513,10 @@ def sample_frame(
     spec = spec or GridSpec()
     rects = region_rects(camera, spec)
     labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec, rects)
+    nodata = labels_all == INVALID
+    if nodata.any():
+        labels_all[nodata] = 0
+        inside = inside & ~nodata
     occupied_all = labels_all != 0
     surface_all = surface_mask(occupied_all)  # unsampled voxels count as empty: see docstring
     valid = frustum_mask(camera, spec) & inside

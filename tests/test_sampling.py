@@ -88,6 +88,22 @@ def test_outside_scene_grid_is_invalid():
     assert gt.labels[32, 24, 19] == 6
 
 
+def test_unknown_scene_grid_voxels_are_invalid_and_never_occlude():
+    """A scene grid may mark voxels 255 (no data, e.g. the synthetic truth outside the survey)."""
+    lab = box_labels(28, 36, 21, 27, 30, 34)  # a box 15..17 m ahead
+    lab[20:44, 14:34, 20] = 255  # an unknown slab in front of it
+    lab[2:6, 22:26, 40:44] = 255  # an unknown block elsewhere
+    gt = sample_frame(aligned_grid(lab), CAM, np.eye(4), np.zeros(3), SPEC)
+    unknown = lab == 255
+    assert gt.invalid[unknown].all() and not gt.labels[unknown].any()
+    assert gt.label_with_invalid()[unknown].tolist() == [255] * int(unknown.sum())
+    assert not gt.surface[unknown].any()
+    # the box behind the unknown slab is valid and its front face is not occluded by it
+    assert gt.labels[28:36, 21:27, 30:34].min() == 16 and not gt.invalid[28:36, 21:27, 30:34].any()
+    assert not gt.occluded[28:36, 21:27, 30].any()
+    assert gt.stats["occupied"] == 8 * 6 * 4
+
+
 def test_sampling_follows_pose_and_utm_origin():
     """Labels equal an independent lookup: frame centre -> world via the inverse pose."""
     rng = np.random.default_rng(1)

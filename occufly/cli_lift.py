@@ -14,10 +14,24 @@ from occufly.errors import InputFormatError, MaskError, WorkspaceError
 from occufly.progress import tqdm_progress
 
 
+def _cell(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres or 'auto', got {text!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive edge in metres, got {text!r}")
+    return v
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "select", _select, help="choose the frames to annotate (stratified / greedy)")
     p.add_argument("workspace", type=Path)
-    p.add_argument("--cell", type=float, default=25.0, help="ground cell edge in metres (23-28)")
+    p.add_argument("--cell", type=_cell, default=25.0,
+                   help="ground cell edge in metres (23-28), or 'auto' (greedy modes: the edge of "
+                   "23-28 m giving the fewest frames at the target coverage)")
     p.add_argument("--mode", choices=("stratified", "greedy", "cover"), default="stratified",
                    help="greedy: stratified + coverage-greedy; cover: coverage-greedy only")
     p.add_argument("--no-prune", action="store_true",

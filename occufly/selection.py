@@ -16,6 +16,11 @@ only the top candidate: each step costs about one frame's points, not the scene'
 Afterwards (``prune_redundant``, default on) frames are dropped, least unique contribution
 first, while rho stays at the target: stratified frames that later additions made redundant
 go. Mode "cover" runs the same greedy from an empty set (no stratified seed).
+
+``cell="auto"`` (greedy modes only) runs the selection for every cell edge of the method's
+range (23-28 m in 0.5 m steps) and keeps the result with the fewest frames that reaches the
+target coverage (ties: the higher coverage, then the edge closest to 25 m); the stratified
+seed depends on the cell lattice, so the best edge differs between scenes.
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ class SelectionResult:
     max_coverage: float = 0.0
     stratified_frames: list[int] = field(default_factory=list)
     cells: int = 0
+    auto_cells: list = field(default_factory=list)  # cell="auto": (edge, frames, coverage) tried
     frame_names: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -71,6 +77,7 @@ class SelectionResult:
             "cells": self.cells,
             "stratified_frames": list(self.stratified_frames),
             "curve": [[int(n), float(c)] for n, c in self.curve],
+            **({"auto_cells": [[c, n, cov] for c, n, cov in self.auto_cells]} if self.auto_cells else {}),
         }
 
 
@@ -205,7 +212,10 @@ def prune(scene: Scene, frames: list[int], target: float) -> list[int]:
     return keep
 
 
-def select_frames(scene: Scene, *, cell: float = 25.0, mode: str = "stratified",
+AUTO_CELLS = tuple(float(c) for c in np.arange(METHOD_CELL_RANGE[0], METHOD_CELL_RANGE[1] + 0.25, 0.5))
+
+
+def select_frames(scene: Scene, *, cell: float | str = 25.0, mode: str = "stratified",
                   target_coverage: float = 0.99, altitude: int | None = None,
                   prune_redundant: bool = True) -> SelectionResult:
     """Select frames to annotate (see the module docstring). Returns a :class:`SelectionResult`.
@@ -213,12 +223,24 @@ def select_frames(scene: Scene, *, cell: float = 25.0, mode: str = "stratified",
     mode: "stratified" (the method), "greedy" (stratified + coverage-greedy additions), or
     "cover" (coverage-greedy from an empty set). In the greedy modes, ``prune_redundant`` then
     drops frames (stratified ones included) that the target coverage does not need.
+    cell: edge in metres, or "auto" (greedy modes) to search the method's range.
     """
     if mode not in ("stratified", "greedy", "cover"):
         raise InputFormatError(
             f"mode: expected 'stratified', 'greedy' or 'cover', got {mode!r}")
     if not 0.0 < target_coverage <= 1.0:
         raise InputFormatError(f"target coverage must be in (0, 1], got {target_coverage}")
+    if isinstance(cell, str):
+        if cell != "auto":
+            raise InputFormatError(f"cell: expected a number of metres or 'auto', got {cell!r}")
+        if mode == "stratified":
+            raise InputFormatError("cell 'auto' needs a target coverage: use mode 'greedy' or 'cover'")
+        results = [select_frames(scene, cell=c, mode=mode, target_coverage=target_coverage,
+                                 altitude=altitude, prune_redundant=prune_redundant) for c in AUTO_CELLS]
+        best = min(results, key=lambda r: (r.coverage < target_coverage, len(r.frames), -r.coverage,
+                                           abs(r.cell - 25.0)))
+        best.auto_cells = [(r.cell, len(r.frames), round(r.coverage, 5)) for r in results]
+        return best
     cand = candidate_frames(scene, altitude)
     frames, cells = stratified(scene, cand, float(cell))
     strat = list(frames)

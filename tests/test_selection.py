@@ -110,3 +110,23 @@ def test_prune_drops_frames_the_target_does_not_need():
     keep_all = select_frames(scene, cell=25.0, mode="greedy", prune_redundant=False)
     assert len(keep_all.frames) == 10
     assert select_frames(scene, mode="cover").frames == [9]
+
+
+def test_auto_cell_keeps_the_fewest_frames_reaching_the_target():
+    from occufly.selection import AUTO_CELLS
+
+    rng = np.random.default_rng(4)
+    xy = [tuple(p) for p in rng.uniform(0, 75, (90, 2))]
+    scene = _scene(xy, [50] * 90, see_radius=12.0)
+    auto = select_frames(scene, cell="auto", mode="greedy", target_coverage=0.95)
+    runs = {c: select_frames(scene, cell=c, mode="greedy", target_coverage=0.95) for c in AUTO_CELLS}
+    assert AUTO_CELLS[0] == 23.0 and AUTO_CELLS[-1] == 28.0 and len(AUTO_CELLS) == 11
+    reaching = [r for r in runs.values() if r.coverage >= 0.95]
+    assert reaching and auto.coverage >= 0.95
+    assert len(auto.frames) == min(len(r.frames) for r in reaching)
+    assert auto.frames == runs[auto.cell].frames
+    assert [c for c, _, _ in auto.to_dict()["auto_cells"]] == list(AUTO_CELLS)
+    with pytest.raises(InputFormatError, match="target coverage"):
+        select_frames(scene, cell="auto")  # stratified has no target to compare cells by
+    with pytest.raises(InputFormatError, match="auto"):
+        select_frames(scene, cell="big", mode="greedy")

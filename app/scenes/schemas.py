@@ -1,9 +1,9 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class SceneOut(BaseModel):
@@ -43,10 +43,17 @@ class ImportIn(BaseModel):
 
 
 class SelectionIn(BaseModel):
-    cell: float = Field(default=25.0, gt=0, le=10000)
+    # metres, or "auto" (greedy only): the edge of 23-28 m giving the fewest frames at the target
+    cell: Annotated[float, Field(gt=0, le=10000)] | Literal["auto"] = 25.0
     mode: Literal["stratified", "greedy"] = "stratified"
     target_coverage: float = Field(default=0.99, gt=0, le=1)
     altitude: int | None = Field(default=None, ge=0, le=100000)
+
+    @model_validator(mode="after")
+    def _auto_needs_greedy(self) -> SelectionIn:
+        if self.cell == "auto" and self.mode != "greedy":
+            raise ValueError("cell 'auto' needs mode 'greedy' (it compares cells at the target coverage)")
+        return self
 
 
 class FrameOut(BaseModel):

@@ -563,6 +563,16 @@ def test_selection_job_and_cancel(world):
     assert sorted(f["index"] for f in fl if f["selected"]) == sorted(sel["frames"])
     sc = env.client.get(f"/api/scenes/{scene['id']}", headers=adm).json()
     assert sc["n_selected"] == len(sel["frames"]) and sc["coverage"] == pytest.approx(sel["coverage"])
+    # cell "auto" searches the method's 23-28 m range (greedy only; a 422 otherwise)
+    bad = env.client.post(f"/api/scenes/{scene['id']}/selection", json={"cell": "auto"}, headers=adm)
+    assert bad.status_code == 422 and "greedy" in bad.text
+    r = env.client.post(f"/api/scenes/{scene['id']}/selection",
+                        json={"cell": "auto", "mode": "greedy", "target_coverage": 0.9}, headers=adm)
+    assert r.status_code == 202
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    assert env.client.get(f"/api/jobs/{r.json()['id']}", headers=adm).json()["status"] == "done"
+    sel = env.client.get(f"/api/scenes/{scene['id']}/selection", headers=adm).json()
+    assert 23.0 <= sel["cell"] <= 28.0 and len(sel["auto_cells"]) == 11
     # a finished job cannot be cancelled; a queued one can
     assert env.client.post(f"/api/jobs/{j['id']}/cancel", headers=adm).status_code == 409
     from app.jobs import service as jobs

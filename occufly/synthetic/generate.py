@@ -203,7 +203,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         # ---- truth grid ---------------------------------------------------------------------
         t0 = time.perf_counter()
         grid = truth_grid(world, tax, P.grid_voxel, seed, camera=camera,
-                          poses=[fr.T_cam_world for fr in frames], min_views=P.min_views)
+                          poses=[fr.T_cam_world for fr in frames], min_views=P.min_views,
+                          observed_xy=cloud.xyz[:, :2])
         grid.save(tmp / "truth" / "scene_grid.npz")
         timings["truth_grid"] = time.perf_counter() - t0
 
@@ -247,7 +248,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             "grid_voxel": P.grid_voxel,
             "truth_grid": {
                 "above_terrain_only": True,
-                "invalid_255": f"columns whose terrain point is inside fewer than {P.min_views} images",
+                "invalid_255": f"columns whose terrain point is inside fewer than {P.min_views} images, "
+                               "or with no fused point within 2 m (plan view)",
                 "invalid_columns": int((grid.labels[:, :, 0] == 255).sum()),
                 "columns": int(grid.shape[0] * grid.shape[1]),
             },

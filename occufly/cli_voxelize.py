@@ -102,9 +102,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "class's DBSCAN eps (default 3; 0 = off)")
     p.add_argument("--preview", help="also write a PNG preview here")
     p.add_argument(
-        "--min-points-scale", default="1",
-        help="multiply the taxonomy's DBSCAN minPts (default 1); 'auto' scales by the cloud's "
-        "surface density relative to 400 points/m^2",
+        "--min-points-scale", default="auto",
+        help="multiply the taxonomy's DBSCAN minPts; 'auto' (default) scales by the cloud's "
+        "surface density relative to 400 points/m^2 (1 for denser clouds); 1 = the table as-is",
     )
 
     p = command(sub, "eval-grid", _eval, help="completion IoU, per-class IoU and mIoU vs a truth grid")

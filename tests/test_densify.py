@@ -340,11 +340,12 @@ def test_surface_density_and_auto_min_points_scale(caplog):
     # a sparse car (~40 points/m^2): the table's minPts (500 within 1 m) makes it noise ...
     car = box_surface(rng, [5.1, 5.1, 0.1], [9.6, 7.1, 1.6], 1500).astype(np.float32)
     lab = np.full(len(car), IDS["vehicle"], np.uint8)
-    fixed = _bad(car, lab, caplog)
+    fixed = _bad(car, lab, caplog, min_points_scale=1.0)
     assert fixed.report["instances"]["vehicle"]["instances"] == 0
     assert any("--min-points-scale auto" in m for m in fixed.report["warnings"])
-    # ... "auto" scales minPts by density / reference and carves one instance
-    auto = _bad(car, lab, caplog, min_points_scale=None)
+    # ... "auto" (the default) scales minPts by density / reference and carves one instance
+    auto = _bad(car, lab, caplog)
+    assert DensifyOptions().min_points_scale is None
     st = auto.report["instances"]["vehicle"]
     scale = auto.report["options"]["min_points_scale"]
     assert scale == pytest.approx(auto.report["options"]["surface_density_per_m2"] / REFERENCE_SURFACE_DENSITY)
@@ -361,10 +362,15 @@ def _bad(xyz, labels, caplog, **kw):
 
 def test_instance_with_three_points_is_binned_with_warning(caplog):
     xyz = [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.05]]
-    res = _bad(xyz, [IDS["person"]] * 3, caplog)
+    # the table's minPts (10): DBSCAN noise, binned
+    res = _bad(xyz, [IDS["person"]] * 3, caplog, min_points_scale=1.0)
     assert res.grid.class_counts() == {IDS["person"]: 1}
     assert any("noise" in m for m in res.report["warnings"])
     assert any("person" in r.message for r in caplog.records)
+    # auto minPts (scaled down to 2 on this sparse input): one cluster, too small to carve, binned
+    res = _bad(xyz, [IDS["person"]] * 3, caplog)
+    assert res.grid.class_counts() == {IDS["person"]: 1}
+    assert any("degenerate" in m and "3 distinct points" in m for m in res.report["warnings"])
 
 
 def test_flat_and_collinear_instances_fall_back_to_direct_binning(caplog):

@@ -46,9 +46,10 @@ class DensifyOptions:
     carve: bool = True
     poisson: bool = True
     dbscan_cell_fraction: float = 0.25  # DBSCAN reduction cell = fraction * eps (0 = exact)
-    # minPts multiplier: 1.0 = the taxonomy's values as-is; None = "auto", scaled by the
-    # cloud's measured surface density relative to REFERENCE_SURFACE_DENSITY (see below)
-    min_points_scale: float | None = 1.0
+    # minPts multiplier: 1.0 = the taxonomy's values as-is; None = "auto" (default), scaled by
+    # the cloud's measured surface density relative to REFERENCE_SURFACE_DENSITY (see below):
+    # 1.0 for clouds at least that dense, smaller for sparser ones
+    min_points_scale: float | None = None
     degenerate_thickness: float = 0.05  # in voxel edges; thinner instances are binned directly
     carve_params: CarveParams = field(default_factory=CarveParams)
     poisson_params: PoissonParams = field(default_factory=PoissonParams)

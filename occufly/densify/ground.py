@@ -48,6 +48,7 @@ class PoissonParams:
     normal_radius_voxels: float = 4.0
     chunk_samples: int = 4_000_000
     layer_band: float = 2.0  # thinning: points within this many voxel edges of a column's median height
+    layer_min_support: float = 0.25  # thinning: drop cube centroids with < this x the median column count
     smooth_radius: float = 3.0  # plane-fit smoothing radius of the thinned points, voxel edges (0 = off)
 
 
@@ -58,7 +59,8 @@ class GroundResult:
     stats: dict = field(default_factory=dict)
 
 
-def thin_ground(pts: np.ndarray, cell: float, band: float) -> tuple[np.ndarray, np.ndarray]:
+def thin_ground(pts: np.ndarray, cell: float, band: float, min_support: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """One centroid per ground column and layer: ((M, 3) float64 centroids, (M,) point counts).
 
     pts: (N, 3) float64. Columns are ``cell`` x ``cell`` squares. The points of a column
@@ -67,6 +69,10 @@ def thin_ground(pts: np.ndarray, cell: float, band: float) -> tuple[np.ndarray, 
     one centroid per ``cell``-cube. Thinning in 3-D cubes alone would cut the noise band of a
     flat ground at the cube faces and pull the centroids towards them (measured on the
     synthetic ``small`` scene: a height error of +-3 cm that follows the voxel lattice).
+    Cube centroids holding fewer points than ``min_support`` times the median count of the
+    column centroids are dropped: a real second layer is sampled as densely as the ground, a
+    few mislabelled points on a wall or a car are not (and one stray centroid is enough to
+    make Poisson blow a bubble).
     """
     n = len(pts)
     if n == 0:
@@ -93,6 +99,13 @@ def thin_ground(pts: np.ndarray, cell: float, band: float) -> tuple[np.ndarray, 
     inv = inv.reshape(-1)
     src = pts[order]
     cen = np.stack([np.bincount(inv, weights=src[:, d]) / cnt for d in range(3)], axis=1)
+    if min_support > 0 and len(rest):
+        # every column keeps its median point, so groups 0 .. n_cols-1 (sorted first by
+        # np.unique) are the column layers and the rest are cube centroids
+        n_cols = len(start)
+        keep = np.ones(len(cnt), bool)
+        keep[n_cols:] = cnt[n_cols:] >= min_support * float(np.median(cnt[:n_cols]))
+        cen, cnt = cen[keep], cnt[keep]
     return cen, cnt.astype(np.float64)
 
 
@@ -107,7 +120,7 @@ def poisson_mesh(
     import open3d as o3d
 
     pts = np.asarray(xyz, dtype=np.float64)
-    thin, weight = thin_ground(pts, voxel_size, params.layer_band * voxel_size)
+    thin, weight = thin_ground(pts, voxel_size, params.layer_band * voxel_size, params.layer_min_support)
     if params.smooth_radius > 0:
         thin = project_to_planes(thin, params.smooth_radius * voxel_size, weight=weight)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(thin))

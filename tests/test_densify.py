@@ -249,10 +249,16 @@ def test_poisson_fills_a_hole_and_votes_ground_classes():
     assert (full.labels[x < 19.5] == IDS["road"]).all()
     assert (full.labels[x > 20.5] == IDS["grass"]).all()
     # the surface stays one layer thick (z = 0.2 lies in one voxel), no bubble survives and
-    # the surface reaches at most max_extrapolation (2 m) beyond the data
+    # beyond the data's rim the surface reaches at most rim_extrapolation (1 m) ...
     assert set(ijk[:, 2].tolist()) == {int(np.floor((0.2 - spec.local_origin[2]) / 0.5))}
     xy = spec.centers_local(ijk)[:, :2]
-    assert xy.min() > -2.5 and xy.max() < 42.5
+    assert xy.min() > -0.6 and xy.max() < 40.6  # (with a 2 m rim limit: -0.75 and 41.25)
+    # ... while a hole inside is filled up to max_extrapolation (2 m) from the data: a 3.2 m
+    # hole closes with the default, stays open in the middle if the inside limit is the rim's
+    from occufly.densify.ground import PoissonParams
+
+    tight = voxelize_ground(spec, xyz, lab, prio, params=PoissonParams(max_extrapolation=0.3, rim_extrapolation=0.3))
+    assert not hole_cols <= col(tight.keys)
 
 
 # ---- evaluation ------------------------------------------------------------------------------

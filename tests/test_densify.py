@@ -249,12 +249,13 @@ def test_poisson_fills_a_hole_and_votes_ground_classes():
     assert (full.labels[x < 19.5] == IDS["road"]).all()
     assert (full.labels[x > 20.5] == IDS["grass"]).all()
     # the surface stays one layer thick (z = 0.2 lies in one voxel), no bubble survives and
-    # beyond the data's rim the surface reaches at most rim_extrapolation (1 m) ...
+    # beyond the data's rim the surface reaches at most 2 m and only where it continues the
+    # data's plane (a flat plane here: the one layer above) ...
     assert set(ijk[:, 2].tolist()) == {int(np.floor((0.2 - spec.local_origin[2]) / 0.5))}
     xy = spec.centers_local(ijk)[:, :2]
-    assert xy.min() > -0.6 and xy.max() < 40.6  # (with a 2 m rim limit: -0.75 and 41.25)
-    # ... while a hole inside is filled up to max_extrapolation (2 m) from the data: a 3.2 m
-    # hole closes with the default, stays open in the middle if the inside limit is the rim's
+    assert xy.min() > -2.5 and xy.max() < 42.5
+    # ... and a hole inside is filled up to max_extrapolation (2 m) from the data: a 3.2 m
+    # hole closes with the default, stays open in the middle with a 0.3 m limit
     from occufly.densify.ground import PoissonParams
 
     tight = voxelize_ground(spec, xyz, lab, prio, params=PoissonParams(max_extrapolation=0.3, rim_extrapolation=0.3))
@@ -500,6 +501,22 @@ def test_project_to_planes_removes_normal_noise_and_keeps_the_surface():
     # too few neighbours within the radius: the point stays where it is
     lone = np.array([[100.0, 100.0, 100.0]])
     assert np.array_equal(project_to_planes(np.concatenate([xyz, lone]), 1.0)[-1], lone[0])
+
+
+def test_plane_offsets_measure_distance_to_the_local_data_plane():
+    from occufly.densify.smooth import plane_offsets
+
+    rng = np.random.default_rng(14)
+    xy = rng.uniform(0, 10, (5000, 2))
+    data = np.column_stack([xy, 0.2 * xy[:, 0] + 1.0])  # z = 0.2 x + 1
+    q = np.array([[5.0, 5.0, 2.0 + 0.5], [5.0, 5.0, 2.0], [11.0, 5.0, 3.2 + 1.0], [50.0, 50.0, 0.0]])
+    off, nrm, ok = plane_offsets(data, q, 3.0)
+    cos = 1 / np.sqrt(1 + 0.2**2)  # the normal's z component
+    assert ok.tolist() == [True, True, True, False]
+    assert abs(nrm[0, 2]) == pytest.approx(cos, abs=1e-6)
+    vertical = off[:3] / nrm[:3, 2]
+    assert vertical == pytest.approx([0.5, 0.0, 1.0], abs=1e-6)  # 1 m beyond the rim: still the plane
+    assert off[3] == 0.0
 
 
 def test_ground_thinning_has_no_bias_that_follows_the_voxel_lattice():

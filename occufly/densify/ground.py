@@ -8,9 +8,9 @@
    log2 of the local sample density) is more than ``density_drop`` below the median (low
    support), and vertices farther than ``max_extrapolation`` metres (2 m) from every input point
    (the closed surface Poisson invents away from the data) are removed with their triangles;
-   outside the data's plan-view footprint (beyond the survey's rim, holes excluded) the limit
-   is ``rim_extrapolation`` (1 m): there Poisson's free boundary curls away from the terrain
-   (measured on ``small``: +0.2 to +1.0 pt completion IoU). A quantile rule was rejected: on a ground plane with a hole, the hole's
+   outside the data's plan-view footprint (beyond the survey's rim, holes excluded) Poisson's
+   free boundary curls away from the terrain, so there a vertex must also lie within
+   ``rim_tolerance`` (half a voxel) of the least-squares plane of the centroids within 3 m. A quantile rule was rejected: on a ground plane with a hole, the hole's
    vertices *are* the lowest few percent, and filling them is the point of this step.
 4. Scan conversion: each remaining triangle is sampled with barycentric points on a lattice
    whose spacing is ≤ ``sample_spacing`` voxel edges (default 0.3), vectorised over all
@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from occufly.densify.smooth import project_to_planes
+from occufly.densify.smooth import plane_offsets, project_to_planes
 from occufly.densify.voxelize import GridSpec, majority_vote
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,9 @@ class PoissonParams:
     scale: float = 1.2
     density_drop: float = 4.0  # trim vertices with density < median density - density_drop
     max_extrapolation: float = 2.0  # metres from the nearest input point, inside the data footprint
-    rim_extrapolation: float = 1.0  # ... outside it (beyond the survey's rim)
+    rim_extrapolation: float = 2.0  # ... outside it (beyond the survey's rim), where also:
+    rim_tolerance: float | None = 0.5  # voxel edges a rim vertex may leave the data's local plane
+    rim_plane_radius: float = 3.0  # metres: the centroids that define that plane
     sample_spacing: float = 0.3  # barycentric sample spacing, in voxel edges (<= 0.5)
     min_points: int = 100  # fewer ground points -> direct binning
     normal_radius_voxels: float = 4.0
@@ -169,9 +171,16 @@ def poisson_mesh(
     bad = dens < np.median(dens) - params.density_drop
     reach = max(params.max_extrapolation, params.rim_extrapolation)
     d, _ = cKDTree(thin).query(verts, k=1, distance_upper_bound=reach)
-    limit = np.where(_inside_footprint(thin, verts, voxel_size), params.max_extrapolation,
-                     params.rim_extrapolation)
+    inside = _inside_footprint(thin, verts, voxel_size)
+    limit = np.where(inside, params.max_extrapolation, params.rim_extrapolation)
     bad |= ~(d <= limit)
+    # beyond the rim, keep only surface that continues the data's local plane
+    rim = np.flatnonzero(~inside & ~bad)
+    if len(rim) and params.rim_tolerance is not None:
+        off, nrm, ok = plane_offsets(thin, verts[rim], params.rim_plane_radius, weight=weight)
+        dz = np.abs(off) / np.maximum(np.abs(nrm[:, 2]), 0.2)
+        bad[rim[~ok | (dz > params.rim_tolerance * voxel_size)]] = True
+        stats["rim_vertices_off_plane"] = int((ok & (dz > params.rim_tolerance * voxel_size)).sum())
     keep_tri = ~bad[tris].any(axis=1)
     tris = tris[keep_tri]
     stats["trimmed_triangles"] = int((~keep_tri).sum())

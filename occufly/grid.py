@@ -113,8 +113,15 @@ class SceneGrid:
         return np.where(inside, out, np.uint8(outside)).astype(np.uint8)
 
     def class_counts(self) -> dict[int, int]:
-        """Raw id -> voxel count, for non-empty ids present."""
-        counts = np.bincount(self.labels.ravel(), minlength=256)
+        """Raw id -> voxel count, for non-empty ids present.
+
+        Chunked: ``np.bincount`` widens its input to int64, 8x the grid's bytes at once otherwise.
+        """
+        flat = self.labels.reshape(-1)
+        counts = np.zeros(256, np.int64)
+        step = 1 << 24
+        for a in range(0, len(flat), step):
+            counts += np.bincount(flat[a : a + step], minlength=256)
         return {int(i): int(counts[i]) for i in np.flatnonzero(counts) if i != 0}
 
     # ---- I/O ---------------------------------------------------------------------------

@@ -605,3 +605,18 @@ def test_free_space_removes_the_hull_between_two_merged_boxes_and_keeps_solids()
         inner = np.array(sorted(box_voxels(spec, lo + 0.3, hi - 0.3)))
         inner = inner[spec.centers_local(spec.unravel(inner))[:, 2] > 0.5]
         assert (flat[inner] == IDS["building"]).mean() > 0.99
+
+
+def test_a_grid_too_large_for_memory_is_a_clear_error_not_a_crash():
+    xyz = np.array([[0.0, 0.0, 0.0], [100.0, 100.0, 30.0], [50.0, 50.0, 1.0]], np.float32)
+    labels = np.array([IDS["grass"]] * 3, np.uint8)
+    with pytest.raises(InputFormatError, match=r"voxel size 0.005 m: .* use a larger --voxel"):
+        densify(xyz, labels, TAX, options=DensifyOptions(voxel_size=0.005))
+    assert densify(xyz, labels, TAX, options=DensifyOptions(voxel_size=0.5)).grid.class_counts() == {IDS["grass"]: 3}
+
+
+def test_class_counts_are_exact_across_chunks():
+    lab = np.zeros((300, 300, 200), np.uint8)  # 18 M voxels: more than one 16 M chunk
+    lab[0, 0, :7] = 6
+    lab[-1, -1, -5:] = 16
+    assert SceneGrid(lab, np.zeros(3), 0.5).class_counts() == {6: 7, 16: 5}

@@ -91,6 +91,10 @@ class _Warnings:
 # minPts by min(1, measured density / this reference).
 REFERENCE_SURFACE_DENSITY = 400.0
 
+# The aggregation holds a few dense uint8 / bool copies of the grid: 1.5 G voxels stays well
+# inside the 8 GB budget (e.g. 1.5 x 1.5 km x 160 m at 0.5 m is 0.29 G).
+MAX_GRID_VOXELS = 1_500_000_000
+
 
 def surface_density(xyz: np.ndarray, *, radius: float = 0.5, samples: int = 2000, seed: int = 0) -> float:
     """Median points per m^2 around sampled points (neighbours within ``radius`` / (π r²)).
@@ -193,6 +197,14 @@ def densify(
     lo, hi = sub.min(axis=0), sub.max(axis=0)
     del sub
     spec = grid_spec_for(lo, hi, scene_origin, vs, pad=options.pad)
+    if spec.n_voxels > MAX_GRID_VOXELS:
+        ext = (hi - lo).astype(float)
+        raise InputFormatError(
+            f"voxel size {vs:g} m: the labelled points span {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} m, "
+            f"a grid of {' x '.join(str(int(d)) for d in spec.shape)} = {spec.n_voxels / 1e9:.2f} G voxels; "
+            f"the limit is {MAX_GRID_VOXELS / 1e9:.2f} G (memory): use a larger --voxel "
+            f"(>= {vs * (spec.n_voxels / MAX_GRID_VOXELS) ** (1 / 3):.3g} m) or crop the cloud"
+        )
     counts_per_class = np.bincount(labels[labelled], minlength=256)
     for c in taxonomy.classes:
         if counts_per_class[c.id] == 0:

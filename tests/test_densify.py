@@ -598,6 +598,14 @@ def test_free_space_removes_the_hull_between_two_merged_boxes_and_keeps_solids()
     assert gap_voxels(plain) > 100  # the hull fills the alley between the buildings
     assert gap_voxels(free) < 0.1 * gap_voxels(plain)
     assert free.report["voxels_per_stage"]["instance_free_space_removed"] > 0
+    # culling voxels by each frame's frustum box changes no vote
+    rng2 = np.random.default_rng(3)
+    c = rng2.uniform(xyz.min(axis=0) - 5, xyz.max(axis=0) + [5, 5, 30], (20_000, 3))
+    f1, s1 = views.votes(c)
+    views.frames = [(cam, T, r, (np.full(3, -1e9), np.full(3, 1e9))) for cam, T, r, _ in views.frames]
+    f2, s2 = views.votes(c)
+    assert f1.sum() > 1000 and s1.sum() > 100
+    assert np.array_equal(f1, f2) and np.array_equal(s1, s2)
     # the buildings themselves stay solid: every voxel centre inside a box is still building
     spec = spec_of_grid(free.grid, UTM)
     flat = free.grid.labels.reshape(-1)

@@ -17,6 +17,17 @@ def demo_password(role: str) -> str:
     return f"occufly-{role}"
 
 
+def _copy_truth_grid(source: Path, ws: Path) -> None:
+    """A synthetic scene's exact grid goes with its workspace, for the eval job (grid metrics)."""
+    from occufly.fsutil import atomic_write_bytes
+    from occufly.grid import TRUTH_GRID_RELPATH
+
+    src, dst = source / "truth" / "scene_grid.npz", ws / TRUTH_GRID_RELPATH
+    if src.is_file() and ws.is_dir() and not dst.is_file():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(dst, src.read_bytes())
+
+
 def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "small",
          seed_value: int = 0, name: str | None = None, app=None, select: bool = True,  # noqa: ANN001
          passwords: dict[str, str] | None = None, progress=None) -> dict:  # noqa: ANN001
@@ -66,6 +77,7 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
                     raise WorkspaceError(f"demo import of {source} failed: {job.message}")
             s.refresh(scene)
             scene_id = scene.id
+            _copy_truth_grid(Path(source), Path(scene.workspace))
             selection = scene.selection
             if select and selection is None:
                 job = jobs.create(session=s, kind="selection", scene_id=scene_id, user_id=None,

@@ -64,10 +64,19 @@ def _eval(args: argparse.Namespace) -> dict:
     ws = Path(args.workspace)
     pred_path = Path(args.grid) if args.grid else _grid_path(str(ws))
     pred = SceneGrid.load(pred_path)
-    truth = SceneGrid.load(_grid_path(args.truth))
+    if args.truth:
+        truth_path = _grid_path(args.truth)
+    else:
+        from occufly.errors import InputFormatError
+        from occufly.grid import TRUTH_GRID_RELPATH
+
+        truth_path = ws / TRUTH_GRID_RELPATH
+        if not truth_path.is_file():
+            raise InputFormatError(f"{truth_path}: no truth grid in the workspace; pass --truth GRID")
+    truth = SceneGrid.load(truth_path)
     out = evaluate_grids(pred, truth, _load_taxonomy(ws if ws.is_dir() else None), region=args.region)
     out["pred"] = str(pred_path)
-    out["truth"] = str(_grid_path(args.truth))
+    out["truth"] = str(truth_path)
     return out
 
 
@@ -109,7 +118,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = command(sub, "eval-grid", _eval, help="completion IoU, per-class IoU and mIoU vs a truth grid")
     p.add_argument("workspace", help="scene workspace (its grid/scene_grid.npz and taxonomy)")
-    p.add_argument("--truth", required=True, help="truth grid .npz (or a folder holding grid/scene_grid.npz)")
+    p.add_argument("--truth", help="truth grid .npz (or a folder holding grid/scene_grid.npz); "
+                   "default WS/truth/scene_grid.npz")
     p.add_argument("--grid", help="evaluate this grid instead of the workspace's")
     p.add_argument("--region", choices=("truth", "union"), default="truth",
                    help="evaluate inside the truth grid's extent (default) or the union of both")

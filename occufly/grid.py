@@ -24,6 +24,9 @@ from occufly.errors import InputFormatError
 from occufly.fsutil import atomic_write_bytes
 
 GRID_RELPATH = "grid/scene_grid.npz"
+# a truth grid kept with the workspace (the demo copies the synthetic scene's exact grid here);
+# `occufly eval-grid` and the app's eval job compare the densified grid against it
+TRUTH_GRID_RELPATH = "truth/scene_grid.npz"
 
 
 @dataclass

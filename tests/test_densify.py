@@ -467,6 +467,13 @@ def test_cli_voxelize_eval_preview_round_trip(tmp_path):
         assert main(["eval-grid", str(ws), "--truth", str(tmp_path / "truth.npz"), "--json"]) == 0
     ev = json.loads(buf.getvalue())
     assert ev["completion_iou"] == 1.0 and ev["miou"] == 1.0 and ev["classes_evaluated"] == 4
+    # without --truth: WS/truth/scene_grid.npz, or exit 2 naming the missing file
+    assert main(["eval-grid", str(ws), "--json"]) == 2
+    grid.save(ws / "truth" / "scene_grid.npz")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["eval-grid", str(ws), "--json"]) == 0
+    assert json.loads(buf.getvalue())["truth"] == str(ws / "truth" / "scene_grid.npz")
     img = np.asarray(Image.open(tmp_path / "p.png").convert("RGB"))
     assert img.shape[0] > 100 and img.shape[1] > 200
     vehicle_rgb = np.array(TAX[IDS["vehicle"]].rgb)

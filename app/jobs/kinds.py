@@ -118,5 +118,26 @@ def run_eval(jc: JobContext) -> dict:
     """2D agreement of the lifted labels rendered into every frame that has a current mask."""
     from app.review import service as review
 
-    return review.evaluate_scene(ctx=jc.ctx, scene_id=jc.scene_id, frames=jc.params.get("frames"),
-                                 progress=jc.progress)
+    result = review.evaluate_scene(ctx=jc.ctx, scene_id=jc.scene_id, frames=jc.params.get("frames"),
+                                   progress=lambda f, m="": jc.progress(0.9 * f, m))
+    ws, scene = _scene(jc)
+    grid_eval = _scene_grid_eval(Path(ws), scene.taxonomy)
+    if grid_eval is not None:
+        result["scene_grid"] = grid_eval
+    jc.progress(1.0, "done")
+    return result
+
+
+def _scene_grid_eval(ws: Path, taxonomy) -> dict | None:  # noqa: ANN001
+    """Completion / per-class IoU of WS/grid/scene_grid.npz against WS/truth/scene_grid.npz, when
+    both exist (e.g. the demo's synthetic scene after a voxelize job); None otherwise."""
+    from occufly.densify.evaluate import evaluate_grids
+    from occufly.grid import TRUTH_GRID_RELPATH, SceneGrid, workspace_grid_path
+
+    pred_p, truth_p = workspace_grid_path(ws), ws / TRUTH_GRID_RELPATH
+    if not (pred_p.is_file() and truth_p.is_file()):
+        return None
+    ev = evaluate_grids(SceneGrid.load(pred_p), SceneGrid.load(truth_p), taxonomy)
+    keep = ("completion_iou", "precision", "recall", "miou", "classes_evaluated")
+    return {"table": "scene_grid_vs_truth", **{k: ev[k] for k in keep if k in ev},
+            "per_class_iou": ev.get("per_class_iou", {})}

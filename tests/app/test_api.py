@@ -610,6 +610,28 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
     assert met["n_frames"] == 1 and met["frames"][0]["frame_id"] == fid
     assert met["agreement"] == pytest.approx(1.0)
+    assert "scene_grid" not in met  # no grid, no truth grid yet
+    # with a densified grid and a truth grid in the workspace the eval job scores the grid too
+    from occufly.grid import TRUTH_GRID_RELPATH, SceneGrid, workspace_grid_path
+
+    ws = env.settings.workspaces_dir / "tiny"
+    truth = np.zeros((4, 4, 4), np.uint8)
+    truth[:, :, 0] = 6  # 16 grass voxels
+    truth[1, 1, 1:3] = 13  # 2 vehicle voxels
+    pred = truth.copy()
+    pred[0, :, 0] = 0  # 4 grass voxels missed
+    pred[2, 2, 1] = 13  # 1 vehicle voxel too many
+    SceneGrid(pred, np.array([100.0, 200.0, 10.0]), 0.5).save(workspace_grid_path(ws))
+    SceneGrid(truth, np.array([100.0, 200.0, 10.0]), 0.5).save(ws / TRUTH_GRID_RELPATH)
+    r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
+    g = met["scene_grid"]
+    assert g["completion_iou"] == pytest.approx(14 / 19)  # TP 14, FP 1, FN 4
+    assert g["per_class_iou"]["grass"] == pytest.approx(12 / 16)
+    assert g["per_class_iou"]["vehicle"] == pytest.approx(2 / 3)
+    assert g["miou"] == pytest.approx((12 / 16 + 2 / 3) / 2)
+    assert met["agreement"] == pytest.approx(1.0)
     # hooks handed to the 3D viewer
     from app.main import authorize_viewer, viewer_callbacks
 

@@ -51,9 +51,17 @@ def test_demo_seed_imports_selects_and_creates_users(tmp_path):
 
     roots = tmp_path / "imports"
     src = write_tiny_workspace(roots / "tiny_ws")
+    # a synthetic source's truth grid goes with the workspace (the eval job scores against it)
+    import numpy as np
+
+    from occufly.grid import SceneGrid
+
+    SceneGrid(np.full((2, 2, 2), 6, np.uint8), np.zeros(3), 0.5).save(src / "truth" / "scene_grid.npz")
     settings = Settings(data_dir=tmp_path / "data", import_roots=[roots], env="development",
                         job_processes=False, argon2_memory_kib=1024, argon2_time_cost=1)
     info = seed(settings, src)
+    copies = list((tmp_path / "data").rglob("truth/scene_grid.npz"))
+    assert len(copies) == 1 and copies[0].read_bytes() == (src / "truth" / "scene_grid.npz").read_bytes()
     again = seed(settings, src)  # idempotent: same scene, same users
     assert again["scene_id"] == info["scene_id"]
     assert set(info["users"]) == {"admin", "reviewer", "annotator"}

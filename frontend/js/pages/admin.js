@@ -406,8 +406,9 @@ export function metricsView(m) {
         : typeof v === "object"
           ? JSON.stringify(v)
           : String(v);
-  const fmt = (v, row) => fmtv(v, row && row.k !== undefined ? row.k : "");
   const walk = (obj, title) => {
+    // a table of shares keyed by class name (per_class_iou, ...) takes its unit from the title
+    const fmt = (v, row) => fmtv(v, SHARE.test(title) ? title : row && row.k !== undefined ? row.k : "");
     if (Array.isArray(obj) && obj.length && typeof obj[0] === "object") {
       const cols = [...new Set(obj.flatMap((r) => Object.keys(r)))].map((k) => ({ key: k, label: k, fmt: (v) => fmtv(v, k) }));
       out.append(table(obj, cols, { caption: title }));

@@ -311,6 +311,26 @@ def test_admin_export_job_completes(live, new_page):
         assert metrics.locator(f"td:text-is('{k}')").count() >= 1
     metrics.scroll_into_view_if_needed()
     shot(page, "11_admin_metrics", full_page=True)
+    # frame selection with the best cell of 23-28 m (greedy): the form sends "auto", the page
+    # shows the edge the server chose; the previous selection is restored afterwards
+    before = admin.get(f"/api/scenes/{live.scene_id}/selection").json()
+    page.check("#sel-auto")
+    assert page.locator("#sel-cell").is_disabled() and page.locator("#sel-mode").input_value() == "greedy"
+    run_job("form[aria-label='Selection parameters'] button[type=submit]", "selection")
+    def auto_selection():
+        s = admin.get(f"/api/scenes/{live.scene_id}/selection").json()
+        return s if s.get("params", {}).get("cell") == "auto" else None
+
+    sel = live.wait_until(auto_selection, timeout=20, what="auto selection")
+    assert 23.0 <= sel["cell"] <= 28.0 and len(sel["auto_cells"]) == 11
+    page.wait_for_function(f"document.querySelector('#sel-cell').value == '{sel['cell']:g}'", timeout=20_000)
+    assert page.locator("#sel-auto").is_checked()
+    prm = before.get("params", {})
+    r = admin.post(f"/api/scenes/{live.scene_id}/selection",
+                   json={k: prm[k] for k in ("cell", "mode", "target_coverage", "altitude") if prm.get(k) is not None})
+    assert r.status_code == 202
+    live.wait_until(lambda: admin.get(f"/api/jobs/{r.json()['id']}").json()["status"] == "done", timeout=60,
+                    what="selection restored")
 
 
 def test_errors_are_readable_never_a_blank_page(live, new_page):

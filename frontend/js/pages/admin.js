@@ -178,10 +178,23 @@ class AdminPage {
     this.selMode = el("select", { id: "sel-mode" }, ["stratified", "greedy"].map((m) => el("option", { value: m }, m)));
     this.selTarget = el("input", { id: "sel-target", type: "number", min: 0, max: 1, step: 0.01, value: 0.99 });
     this.selAlt = el("input", { id: "sel-alt", type: "number", step: "any", placeholder: "all" });
+    // "auto": the server tries 23–28 m and keeps the fewest frames reaching the target (greedy only)
+    this.selAuto = el("input", { id: "sel-auto", type: "checkbox" });
+    const syncAuto = () => {
+      this.selCell.disabled = this.selAuto.checked;
+      if (this.selAuto.checked) this.selMode.value = "greedy";
+    };
+    this.selAuto.addEventListener("change", syncAuto);
+    this.selMode.addEventListener("change", () => {
+      if (this.selMode.value !== "greedy") this.selAuto.checked = false;
+      syncAuto();
+    });
+    this.syncAuto = syncAuto;
     const f = el(
       "form",
       { class: "inline-form", "aria-label": "Selection parameters" },
       field("Cell edge (m)", this.selCell, "23–28 m in the paper"),
+      field("Best cell", this.selAuto, "greedy: try 23–28 m, keep the fewest frames"),
       field("Mode", this.selMode),
       field("Target coverage", this.selTarget),
       field("Altitude (m)", this.selAlt, "empty = all altitudes"),
@@ -189,7 +202,7 @@ class AdminPage {
     );
     f.addEventListener("submit", async (e) => {
       e.preventDefault();
-      const body = { cell: Number(this.selCell.value), mode: this.selMode.value, target_coverage: Number(this.selTarget.value) };
+      const body = { cell: this.selAuto.checked ? "auto" : Number(this.selCell.value), mode: this.selMode.value, target_coverage: Number(this.selTarget.value) };
       if (this.selAlt.value) body.altitude = Number(this.selAlt.value);
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/selection`, body));
       if (job) {
@@ -217,8 +230,10 @@ class AdminPage {
     const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.selected;
     // show the parameters of the selection on display in the form
     const prm = sel.params || sel;
-    if (prm.cell != null) this.selCell.value = prm.cell;
+    this.selAuto.checked = prm.cell === "auto";
+    if (sel.cell != null) this.selCell.value = sel.cell; // the edge used (the one chosen for "auto")
     if (prm.mode) this.selMode.value = prm.mode;
+    this.syncAuto();
     if (prm.target_coverage != null) this.selTarget.value = prm.target_coverage;
     this.selAlt.value = prm.altitude ?? "";
     const curveC = el("canvas", { id: "coverage-plot" });

@@ -58,6 +58,8 @@ class SelectionResult:
     stratified_frames: list[int] = field(default_factory=list)
     cells: int = 0
     auto_cells: list = field(default_factory=list)  # cell="auto": (edge, frames, coverage) tried
+    cell_origin: list | None = None  # (x, y) scene-local min corner of cell (0, 0)
+    occupied_cells: list = field(default_factory=list)  # [[i, j], ...] cells holding points
     frame_names: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -75,6 +77,8 @@ class SelectionResult:
             "max_coverage": self.max_coverage,
             "points": self.n_points,
             "cells": self.cells,
+            "cell_origin": self.cell_origin,
+            "occupied_cells": [list(c) for c in self.occupied_cells],
             "stratified_frames": list(self.stratified_frames),
             "curve": [[int(n), float(c)] for n, c in self.curve],
             **({"auto_cells": [[c, n, cov] for c, n, cov in self.auto_cells]} if self.auto_cells else {}),
@@ -112,9 +116,14 @@ def coverage(scene: Scene, frames: list[int] | np.ndarray) -> float:
     return float(coverage_mask(scene, frames).sum()) / scene.n_points
 
 
-def stratified(scene: Scene, candidates: np.ndarray, cell: float, *, max_points: int = 2_000_000
+def stratified(scene: Scene, candidates: np.ndarray, cell: float, *, max_points: int = 2_000_000,
+               geometry: dict | None = None
                ) -> tuple[list[int], int]:
-    """Stratified selection over ``candidates``; returns (frames, number of occupied cells)."""
+    """Stratified selection over ``candidates``; returns (frames, number of occupied cells).
+
+    With ``geometry`` (a dict), the cell lattice is written into it: ``cell_origin`` (x, y)
+    scene-local metres of cell (0, 0)'s min corner and ``occupied_cells`` [[i, j], ...].
+    """
     if cell <= 0:
         raise InputFormatError(f"cell: the cell edge must be positive, got {cell}")
     if len(candidates) == 0 or scene.n_points == 0:
@@ -132,6 +141,9 @@ def stratified(scene: Scene, candidates: np.ndarray, cell: float, *, max_points:
     out_w, out_e = ~pad[:-2, 1:-1], ~pad[2:, 1:-1]
     out_s, out_n = ~pad[1:-1, :-2], ~pad[1:-1, 2:]
     ci, cj = np.nonzero(occ)
+    if geometry is not None:
+        geometry["cell_origin"] = [float(lo[0]), float(lo[1])]
+        geometry["occupied_cells"] = np.column_stack([ci, cj]).tolist()
     centre = lo + (np.column_stack([ci, cj]) + 0.5) * cell
     shift = np.zeros_like(centre)
     shift[:, 0] = (out_e[ci, cj].astype(float) - out_w[ci, cj]) * cell / 2
@@ -242,7 +254,8 @@ def select_frames(scene: Scene, *, cell: float | str = 25.0, mode: str = "strati
         best.auto_cells = [(r.cell, len(r.frames), round(r.coverage, 5)) for r in results]
         return best
     cand = candidate_frames(scene, altitude)
-    frames, cells = stratified(scene, cand, float(cell))
+    geometry: dict = {}
+    frames, cells = stratified(scene, cand, float(cell), geometry=geometry)
     strat = list(frames)
     if mode in ("greedy", "cover"):
         start = frames if mode == "greedy" else []
@@ -272,5 +285,7 @@ def select_frames(scene: Scene, *, cell: float | str = 25.0, mode: str = "strati
         max_coverage=max_cov,
         stratified_frames=strat,
         cells=cells,
+        cell_origin=geometry.get("cell_origin"),
+        occupied_cells=geometry.get("occupied_cells", []),
         frame_names=[scene.frames[f].name for f in frames],
     )

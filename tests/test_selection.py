@@ -130,3 +130,14 @@ def test_auto_cell_keeps_the_fewest_frames_reaching_the_target():
         select_frames(scene, cell="auto")  # stratified has no target to compare cells by
     with pytest.raises(InputFormatError, match="auto"):
         select_frames(scene, cell="big", mode="greedy")
+
+
+def test_selection_reports_the_cell_lattice_it_used():
+    xy = [(12.5, 12.5), (37.5, 12.5), (62.5, 62.5)]
+    scene = _scene(xy, [50] * 3, see_radius=30.0, extent=75.0)
+    res = select_frames(scene, cell=25.0).to_dict()
+    pts = np.asarray(scene.xyz[:, :2], np.float64)
+    assert res["cell_origin"] == pytest.approx(pts.min(axis=0).tolist())
+    occ = {tuple(c) for c in res["occupied_cells"]}
+    ij = np.minimum(((pts - pts.min(axis=0)) / 25.0).astype(int), 2)
+    assert occ == {tuple(c) for c in ij.tolist()} and len(occ) == res["cells"] == 9

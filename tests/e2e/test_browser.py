@@ -255,6 +255,7 @@ def test_admin_export_job_completes(live, new_page):
     page.wait_for_selector("#coverage-plot")
     page.wait_for_selector("#camera-map")
     assert "frames selected" in page.locator("#selection-summary").inner_text()
+    assert "occupied grid cells" in page.locator("#sec-selection figcaption").nth(1).inner_text()
     shot(page, "08_admin", full_page=True)
     # users: create one through the form, it is listed and can log in
     page.fill("#new-username", "annotator2")
@@ -325,6 +326,8 @@ def test_admin_export_job_completes(live, new_page):
     assert 23.0 <= sel["cell"] <= 28.0 and len(sel["auto_cells"]) == 11
     page.wait_for_function(f"document.querySelector('#sel-cell').value == '{sel['cell']:g}'", timeout=20_000)
     assert page.locator("#sel-auto").is_checked()
+    page.locator("#sec-selection").scroll_into_view_if_needed()
+    shot(page, "12_admin_selection_best_cell")
     prm = before.get("params", {})
     r = admin.post(f"/api/scenes/{live.scene_id}/selection",
                    json={k: prm[k] for k in ("cell", "mode", "target_coverage", "altitude") if prm.get(k) is not None})

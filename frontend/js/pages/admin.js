@@ -241,8 +241,8 @@ class AdminPage {
     // `frames` are frame indices into the scene (the order of `cameras`).
     const selected = new Set((Array.isArray(sel.frames) ? sel.frames : []).map((v) => (typeof v === "object" ? v.index : v)));
     // Cells: a list of cell geometries ([x0, y0, x1, y1], {center, size}, ...), or occupied
-    // grid indices with the grid origin (`occupied_cells` + `cell_origin`). occufly.selection
-    // currently reports only the number of occupied cells; then no cells can be drawn.
+    // grid indices with the grid origin (`occupied_cells` + `cell_origin`, what occufly.selection
+    // reports); older results carry only the number of occupied cells and draw none.
     const edge = sel.cell ?? Number(this.selCell.value);
     let cells = Array.isArray(sel.cells) ? sel.cells.map((c) => cellRect(c, edge)).filter(Boolean) : [];
     if (!cells.length && Array.isArray(sel.occupied_cells) && Array.isArray(sel.cell_origin)) {

@@ -66,6 +66,15 @@ def test_annotator_paint_undo_redo_submit_reload(live, new_page):
     page.locator(".layer-overlay").focus()
     page.keyboard.press("3")  # number keys pick palette entries
     assert page.get_attribute(f".swatch-btn[data-class='{classes[2]}']", "aria-checked") == "true"
+    # , and . step through the palette, wrapping around: every class has a key, the 21st too
+    page.keyboard.press("Shift+Digit0")  # the 20th class
+    assert page.get_attribute(f".swatch-btn[data-class='{classes[19]}']", "aria-checked") == "true"
+    page.keyboard.press(".")
+    assert page.get_attribute(f".swatch-btn[data-class='{classes[20]}']", "aria-checked") == "true"
+    page.keyboard.press(".")
+    assert page.get_attribute(f".swatch-btn[data-class='{classes[0]}']", "aria-checked") == "true"
+    page.keyboard.press(",")
+    assert page.get_attribute(f".swatch-btn[data-class='{classes[-1]}']", "aria-checked") == "true"
     page.click(f".swatch-btn[data-class='{cls}']")
     assert page.get_attribute(f".swatch-btn[data-class='{cls}']", "aria-checked") == "true"
     page.evaluate("() => window.__occufly.page.editor.setSize(30)")

@@ -206,7 +206,7 @@ class AnnotatorPage {
     this.stats.openMs = performance.now() - t0;
     ph.painted = this.stats.openMs;
     this.stats.openPhases = Object.fromEntries(Object.entries(ph).map(([k, v]) => [k, Math.round(v)]));
-    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, H pan, [ ] size, 1–0 classes, Ctrl+Z undo.`);
+    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
   }
 
   buildTools() {
@@ -258,7 +258,7 @@ class AnnotatorPage {
 
   buildPalette(classes) {
     const ed = this.editor;
-    const keyOf = (i) => (i < 10 ? String((i + 1) % 10) : i < 20 ? `⇧${(i - 9) % 10}` : "");
+    const keyOf = (i) => (i < 10 ? String((i + 1) % 10) : i < 20 ? `⇧${(i - 9) % 10}` : ", .");
     const items = classes.map((c, i) =>
       el(
         "button",

@@ -223,6 +223,14 @@ export class Editor {
       if (idx < this.classes.length) this.selectClass(this.classes[idx].id);
       return true;
     }
+    // , and . step through the palette (reaches every class, also past the 20 number keys)
+    if ((k === "," || k === ".") && this.classes.length) {
+      const i = this.classes.findIndex((c) => c.id === this.state.classId);
+      const n = this.classes.length;
+      const j = i < 0 ? 0 : (i + (k === "." ? 1 : n - 1)) % n;
+      this.selectClass(this.classes[j].id);
+      return true;
+    }
     const lower = k.toLowerCase();
     for (const t of Object.values(this.tools)) {
       if (t.key === lower && typeof t.key === "string") {

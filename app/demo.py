@@ -81,7 +81,7 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
             selection = scene.selection
             if select and selection is None:
                 job = jobs.create(session=s, kind="selection", scene_id=scene_id, user_id=None,
-                                  params={"cell": 25.0, "mode": "greedy", "target_coverage": 0.99})
+                                  params={"cell": "auto", "mode": "greedy", "target_coverage": 0.99})
                 ctx.jobs.submit(job.id)
                 ctx.jobs.wait(job.id, timeout=3600)
                 s.refresh(job)

@@ -24,9 +24,9 @@ Fill and denoise (:func:`fill_and_denoise`)
     periphery) then take the vote of their k=100 nearest labelled points at any distance, as
     the method's plain k-NN fill does (``fill_far=False`` leaves them unlabelled; measured on
     ``small`` seed 2 with the 24 stratified frames: 7,174 points stayed unlabelled with the
-    3 m bound alone, point accuracy 0.9739 -> 0.9843, scene-grid completion IoU 0.834 -> 0.879). Denoise: every labelled point takes the
-    dominant class of its k=200 nearest labelled points (itself included) within
-    ``denoise_radius``, unless its own class holds at least ``denoise_keep_share`` (default
+    3 m bound alone, point accuracy 0.9739 -> 0.9843, scene-grid completion IoU 0.834 -> 0.879).
+    Denoise: every labelled point takes the dominant class of its k=200 nearest labelled points
+    (itself included) within ``denoise_radius``, unless its own class holds at least ``denoise_keep_share`` (default
     0.25) of that neighbourhood. The keep rule is our addition: the paper's plain rule
     (``denoise_keep_share=None``) relabels every point, which on the synthetic ``small`` scene
     lowers point accuracy from 0.991 to 0.986 and mIoU from 0.918 to 0.827 (persons, bicycles,
@@ -38,8 +38,8 @@ Fill and denoise (:func:`fill_and_denoise`)
     person are mostly ground. Measured on ``small`` with truth masks (same votes, same run):
     stratified selection, accuracy 0.9809 -> 0.9828, mIoU 0.820 -> 0.900; greedy selection
     0.9884 -> 0.9906, mIoU 0.826 -> 0.922 (persons, bicycles, benches survive the denoise).
-    ``confirm_views=None`` turns it off. The fast method certifies whole voxels at once: with voxel edge ``v``
-    near the typical k-NN radius, a point's k nearest neighbours lie in the 3x3x3 voxel block
+    ``confirm_views=None`` turns it off. The fast method certifies whole voxels at once: with
+    voxel edge ``v`` near the typical k-NN radius, a point's k nearest neighbours lie in the 3x3x3 voxel block
     around its voxel; if that block holds at least ``k`` points and fewer than k/2 of them
     disagree with the block's dominant class, that class must win the k-NN vote (with the keep
     rule, a point of another class is certified only if the block holds fewer than

@@ -445,15 +445,7 @@ def _slab_entry(a, b, x0, x1, y0, y1, z0, z1) -> np.ndarray:
     lo = z0.astype(np.float64).copy()
     hi = z1.astype(np.float64).copy()
     for s, c0, c1 in ((a, x0, x1), (b, y0, y1)):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t0 = c0 / s
-            t1 = c1 / s
-        tl = np.minimum(t0, t1)
-        th = np.maximum(t0, t1)
-        zero = s == 0
-        inside0 = (c0 <= 0) & (c1 >= 0)
-        tl = np.where(zero, np.where(inside0, -np.inf, np.inf), tl)
-        th = np.where(zero, np.where(inside0, np.inf, -np.inf), th)
+        tl, th = _axis_interval(s, c0, c1)
         np.maximum(lo, tl, out=lo)
         np.minimum(hi, th, out=hi)
     return np.where(lo <= hi, lo, np.inf)

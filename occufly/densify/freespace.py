@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occufly.camera import transform
+from occufly.camera import camera_center, transform
 
 
 @dataclass(frozen=True)
@@ -79,8 +79,6 @@ class FrameDepths:
         """Scene-local (lo, hi) box around the frustum up to depth zmax + tolerance: every voxel
         centre that can get a vote from this frame lies inside it (plus one voxel of margin for
         lens distortion between the sampled border points)."""
-        from occufly.camera import camera_center
-
         W, H = cam.width, cam.height
         border = np.array([[0, 0], [W / 2, 0], [W, 0], [W, H / 2], [W, H], [W / 2, H], [0, H], [0, H / 2]], float)
         far = zmax + (self.params.tolerance + 1.0) * self.voxel_size

@@ -10,8 +10,9 @@
    (the closed surface Poisson invents away from the data) are removed with their triangles;
    outside the data's plan-view footprint (beyond the survey's rim, holes excluded) Poisson's
    free boundary curls away from the terrain, so there a vertex must also lie within
-   ``rim_tolerance`` (half a voxel) of the least-squares plane of the centroids within 3 m. A quantile rule was rejected: on a ground plane with a hole, the hole's
-   vertices *are* the lowest few percent, and filling them is the point of this step.
+   ``rim_tolerance`` (half a voxel) of the least-squares plane of the centroids within 3 m.
+   A quantile rule was rejected: on a ground plane with a hole, the hole's vertices *are* the
+   lowest few percent, and filling them is the point of this step.
 4. Scan conversion: each remaining triangle is sampled with barycentric points on a lattice
    whose spacing is ≤ ``sample_spacing`` voxel edges (default 0.3), vectorised over all
    triangles in chunks; every sample marks its voxel.
@@ -178,9 +179,9 @@ def poisson_mesh(
     rim = np.flatnonzero(~inside & ~bad)
     if len(rim) and params.rim_tolerance is not None:
         off, nrm, ok = plane_offsets(thin, verts[rim], params.rim_plane_radius, weight=weight)
-        dz = np.abs(off) / np.maximum(np.abs(nrm[:, 2]), 0.2)
-        bad[rim[~ok | (dz > params.rim_tolerance * voxel_size)]] = True
-        stats["rim_vertices_off_plane"] = int((ok & (dz > params.rim_tolerance * voxel_size)).sum())
+        off_plane = np.abs(off) / np.maximum(np.abs(nrm[:, 2]), 0.2) > params.rim_tolerance * voxel_size
+        bad[rim[~ok | off_plane]] = True
+        stats["rim_vertices_off_plane"] = int((ok & off_plane).sum())
     keep_tri = ~bad[tris].any(axis=1)
     tris = tris[keep_tri]
     stats["trimmed_triangles"] = int((~keep_tri).sum())

@@ -312,11 +312,13 @@ def densify(
     # ---- other -------------------------------------------------------------------------
     t = time.perf_counter()
     sel = np.flatnonzero(gl == 3)
-    sel = sel[np.argsort(labels[sel], kind="stable")]  # class by class, for the smoothing
-    cuts = np.flatnonzero(np.diff(labels[sel].astype(np.int16))) + 1
     r_other = options.smooth_radius_other * vs
-    pts = np.concatenate([_smoothed(xyz, part, r_other) for part in np.split(sel, cuts)]) if len(sel) else \
-        np.zeros((0, 3), np.float32)
+    if r_other > 0 and len(sel):  # smoothing is per class: go class by class
+        sel = sel[np.argsort(labels[sel], kind="stable")]
+        cuts = np.flatnonzero(np.diff(labels[sel].astype(np.int16))) + 1
+        pts = np.concatenate([_smoothed(xyz, part, r_other) for part in np.split(sel, cuts)])
+    else:
+        pts = np.asarray(xyz[sel], np.float32)
     other_k, other_l = bin_points(spec, pts, labels[sel], prio)
     del pts
     timings["other"] = time.perf_counter() - t

@@ -111,6 +111,13 @@ def column_terrain_range(world: World, origin: np.ndarray, dims: np.ndarray, vox
     return lo, hi
 
 
+def _column_centres(origin: np.ndarray, dims: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) float64 plan-view x and y of every voxel column's centre, local metres."""
+    cx = origin[0] + (np.arange(dims[0]) + 0.5) * voxel
+    cy = origin[1] + (np.arange(dims[1]) + 0.5) * voxel
+    return np.meshgrid(cx, cy, indexing="ij")
+
+
 def survey_views(world: World, origin: np.ndarray, dims: np.ndarray, voxel: float, camera,
                  poses: list[np.ndarray]) -> np.ndarray:
     """(X, Y) int32: frames whose image holds the terrain point at each column's centre.
@@ -119,9 +126,7 @@ def survey_views(world: World, origin: np.ndarray, dims: np.ndarray, voxel: floa
     """
     from occufly.camera import project_world
 
-    cx = origin[0] + (np.arange(dims[0]) + 0.5) * voxel
-    cy = origin[1] + (np.arange(dims[1]) + 0.5) * voxel
-    X, Y = np.meshgrid(cx, cy, indexing="ij")
+    X, Y = _column_centres(origin, dims, voxel)
     pts = np.column_stack([X.ravel(), Y.ravel(), world.ground_z(X.ravel(), Y.ravel())])
     count = np.zeros(len(pts), np.int32)
     for T in poses:
@@ -139,9 +144,7 @@ def observed_columns(xy: np.ndarray, origin: np.ndarray, dims: np.ndarray, voxel
     if len(xy) == 0:
         return np.zeros((X, Y), bool)
     pts = np.unique(np.round(np.asarray(xy, np.float64), 3), axis=0)  # mm duplicates add nothing
-    cx = origin[0] + (np.arange(X) + 0.5) * voxel
-    cy = origin[1] + (np.arange(Y) + 0.5) * voxel
-    GX, GY = np.meshgrid(cx, cy, indexing="ij")
+    GX, GY = _column_centres(origin, dims, voxel)
     d, _ = cKDTree(pts).query(np.column_stack([GX.ravel(), GY.ravel()]), k=1, distance_upper_bound=radius)
     return np.isfinite(d).reshape(X, Y)
 

@@ -121,7 +121,12 @@ def run_eval(jc: JobContext) -> dict:
     result = review.evaluate_scene(ctx=jc.ctx, scene_id=jc.scene_id, frames=jc.params.get("frames"),
                                    progress=lambda f, m="": jc.progress(0.9 * f, m))
     ws, scene = _scene(jc)
-    grid_eval = _scene_grid_eval(Path(ws), scene.taxonomy)
+    from occufly.errors import OccuflyError
+
+    try:
+        grid_eval = _scene_grid_eval(Path(ws), scene.taxonomy)
+    except OccuflyError as e:  # a bad truth grid must not cost the 2D agreement just computed
+        grid_eval = {"table": "scene_grid_vs_truth", "error": str(e)}
     if grid_eval is not None:
         result["scene_grid"] = grid_eval
     jc.progress(1.0, "done")

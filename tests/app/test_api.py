@@ -632,6 +632,19 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     assert g["per_class_iou"]["vehicle"] == pytest.approx(2 / 3)
     assert g["miou"] == pytest.approx((12 / 16 + 2 / 3) / 2)
     assert met["agreement"] == pytest.approx(1.0)
+    # a truth grid that does not fit (other voxel size): the job still reports the agreement,
+    # and the grid section says what is wrong
+    SceneGrid(truth, np.array([100.0, 200.0, 10.0]), 0.25).save(ws / TRUTH_GRID_RELPATH)
+    r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    assert env.client.get(f"/api/jobs/{r.json()['id']}", headers=hdr["admin"]).json()["status"] == "done"
+    met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
+    assert met["agreement"] == pytest.approx(1.0) and "voxel sizes" in met["scene_grid"]["error"]
+    (ws / TRUTH_GRID_RELPATH).write_bytes(b"not an npz")
+    r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
+    assert "not a readable" in met["scene_grid"]["error"] and met["n_frames"] == 1
     # hooks handed to the 3D viewer
     from app.main import authorize_viewer, viewer_callbacks
 

@@ -1,5 +1,8 @@
 """Web-app commands: ``serve``, ``db upgrade|current``, ``users create|list``, ``demo``.
 
+Registered with the ``occufly`` command line through the ``occufly.commands`` entry point
+(pyproject.toml), so the library never imports the app.
+
 Settings come from ``OCCUFLY_*`` environment variables (see ``app/config.py``), e.g.
 ``OCCUFLY_DATABASE_URL``, ``OCCUFLY_DATA_DIR``, ``OCCUFLY_SECRET_KEY``.
 """

@@ -1,7 +1,10 @@
 """The ``occufly`` command line.
 
-Each area registers its sub-commands from its own module (``occufly/cli_<area>.py`` with a
-``register(subparsers)`` function listed in :data:`COMMAND_MODULES`). A command handler takes
+Each command group registers its sub-commands from its own module of this package
+(``occufly/cli/<group>.py`` with a ``register(subparsers)`` function listed in
+:data:`COMMAND_MODULES`). Packages built on the library add their own groups through the
+``occufly.commands`` entry point (the web app's ``serve``, ``db``, ``users``, ``demo``,
+``backup`` live in ``app/cli.py``): the library never imports them by name. A command handler takes
 the parsed ``argparse.Namespace`` and returns either an exit code or a dict; a dict is printed
 as JSON with ``--json`` and as a readable summary otherwise.
 
@@ -21,13 +24,14 @@ from typing import Any
 from occufly.errors import OccuflyError
 
 COMMAND_MODULES: list[str] = [
-    "occufly.cli_core",
-    "occufly.cli_app",
-    "occufly.cli_voxelize",
-    "occufly.cli_lift",
-    "occufly.cli_export",
-    "occufly.cli_synth",
+    "occufly.cli.core",
+    "occufly.cli.voxelize",
+    "occufly.cli.lift",
+    "occufly.cli.export",
+    "occufly.cli.synth",
 ]
+#: entry-point group through which other packages (the web app) add command groups
+ENTRY_POINT_GROUP = "occufly.commands"
 
 
 def add_json_flag(p: argparse.ArgumentParser) -> None:
@@ -101,7 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for mod in COMMAND_MODULES:
         importlib.import_module(mod).register(sub)
+    for ep in _plugin_entry_points():
+        ep.load().register(sub)
     return parser
+
+
+def _plugin_entry_points() -> list:
+    from importlib.metadata import entry_points
+
+    return sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: ep.name)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -124,7 +136,3 @@ def main(argv: list[str] | None = None) -> int:
     if result is not None:
         emit(result, getattr(args, "json", False))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -14,21 +14,38 @@ import numpy as np
 
 from occufly.errors import InputFormatError
 
-# model name -> parameter names in COLMAP order
+# model name -> parameter names in COLMAP order (the COLMAP names are COLMAP's own models)
 CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
     "PINHOLE": ("fx", "fy", "cx", "cy"),
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+    # Brown-Conrady with OpenCV's tangential order (OpenSfM/ODM "brown", Pix4D R1-R3/T1-T2)
+    # and a skew on the distorted coordinates: u = fx x' + skew y' + cx, v = fy y' + cy
+    "BROWN": ("fx", "fy", "cx", "cy", "skew", "k1", "k2", "k3", "k4", "p1", "p2"),
+    # Agisoft Metashape "frame": p1/p2 in Metashape's order (swapped relative to OpenCV),
+    # p3/p4 scale the tangential term, b1 affinity, b2 skew; cx/cy are ABSOLUTE pixels here
+    # (the reader adds Metashape's offsets to W/2, H/2): u = cx + x'(f + b1) + y' b2, v = cy + y' f
+    "METASHAPE": ("f", "cx", "cy", "b1", "b2", "k1", "k2", "k3", "k4", "p1", "p2", "p3", "p4"),
 }
+
+# number of leading parameters in pixels (they scale with the image); the rest is distortion
+_N_LINEAR = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3, "OPENCV": 4,
+             "FULL_OPENCV": 4, "OPENCV_FISHEYE": 4, "BROWN": 5, "METASHAPE": 5}
+_FISHEYE = frozenset({"OPENCV_FISHEYE"})
 
 
 @dataclass(frozen=True)
 class Camera:
     """An intrinsic camera model.
 
-    model: one of :data:`CAMERA_MODELS`; params: (P,) float64 in COLMAP's order for that model.
+    model: one of :data:`CAMERA_MODELS`; params: (P,) float64 in COLMAP's order for that model
+    (the models COLMAP lacks use the order listed in :data:`CAMERA_MODELS`).
+    Projection: normalised ``xy = (X/Z, Y/Z)`` -> distorted ``xy'`` (model's distortion) ->
+    pixels ``u = fx x' + skew y' + cx``, ``v = fy y' + cy`` (COLMAP pixel convention).
     """
 
     model: str
@@ -56,42 +73,56 @@ class Camera:
         object.__setattr__(self, "params", params)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
+        fx, fy = self.focal
+        if fx <= 0 or fy <= 0:
+            raise InputFormatError(f"camera {self.model}: focal length must be positive, got "
+                                   f"fx={fx}, fy={fy}")
 
     # ---- intrinsics ----------------------------------------------------------------------
     @property
     def focal(self) -> tuple[float, float]:
         p = self.params
-        if self.model in ("PINHOLE", "OPENCV"):
+        if self.model == "METASHAPE":
+            return float(p[0] + p[3]), float(p[0])
+        if _N_LINEAR[self.model] >= 4:
             return float(p[0]), float(p[1])
         return float(p[0]), float(p[0])
 
     @property
     def principal_point(self) -> tuple[float, float]:
         p = self.params
-        if self.model in ("PINHOLE", "OPENCV"):
-            return float(p[2]), float(p[3])
-        return float(p[1]), float(p[2])
+        if self.model == "METASHAPE" or _N_LINEAR[self.model] == 3:
+            return float(p[1]), float(p[2])
+        return float(p[2]), float(p[3])
+
+    @property
+    def skew(self) -> float:
+        """Pixels of u per unit of distorted y (0 for every COLMAP model)."""
+        if self.model == "BROWN":
+            return float(self.params[4])
+        if self.model == "METASHAPE":
+            return float(self.params[4])
+        return 0.0
 
     @property
     def K(self) -> np.ndarray:
         """(3, 3) float64 calibration matrix (distortion not included)."""
         fx, fy = self.focal
         cx, cy = self.principal_point
-        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return np.array([[fx, self.skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
     @property
     def has_distortion(self) -> bool:
-        return self._n_dist > 0 and bool(np.any(self._dist_params() != 0))
+        """True when projection is not ``K @ [x, y, 1]`` (distortion, skew or fisheye)."""
+        return (self.model in _FISHEYE or self.skew != 0.0
+                or bool(np.any(self._dist_params() != 0)))
 
     @property
     def _n_dist(self) -> int:
-        return {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4}[
-            self.model
-        ]
+        return len(self.params) - _N_LINEAR[self.model]
 
     def _dist_params(self) -> np.ndarray:
-        n = self._n_dist
-        return self.params[len(self.params) - n :] if n else np.zeros(0)
+        return self.params[_N_LINEAR[self.model]:]
 
     # ---- distortion on normalised coordinates -------------------------------------------
     def distort(self, xy: np.ndarray) -> np.ndarray:
@@ -105,14 +136,40 @@ class Camera:
         u, v = xy[:, 0], xy[:, 1]
         d = self._dist_params()
         r2 = u * u + v * v
-        if self.model == "SIMPLE_RADIAL":
+        m = self.model
+        if m == "SIMPLE_RADIAL":
             radial = d[0] * r2
             return np.stack([u * radial, v * radial], axis=1)
-        radial = d[0] * r2 + d[1] * r2 * r2
-        if self.model == "RADIAL":
-            return np.stack([u * radial, v * radial], axis=1)
-        p1, p2 = d[2], d[3]
+        if m == "OPENCV_FISHEYE":
+            r = np.sqrt(r2)
+            theta = np.arctan(r)
+            t2 = theta * theta
+            theta_d = theta * (1.0 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3]))))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                scale = np.where(r > 1e-12, theta_d / np.where(r > 1e-12, r, 1.0), 1.0) - 1.0
+            return np.stack([u * scale, v * scale], axis=1)
         uv = u * v
+        if m == "RADIAL":
+            radial = d[0] * r2 + d[1] * r2 * r2
+            return np.stack([u * radial, v * radial], axis=1)
+        if m == "OPENCV":
+            k1, k2, p1, p2 = d
+            radial = k1 * r2 + k2 * r2 * r2
+        elif m == "FULL_OPENCV":
+            k1, k2, p1, p2, k3, k4, k5, k6 = d
+            num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+            radial = num / den - 1.0
+        elif m == "BROWN":
+            k1, k2, k3, k4, p1, p2 = d
+            radial = r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+        else:  # METASHAPE: P1 on (r^2 + 2x^2) in x, P2 in y (OpenCV has them the other way)
+            k1, k2, k3, k4, p1, p2, p3, p4 = d
+            radial = r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+            tscale = 1.0 + r2 * (p3 + r2 * p4)
+            du = u * radial + (p1 * (r2 + 2.0 * u * u) + 2.0 * p2 * uv) * tscale
+            dv = v * radial + (p2 * (r2 + 2.0 * v * v) + 2.0 * p1 * uv) * tscale
+            return np.stack([du, dv], axis=1)
         du = u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u * u)
         dv = v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v * v)
         return np.stack([du, dv], axis=1)
@@ -123,11 +180,16 @@ class Camera:
         xy_d: (N, 2) float64 distorted normalised coords -> (N, 2) undistorted.
         """
         xy_d = np.asarray(xy_d, dtype=np.float64)
-        if not self._n_dist:
+        if not self._n_dist and self.model not in _FISHEYE:
             return xy_d.copy()
         x = xy_d.copy()
+        if self.model in _FISHEYE:  # start from the equidistant inverse: r = tan(r_d)
+            r_d = np.linalg.norm(xy_d, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.where(r_d > 1e-12, np.tan(np.minimum(r_d, 1.5)) / np.where(r_d > 1e-12, r_d, 1.0), 1.0)
+            x = xy_d * s[:, None]
         eps = 1e-9
-        active = np.ones(len(x), dtype=bool)
+        active = np.isfinite(x).all(axis=1)
         for _ in range(iterations):
             xa = x[active]
             f = xa + self._distortion_delta(xa) - xy_d[active]
@@ -164,7 +226,7 @@ class Camera:
         fx, fy = self.focal
         cx, cy = self.principal_point
         uv = np.empty_like(xy)
-        uv[:, 0] = fx * xy[:, 0] + cx
+        uv[:, 0] = fx * xy[:, 0] + self.skew * xy[:, 1] + cx
         uv[:, 1] = fy * xy[:, 1] + cy
         return uv, z
 
@@ -173,7 +235,8 @@ class Camera:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         fx, fy = self.focal
         cx, cy = self.principal_point
-        xy_d = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy], axis=1)
+        y_d = (uv[:, 1] - cy) / fy
+        xy_d = np.stack([(uv[:, 0] - cx - self.skew * y_d) / fx, y_d], axis=1)
         xy = self.undistort(xy_d)
         depth = np.broadcast_to(np.asarray(depth, dtype=np.float64), (len(uv),))
         return np.column_stack([xy * depth[:, None], depth])
@@ -185,8 +248,7 @@ class Camera:
     def scaled(self, factor: float) -> Camera:
         """The camera for the image resized by ``factor`` (e.g. 0.25 for 1/4 resolution)."""
         p = self.params.copy()
-        n_focal_c = len(p) - self._n_dist
-        p[:n_focal_c] *= factor
+        p[: _N_LINEAR[self.model]] *= factor
         return Camera(
             self.model,
             max(1, int(round(self.width * factor))),

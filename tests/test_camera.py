@@ -20,6 +20,12 @@ PARAMS = {
     "SIMPLE_RADIAL": [800.0, 320.0, 240.0, -0.08],
     "RADIAL": [800.0, 320.0, 240.0, -0.1, 0.02],
     "OPENCV": [800.0, 790.0, 320.0, 240.0, -0.1, 0.02, 0.001, -0.0015],
+    "FULL_OPENCV": [800.0, 790.0, 320.0, 240.0, -0.1, 0.02, 0.001, -0.0015, 0.003, 0.01,
+                    -0.002, 0.0005],
+    "OPENCV_FISHEYE": [400.0, 402.0, 321.0, 241.0, 0.05, -0.01, 0.002, -0.0003],
+    "BROWN": [800.0, 790.0, 320.0, 240.0, 0.4, -0.1, 0.02, -0.003, 0.0004, 0.001, -0.0015],
+    "METASHAPE": [800.0, 322.5, 238.0, 1.3, -0.4, -0.1, 0.02, -0.003, 0.0004, 0.001, -0.0015,
+                  0.02, -0.01],
 }
 
 
@@ -94,3 +100,76 @@ def test_scaled_camera_maps_pixels():
     assert (small.width, small.height) == (160, 120)
     xyz = np.array([[0.5, 0.3, 4.0]])
     np.testing.assert_allclose(small.project(xyz)[0], cam.project(xyz)[0] * 0.25)
+
+
+def _metashape_formula(params, x, y):
+    """Agisoft's 'frame' model written out as the Metashape manual (Appendix C) states it."""
+    f, cx, cy, b1, b2, k1, k2, k3, k4, p1, p2, p3, p4 = params
+    r2 = x * x + y * y
+    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3 + k4 * r2**4
+    t = 1 + p3 * r2 + p4 * r2**2
+    xd = x * rad + (p1 * (r2 + 2 * x * x) + 2 * p2 * x * y) * t
+    yd = y * rad + (p2 * (r2 + 2 * y * y) + 2 * p1 * x * y) * t
+    return cx + xd * f + xd * b1 + yd * b2, cy + yd * f
+
+
+def test_metashape_distortion_matches_manual():
+    cam = Camera("METASHAPE", 640, 480, PARAMS["METASHAPE"])
+    pts = np.array([[0.3, -0.2], [-0.25, 0.31], [0.0, 0.0], [0.1, 0.05]])
+    uv, _ = cam.project(np.column_stack([pts * 7.0, np.full(len(pts), 7.0)]))
+    for (x, y), got in zip(pts, uv, strict=True):
+        np.testing.assert_allclose(got, _metashape_formula(PARAMS["METASHAPE"], x, y), atol=1e-9)
+
+
+def test_metashape_p1_p2_are_swapped_relative_to_opencv():
+    """Metashape (p1, p2) == OpenCV/Brown (p2, p1): the same image point with swapped values."""
+    f, cx, cy = 800.0, 320.0, 240.0
+    ms = Camera("METASHAPE", 640, 480, [f, cx, cy, 0, 0, -0.1, 0.02, 0, 0, 0.001, -0.0015, 0, 0])
+    br = Camera("BROWN", 640, 480, [f, f, cx, cy, 0, -0.1, 0.02, 0, 0, -0.0015, 0.001])
+    cv = Camera("OPENCV", 640, 480, [f, f, cx, cy, -0.1, 0.02, -0.0015, 0.001])
+    xyz = np.random.default_rng(2).uniform([-3, -2, 5], [3, 2, 9], (200, 3))
+    np.testing.assert_allclose(ms.project(xyz)[0], br.project(xyz)[0], atol=1e-9)
+    np.testing.assert_allclose(ms.project(xyz)[0], cv.project(xyz)[0], atol=1e-9)
+    # and not the same without the swap: the tangential terms move points by > 0.05 px
+    ms_unswapped = Camera("METASHAPE", 640, 480, [f, cx, cy, 0, 0, -0.1, 0.02, 0, 0, -0.0015, 0.001, 0, 0])
+    assert np.abs(ms_unswapped.project(xyz)[0] - cv.project(xyz)[0]).max() > 0.05
+
+
+def test_brown_skew_and_k3_k4():
+    fx, fy, cx, cy, skew, k1, k2, k3, k4, p1, p2 = PARAMS["BROWN"]
+    cam = Camera("BROWN", 640, 480, PARAMS["BROWN"])
+    x, y = 0.3, -0.2
+    r2 = x * x + y * y
+    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3 + k4 * r2**4
+    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * rad + 2 * p2 * x * y + p1 * (r2 + 2 * y * y)
+    uv, _ = cam.project(np.array([[x * 4, y * 4, 4.0]]))
+    np.testing.assert_allclose(uv[0], [fx * xd + skew * yd + cx, fy * yd + cy], atol=1e-9)
+    assert cam.K[0, 1] == skew and cam.has_distortion
+
+
+def test_fisheye_matches_opencv_formula():
+    fx, fy, cx, cy, k1, k2, k3, k4 = PARAMS["OPENCV_FISHEYE"]
+    cam = Camera("OPENCV_FISHEYE", 640, 480, PARAMS["OPENCV_FISHEYE"])
+    x, y = 0.9, -0.6  # ~47 degrees off axis
+    r = np.hypot(x, y)
+    th = np.arctan(r)
+    thd = th * (1 + k1 * th**2 + k2 * th**4 + k3 * th**6 + k4 * th**8)
+    uv, _ = cam.project(np.array([[x, y, 1.0]]))
+    np.testing.assert_allclose(uv[0], [fx * x * thd / r + cx, fy * y * thd / r + cy], atol=1e-9)
+    # the optical axis maps to the principal point (no 0/0)
+    np.testing.assert_allclose(cam.project(np.array([[0.0, 0.0, 2.0]]))[0][0], [cx, cy])
+    assert Camera("OPENCV_FISHEYE", 640, 480, [400, 400, 320, 240, 0, 0, 0, 0]).has_distortion
+
+
+@pytest.mark.parametrize("model", ["BROWN", "METASHAPE", "OPENCV_FISHEYE", "FULL_OPENCV"])
+def test_scaled_camera_projects_to_scaled_pixels(model):
+    cam = Camera(model, 640, 480, PARAMS[model])
+    half = cam.scaled(0.5)
+    xyz = np.random.default_rng(3).uniform([-2, -2, 5], [2, 2, 9], (100, 3))
+    np.testing.assert_allclose(half.project(xyz)[0], cam.project(xyz)[0] * 0.5, atol=1e-9)
+
+
+def test_non_positive_focal_is_an_error():
+    with pytest.raises(InputFormatError, match="focal length must be positive"):
+        Camera("METASHAPE", 640, 480, [800.0, 320, 240, -900.0, 0, 0, 0, 0, 0, 0, 0, 0, 0])

@@ -1,8 +1,8 @@
 """SSC and depth metrics exactly as FORMATS.md section 5 defines them.
 
-SSC. One confusion matrix over all evaluated frames (``np.bincount`` on ``gt * C + pred``
-over compact class indices), ignoring voxels whose ground truth is 255 or whose ground-truth
-invalid bit is set. Per-class IoU = TP / (TP + FP + FN); mIoU = mean over the semantic
+SSC. One confusion matrix over all evaluated frames (:class:`occufly.confusion.Confusion`,
+the module every label metric shares, with its documented absent-class rule), ignoring
+voxels whose ground truth is 255 or whose ground-truth invalid bit is set. Per-class IoU = TP / (TP + FP + FN); mIoU = mean over the semantic
 classes (empty excluded). **A class absent from both prediction and ground truth (TP + FP +
 FN = 0) is reported as n/a (None) and left out of the mIoU.** Completion IoU / precision /
 recall on occupied (label != 0) vs empty. A predicted raw id that is not in the taxonomy is
@@ -15,42 +15,45 @@ averaged over images. Predictions <= 0 at valid pixels are clamped to ``min_pred
 so ratios and logs stay finite (they count as large errors). Images with no valid pixel are
 skipped (and counted).
 
-Both are computed overall and per altitude; :func:`evaluate_ssc_dirs` /
+SSC and depth are computed overall and per altitude; :func:`evaluate_ssc_dirs` /
 :func:`evaluate_depth_dirs` read predictions from the same layout as the ground truth.
+
+Points. :func:`evaluate_points` scores per-point labels (the lifting's output) against truth
+labels with the same confusion matrix.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from occufly.confusion import Confusion
 from occufly.errors import InputFormatError
 from occufly.taxonomy import INVALID, Taxonomy, default_taxonomy
 
 
 # ---- SSC -------------------------------------------------------------------------------------
-@dataclass
 class SSCAccumulator:
-    """Confusion matrix over compact indices: 0 = empty, 1..C = taxonomy classes in table
-    order, C + 1 = any other (unknown) predicted id."""
+    """SSC confusion matrix (:class:`occufly.confusion.Confusion`): compact columns 0 = empty,
+    1..C = taxonomy classes in table order, C + 1 = any other (unknown) predicted id."""
 
-    class_ids: np.ndarray  # (C,) uint8 raw ids
-    cm: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.class_ids = np.asarray(self.class_ids, dtype=np.uint8)
-        n = len(self.class_ids) + 2
-        self.cm = np.zeros((n, n), dtype=np.int64)
-        self._lut = np.full(256, n - 1, dtype=np.int64)
-        self._lut[0] = 0
-        self._lut[self.class_ids] = np.arange(1, len(self.class_ids) + 1)
+    def __init__(self, class_ids) -> None:
+        self._conf = Confusion(class_ids)
+        self.class_ids = self._conf.class_ids
 
     @property
     def n(self) -> int:
-        return len(self.class_ids) + 2
+        return self._conf.n
+
+    @property
+    def cm(self) -> np.ndarray:
+        return self._conf.matrix
+
+    @property
+    def confusion(self) -> Confusion:
+        return self._conf
 
     def add(self, pred: np.ndarray, gt: np.ndarray, invalid: np.ndarray | None = None) -> None:
         """pred, gt: (...) uint8 raw ids of the same shape; invalid: same shape bool or None."""
@@ -60,50 +63,75 @@ class SSCAccumulator:
             raise InputFormatError(f"prediction has {pred.size} voxels, ground truth {gt.size}")
         keep = gt != INVALID
         if invalid is not None:
-            keep &= ~np.asarray(invalid, dtype=bool).reshape(-1)
-        g = self._lut[gt[keep]]
-        p = self._lut[pred[keep]]
-        self.cm += np.bincount(g * self.n + p, minlength=self.n * self.n).reshape(self.n, self.n)
+            inv = np.asarray(invalid, dtype=bool).reshape(-1)
+            if inv.shape != gt.shape:
+                raise InputFormatError(f"invalid mask has {inv.size} voxels, ground truth {gt.size}")
+            keep &= ~inv
+        self._conf.add(gt, pred, keep)
 
     def merge(self, other: SSCAccumulator) -> None:
-        self.cm += other.cm
+        self._conf.merge(other._conf)
 
     def result(self, taxonomy: Taxonomy | None = None) -> dict:
-        cm = self.cm
-        tp = np.diag(cm).astype(np.float64)
-        fp = cm.sum(axis=0) - np.diag(cm)
-        fn = cm.sum(axis=1) - np.diag(cm)
         names = {c.id: c.name for c in taxonomy.classes} if taxonomy else {}
-        per_class = {}
-        ious = []
-        for ci, cid in enumerate(self.class_ids, start=1):
-            denom = tp[ci] + fp[ci] + fn[ci]
-            name = names.get(int(cid), str(int(cid)))
-            if denom == 0:
-                per_class[name] = None
-            else:
-                iou = float(tp[ci] / denom)
-                per_class[name] = iou
-                ious.append(iou)
-        # completion: occupied = any non-empty (compact index != 0)
-        tp_c = float(cm[1:, 1:].sum())
-        fp_c = float(cm[0, 1:].sum())
-        fn_c = float(cm[1:, 0].sum())
+        conf = self._conf
         return {
-            "voxels": int(cm.sum()),
-            "completion": {
-                "iou": _div(tp_c, tp_c + fp_c + fn_c),
-                "precision": _div(tp_c, tp_c + fp_c),
-                "recall": _div(tp_c, tp_c + fn_c),
-            },
-            "miou": float(np.mean(ious)) if ious else None,
-            "classes_evaluated": len(ious),
-            "per_class_iou": per_class,
+            "voxels": conf.total(),
+            "completion": conf.completion(),
+            "miou": conf.miou(),
+            "classes_evaluated": conf.classes_evaluated(),
+            "per_class_iou": conf.per_class_iou([names.get(int(c), str(int(c))) for c in self.class_ids]),
         }
 
 
-def _div(a: float, b: float) -> float | None:
-    return float(a / b) if b > 0 else None
+# ---- points ----------------------------------------------------------------------------------
+def evaluate_points(labels: np.ndarray, truth: np.ndarray, taxonomy: Taxonomy,
+                    origin: np.ndarray | None = None) -> dict:
+    """Per-point accuracy and per-class IoU of ``labels`` against ``truth`` (both (N,) uint8).
+
+    Points whose truth is 0 or 255 (or not a taxonomy class) are not evaluated; an unlabelled
+    prediction (0, 255 or an unknown id) counts as wrong. ``per_class`` lists the classes
+    present in the truth or the prediction; the mIoU follows the absent-class rule of
+    :mod:`occufly.confusion` (a class predicted but absent from the truth enters it with IoU 0).
+    With ``origin`` (the lifting's per-point origin codes) the accuracy is also split by origin.
+    """
+    labels = np.asarray(labels)
+    truth = np.asarray(truth)
+    if labels.shape != truth.shape:
+        raise ValueError(f"labels {labels.shape} and truth {truth.shape} differ in shape")
+    conf = Confusion(taxonomy.ids)
+    t_col = conf.lut[truth]
+    valid = (t_col > 0) & (t_col <= conf.C)
+    conf.add(truth, labels, valid)
+    n_valid = int(valid.sum())
+    gt_n, pred_n, tp, iou = conf.truth_counts(), conf.pred_counts(), conf.tp(), conf.class_iou()
+    per_class = {}
+    for i, c in enumerate(taxonomy.classes):
+        if gt_n[i] == 0 and pred_n[i] == 0:
+            continue
+        per_class[c.name] = {"id": c.id, "truth_points": int(gt_n[i]), "predicted_points": int(pred_n[i]),
+                             "iou": float(iou[i])}
+    m = conf.matrix
+    out = {
+        "points": int(len(labels)),
+        "evaluated": n_valid,
+        "accuracy": float(tp.sum() / n_valid) if n_valid else None,
+        "unlabelled": int(m[1 : conf.C + 1, 0].sum() + m[1 : conf.C + 1, conf.C + 1].sum()),
+        "miou": conf.miou(),
+        "per_class": per_class,
+    }
+    if origin is not None:
+        from occufly.lifting import ORIGIN_NAMES
+
+        origin = np.asarray(origin)
+        by = {}
+        for o, name in ORIGIN_NAMES.items():
+            sel = valid & (origin == o)
+            if sel.any():
+                by[name] = {"points": int(sel.sum()),
+                            "accuracy": float((labels[sel] == truth[sel]).mean())}
+        out["by_origin"] = by
+    return out
 
 
 # ---- depth -------------------------------------------------------------------------------------

@@ -19,8 +19,9 @@ from __future__ import annotations
 import numpy as np
 
 from occufly.camera import transform
+from occufly.confusion import Confusion
 from occufly.scene import Scene
-from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+from occufly.taxonomy import Taxonomy
 
 MAX_SPLAT = 8  # largest splat side in pixels (radius 4)
 SPLAT_FACTOR = 1.5
@@ -156,29 +157,28 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
 
     Counts pixels where the mask has a class (not 0 / 255) and the rendering has one (not 0).
     Returns {"agreement", "pixels", "agree", "mask_pixels", "coverage" (share of mask-labelled
-    pixels the rendering covers), "per_class": {name: {mask_pixels, rendered_pixels, agree,
-    recall, precision, iou}}, "confusion": {"ids": [...], "matrix": C x C list, rows = mask}}.
+    pixels the rendering covers), "miou", "per_class": {name: {mask_pixels, rendered_pixels,
+    agree, recall, precision, iou}}, "confusion": {"ids": [...], "matrix": C x C list, rows =
+    mask}}. Counted by :class:`occufly.confusion.Confusion` (mask = reference); classes absent
+    from both are left out of ``per_class`` and the mIoU (its absent-class rule).
     """
     mask, rendered = _check_pair(mask, rendered)
-    col_of = np.full(256, -1, dtype=np.int64)
-    col_of[taxonomy.ids] = np.arange(len(taxonomy))
-    C = len(taxonomy)
-    m_lab = (mask != EMPTY) & (mask != INVALID) & (col_of[mask] >= 0)
-    r_lab = col_of[rendered] >= 0
-    both = m_lab & r_lab
-    mc = col_of[mask[both]]
-    rc = col_of[rendered[both]]
-    conf = np.bincount(mc * C + rc, minlength=C * C).reshape(C, C)
-    agree = int(np.trace(conf))
-    pixels = int(both.sum())
+    conf = Confusion(taxonomy.ids)
+    cls_col = (conf.lut > 0) & (conf.lut <= conf.C)  # raw id -> is a taxonomy class
+    m_lab = cls_col[mask]
+    both = m_lab & cls_col[rendered]
+    conf.add(mask, rendered, both)
+    cm = conf.class_matrix()
+    agree = conf.correct()
+    pixels = conf.total()
     mask_px = int(m_lab.sum())
     per_class = {}
-    rows, cols_ = conf.sum(axis=1), conf.sum(axis=0)
+    rows, cols_ = conf.truth_counts(), conf.pred_counts()
+    ious = conf.class_iou()
     for i, c in enumerate(taxonomy.classes):
         if rows[i] == 0 and cols_[i] == 0:
             continue
-        tp = int(conf[i, i])
-        union = int(rows[i] + cols_[i] - tp)
+        tp = int(cm[i, i])
         per_class[c.name] = {
             "id": c.id,
             "mask_pixels": int(rows[i]),
@@ -186,7 +186,7 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
             "agree": tp,
             "recall": tp / int(rows[i]) if rows[i] else None,
             "precision": tp / int(cols_[i]) if cols_[i] else None,
-            "iou": tp / union if union else None,
+            "iou": float(ious[i]),
         }
     return {
         "agreement": agree / pixels if pixels else None,
@@ -194,8 +194,9 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
         "agree": agree,
         "mask_pixels": mask_px,
         "coverage": pixels / mask_px if mask_px else None,
+        "miou": conf.miou(),
         "per_class": per_class,
-        "confusion": {"ids": [int(i) for i in taxonomy.ids], "matrix": conf.tolist()},
+        "confusion": {"ids": [int(i) for i in taxonomy.ids], "matrix": cm.tolist()},
     }
 
 
@@ -207,14 +208,16 @@ def merge_agreements(results: list[dict]) -> dict:
     out = {"agreement": agree / pixels if pixels else None, "pixels": pixels, "agree": agree,
            "mask_pixels": mask_px, "coverage": pixels / mask_px if mask_px else None}
     if results:
-        mats = [np.asarray(r["confusion"]["matrix"]) for r in results]
-        conf = np.sum(mats, axis=0)
         ids = results[0]["confusion"]["ids"]
-        tp = np.diag(conf)
-        union = conf.sum(0) + conf.sum(1) - tp
-        out["per_class_iou"] = {int(i): (float(tp[k] / union[k]) if union[k] else None)
-                                for k, i in enumerate(ids) if union[k]}
-        out["confusion"] = {"ids": ids, "matrix": conf.tolist()}
+        conf = Confusion(ids)
+        for r in results:
+            if r["confusion"]["ids"] != ids:
+                raise ValueError("cannot merge agreements over different taxonomies")
+            conf.merge(Confusion.from_class_matrix(ids, r["confusion"]["matrix"]))
+        ious = conf.class_iou()
+        out["per_class_iou"] = {int(i): float(ious[k]) for k, i in enumerate(ids) if not np.isnan(ious[k])}
+        out["miou"] = conf.miou()
+        out["confusion"] = {"ids": ids, "matrix": conf.class_matrix().tolist()}
     return out
 
 

@@ -5,8 +5,10 @@ The two grids are aligned by their WORLD origins; they may have different extent
 beyond it -- and predicted voxels outside it are only counted (``pred_voxels_outside_truth``);
 with ``region="union"`` the box is the union of both extents and a voxel outside a grid's
 extent counts as empty in that grid. Voxels whose truth is 255 (invalid) are ignored. Per-class IoU =
-TP / (TP + FP + FN) from one confusion matrix; a class absent from both grids is reported as
-``None`` (n/a) and left out of the mIoU; the mIoU averages the classes present in either grid.
+TP / (TP + FP + FN) from one confusion matrix (:class:`occufly.confusion.Confusion`, shared
+by every label metric); a class absent from both grids is reported as ``None`` (n/a) and left
+out of the mIoU; the mIoU averages the classes present in either grid. A predicted 255 counts
+as empty; a raw id outside the taxonomy counts as occupied but matches no class.
 Completion IoU / precision / recall are over occupied-vs-empty.
 """
 
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from occufly.confusion import Confusion
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
@@ -65,38 +68,23 @@ def evaluate_grids(pred: SceneGrid, truth: SceneGrid, taxonomy: Taxonomy, *, reg
         crop = (slice(to[0], to[0] + ts[0]), slice(to[1], to[1] + ts[1]), slice(to[2], to[2] + ts[2]))
         outside = int((a != 0).sum() - (a[crop] != 0).sum())
         a, b = a[crop], b[crop]
-    valid = b != INVALID
-    p = a[valid].astype(np.int64)
-    g = b[valid].astype(np.int64)
-    del a, b
-    p[p == INVALID] = EMPTY
-    cm = np.bincount(g * 256 + p, minlength=256 * 256).reshape(256, 256)  # [truth, pred]
-    tp_occ = int(cm[1:, 1:].sum())
-    fp_occ = int(cm[0, 1:].sum())
-    fn_occ = int(cm[1:, 0].sum())
-    comp_iou = tp_occ / max(1, tp_occ + fp_occ + fn_occ)
-    per_class: dict[str, float | None] = {}
-    ious = []
-    for c in taxonomy.classes:
-        tp = int(cm[c.id, c.id])
-        fp = int(cm[:, c.id].sum() - tp)
-        fn = int(cm[c.id, :].sum() - tp)
-        if tp + fp + fn == 0:
-            per_class[c.name] = None
-            continue
-        iou = tp / (tp + fp + fn)
-        per_class[c.name] = iou
-        ious.append(iou)
+    # truth 255 is not evaluated; a 255 prediction counts as empty
+    p = np.where(a == INVALID, np.uint8(EMPTY), a)
+    del a
+    conf = Confusion(taxonomy.ids).add(b, p, b != INVALID)
+    del b, p
+    comp = conf.completion()
+    m = conf.matrix
     return {
-        "completion_iou": comp_iou,
-        "precision": tp_occ / max(1, tp_occ + fp_occ),
-        "recall": tp_occ / max(1, tp_occ + fn_occ),
-        "miou": float(np.mean(ious)) if ious else None,
-        "classes_evaluated": len(ious),
-        "per_class_iou": per_class,
-        "voxels_pred": int(cm[:, 1:].sum()),
-        "voxels_truth": int(cm[1:, :].sum()),
-        "evaluated_voxels": int(cm.sum()),
+        "completion_iou": comp["iou"] or 0.0,
+        "precision": comp["precision"] or 0.0,
+        "recall": comp["recall"] or 0.0,
+        "miou": conf.miou(),
+        "classes_evaluated": conf.classes_evaluated(),
+        "per_class_iou": conf.per_class_iou([c.name for c in taxonomy.classes]),
+        "voxels_pred": int(m[:, 1:].sum()),
+        "voxels_truth": int(m[1:, :].sum()),
+        "evaluated_voxels": conf.total(),
         "region": region,
         "pred_voxels_outside_truth": outside,
     }

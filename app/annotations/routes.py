@@ -56,17 +56,27 @@ def release_frame(frame: FrameDep, session: SessionDep, user: AnnotatorUser):
     return scenes.frame_out(session=session, frame=frame)
 
 
-def _png(ctx, sha256: str, version_id: int) -> Response:  # noqa: ANN001
-    return Response(ctx.store.get(sha256), media_type="image/png",
-                    headers={"ETag": f'"{version_id}"', "Cache-Control": "private, no-cache",
-                             "X-Mask-Version": str(version_id)})
+@router.post("/frames/{fid}/reopen", response_model=FrameOut,
+             responses={409: {"description": "the frame is not submitted or was reviewed"}})
+def reopen_frame(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser):
+    """Take a submitted frame back (lease renewed) while no reviewer has decided on it."""
+    frame = service.reopen(session=session, ctx=ctx, frame=frame, user=user)
+    return scenes.frame_out(session=session, frame=frame)
+
+
+def _png(ctx, sha256: str, version_id: int, number: int | None = None) -> Response:  # noqa: ANN001
+    headers = {"ETag": f'"{version_id}"', "Cache-Control": "private, no-cache",
+               "X-Mask-Version": str(version_id)}
+    if number is not None:
+        headers["X-Mask-Number"] = str(number)  # the per-frame version number
+    return Response(ctx.store.get(sha256), media_type="image/png", headers=headers)
 
 
 @router.get("/frames/{fid}/mask", response_class=Response, responses={200: PNG})
 def get_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser):
     service.check_read(session, frame, user)
     v = service.current_version(session=session, frame=frame)
-    return _png(ctx, v.sha256, v.id)
+    return _png(ctx, v.sha256, v.id, service.version_number(session, v))
 
 
 @router.put("/frames/{fid}/mask", response_model=VersionOut, openapi_extra=PNG_BODY,
@@ -78,7 +88,7 @@ def put_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUse
     expected = service.parse_if_match(if_match)
     v = service.store_version(session=session, ctx=ctx, frame=frame, user=user, data=body,
                               kind=kind, expected=expected)
-    return service.version_out(v, user.username)
+    return service.version_out(v, user.username, number=service.version_number(session, v))
 
 
 @router.get("/frames/{fid}/mask/versions", response_model=list[VersionOut])
@@ -92,7 +102,7 @@ def get_version(frame: FrameDep, vid: VidPath,
                 session: SessionDep, ctx: CtxDep, user: CurrentUser):
     service.check_read(session, frame, user)
     v = service.get_version(session=session, frame=frame, version_id=vid)
-    return _png(ctx, v.sha256, v.id)
+    return _png(ctx, v.sha256, v.id, service.version_number(session, v))
 
 
 @router.post("/frames/{fid}/mask/versions/{vid}/restore", response_model=VersionOut,
@@ -103,7 +113,7 @@ def restore_version(frame: FrameDep, vid: VidPath, session: SessionDep, ctx: Ctx
     expected = service.parse_if_match(if_match) if if_match is not None else None
     v = service.restore(session=session, ctx=ctx, frame=frame, user=user, version_id=vid,
                         expected=expected, kind=kind)
-    return service.version_out(v, user.username)
+    return service.version_out(v, user.username, number=service.version_number(session, v))
 
 
 @router.get("/frames/{fid}/prefill", response_class=Response, responses={200: PNG})

@@ -6,7 +6,8 @@ from pydantic import BaseModel
 
 
 class VersionOut(BaseModel):
-    version: int
+    version: int  # global id (ETag / If-Match)
+    number: int | None = None  # 1-based per-frame number (what people see: "version 3")
     frame_id: int
     kind: str
     author: str | None

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from datetime import timedelta
 
-from sqlalchemy import and_, case, or_, select, update
+from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from app import pipeline
@@ -142,9 +142,10 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     session.flush()
     if lost_lease:
         session.commit()
-        raise Conflict(f"frame {frame.id} is no longer leased to you; your upload was "
-                       f"kept as conflict version {version.id}",
-                       current_version=frame.current_version_id, conflict_version=version.id)
+        raise Conflict(f"frame {frame.id} is no longer leased to you (it is {frame.state}); your "
+                       f"upload was kept as conflict version {version.id}", reason="lease",
+                       frame_state=frame.state, current_version=frame.current_version_id,
+                       conflict_version=version.id)
     now = utcnow()
     values: dict = {"current_version_id": version.id}
     if kind == "submitted":
@@ -165,7 +166,8 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         raise StaleVersion(
             f"mask of frame {frame.id} changed: If-Match {expected if expected is not None else 'none'}"
             f" is not the current version {current}; your upload was kept as conflict version "
-            f"{version.id}", current_version=current, conflict_version=version.id)
+            f"{version.id}", reason="stale", current_version=current,
+            current_number=_number_of(session, frame.id, current), conflict_version=version.id)
     session.commit()
     ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
     return version
@@ -199,11 +201,42 @@ def list_versions(*, session: Session, frame: Frame) -> list[dict]:
     rows = session.execute(select(MaskVersion, User.username)
                            .outerjoin(User, User.id == MaskVersion.author_id)
                            .where(MaskVersion.frame_id == frame.id).order_by(MaskVersion.id))
-    return [version_out(v, name) for v, name in rows]
+    return [version_out(v, name, number=i) for i, (v, name) in enumerate(rows, 1)]
 
 
-def version_out(v: MaskVersion, author: str | None) -> dict:
-    return dict(version=v.id, frame_id=v.frame_id, kind=v.kind, author=author,
+def _number_of(session: Session, frame_id: int, version_id: int | None) -> int | None:
+    """1-based position of a version among its frame's versions (ids are global)."""
+    if version_id is None:
+        return None
+    return int(session.scalar(select(func.count(MaskVersion.id)).where(
+        MaskVersion.frame_id == frame_id, MaskVersion.id <= version_id)) or 0)
+
+
+def version_number(session: Session, v: MaskVersion) -> int:
+    return _number_of(session, v.frame_id, v.id)
+
+
+def reopen(*, session: Session, ctx: AppContext, frame: Frame, user: User) -> Frame:
+    """Take a submitted frame back to edit it, while no reviewer has decided on it yet."""
+    if frame.state != "submitted":
+        raise Conflict(f"frame {frame.id} is {frame.state}; only a submitted frame that is "
+                       f"still waiting for review can be reopened")
+    if user.role == "annotator" and frame.last_annotator_id != user.id:
+        raise Forbidden(f"frame {frame.id} was submitted by someone else")
+    res = session.execute(update(Frame).where(Frame.id == frame.id, Frame.state == "submitted")
+                          .values(state="in_progress", assignee_id=user.id,
+                                  lease_expires_at=utcnow() + timedelta(
+                                      seconds=ctx.settings.lease_seconds))
+                          .execution_options(synchronize_session=False))
+    session.commit()
+    if res.rowcount != 1:
+        raise Conflict(f"frame {frame.id} was reviewed meanwhile; it cannot be reopened")
+    session.refresh(frame)
+    return frame
+
+
+def version_out(v: MaskVersion, author: str | None, *, number: int | None = None) -> dict:
+    return dict(version=v.id, number=number, frame_id=v.frame_id, kind=v.kind, author=author,
                 created_at=v.created_at, sha256=v.sha256, size_bytes=v.size_bytes, width=v.width,
                 height=v.height, base_version=v.base_version_id, restored_from=v.restored_from_id)
 

@@ -71,8 +71,8 @@ class FrameOut(BaseModel):
     lease_expires_at: datetime | None
     current_version: int | None
     agreement: float | None
+    last_annotator: str | None = None  # who painted it (assignee is cleared on submit)
 
 
 class FrameDetail(FrameOut):
     center: list[float] | None = None
-    last_annotator: str | None = None

@@ -1,4 +1,9 @@
-"""Per-application state: settings, database, mask store, live lifting and the job runner."""
+"""Per-process state: settings, database, mask store, event bus, lifting client, job runner.
+
+Nothing here is the truth of anything shared: leases, versions, jobs, sessions, the lifting
+queue and events live in the database, arrays in the workspaces; any number of processes
+can each hold an AppContext over the same database and data directory.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +16,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.config import Settings
 
 if TYPE_CHECKING:
-    from app.annotations.lifting import LiftingManager
     from app.jobs.runner import JobRunner
+    from app.lifting.client import LiftingClient
+    from app.lifting.events import EventBus
     from app.storage import BlobStore
 
 
@@ -22,8 +28,9 @@ class AppContext:
     engine: Engine
     sessions: sessionmaker[Session]
     store: BlobStore
-    lifting: LiftingManager
+    lifting: LiftingClient
     jobs: JobRunner
+    events: EventBus | None = None
     scene_cache: dict = field(default_factory=dict)
 
     def load_scene(self, workspace: str):
@@ -31,8 +38,9 @@ class AppContext:
         import os
 
         from occufly.scene import Scene
+        from occufly.workspace import Workspace
 
-        header = os.path.join(workspace, "scene.json")
+        header = Workspace(workspace).scene_json
         try:
             mtime = os.stat(header).st_mtime_ns
         except OSError:

@@ -20,9 +20,9 @@ def demo_password(role: str) -> str:
 def _copy_truth_grid(source: Path, ws: Path) -> None:
     """A synthetic scene's exact grid goes with its workspace, for the eval job (grid metrics)."""
     from occufly.fsutil import atomic_write_bytes
-    from occufly.grid import TRUTH_GRID_RELPATH
+    from occufly.workspace import Workspace
 
-    src, dst = source / "truth" / "scene_grid.npz", ws / TRUTH_GRID_RELPATH
+    src, dst = source / "truth" / "scene_grid.npz", Workspace(ws).truth_grid_path
     if src.is_file() and ws.is_dir() and not dst.is_file():
         dst.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(dst, src.read_bytes())

@@ -135,7 +135,9 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
     ``occufly.io.importer.import_scene``.
     """
     source = Path(source)
-    if (source / "scene.json").is_file():
+    from occufly.workspace import Workspace
+
+    if Workspace(source).exists():
         scene = Scene.load(source, mmap=False)
         for f in scene.frames:  # images stay where they are: make their paths absolute
             if f.image_path and not Path(f.image_path).is_absolute():

@@ -23,11 +23,6 @@ import numpy as np
 from occufly.errors import InputFormatError
 from occufly.fsutil import atomic_write_bytes
 
-GRID_RELPATH = "grid/scene_grid.npz"
-# a truth grid kept with the workspace (the demo copies the synthetic scene's exact grid here);
-# `occufly eval-grid` and the app's eval job compare the densified grid against it
-TRUTH_GRID_RELPATH = "truth/scene_grid.npz"
-
 
 @dataclass
 class SceneGrid:
@@ -173,8 +168,8 @@ class SceneGrid:
 
 
 def workspace_grid_path(ws: str | Path, altitude: int | None = None) -> Path:
-    """``WS/grid/scene_grid.npz`` or, for an altitude-specific grid, ``scene_grid_<alt>.npz``."""
-    ws = Path(ws)
-    if altitude is None:
-        return ws / GRID_RELPATH
-    return ws / "grid" / f"scene_grid_{int(altitude)}.npz"
+    """``WS/grid/scene_grid.npz`` or, for an altitude-specific grid, ``scene_grid_<alt>.npz``
+    (:meth:`occufly.workspace.Workspace.grid_path`)."""
+    from occufly.workspace import Workspace
+
+    return Workspace(ws).grid_path(altitude)

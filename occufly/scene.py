@@ -31,7 +31,7 @@ import numpy as np
 
 from occufly.camera import Camera, camera_center, viewing_direction
 from occufly.errors import WorkspaceError
-from occufly.fsutil import atomic_directory, atomic_save_npy, atomic_write_text
+from occufly.fsutil import atomic_directory, atomic_save_npy
 from occufly.taxonomy import Taxonomy, default_taxonomy
 
 WORKSPACE_FORMAT = "occufly-workspace"
@@ -232,17 +232,20 @@ class Scene:
         return path
 
     def _write_into(self, root: Path) -> None:
-        (root / "points").mkdir()
-        (root / "visibility").mkdir()
-        np.save(root / "points" / "xyz.npy", np.ascontiguousarray(self.xyz, dtype=np.float32))
-        np.save(root / "points" / "rgb.npy", np.ascontiguousarray(self.rgb, dtype=np.uint8))
+        from occufly.workspace import Workspace
+
+        ws = Workspace(root)
+        ws.points_dir.mkdir()
+        ws.visibility_dir.mkdir()
+        np.save(ws.points_xyz, np.ascontiguousarray(self.xyz, dtype=np.float32))
+        np.save(ws.points_rgb, np.ascontiguousarray(self.rgb, dtype=np.uint8))
         v = self.visibility
-        np.save(root / "visibility" / "offsets.npy", np.asarray(v.offsets, np.int64))
-        np.save(root / "visibility" / "point_ids.npy", np.asarray(v.point_ids, np.int32))
-        np.save(root / "visibility" / "uv.npy", np.asarray(v.uv, np.float32))
-        np.save(root / "visibility" / "depth.npy", np.asarray(v.depth, np.float32))
-        (root / "taxonomy.json").write_text(json.dumps(self.taxonomy.to_dict(), indent=1))
-        (root / "scene.json").write_text(json.dumps(self._header(), indent=1))
+        np.save(ws.visibility_array("offsets"), np.asarray(v.offsets, np.int64))
+        np.save(ws.visibility_array("point_ids"), np.asarray(v.point_ids, np.int32))
+        np.save(ws.visibility_array("uv"), np.asarray(v.uv, np.float32))
+        np.save(ws.visibility_array("depth"), np.asarray(v.depth, np.float32))
+        ws.taxonomy_json.write_text(json.dumps(self.taxonomy.to_dict(), indent=1))
+        ws.scene_json.write_text(json.dumps(self._header(), indent=1))
 
     def _header(self) -> dict:
         return {
@@ -256,12 +259,17 @@ class Scene:
 
     def save_header(self, path: str | Path) -> None:
         """Rewrite scene.json only (frames, meta) after in-place edits such as altitudes."""
-        atomic_write_text(Path(path) / "scene.json", json.dumps(self._header(), indent=1))
+        from occufly.workspace import Workspace
+
+        Workspace(path).write_header(self._header())
 
     @classmethod
     def load(cls, path: str | Path, *, mmap: bool = True) -> Scene:
+        from occufly.workspace import Workspace
+
         path = Path(path)
-        header_path = path / "scene.json"
+        ws = Workspace(path)
+        header_path = ws.scene_json
         if not header_path.is_file():
             raise WorkspaceError(f"{path}: not a scene workspace (no scene.json)")
         try:
@@ -275,27 +283,22 @@ class Scene:
                 f"{header_path}: workspace version {header['version']} is newer than this "
                 f"OccuFly ({WORKSPACE_VERSION})"
             )
-        mode = "r" if mmap else None
+        def arr(p: Path) -> np.ndarray:
+            return ws.array(p, mmap=mmap)
 
-        def arr(rel: str) -> np.ndarray:
-            p = path / rel
-            if not p.is_file():
-                raise WorkspaceError(f"{p}: missing workspace array")
-            return np.load(p, mmap_mode=mode, allow_pickle=False)
-
-        tax_path = path / "taxonomy.json"
+        tax_path = ws.taxonomy_json
         taxonomy = Taxonomy.load(tax_path) if tax_path.is_file() else default_taxonomy()
         frames = [Frame.from_dict(d) for d in header["frames"]]
         vis = Visibility(
-            arr("visibility/offsets.npy"),
-            arr("visibility/point_ids.npy"),
-            arr("visibility/uv.npy"),
-            arr("visibility/depth.npy"),
+            arr(ws.visibility_array("offsets")),
+            arr(ws.visibility_array("point_ids")),
+            arr(ws.visibility_array("uv")),
+            arr(ws.visibility_array("depth")),
         )
         return cls(
             frames=frames,
-            xyz=arr("points/xyz.npy"),
-            rgb=arr("points/rgb.npy"),
+            xyz=arr(ws.points_xyz),
+            rgb=arr(ws.points_rgb),
             origin=np.asarray(header["origin"], dtype=np.float64),
             visibility=vis,
             taxonomy=taxonomy,

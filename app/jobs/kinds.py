@@ -85,7 +85,9 @@ def run_voxelize(jc: JobContext) -> dict:
     fn = pipeline.pipeline_function("occufly.densify.pipeline", "voxelize_workspace")
     options_cls = pipeline.pipeline_function("occufly.densify.pipeline", "DensifyOptions")
     ws, _scene_obj = _scene(jc)
-    if not (Path(ws) / "lifting" / "labels.npy").is_file():
+    from occufly.workspace import Workspace
+
+    if not Workspace(ws).has_labels():
         from occufly.errors import WorkspaceError
 
         raise WorkspaceError(f"scene {jc.scene_id} has no lifted labels yet (lifting/labels.npy); "
@@ -137,12 +139,12 @@ def _scene_grid_eval(ws: Path, taxonomy) -> dict | None:  # noqa: ANN001
     """Completion / per-class IoU of WS/grid/scene_grid.npz against WS/truth/scene_grid.npz, when
     both exist (e.g. the demo's synthetic scene after a voxelize job); None otherwise."""
     from occufly.densify.evaluate import evaluate_grids
-    from occufly.grid import TRUTH_GRID_RELPATH, SceneGrid, workspace_grid_path
+    from occufly.workspace import Workspace
 
-    pred_p, truth_p = workspace_grid_path(ws), ws / TRUTH_GRID_RELPATH
-    if not (pred_p.is_file() and truth_p.is_file()):
+    w = Workspace(ws)
+    if not (w.has_grid() and w.truth_grid_path.is_file()):
         return None
-    ev = evaluate_grids(SceneGrid.load(pred_p), SceneGrid.load(truth_p), taxonomy)
+    ev = evaluate_grids(w.grid(), w.truth_grid(), taxonomy)
     keep = ("completion_iou", "precision", "recall", "miou", "classes_evaluated")
     return {"table": "scene_grid_vs_truth", **{k: ev[k] for k in keep if k in ev},
             "per_class_iou": ev.get("per_class_iou", {})}

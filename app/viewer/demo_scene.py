@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from occufly.camera import Camera, look_at
-from occufly.fsutil import atomic_save_npy
 from occufly.scene import Frame, Scene
+from occufly.workspace import Workspace
 
 UTM_ORIGIN = (512_345.0, 5_412_345.0, 230.0)
 
@@ -99,14 +99,12 @@ def make_demo_workspace(ws: str | Path, n_points: int = 200_000, *, seed: int = 
     if with_lifting:
         conf = rng.uniform(0.3, 1.0, len(xyz)).astype(np.float32)
         origin = rng.choice(np.array([1, 2, 3], np.uint8), len(xyz), p=[0.5, 0.4, 0.1])
-        atomic_save_npy(ws / "lifting" / "labels.npy", labels)
-        atomic_save_npy(ws / "lifting" / "confidence.npy", conf)
-        atomic_save_npy(ws / "lifting" / "origin.npy", origin)
+        Workspace(ws).write_labels(labels, conf, origin)
     if with_grid:
         lo = xyz.min(axis=0).astype(np.float64) - voxel_size
         shape = np.ceil((xyz.max(axis=0) - lo) / voxel_size).astype(int) + 2
         ijk = np.floor((xyz - lo) / voxel_size).astype(np.int64)
         grid = np.zeros(tuple(shape), np.uint8)
         grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = labels  # last writer wins; fine for a demo
-        SceneGrid(grid, lo + np.asarray(UTM_ORIGIN), voxel_size).save(ws / "grid" / "scene_grid.npz")
+        SceneGrid(grid, lo + np.asarray(UTM_ORIGIN), voxel_size).save(Workspace(ws).grid_path())
     return scene

@@ -32,6 +32,7 @@ import numpy as np
 from occufly.errors import WorkspaceError
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
+from occufly.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
@@ -96,10 +97,10 @@ class ViewerData:
         """Load a workspace: scene, ``lifting/{labels,confidence,origin}.npy`` if present,
         direct votes (``occufly.lifting.LiftState``) if available, ``grid/scene_grid.npz``."""
         ws = Path(ws)
-        scene = scene if scene is not None else Scene.load(ws)
+        w = Workspace(ws)
+        scene = scene if scene is not None else w.scene()
 
-        def opt(rel: str) -> np.ndarray | None:
-            p = ws / rel
+        def opt(p: Path) -> np.ndarray | None:
             if not p.is_file():
                 return None
             try:
@@ -107,16 +108,11 @@ class ViewerData:
             except (OSError, ValueError) as e:
                 raise WorkspaceError(f"{p}: not a readable .npy array ({e})") from None
 
-        labels = opt("lifting/labels.npy")
-        conf = opt("lifting/confidence.npy")
-        origin = opt("lifting/origin.npy")
+        labels = opt(w.labels_path)
+        conf = opt(w.confidence_path)
+        origin = opt(w.label_origin_path)
         direct = _load_direct(ws, scene)
-        grid = None
-        gp = ws / "grid" / "scene_grid.npz"
-        if gp.is_file():
-            from occufly.grid import SceneGrid
-
-            grid = SceneGrid.load(gp)
+        grid = w.grid()
         return cls(scene, labels, conf, origin, direct, grid, ws)
 
 
@@ -127,7 +123,7 @@ def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
     and the backend's lifting worker owns the workspace. A torn read during a concurrent
     update only affects the display until the next refresh.
     """
-    votes_path = ws / "lifting" / "votes.npy"
+    votes_path = Workspace(ws).votes
     if not votes_path.is_file():
         return None
     try:

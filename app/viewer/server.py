@@ -120,7 +120,7 @@ class ViewerService:
         self._tickets: dict[str, Ticket] = {}
         self._clients: dict[int, ClientState] = {}
         self._data: dict[str, sb.ViewerData] = {}
-        self._stamps: dict[str, tuple] = {}
+        self._stamps: dict[str, str] = {}
         self._lock = threading.RLock()
         self._start_lock = threading.Lock()
         self._pending: dict[str, set[int] | None] = {}
@@ -651,17 +651,10 @@ class ViewerService:
 
 
 # ---- helpers ---------------------------------------------------------------------------------
-def _stamp(ws: Path) -> tuple:
-    out = []
-    for rel in ("lifting/labels.npy", "lifting/confidence.npy", "lifting/origin.npy",
-                "lifting/state.json", "grid/scene_grid.npz"):
-        p = ws / rel
-        try:
-            s = p.stat()
-            out.append((rel, s.st_mtime_ns, s.st_size))
-        except OSError:
-            out.append((rel, None, None))
-    return tuple(out)
+def _stamp(ws: Path) -> str:
+    from occufly.workspace import Workspace
+
+    return Workspace(ws).stamp()
 
 
 def changed_classes(old: sb.ViewerData, new: sb.ViewerData) -> set[int] | None:

@@ -39,12 +39,10 @@ def _import(args: argparse.Namespace) -> dict:
 
 
 def _info(args: argparse.Namespace) -> dict:
-    from occufly.scene import Scene
+    from occufly.workspace import Workspace
 
-    scene = Scene.load(args.workspace)
+    ws = Workspace(args.workspace)
+    scene = ws.scene()
     out = {"workspace": str(args.workspace), **scene.summary()}
-    extras = {}
-    for rel in ("lifting/labels.npy", "grid/scene_grid.npz"):
-        extras[rel] = (args.workspace / rel).is_file()
-    out["steps"] = extras
+    out["steps"] = ws.steps()
     return out

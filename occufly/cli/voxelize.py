@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from occufly.cli import command
+from occufly.workspace import Workspace
 
 
 def _voxelize(args: argparse.Namespace) -> dict:
@@ -44,17 +45,16 @@ def _positive_float(text: str) -> float:
 def _load_taxonomy(ws: Path | None):
     from occufly.taxonomy import Taxonomy, default_taxonomy
 
-    if ws is not None and (ws / "taxonomy.json").is_file():
-        return Taxonomy.load(ws / "taxonomy.json")
+    if ws is not None and Workspace(ws).taxonomy_json.is_file():
+        return Taxonomy.load(Workspace(ws).taxonomy_json)
     return default_taxonomy()
 
 
 def _grid_path(arg: str) -> Path:
     """A grid file, or a workspace whose grid/scene_grid.npz is meant."""
-    from occufly.grid import workspace_grid_path
 
     p = Path(arg)
-    return workspace_grid_path(p) if p.is_dir() else p
+    return Workspace(p).grid_path() if p.is_dir() else p
 
 
 def _eval(args: argparse.Namespace) -> dict:
@@ -68,9 +68,8 @@ def _eval(args: argparse.Namespace) -> dict:
         truth_path = _grid_path(args.truth)
     else:
         from occufly.errors import InputFormatError
-        from occufly.grid import TRUTH_GRID_RELPATH
 
-        truth_path = ws / TRUTH_GRID_RELPATH
+        truth_path = Workspace(ws).truth_grid_path
         if not truth_path.is_file():
             raise InputFormatError(f"{truth_path}: no truth grid in the workspace; pass --truth GRID")
     truth = SceneGrid.load(truth_path)

@@ -399,9 +399,6 @@ def densify(
     return DensifyResult(grid, report)
 
 
-LABELS_RELPATH = "lifting/labels.npy"
-
-
 def load_point_labels(path: str | Path, n_points: int) -> np.ndarray:
     """(N,) uint8 labels from an ``.npy`` file, checked against the cloud size."""
     path = Path(path)
@@ -442,13 +439,12 @@ def voxelize_workspace(
     import json
 
     from occufly.fsutil import atomic_write_text
-    from occufly.grid import workspace_grid_path
-    from occufly.scene import Scene
+    from occufly.workspace import Workspace
 
-    ws = Path(ws)
+    wsp = Workspace(ws)
     t = time.perf_counter()
-    scene = Scene.load(ws)
-    lp = Path(labels_path) if labels_path is not None else ws / LABELS_RELPATH
+    scene = wsp.scene()
+    lp = Path(labels_path) if labels_path is not None else wsp.labels_path
     labels = load_point_labels(lp, scene.n_points)
     t_load = time.perf_counter() - t
     views = None
@@ -458,14 +454,14 @@ def voxelize_workspace(
         t_load += time.perf_counter() - t
     res = densify(scene.xyz, labels, scene.taxonomy, scene_origin=scene.origin, options=options,
                   views=views, progress=progress)
-    out = Path(out_path) if out_path is not None else workspace_grid_path(ws)
+    out = Path(out_path) if out_path is not None else wsp.grid_path()
     t = time.perf_counter()
     res.grid.save(out)
     res.report["timings_s"]["load"] = round(t_load, 3)
     res.report["timings_s"]["save"] = round(time.perf_counter() - t, 3)
     res.report["labels"] = str(lp)
     res.report["grid"] = str(out)
-    atomic_write_text(out.with_name(out.stem + "_report.json"), json.dumps(res.report, indent=1))
+    atomic_write_text(Workspace.report_path_of(out), json.dumps(res.report, indent=1))
     return res.report
 
 

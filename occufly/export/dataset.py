@@ -53,6 +53,7 @@ from occufly.fsutil import atomic_write_bytes
 from occufly.grid import SceneGrid, workspace_grid_path
 from occufly.progress import ProgressFn
 from occufly.sampling import GridSpec, check_pose, frame_depth_map, sample_frame
+from occufly.workspace import Workspace
 
 LAYOUTS = {"occufly": occufly_layout, "sscbench": sscbench_layout}
 SCENE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -84,7 +85,7 @@ def _resolve_grids(ws: Path, grid, altitudes: set[int], grid_for_altitude: dict[
                 raise TypeError("grid dict values must be SceneGrid")
             grids[int(k)], source[int(k)] = g, "given"
     elif grid is None:
-        for p in sorted((ws / "grid").glob("scene_grid_*.npz")):
+        for p in sorted(Workspace(ws).grid_dir.glob("scene_grid_*.npz")):
             m = re.match(r"scene_grid_(\d+)\.npz$", p.name)
             if m:
                 grids[int(m.group(1))], source[int(m.group(1))] = SceneGrid.load(p), str(p)
@@ -333,7 +334,7 @@ def export_dataset(
         _atomic_write(p, data)
 
     # -- tasks for frames that are not done yet
-    scene_mtime = (ws / "scene.json").stat().st_mtime_ns
+    scene_mtime = Workspace(ws).scene_json.stat().st_mtime_ns
     tasks, skipped = [], 0
     for i in idx:
         fid = frame_id_of(i)

@@ -1,0 +1,80 @@
+"""occufly.workspace.Workspace: the one owner of the workspace layout."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from occufly.errors import WorkspaceError
+from occufly.grid import SceneGrid
+from occufly.workspace import Workspace
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_layout_is_the_documented_one(tmp_path):
+    ws = Workspace(tmp_path)
+    assert ws.scene_json == tmp_path / "scene.json"
+    assert ws.points_xyz == tmp_path / "points" / "xyz.npy"
+    assert ws.visibility_array("uv") == tmp_path / "visibility" / "uv.npy"
+    assert ws.labels_path == tmp_path / "lifting" / "labels.npy"
+    assert ws.votes == tmp_path / "lifting" / "votes.npy"
+    assert ws.lifting_frame(7) == tmp_path / "lifting" / "frames" / "7.npz"
+    assert ws.grid_path() == tmp_path / "grid" / "scene_grid.npz"
+    assert ws.grid_path(40) == tmp_path / "grid" / "scene_grid_40.npz"
+    assert ws.truth_grid_path == tmp_path / "truth" / "scene_grid.npz"
+    assert Workspace.report_path_of(ws.grid_path()).name == "scene_grid_report.json"
+    with pytest.raises(ValueError):
+        ws.visibility_array("../x")
+
+
+def test_missing_workspace_is_a_clear_error(tmp_path):
+    with pytest.raises(WorkspaceError, match="not a scene workspace"):
+        Workspace(tmp_path).header()
+
+
+def test_labels_round_trip_and_stamp_changes(tmp_path):
+    ws = Workspace(tmp_path)
+    assert ws.labels() is None and ws.confidence() is None and not ws.has_labels()
+    s0 = ws.stamp()
+    assert ws.stamp() == s0  # nothing changed, same stamp
+    labels = np.array([1, 6, 0, 16], np.uint8)
+    ws.write_labels(labels, np.array([1, 0.5, 0, 0.25], np.float32), np.array([1, 2, 0, 3], np.uint8),
+                    {"points": 4, "score": np.float32(0.5)})
+    assert np.array_equal(ws.labels(), labels)
+    assert ws.confidence().dtype == np.float32 and ws.label_origin()[3] == 3
+    assert ws.lift_stats() == {"points": 4, "score": 0.5}
+    s1 = ws.stamp()
+    assert s1 != s0
+    g = SceneGrid(np.full((2, 3, 4), 6, np.uint8), np.array([500000.0, 4.2e6, 10.0]), 0.5)
+    p = ws.write_grid(g, report={"voxels": 24})
+    assert p == ws.grid_path() and ws.report_path_of(p).is_file()
+    assert ws.grid().labels.shape == (2, 3, 4) and ws.stamp() != s1
+    ws.write_grid(g, altitude=40)
+    assert list(ws.altitude_grids()) == [40]
+    assert ws.steps() == {"lifting": True, "grid": True, "truth_grid": False}
+    with pytest.raises(ValueError, match="one value per point"):
+        ws.write_labels(labels, np.zeros(3, np.float32), np.zeros(4, np.uint8))
+
+
+# every workspace artefact path is spelled in occufly/workspace.py only
+_SPELLINGS = re.compile(
+    r"""["'](lifting|grid|points|visibility)/|/\s*["'](lifting|votes\.npy|labels\.npy|state\.json)["']"""
+    r"""|["'](scene|taxonomy)\.json["']|["'](confidence|origin|labels|votes)\.npy["']"""
+)
+
+
+def test_no_module_spells_a_workspace_path():
+    offenders = []
+    for top in ("occufly", "app"):
+        for p in sorted((REPO / top).rglob("*.py")):
+            rel = p.relative_to(REPO).as_posix()
+            if rel == "occufly/workspace.py" or rel.startswith("occufly/synthetic/"):
+                continue  # the synthetic generator writes a reconstruction, not a workspace
+            for n, line in enumerate(p.read_text().splitlines(), 1):
+                if _SPELLINGS.search(line) and not line.lstrip().startswith("#"):
+                    offenders.append(f"{rel}:{n}: {line.strip()}")
+    assert not offenders, "workspace paths spelled outside occufly/workspace.py:\n" + "\n".join(offenders)

@@ -409,3 +409,49 @@ def test_tiny_scene_lifting_quality(tiny):
         st2.set_mask(fi, m if m.shape == masks[fi].shape else masks[fi][::-1])
     bad = evaluate_points(st2.fill_and_denoise().labels, truth, scene.taxonomy)
     assert bad["accuracy"] < ev["accuracy"] - 0.2
+
+
+# ---- the public state API (what the lifting service uses) --------------------------------
+def test_public_state_api_snapshot_resume_read_only(ws):
+    from occufly.errors import WorkspaceError
+    from occufly.lifting import VoteSnapshot, fill_snapshot
+
+    path, scene, truth = ws
+    with pytest.raises(WorkspaceError, match="no lifting state"):
+        LiftState.open(path, scene, read_only=True)
+    st = LiftState.open(path, scene)
+    for fi in (1, 4, 9):
+        st.apply_frame(fi, truth_mask(scene.frames[fi]), version=f"v{fi}")
+    assert st.version_of(4) == "v4" and st.version_of(2) is None
+    snap = st.snapshot()
+    assert isinstance(snap, VoteSnapshot) and snap.versions == {1: "v1", 4: "v4", 9: "v9"}
+    assert np.array_equal(snap.direct, st.direct_labels())
+    # the snapshot is a copy: later updates do not change it, and a fill of it ignores them
+    st.apply_frame(12, np.full_like(truth_mask(scene.frames[12]), ROAD), version="v12")
+    assert not np.array_equal(snap.direct, st.direct_labels())
+    res = st.fill_and_denoise(snapshot=snap)
+    assert res.stats["versions"] == {"1": "v1", "4": "v4", "9": "v9"}
+    assert np.array_equal(np.asarray(st.labels().labels), res.labels)
+    alone = fill_snapshot(scene, snap, params=LiftParams())
+    assert np.array_equal(alone.labels, res.labels)
+    assert np.array_equal(alone.confidence, res.confidence)
+    st.remove_frame(12)
+    assert 12 not in st.included_versions()
+    assert np.array_equal(st.direct_labels(), snap.direct)
+    votes = np.asarray(st.votes).copy()
+    st.close()
+    # a worker restarted on the same workspace resumes with the same counts and versions
+    again = LiftState.open(path, scene)
+    assert np.array_equal(np.asarray(again.votes), votes)
+    assert again.included_versions() == {1: "v1", 4: "v4", 9: "v9"}
+    # a reader never writes: read-only counts, refused updates, refused dirty states
+    ro = LiftState.open(path, scene, read_only=True)
+    assert np.array_equal(ro.direct_labels(), snap.direct)
+    with pytest.raises(WorkspaceError, match="read-only"):
+        ro.apply_frame(2, truth_mask(scene.frames[2]))
+    with pytest.raises(WorkspaceError, match="read-only"):
+        ro.fill_and_denoise()
+    assert not ro.votes.flags.writeable
+    again._write_state(dirty=True)
+    with pytest.raises(WorkspaceError, match="interrupted"):
+        LiftState.open(path, scene, read_only=True)

@@ -1,21 +1,4 @@
-"""Multi-view label lifting: incremental votes, kNN fill, kNN denoise, confidence.
-
-Votes
-    Every annotated frame votes once for each point it sees, with the mask pixel the point
-    projects to (``floor(uv / s)`` for a mask downscaled by the integer ``s``). 0 (unpainted)
-    and 255 (ignore) cast no vote. Counts live in ``ws/lifting/votes.npy``, a memory-mapped
-    (N, C) uint16 array over the taxonomy's classes in table order, and every frame's own votes
-    in ``ws/lifting/frames/<frame_index>.npz`` (point ids, class column) so that replacing or
-    removing a mask subtracts exactly what it added. The cost of :meth:`LiftState.set_mask` is
-    proportional to the points that frame sees, never to the scene.
-
-    Crash safety: ``state.json`` is marked dirty before the votes are touched and clean after;
-    the per-frame file is written (atomically) *before* the counts change, so a dirty state is
-    repaired on open by recounting from the per-frame files.
-
-Majority
-    Unweighted; ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
-    argmax over the class columns reordered by priority returns the first maximum).
+"""kNN fill and denoise of per-point labels (the method's step after the vote).
 
 Fill and denoise (:func:`fill_and_denoise`)
     Fill: each point without votes takes the inverse-distance-weighted vote of its k=100
@@ -58,35 +41,18 @@ Origin (uint8)
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from occufly.errors import MaskError, WorkspaceError
-from occufly.fsutil import atomic_save_npy, atomic_write_bytes, atomic_write_text
+from occufly.lifting.classes import ClassColumns
+from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
 from occufly.progress import ProgressFn, noop
-from occufly.scene import Scene
-from occufly.taxonomy import EMPTY, INVALID, Taxonomy
-
-LIFT_DIR = "lifting"
-STATE_VERSION = 1
-
-ORIGIN_NONE = 0
-ORIGIN_DIRECT = 1
-ORIGIN_FILLED = 2
-ORIGIN_DENOISED = 3
-ORIGIN_NAMES = {ORIGIN_NONE: "none", ORIGIN_DIRECT: "direct", ORIGIN_FILLED: "filled",
-                ORIGIN_DENOISED: "denoised"}
-
-_CHUNK_ROWS = 1_000_000
+from occufly.taxonomy import Taxonomy
 
 
-# ---- parameters and results ----------------------------------------------------------------
 @dataclass
 class LiftParams:
     """kNN parameters of the fill and denoise passes (all distances in scene metres)."""
@@ -114,387 +80,6 @@ class LiftParams:
     workers: int = 1  # cKDTree query workers
 
 
-@dataclass
-class LiftResult:
-    """Output of the fill/denoise passes.
-
-    labels: (N,) uint8 raw class ids (0 = no label); confidence: (N,) float32 in [0, 1];
-    origin: (N,) uint8 (0 none, 1 direct, 2 filled, 3 denoised); stats: timings and counts.
-    """
-
-    labels: np.ndarray
-    confidence: np.ndarray
-    origin: np.ndarray
-    stats: dict = field(default_factory=dict)
-
-    def summary(self, taxonomy: Taxonomy | None = None) -> dict:
-        counts = np.bincount(np.asarray(self.origin), minlength=4)
-        out = {
-            "points": int(len(self.labels)),
-            "origin": {ORIGIN_NAMES[i]: int(counts[i]) for i in range(4)},
-            "mean_confidence": float(np.mean(self.confidence)) if len(self.confidence) else 0.0,
-        }
-        if taxonomy is not None:
-            per = np.bincount(np.asarray(self.labels), minlength=256)
-            out["classes"] = {c.name: int(per[c.id]) for c in taxonomy.classes if per[c.id]}
-        out.update(self.stats)
-        return out
-
-
-# ---- majority with tie order --------------------------------------------------------------
-class _Classes:
-    """Column bookkeeping: class columns in table order, priority permutation, id lookups."""
-
-    def __init__(self, taxonomy: Taxonomy) -> None:
-        self.taxonomy = taxonomy
-        self.ids = taxonomy.ids  # (C,) uint8, column order
-        self.C = len(self.ids)
-        self.col_of = np.full(256, -1, dtype=np.int16)  # raw id -> column
-        self.col_of[self.ids] = np.arange(self.C, dtype=np.int16)
-        prio = taxonomy.priority_lut()[self.ids]  # rank of each column
-        self.perm = np.argsort(prio, kind="stable")  # columns, most preferred first
-        self.perm_ids = self.ids[self.perm]
-
-    def winner(self, counts: np.ndarray) -> np.ndarray:
-        """counts: (n, C) -> winner column (n,) int64 (tie order), -1 where all counts are 0."""
-        c = np.asarray(counts)[:, self.perm]
-        arg = np.argmax(c, axis=1)
-        col = self.perm[arg].astype(np.int64)
-        col[np.take_along_axis(c, arg[:, None], axis=1)[:, 0] <= 0] = -1
-        return col
-
-    def majority(self, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """counts: (n, C) -> (winner column (n,) int64, top (n,), second (n,)) in count units.
-
-        Ties are broken by the taxonomy's order; winner is -1 where every count is 0.
-        """
-        c = np.asarray(counts)[:, self.perm]
-        arg = np.argmax(c, axis=1)
-        top = np.take_along_axis(c, arg[:, None], axis=1)[:, 0]
-        col = self.perm[arg].astype(np.int64)
-        col[top <= 0] = -1
-        if self.C > 1:
-            part = np.partition(c, self.C - 2, axis=1)
-            second = part[:, self.C - 2]
-        else:
-            second = np.zeros(len(c), dtype=c.dtype)
-        return col, top, second
-
-    def labels_of(self, col: np.ndarray) -> np.ndarray:
-        """(n,) column (-1 = none) -> (n,) uint8 raw ids (0 = none)."""
-        out = np.zeros(len(col), dtype=np.uint8)
-        ok = col >= 0
-        out[ok] = self.ids[col[ok]]
-        return out
-
-
-# ---- the incremental vote state -----------------------------------------------------------
-class LiftState:
-    """Per-point vote counts for one scene workspace, updated incrementally.
-
-    Not safe for concurrent writers: one process (the web app's lifting worker or the CLI)
-    owns a workspace's lifting state at a time.
-    """
-
-    def __init__(self, ws: Path, scene: Scene, votes: np.ndarray, versions: dict[int, str | None]):
-        self.ws = Path(ws)
-        self.scene = scene
-        self.votes = votes  # (N, C) uint16 memmap
-        self._versions = versions
-        self._cls = _Classes(scene.taxonomy)
-
-    # -- paths
-    @property
-    def dir(self) -> Path:
-        return self.ws / LIFT_DIR
-
-    def _frame_path(self, frame_index: int) -> Path:
-        return self.dir / "frames" / f"{frame_index}.npz"
-
-    # -- open / save
-    @classmethod
-    def open(cls, ws: str | Path, scene: Scene | None = None) -> LiftState:
-        """Load the lifting state of workspace ``ws`` or create an empty one."""
-        ws = Path(ws)
-        if scene is None:
-            scene = Scene.load(ws)
-        d = ws / LIFT_DIR
-        state_path = d / "state.json"
-        n, ids = scene.n_points, [int(i) for i in scene.taxonomy.ids]
-        votes_path = d / "votes.npy"
-        if state_path.is_file():
-            try:
-                state = json.loads(state_path.read_text())
-            except json.JSONDecodeError as e:
-                raise WorkspaceError(f"{state_path}: not valid JSON ({e})") from None
-            if state.get("n_points") != n or state.get("class_ids") != ids:
-                raise WorkspaceError(
-                    f"{state_path}: lifting state was built for {state.get('n_points')} points / "
-                    f"classes {state.get('class_ids')}, the scene has {n} points / classes {ids}; "
-                    f"remove {d} to start the lifting over"
-                )
-            if not votes_path.is_file():
-                raise WorkspaceError(f"{votes_path}: missing vote counts (remove {d} to start over)")
-            votes = np.lib.format.open_memmap(votes_path, mode="r+")
-            if votes.shape != (n, len(ids)) or votes.dtype != np.uint16:
-                raise WorkspaceError(f"{votes_path}: expected ({n}, {len(ids)}) uint16 vote counts")
-            versions = {int(k): v for k, v in state.get("versions", {}).items()}
-            self = cls(ws, scene, votes, versions)
-            if state.get("dirty"):
-                self.rebuild()
-            return self
-        (d / "frames").mkdir(parents=True, exist_ok=True)
-        tmp = d / f".votes.npy.{os.getpid()}.tmp"
-        votes = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint16, shape=(n, len(ids)))
-        votes.flush()
-        del votes
-        os.replace(tmp, votes_path)
-        votes = np.lib.format.open_memmap(votes_path, mode="r+")
-        self = cls(ws, scene, votes, {})
-        stale = sorted((d / "frames").glob("*.npz"))
-        if stale:  # frame votes without a state file: recount from them
-            self._versions = {int(p.stem): None for p in stale if p.stem.isdigit()}
-            self.rebuild()
-        else:
-            self._write_state(dirty=False)
-        return self
-
-    def _write_state(self, *, dirty: bool) -> None:
-        state = {
-            "version": STATE_VERSION,
-            "n_points": self.scene.n_points,
-            "class_ids": [int(i) for i in self._cls.ids],
-            "versions": {str(k): v for k, v in sorted(self._versions.items())},
-            "dirty": dirty,
-        }
-        atomic_write_text(self.dir / "state.json", json.dumps(state, indent=1))
-
-    def save(self) -> None:
-        """Flush the vote counts and write ``state.json`` atomically."""
-        self.votes.flush()
-        self._write_state(dirty=False)
-
-    def rebuild(self) -> None:
-        """Recount every vote from the per-frame files (repairs an interrupted update)."""
-        self._write_state(dirty=True)
-        self.votes[:] = 0
-        flat = self.votes.reshape(-1)
-        C = self._cls.C
-        for p in sorted((self.dir / "frames").glob("*.npz")):
-            if not p.stem.isdigit():
-                continue
-            pids, cols = self._load_frame_file(p)
-            np.add.at(flat, pids.astype(np.int64) * C + cols, 1)
-            self._versions.setdefault(int(p.stem), None)
-        for fi in list(self._versions):
-            if not self._frame_path(fi).is_file():
-                del self._versions[fi]
-        self.save()
-
-    # -- queries
-    def included_versions(self) -> dict[int, str | None]:
-        """frame_index -> version tag of the mask whose votes are counted."""
-        return dict(sorted(self._versions.items()))
-
-    def direct_labels(self) -> np.ndarray:
-        """(N,) uint8 raw ids of the vote majority, 0 where a point has no votes."""
-        return self._direct()[0]
-
-    def _direct(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes,
-        top (N,) uint16 = votes of the winning class)."""
-        n = self.scene.n_points
-        labels = np.zeros(n, dtype=np.uint8)
-        margin = np.zeros(n, dtype=np.float32)
-        top_votes = np.zeros(n, dtype=np.uint16)
-        for a in range(0, n, _CHUNK_ROWS):
-            b = min(n, a + _CHUNK_ROWS)
-            c = np.asarray(self.votes[a:b])
-            col, top, second = self._cls.majority(c)
-            labels[a:b] = self._cls.labels_of(col)
-            top_votes[a:b] = top
-            total = c.sum(axis=1, dtype=np.int64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                margin[a:b] = np.where(total > 0, (top.astype(np.float64) - second) / total, 0.0)
-        return labels, margin, top_votes
-
-    def labels_of_points(self, point_ids: np.ndarray) -> np.ndarray:
-        """(m,) uint8 direct labels of the given points (cost ~ m)."""
-        return self._cls.labels_of(self._cls.winner(self.votes[np.asarray(point_ids, np.int64)]))
-
-    # -- updates
-    def _check_frame(self, frame_index: int, name: str) -> int:
-        if not isinstance(frame_index, (int, np.integer)) or not (
-            0 <= int(frame_index) < len(self.scene.frames)
-        ):
-            raise MaskError(
-                f"{name}: frame {frame_index!r} is not in the scene (it has "
-                f"{len(self.scene.frames)} frames, indices 0..{len(self.scene.frames) - 1})"
-            )
-        return int(frame_index)
-
-    def frame_votes(self, frame_index: int, mask: np.ndarray, *, name: str = "<mask>"
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Validate ``mask`` for a frame and return its votes: (point ids int32, column uint8)."""
-        from occufly.io.masks import mask_scale, validate_ids
-
-        fi = self._check_frame(frame_index, name)
-        frame = self.scene.frames[fi]
-        mask = np.asarray(mask)
-        if mask.ndim != 2:
-            raise MaskError(f"{name}: expected a (h, w) array of raw class ids, got shape {mask.shape}")
-        if mask.dtype != np.uint8:
-            if not np.issubdtype(mask.dtype, np.integer) or (
-                mask.size and (mask.min() < 0 or mask.max() > 255)
-            ):
-                raise MaskError(f"{name}: expected uint8 raw class ids 0..255, got {mask.dtype}")
-            mask = mask.astype(np.uint8)
-        s = mask_scale(mask.shape, frame, name=name)
-        validate_ids(mask, self.scene.taxonomy, name=name)
-        pids, uv, _ = self.scene.visibility.frame(fi)
-        h, w = mask.shape
-        uv = np.asarray(uv)
-        col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
-        row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
-        raw = mask[row, col]
-        keep = (raw != EMPTY) & (raw != INVALID)
-        return (np.asarray(pids)[keep].astype(np.int32),
-                self._cls.col_of[raw[keep]].astype(np.uint8))
-
-    @staticmethod
-    def _load_frame_file(p: Path) -> tuple[np.ndarray, np.ndarray]:
-        with np.load(p, allow_pickle=False) as z:
-            return z["point_ids"], z["cols"]
-
-    def _old_votes(self, fi: int) -> tuple[np.ndarray, np.ndarray]:
-        p = self._frame_path(fi)
-        if p.is_file():
-            return self._load_frame_file(p)
-        return np.zeros(0, np.int32), np.zeros(0, np.uint8)
-
-    def _apply(self, old: tuple[np.ndarray, np.ndarray], new: tuple[np.ndarray, np.ndarray]) -> dict:
-        C = self._cls.C
-        mark = np.zeros(self.scene.n_points, dtype=bool)  # O(N) bytes, no sort
-        mark[old[0]] = True
-        mark[new[0]] = True
-        touched = np.flatnonzero(mark)
-        before = self.labels_of_points(touched)
-        flat = self.votes.reshape(-1)
-        if len(old[0]):
-            np.subtract.at(flat, old[0].astype(np.int64) * C + old[1], 1)
-        if len(new[0]):
-            np.add.at(flat, new[0].astype(np.int64) * C + new[1], 1)
-        after = self.labels_of_points(touched)
-        return {
-            "points_touched": int(len(touched)),
-            "points_changed": int(np.count_nonzero(before != after)),
-            "votes_removed": int(len(old[0])),
-            "votes_added": int(len(new[0])),
-        }
-
-    def set_mask(self, frame_index: int, mask: np.ndarray, *, version: str | None = None,
-                 name: str | None = None) -> dict:
-        """Replace frame ``frame_index``'s votes with those of ``mask`` ((h, w) uint8 raw ids).
-
-        Validates the mask first (MaskError naming ``name``; the state is then unchanged).
-        Returns {points_touched, points_changed (direct label changed), votes_removed,
-        votes_added, seconds}.
-        """
-        t0 = time.perf_counter()
-        name = name or f"mask of frame {frame_index}"
-        pids, cols = self.frame_votes(frame_index, mask, name=name)
-        fi = int(frame_index)
-        old = self._old_votes(fi)
-        self._write_state(dirty=True)
-        atomic_write_bytes(self._frame_path(fi), _npz_bytes(point_ids=pids, cols=cols))
-        stats = self._apply(old, (pids, cols))
-        self._versions[fi] = version
-        self.save()
-        stats["frame_index"] = fi
-        stats["seconds"] = time.perf_counter() - t0
-        return stats
-
-    def remove_mask(self, frame_index: int) -> dict:
-        """Subtract frame ``frame_index``'s votes (no-op if it has none)."""
-        t0 = time.perf_counter()
-        fi = self._check_frame(frame_index, f"mask of frame {frame_index}")
-        p = self._frame_path(fi)
-        if not p.is_file():
-            return {"frame_index": fi, "removed": False, "points_touched": 0, "points_changed": 0,
-                    "votes_removed": 0, "votes_added": 0, "seconds": time.perf_counter() - t0}
-        old = self._old_votes(fi)
-        self._write_state(dirty=True)
-        stats = self._apply(old, (np.zeros(0, np.int32), np.zeros(0, np.uint8)))
-        self.votes.flush()
-        p.unlink()
-        self._versions.pop(fi, None)
-        self.save()
-        stats.update(frame_index=fi, removed=True, seconds=time.perf_counter() - t0)
-        return stats
-
-    # -- fill and denoise
-    def fill_and_denoise(self, progress: ProgressFn | None = None,
-                         params: LiftParams | None = None) -> LiftResult:
-        """kNN fill + denoise of the current votes; writes labels/confidence/origin .npy files."""
-        report = progress or noop
-        report(0.0, "majority vote")
-        direct, margin, top = self._direct()
-        result = fill_and_denoise(
-            np.asarray(self.scene.xyz), direct, self.scene.taxonomy, params=params,
-            vote_margin=margin, vote_top=top,
-            progress=lambda f, m: report(0.05 + 0.9 * f, m),
-        )
-        result.stats["annotated_frames"] = len(self._versions)
-        result.stats["versions"] = {str(k): v for k, v in self.included_versions().items()}
-        report(0.96, "writing labels")
-        save_result(self.ws, result)
-        report(1.0, "done")
-        return result
-
-
-def _npz_bytes(**arrays: np.ndarray) -> bytes:
-    import io
-
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    return buf.getvalue()
-
-
-def save_result(ws: str | Path, result: LiftResult) -> None:
-    d = Path(ws) / LIFT_DIR
-    # labels.npy is what readers test for: write it last so a reader that finds it finds
-    # the companion arrays too (the first fill used to expose labels without confidence)
-    atomic_save_npy(d / "confidence.npy", result.confidence.astype(np.float32))
-    atomic_save_npy(d / "origin.npy", result.origin.astype(np.uint8))
-    atomic_write_text(d / "labels.json", json.dumps(result.stats, indent=1, default=_jsonable))
-    atomic_save_npy(d / "labels.npy", result.labels.astype(np.uint8))
-
-
-def _jsonable(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
-
-
-def load_labels(ws: str | Path) -> LiftResult | None:
-    """The latest fill/denoise output of workspace ``ws`` (memory-mapped), or None."""
-    d = Path(ws) / LIFT_DIR
-    if not (d / "labels.npy").is_file():
-        return None
-    stats = {}
-    if (d / "labels.json").is_file():
-        try:
-            stats = json.loads((d / "labels.json").read_text())
-        except json.JSONDecodeError:
-            stats = {}
-    return LiftResult(
-        labels=np.load(d / "labels.npy", mmap_mode="r"),
-        confidence=np.load(d / "confidence.npy", mmap_mode="r"),
-        origin=np.load(d / "origin.npy", mmap_mode="r"),
-        stats=stats,
-    )
-
-
 # ---- kNN fill and denoise -----------------------------------------------------------------
 def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.asarray(xyz)
@@ -506,7 +91,7 @@ def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.n
     return np.ascontiguousarray(xyz, dtype=np.float32), direct.astype(np.uint8, copy=False)
 
 
-def _scores_to_cols(cls: _Classes, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _scores_to_cols(cls: ClassColumns, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, C) scores -> (winner column (n,) int64, -1 = none; winner share (n,) float32)."""
     col, top, _ = cls.majority(scores)
     total = scores.sum(axis=1)
@@ -516,7 +101,7 @@ def _scores_to_cols(cls: _Classes, scores: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
-              cls: _Classes, *, weighted: bool, workers: int = 1, chunk: int = 50_000,
+              cls: ClassColumns, *, weighted: bool, workers: int = 1, chunk: int = 50_000,
               own: np.ndarray | None = None, keep_share: float | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-NN (within ``radius``) vote of ``queries`` against a cKDTree of labelled points.
@@ -552,7 +137,7 @@ def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: 
 
 
 def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.ndarray,
-              p: LiftParams, cls: _Classes, tree=None, tree_idx: np.ndarray | None = None) -> int:
+              p: LiftParams, cls: ClassColumns, tree=None, tree_idx: np.ndarray | None = None) -> int:
     """Second fill pass (in place): points still without a label after the ``fill_radius``
     pass take the IDW vote of their ``fill_k`` nearest directly labelled points at any
     distance. Returns how many were filled (0 when ``p.fill_far`` is off)."""
@@ -572,7 +157,7 @@ def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.
     return int(len(rest))
 
 
-def _keep_own(cls: _Classes, scores: np.ndarray, own: np.ndarray | None,
+def _keep_own(cls: ClassColumns, scores: np.ndarray, own: np.ndarray | None,
               keep_share: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Winner per row of ``scores``; rows whose own column has >= keep_share keep it."""
     col, share = _scores_to_cols(cls, scores)
@@ -599,7 +184,7 @@ def _confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.
         np.asarray(vote_margin) >= p.confirm_margin)
 
 
-def _finish(cls: _Classes, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
+def _finish(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
             agree: np.ndarray, vote_margin: np.ndarray | None, confirmed: np.ndarray | None = None
             ) -> LiftResult:
     if confirmed is not None and confirmed.any():
@@ -640,7 +225,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     p = params or LiftParams()
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
-    cls = _Classes(taxonomy)
+    cls = ClassColumns(taxonomy)
     t0 = time.perf_counter()
     dcols = cls.col_of[direct].astype(np.int64)  # -1 where no label
     lab_idx = np.flatnonzero(dcols >= 0)
@@ -735,7 +320,7 @@ class _VoxelGrid:
 
 
 def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _VoxelGrid,
-               todo: np.ndarray, k: int, radius: float, cls: _Classes,
+               todo: np.ndarray, k: int, radius: float, cls: ClassColumns,
                progress: ProgressFn | None = None, keep_share: float | None = None,
                only: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -851,7 +436,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
-    cls = _Classes(taxonomy)
+    cls = ClassColumns(taxonomy)
     C = cls.C
     n = len(xyz)
     t0 = time.perf_counter()
@@ -983,57 +568,3 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
 
 def params_dict(p: LiftParams) -> dict:
     return asdict(p)
-
-
-# ---- evaluation against per-point truth ---------------------------------------------------
-def evaluate_points(labels: np.ndarray, truth: np.ndarray, taxonomy: Taxonomy,
-                    origin: np.ndarray | None = None) -> dict:
-    """Per-point accuracy and per-class IoU of ``labels`` against ``truth`` (both (N,) uint8).
-
-    Points whose truth is 0 or 255 (or not a taxonomy class) are not evaluated; an unlabelled
-    prediction (0) counts as wrong. With ``origin`` the accuracy is also split by label origin.
-    """
-    labels = np.asarray(labels)
-    truth = np.asarray(truth)
-    if labels.shape != truth.shape:
-        raise ValueError(f"labels {labels.shape} and truth {truth.shape} differ in shape")
-    cls = _Classes(taxonomy)
-    C = cls.C
-    t_col = cls.col_of[truth].astype(np.int64)
-    valid = t_col >= 0
-    p_col = cls.col_of[labels].astype(np.int64)
-    p_idx = np.where(p_col >= 0, p_col, C)  # column C = "no label"
-    conf = np.bincount(t_col[valid] * (C + 1) + p_idx[valid], minlength=C * (C + 1))
-    conf = conf.reshape(C, C + 1)
-    tp = np.diag(conf[:, :C])
-    n_valid = int(valid.sum())
-    per_class = {}
-    ious = []
-    for i, c in enumerate(taxonomy.classes):
-        gt = int(conf[i].sum())
-        pred = int(conf[:, i].sum())
-        if gt == 0 and pred == 0:
-            continue
-        union = gt + pred - int(tp[i])
-        iou = int(tp[i]) / union if union else None
-        per_class[c.name] = {"id": c.id, "truth_points": gt, "predicted_points": pred, "iou": iou}
-        if gt and iou is not None:
-            ious.append(iou)
-    out = {
-        "points": int(len(labels)),
-        "evaluated": n_valid,
-        "accuracy": float(tp.sum() / n_valid) if n_valid else None,
-        "unlabelled": int((valid & (p_col < 0)).sum()),
-        "miou": float(np.mean(ious)) if ious else None,
-        "per_class": per_class,
-    }
-    if origin is not None:
-        origin = np.asarray(origin)
-        by = {}
-        for o, name in ORIGIN_NAMES.items():
-            sel = valid & (origin == o)
-            if sel.any():
-                by[name] = {"points": int(sel.sum()),
-                            "accuracy": float((labels[sel] == truth[sel]).mean())}
-        out["by_origin"] = by
-    return out

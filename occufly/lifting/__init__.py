@@ -1,0 +1,66 @@
+"""Multi-view label lifting: incremental votes, kNN fill, kNN denoise, confidence.
+
+The package has three parts (each module's docstring gives the details):
+
+``occufly.lifting.votes``
+    :class:`LiftState`, the per-point vote counts of one workspace, updated one frame at a
+    time (:meth:`~LiftState.apply_frame`, :meth:`~LiftState.remove_frame`), crash-safe on
+    disk and resumed by :meth:`~LiftState.open`; :meth:`~LiftState.snapshot` copies out the
+    vote majority so a fill can run while updates go on.
+``occufly.lifting.knn``
+    :func:`fill_and_denoise` (certified voxels plus exact k-NN at class boundaries) and
+    :func:`fill_and_denoise_exact`, the plain cKDTree reference it must agree with.
+``occufly.lifting.result``
+    :class:`LiftResult` (labels, confidence, origin) and its files (:func:`save_result`,
+    :func:`load_labels`).
+
+Point-level evaluation against truth lives in :func:`occufly.metrics.evaluate_points`
+(re-exported here for older callers).
+
+A live worker (the app's lifting service) uses::
+
+    state = LiftState.open(ws, scene)           # resumes from disk
+    state.version_of(fi)                        # what is counted for frame fi
+    state.apply_frame(fi, mask, version="42")   # or state.remove_frame(fi)
+    snap = state.snapshot()                     # under the worker's update lock
+    state.fill_and_denoise(snapshot=snap)       # without it; writes labels/confidence/origin
+"""
+
+from __future__ import annotations
+
+from occufly.lifting.classes import ClassColumns
+from occufly.lifting.knn import (
+    LiftParams,
+    fill_and_denoise,
+    fill_and_denoise_exact,
+    params_dict,
+    typical_knn_radius,
+)
+from occufly.lifting.result import (
+    LIFT_DIR,
+    ORIGIN_DENOISED,
+    ORIGIN_DIRECT,
+    ORIGIN_FILLED,
+    ORIGIN_NAMES,
+    ORIGIN_NONE,
+    LiftResult,
+    load_labels,
+    save_result,
+)
+from occufly.lifting.votes import STATE_VERSION, LiftState, VoteSnapshot, fill_snapshot
+
+__all__ = [
+    "LIFT_DIR", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
+    "ORIGIN_NONE", "STATE_VERSION", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
+    "VoteSnapshot", "evaluate_points", "fill_and_denoise", "fill_and_denoise_exact",
+    "fill_snapshot", "load_labels", "params_dict", "save_result", "typical_knn_radius",
+]
+
+
+def __getattr__(name: str):
+    # lazily, so that occufly.metrics may import from this package without a cycle
+    if name == "evaluate_points":
+        from occufly.metrics import evaluate_points
+
+        return evaluate_points
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

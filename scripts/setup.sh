@@ -37,12 +37,15 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 
-# Reinstall only when the package definition changed (stamp = hash of pyproject.toml).
+# Reinstall only when the package definition changed (stamp = hash of pyproject.toml + extras).
+# --test adds the `torch` extra (CPU torch==2.13.0) so the occufly.datasets.torch tests run.
+extras="dev"
+[ "$want_test" = 1 ] && extras="dev,torch"
 stamp=.venv/.occufly-installed
-want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+want="$(sha256sum pyproject.toml | cut -d' ' -f1)-$extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || [ ! -x .venv/bin/occufly ]; then
   echo "setup: installing Python packages into .venv (first run takes a minute)" >&2
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  .venv/bin/python -m pip install -q -e ".[$extras]"
   echo "$want" > "$stamp"
 fi

@@ -245,9 +245,9 @@ def version_out(v: MaskVersion, author: str | None, *, number: int | None = None
 def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
     import numpy as np
 
-    available = pipeline.has("occufly.lifting", "LiftState")
+    available = True  # the lifting library is part of every installation
     st = ctx.lifting.status(scene.id)
-    included_idx = ctx.lifting.included_versions(scene.id, scene.workspace) if available else None
+    included_idx = ctx.lifting.included_versions(scene.id, scene.workspace)
     idx_to_id = dict(session.execute(select(Frame.index, Frame.id)
                                      .where(Frame.scene_id == scene.id)).all())
     included = {}

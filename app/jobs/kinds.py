@@ -80,10 +80,10 @@ run_selection.remote = True
 
 @kind("voxelize")
 def run_voxelize(jc: JobContext) -> dict:
-    from app import pipeline
 
-    fn = pipeline.pipeline_function("occufly.densify.pipeline", "voxelize_workspace")
-    options_cls = pipeline.pipeline_function("occufly.densify.pipeline", "DensifyOptions")
+    from occufly.densify.pipeline import DensifyOptions as options_cls
+    from occufly.densify.pipeline import voxelize_workspace as fn
+
     ws, _scene_obj = _scene(jc)
     from occufly.workspace import Workspace
 
@@ -101,12 +101,14 @@ run_voxelize.remote = True
 
 @kind("export")
 def run_export(jc: JobContext) -> dict:
-    from app import pipeline
 
-    fn = pipeline.pipeline_function("occufly.export", "export_dataset")
+    from occufly.export import export_dataset as fn
+
     ws, _scene_obj = _scene(jc)
     out = jc.ctx.settings.exports_dir / f"job_{jc.job_id}"
-    summary = fn(Path(ws), out, scene_id=f"scene_{jc.scene_id:02d}",
+    # written under an attempt-private name, moved to ``out`` when this attempt is recorded
+    # done (a stale attempt of the same job can never touch it; app.jobs.runner)
+    summary = fn(Path(ws), jc.output_dir(out), scene_id=f"scene_{jc.scene_id:02d}",
                  layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
                  executor=jc.executor(), progress=jc.progress)
     return {"output": str(out), "summary": summary if isinstance(summary, dict) else {}}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +31,29 @@ class SparseImage:
 
 @dataclass
 class SparseModel:
+    """The in-memory reconstruction every reader returns (COLMAP, ODM, Metashape, Pix4D).
+
+    crs: pyproj CRS of the world frame of ``T_cam_world``/``xyz``, or None when unknown --
+    then the world is assumed to be the cloud's frame (COLMAP), unless ``local_frame`` says
+    it is a local frame that cannot be related to a georeferenced cloud (Metashape
+    ``LOCAL_CS``). output_crs: the CRS the tool writes its clouds in (used when the cloud
+    declares none). has_tracks: ``point3D_ids``/``uv`` are real observations.
+    """
+
     images: list[SparseImage]  # sorted by image id (COLMAP's dense-workspace order)
     point_ids: np.ndarray  # (P,) int64
     xyz: np.ndarray  # (P, 3) float64 world
     rgb: np.ndarray  # (P, 3) uint8
     path: Path
+    kind: str = "colmap"
+    crs: object | None = None
+    output_crs: object | None = None
+    local_frame: bool = False
+    has_tracks: bool = True
+    default_cloud: Path | None = None
+    default_images: Path | None = None
+    notes: list[str] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
 
 
 def find_sparse_dir(source: Path) -> Path:

@@ -57,6 +57,25 @@ def _fit(img: Image.Image, height: int) -> Image.Image:
     return img.resize((w, height), Image.NEAREST)
 
 
+def _depth_shape(alt_dir: Path, fid: str) -> tuple[int, int] | None:
+    """(h, w) of a frame's flattened depth map: the manifest's per-frame record, else the
+    scene-level calibration.txt (or a per-altitude one of export format 1)."""
+    from occufly.export.occufly import read_calibration
+
+    manifest = alt_dir.parent / "manifest.json"
+    if manifest.is_file():
+        fr = json.loads(manifest.read_text()).get("frames", {}).get(fid, {})
+        if "depth_shape" in fr:
+            return int(fr["depth_shape"][0]), int(fr["depth_shape"][1])
+    for cp in (alt_dir.parent / "calibration.txt", alt_dir / "calibration.txt"):
+        if cp.is_file():
+            cal = read_calibration(cp)
+            if cal["depth_shape"] is not None:
+                return cal["depth_shape"]
+            return max(1, round(cal["height"] / 4)), max(1, round(cal["width"] / 4))
+    return None
+
+
 def render_preview(export_root: str | Path, frame: str, *, panels: tuple[str, ...] = PANELS,
                    height: int = 256) -> Image.Image:
     root = Path(export_root)
@@ -88,10 +107,10 @@ def render_preview(export_root: str | Path, frame: str, *, panels: tuple[str, ..
                 tiles.append(("image", _fit(Image.open(ip).convert("RGB"), height)))
         elif p == "depth":
             dp = alt_dir / "depth_maps" / f"{fid}.npy"
-            cal = np.loadtxt(alt_dir / "calibration.txt").reshape(-1)
-            if dp.is_file() and cal.size >= 6:
+            dshape = _depth_shape(alt_dir, fid)
+            if dp.is_file() and dshape is not None:
                 d = np.load(dp)
-                w, h = max(1, round(cal[4] / 4)), max(1, round(cal[5] / 4))
+                h, w = dshape
                 if d.size == w * h:
                     tiles.append(("depth", _fit(Image.fromarray(depth_colour(d.reshape(h, w))), height)))
         elif p == "grid":

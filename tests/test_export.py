@@ -85,7 +85,7 @@ def test_read_back_literally(ws, exported):
         for f in (2, 4, 8, 16) if i == 0 else (8, 16):
             assert np.array_equal(pkl[f"1_{f}"], slow_pool(pkl["1_1"], f, tie)), f
         depth = np.load(base / "depth_maps" / f"{fid}.npy")
-        cal = np.loadtxt(base / "calibration.txt")
+        cal = np.loadtxt(base.parent / "calibration.txt")  # scene level (official layout since 2026-08-03)
         assert cal.shape == (6,) and tuple(cal) == (40.0, 40.0, 32.0, 24.0, 64, 48)
         assert depth.dtype == np.float32 and depth.shape == (16 * 12,)
         # the nearly nadir camera sees voxel centres of the ground (z = -0.5) or of the

@@ -5,6 +5,7 @@ Majority pooling (``1_2`` ... ``1_16`` and SSCBench ``_1_8``): each coarse voxel
 most common *non-empty, valid* class of its f x f x f block; ties go to the class earlier in
 the taxonomy's tie order (more frequent first, then lower id). A block with no non-empty
 valid voxel is 0 (empty) if any of its voxels is valid, and 255 (invalid) if all are invalid.
+``--downsample-rule lmscnet`` uses the LMSCNet / MonoScene rule instead (:func:`lmscnet_pool`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from occufly.errors import WorkspaceError
 from occufly.fsutil import fsync_dir, write_tmp
 from occufly.grid import SceneGrid
 
-EXPORT_FORMAT_VERSION = 1
+EXPORT_FORMAT_VERSION = 2  # 2: scene-level calibration.txt, depth shape, splits, sscbench calib/geometry
 STATE_DIR = ".occufly_export"
 
 
@@ -103,6 +104,49 @@ def majority_pyramid(labels: np.ndarray, factors: tuple[int, ...], priority_lut:
             res[kb[first]] = kc[first].astype(np.uint8)
         out[f] = res.reshape(X // f, Y // f, Z // f)
     return out
+
+
+DOWNSAMPLE_RULES = ("occufly", "lmscnet")
+
+
+def lmscnet_pool(labels: np.ndarray, factor: int) -> np.ndarray:
+    """The LMSCNet / MonoScene downsampling rule (their ``_downsample_label``), vectorised.
+
+    Per f x f x f block: when more than 95 % of its voxels are empty (0) or invalid (255),
+    the block is 0 if it has more empty than invalid voxels, else 255; otherwise it is the
+    most common id among its other voxels, ties going to the *smallest* id
+    (``np.argmax(np.bincount(...))``). MonoScene applies it to training ids, so pool the
+    training-id grid to reproduce their ``_1_8.npy`` bit for bit.
+    """
+    labels = np.ascontiguousarray(labels, dtype=np.uint8)
+    f = int(factor)
+    X, Y, Z = labels.shape
+    if f < 1 or X % f or Y % f or Z % f:
+        raise ValueError(f"grid shape {labels.shape} is not divisible by {f}")
+    if f == 1:
+        return labels.copy()
+    bx, by, bz = X // f, Y // f, Z // f
+    blocks = labels.reshape(bx, f, by, f, bz, f).transpose(0, 2, 4, 1, 3, 5).reshape(-1, f ** 3)
+    n0 = np.count_nonzero(blocks == 0, axis=1)
+    n255 = np.count_nonzero(blocks == 255, axis=1)
+    out = np.where(n0 > n255, np.uint8(0), np.uint8(255))
+    full = (n0 + n255) <= 0.95 * f ** 3
+    if full.any():
+        sub = blocks[full]
+        rows, cols = np.nonzero((sub != 0) & (sub != 255))
+        counts = np.bincount(rows * 256 + sub[rows, cols], minlength=len(sub) * 256)
+        out[full] = np.argmax(counts.reshape(len(sub), 256), axis=1).astype(np.uint8)  # ties: smallest id
+    return out.reshape(bx, by, bz)
+
+
+def pool_grid(labels: np.ndarray, factor: int, priority_lut: np.ndarray, rule: str = "occufly") -> np.ndarray:
+    """Downsample by ``factor`` with the named rule (``occufly``: :func:`majority_pool`;
+    ``lmscnet``: :func:`lmscnet_pool`)."""
+    if rule == "occufly":
+        return majority_pool(labels, factor, priority_lut)
+    if rule == "lmscnet":
+        return lmscnet_pool(labels, factor)
+    raise ValueError(f"unknown downsample rule {rule!r}; expected one of {', '.join(DOWNSAMPLE_RULES)}")
 
 
 # ---- hashing / identity ------------------------------------------------------------------------

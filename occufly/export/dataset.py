@@ -38,6 +38,7 @@ from occufly.errors import InputFormatError
 from occufly.export import occufly as occufly_layout
 from occufly.export import sscbench as sscbench_layout
 from occufly.export.common import (
+    DOWNSAMPLE_RULES,
     EXPORT_FORMAT_VERSION,
     ExportError,
     cached,
@@ -52,11 +53,45 @@ from occufly.export.common import (
 from occufly.fsutil import atomic_write_bytes
 from occufly.grid import SceneGrid, workspace_grid_path
 from occufly.progress import ProgressFn
-from occufly.sampling import GridSpec, check_pose, frame_depth_map, sample_frame
+from occufly.sampling import (
+    GridSpec,
+    check_pose,
+    frame_depth_map,
+    quarter_shape,
+    resample_depth,
+    sample_frame,
+)
 from occufly.workspace import Workspace
 
 LAYOUTS = {"occufly": occufly_layout, "sscbench": sscbench_layout}
 SCENE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+SPLITS = ("train", "val", "test")
+MAX_CAMERAS = 8
+
+
+def camera_groups(scene, idx: list[int]) -> list[list[int]]:
+    """Frame indices grouped by identical camera (model, size, parameters): the largest group
+    first, then by first frame."""
+    by: dict[str, list[int]] = {}
+    for i in idx:
+        by.setdefault(json.dumps(scene.frames[i].camera.to_dict(), sort_keys=True), []).append(i)
+    return sorted(by.values(), key=lambda g: (-len(g), g[0]))
+
+
+def group_scene_ids(scene_id: str, n: int) -> list[str]:
+    return [scene_id] + [f"{scene_id}_cam{k}" for k in range(2, n + 1)]
+
+
+def default_split(scene_id: str) -> str:
+    """The release's split rule: scenes 1-5 train, 6-7 val, 8-9 test; anything else train."""
+    m = re.match(r"^scene_?0*(\d+)", scene_id)
+    if m:
+        k = int(m.group(1))
+        if k in (6, 7):
+            return "val"
+        if k in (8, 9):
+            return "test"
+    return "train"
 
 
 def frame_id_of(index: int) -> str:
@@ -133,6 +168,26 @@ def _image_png(path: str | None, where: str) -> bytes:
         raise InputFormatError(f"{p}: cannot read image ({e})") from None
 
 
+def frame_points(scene, f: int) -> np.ndarray:
+    """(N, 4) float32 "velodyne" points of frame ``f``: the fused points it sees (its
+    visibility list, else every point projecting into the image in front of it) in the camera
+    frame, 4th column the grey value of the point colour in [0, 1]."""
+    from occufly.camera import project_world, transform
+
+    frame = scene.frames[f]
+    vis = scene.visibility
+    if vis is not None and vis.n_frames > f and vis.offsets[f + 1] > vis.offsets[f]:
+        ids = np.asarray(vis.point_ids[vis.offsets[f]:vis.offsets[f + 1]], dtype=np.int64)
+    else:
+        _uv, _z, visible = project_world(frame.camera, frame.T_cam_world, np.asarray(scene.xyz))
+        ids = np.flatnonzero(visible)
+    xyz = transform(frame.T_cam_world, np.asarray(scene.xyz)[ids].astype(np.float64))
+    keep = xyz[:, 2] > 0
+    rgb = np.asarray(scene.rgb)[ids][keep].astype(np.float32)
+    grey = (0.299 * rgb[:, 0] + 0.587 * rgb[:, 1] + 0.114 * rgb[:, 2]) / 255.0
+    return np.column_stack([xyz[keep], grey]).astype(np.float32)
+
+
 # ---- the per-frame task (runs in a worker process or on a Dask worker) ---------------------
 def export_frame_task(task: dict) -> dict:
     """Compute and write one frame. ``task`` holds only paths and small values."""
@@ -153,13 +208,21 @@ def export_frame_task(task: dict) -> dict:
     layout = LAYOUTS[task["layout"]]
     pose = np.linalg.inv(frame.T_cam_world).astype(np.float32)
     prio = scene.taxonomy.priority_lut()
-    kw = {"taxonomy": scene.taxonomy} if task["layout"] == "sscbench" else {}
+    rule = task.get("downsample_rule", "occufly")
+    kw: dict = {"downsample_rule": rule}
+    extra: dict = {}
+    if task["layout"] == "sscbench":
+        kw["taxonomy"] = scene.taxonomy
+        kw["depth_full"] = resample_depth(depth, (frame.camera.height, frame.camera.width))
+        if task.get("velodyne"):
+            kw["points"] = frame_points(scene, f)
+        extra["class_counts"] = sscbench_layout.class_counts(gt, scene.taxonomy)
     files = layout.frame_files(root, task["scene_id"], task["altitude"], task["frame_id"], gt,
                                pose, image, depth, prio, **kw)
     t_compute = time.perf_counter() - t0
     marker = layout.marker(root, task["scene_id"], task["altitude"], task["frame_id"])
     nbytes = write_frame_files(files, marker, {
-        "config": task["config"], "frame": frame.name,
+        "config": task["config"], "frame": frame.name, **extra,
         "files": {str(p.relative_to(root)): len(b) for p, b in files.items()}})
     return {
         "frame_id": task["frame_id"], "altitude": task["altitude"], "name": frame.name,
@@ -200,6 +263,21 @@ def _check_target(out: Path, layout, scene_id: str, fingerprint: str, layout_nam
         "(no matching manifest); choose an empty or new folder")
 
 
+def _dataset_files(out: Path, layout: str, taxonomy, spec) -> dict[Path, bytes]:
+    """Root-level files rebuilt from every manifest: splits (both layouts), the YAML (SSCBench)."""
+    if layout == "sscbench":
+        return sscbench_layout.dataset_files(out, taxonomy, spec)
+    splits: dict[str, list[str]] = {s: [] for s in SPLITS}
+    for mp in sorted((out / "OccuFly_Dataset").glob("*/manifest.json")):
+        try:
+            m = json.loads(mp.read_text())
+        except ValueError:
+            continue
+        if m.get("layout") == "occufly":
+            splits.setdefault(m.get("split") or default_split(m["scene_id"]), []).append(m["scene_id"])
+    return occufly_layout.split_files(out, splits)
+
+
 def _atomic_write(path: Path, data: bytes) -> None:
     try:
         atomic_write_bytes(path, data)
@@ -224,11 +302,22 @@ def export_dataset(
     spec: GridSpec | None = None,
     grid_for_altitude: dict[int, int] | None = None,
     workers: int | None = None,
+    split: str | None = None,
+    downsample_rule: str = "occufly",
+    velodyne: bool = False,
 ) -> dict:
     """Export per-frame ground truth of workspace ``ws`` into ``out``; returns a summary.
 
     frames: frame indices (default all); executor: from :func:`occufly.parallel.get_executor`
-    (default: a local pool with ``workers`` processes, closed afterwards).
+    (default: a local pool with ``workers`` processes, closed afterwards); split: ``train`` /
+    ``val`` / ``test`` for the splits files (default: the release's rule on the scene number,
+    see :mod:`occufly.export.occufly`); downsample_rule: ``occufly`` or ``lmscnet`` for the
+    coarser grids; velodyne: also write ``velodyne_points`` (SSCBench layout).
+
+    Frames that use different cameras are exported as one scene per camera (the camera with
+    the most frames keeps ``scene_id``, the others get ``_cam2``, ``_cam3``, ...): both layouts
+    hold one calibration per scene / sequence. The summary then has ``scenes`` (one summary
+    each) and the totals.
     """
     from occufly.scene import Scene
 
@@ -238,6 +327,10 @@ def export_dataset(
         raise ExportError(f"unknown layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
     if not SCENE_ID_RE.match(scene_id):
         raise ExportError(f"scene id {scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
+    if split is not None and split not in SPLITS:
+        raise ExportError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
+    if downsample_rule not in DOWNSAMPLE_RULES:
+        raise ExportError(f"downsample rule {downsample_rule!r}: expected one of {', '.join(DOWNSAMPLE_RULES)}")
     lay = LAYOUTS[layout]
     spec = spec or GridSpec()
     scene = Scene.load(ws)
@@ -248,6 +341,29 @@ def export_dataset(
         raise ExportError(f"frame index {bad[0]} out of range: the scene has {n} frames")
     if len(set(idx)) != len(idx):
         raise ExportError("frame list has duplicates")
+    if not idx:
+        raise ExportError("no frames to export (the frame list is empty)")
+    groups = camera_groups(scene, idx)
+    if len(groups) > 1:
+        if len(groups) > MAX_CAMERAS:
+            raise ExportError(
+                f"{ws}: the frames use {len(groups)} different cameras; both layouts hold one "
+                f"calibration per scene, so each camera becomes its own scene (at most "
+                f"{MAX_CAMERAS}). Re-import with a shared camera model, or export subsets with --frames")
+        kw = {"layout": layout, "grid": grid, "executor": executor, "progress": progress,
+              "spec": spec, "grid_for_altitude": grid_for_altitude, "workers": workers,
+              "split": split, "downsample_rule": downsample_rule, "velodyne": velodyne}
+        parts = [export_dataset(ws, out, scene_id=sid, frames=g, **kw)
+                 for sid, g in zip(group_scene_ids(scene_id, len(groups)), groups, strict=True)]
+        return {
+            "out": str(out), "layout": layout, "scene_id": scene_id,
+            "scenes": [{k: v for k, v in p.items() if k != "results"} for p in parts],
+            "frames": sum(p["frames"] for p in parts), "written": sum(p["written"] for p in parts),
+            "skipped_done": sum(p["skipped_done"] for p in parts),
+            "complete": all(p["complete"] for p in parts), "bytes": sum(p["bytes"] for p in parts),
+            "seconds": round(time.perf_counter() - t_start, 3),
+            "results": [r for p in parts for r in p["results"]],
+        }
     # -- validate every frame before writing anything
     alts: dict[int, int] = {}
     for i in idx:
@@ -281,14 +397,18 @@ def export_dataset(
     configs = {
         a: sha256_bytes(json.dumps({
             "v": EXPORT_FORMAT_VERSION, "layout": layout, "spec": spec.to_dict(),
-            "scene": fingerprint, "grid": digests[mapping[a]]}, sort_keys=True).encode())[:32]
+            "scene": fingerprint, "grid": digests[mapping[a]], "downsample": downsample_rule,
+            "velodyne": bool(velodyne) and layout == "sscbench"}, sort_keys=True).encode())[:32]
         for a in mapping
     }
     config = sha256_bytes(json.dumps(configs, sort_keys=True).encode())[:32]
 
+    camera = scene.frames[idx[0]].camera  # one camera per exported scene (camera_groups)
+    depth_shape = quarter_shape(camera)
     by_alt_cam: dict[int, object] = {}
     for i in idx:
         by_alt_cam.setdefault(alts[i], scene.frames[i].camera)
+    split = split or (old or {}).get("split") or default_split(scene_id)
     manifest = {
         "format": "occufly-export", "version": EXPORT_FORMAT_VERSION, "layout": layout,
         "scene_id": scene_id, "scene_fingerprint": fingerprint, "complete": False,
@@ -303,10 +423,21 @@ def export_dataset(
             "label": "raw class ids, 0 empty, 255 invalid",
             "masks": "numpy.packbits of the flattened bool array, MSB first",
             "pose": "pkl 'pose' = (4,4) float32 camera-to-world, scene-local metres",
-            "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened",
-            "pooling": "most common non-empty valid class per block; ties by taxonomy tie order; "
-                       "no non-empty valid voxel -> 0 if any valid voxel else 255",
+            "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened "
+                     "(shape: depth_map_shape, and per frame)",
+            "pooling": ("most common non-empty valid class per block; ties by taxonomy tie order; "
+                        "no non-empty valid voxel -> 0 if any valid voxel else 255")
+            if downsample_rule == "occufly" else
+            ("LMSCNet/MonoScene: block empty (0, or 255 if more invalid than empty) when > 95 % "
+             "of it is empty or invalid, else its most common other id (ties: smallest id)"),
+            "calibration": "scene-level calibration.txt: fx fy cx cy width height of the full "
+                           "image (COLMAP convention); '# depth_maps: h w' comment line",
         },
+        "split": split,
+        "downsample_rule": downsample_rule,
+        "camera": camera.to_dict(),
+        "image_shape": [camera.height, camera.width],
+        "depth_map_shape": list(depth_shape),
         "provenance": {
             "workspace": str(ws), "scene_origin": scene.origin.tolist(),
             "scene_meta": {k: scene.meta.get(k) for k in ("source", "cloud", "depth_maps",
@@ -325,13 +456,20 @@ def export_dataset(
     for i in idx:
         fr = scene.frames[i]
         frames_index[frame_id_of(i)] = {"name": fr.name, "altitude": alts[i],
-                                        "camera": fr.camera.to_dict()}
+                                        "camera": fr.camera.to_dict(),
+                                        "depth_shape": list(quarter_shape(fr.camera))}
     manifest["frames"] = dict(sorted(frames_index.items()))
     mpath = lay.manifest_path(out, scene_id)
     clean_stray_temporaries(out)
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
-    for p, data in lay.static_files(out, scene_id, by_alt_cam, scene.taxonomy).items():
+    seq_alts = sorted({int(a["altitude"]) for a in manifest["frames"].values()})
+    for p, data in lay.static_files(out, scene_id, camera, depth_shape, altitudes=seq_alts).items():
         _atomic_write(p, data)
+    if layout == "occufly":
+        for a in seq_alts:  # export format 1 wrote calibration.txt per altitude
+            (occufly_layout.scene_dir(out, scene_id) / str(a) / "calibration.txt").unlink(missing_ok=True)
+    else:
+        sscbench_layout.make_links(out, scene_id, seq_alts)
 
     # -- tasks for frames that are not done yet
     scene_mtime = Workspace(ws).scene_json.stat().st_mtime_ns
@@ -348,7 +486,8 @@ def export_dataset(
             "grid_path": gp, "grid_digest": gd, "spec": {
                 "shape": spec.shape, "voxel_size": spec.voxel_size, "near": spec.near,
                 "far": spec.far, "oversample": spec.oversample, "max_raster": spec.max_raster},
-            "config": configs[alts[i]],
+            "config": configs[alts[i]], "downsample_rule": downsample_rule,
+            "velodyne": bool(velodyne) and layout == "sscbench",
         })
     own = executor is None
     if own:
@@ -371,6 +510,8 @@ def export_dataset(
         for fid, a in manifest["frames"].items())
     manifest["updated"] = datetime.now(UTC).isoformat(timespec="seconds")
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
+    for p, data in _dataset_files(out, layout, scene.taxonomy, spec).items():
+        _atomic_write(p, data)
     total_bytes = sum(r["bytes"] for r in results)
     secs = [r["seconds_sample"] for r in results]
     return {

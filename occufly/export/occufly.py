@@ -1,8 +1,11 @@
-"""The OccuFly dataset layout (FORMATS.md section 3).
+"""The OccuFly dataset layout (FORMATS.md section 3), as the official repository documents it
+since 2026-08-03 (``calibration.txt`` at scene level).
 
 ::
 
-    <root>/OccuFly_Dataset/<scene_id>/manifest.json           taxonomy, provenance, frames
+    <root>/OccuFly_Dataset/splits/{train,val,test}.txt         scene ids, one per line
+    <root>/OccuFly_Dataset/<scene_id>/calibration.txt           one camera for the whole scene
+    <root>/OccuFly_Dataset/<scene_id>/manifest.json             taxonomy, provenance, frames
     <root>/OccuFly_Dataset/<scene_id>/<altitude>/
         ground_truth/<frame>/<frame>.label     uint8 raw ids, 0 empty, 255 invalid, C order
         ground_truth/<frame>/<frame>.invalid   np.packbits (MSB first) of the flat bool mask
@@ -11,14 +14,29 @@
         preprocess/<frame>.pkl                 dict: frame_id, sequence, altitude, pose,
                                                1_1, 1_2, 1_4, 1_8, 1_16 (uint8, invalid 255)
         images/visual/<frame>.png
-        depth_maps/<frame>.npy                 float32, flattened (h*w,), h, w = H/4, W/4
-        calibration.txt
+        depth_maps/<frame>.npy                 float32 metres, flattened (h*w,), h, w = H/4, W/4
 
-``calibration.txt`` line layout (our choice, FORMATS.md leaves it open): a ``#`` comment line
-naming the columns, then one line ``fx fy cx cy width height`` in pixels of the full-resolution
-image (COLMAP pixel convention: pixel centres at +0.5). ``numpy.loadtxt`` reads it as a (6,)
-array. When frames of one altitude have different intrinsics, the manifest lists each frame's
-camera (the file holds the first frame's).
+``calibration.txt`` line layout (FORMATS.md leaves it open; this is ours)::
+
+    # OccuFly calibration: one camera for every frame of this scene
+    # fx fy cx cy width height: pixels of the FULL-resolution image, COLMAP convention (pixel centres at +0.5)
+    # depth_maps: <h> <w>  (rows, columns of depth_maps/<frame>.npy = image / 4, flattened C order)
+    <fx> <fy> <cx> <cy> <width> <height>
+
+``numpy.loadtxt`` reads it as a (6,) array (the ``#`` lines are comments); the depth-map shape
+line is parsed by :func:`read_calibration` and is also in the manifest (``depth_map_shape``
+and per frame), so a depth map of any aspect ratio can be reshaped exactly.
+
+**One camera per scene.** When the selected frames use more than one camera (model, size or
+intrinsics differ), :func:`occufly.export.export_dataset` writes each camera's frames as its
+own scene: the camera with the most frames keeps ``<scene_id>``, the others become
+``<scene_id>_cam2``, ``<scene_id>_cam3``, ... in order of their first frame. So every
+scene-level ``calibration.txt`` is right for every frame under it.
+
+**Splits** (``splits/<split>.txt``) are rebuilt from every scene manifest in the root after
+each export; a scene's split is the one given to the export, or by default the release's
+rule on the scene number: ``scene_01``-``05`` train, ``06``-``07`` val, ``08``-``09`` test
+(anything else: train).
 
 ``pose`` in the ``.pkl`` is the (4, 4) float32 camera-to-world transform in scene-local metres
 (``x_local = pose @ [x_cam, 1]``); the scene's float64 origin is in the manifest.
@@ -33,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occufly.export.common import STATE_DIR, majority_pyramid, pack_bits
+from occufly.export.common import STATE_DIR, majority_pyramid, pack_bits, pool_grid
 
 NAME = "occufly"
 POOL_FACTORS = (1, 2, 4, 8, 16)
@@ -51,30 +69,74 @@ def state_dir(root: Path, scene_id: str) -> Path:
     return root / STATE_DIR / NAME / scene_id
 
 
+def calibration_path(root: Path, scene_id: str) -> Path:
+    return scene_dir(root, scene_id) / "calibration.txt"
+
+
 def is_export_root(root: Path) -> bool:
     """A folder that only holds OccuFly exports (and our state)."""
     names = {p.name for p in root.iterdir()}
     return names <= {"OccuFly_Dataset", STATE_DIR} and "OccuFly_Dataset" in names
 
 
-def calibration_text(camera) -> str:
+def calibration_text(camera, depth_shape: tuple[int, int]) -> str:
     fx, fy = camera.focal
     cx, cy = camera.principal_point
+    h, w = depth_shape
     return (
-        "# fx fy cx cy width height  (pixels, full image resolution)\n"
+        "# OccuFly calibration: one camera for every frame of this scene\n"
+        "# fx fy cx cy width height: pixels of the FULL-resolution image, COLMAP convention "
+        "(pixel centres at +0.5)\n"
+        f"# depth_maps: {h} {w}  (rows, columns of depth_maps/<frame>.npy = image / 4, flattened C order)\n"
         f"{fx!r} {fy!r} {cx!r} {cy!r} {camera.width} {camera.height}\n"
     )
 
 
-def static_files(root: Path, scene_id: str, altitude_cameras: dict[int, object], taxonomy) -> dict[Path, bytes]:
-    d = scene_dir(root, scene_id)
-    return {d / str(alt) / "calibration.txt": calibration_text(cam).encode()
-            for alt, cam in altitude_cameras.items()}
+def read_calibration(path: Path) -> dict:
+    """{"fx", "fy", "cx", "cy", "width", "height", "depth_shape": (h, w) or None} of a
+    ``calibration.txt`` (ours, or one holding just the six numbers)."""
+    from occufly.errors import InputFormatError
+
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read calibration ({e.strerror})") from None
+    depth_shape = None
+    values: list[float] = []
+    for line in text.splitlines():
+        s = line.strip()
+        if s.startswith("#"):
+            parts = s[1:].split()
+            if len(parts) >= 3 and parts[0] == "depth_maps:":
+                try:
+                    depth_shape = (int(parts[1]), int(parts[2]))
+                except ValueError:
+                    raise InputFormatError(f"{path}: depth_maps line must hold two integers: {s!r}") from None
+            continue
+        if s:
+            try:
+                values.extend(float(v) for v in s.split())
+            except ValueError:
+                raise InputFormatError(f"{path}: expected numbers, got {s!r}") from None
+    if len(values) != 6:
+        raise InputFormatError(f"{path}: expected 6 numbers (fx fy cx cy width height), got {len(values)}")
+    fx, fy, cx, cy, w, h = values
+    if not (w >= 1 and h >= 1 and w == int(w) and h == int(h) and fx > 0 and fy > 0):
+        raise InputFormatError(f"{path}: width/height must be positive integers and fx, fy > 0")
+    if depth_shape is not None and min(depth_shape) < 1:
+        raise InputFormatError(f"{path}: depth_maps shape must be positive, got {depth_shape}")
+    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": int(w), "height": int(h),
+            "depth_shape": depth_shape}
+
+
+def static_files(root: Path, scene_id: str, camera, depth_shape: tuple[int, int], **_) -> dict[Path, bytes]:
+    return {calibration_path(root, scene_id): calibration_text(camera, depth_shape).encode()}
 
 
 def frame_files(
     root: Path, scene_id: str, altitude: int, frame_id: str, gt, pose: np.ndarray,
-    image_png: bytes, depth: np.ndarray, priority_lut: np.ndarray,
+    image_png: bytes, depth: np.ndarray, priority_lut: np.ndarray, *,
+    downsample_rule: str = "occufly", **_,
 ) -> dict[Path, bytes]:
     """All files of one frame. gt: :class:`occufly.sampling.FrameGT`; pose: (4, 4) float32
     camera-to-world, scene-local; depth: (h, w) float32."""
@@ -87,8 +149,12 @@ def frame_files(
         "altitude": int(altitude),
         "pose": np.asarray(pose, dtype=np.float32),
     }
-    for f, grid in majority_pyramid(label, POOL_FACTORS, priority_lut).items():
-        pkl[f"1_{f}"] = grid
+    if downsample_rule == "occufly":
+        for f, grid in majority_pyramid(label, POOL_FACTORS, priority_lut).items():
+            pkl[f"1_{f}"] = grid
+    else:
+        for f in POOL_FACTORS:
+            pkl[f"1_{f}"] = pool_grid(label, f, priority_lut, downsample_rule)
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(depth, dtype=np.float32).reshape(-1), allow_pickle=False)
     return {
@@ -104,6 +170,22 @@ def frame_files(
 
 def marker(root: Path, scene_id: str, altitude: int, frame_id: str) -> Path:
     return state_dir(root, scene_id) / "done" / f"{altitude}_{frame_id}.json"
+
+
+def split_files(root: Path, splits: dict[str, list[str]]) -> dict[Path, bytes]:
+    """``splits/<split>.txt`` from {split: [scene ids]} (all three files, maybe empty)."""
+    d = root / "OccuFly_Dataset" / "splits"
+    return {d / f"{name}.txt": "".join(f"{s}\n" for s in sorted(splits.get(name, ()))).encode()
+            for name in ("train", "val", "test")}
+
+
+def read_splits(root: Path) -> dict[str, list[str]]:
+    d = Path(root) / "OccuFly_Dataset" / "splits"
+    out = {}
+    for name in ("train", "val", "test"):
+        p = d / f"{name}.txt"
+        out[name] = [ln.strip() for ln in p.read_text().splitlines() if ln.strip()] if p.is_file() else []
+    return out
 
 
 # ---- reading back (used by metrics and preview) ------------------------------------------------

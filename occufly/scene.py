@@ -14,8 +14,12 @@ Workspace layout (all arrays ``.npy``, memory-mapped on load)::
     WS/points/rgb.npy             (N, 3) uint8
     WS/visibility/offsets.npy     (F + 1,) int64
     WS/visibility/point_ids.npy   (M,) int32
-    WS/visibility/uv.npy          (M, 2) float32 pixels (COLMAP convention)
-    WS/visibility/depth.npy       (M,) float32 camera z in metres
+    WS/visibility/uv.npy          (M, 2) float32 pixels (COLMAP convention)  [optional]
+    WS/visibility/depth.npy       (M,) float32 camera z in metres            [optional]
+
+``uv.npy`` / ``depth.npy`` are written only for a visibility that carries them (version-1
+workspaces always did); without them they are recomputed by projecting each frame's points
+(:class:`Visibility`), which is what an import computed them with in the first place.
 
 Later pipeline steps add their own sub-folders (labels, grids, exports) next to these.
 """
@@ -35,7 +39,7 @@ from occufly.fsutil import atomic_directory, atomic_save_npy
 from occufly.taxonomy import Taxonomy, default_taxonomy
 
 WORKSPACE_FORMAT = "occufly-workspace"
-WORKSPACE_VERSION = 1
+WORKSPACE_VERSION = 2  # 2: visibility uv/depth optional (projected on demand)
 
 
 @dataclass
@@ -89,18 +93,29 @@ class Frame:
         )
 
 
-@dataclass
 class Visibility:
     """2D-3D correspondences, CSR by frame.
 
-    offsets: (F + 1,) int64; point_ids: (M,) int32; uv: (M, 2) float32 pixels;
-    depth: (M,) float32 camera z in metres.
+    offsets: (F + 1,) int64; point_ids: (M,) int32, ascending within a frame; uv: (M, 2)
+    float32 pixels; depth: (M,) float32 camera z in metres.
+
+    ``uv`` and ``depth`` may be stored (workspaces before version 2, the synthetic
+    generator) or, when omitted, recomputed on demand by projecting the points with the
+    frame's camera (:meth:`bind` gives the frames and points; :class:`Scene` does it): both
+    are a pure function of the point, the pose and the camera, so a workspace only stores
+    4 bytes per correspondence instead of 16. :meth:`frame` projects one frame at a time.
     """
 
-    offsets: np.ndarray
-    point_ids: np.ndarray
-    uv: np.ndarray
-    depth: np.ndarray
+    def __init__(self, offsets: np.ndarray, point_ids: np.ndarray,
+                 uv: np.ndarray | None = None, depth: np.ndarray | None = None) -> None:
+        self.offsets = offsets
+        self.point_ids = point_ids
+        if (uv is None) != (depth is None):
+            raise ValueError("visibility: give both uv and depth, or neither")
+        self._uv = uv
+        self._depth = depth
+        self._frames = None
+        self._xyz = None
 
     @classmethod
     def empty(cls, n_frames: int) -> Visibility:
@@ -128,13 +143,67 @@ class Visibility:
         return cls(offsets, ids, uv, depth)
 
     @property
+    def stores_projections(self) -> bool:
+        """True when uv/depth are stored arrays, False when they are projected on demand."""
+        return self._uv is not None
+
+    def bind(self, frames: list[Frame], xyz: np.ndarray) -> None:
+        """Frames and points to project with when uv/depth are not stored."""
+        self._frames = frames
+        self._xyz = xyz
+
+    def _project(self, f: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._frames is None:
+            raise ValueError("visibility without stored uv/depth needs bind(frames, xyz) first")
+        frame = self._frames[f]
+        from occufly.camera import transform
+
+        pts = np.asarray(self._xyz[np.asarray(ids, np.int64)], dtype=np.float64)
+        uv, z = frame.camera.project(transform(frame.T_cam_world, pts))
+        return uv.astype(np.float32), z.astype(np.float32)
+
+    @property
+    def uv(self) -> np.ndarray:
+        """(M, 2) float32 pixels of every correspondence (projected for all frames if not
+        stored: O(M) memory -- prefer :meth:`frame`)."""
+        if self._uv is None:
+            return self._all()[0]
+        return self._uv
+
+    @property
+    def depth(self) -> np.ndarray:
+        """(M,) float32 camera depth of every correspondence (see :attr:`uv`)."""
+        if self._depth is None:
+            return self._all()[1]
+        return self._depth
+
+    def _all(self) -> tuple[np.ndarray, np.ndarray]:
+        m = int(self.offsets[-1])
+        uv = np.zeros((m, 2), np.float32)
+        depth = np.zeros(m, np.float32)
+        for f in range(self.n_frames):
+            a, b = int(self.offsets[f]), int(self.offsets[f + 1])
+            if b > a:
+                uv[a:b], depth[a:b] = self._project(f, self.point_ids[a:b])
+        return uv, depth
+
+    @property
     def n_frames(self) -> int:
         return len(self.offsets) - 1
+
+    def frame_ids(self, f: int) -> np.ndarray:
+        """(m,) int32 ids of the points frame ``f`` sees (no projection)."""
+        a, b = int(self.offsets[f]), int(self.offsets[f + 1])
+        return self.point_ids[a:b]
 
     def frame(self, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(point_ids (m,) int32, uv (m, 2) float32, depth (m,) float32) seen by frame ``f``."""
         a, b = int(self.offsets[f]), int(self.offsets[f + 1])
-        return self.point_ids[a:b], self.uv[a:b], self.depth[a:b]
+        ids = self.point_ids[a:b]
+        if self._uv is None:
+            uv, depth = self._project(f, ids)
+            return ids, uv, depth
+        return ids, self._uv[a:b], self._depth[a:b]
 
     def counts_per_frame(self) -> np.ndarray:
         return np.diff(self.offsets)
@@ -159,6 +228,9 @@ class Scene:
     visibility: Visibility | None = None
     taxonomy: Taxonomy = field(default_factory=default_taxonomy)
     meta: dict = field(default_factory=dict)
+    # the cloud's coordinate reference system {"name", "epsg", "wkt"} (occufly.io.crs), or None
+    # for a local frame; world coordinates = origin + xyz are in it
+    crs: dict | None = None
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
@@ -168,6 +240,7 @@ class Scene:
             raise ValueError(f"rgb must be {self.xyz.shape}, got {self.rgb.shape}")
         if self.visibility is None:
             self.visibility = Visibility.empty(len(self.frames))
+        self.visibility.bind(self.frames, self.xyz)
         if self.visibility.n_frames != len(self.frames):
             raise ValueError(
                 f"visibility has {self.visibility.n_frames} frames, scene has {len(self.frames)}"
@@ -193,6 +266,8 @@ class Scene:
         return np.asarray(self.xyz[idx], dtype=np.float64) + self.origin
 
     def summary(self) -> dict:
+        from occufly.visibility import views_summary
+
         vis = self.visibility
         views = vis.views_per_point(self.n_points) if self.n_points else np.zeros(0, int)
         per_frame = vis.counts_per_frame()
@@ -215,9 +290,13 @@ class Scene:
                 "points_per_frame_min": int(per_frame.min()) if len(per_frame) else 0,
                 "points_per_frame_mean": float(per_frame.mean()) if len(per_frame) else 0.0,
                 "views_per_point_mean": float(views.mean()) if len(views) else 0.0,
+                "views_per_point": views_summary(views),
+                "stores_uv": bool(vis.stores_projections),
             },
             "altitudes": alts,
             "taxonomy": {"name": self.taxonomy.name, "classes": len(self.taxonomy)},
+            "crs": ({"name": self.crs.get("name"), "epsg": self.crs.get("epsg")}
+                    if self.crs else None),
             "meta": self.meta,
         }
 
@@ -242,8 +321,9 @@ class Scene:
         v = self.visibility
         np.save(ws.visibility_array("offsets"), np.asarray(v.offsets, np.int64))
         np.save(ws.visibility_array("point_ids"), np.asarray(v.point_ids, np.int32))
-        np.save(ws.visibility_array("uv"), np.asarray(v.uv, np.float32))
-        np.save(ws.visibility_array("depth"), np.asarray(v.depth, np.float32))
+        if v.stores_projections:  # else they are recomputed on load (workspace version 2)
+            np.save(ws.visibility_array("uv"), np.asarray(v.uv, np.float32))
+            np.save(ws.visibility_array("depth"), np.asarray(v.depth, np.float32))
         ws.taxonomy_json.write_text(json.dumps(self.taxonomy.to_dict(), indent=1))
         ws.scene_json.write_text(json.dumps(self._header(), indent=1))
 
@@ -255,6 +335,7 @@ class Scene:
             "n_points": self.n_points,
             "frames": [f.to_dict() for f in self.frames],
             "meta": self.meta,
+            "crs": self.crs,
         }
 
     def save_header(self, path: str | Path) -> None:
@@ -289,11 +370,12 @@ class Scene:
         tax_path = ws.taxonomy_json
         taxonomy = Taxonomy.load(tax_path) if tax_path.is_file() else default_taxonomy()
         frames = [Frame.from_dict(d) for d in header["frames"]]
+        stored = ws.visibility_array("uv").is_file() or ws.visibility_array("depth").is_file()
         vis = Visibility(
             arr(ws.visibility_array("offsets")),
             arr(ws.visibility_array("point_ids")),
-            arr(ws.visibility_array("uv")),
-            arr(ws.visibility_array("depth")),
+            arr(ws.visibility_array("uv")) if stored else None,
+            arr(ws.visibility_array("depth")) if stored else None,
         )
         return cls(
             frames=frames,
@@ -303,6 +385,7 @@ class Scene:
             visibility=vis,
             taxonomy=taxonomy,
             meta=header.get("meta", {}),
+            crs=header.get("crs"),
         )
 
 

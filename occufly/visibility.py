@@ -1,19 +1,29 @@
-"""2D-3D correspondences: which points each frame sees, where they land and at what depth.
+"""2D-3D correspondences: every frame that sees a point.
 
-Three sources, best first:
+A point is visible in a frame when it projects inside the image, in front of the camera, and
+passes the depth test against that frame's depth: the MVS depth map where one exists
+(``|z - d| <= rel_tol * d``), otherwise a depth map *rendered from the cloud* by z-buffer
+splatting at a raster resolution that resolves the cloud's spacing (``render_rel_tol``).
+The reconstruction's own lists (``fused.ply.vis``, COLMAP tracks) are united with that
+(:data:`VISIBILITY_MODES`: ``union`` default, ``vis`` lists only, ``depth`` depth test only):
+a fusion's ``.vis`` names only the images whose depth maps were fused into a point (about 7
+per point on the ``bench`` preset), not every image that sees it (about 60 there).
 
-1. the reconstruction's own visibility (``fused.ply.vis`` lists, COLMAP tracks);
-2. a depth test against MVS depth maps: a point is seen by a frame if it projects inside the
-   image and its camera depth ``z`` agrees with the depth map there, ``|z - d| <= rel_tol * d``;
-3. the same test against depth maps *rendered from the cloud* by z-buffer splatting.
+Everything is vectorised and chunked by frame: candidate points per frame come from a
+coarse spatial binning (:class:`PointBins`, robust to far outliers), memory is one frame's
+raster and candidates plus the output, which holds 4 bytes per correspondence (point ids;
+uv and depth are recomputed on demand, see :class:`occufly.scene.Visibility`).
 
-Everything is vectorised. Candidate points per frame come from a coarse spatial binning
-(:class:`PointBins`) so the cost is proportional to what a frame can see, not to the scene.
+Bad input is reported, never silently empty: a depth map that is not a (scaled) copy of its
+frame's image is ignored for that frame with a warning naming the file (its depth is
+rendered from the cloud instead); a frame that sees no point (pose behind the cloud, wrong
+frame) is warned about by name; non-finite points are never visible (callers reject them).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -39,19 +49,39 @@ class PointBins:
             self.order = np.zeros(0, np.int64)
             self.starts = np.zeros(1, np.int64)
             self.centers = np.zeros((0, 3))
+            self.loose = np.zeros(0, np.int64)
             return
-        lo = xyz.min(axis=0).astype(np.float64)
-        hi = xyz.max(axis=0).astype(np.float64)
+        finite = np.isfinite(xyz).all(axis=1)
+        if not finite.any():
+            self.cell = 1.0
+            self.order = np.zeros(0, np.int64)
+            self.starts = np.zeros(1, np.int64)
+            self.centers = np.zeros((0, 3))
+            self.loose = np.zeros(0, np.int64)
+            return
+        # the bins cover the bulk of the cloud (0.1 .. 99.9 % per axis, widened by 10 %); the
+        # few points beyond it (far outliers) are candidates of every frame instead, so a
+        # point 10 km away neither coarsens the bins nor gets lost
+        fin = xyz[finite]
+        sub = fin[:: max(1, len(fin) // 200_000)]
+        qlo, qhi = np.quantile(sub, 0.001, axis=0), np.quantile(sub, 0.999, axis=0)
+        pad = 0.1 * (qhi - qlo) + 1.0
+        lo = (qlo - pad).astype(np.float64)
+        hi = (qhi + pad).astype(np.float64)
+        inside = finite & np.all((xyz >= lo) & (xyz <= hi), axis=1)
+        self.loose = np.flatnonzero(finite & ~inside)
         if cell is None:
             cell = max(float((hi - lo).max()) / 64.0, 1.0)
         self.cell = float(cell)
-        ijk = np.floor((xyz - lo) / self.cell).astype(np.int64)
+        inner = np.flatnonzero(inside)
+        ijk = np.floor((xyz[inner] - lo) / self.cell).astype(np.int64)
         dims = ijk.max(axis=0) + 1
         key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-        self.order = np.argsort(key, kind="stable")
-        skey = key[self.order]
+        o = np.argsort(key, kind="stable")
+        self.order = inner[o]
+        skey = key[o]
         first = np.flatnonzero(np.r_[True, skey[1:] != skey[:-1]])
-        self.starts = np.r_[first, self.n].astype(np.int64)
+        self.starts = np.r_[first, len(inner)].astype(np.int64)
         ukey = skey[first]
         k = ukey % dims[2]
         j = (ukey // dims[2]) % dims[1]
@@ -59,9 +89,10 @@ class PointBins:
         self.centers = lo + (np.column_stack([i, j, k]) + 0.5) * self.cell
 
     def candidates(self, camera: Camera, T_cam_world: np.ndarray, far: float = np.inf) -> np.ndarray:
-        """(K,) int64 ids of points in bins that may project into the image."""
-        if self.n == 0:
-            return np.zeros(0, np.int64)
+        """(K,) int64 ids of points in bins that may project into the image (plus the far
+        outliers outside the bins, always)."""
+        if self.n == 0 or not len(self.centers):
+            return self.loose.copy()
         c_cam = transform(T_cam_world, self.centers)
         r = self.cell * 0.8661  # half diagonal
         z = c_cam[:, 2]
@@ -87,10 +118,12 @@ class PointBins:
             inside |= near  # be generous: distortion moves points near the border
         sel = np.flatnonzero(inside)
         if not len(sel):
-            return np.zeros(0, np.int64)
+            return self.loose.copy()
         a, b = self.starts[sel], self.starts[sel + 1]
         lens = b - a
         idx = np.repeat(a - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
+        if len(self.loose):
+            return np.concatenate([self.order[idx], self.loose])
         return self.order[idx]
 
 
@@ -126,23 +159,26 @@ def depth_test(
 
 
 def render_depth(
-    camera: Camera, uv: np.ndarray, z: np.ndarray, radius_px: np.ndarray | float
+    camera: Camera, uv: np.ndarray, z: np.ndarray, radius_px: np.ndarray | float,
+    shape: tuple[int, int] | None = None,
 ) -> np.ndarray:
-    """Z-buffer splatting of projected points -> (H, W) float32 depth, 0 where empty.
+    """Z-buffer splatting of projected points -> (h, w) float32 depth, 0 where empty.
 
-    uv: (m, 2) pixels, z: (m,) depth, radius_px: splat half-size per point (or scalar).
-    Each point covers the square of pixels within ``radius_px`` of its pixel.
+    uv: (m, 2) full-resolution pixels, z: (m,) depth, radius_px: splat half-size per point
+    (or scalar) in raster pixels; shape: (h, w) of the raster (default the image's), uv are
+    scaled to it. Each point covers the square of pixels within ``radius_px`` of its pixel.
     """
-    h, w = camera.height, camera.width
+    h, w = (camera.height, camera.width) if shape is None else shape
     zbuf = np.full(h * w, np.inf, dtype=np.float32)
-    col = uv[:, 0].astype(np.int64)
-    row = uv[:, 1].astype(np.int64)
+    uv = np.asarray(uv)
+    col = np.floor(uv[:, 0] * (w / camera.width)).astype(np.int64)
+    row = np.floor(uv[:, 1] * (h / camera.height)).astype(np.int64)
     rad = np.broadcast_to(np.asarray(np.round(radius_px), dtype=np.int64), z.shape)
     rmax = int(rad.max(initial=0))
-    zf = z.astype(np.float32)
+    zf = np.asarray(z).astype(np.float32)
     for dr in range(-rmax, rmax + 1):
         for dc in range(-rmax, rmax + 1):
-            sel = (np.abs(dr) <= rad) & (np.abs(dc) <= rad) if rmax else slice(None)
+            sel = (abs(dr) <= rad) & (abs(dc) <= rad) if rmax else slice(None)
             r = row[sel] + dr
             c = col[sel] + dc
             ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
@@ -151,19 +187,169 @@ def render_depth(
     return zbuf.reshape(h, w)
 
 
-def point_spacing(xyz: np.ndarray, sample: int = 20000, seed: int = 0) -> float:
-    """Median nearest-neighbour distance of a random sample of points (metres)."""
-    from scipy.spatial import cKDTree
+VISIBILITY_MODES = ("union", "vis", "depth")
+MAX_RASTER_SIDE = 4096  # longest side of a rendered depth raster
+MAX_WARNINGS = 20  # listed in the stats (all are logged)
 
-    n = len(xyz)
-    if n < 2:
-        return 0.1
-    rng = np.random.default_rng(seed)
-    sub = np.asarray(xyz[rng.choice(n, size=min(n, 200_000), replace=False)], dtype=np.float64)
-    tree = cKDTree(sub)
-    q = sub[: min(sample, len(sub))]
-    d, _ = tree.query(q, k=2)
-    return float(np.median(d[:, 1])) or 0.05
+
+def render_shape(camera: Camera, spacing: float, z_typical: float) -> tuple[int, int]:
+    """(h, w) of a rendered depth raster that resolves the cloud's spacing: the points'
+    projected spacing at the typical depth is at most 2 raster pixels (so 3x3 splats close
+    the surface), never finer than the image, never longer than MAX_RASTER_SIDE."""
+    px = camera.focal[0] * spacing / max(z_typical, 1e-6)  # projected spacing, image pixels
+    k = max(1.0, px / 2.0, max(camera.width, camera.height) / MAX_RASTER_SIDE)
+    return max(1, int(round(camera.height / k))), max(1, int(round(camera.width / k)))
+
+
+def _depth_map_ok(dm: np.ndarray, camera: Camera) -> bool:
+    """A depth map is usable when it is the image or a uniformly scaled copy (1 % slack)."""
+    if dm.ndim != 2 or dm.size == 0:
+        return False
+    h, w = dm.shape
+    sx, sy = w / camera.width, h / camera.height
+    return abs(sx - sy) <= 0.01 * max(sx, sy) + 1.0 / min(camera.width, camera.height)
+
+
+def _group_by_frame(n_frames: int, offsets: np.ndarray, frame_indices: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point lists (CSR over points) -> (point ids int32 sorted by frame, bounds (F+1,))."""
+    counts = np.diff(np.asarray(offsets, dtype=np.int64))
+    point_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+    fidx = np.asarray(frame_indices)
+    keep = (fidx >= 0) & (fidx < n_frames)
+    if not keep.all():
+        point_of, fidx = point_of[keep], fidx[keep]
+    order = np.argsort(fidx, kind="stable")
+    point_of = point_of[order]
+    bounds = np.searchsorted(fidx[order], np.arange(n_frames + 1))
+    return point_of, bounds
+
+
+def compute_visibility(
+    frames: Sequence[Frame],
+    xyz: np.ndarray,
+    *,
+    mode: str = "union",
+    lists: tuple[np.ndarray, np.ndarray] | None = None,
+    lists_name: str = "visibility lists",
+    depth_for: Callable[[int], np.ndarray | tuple[np.ndarray, str] | None] | None = None,
+    rel_tol: float = 0.02,
+    render_rel_tol: float = 0.05,
+    progress: ProgressFn | None = None,
+) -> tuple[Visibility, dict]:
+    """Every frame that sees each point, one frame at a time.
+
+    lists: the reconstruction's per-point frame lists as (offsets (N + 1,), frame indices
+    (M,)), e.g. ``fused.ply.vis`` or tracks; entries that do not project into their frame
+    are dropped (counted). depth_for(f): frame f's MVS depth map (or (map, file name)), or
+    None to render one from the cloud. mode: ``union`` (lists + depth test), ``vis`` (lists
+    only), ``depth`` (depth test only). Returns (visibility without stored uv/depth, stats).
+    """
+    if mode not in VISIBILITY_MODES:
+        raise ValueError(f"visibility mode {mode!r}: expected one of {', '.join(VISIBILITY_MODES)}")
+    if mode == "vis" and lists is None:
+        raise ValueError("visibility mode 'vis' needs the reconstruction's visibility lists "
+                         "(fused.ply.vis or tracks), and there are none")
+    report = progress or noop
+    t0 = time.perf_counter()
+    xyz = np.asarray(xyz)
+    n, F = len(xyz), len(frames)
+    use_lists = lists is not None and mode in ("union", "vis")
+    use_depth = mode in ("union", "depth")
+    stats: dict = {"mode": mode, "frames_with_depth_maps": 0, "frames_rendered": 0,
+                   "list_entries": 0, "list_entries_outside_image": 0,
+                   "depth_test_entries": 0, "entries_only_in_lists": 0,
+                   "entries_only_in_depth_test": 0, "frames_seeing_nothing": 0, "warnings": []}
+    warnings: list[str] = []
+
+    def warn(msg: str) -> None:
+        log.warning("%s", msg)
+        warnings.append(msg)
+
+    if use_lists:
+        point_of, bounds = _group_by_frame(F, lists[0], lists[1])
+        stats["list_entries"] = int(len(point_of))
+    bins = PointBins(xyz) if use_depth else None
+    if bins is not None and len(bins.loose):
+        stats["far_outlier_points"] = int(len(bins.loose))
+    spacing = None
+    out: list[np.ndarray] = []
+    counts = np.zeros(F, np.int64)
+    for f, frame in enumerate(frames):
+        report(f / max(F, 1), "visibility")
+        cam = frame.camera
+        ids_l = ids_d = None
+        if use_lists:
+            cand = point_of[bounds[f]:bounds[f + 1]].astype(np.int64)
+            ids_l, _, _ = project_ids(frame, xyz, cand)
+            stats["list_entries_outside_image"] += int(len(cand) - len(ids_l))
+            ids_l = np.unique(ids_l)
+        if use_depth:
+            ids, uv, z = project_ids(frame, xyz, bins.candidates(cam, frame.T_cam_world))
+            got = depth_for(f) if depth_for is not None and len(ids) else None
+            dm, dname = (got if isinstance(got, tuple) else (got, f"depth map of {frame.name}"))
+            if dm is not None and not _depth_map_ok(np.asarray(dm), cam):
+                warn(f"{dname}: {np.asarray(dm).shape[1] if np.ndim(dm) == 2 else '?'}x"
+                     f"{np.asarray(dm).shape[0] if np.ndim(dm) == 2 else '?'} is not a scaled "
+                     f"copy of frame {frame.name}'s {cam.width}x{cam.height} image; its depth "
+                     "is rendered from the cloud instead")
+                dm = None
+            if dm is not None:
+                stats["frames_with_depth_maps"] += 1
+                dm = np.nan_to_num(np.asarray(dm, dtype=np.float32), nan=0.0, posinf=0.0,
+                                   neginf=0.0)
+                ok = depth_test(uv, z, dm, (cam.width, cam.height), rel_tol)
+            elif len(ids):
+                if spacing is None:
+                    from occufly.render import estimate_point_spacing
+
+                    spacing = estimate_point_spacing(xyz[np.isfinite(xyz).all(axis=1)])
+                    stats["point_spacing"] = spacing
+                stats["frames_rendered"] += 1
+                shape = render_shape(cam, spacing, float(np.median(z)))
+                fx = cam.focal[0] * shape[1] / cam.width
+                radius = np.clip(0.5 * fx * spacing / np.maximum(z, 1e-6), 0, 3)
+                dm = render_depth(cam, uv, z, radius, shape)
+                ok = depth_test(uv, z, dm, (cam.width, cam.height), render_rel_tol)
+            else:
+                ok = np.zeros(0, bool)
+            ids_d = np.sort(ids[ok])
+            stats["depth_test_entries"] += int(len(ids_d))
+        if ids_l is not None and ids_d is not None:
+            both = np.union1d(ids_l, ids_d)
+            stats["entries_only_in_lists"] += int(len(both) - len(ids_d))
+            stats["entries_only_in_depth_test"] += int(len(both) - len(ids_l))
+        else:
+            both = ids_l if ids_l is not None else ids_d
+        if not len(both):
+            stats["frames_seeing_nothing"] += 1
+            warn(f"frame {frame.name} sees no point of the cloud (none is in front of the "
+                 "camera and inside the image, or none passes the depth test): check its pose")
+        out.append(both.astype(np.int32, copy=False))
+        counts[f] = len(both)
+    offsets = np.zeros(F + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    ids = np.concatenate(out) if out and offsets[-1] else np.zeros(0, np.int32)
+    del out
+    vis = Visibility(offsets, ids)
+    views = np.bincount(ids, minlength=n) if n else np.zeros(0, np.int64)
+    stats["correspondences"] = int(offsets[-1])
+    stats["views_per_point"] = views_summary(views)
+    stats["warnings"] = warnings[:MAX_WARNINGS]
+    stats["warning_count"] = len(warnings)
+    stats["seconds"] = round(time.perf_counter() - t0, 3)
+    report(1.0, "visibility")
+    return vis, stats
+
+
+def views_summary(views: np.ndarray) -> dict:
+    """Mean / median / percentiles of views per point (``views``: (N,) counts)."""
+    views = np.asarray(views)
+    if not len(views):
+        return {"mean": 0.0, "median": 0.0, "p10": 0.0, "p90": 0.0, "unseen": 0}
+    p10, p50, p90 = np.percentile(views, [10, 50, 90])
+    return {"mean": round(float(views.mean()), 3), "median": float(p50), "p10": float(p10),
+            "p90": float(p90), "unseen": int((views == 0).sum())}
 
 
 def visibility_from_depth(
@@ -175,31 +361,9 @@ def visibility_from_depth(
     render_rel_tol: float = 0.05,
     progress: ProgressFn | None = None,
 ) -> tuple[Visibility, dict]:
-    """Visibility by depth test. ``depth_for(f)`` gives frame f's depth map or None, in which
-    case a depth map is rendered from the cloud itself (z-buffer splats)."""
-    report = progress or noop
-    bins = PointBins(xyz)
-    spacing = None
-    parts = []
-    stats = {"frames_with_depth_maps": 0, "frames_rendered": 0}
-    for f, frame in enumerate(frames):
-        report(f / max(len(frames), 1), "visibility")
-        ids, uv, z = project_ids(frame, xyz, bins.candidates(frame.camera, frame.T_cam_world))
-        dm = depth_for(f) if depth_for is not None else None
-        if dm is not None:
-            stats["frames_with_depth_maps"] += 1
-            ok = depth_test(uv, z, dm, (frame.camera.width, frame.camera.height), rel_tol)
-        else:
-            if spacing is None:
-                spacing = point_spacing(xyz)
-            stats["frames_rendered"] += 1
-            fx = frame.camera.focal[0]
-            radius = np.clip(0.5 * fx * spacing / np.maximum(z, 1e-6), 0, 3)
-            dm = render_depth(frame.camera, uv, z, radius)
-            ok = depth_test(uv, z, dm, (frame.camera.width, frame.camera.height), render_rel_tol)
-        parts.append((ids[ok], uv[ok], z[ok]))
-    report(1.0, "visibility")
-    return Visibility.from_parts(parts), stats
+    """Visibility by depth test alone (:func:`compute_visibility` with ``mode="depth"``)."""
+    return compute_visibility(frames, xyz, mode="depth", depth_for=depth_for, rel_tol=rel_tol,
+                              render_rel_tol=render_rel_tol, progress=progress)
 
 
 def visibility_from_point_lists(
@@ -208,26 +372,6 @@ def visibility_from_point_lists(
     offsets: np.ndarray,
     frame_indices: np.ndarray,
 ) -> tuple[Visibility, dict]:
-    """Visibility from per-point lists of frames (``fused.ply.vis`` or tracks).
-
-    offsets: (N + 1,) int64 CSR over points; frame_indices: (M,) index into ``frames``, -1 to
-    drop. Entries whose point does not project into the frame (behind it, outside the image)
-    are dropped and counted.
-    """
-    n = len(offsets) - 1
-    counts = np.diff(offsets)
-    point_of = np.repeat(np.arange(n, dtype=np.int64), counts)
-    fidx = np.asarray(frame_indices, dtype=np.int64)
-    keep = fidx >= 0
-    point_of, fidx = point_of[keep], fidx[keep]
-    order = np.argsort(fidx, kind="stable")
-    point_of, fidx = point_of[order], fidx[order]
-    bounds = np.searchsorted(fidx, np.arange(len(frames) + 1))
-    parts = []
-    dropped = 0
-    for f, frame in enumerate(frames):
-        ids = point_of[bounds[f] : bounds[f + 1]]
-        kept_ids, uv, z = project_ids(frame, xyz, ids)
-        dropped += len(ids) - len(kept_ids)
-        parts.append((kept_ids, uv, z))
-    return Visibility.from_parts(parts), {"entries_outside_image": int(dropped)}
+    """Visibility from per-point lists of frames alone (``fused.ply.vis`` or tracks):
+    :func:`compute_visibility` with ``mode="vis"``."""
+    return compute_visibility(frames, xyz, mode="vis", lists=(offsets, frame_indices))

@@ -10,8 +10,8 @@ path, a reader or an atomic writer::
     WS/points/rgb.npy              (N, 3) uint8
     WS/visibility/offsets.npy      (F + 1,) int64 CSR by frame
     WS/visibility/point_ids.npy    (M,) int32
-    WS/visibility/uv.npy           (M, 2) float32 pixel coordinates
-    WS/visibility/depth.npy        (M,) float32 camera depth, metres
+    WS/visibility/uv.npy           (M, 2) float32 pixel coordinates [optional since v2]
+    WS/visibility/depth.npy        (M,) float32 camera depth, metres [optional since v2]
     WS/lifting/state.json          vote state: included mask versions, dirty flag
     WS/lifting/votes.npy           (N, C) uint16 vote counts (memory-mapped, updated in place)
     WS/lifting/frames/<F>.npz      the votes one frame cast (point ids, class columns)

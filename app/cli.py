@@ -40,6 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--no-serve", action="store_true", help="seed only")
+    p.add_argument("--dev", action="store_true",
+                   help="well-known passwords occufly-<role> (default: random ones, printed)")
 
 
 def _settings():
@@ -56,7 +58,10 @@ def _serve(args: argparse.Namespace) -> int:
     app = create_app(_settings())
     # no permessage-deflate: the /viewer/ socket carries ~15 B/point of float data, which
     # barely compresses and costs ~5 s per 2 M points (bench/bench_viewer.py)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info", ws_per_message_deflate=False)
+    # proxy_headers off: uvicorn would otherwise believe X-Forwarded-For from loopback; the app
+    # honours it only from OCCUFLY_TRUSTED_PROXIES (app.security.client_ip)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info", ws_per_message_deflate=False,
+                proxy_headers=False)
     return 0
 
 
@@ -116,9 +121,11 @@ def _password(args: argparse.Namespace) -> tuple[str, bool]:
 
 
 def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
-         host: str = "127.0.0.1", port: int = 8000, serve: bool = True) -> dict:
+         host: str = "127.0.0.1", port: int = 8000, serve: bool = True,
+         dev: bool = False) -> dict:
     """The README's main command: synthesize ``preset``, import it, select frames, create one
-    user per role (credentials printed), then serve on ``host:port``.
+    user per role (random passwords printed; ``dev``: the well-known ``occufly-<role>``), then
+    serve on ``host:port``.
 
     Without ``OCCUFLY_SECRET_KEY`` the demo runs in development mode with a random secret.
     """
@@ -137,7 +144,7 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
     app = create_app(settings)
     with tqdm_progress(f"synthesizing {preset}") as bar:
         info = seed_demo(settings, Path(source) if source else None, preset=preset,
-                         seed_value=seed, app=app, progress=bar)
+                         seed_value=seed, app=app, progress=bar, dev_passwords=dev)
     print(f"OccuFly Studio demo: scene {info['scene_id']} from {info['source']}", file=sys.stderr)
     sel = info["selection"]
     if sel.get("frames") is not None:
@@ -145,12 +152,14 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
               file=sys.stderr)
     print("  log in with:", file=sys.stderr)
     for user, pw in info["users"].items():
-        print(f"    {user:10s} password {pw}", file=sys.stderr)
+        shown = pw if pw is not None else "(existing account, password unchanged)"
+        print(f"    {user:10s} password {shown}", file=sys.stderr)
     if serve:
         import uvicorn
 
         print(f"  open http://{host}:{port}/", file=sys.stderr)
-        uvicorn.run(app, host=host, port=port, log_level="info", ws_per_message_deflate=False)
+        uvicorn.run(app, host=host, port=port, log_level="info", ws_per_message_deflate=False,
+                    proxy_headers=False)
     else:
         from app.main import close
 
@@ -160,7 +169,7 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
 
 def _demo(args: argparse.Namespace) -> dict | int:
     info = demo(preset=args.preset, seed=args.seed, source=args.source, host=args.host,
-                port=args.port, serve=not args.no_serve)
+                port=args.port, serve=not args.no_serve, dev=args.dev)
     return info if args.no_serve else 0
 
 

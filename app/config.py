@@ -21,6 +21,11 @@
 ``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
 ``OCCUFLY_ARGON2_MEMORY_KIB``  argon2id memory cost (default 65536 = argon2-cffi's default)
 ``OCCUFLY_ARGON2_TIME_COST``   argon2id iterations (default 3)
+``OCCUFLY_TRUSTED_PROXIES``    comma-separated addresses of reverse proxies whose
+                               ``X-Forwarded-For`` is believed (default: none, the peer
+                               address is the client)
+``OCCUFLY_ALLOWED_ORIGINS``    comma-separated extra origins (``https://host:port``) allowed to
+                               send cookie-authenticated writes besides the app's own host
 =============================  ===========================================================
 """
 
@@ -62,6 +67,11 @@ class Settings:
     argon2_time_cost: int = 3
     auto_upgrade: bool = True
     live_lifting: bool = True
+    trusted_proxies: list[str] = field(default_factory=list)
+    allowed_origins: list[str] = field(default_factory=list)
+    login_user_free_factor: int = 10  # an account's failures from all addresses before a lock
+    login_user_max_lock_s: int = 60  # ... which is short: an attacker cannot keep it locked
+    session_check_s: float = 2.0  # how often an open viewer socket re-checks its session
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).absolute()
@@ -128,6 +138,11 @@ class Settings:
             argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
         )
+        kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
+                                  .split(",") if p.strip()]
+        kw["allowed_origins"] = [o.strip().rstrip("/") for o in
+                                  (env.get("OCCUFLY_ALLOWED_ORIGINS") or "").split(",")
+                                  if o.strip()]
         if env.get("OCCUFLY_FRONTEND_DIR"):
             kw["frontend_dir"] = Path(env["OCCUFLY_FRONTEND_DIR"])
         kw.update(overrides)

@@ -30,11 +30,18 @@ def _copy_truth_grid(source: Path, ws: Path) -> None:
 
 def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "small",
          seed_value: int = 0, name: str | None = None, app=None, select: bool = True,  # noqa: ANN001
-         passwords: dict[str, str] | None = None, progress=None) -> dict:  # noqa: ANN001
+         passwords: dict[str, str] | None = None, progress=None,  # noqa: ANN001
+         dev_passwords: bool | None = None) -> dict:
     """Import ``source_dir`` (default: synthesize ``preset`` under the data dir), select
-    frames, and create users admin/reviewer/annotator. Idempotent: existing users and a scene
-    of the same name are kept. Returns {scene_id, users: {name: password}, selection}.
+    frames, and create users admin/reviewer/annotator, made members of the scene. Idempotent:
+    existing users and a scene of the same name are kept. Returns {scene_id, users: {name:
+    password, or None for an account that already existed}, selection}.
+
+    New accounts get random passwords unless ``dev_passwords`` (default: the settings'
+    development mode) asks for the well-known ``occufly-<role>`` ones.
     """
+    import secrets
+
     from sqlalchemy import select as sql_select
 
     from app.jobs import service as jobs
@@ -58,11 +65,16 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
         name = name or f"{Path(source).name}"
         creds = {}
         with ctx.sessions() as s:
+            well_known = settings.is_dev if dev_passwords is None else dev_passwords
             for role in DEMO_USERS:
-                pw = (passwords or {}).get(role, demo_password(role))
+                pw = (passwords or {}).get(role) or (
+                    demo_password(role) if well_known else secrets.token_urlsafe(12))
                 if users.get_by_name(session=s, username=role) is None:
                     users.create_user(session=s, username=role, password=pw, role=role)
-                creds[role] = pw
+                    creds[role] = pw
+                else:
+                    creds[role] = (passwords or {}).get(role) or (
+                        demo_password(role) if well_known else None)
             scene = s.scalar(sql_select(Scene).where(Scene.name == name))
             if scene is None:
                 scene = scenes.create_scene(session=s, settings=settings, name=name, source=source)
@@ -77,6 +89,9 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
                     raise WorkspaceError(f"demo import of {source} failed: {job.message}")
             s.refresh(scene)
             scene_id = scene.id
+            member_ids = [users.get_by_name(session=s, username=r).id for r in DEMO_USERS
+                          if r != "admin"]
+            scenes.set_members(session=s, scene=scene, user_ids=member_ids, replace=False)
             _copy_truth_grid(Path(source), Path(scene.workspace))
             selection = scene.selection
             if select and selection is None:

@@ -2,7 +2,9 @@
 
 ``SessionDep`` a database session; ``CurrentUser`` any logged-in user; ``ReviewerUser`` and
 ``AdminUser`` role-checked users; ``SceneDep`` / ``FrameDep`` load the path's scene/frame (404)
-for a logged-in user.
+for a logged-in user who may see that scene (admins: every scene; annotators and reviewers:
+the scenes they are members of, else 403). ``ClientIp`` the caller's address (X-Forwarded-For
+only from configured proxies).
 """
 
 from __future__ import annotations
@@ -41,20 +43,50 @@ def token_from(conn) -> str | None:  # noqa: ANN001 - Request or WebSocket
     return conn.cookies.get(SESSION_COOKIE) or None
 
 
+def client_ip_of(conn: Request) -> str:
+    from app.security import client_ip
+
+    peer = conn.client.host if conn.client else None
+    return client_ip(peer, conn.headers.get("x-forwarded-for"),
+                     conn.app.state.ctx.settings.trusted_proxies)
+
+
+ClientIp = Annotated[str, Depends(client_ip_of)]
+
+
 def get_current_user(request: Request, session: SessionDep) -> User:
     from app.users import service
 
     token = token_from(request)
     if not token:
         raise NotAuthenticated("not logged in: send the session cookie or a Bearer token")
-    user = service.user_for_token(session=session, settings=request.app.state.ctx.settings,
-                                  token=token)
-    if user is None:
+    row = service.session_for_token(session=session, settings=request.app.state.ctx.settings,
+                                    token=token)
+    user = session.get(User, row.user_id) if row is not None else None
+    if user is None or not user.active:
         raise NotAuthenticated("session expired or invalid: log in again")
+    request.state.auth_session_id = row.id
     return user
 
 
 CurrentUser = Annotated[User, Depends(get_current_user)]
+
+
+def is_member(session: Session, user: User, scene_id: int) -> bool:
+    """Admins see every scene; annotators and reviewers the scenes they are assigned to."""
+    if user.role == "admin":
+        return True
+    from sqlalchemy import select
+
+    from app.scenes.models import SceneMember
+
+    return session.scalar(select(SceneMember.id).where(
+        SceneMember.scene_id == scene_id, SceneMember.user_id == user.id)) is not None
+
+
+def check_member(session: Session, user: User, scene_id: int) -> None:
+    if not is_member(session, user, scene_id):
+        raise Forbidden(f"you are not a member of scene {scene_id}; an admin assigns scenes")
 
 
 def require_roles(*roles: str):
@@ -72,18 +104,20 @@ AdminUser = Annotated[User, Depends(require_roles("admin"))]
 
 
 def get_scene(sid: Annotated[int, Path(ge=1, le=2**31 - 1)], session: SessionDep,
-              _user: CurrentUser) -> Scene:
+              user: CurrentUser) -> Scene:
     scene = session.get(Scene, sid)
     if scene is None:
         raise NotFound(f"scene {sid} does not exist")
+    check_member(session, user, scene.id)
     return scene
 
 
 def get_frame(fid: Annotated[int, Path(ge=1, le=2**31 - 1)], session: SessionDep,
-              _user: CurrentUser) -> Frame:
+              user: CurrentUser) -> Frame:
     frame = session.get(Frame, fid)
     if frame is None:
         raise NotFound(f"frame {fid} does not exist")
+    check_member(session, user, frame.scene_id)
     return frame
 
 

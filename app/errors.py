@@ -6,7 +6,10 @@ escapes is a bug and gives a 500.
 
 from __future__ import annotations
 
+import math
+
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from occufly.errors import InputFormatError, MaskError, OccuflyError, TaxonomyError, WorkspaceError
@@ -79,3 +82,42 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(OccuflyError)
     async def _occufly(_request: Request, exc: OccuflyError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=_status_for_occufly(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse(validation_body(exc.errors()), status_code=422)
+
+
+MAX_ECHO = 200  # characters of a bad input value echoed back in a 422
+
+
+def validation_body(errors: list) -> dict:
+    """The 422 body for pydantic errors: one readable ``detail`` line plus ``errors`` (loc, msg,
+    type and a JSON-safe, truncated echo of the bad input: NaN/Infinity become strings, bytes
+    and long values are cut), so any input at all gives a 422 and never a 500."""
+    parts = []
+    for e in errors:
+        loc = ".".join(str(x) for x in e.get("loc", ()) if x != "body")
+        msg = _plain(e.get("msg"))
+        parts.append(f"{loc}: {msg}" if loc else str(msg))
+    return {"detail": "; ".join(parts)[:4000] or "invalid request",
+            "errors": [_plain({k: v for k, v in e.items() if k in ("loc", "msg", "type", "input")})
+                       for e in errors[:50]]}
+
+
+def _plain(obj, depth: int = 0):  # noqa: ANN001, ANN202 - JSON-safe copy of validation details
+    if depth > 4:
+        return "..."
+    if isinstance(obj, dict):
+        return {str(k)[:MAX_ECHO]: _plain(v, depth + 1) for k, v in list(obj.items())[:20]}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v, depth + 1) for v in list(obj)[:20]]
+    if isinstance(obj, bool) or obj is None:
+        return obj
+    if isinstance(obj, int):
+        return obj if abs(obj) < 2**53 else str(obj)[:MAX_ECHO]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else str(obj)
+    if isinstance(obj, (bytes, bytearray)):
+        return bytes(obj[:MAX_ECHO]).decode("utf-8", "replace")
+    return str(obj).replace("\x00", "\\x00")[:MAX_ECHO]

@@ -11,9 +11,7 @@ from __future__ import annotations
 import logging
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
 from app import db, errors
 from app.annotations.lifting import LiftingManager
@@ -65,24 +63,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               "ground truth. Auth: session cookie `occufly_session` or "
                               "`Authorization: Bearer <token>` from POST /api/auth/login.")
     app.state.ctx = ctx
-    errors.install(app)
-
-    @app.exception_handler(RequestValidationError)
-    async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        parts = []
-        for e in exc.errors():
-            loc = ".".join(str(x) for x in e.get("loc", ()) if x != "body")
-            parts.append(f"{loc}: {e.get('msg')}" if loc else str(e.get("msg")))
-        return JSONResponse({"detail": "; ".join(parts) or "invalid request",
-                             "errors": _plain(exc.errors())}, status_code=422)
+    errors.install(app)  # domain errors and the (NaN-safe) 422 handler
+    app.add_middleware(security.SecurityMiddleware, get_ctx=lambda: ctx)  # CSRF, headers
 
     from app.annotations.routes import router as annotations_router
+    from app.audit.routes import router as audit_router
     from app.jobs.routes import router as jobs_router
     from app.review.routes import router as review_router
     from app.scenes.routes import router as scenes_router
     from app.users.routes import router as users_router
 
-    for r in (users_router, scenes_router, annotations_router, review_router, jobs_router):
+    for r in (users_router, scenes_router, annotations_router, review_router, jobs_router,
+              audit_router):
         app.include_router(r)
 
     @app.get("/api/health", tags=["meta"])
@@ -192,13 +184,3 @@ def _mount_frontend(app: FastAPI, settings: Settings) -> None:
 
     if settings.frontend_dir.is_dir():
         app.mount("/", StaticFiles(directory=settings.frontend_dir, html=True), name="frontend")
-
-
-def _plain(obj):  # noqa: ANN001, ANN202 - make validation error details JSON-safe
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items() if k != "ctx"}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, (str, int, float, bool)) or obj is None:
-        return obj
-    return str(obj)

@@ -1,13 +1,14 @@
 """Every ORM model, imported in one place (Alembic's ``target_metadata``)."""
 
 from app.annotations.models import MaskVersion
+from app.audit.models import AuditEvent
 from app.db import Base
 from app.jobs.models import Job
 from app.review.models import ReviewComment, ReviewItem
-from app.scenes.models import Frame, Scene
+from app.scenes.models import Frame, Scene, SceneMember
 from app.users.models import AuthToken, LoginThrottle, User
 
 metadata = Base.metadata
 
-__all__ = ["AuthToken", "Frame", "Job", "LoginThrottle", "MaskVersion", "ReviewComment",
-           "ReviewItem", "Scene", "User", "metadata"]
+__all__ = ["AuditEvent", "AuthToken", "Frame", "Job", "LoginThrottle", "MaskVersion",
+           "ReviewComment", "ReviewItem", "Scene", "SceneMember", "User", "metadata"]

@@ -113,6 +113,9 @@ def _seed(env: dict, n_annotators: int, src: Path) -> int:
     with ctx.sessions() as s:
         s.execute(update(Frame).where(Frame.scene_id == sid).values(selected=True))
         s.commit()
+        # annotators see only the scenes they are members of
+        ids = [users.get_by_name(session=s, username=f"ann{i:02d}").id for i in range(n_annotators)]
+        scenes.set_members(session=s, scene=s.get(scenes.Scene, sid), user_ids=ids, replace=True)
     close(app)
     return sid
 

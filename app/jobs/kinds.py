@@ -20,7 +20,9 @@ def run_import(jc: JobContext) -> dict:
     p = jc.params
     with jc.ctx.sessions() as s:
         scene = s.get(Scene, jc.scene_id)
-        ws = Path(scene.workspace)
+        # the import replaces this folder: it must be the scene's own (never '.', '..', a
+        # symlink or anything outside the workspaces folder)
+        ws = scenes.own_workspace(jc.ctx.settings, scene)
         scene.status = "importing"
         s.commit()
     jc.progress(0.0, f"importing {p['source']}")

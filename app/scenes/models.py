@@ -50,3 +50,17 @@ class Frame(Base):
     reviewed_by_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     reviewed_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    # the mask version the last accept/reject decided on (an export names it per frame)
+    reviewed_version_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class SceneMember(Base):
+    """An annotator or reviewer assigned to a scene: they see only their scenes (admins all)."""
+
+    __tablename__ = "scene_members"
+    __table_args__ = (UniqueConstraint("scene_id", "user_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    scene_id: Mapped[int] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)

@@ -5,38 +5,112 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse
 
-from app.deps import AdminUser, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
+from app.audit import service as audit
+from app.deps import AdminUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
 from app.errors import NotFound
 from app.jobs import service as jobs
 from app.jobs.schemas import JobOut
+from app.limits import IdPath
 from app.scenes import service
 from app.scenes.models import Scene
-from app.scenes.schemas import FrameDetail, FrameOut, ImportIn, SceneDetail, SceneOut, SelectionIn
+from app.scenes.schemas import (
+    FrameDetail,
+    FrameOut,
+    ImportIn,
+    MemberOut,
+    MembersIn,
+    SceneDetail,
+    SceneOut,
+    SelectionIn,
+)
 
 router = APIRouter(prefix="/api", tags=["scenes"])
 CACHE = "private, max-age=86400"
 
+# who may call what (see app/access.py; tests/app/test_security.py walks them all)
+ACCESS = {
+    "GET /api/scenes": "user",  # filtered: annotators/reviewers see their scenes only
+    "POST /api/scenes/import": "admin",
+    "GET /api/scenes/{sid}": "member",
+    "POST /api/scenes/{sid}/selection": "admin",
+    "GET /api/scenes/{sid}/selection": "member",
+    "GET /api/scenes/{sid}/frames": "member",
+    "GET /api/frames/{fid}": "member",
+    "GET /api/frames/{fid}/image": "member",
+    "GET /api/scenes/{sid}/members": "admin",
+    "PUT /api/scenes/{sid}/members": "admin",
+    "POST /api/scenes/{sid}/members": "admin",
+    "DELETE /api/scenes/{sid}/members/{uid}": "admin",
+}
+
 
 @router.get("/scenes", response_model=list[SceneOut])
-def list_scenes(session: SessionDep, _user: CurrentUser):
+def list_scenes(session: SessionDep, user: CurrentUser):
     from sqlalchemy import select
 
-    return list(session.scalars(select(Scene).order_by(Scene.id)))
+    q = select(Scene).order_by(Scene.id)
+    ids = service.visible_scene_ids(session, user)
+    if ids is not None:
+        q = q.where(Scene.id.in_(ids))
+    return list(session.scalars(q))
 
 
 @router.post("/scenes/import", response_model=JobOut, status_code=202)
-def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUser):
+def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUser, ip: ClientIp):
     s = ctx.settings
     source = service.resolve_import_path(s, body.source)
     cloud = service.resolve_import_path(s, body.cloud, field="cloud") if body.cloud else None
     depth = (service.resolve_import_path(s, body.depth_maps, field="depth_maps")
              if body.depth_maps else None)
+    if body.members:  # check the ids before anything is created
+        service.check_member_ids(session=session, user_ids=body.members)
     scene = service.create_scene(session=session, settings=s, name=body.name, source=source)
+    if body.members:
+        service.set_members(session=session, scene=scene, user_ids=body.members, replace=True)
     job = jobs.create(session=session, kind="import", scene_id=scene.id, user_id=user.id,
                       params={"source": str(source), "cloud": str(cloud) if cloud else None,
                               "depth_maps": str(depth) if depth else None})
     ctx.jobs.submit(job.id)
+    audit.record(session, "import", actor=user, scene_id=scene.id, target=scene.name,
+                 client_ip=ip, detail={"source": str(source), "job_id": job.id,
+                                       "members": body.members or []})
     return jobs.out(job)
+
+
+@router.get("/scenes/{sid}/members", response_model=list[MemberOut])
+def list_members(scene: SceneDep, session: SessionDep, _admin: AdminUser):
+    return service.members(session=session, scene=scene)
+
+
+def _change_members(session, scene, admin, ip, user_ids, replace: bool):  # noqa: ANN001, ANN202
+    change = service.set_members(session=session, scene=scene, user_ids=user_ids, replace=replace)
+    if change["added"] or change["removed"]:
+        audit.record(session, "membership", actor=admin, scene_id=scene.id, target=scene.name,
+                     client_ip=ip, detail=change)
+    return service.members(session=session, scene=scene)
+
+
+@router.put("/scenes/{sid}/members", response_model=list[MemberOut])
+def replace_members(body: MembersIn, scene: SceneDep, session: SessionDep, admin: AdminUser,
+                    ip: ClientIp):
+    """Exactly these users (annotators/reviewers) are the scene's members afterwards."""
+    return _change_members(session, scene, admin, ip, body.user_ids, True)
+
+
+@router.post("/scenes/{sid}/members", response_model=list[MemberOut])
+def add_members(body: MembersIn, scene: SceneDep, session: SessionDep, admin: AdminUser,
+                ip: ClientIp):
+    """Add these users to the scene's members."""
+    return _change_members(session, scene, admin, ip, body.user_ids, False)
+
+
+@router.delete("/scenes/{sid}/members/{uid}", status_code=204, response_class=Response)
+def remove_member(uid: IdPath, scene: SceneDep, session: SessionDep, admin: AdminUser,
+                  ip: ClientIp) -> Response:
+    service.remove_member(session=session, scene=scene, user_id=uid)
+    audit.record(session, "membership", actor=admin, scene_id=scene.id, target=scene.name,
+                 client_ip=ip, detail={"added": [], "removed": [uid]})
+    return Response(status_code=204)
 
 
 @router.get("/scenes/{sid}", response_model=SceneDetail)
@@ -71,7 +145,8 @@ def get_selection(scene: SceneDep) -> dict:
 @router.get("/scenes/{sid}/frames", response_model=list[FrameOut])
 def list_frames(scene: SceneDep, session: SessionDep, user: CurrentUser,
                 sort: Literal["index", "name", "disagreement"] = "index",
-                state: Annotated[str | None, Query(max_length=200)] = None,
+                state: Annotated[str | None, Query(max_length=200,
+                                                   pattern=r"^[a-z_]+(,[a-z_]+)*$")] = None,
                 selected: bool | None = None):
     rows = service.list_frames(session=session, scene_id=scene.id, sort=sort, state=state,
                                selected=selected)

@@ -5,6 +5,10 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from app.limits import Id, line
+
+SCENE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$"
+
 
 class SceneOut(BaseModel):
     model_config = ConfigDict(from_attributes=True)
@@ -36,10 +40,25 @@ class SceneDetail(SceneOut):
 
 
 class ImportIn(BaseModel):
-    name: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")
-    source: str = Field(min_length=1, max_length=1024)
-    cloud: str | None = Field(default=None, max_length=1024)
-    depth_maps: str | None = Field(default=None, max_length=1024)
+    # a scene name is its workspace folder's name: one safe path component (letters, digits,
+    # '_', '.', '-'; not starting with '.' or '-', so never '.', '..' or a hidden name)
+    name: str = Field(min_length=1, max_length=128, pattern=SCENE_NAME_PATTERN)
+    source: line(1024, 1)
+    cloud: line(1024) | None = None
+    depth_maps: line(1024) | None = None
+    members: list[Id] | None = Field(default=None, max_length=1000,
+                                     description="user ids assigned to the scene at import")
+
+
+class MembersIn(BaseModel):
+    user_ids: list[Id] = Field(max_length=10000)
+
+
+class MemberOut(BaseModel):
+    user_id: int
+    username: str
+    role: str
+    active: bool
 
 
 class SelectionIn(BaseModel):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 from sqlalchemy import delete, func, select, update
@@ -51,8 +52,40 @@ def _inside(path: Path, root: Path) -> bool:
         return False
 
 
+SCENE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
+
+
+def workspace_path(settings: Settings, name: str) -> Path:
+    """The workspace folder of scene ``name``: exactly one level below the workspaces folder.
+
+    ``name`` must be one safe path component (no '.', '..', separators, hidden or dash-led
+    names); anything else is refused before a folder is touched.
+    """
+    if not SCENE_NAME.match(name) or name in (".", ".."):
+        raise Invalid(f"scene name {name!r} is not allowed: use 1-128 letters, digits, '_', '.' "
+                      "or '-', starting with a letter, digit or '_'")
+    root = settings.workspaces_dir.absolute()
+    ws = root / name
+    if ws.parent != root or ws.name != name:
+        raise Invalid(f"scene name {name!r} does not name a folder inside {root}")
+    return ws
+
+
+def own_workspace(settings: Settings, scene: Scene) -> Path:
+    """The scene's workspace, checked to be its own folder before anything renames or replaces
+    it: a direct child of the workspaces folder, named after the scene (raises Forbidden)."""
+    ws = Path(scene.workspace)
+    try:
+        expected = workspace_path(settings, scene.name)
+    except Invalid as e:
+        raise Forbidden(f"scene {scene.id}: refusing to write its workspace ({e.detail})") from None
+    if ws.absolute() != expected or ws.is_symlink():
+        raise Forbidden(f"scene {scene.id}: workspace {ws} is not {expected}; refusing to replace it")
+    return expected
+
+
 def create_scene(*, session: Session, settings: Settings, name: str, source: Path) -> Scene:
-    ws = settings.workspaces_dir / name
+    ws = workspace_path(settings, name)
     scene = Scene(name=name, status="importing", workspace=str(ws), source=str(source))
     session.add(scene)
     try:
@@ -183,3 +216,64 @@ def get_scene_or_404(session: Session, scene_id: int) -> Scene:
 def file_etag(p: Path) -> str:
     st = os.stat(p)
     return f'"{st.st_mtime_ns:x}-{st.st_size:x}"'
+
+
+# ---- membership -----------------------------------------------------------------------------
+def members(*, session: Session, scene: Scene) -> list[dict]:
+    from app.scenes.models import SceneMember
+
+    rows = session.execute(select(User).join(SceneMember, SceneMember.user_id == User.id)
+                           .where(SceneMember.scene_id == scene.id).order_by(User.id)).scalars()
+    return [dict(user_id=u.id, username=u.username, role=u.role, active=u.active) for u in rows]
+
+
+def check_member_ids(*, session: Session, user_ids: list[int]) -> list[int]:
+    """The distinct ids, sorted; 422 naming unknown users or admins (who see every scene)."""
+    wanted = sorted(set(int(u) for u in user_ids))
+    found = dict(session.execute(select(User.id, User.role).where(User.id.in_(wanted))).all()) if wanted else {}
+    missing = [u for u in wanted if u not in found]
+    if missing:
+        raise Invalid(f"user_ids: no such user(s) {missing[:20]}")
+    admins = [u for u in wanted if found[u] == "admin"]
+    if admins:
+        raise Invalid(f"user_ids: {admins[:20]} are admins, who see every scene without membership")
+    return wanted
+
+
+def set_members(*, session: Session, scene: Scene, user_ids: list[int], replace: bool) -> dict:
+    """Assign users to the scene (``replace``: exactly these). Returns {added, removed}."""
+    from app.scenes.models import SceneMember
+
+    wanted = check_member_ids(session=session, user_ids=user_ids)
+    current = set(session.scalars(select(SceneMember.user_id).where(SceneMember.scene_id == scene.id)))
+    add = [u for u in wanted if u not in current]
+    remove = sorted(current - set(wanted)) if replace else []
+    for u in add:
+        session.add(SceneMember(scene_id=scene.id, user_id=u))
+    if remove:
+        session.execute(delete(SceneMember).where(SceneMember.scene_id == scene.id,
+                                                  SceneMember.user_id.in_(remove)))
+    try:
+        session.commit()
+    except IntegrityError:  # a concurrent assignment added the same member first
+        session.rollback()
+    return {"added": add, "removed": remove}
+
+
+def remove_member(*, session: Session, scene: Scene, user_id: int) -> None:
+    from app.scenes.models import SceneMember
+
+    res = session.execute(delete(SceneMember).where(SceneMember.scene_id == scene.id,
+                                                    SceneMember.user_id == user_id))
+    session.commit()
+    if res.rowcount != 1:
+        raise NotFound(f"user {user_id} is not a member of scene {scene.id}")
+
+
+def visible_scene_ids(session: Session, user: User) -> list[int] | None:
+    """Scene ids the user may see; None = all (admins)."""
+    from app.scenes.models import SceneMember
+
+    if user.role == "admin":
+        return None
+    return list(session.scalars(select(SceneMember.scene_id).where(SceneMember.user_id == user.id)))

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import Boolean, DateTime, ForeignKey, Integer, String
+from sqlalchemy import Boolean, DateTime, ForeignKey, Index, Integer, String, func
 from sqlalchemy.orm import Mapped, mapped_column
 
 from app.db import Base, utcnow
@@ -21,6 +21,10 @@ class User(Base):
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
 
 
+# user names are unique regardless of case: "ADMIN" cannot be created beside "admin"
+Index("uq_users_username_lower", func.lower(User.username), unique=True)
+
+
 class AuthToken(Base):
     """A login session; the token itself is only ever stored as a keyed hash."""
 
@@ -31,10 +35,16 @@ class AuthToken(Base):
     token_hash: Mapped[str] = mapped_column(String(64), unique=True)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
     expires_at: Mapped[datetime] = mapped_column(DateTime)
+    client_ip: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    user_agent: Mapped[str | None] = mapped_column(String(256), nullable=True)
+    last_seen_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
 
 
 class LoginThrottle(Base):
-    """Failed-login counter per key (``user:<name>`` or ``ip:<addr>``)."""
+    """Failed-login counter per key: ``pair:<name>@<addr>`` (one account from one address),
+    ``ip:<addr>`` (password spraying from one address), ``user:<name>`` (one account from
+    everywhere; short, bounded lock) and ``ok:<name>@<addr>`` (the account logged in from that
+    address before: a locked address does not lock it out)."""
 
     __tablename__ = "login_throttle"
 

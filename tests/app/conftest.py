@@ -151,7 +151,10 @@ class Env:
         self.app = create_app(dataclasses.replace(self.settings, auto_upgrade=True))
         self.client = TestClient(self.app)
 
-    def import_tiny(self, admin: dict, name: str = "tiny", n_frames: int = 4) -> dict:
+    def import_tiny(self, admin: dict, name: str = "tiny", n_frames: int = 4,
+                    members=None) -> dict:  # noqa: ANN001
+        """Import the tiny scene; ``members`` (user names, default every annotator and
+        reviewer) are assigned to it."""
         src = self.import_root / f"{name}_src"
         if not src.exists():
             write_tiny_workspace(src, n_frames)
@@ -164,7 +167,22 @@ class Env:
         assert j["status"] == "done", j
         scene = self.client.get("/api/scenes", headers=admin).json()[-1]
         assert scene["status"] == "ready" and scene["n_frames"] == n_frames
+        self.add_members(scene["id"], members, admin)
         return scene
+
+    def add_members(self, scene_id: int, names=None, admin: dict | None = None) -> None:  # noqa: ANN001
+        """Make users members of the scene (default: every annotator and reviewer)."""
+        from sqlalchemy import select
+
+        from app.users.models import User
+
+        with self.app.state.ctx.sessions() as s:
+            rows = s.execute(select(User.id, User.username, User.role)).all()
+        ids = [i for i, name, role in rows if role != "admin" and (names is None or name in names)]
+        if ids:
+            r = self.client.post(f"/api/scenes/{scene_id}/members", json={"user_ids": ids},
+                                 headers=admin or self.bearer("admin"))
+            assert r.status_code == 200, r.text
 
     def select_all(self, scene_id: int) -> None:
         from sqlalchemy import update

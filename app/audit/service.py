@@ -1,0 +1,65 @@
+"""The audit log: ``record(...)`` appends one event; ``query(...)`` reads them for admins.
+
+Events are written in their own short transaction right after the action they describe has
+committed, so a failed action leaves no event and an event never rolls an action back.
+"""
+
+from __future__ import annotations
+
+import logging
+from datetime import datetime
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.audit.models import AuditEvent
+from app.db import utcnow
+
+log = logging.getLogger("occufly.audit")
+
+
+def record(session: Session, action: str, *, actor=None, scene_id: int | None = None,  # noqa: ANN001
+           frame_id: int | None = None, target: str | None = None, client_ip: str | None = None,
+           detail: dict | None = None, actor_name: str | None = None) -> None:
+    """Append an event. ``actor`` is a User (or None for the system / an anonymous caller)."""
+    ev = AuditEvent(at=utcnow(), action=action[:32],
+                    actor_id=getattr(actor, "id", None),
+                    actor=(getattr(actor, "username", None) or actor_name or None),
+                    scene_id=scene_id, frame_id=frame_id,
+                    target=target[:256] if target else None,
+                    client_ip=client_ip[:64] if client_ip else None, detail=detail or None)
+    if ev.actor:
+        ev.actor = ev.actor[:64]
+    try:
+        session.add(ev)
+        session.commit()
+    except Exception:  # noqa: BLE001 - the action already happened; never turn it into a 500
+        session.rollback()
+        log.exception("audit: could not record %s", action)
+
+
+def query(*, session: Session, action: str | None = None, actor_id: int | None = None,
+          scene_id: int | None = None, since: datetime | None = None,
+          until: datetime | None = None, before_id: int | None = None,
+          limit: int = 100) -> list[AuditEvent]:
+    """Newest first; page with ``before_id`` (the smallest id of the previous page)."""
+    q = select(AuditEvent)
+    if action:
+        q = q.where(AuditEvent.action.in_(action.split(",")))
+    if actor_id is not None:
+        q = q.where(AuditEvent.actor_id == actor_id)
+    if scene_id is not None:
+        q = q.where(AuditEvent.scene_id == scene_id)
+    if since is not None:
+        q = q.where(AuditEvent.at >= since)
+    if until is not None:
+        q = q.where(AuditEvent.at < until)
+    if before_id is not None:
+        q = q.where(AuditEvent.id < before_id)
+    return list(session.scalars(q.order_by(AuditEvent.id.desc()).limit(limit)))
+
+
+def out(ev: AuditEvent) -> dict:
+    return dict(id=ev.id, at=ev.at, actor_id=ev.actor_id, actor=ev.actor, action=ev.action,
+                scene_id=ev.scene_id, frame_id=ev.frame_id, target=ev.target,
+                client_ip=ev.client_ip, detail=ev.detail)

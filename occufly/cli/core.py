@@ -19,6 +19,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--taxonomy", type=Path, help="class table (.json/.yaml); default OccuFly")
     p.add_argument("--altitudes", type=str, help="nominal flight altitudes, e.g. 50,40,30")
     p.add_argument("--rel-tol", type=float, default=0.02, help="depth-test relative tolerance")
+    p.add_argument("--visibility", choices=("union", "vis", "depth"), default="union",
+                   help="which frames see a point: union (default) = the reconstruction's "
+                        "lists (fused.ply.vis / tracks) united with a depth test against the "
+                        "MVS depth maps or depth rendered from the cloud; vis = the lists "
+                        "only; depth = the depth test only")
     p.add_argument("--force", action="store_true", help="replace an existing workspace")
 
     p = command(sub, "info", _info, help="summarise a scene workspace")
@@ -33,7 +38,7 @@ def _import(args: argparse.Namespace) -> dict:
         scene = import_scene(
             args.source, args.workspace, cloud=args.cloud, depth_maps=args.depth_maps,
             images=args.images, taxonomy=args.taxonomy, nominal_altitudes=nominal,
-            rel_tol=args.rel_tol, overwrite=args.force, progress=bar,
+            rel_tol=args.rel_tol, visibility=args.visibility, overwrite=args.force, progress=bar,
         )
     return {"workspace": str(args.workspace), **scene.summary()}
 

@@ -20,9 +20,12 @@ minus the mean viewing direction. The scene is then *levelled*: its world frame 
 rotation is kept in ``scene.meta["levelling_rotation"]`` (x_levelled = R @ x_source) so
 exports can return to the source frame (:func:`source_coordinates`).
 
-Visibility: ``fused.ply.vis`` when the cloud is COLMAP's ``fused.ply`` and the file is present;
-tracks when the cloud is the sparse model; otherwise a depth test against the depth maps, or
-against depth rendered from the cloud.
+Visibility (``visibility=``, CLI ``--visibility``): by default every frame that sees a point --
+the reconstruction's own lists (``fused.ply.vis`` next to COLMAP's ``fused.ply``, tracks when
+the cloud is the sparse model) united with a depth test against the MVS depth maps, or against
+depth rendered from the cloud where a frame has none (:mod:`occufly.visibility`). ``vis`` keeps
+the lists alone, ``depth`` the depth test alone. A cloud with non-finite coordinates, or one no
+frame sees, is an error naming the file (the cloud readers reject non-finite points).
 
 Nothing is written unless the whole import succeeds: the workspace appears complete or not at
 all.
@@ -44,7 +47,7 @@ from occufly.io.pointcloud import read_point_cloud
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Frame, Scene, assign_altitudes
 from occufly.taxonomy import Taxonomy, default_taxonomy
-from occufly.visibility import visibility_from_depth, visibility_from_point_lists
+from occufly.visibility import VISIBILITY_MODES, compute_visibility
 
 log = logging.getLogger(__name__)
 
@@ -62,10 +65,18 @@ def import_scene(
     taxonomy: Taxonomy | str | Path | None = None,
     nominal_altitudes: list[float] | None = None,
     rel_tol: float = 0.02,
+    visibility: str = "union",
     overwrite: bool = False,
     progress: ProgressFn | None = None,
 ) -> Scene:
-    """Read the reconstruction at ``source`` and write the workspace ``workspace``."""
+    """Read the reconstruction at ``source`` and write the workspace ``workspace``.
+
+    visibility: ``union`` (default: the reconstruction's lists united with the depth test),
+    ``vis`` (lists only) or ``depth`` (depth test only), see :mod:`occufly.visibility`.
+    """
+    if visibility not in VISIBILITY_MODES:
+        raise InputFormatError(f"--visibility {visibility!r}: expected one of "
+                               f"{', '.join(VISIBILITY_MODES)}")
     report = progress or noop
     t0 = time.perf_counter()
     source = Path(source)
@@ -127,10 +138,10 @@ def import_scene(
         )
 
     report(0.15, "visibility")
-    vis_stats: dict = {}
     depth_dir = _find_depth_dir(source, depth_maps)
     vis_path = Path(str(cloud_path) + ".vis") if cloud_path is not None else None
     vis_sub = _sub_progress(report, 0.15, 0.9)
+    lists, lists_name = None, None
     if vis_path is not None and vis_path.is_file():
         offsets, idx = read_fused_vis(vis_path, len(xyz_w))
         if len(idx) and int(idx.max()) >= len(frames):
@@ -138,32 +149,47 @@ def import_scene(
                 f"{vis_path}: refers to image index {int(idx.max())} but the model has "
                 f"{len(frames)} registered images"
             )
-        visibility, vis_stats = visibility_from_point_lists(frames, xyz_local, offsets, idx.astype(np.int64))
-        vis_source = f"{vis_path.name}"
-    elif cloud_path is None:
-        visibility, vis_stats = _visibility_from_tracks(model, frames, xyz_local)
-        vis_source = "COLMAP tracks"
-    else:
-        def depth_for(f: int) -> np.ndarray | None:
-            if depth_dir is None:
-                return None
-            p = find_depth_map(depth_dir, frames[f].name)
-            return read_depth_map(p) if p is not None else None
+        lists, lists_name = (offsets, idx), vis_path.name
+    elif cloud_path is None and model.has_tracks:
+        lists, lists_name = _tracks_as_lists(model, len(xyz_local)), "COLMAP tracks"
+    if visibility == "vis" and lists is None:
+        raise InputFormatError(
+            f"{cloud_path}: --visibility vis needs the reconstruction's own visibility "
+            f"({cloud_path.name}.vis or the sparse model's tracks) and there is none; use "
+            "--visibility union or depth")
 
-        visibility, vis_stats = visibility_from_depth(
-            frames, xyz_local, depth_for, rel_tol=rel_tol, progress=vis_sub
-        )
-        vis_source = (
-            "depth test against MVS depth maps" if depth_dir is not None
-            else "depth test against depth rendered from the cloud"
-        )
+    def depth_for(f: int):
+        if depth_dir is None:
+            return None
+        p = find_depth_map(depth_dir, frames[f].name)
+        return (read_depth_map(p), str(p)) if p is not None else None
+
+    vis_mode = visibility if lists is not None else "depth"
+    visibility_data, vis_stats = compute_visibility(
+        frames, xyz_local, mode=vis_mode, lists=lists, lists_name=lists_name or "",
+        depth_for=depth_for, rel_tol=rel_tol, progress=vis_sub)
+    if vis_stats["correspondences"] == 0:
+        raise InputFormatError(
+            f"{source}: no frame sees any point of {cloud_path or 'the sparse cloud'} -- the "
+            "poses and the cloud do not match (different coordinate frames?)")
+    depth_desc = (
+        None if vis_mode == "vis"
+        else "depth test against MVS depth maps" if vis_stats["frames_rendered"] == 0
+        else "depth test against depth rendered from the cloud"
+        if vis_stats["frames_with_depth_maps"] == 0
+        else "depth test against MVS depth maps and depth rendered from the cloud"
+    )
+    # the reconstruction's own lists keep naming the source; the depth test is recorded apart
+    vis_source = lists_name if lists_name is not None and vis_mode != "depth" else depth_desc
+    for w in vis_stats["warnings"]:
+        log.warning("import %s: %s", source, w)
 
     scene = Scene(
         frames=frames,
         xyz=xyz_local,
         rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
         origin=origin,
-        visibility=visibility,
+        visibility=visibility_data,
         taxonomy=tax,
         meta={
             "source": str(source.resolve()),
@@ -176,6 +202,8 @@ def import_scene(
             "levelling_rotation": R_level.tolist(),
             "source_origin": origin_src.tolist(),
             "visibility_source": vis_source,
+            "visibility_mode": vis_mode,
+            "visibility_depth_test": depth_desc,
             "visibility_stats": vis_stats,
         },
     )
@@ -295,8 +323,8 @@ def _levelling_rotation(model) -> tuple[np.ndarray, str]:
     return R, f"not georeferenced; up = {method}"
 
 
-def _visibility_from_tracks(model, frames: list[Frame], xyz_local: np.ndarray):
-    """Visibility from COLMAP tracks (sparse cloud): each observation is a correspondence."""
+def _tracks_as_lists(model, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP tracks (sparse cloud) as per-point frame lists: (offsets (N + 1,), frames)."""
     index_of = {int(p): i for i, p in enumerate(model.point_ids)}
     lut_keys = np.array(list(index_of.keys()), dtype=np.int64)
     lut_vals = np.array(list(index_of.values()), dtype=np.int64)
@@ -312,5 +340,5 @@ def _visibility_from_tracks(model, frames: list[Frame], xyz_local: np.ndarray):
     fr = np.concatenate(rows_f) if rows_f else np.zeros(0, np.int64)
     order = np.argsort(p, kind="stable")
     p, fr = p[order], fr[order]
-    offsets = np.searchsorted(p, np.arange(len(xyz_local) + 1))
-    return visibility_from_point_lists(frames, xyz_local, offsets, fr)
+    offsets = np.searchsorted(p, np.arange(n_points + 1))
+    return offsets, fr

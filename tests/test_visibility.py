@@ -1,0 +1,216 @@
+"""Visibility: union of the reconstruction's lists with the depth test, modes, compact
+storage (uv/depth projected on demand), bad input (wrong-size depth maps, poses behind the
+cloud, NaN and far-outlier points)."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from occufly.cli import main
+from occufly.errors import InputFormatError
+from occufly.io.colmap_dense import read_fused_vis, write_depth_map, write_fused_ply, write_fused_vis
+from occufly.io.importer import import_scene
+from occufly.io.pointcloud import read_point_cloud
+from occufly.scene import Scene, Visibility
+from occufly.visibility import PointBins, compute_visibility, render_shape
+from tests.recon_builder import make_reconstruction
+
+
+def _thin_vis(rec, truth, keep_every=3):
+    """Rewrite fused.ply.vis keeping one of every ``keep_every`` views of each point (like a
+    fusion's lists, which name only the images fused into a point)."""
+    lists = []
+    for p in range(truth["seen"].shape[1]):
+        fr = np.flatnonzero(truth["seen"][:, p])
+        lists.append(fr[p % keep_every::keep_every] if len(fr) > 1 else fr)
+    offsets = np.r_[0, np.cumsum([len(v) for v in lists])]
+    write_fused_vis(rec / "dense" / "fused.ply.vis", offsets, np.concatenate(lists))
+    return offsets
+
+
+@pytest.fixture(scope="module")
+def thin(tmp_path_factory):
+    rec = tmp_path_factory.mktemp("thin") / "rec"
+    truth = make_reconstruction(rec, vis=True, depth_maps=True, n_cams=5)
+    offsets = _thin_vis(rec, truth)
+    return rec, truth, offsets
+
+
+def _sets(scene):
+    return [set(np.asarray(scene.visibility.frame_ids(f)).tolist()) for f in range(len(scene.frames))]
+
+
+def test_union_recovers_every_view_the_lists_miss(thin, tmp_path):
+    rec, truth, offsets = thin
+    union = import_scene(rec, tmp_path / "u")
+    only_vis = import_scene(rec, tmp_path / "v", visibility="vis")
+    only_depth = import_scene(rec, tmp_path / "d", visibility="depth")
+    assert union.meta["visibility_mode"] == "union" and only_vis.meta["visibility_mode"] == "vis"
+    assert union.meta["visibility_source"] == "fused.ply.vis"
+    assert union.meta["visibility_depth_test"] == "depth test against MVS depth maps"
+    seen = truth["seen"]
+    assert only_vis.visibility.offsets[-1] == offsets[-1] < 0.5 * seen.sum()
+    for f, (u, v, d) in enumerate(zip(_sets(union), _sets(only_vis), _sets(only_depth),
+                                      strict=True)):
+        assert u == v | d
+        expected = set(np.flatnonzero(seen[f]).tolist())
+        assert len(u & expected) / len(expected) > 0.98 and len(u & expected) / len(u) > 0.98
+    st = union.meta["visibility_stats"]
+    vpp = union.summary()["visibility"]["views_per_point"]
+    assert vpp["mean"] == pytest.approx(seen.sum(axis=0).mean(), rel=0.03)
+    assert st["views_per_point"]["mean"] == vpp["mean"]
+    assert st["entries_only_in_depth_test"] > 0.5 * seen.sum()
+    assert only_vis.summary()["visibility"]["views_per_point"]["mean"] < 0.5 * vpp["mean"]
+
+
+def test_compact_storage_projects_what_was_stored(thin, tmp_path):
+    rec, truth, _ = thin
+    scene = import_scene(rec, tmp_path / "ws")
+    vdir = tmp_path / "ws" / "visibility"
+    assert not (vdir / "uv.npy").exists() and not (vdir / "depth.npy").exists()
+    assert (vdir / "point_ids.npy").stat().st_size < 4 * scene.visibility.offsets[-1] + 200
+    # the old layout (uv/depth stored) still loads and gives the same correspondences
+    v = scene.visibility
+    old = Scene(frames=scene.frames, xyz=np.asarray(scene.xyz), rgb=np.asarray(scene.rgb),
+                origin=scene.origin, visibility=Visibility(v.offsets, v.point_ids, v.uv, v.depth),
+                taxonomy=scene.taxonomy, meta=scene.meta)
+    old.save(tmp_path / "old")
+    assert (tmp_path / "old" / "visibility" / "uv.npy").is_file()
+    back = Scene.load(tmp_path / "old")
+    assert back.visibility.stores_projections and not scene.visibility.stores_projections
+    for f in range(len(scene.frames)):
+        a, b = scene.visibility.frame(f), back.visibility.frame(f)
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        ids, uv, z = a
+        # projected on demand = the camera model applied to the point
+        from occufly.camera import project_world
+
+        fr = scene.frames[f]
+        uv2, z2, _ = project_world(fr.camera, fr.T_cam_world, np.asarray(scene.xyz)[ids])
+        np.testing.assert_allclose(uv, uv2, atol=1e-3)
+        np.testing.assert_allclose(z, z2, rtol=1e-6)
+
+
+def test_cli_visibility_flag_and_views_in_info(thin, tmp_path, capsys):
+    rec, truth, _ = thin
+    ws = tmp_path / "ws"
+    assert main(["import", str(rec), "-w", str(ws), "--visibility", "vis", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["meta"]["visibility_mode"] == "vis"
+    n_vis = out["visibility"]["correspondences"]
+    assert main(["info", str(ws), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["visibility"]["views_per_point"] == out["visibility"]["views_per_point"]
+    assert main(["import", str(rec), "-w", str(ws), "--force", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["visibility"]["correspondences"] > 2 * n_vis
+    # --visibility vis without any lists: a clear error, exit 2, no workspace
+    bare = tmp_path / "bare"
+    make_reconstruction(bare, vis=False, depth_maps=False)
+    assert main(["import", str(bare), "-w", str(tmp_path / "none"), "--visibility", "vis"]) == 2
+    assert "--visibility vis needs" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
+
+
+def test_depth_map_of_the_wrong_size_is_named_and_replaced_by_rendering(tmp_path, caplog):
+    rec = tmp_path / "rec"
+    truth = make_reconstruction(rec, depth_maps=True)
+    bad = rec / "dense" / "stereo" / "depth_maps" / f"{truth['names'][1]}.geometric.bin"
+    write_depth_map(bad, np.full((10, 50), 30.0, np.float32))  # 50x10 for a 96x64 image
+    with caplog.at_level(logging.WARNING):
+        scene = import_scene(rec, tmp_path / "ws")
+    st = scene.meta["visibility_stats"]
+    assert st["frames_with_depth_maps"] == 2 and st["frames_rendered"] == 1
+    assert any(str(bad) in w and "not a scaled copy" in w for w in st["warnings"])
+    assert str(bad) in caplog.text
+    ids = scene.visibility.frame_ids(1)
+    expected = np.flatnonzero(truth["seen"][1])
+    assert len(np.intersect1d(ids, expected)) / len(expected) > 0.9
+
+
+def test_frame_behind_the_cloud_is_named(tmp_path):
+    rec = tmp_path / "rec"
+    truth = make_reconstruction(rec, depth_maps=False)
+    scene = import_scene(rec, tmp_path / "ws")
+    frames = list(scene.frames)
+    # turn frame 2 around: it looks up, away from the ground
+    T = frames[2].T_cam_world.copy()
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    frames[2].T_cam_world = flip @ T
+    vis, st = compute_visibility(frames, np.asarray(scene.xyz), mode="depth")
+    assert st["frames_seeing_nothing"] == 1
+    assert any(frames[2].name in w and "check its pose" in w for w in st["warnings"])
+    assert vis.counts_per_frame()[2] == 0 and vis.counts_per_frame()[0] > 0
+    # all frames behind: the import is an error, not an empty workspace
+    for im in ("images.txt",):
+        p = rec / "sparse" / im
+        lines = p.read_text().splitlines()
+        out = []
+        for ln in lines:
+            parts = ln.split()
+            if len(parts) == 10 and parts[-1].endswith(".png"):
+                # camera 100 m below the ground, same orientation: everything is behind it
+                parts[7] = repr(float(parts[7]) - 1000.0)
+            out.append(" ".join(parts))
+        p.write_text("\n".join(out) + "\n")
+    with pytest.raises(InputFormatError, match="no frame sees any point"):
+        import_scene(rec, tmp_path / "ws2")
+    assert not (tmp_path / "ws2").exists()
+    assert truth["seen"].any()
+
+
+def test_nan_points_are_an_error_and_far_outliers_are_harmless(tmp_path):
+    rec = tmp_path / "rec"
+    truth = make_reconstruction(rec, depth_maps=False)
+    ply = rec / "dense" / "fused.ply"
+    xyz, rgb = read_point_cloud(ply)
+    bad = xyz.copy()
+    bad[7] = np.nan
+    write_fused_ply(rec / "nan.ply", bad, None, rgb, double=True)
+    with pytest.raises(InputFormatError, match=r"nan\.ply: 1 points have NaN.*point 7"):
+        import_scene(rec, tmp_path / "ws", cloud=rec / "nan.ply")
+    assert not (tmp_path / "ws").exists()
+    far = np.vstack([xyz, xyz[:1] + [10_000.0, 0.0, 0.0], xyz[:1] + [0.0, 0.0, -10_000.0]])
+    write_fused_ply(rec / "far.ply", far, None, np.vstack([rgb, rgb[:2]]), double=True)
+    scene = import_scene(rec, tmp_path / "ws", cloud=rec / "far.ply")
+    st = scene.meta["visibility_stats"]
+    assert st["far_outlier_points"] == 2
+    n = len(xyz)
+    for f in range(len(scene.frames)):
+        ids = scene.visibility.frame_ids(f)
+        assert not np.isin([n, n + 1], ids).any()
+        expected = np.flatnonzero(truth["seen"][f])
+        inter = len(np.intersect1d(ids, expected))
+        assert inter / len(expected) > 0.9 and inter / len(ids) > 0.9
+    # the bins ignore the outliers (64 bins over the bulk, not over 10 km)
+    bins = PointBins(np.asarray(scene.xyz))
+    assert bins.cell < 2.0 and len(bins.loose) == 2
+
+
+def test_render_shape_resolves_the_spacing():
+    from occufly.camera import Camera
+
+    cam = Camera("PINHOLE", 4000, 3000, [3000.0, 3000.0, 2000.0, 1500.0])
+    # dense cloud (1 cm at 50 m: 0.6 px): full resolution
+    assert render_shape(cam, 0.01, 50.0) == (3000, 4000)
+    # sparse cloud (0.5 m at 50 m: 30 px apart): the raster shrinks so points are <= 2 px apart
+    h, w = render_shape(cam, 0.5, 50.0)
+    assert w == round(4000 / 15) and h == round(3000 / 15)
+    # huge images are capped
+    big = Camera("PINHOLE", 20000, 10000, [9000.0, 9000.0, 10000.0, 5000.0])
+    assert max(render_shape(big, 0.001, 50.0)) == 4096
+
+
+def test_union_on_the_colmap_cup_adds_nothing_wrong(tmp_path):
+    from pathlib import Path
+
+    cup = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap-dense-cup"
+    scene = import_scene(cup, tmp_path / "ws")
+    offsets, idx = read_fused_vis(cup / "fused.ply.vis", 58)
+    assert scene.visibility.offsets[-1] == len(idx)
+    assert scene.meta["visibility_depth_test"] == "depth test against MVS depth maps"

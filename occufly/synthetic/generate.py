@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from occufly.camera import project_world
+from occufly.camera import Camera, project_world
 from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_directory
 from occufly.io.colmap_dense import write_depth_map, write_fused_ply, write_fused_vis
@@ -53,7 +53,8 @@ def _is_nonempty_dir(p: Path) -> bool:
 
 
 def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
-             progress: ProgressFn | None = None, overwrite: bool = False) -> dict:
+             progress: ProgressFn | None = None, overwrite: bool = False,
+             camera: Camera | None = None) -> dict:
     """Generate the synthetic scene ``preset`` for ``seed`` into ``out``.
 
     The folder is built under a temporary sibling name and renamed into place at the end, so an
@@ -73,7 +74,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
     t0 = time.perf_counter()
     world = build_world(P, seed)
-    camera = make_camera(P)
+    camera = make_camera(P) if camera is None else camera  # a lens-distorted one: synthetic/formats.py
     frames = plan_flight(P, world, camera)
     renderer = Renderer(world, seed)
     timings["world"] = time.perf_counter() - t0

@@ -27,10 +27,10 @@ def write_sparse_model(
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    fx, fy = camera.focal
-    cx, cy = camera.principal_point
-    cam = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
-                          params=[fx, fy, cx, cy], camera_id=1)
+    # the camera's own COLMAP model (PINHOLE for the default scene, FULL_OPENCV with lens
+    # distortion for synthetic/formats.py)
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
+                          params=[float(v) for v in camera.params], camera_id=1)
     rec.add_camera_with_trivial_rig(cam)
     # keypoints per image: every observation of every track, in track order
     per_image: list[list[np.ndarray]] = [[] for _ in names]

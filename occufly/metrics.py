@@ -31,7 +31,7 @@ import numpy as np
 
 from occufly.confusion import Confusion
 from occufly.errors import InputFormatError
-from occufly.taxonomy import INVALID, Taxonomy, default_taxonomy
+from occufly.taxonomy import INVALID, Taxonomy
 
 
 # ---- SSC -------------------------------------------------------------------------------------
@@ -173,55 +173,127 @@ def average_depth(per_image: list[dict]) -> dict:
 
 
 # ---- reading exports -------------------------------------------------------------------------
-def _export_frames(root: Path) -> list[tuple[str, int, str]]:
-    from occufly.export.occufly import list_frames
-
-    if not (root / "OccuFly_Dataset").is_dir():
-        raise InputFormatError(f"{root}: not an OccuFly-layout export (no OccuFly_Dataset folder)")
-    return list_frames(root)
+PRED_LAYOUTS = ("occufly", "sscbench", "flat")
 
 
-def _taxonomy_of(root: Path, scene_id: str) -> Taxonomy:
-    m = root / "OccuFly_Dataset" / scene_id / "manifest.json"
-    if m.is_file():
-        try:
-            return Taxonomy.from_dict(json.loads(m.read_text())["taxonomy"], source=str(m))
-        except (ValueError, KeyError):
-            pass
-    return default_taxonomy()
+def prediction_layout(root: Path) -> str:
+    """``occufly`` (OccuFly_Dataset/.../<frame>.label), ``sscbench`` (data_2d_raw/<seq>/voxels/
+    <frame>.label or preprocess/labels/<seq>/<frame>_1_1.npy) or ``flat`` (<seq>/<frame>.label
+    or <seq>/<frame>_1_1.npy directly under the root)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputFormatError(f"{root}: prediction folder not found")
+    if (root / "OccuFly_Dataset").is_dir():
+        return "occufly"
+    if (root / "data_2d_raw").is_dir() or (root / "preprocess").is_dir():
+        return "sscbench"
+    return "flat"
+
+
+def _inverse_lut(pred_root: Path, gt_root: Path, taxonomy: Taxonomy) -> np.ndarray:
+    """(256,) int16 training id -> raw id (-1 where the map has no entry), from the
+    prediction's occufly.yaml, else the ground truth's, else the taxonomy."""
+    import yaml
+
+    inv = None
+    for y in (pred_root / "occufly.yaml", gt_root / "occufly.yaml"):
+        if y.is_file():
+            try:
+                doc = yaml.safe_load(y.read_text())
+                inv = {int(k): int(v) for k, v in doc["learning_map_inv"].items()}
+            except (ValueError, KeyError, TypeError, yaml.YAMLError):
+                raise InputFormatError(f"{y}: no readable learning_map_inv") from None
+            break
+    if inv is None:
+        inv = {v: k for k, v in taxonomy.learning_map().items()}
+    lut = np.full(256, -1, np.int16)
+    for t, r in inv.items():
+        if not (0 <= t <= 255 and 0 <= r <= 255):
+            raise InputFormatError(f"learning_map_inv entry {t}: {r} is outside 0..255")
+        lut[t] = r
+    lut[255] = 255
+    return lut
+
+
+def _read_prediction(pred_root: Path, layout: str, scene: str, alt: int, fid: str, seq: str,
+                     n: int, shape: tuple[int, ...], inv_lut: np.ndarray) -> np.ndarray:
+    """Raw-id prediction of one frame; training-id ``_1_1.npy`` files are mapped back."""
+    from occufly.datasets.reader import read_label_file
+
+    if layout == "occufly":
+        cands = [(pred_root / "OccuFly_Dataset" / scene / str(alt) / "ground_truth" / fid / f"{fid}.label", "u1")]
+    elif layout == "sscbench":
+        cands = [(pred_root / "data_2d_raw" / seq / "voxels" / f"{fid}.label", "<u2"),
+                 (pred_root / "preprocess" / "labels" / seq / f"{fid}_1_1.npy", "npy")]
+    else:
+        cands = [(pred_root / seq / f"{fid}_1_1.npy", "npy"), (pred_root / seq / f"{fid}.label", "auto")]
+    for path, kind in cands:
+        if not path.is_file():
+            continue
+        if kind == "npy":
+            try:
+                t = np.load(path, allow_pickle=False)
+            except ValueError as e:
+                raise InputFormatError(f"{path}: not a numpy label grid ({e})") from None
+            if t.size != n or not np.issubdtype(t.dtype, np.integer):
+                raise InputFormatError(f"{path}: {t.size} {t.dtype} values, expected {n} integer "
+                                       f"training ids for grid {shape}")
+            t = t.reshape(-1)
+            if t.min(initial=0) < 0 or t.max(initial=0) > 255 or np.any(inv_lut[t.astype(np.int64)] < 0):
+                bad = t[(t < 0) | (t > 255)]
+                bad = bad if bad.size else t[inv_lut[np.clip(t, 0, 255).astype(np.int64)] < 0]
+                raise InputFormatError(f"{path}: training id {int(bad[0])} is not in learning_map_inv")
+            return inv_lut[t.astype(np.int64)].astype(np.uint8)
+        if kind == "auto":
+            size = path.stat().st_size
+            kind = "u1" if size == n else "<u2"
+        return read_label_file(path, n, shape, dtype=kind).reshape(-1)
+    raise InputFormatError(f"{cands[0][0]}: prediction for frame {scene}/{alt}/{fid} is missing "
+                           f"({layout} layout{'; looked for ' + ', '.join(str(c[0]) for c in cands[1:]) if len(cands) > 1 else ''})")
 
 
 def evaluate_ssc_dirs(pred_root: Path, gt_root: Path) -> dict:
-    """Evaluate every frame of the ground-truth export against the same frames of a
-    prediction export (same OccuFly layout; only ``.label`` files are read from the
-    prediction). Returns overall and per-altitude results."""
+    """Evaluate every frame of the ground-truth export (OccuFly or SSCBench layout) against
+    the same frames of the predictions, in any of :data:`PRED_LAYOUTS` (raw-id ``.label``
+    files, or ``_1_1.npy`` training ids mapped back through the YAML's ``learning_map_inv``).
+    Returns overall, per-altitude and per-scene results."""
+    from occufly.datasets.reader import open_dataset
+
     pred_root, gt_root = Path(pred_root), Path(gt_root)
-    frames = _export_frames(gt_root)
-    if not frames:
+    gt = open_dataset(gt_root)
+    if not gt.frames:
         raise InputFormatError(f"{gt_root}: no ground-truth frames found")
-    tax = _taxonomy_of(gt_root, frames[0][0])
+    tax = gt.taxonomy
+    layout = prediction_layout(pred_root)
+    inv_lut = _inverse_lut(pred_root, gt_root, tax)
+    shape = gt.grid_shape
+    n = int(np.prod(shape))
     overall = SSCAccumulator(tax.ids)
     per_alt: dict[int, SSCAccumulator] = {}
-    for scene_id, alt, fid in frames:
-        gdir = gt_root / "OccuFly_Dataset" / scene_id / str(alt) / "ground_truth" / fid
-        pfile = pred_root / "OccuFly_Dataset" / scene_id / str(alt) / "ground_truth" / fid / f"{fid}.label"
-        if not pfile.is_file():
-            raise InputFormatError(f"{pfile}: prediction for frame {scene_id}/{alt}/{fid} is missing")
-        gt = np.fromfile(gdir / f"{fid}.label", dtype=np.uint8)
-        pred = np.fromfile(pfile, dtype=np.uint8)
-        if pred.size != gt.size:
-            raise InputFormatError(f"{pfile}: {pred.size} voxels, expected {gt.size} like the ground truth")
-        inv_path = gdir / f"{fid}.invalid"
-        invalid = (np.unpackbits(np.fromfile(inv_path, dtype=np.uint8))[: gt.size].astype(bool)
-                   if inv_path.is_file() else None)
-        acc = per_alt.setdefault(alt, SSCAccumulator(tax.ids))
-        acc.add(pred, gt, invalid)
+    per_scene: dict[str, SSCAccumulator] = {}
+    frames_per_alt: dict[int, int] = {}
+    for key in gt.frames:
+        label, invalid = gt.read_labels(key)
+        pred = _read_prediction(pred_root, layout, key.scene, key.altitude, key.frame_id,
+                                key.sequence, n, shape, inv_lut)
+        acc = per_alt.setdefault(key.altitude, SSCAccumulator(tax.ids))
+        acc.add(pred, label, invalid)
+        frames_per_alt[key.altitude] = frames_per_alt.get(key.altitude, 0) + 1
+        sc = per_scene.setdefault(key.scene, SSCAccumulator(tax.ids))
+        sc.add(pred, label, invalid)
     for acc in per_alt.values():
         overall.merge(acc)
+    out_alt = {}
+    for a in sorted(per_alt):
+        out_alt[str(a)] = per_alt[a].result(tax)
+        out_alt[str(a)]["frames"] = frames_per_alt[a]
     return {
-        "frames": len(frames),
+        "frames": len(gt.frames),
+        "gt_layout": gt.layout,
+        "pred_layout": layout,
         "overall": overall.result(tax),
-        "per_altitude": {str(a): per_alt[a].result(tax) for a in sorted(per_alt)},
+        "per_altitude": out_alt,
+        "per_scene": {s: per_scene[s].result(tax) for s in sorted(per_scene)},
         "note": "classes absent from both prediction and ground truth are n/a and excluded from mIoU",
     }
 
@@ -284,6 +356,63 @@ def ssc_table(result: dict) -> str:
     out = ["  ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)) for row in lines]
     out.append(result.get("note", ""))
     return "\n".join(out)
+
+
+TABLE_FORMATS = ("text", "markdown", "latex", "json")
+
+
+def _ssc_rows(result: dict) -> tuple[list[list[str]], list[list[str]]]:
+    """(per-altitude rows, per-class rows) with a header row each, values in %."""
+    rows = [("all", result["overall"], result.get("frames"))] + [
+        (f"{a} m", r, r.get("frames")) for a, r in result["per_altitude"].items()]
+    alt = [["split", "frames", "IoU", "Prec.", "Rec.", "mIoU"]]
+    for name, r, nf in rows:
+        c = r["completion"]
+        alt.append([name, "" if nf is None else str(nf), _fmt(c["iou"]), _fmt(c["precision"]),
+                    _fmt(c["recall"]), _fmt(r["miou"])])
+    classes = [k for k, v in result["overall"]["per_class_iou"].items() if v is not None]
+    cls = [["class"] + [name for name, _, _ in rows]]
+    for k in classes:
+        cls.append([k] + [_fmt(r["per_class_iou"].get(k)) for _, r, _ in rows])
+    cls.append(["mIoU"] + [_fmt(r["miou"]) for _, r, _ in rows])
+    return alt, cls
+
+
+def _markdown(rows: list[list[str]]) -> str:
+    out = ["| " + " | ".join(rows[0]) + " |", "|" + "|".join([":---"] + ["---:"] * (len(rows[0]) - 1)) + "|"]
+    out += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+    return "\n".join(out)
+
+
+def _latex(rows: list[list[str]], caption: str) -> str:
+    def esc(v: str) -> str:
+        return v.replace("\\", r"\textbackslash{}").replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")
+
+    cols = "l" + "r" * (len(rows[0]) - 1)
+    out = [r"\begin{table}[t]", r"\centering", rf"\caption{{{esc(caption)}}}", rf"\begin{{tabular}}{{{cols}}}",
+           r"\toprule", " & ".join(esc(v) for v in rows[0]) + r" \\", r"\midrule"]
+    out += [" & ".join(esc(v) for v in r) + r" \\" for r in rows[1:]]
+    out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(out)
+
+
+def ssc_report(result: dict, fmt: str = "text") -> str:
+    """The paper's two tables -- per altitude (completion IoU / precision / recall, mIoU) and
+    per class (IoU per altitude), in %, -- as ``text``, ``markdown``, ``latex`` or ``json``.
+    Classes n/a overall (absent from prediction and ground truth) are not shown."""
+    if fmt == "json":
+        return json.dumps(result, indent=1)
+    if fmt == "text":
+        return ssc_table(result)
+    alt, cls = _ssc_rows(result)
+    note = result.get("note", "")
+    if fmt == "markdown":
+        return (f"**SSC per altitude** (%)\n\n{_markdown(alt)}\n\n**SSC per class** (IoU %)\n\n"
+                f"{_markdown(cls)}\n\n{note}\n")
+    if fmt == "latex":
+        return (_latex(alt, "Semantic scene completion per altitude (%)") + "\n\n"
+                + _latex(cls, "Per-class IoU (%) per altitude; " + note) + "\n")
+    raise ValueError(f"unknown table format {fmt!r}; expected one of {', '.join(TABLE_FORMATS)}")
 
 
 def depth_table(result: dict) -> str:

@@ -47,12 +47,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--grid-for-altitude", type=_alt_map,
                    help="which altitude's grid each altitude samples, e.g. 40:50,30:50 "
                         "(default: the highest altitude's grid)")
+    p.add_argument("--split", choices=("train", "val", "test"),
+                   help="the scene's split in the splits files (default: scenes 1-5 train, 6-7 val, "
+                        "8-9 test by the scene number, else train)")
+    p.add_argument("--downsample-rule", choices=("occufly", "lmscnet"), default="occufly",
+                   help="coarser grids: occufly = most common non-empty class; lmscnet = empty "
+                        "when > 95%% of the block is empty or invalid (LMSCNet / MonoScene)")
+    p.add_argument("--velodyne", action="store_true",
+                   help="SSCBench layout: also write velodyne_points/data/<frame>.bin (float32 N x 4, "
+                        "camera frame) from the MVS points each frame sees")
     p.add_argument("--workers", type=int, help="local worker processes (default 2; 1 = in-process)")
     p.add_argument("--dask", help="Dask scheduler address, e.g. tcp://host:8786 (or OCCUFLY_DASK)")
 
-    p = command(sub, "eval-ssc", _eval_ssc, help="SSC metrics of a prediction export against ground truth")
-    p.add_argument("pred", type=Path, help="prediction export root (OccuFly layout)")
-    p.add_argument("gt", type=Path, help="ground-truth export root (OccuFly layout)")
+    p = command(sub, "eval-ssc", _eval_ssc, help="SSC metrics of predictions against a ground-truth export")
+    p.add_argument("pred", type=Path,
+                   help="predictions: an OccuFly-layout or SSCBench-layout folder (.label raw ids, or "
+                        "_1_1.npy training ids), or <seq>/<frame>_1_1.npy | .label directly under it")
+    p.add_argument("gt", type=Path, help="ground-truth export root (OccuFly or SSCBench layout)")
+    p.add_argument("--format", choices=("text", "markdown", "latex", "json"), default="text",
+                   help="table format: the per-altitude and per-class tables (default text)")
 
     p = command(sub, "eval-depth", _eval_depth, help="depth metrics of predicted depth maps against ground truth")
     p.add_argument("pred", type=Path)
@@ -98,17 +111,19 @@ def _export(args: argparse.Namespace) -> dict:
             tqdm_progress("export") as bar:
         res = export_dataset(args.workspace, args.out, scene_id=args.scene_id, layout=args.layout,
                              grid=grid, frames=_parse_frames(args.frames), executor=ex,
-                             progress=bar, spec=spec, grid_for_altitude=args.grid_for_altitude)
+                             progress=bar, spec=spec, grid_for_altitude=args.grid_for_altitude,
+                             split=args.split, downsample_rule=args.downsample_rule,
+                             velodyne=args.velodyne)
     if not args.json:
         res = {k: v for k, v in res.items() if k != "results"}
     return res
 
 
 def _eval_ssc(args: argparse.Namespace):
-    from occufly.metrics import evaluate_ssc_dirs, ssc_table
+    from occufly.metrics import evaluate_ssc_dirs, ssc_report
 
     res = evaluate_ssc_dirs(args.pred, args.gt)
-    return res if args.json else ssc_table(res)
+    return res if args.json else ssc_report(res, args.format)
 
 
 def _eval_depth(args: argparse.Namespace):

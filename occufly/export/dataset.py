@@ -422,7 +422,7 @@ def export_dataset(
                           "((i-X/2+.5)r, (j-Y/2+.5)r, (k+.5)r); C order",
             "label": "raw class ids, 0 empty, 255 invalid",
             "masks": "numpy.packbits of the flattened bool array, MSB first",
-            "pose": "pkl 'pose' = (4,4) float32 camera-to-world, scene-local metres",
+            "pose": "pkl 'pose' (and frames[*].pose here) = (4,4) camera-to-world, scene-local metres",
             "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened "
                      "(shape: depth_map_shape, and per frame)",
             "pooling": ("most common non-empty valid class per block; ties by taxonomy tie order; "
@@ -457,7 +457,8 @@ def export_dataset(
         fr = scene.frames[i]
         frames_index[frame_id_of(i)] = {"name": fr.name, "altitude": alts[i],
                                         "camera": fr.camera.to_dict(),
-                                        "depth_shape": list(quarter_shape(fr.camera))}
+                                        "depth_shape": list(quarter_shape(fr.camera)),
+                                        "pose": np.linalg.inv(fr.T_cam_world).round(9).tolist()}
     manifest["frames"] = dict(sorted(frames_index.items()))
     mpath = lay.manifest_path(out, scene_id)
     clean_stray_temporaries(out)

@@ -139,6 +139,7 @@ def live(tmp_path_factory):
     job = lv.wait_job(r.json())
     assert job["status"] == "done", job
     lv.scene_id = job["scene_id"]
+    grant_members(lv, lv.scene_id)
     r = admin.post(f"/api/scenes/{lv.scene_id}/selection",
                    json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
     assert r.status_code in (200, 202), r.text
@@ -149,6 +150,15 @@ def live(tmp_path_factory):
         c.close()
     server.should_exit = True
     thread.join(timeout=15)
+
+
+def grant_members(lv: Live, scene_id: int) -> None:
+    """Make every seeded user a member of the scene (scenes are visible to their members
+    only, where the app has scene membership)."""
+    admin = lv.client("admin")
+    ids = [u["id"] for u in admin.get("/api/users").json() if u["role"] != "admin"]
+    r = admin.post(f"/api/scenes/{scene_id}/members", json={"user_ids": ids})
+    assert r.status_code in (200, 404, 405), r.text  # 404/405: an app without membership
 
 
 @pytest.fixture(scope="package")

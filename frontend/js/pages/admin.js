@@ -169,7 +169,8 @@ class AdminPage {
 
   async loadScene() {
     if (!this.sid) return;
-    await Promise.all([this.loadSelection(), this.loadJobs(), this.loadMetrics(), this.loadHistogram()]);
+    // metrics only once the jobs say an evaluation finished (else the API answers 404)
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram()]);
   }
 
   // ---- selection ---------------------------------------------------------------------------
@@ -207,17 +208,20 @@ class AdminPage {
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/selection`, body));
       if (job) {
         toast(`Selection job ${job.id} started.`);
-        this.track(job, () => this.loadSelection());
+        this.track(job, () => this.loadSelection({ force: true }));
       }
     });
     return f;
   }
 
-  async loadSelection() {
+  async loadSelection({ force = false } = {}) {
     const sid = this.sid;
     let sel = null;
+    // a scene without selected frames has no selection to ask for (the API would answer 404)
+    const sc = (this.scenes || []).find((x) => String(x.id) === String(sid));
+    const known = force || !sc || sc.n_selected > 0;
     try {
-      sel = await api.get(`/scenes/${sid}/selection`);
+      if (known) sel = await api.get(`/scenes/${sid}/selection`);
     } catch (e) {
       if (e.status !== 404) showError(e);
     }
@@ -225,8 +229,8 @@ class AdminPage {
       this.selectionEl.replaceChildren(el("p", {}, "No selection yet for this scene."));
       return;
     }
+    // the curve starts at the stratified set (n > 0): no invented (0, 0) point before it
     const curve = (sel.curve || []).map((p) => (Array.isArray(p) ? p : [p.n, p.coverage]));
-    if (curve.length && curve[0][0] > 0) curve.unshift([0, 0]); // no frame covers nothing
     const nSel = Array.isArray(sel.frames) ? sel.frames.length : sel.selected;
     // show the parameters of the selection on display in the form
     const prm = sel.params || sel;
@@ -258,7 +262,7 @@ class AdminPage {
       ),
       el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, cells.length ? "Top-down map: cameras (blue), selected frames (red), occupied grid cells" : `Top-down map: cameras (blue), selected frames (red); the API sent no cell geometry (${typeof sel.cells === "number" ? sel.cells : "?"} occupied cells of ${edge} m)`))),
     );
-    linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", yMin: 0, yMax: 1, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
+    linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", xMin: 0, yMin: 0, yMax: 1, dots: true, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
     mapPlot(mapC, { cameras: sel.cameras || [], selected, cells, lattice });
   }
 
@@ -372,12 +376,17 @@ class AdminPage {
 
   async loadMetrics() {
     let m = null;
+    const evaluated = this.jobs.some((j) => j.kind === "eval" && j.status === "done" && String(j.scene_id ?? this.sid) === String(this.sid));
+    if (!evaluated) {
+      this.exportsEl.replaceChildren(el("h3", {}, "Metrics"), el("p", {}, "No evaluation results yet: press \u201cRun evaluation\u201d."));
+      return;
+    }
     try {
       m = await api.get(`/scenes/${this.sid}/metrics`);
     } catch (e) {
       if (e.status !== 404) showError(e);
     }
-    this.exportsEl.replaceChildren(el("h3", {}, "Metrics"), m ? metricsView(m) : el("p", {}, "No evaluation results yet."));
+    this.exportsEl.replaceChildren(el("h3", {}, "Metrics"), m ? readableMetrics(m) : el("p", {}, "No evaluation results yet."));
   }
 
   async loadHistogram() {
@@ -392,10 +401,13 @@ class AdminPage {
       bars = bars.filter((b) => b.value).sort((a, b) => b.value - a.value);
       const c = el("canvas", { id: "class-histogram" });
       const nv = Object.keys(st.included_versions || {}).length;
+      // replaceChildren() turns a null argument into the text "null": pass only nodes
       this.histEl.replaceChildren(
-        el("p", {}, `Lifted labels include ${nv} mask version(s)${st.pending_fill ? "; kNN fill pending" : ""}. Points per class:`),
-        bars.length ? c : el("p", {}, "No labelled points yet."),
-        zero.length ? el("p", { class: "muted" }, `No points: ${zero.join(", ")}.`) : null,
+        ...[
+          el("p", {}, `Lifted labels include ${nv} mask version(s)${st.pending_fill ? "; kNN fill pending" : ""}. Points per class:`),
+          bars.length ? c : el("p", {}, "No labelled points yet."),
+          zero.length ? el("p", { class: "muted" }, `No points: ${zero.join(", ")}.`) : null,
+        ].filter(Boolean),
       );
       if (bars.length) barPlot(c, bars, { title: "points per class", width: 560 });
     } catch (e) {
@@ -404,9 +416,74 @@ class AdminPage {
   }
 }
 
+const ISO = /^\d{4}-\d\d-\d\dT\d\d:\d\d/;
+// bookkeeping keys: identify the job or the row, not a measurement
+const BOOKKEEPING = new Set(["job_id", "table", "frame_id", "index", "scene_id", "id", "finished_at", "created_at", "started_at"]);
+const TABLE_TITLES = { agreement_2d: "2D agreement of the masks with the rendered 3D labels" };
+
+function humanKey(k) {
+  const special = { iou: "IoU", miou: "mIoU", n_frames: "frames", ssc: "SSC", per_class_iou: "IoU per class" };
+  if (special[k]) return special[k];
+  return String(k).replace(/^n_/, "").replace(/_/g, " ").replace(/\biou\b/gi, "IoU").replace(/\bmiou\b/gi, "mIoU");
+}
+
+/**
+ * An eval result for people: a heading (which job, when), its tables without bookkeeping
+ * columns, timestamps as local dates, shares as percentages; the raw values stay available
+ * (collapsed) for whoever needs the exact keys.
+ */
+export function readableMetrics(m) {
+  const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
+  const fmt = (v, key = "") =>
+    typeof v === "number"
+      ? SHARE.test(key) && v >= 0 && v <= 1
+        ? `${(100 * v).toFixed(2)} %`
+        : Math.abs(v) <= 1 && !Number.isInteger(v)
+          ? v.toFixed(4)
+          : v.toLocaleString()
+      : v === null || v === undefined
+        ? "n/a"
+        : typeof v === "string" && ISO.test(v)
+          ? fmtDate(v)
+          : typeof v === "object"
+            ? JSON.stringify(v)
+            : String(v);
+  const out = el("div", { class: "metrics readable", id: "metrics" });
+  const when = m.finished_at ? ` · finished ${fmtDate(m.finished_at)}` : "";
+  out.append(el("p", { class: "metrics-head" }, `Evaluation${m.job_id != null ? ` job #${m.job_id}` : ""}${when}`));
+  const walk = (obj, title, depth) => {
+    if (Array.isArray(obj) && obj.length && typeof obj[0] === "object") {
+      const keys = [...new Set(obj.flatMap((r) => Object.keys(r)))].filter((k) => !BOOKKEEPING.has(k));
+      out.append(table(obj, keys.map((k) => ({ key: k, label: humanKey(k), fmt: (v) => fmt(v, k) })), { caption: title }));
+      return;
+    }
+    if (obj && typeof obj === "object" && !Array.isArray(obj)) {
+      const heading = TABLE_TITLES[obj.table] || title;
+      const scalars = Object.entries(obj).filter(([k, v]) => (v === null || typeof v !== "object") && !BOOKKEEPING.has(k));
+      const unit = SHARE.test(title) ? title : "";
+      if (scalars.length) {
+        out.append(
+          el(
+            "dl",
+            { class: "metric-list", "aria-label": heading || "metrics" },
+            heading ? el("dt", { class: "metric-title" }, heading) : null,
+            ...scalars.map(([k, v]) => el("div", { class: "metric" }, el("span", { class: "metric-name" }, humanKey(k)), el("strong", {}, fmt(v, unit || k)))),
+          ),
+        );
+      }
+      for (const [k, v] of Object.entries(obj)) if (v && typeof v === "object") walk(v, title && depth ? `${title} / ${humanKey(k)}` : humanKey(k), depth + 1);
+      return;
+    }
+    if (obj !== undefined) out.append(el("p", {}, `${title}: ${fmt(obj, title)}`));
+  };
+  walk(m, "", 0);
+  out.append(el("details", { class: "raw-metrics" }, el("summary", {}, "Raw values (as the API sends them)"), metricsView(m, "metrics-raw")));
+  return out;
+}
+
 /** Render an eval result (nested dicts / lists of rows) as tables. */
-export function metricsView(m) {
-  const out = el("div", { class: "metrics", id: "metrics" });
+export function metricsView(m, id = "metrics") {
+  const out = el("div", { class: "metrics", id });
   // shares (agreement, IoU, precision, recall, delta_k, coverage) as percentages
   const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
   const fmtv = (v, key = "") =>

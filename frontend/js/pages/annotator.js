@@ -24,6 +24,8 @@ class AnnotatorPage {
     this.frame = null;
     this.scene = null;
     this.version = null; // mask version the editor content is based on ("none" = no mask yet)
+    this.versionNumber = null; // its per-frame number (what the user sees: "version 3")
+    this.readOnly = false;
     this.editSeq = 0;
     this.savedSeq = 0;
     this.saving = null;
@@ -105,6 +107,10 @@ class AnnotatorPage {
     } catch (e) {
       showError(e);
       this.status("");
+      this.opening = null;
+      this.editor?.destroy();
+      this.editor = null;
+      this.frame = null;
       this.host.replaceChildren(el("p", { class: "empty-hint" }, `Frame ${fid} could not be opened: ${e.message} Press "Next frame" to get one from the queue.`));
       this.ctx.setParams({ frame: null });
     }
@@ -157,6 +163,9 @@ class AnnotatorPage {
     const t0 = performance.now();
     this.stats.openMs = null;
     this.status("Opening frame…");
+    // nothing may act on the previous frame while this one loads (prefill, save, submit)
+    for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = true;
+    this.opening = fid;
     const frame = await api.get(`/frames/${fid}`);
     const sid = frame.scene_id ?? this.sceneSel.value;
     if (frame.scene_id !== undefined) this.sceneSel.value = String(frame.scene_id);
@@ -170,8 +179,9 @@ class AnnotatorPage {
       scenePromise,
       api.send("GET", `/frames/${fid}/image`).then((r) => r.blob()).then(mark("imageFetched")).then((b) => createImageBitmap(b)).then(mark("imageDecoded")),
       // the saved mask is decoded and coloured in a worker while the image decodes
-      Promise.all([api.blob(`/frames/${fid}/mask`).then(mark("maskFetched")), scenePromise]).then(async ([r, sc]) =>
-        r ? { etag: r.etag, decoded: await decodeMaskOffThread(r.blob, W, H, buildLut((sc.taxonomy && sc.taxonomy.classes) || [])) } : null,
+      // a fresh frame has no mask: do not ask for one (the API would answer 404)
+      Promise.all([frame.current_version == null ? null : api.blob(`/frames/${fid}/mask`).then(mark("maskFetched")), scenePromise]).then(async ([r, sc]) =>
+        r ? { etag: r.etag, number: r.number, decoded: await decodeMaskOffThread(r.blob, W, H, buildLut((sc.taxonomy && sc.taxonomy.classes) || [])) } : null,
       ).then(mark("maskDecoded")),
       api.get(`/scenes/${sid}/review-items`).catch(() => []),
     ]);
@@ -188,6 +198,7 @@ class AnnotatorPage {
     if (decoded) ed.mask.adopt(decoded.ids, decoded.rgba, decoded.painted);
     ph.maskColoured = performance.now() - t0;
     this.version = maskRes ? maskRes.etag || "none" : "none";
+    this.versionNumber = maskRes ? maskRes.number : null;
     this.editSeq = this.savedSeq = 0;
     ed.signals.edited.add(() => this.onEdited());
     ed.signals.status.add((m) => this.status(m));
@@ -199,7 +210,8 @@ class AnnotatorPage {
     ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
     ed.view.overlay.focus({ preventScroll: true });
     this.frameInfo.textContent = `${frame.name} · ${W}×${H} · ${frame.state}`;
-    for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = false;
+    this.opening = null;
+    this.setReadOnly(this.readOnlyReason(frame));
     this.updatePainted();
     this.updateSaveState();
     await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
@@ -207,6 +219,60 @@ class AnnotatorPage {
     ph.painted = this.stats.openMs;
     this.stats.openPhases = Object.fromEntries(Object.entries(ph).map(([k, v]) => [k, Math.round(v)]));
     this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
+  }
+
+  /** Why an annotator may not edit this frame (null: editable). Reviewers/admins always may. */
+  readOnlyReason(frame) {
+    const me = this.ctx.session && this.ctx.session.user;
+    if (!me || me.role !== "annotator") return null;
+    if (frame.state === "accepted") return "accepted";
+    if (frame.state === "submitted") return "submitted";
+    if (frame.assignee && frame.assignee !== me.username) return "other";
+    if (!frame.assignee && frame.state !== "rejected") return "free";
+    return null;
+  }
+
+  setReadOnly(reason) {
+    this.readOnly = !!reason;
+    this.readOnlyWhy = reason;
+    this.editor?.setReadOnly(this.readOnly);
+    for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = this.readOnly;
+    this.toolsEl.querySelectorAll("button.tool, #undo, #redo").forEach((b) => {
+      if (b.dataset.tool !== "pan") b.disabled = this.readOnly;
+    });
+    this.paletteEl.querySelectorAll("button").forEach((b) => (b.disabled = this.readOnly));
+    if (this.readOnly && this.editor) this.editor.setTool("pan");
+    if (this.frame) this.buildSide();
+  }
+
+  readOnlyBanner() {
+    const why = this.readOnlyWhy;
+    if (!why) return null;
+    const text = {
+      accepted: "This frame was accepted by a reviewer. It is read-only.",
+      submitted: "You submitted this frame; it is waiting for review and is read-only. Reopen it to change it (only while no reviewer has decided).",
+      other: `This frame is leased to ${this.frame.assignee}. It is read-only for you.`,
+      free: 'This frame is not leased to you, so it is read-only. Press "Next frame" to get one from the queue.',
+    }[why];
+    return el(
+      "div",
+      { class: "notice readonly", id: "readonly-banner", role: "status", "data-reason": why },
+      el("strong", {}, "Read-only. "),
+      text,
+      why === "submitted" ? el("div", {}, el("button", { type: "button", id: "reopen", onclick: () => this.reopen() }, "Reopen for editing")) : null,
+    );
+  }
+
+  /** Take a submitted, not yet reviewed frame back (the API renews the lease). */
+  async reopen() {
+    const fid = this.frame.id;
+    try {
+      await api.post(`/frames/${fid}/reopen`);
+      toast("Reopened: the frame is yours again. Submit it when you are done.");
+      await this.openOrExplain(fid);
+    } catch (e) {
+      showError(e);
+    }
   }
 
   buildTools() {
@@ -276,6 +342,8 @@ class AnnotatorPage {
   buildSide() {
     const f = this.frame;
     const parts = [];
+    const banner = this.readOnlyBanner();
+    if (banner) parts.push(banner);
     if (f.state === "rejected") parts.push(el("p", { class: "notice" }, "A reviewer sent this frame back. See the comments below and on the image."));
     if (this.items.length) {
       parts.push(el("h2", {}, "Review comments"));
@@ -296,9 +364,12 @@ class AnnotatorPage {
         ),
       );
     }
-    const versions = el("details", { class: "versions" }, el("summary", {}, "Version history"));
-    versions.addEventListener("toggle", () => versions.open && this.loadVersions(versions));
-    this.versionsEl.replaceChildren(versions);
+    if (!this.versionsBox || this.versionsBox.dataset.frame !== String(f.id)) {
+      const versions = el("details", { class: "versions", "data-frame": f.id }, el("summary", {}, "Version history"));
+      versions.addEventListener("toggle", () => versions.open && this.loadVersions(versions));
+      this.versionsBox = versions;
+      this.versionsEl.replaceChildren(versions);
+    }
     this.sideEl.replaceChildren(...parts);
   }
 
@@ -311,11 +382,11 @@ class AnnotatorPage {
           ? el(
               "ul",
               { class: "version-list" },
-              vs.map((v) =>
+              [...vs].reverse().map((v) =>
                 el(
                   "li",
-                  { "data-version": v.version },
-                  `v${v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
+                  { "data-version": v.version, "data-number": v.number ?? "" },
+                  `v${v.number ?? v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
                   el("button", { type: "button", class: "link", onclick: () => this.restore(v.version) }, "restore"),
                   el("a", { href: `/api/frames/${this.frame.id}/mask/versions/${v.version}`, download: `${this.frame.name}_v${v.version}.png` }, "download"),
                 ),
@@ -326,6 +397,10 @@ class AnnotatorPage {
     } catch (e) {
       showError(e);
     }
+  }
+
+  refreshVersions() {
+    if (this.versionsBox && this.versionsBox.open) this.loadVersions(this.versionsBox);
   }
 
   /** Make an old version current again (as a new version; If-Match guards against races). */
@@ -414,7 +489,7 @@ class AnnotatorPage {
     if (text) el_.textContent = text;
     else if (this.saving) el_.textContent = "Saving…";
     else if (this.unsaved) el_.textContent = "Unsaved changes";
-    else el_.textContent = this.version && this.version !== "none" ? `Saved (version ${this.version})` : "Nothing saved yet";
+    else el_.textContent = this.version && this.version !== "none" ? `Saved (version ${this.versionNumber ?? "?"})` : "Nothing saved yet";
     el_.dataset.state = this.saving ? "saving" : this.unsaved ? "unsaved" : "saved";
   }
 
@@ -422,6 +497,7 @@ class AnnotatorPage {
   async save(kind = "draft", { force = false, keepalive = false } = {}) {
     if (!this.editor || !this.frame) return null;
     clearTimeout(this.idleTimer);
+    if (this.readOnly) return null;
     while (this.saving) await this.saving.catch(() => {});
     if (kind === "draft" && !this.unsaved && !force) return null;
     const run = this._save(kind, { keepalive });
@@ -449,11 +525,14 @@ class AnnotatorPage {
         keepalive: keepalive && blob.size < 60000, // browsers cap keepalive bodies at 64 KiB
       });
       const body = await res.json();
+      if (this.frame !== frame) return body; // saved for a frame that is no longer open
       this.version = String(body.version);
+      this.versionNumber = body.number ?? null;
       if (this.editSeq === seq) this.savedSeq = seq;
       else this.savedSeq = Math.min(this.savedSeq, seq);
       this.stats.saves.push({ kind, bytes: blob.size, rawBytes: ed.mask.ids.length, encodeMs: tEnc - t0, totalMs: performance.now() - t0, version: this.version });
       if (kind === "submitted") this.frame.state = body.frame_state ?? "submitted";
+      this.refreshVersions();
       return body;
     } catch (e) {
       if (e instanceof ApiError && e.status === 409) return this.conflict(kind, blob, e);
@@ -466,7 +545,9 @@ class AnnotatorPage {
 
   /** 409: another session saved first. Keep both versions; let the user choose. */
   async conflict(kind, mine, err) {
+    if (err.body && err.body.reason === "lease") return this.leaseLost(kind, mine, err);
     const theirs = err.body && err.body.current_version != null ? String(err.body.current_version) : null;
+    const theirsNo = err.body && err.body.current_number != null ? err.body.current_number : theirs;
     const kept = err.body && err.body.conflict_version != null ? ` as conflict version ${err.body.conflict_version}` : "";
     for (;;) {
       const choice = await dialog({
@@ -474,7 +555,7 @@ class AnnotatorPage {
         body: el(
           "div",
           {},
-          el("p", {}, `While you were painting, version ${theirs ?? "?"} of ${this.frame.name} was saved from another session.`),
+          el("p", {}, `While you were painting, version ${theirsNo ?? "?"} of ${this.frame.name} was saved from another session.`),
           el("p", {}, `Nothing is lost: your painting is still in this editor (the server also kept your upload${kept || " as a conflict version"}), and theirs is stored on the server. Choose what to do:`),
           el("p", { class: "muted" }, err.message),
           el("ul", {}, el("li", {}, "Keep mine: save your mask as a new version on top of theirs."), el("li", {}, "Load theirs: show their version here; Undo (Ctrl+Z) brings yours back."), el("li", {}, "Download mine: save your mask as a PNG file, then choose again.")),
@@ -512,6 +593,54 @@ class AnnotatorPage {
   }
 
   /**
+   * 409 because the frame is no longer leased to this annotator (submitted, accepted, lease
+   * expired and taken by someone else). Say so, and offer what can actually work.
+   */
+  async leaseLost(kind, mine, err) {
+    const state = err.body.frame_state || "not yours";
+    const canReopen = state === "submitted";
+    const why = {
+      submitted: "You already submitted this frame, so it is waiting for review and no longer leased to you.",
+      accepted: "A reviewer accepted this frame; it can no longer be changed.",
+    }[state] || `The frame is ${state.replace("_", " ")} and no longer leased to you (the lease may have expired and someone else took it).`;
+    clearTimeout(this.idleTimer);
+    for (;;) {
+      const choice = await dialog({
+        title: "This frame is no longer leased to you",
+        body: el(
+          "div",
+          {},
+          el("p", {}, `Your change to ${this.frame.name} was not saved. ${why}`),
+          el("p", {}, "Your painting is still in this editor, and the server kept your upload as a conflict version."),
+          el("p", { class: "muted" }, err.message),
+        ),
+        buttons: [
+          canReopen ? { label: "Reopen and save mine", value: "reopen", primary: true } : null,
+          { label: "Download mine", value: "download", primary: !canReopen },
+          { label: "Close", value: "close" },
+        ].filter(Boolean),
+        cancelValue: "close",
+      });
+      if (choice === "download") {
+        downloadBlob(mine, `${this.frame.name.replace(/\.[^.]+$/, "")}_mine.png`);
+        continue;
+      }
+      if (choice === "reopen") {
+        const f = await api.post(`/frames/${this.frame.id}/reopen`);
+        if (f) Object.assign(this.frame, f);
+        this.version = f && f.current_version != null ? String(f.current_version) : this.version;
+        this.setReadOnly(null);
+        return this._save(kind === "submitted" ? "submitted" : "draft");
+      }
+      this.frame.state = state;
+      this.setReadOnly(this.readOnlyReason(this.frame) || "other");
+      this.savedSeq = this.editSeq; // nothing more to autosave: it would fail the same way
+      this.updateSaveState(`Not saved: the frame is ${state.replace("_", " ")}`);
+      return null;
+    }
+  }
+
+  /**
    * Leaving: when the tab is hidden the page keeps running, so a normal draft save completes;
    * when it is being closed, the PUT is sent with keepalive (if under the browser's 64 KiB
    * limit, typical for masks: large uniform areas compress ~400x) and beforeunload asks the
@@ -528,28 +657,38 @@ class AnnotatorPage {
     try {
       const r = await this.save("submitted", { force: true });
       if (r) {
-        toast(`Submitted version ${r.version}. Press "Next frame" for the next one.`);
-        this.frameInfo.textContent = `${this.frame.name} · submitted (version ${r.version})`;
-        this.updateSaveState(`Submitted (version ${r.version})`);
+        const n = r.number ?? r.version;
+        toast(`Submitted version ${n}. Press "Next frame" for the next one.`);
+        this.frameInfo.textContent = `${this.frame.name} · submitted (version ${n})`;
+        this.frame.assignee = null;
+        this.setReadOnly(this.readOnlyReason(this.frame));
+        this.updateSaveState(`Submitted (version ${n})`);
       }
     } catch (e) {
       showError(e);
     } finally {
-      this.submitBtn.disabled = false;
+      this.submitBtn.disabled = this.readOnly;
     }
   }
 
   async prefill() {
+    // bound to the frame (and editor) it was asked for: if another frame opens meanwhile,
+    // the answer is dropped instead of landing on the new frame
     const ed = this.editor;
+    const frame = this.frame;
+    if (!ed || !frame || this.opening != null || this.readOnly) return;
+    const stale = () => this.editor !== ed || this.frame !== frame;
     this.prefillBtn.disabled = true;
     try {
       this.status("Rendering the lifted 3D labels into this frame…");
-      const r = await api.blob(`/frames/${this.frame.id}/prefill`);
+      const r = await api.blob(`/frames/${frame.id}/prefill`);
+      if (stale()) return;
       if (!r) {
         toast("No 3D labels to prefill from yet.");
         return;
       }
       const d = await decodeIdPng(r.blob);
+      if (stale()) return;
       const ids = resizeIds(d.ids, d.width, d.height, ed.mask.width, ed.mask.height);
       let n = 0;
       for (let i = 0; i < ids.length; i++) if (ids[i]) n++;
@@ -569,15 +708,16 @@ class AnnotatorPage {
             { label: "Cancel", value: null },
           ],
         });
-        if (!c) return;
+        if (!c || stale()) return;
         onlyUnpainted = c === "unpainted";
       }
       ed.replaceIds("prefill from 3D", ids, { onlyUnpainted });
       this.status(`Prefilled ${(100 * (n / ids.length)).toFixed(1)} % of the frame from the 3D labels. Correct it with the tools.`);
     } catch (e) {
-      showError(e);
+      if (!stale()) showError(e);
     } finally {
-      this.prefillBtn.disabled = false;
+      if (stale()) this.status(`Prefill of ${frame.name} dropped: another frame was opened meanwhile.`);
+      else this.prefillBtn.disabled = this.readOnly;
     }
   }
 }

@@ -25,7 +25,7 @@ function niceTicks(lo, hi, n = 5) {
 }
 
 /** points: [[x, y], ...]; opts: {xLabel, yLabel, yMin, yMax, marker: [x, y]} */
-export function linePlot(canvas, points, { xLabel = "", yLabel = "", yMin = null, yMax = null, marker = null, width = 460, height = 260, yFmt = (v) => v } = {}) {
+export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null, yMin = null, yMax = null, marker = null, dots = false, width = 460, height = 260, yFmt = (v) => v } = {}) {
   const ctx = setup(canvas, width, height);
   const m = { l: 52, r: 12, t: 12, b: 40 };
   const W = width - m.l - m.r;
@@ -36,7 +36,12 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", yMin = null
   }
   const xs = points.map((p) => p[0]);
   const ys = points.map((p) => p[1]);
-  const x0 = Math.min(...xs), x1 = Math.max(...xs);
+  // x axis from xMin (or the data) to a tick at or beyond the last point, so the curve and
+  // its end marker stay inside the plot
+  const x0 = Math.min(xMin ?? Infinity, ...xs);
+  const xTop = Math.max(...xs);
+  const xt = niceTicks(x0, xTop > x0 ? xTop : x0 + 1);
+  const x1 = xt.length && xt[xt.length - 1] >= xTop ? xt[xt.length - 1] : xTop + (xt.length > 1 ? xt[1] - xt[0] : 1);
   const y0 = yMin ?? Math.min(...ys), y1 = yMax ?? Math.max(...ys);
   const X = (x) => m.l + ((x - x0) / (x1 - x0 || 1)) * W;
   const Y = (y) => m.t + H - ((y - y0) / (y1 - y0 || 1)) * H;
@@ -52,7 +57,7 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", yMin = null
     ctx.fillText(String(yFmt(t)), m.l - 4, Y(t) + 4);
   }
   ctx.textAlign = "center";
-  for (const t of niceTicks(x0, x1)) ctx.fillText(String(t), X(t), m.t + H + 14);
+  for (const t of niceTicks(x0, x1)) if (t <= x1 + 1e-9) ctx.fillText(String(t), X(t), m.t + H + 14);
   ctx.fillText(xLabel, m.l + W / 2, height - 6);
   ctx.save();
   ctx.translate(12, m.t + H / 2);
@@ -64,6 +69,17 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", yMin = null
   ctx.beginPath();
   points.forEach(([x, y], i) => (i ? ctx.lineTo(X(x), Y(y)) : ctx.moveTo(X(x), Y(y))));
   ctx.stroke();
+  if (dots) {
+    ctx.fillStyle = "#0a66c2";
+    for (const [x, y] of points) {
+      ctx.beginPath();
+      ctx.arc(X(x), Y(y), 3, 0, Math.PI * 2);
+      ctx.fill();
+    }
+  }
+  canvas.dataset.x0 = String(x0);
+  canvas.dataset.x1 = String(x1);
+  canvas.dataset.first = JSON.stringify(points[0]);
   if (marker) {
     ctx.fillStyle = "#d93025";
     ctx.beginPath();

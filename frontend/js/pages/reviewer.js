@@ -100,7 +100,8 @@ class ReviewerPage {
             { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
             { key: "agreement", label: "Agreement", fmt: (v) => pct(v) },
             { key: "state", label: "State" },
-            { key: "assignee", label: "Annotator", fmt: (v) => (v && typeof v === "object" ? v.username : v ?? "") },
+            // the assignee is cleared on submit: who painted it is last_annotator
+            { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
           ],
           { caption: `${frames.length} frames, lowest agreement first`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
         ),
@@ -120,14 +121,16 @@ class ReviewerPage {
     try {
       const frame = await api.get(`/frames/${fid}`);
       const sid = frame.scene_id ?? this.sceneSel.value;
+      const hasMask = frame.current_version != null; // no mask yet: nothing to fetch or compare
+      const none = () => Promise.resolve(null);
       const [scene, agreement, items, imgR, maskR, renderR, disR] = await Promise.all([
         api.get(`/scenes/${sid}`),
-        api.get(`/frames/${fid}/agreement`).catch((e) => ({ error: e.message })),
+        hasMask ? api.get(`/frames/${fid}/agreement`).catch((e) => ({ error: e.message })) : Promise.resolve({ error: "no mask saved yet" }),
         api.get(`/scenes/${sid}/review-items`).catch(() => []),
         api.blob(`/frames/${fid}/image?size=preview`).then((r) => r || api.blob(`/frames/${fid}/image`)),
-        api.blob(`/frames/${fid}/mask`).catch((e) => ({ error: e.message })),
+        hasMask ? api.blob(`/frames/${fid}/mask`).catch((e) => ({ error: e.message })) : none(),
         api.blob(`/frames/${fid}/render`).catch((e) => ({ error: e.message })),
-        api.blob(`/frames/${fid}/disagreement`).catch((e) => ({ error: e.message })),
+        hasMask ? api.blob(`/frames/${fid}/disagreement`).catch((e) => ({ error: e.message })) : none(),
       ]);
       if (seq !== this.loadSeq) return;
       const lut = buildLut((scene.taxonomy && scene.taxonomy.classes) || []);
@@ -170,8 +173,9 @@ class ReviewerPage {
     this.panelsEl = el("div", { class: `panels mode-${this.mode}`, id: "panels" });
     this.comment = el("textarea", { id: "review-comment", rows: 3, placeholder: "Comment (click the image to pin it to a pixel)" });
     this.pinText = el("span", { id: "pin-text" }, "No pixel pinned: click on any panel to pin.");
+    // per_class is keyed by class name: {id, mask_pixels, rendered_pixels, agree, recall, precision, iou}
     const perClass = a.per_class && typeof a.per_class === "object" ? Object.entries(a.per_class) : [];
-    const name = (id) => this.classes.find((c) => String(c.id) === String(id))?.name ?? `id ${id}`;
+    const classOf = (key, v) => this.classes.find((c) => (v && v.id != null ? c.id === v.id : c.name === key)) || null;
     this.detailEl.replaceChildren(
       el(
         "div",
@@ -201,7 +205,24 @@ class ReviewerPage {
         ),
       ),
       perClass.length
-        ? el("details", {}, el("summary", {}, "Agreement per class"), table(perClass.map(([k, v]) => ({ k, v })), [{ key: "k", label: "Class", fmt: (k) => name(k) }, { key: "v", label: "Agreement", fmt: (v) => (typeof v === "number" ? pct(v) : typeof v === "object" ? pct(v.agreement) + (v.pixels != null ? ` (${v.pixels} px)` : "") : String(v)) }]))
+        ? el(
+            "details",
+            { id: "per-class" },
+            el("summary", {}, "Agreement per class"),
+            table(
+              perClass
+                .map(([k, v]) => ({ k, ...(typeof v === "object" && v ? v : { iou: v }), cls: classOf(k, v) }))
+                .sort((x, y) => (y.mask_pixels ?? 0) - (x.mask_pixels ?? 0)),
+              [
+                { key: "k", label: "Class", fmt: (k, r) => el("span", { class: "class-cell" }, r.cls ? el("span", { class: "swatch", style: { background: `rgb(${r.cls.rgb.join(",")})` } }) : null, r.cls ? r.cls.name : k) },
+                { key: "mask_pixels", label: "Painted px", fmt: (v) => (v == null ? "–" : Number(v).toLocaleString()) },
+                { key: "recall", label: "Recall", fmt: (v) => pct(v) },
+                { key: "precision", label: "Precision", fmt: (v) => pct(v) },
+                { key: "iou", label: "IoU", fmt: (v) => pct(v) },
+              ],
+              { caption: "Recall: share of the painted pixels of the class the 3D labels agree with; precision: share of the rendered pixels of the class the painting agrees with." },
+            ),
+          )
         : null,
       this.itemsList(),
     );
@@ -354,12 +375,18 @@ class ReviewerPage {
         this.comment.focus();
         return;
       }
-      // a pinned pixel becomes its own review item; the decision's comment is recorded by the
-      // review call itself (so an unpinned rejection does not create the comment twice)
-      if (text && this.pin) await this.pinComment();
-      const f = await api.post(`/frames/${this.frame.id}/review`, { decision, comment: text || undefined });
+      // a pinned pixel becomes its own review item carrying the comment, so the decision is
+      // then sent without it (else the annotator reads it twice: pinned and "[reject] ...");
+      // an unpinned comment is recorded by the review call itself
+      let pinned = false;
+      if (text && this.pin) pinned = !!(await this.pinComment());
+      const f = await api.post(`/frames/${this.frame.id}/review`, { decision, comment: (!pinned && text) || undefined });
       this.frame = { ...this.frame, ...(f || {}), state: (f && f.state) || (decision === "accept" ? "accepted" : "rejected") };
       this.comment.value = "";
+      // the decision may have filed a comment item: show the frame's items as stored
+      const sid = this.frame.scene_id ?? this.sceneSel.value;
+      const fresh = await api.get(`/scenes/${sid}/review-items?frame_id=${this.frame.id}`).catch(() => null);
+      if (fresh) this.items = fresh;
       toast(decision === "accept" ? `Accepted ${this.frame.name}.` : `Rejected ${this.frame.name}; it goes back to its annotator.`);
       this.renderDetail();
       this.loadList();

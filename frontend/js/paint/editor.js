@@ -32,6 +32,7 @@ export class Editor {
       this.tools[t.name] = t;
     }
     this.tool = this.tools.brush;
+    this.readOnly = false; // frames the user may look at but not change (submitted, accepted)
     this.view.beforeRender = () => this.tool.beforeRender?.();
     this.view.overlayPainters.push((ctx, v) => this.tool.overlay(ctx, v));
     this._css = new Map(classes.map((c) => [c.id, `rgb(${c.rgb[0]},${c.rgb[1]},${c.rgb[2]})`]));
@@ -112,8 +113,16 @@ export class Editor {
     this.signals.opacityChanged.dispatch(this.state.opacity);
   }
 
+  /** Read-only: painting tools, undo/redo and replaceIds do nothing (pan and zoom still work). */
+  setReadOnly(on) {
+    this.readOnly = !!on;
+    if (this.readOnly && this.tool.name !== "pan") this.tool.cancel?.();
+    this.view.request();
+  }
+
   /** Replace the whole mask as one undoable command (prefill, load a version). */
   replaceIds(name, ids, { onlyUnpainted = false } = {}) {
+    if (this.readOnly) return;
     const m = this.mask;
     this.history.execute(
       new PatchCommand(name, m, (patch) => {
@@ -136,11 +145,13 @@ export class Editor {
 
   undo() {
     this.tool.cancel?.();
+    if (this.readOnly) return false;
     return this.history.undo();
   }
 
   redo() {
     this.tool.cancel?.();
+    if (this.readOnly) return false;
     return this.history.redo();
   }
 
@@ -160,14 +171,23 @@ export class Editor {
         return;
       }
       if (e.button !== 0) return;
+      if (this.readOnly && this.tool.name !== "pan") {
+        this.setStatus("This frame is read-only: nothing you paint here would be saved.");
+        return;
+      }
       ov.setPointerCapture(e.pointerId);
       e.preventDefault();
+      this._down = true;
       this.tool.down(toImg(e), e);
     });
     ov.addEventListener("pointermove", (e) => {
       if (this._panning) {
         this.view.panBy(e.clientX - this._panning[0], e.clientY - this._panning[1]);
         this._panning = [e.clientX, e.clientY];
+        return;
+      }
+      if (this.readOnly && this.tool.name !== "pan" && !this._down) {
+        this.tool.move([toImg(e)], e); // cursor preview only: tools paint between down and up
         return;
       }
       const evs = e.getCoalescedEvents ? e.getCoalescedEvents() : [];
@@ -180,6 +200,8 @@ export class Editor {
         return;
       }
       if (ov.hasPointerCapture(e.pointerId)) ov.releasePointerCapture(e.pointerId);
+      if (this.readOnly && !this._down) return;
+      this._down = false;
       this.tool.up(toImg(e), e);
     };
     ov.addEventListener("pointerup", end);

@@ -1,0 +1,290 @@
+"""Issue 17 defects that break an annotator's / reviewer's / admin's day, each driven in
+Chromium against the real app (the session's `live` server, one browser for the module).
+
+Ordered: the first test paints and submits the frames the later ones review.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from tests.e2e.conftest import grant_members, grey_png, png_ids, shot
+from tests.e2e.test_browser import drag, editor_ids, painted_share, wait_opened
+
+pytestmark = pytest.mark.e2e
+
+STATE: dict = {}
+
+
+@pytest.fixture(scope="module")
+def sid(live):
+    """A scene of its own (the same source imported again): a clean queue for this module,
+    whatever the other modules leased, submitted or rejected."""
+    admin = live.client("admin")
+    root = live.app.state.ctx.settings.import_roots[0]
+    source = next(p for p in sorted(root.iterdir()) if p.is_dir())
+    r = admin.post("/api/scenes/import", json={"name": "workday_scene", "source": str(source)})
+    assert r.status_code in (200, 202), r.text
+    job = live.wait_job(r.json())
+    assert job["status"] == "done", job
+    scene_id = job["scene_id"]
+    grant_members(live, scene_id)
+    r = admin.post(f"/api/scenes/{scene_id}/selection",
+                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
+    assert live.wait_job(r.json())["status"] == "done"
+    return scene_id
+
+
+def watch(page) -> list[str]:
+    """Every HTTP answer >= 400 the page receives (console noise such as favicon / mask 404)."""
+    bad: list[str] = []
+    page.on("response", lambda r: r.status >= 400 and bad.append(f"{r.status} {r.request.method} {r.url}"))
+    return bad
+
+
+def puts(page) -> list[str]:
+    sent: list[str] = []
+    page.on("request", lambda r: r.method == "PUT" and sent.append(r.url))
+    return sent
+
+
+def versions_of(live, fid: int) -> list[dict]:
+    return live.client("admin").get(f"/api/frames/{fid}/mask/versions").json()
+
+
+def test_submit_makes_the_frame_read_only_with_reopen_and_per_frame_versions(live, sid, new_page):
+    """Defects 1, 4, 10: after Submit the frame is read-only (banner, tools off, no PUT, no
+    dialog); "Reopen" takes it back; versions are numbered per frame and the list refreshes;
+    a fresh frame does not ask for a mask (no 404) and there is a favicon (no 404)."""
+    page = new_page("annotator")
+    bad = watch(page)
+    sent = puts(page)
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}")
+    page.click("#next-frame")
+    fid = wait_opened(page)
+    assert live.client("admin").get(f"/api/frames/{fid}").json()["current_version"] is None
+    assert painted_share(page) == 0.0
+    page.evaluate("() => window.__occufly.page.editor.setSize(24)")
+    drag(page, [(0.2, 0.2), (0.5, 0.3)])
+    page.keyboard.press("Control+s")
+    page.wait_for_selector("#save-state[data-state='saved']:has-text('Saved (version 1)')")
+    page.click("details.versions summary")
+    page.wait_for_selector(".version-list li[data-number='1']")
+    drag(page, [(0.3, 0.6), (0.7, 0.6)])
+    page.click("#submit")
+    page.wait_for_selector("#save-state:has-text('Submitted (version 2)')")
+    # the version list (open) was refreshed after Submit: both versions, numbered 1 and 2
+    page.wait_for_selector(".version-list li[data-number='2']")
+    assert page.locator(".version-list li").count() == 2
+    vs = versions_of(live, fid)
+    assert [v["number"] for v in vs] == [1, 2] and [v["kind"] for v in vs] == ["draft", "submitted"]
+    # global ids differ from the per-frame numbers once other frames have versions
+    assert page.locator(f".version-list li[data-version='{vs[1]['version']}']").inner_text().startswith("v2 ")
+    # read-only now: banner with reopen, painting tools disabled, a drag changes nothing
+    banner = page.locator("#readonly-banner")
+    assert banner.get_attribute("data-reason") == "submitted" and "read-only" in banner.inner_text()
+    assert page.locator("button[data-tool='brush']").is_disabled()
+    assert page.locator("#submit").is_disabled() and page.locator("#prefill").is_disabled()
+    before = editor_ids(page)
+    n_put = len(sent)
+    drag(page, [(0.1, 0.8), (0.9, 0.8)])
+    page.keyboard.press("Control+s")
+    page.wait_for_timeout(3000)  # past the 2.5 s autosave
+    assert np.array_equal(editor_ids(page), before)
+    assert len(sent) == n_put, "no PUT may be sent for a read-only frame"
+    assert page.locator("dialog[open]").count() == 0
+    assert [v["kind"] for v in versions_of(live, fid)] == ["draft", "submitted"]  # no conflict version
+    shot(page, "17_01_submitted_read_only")
+    # reopen (nobody reviewed it yet): editable again, the next save is version 3
+    page.click("#reopen")
+    page.wait_for_function("() => !document.querySelector('#readonly-banner') && window.__occufly.page.stats.openMs !== null")
+    assert live.client("admin").get(f"/api/frames/{fid}").json()["state"] == "in_progress"
+    page.locator(".layer-overlay").focus()
+    page.keyboard.press("b")
+    drag(page, [(0.4, 0.4), (0.6, 0.5)])
+    page.click("#submit")
+    page.wait_for_selector("#save-state:has-text('Submitted (version 3)')")
+    assert live.client("admin").get(f"/api/frames/{fid}").json()["state"] == "submitted"
+    assert not bad, bad
+    STATE.update(frame_1=fid, ids_1=editor_ids(page))
+
+
+def test_edit_in_a_stale_tab_after_submit_names_the_real_cause(live, sid, new_page):
+    """Defect 1: a second tab still editing a frame that was submitted meanwhile gets a dialog
+    that says so (not "changed by someone else"); "Reopen and save mine" saves it, once."""
+    ann = live.client("annotator")
+    f = ann.post(f"/api/scenes/{sid}/next").json()
+    fid = f["id"]
+    page = new_page("annotator")
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={fid}")
+    wait_opened(page, fid)
+    # meanwhile the same annotator submits from elsewhere (e.g. another tab)
+    ids = np.zeros((f["height"], f["width"]), np.uint8)
+    ids[: f["height"] // 3] = STATE["ids_1"].max() or 1
+    r = ann.put(f"/api/frames/{fid}/mask?kind=submitted", content=grey_png(ids),
+                headers={"Content-Type": "image/png", "If-Match": "none"})
+    assert r.status_code == 200, r.text
+    page.evaluate("() => window.__occufly.page.editor.setSize(30)")
+    drag(page, [(0.5, 0.5), (0.8, 0.7)])
+    mine = editor_ids(page)
+    dlg = page.locator("dialog.modal")
+    dlg.wait_for(timeout=10_000)  # the idle autosave hits 409 (lease)
+    text = dlg.inner_text()
+    assert "no longer leased" in text and "already submitted" in text
+    assert "changed by someone else" not in text and "another session" not in text
+    shot(page, "17_02_lease_lost_dialog")
+    dlg.get_by_role("button", name="Reopen and save mine").click()
+    page.wait_for_selector("#save-state[data-state='saved']")
+    assert page.locator("dialog[open]").count() == 0
+    cur = live.client("admin").get(f"/api/frames/{fid}/mask")
+    assert np.array_equal(png_ids(cur.content), mine)
+    kinds = [v["kind"] for v in versions_of(live, fid)]
+    assert kinds == ["submitted", "conflict", "draft"], kinds  # one conflict version, not one per try
+    assert live.client("admin").get(f"/api/frames/{fid}").json()["state"] == "in_progress"
+    page.click("#submit")
+    page.wait_for_selector("#save-state:has-text('Submitted (version 4)')")
+    STATE.update(frame_2=fid)
+
+
+def test_reviewer_sees_who_painted_per_class_names_and_a_pinned_rejection_once(live, sid, new_page):
+    """Defects 5, 6, 7."""
+    f1, f2 = STATE["frame_1"], STATE["frame_2"]
+    page = new_page("reviewer")
+    bad = watch(page)
+    page.goto(f"{live.base_url}/#/review?scene={sid}")
+    row = page.locator(f"#frame-list tr[data-frame='{f2}']")
+    row.wait_for()
+    cell = row.locator(".annotator-name")
+    assert cell.inner_text() == "annotator"  # assignee is null after submit; who painted it shows
+    pane = page.locator(".list-pane").bounding_box()
+    box = cell.bounding_box()
+    assert box["x"] + box["width"] <= pane["x"] + pane["width"] + 0.5, "annotator column is cut off"
+    row.locator("a").click()
+    page.wait_for_selector("#agreement[data-value]")
+    api = live.client("reviewer").get(f"/api/frames/{f2}/agreement").json()
+    page.click("#per-class summary")
+    rows = page.locator("#per-class tbody tr")
+    assert rows.count() == len(api["per_class"]) >= 1
+    names = [rows.nth(i).locator("td").first.inner_text().strip() for i in range(rows.count())]
+    assert set(names) == set(api["per_class"]) and not any(n.startswith("id ") for n in names)
+    top = max(api["per_class"].items(), key=lambda kv: kv[1]["mask_pixels"])
+    cells = [c.strip() for c in rows.first.locator("td").all_inner_texts()]
+    assert cells[0] == top[0]
+    assert cells[2] == f"{100 * top[1]['recall']:.1f} %" and cells[4] == f"{100 * top[1]['iou']:.1f} %"
+    shot(page, "17_03_reviewer_per_class")
+    # pinned rejection: the comment exists once, as the pinned item
+    cv = page.locator("canvas[data-layer='image']")
+    cv.scroll_into_view_if_needed()
+    b = cv.bounding_box()
+    page.mouse.click(b["x"] + 0.5 * b["width"], b["y"] + 0.5 * b["height"])
+    comment = "Pinned once: the car edge needs a cleaner outline."
+    assert page.locator("#pin-text").inner_text().startswith("Pinned pixel")
+    page.fill("#review-comment", comment)
+    page.click("#reject")
+    page.wait_for_selector(".badge.state-rejected")
+    items = [it for it in live.client("reviewer").get(f"/api/scenes/{sid}/review-items").json()
+             if it["frame_id"] == f2]
+    texts = [c["text"] for it in items for c in it["comments"]]
+    assert sum(comment in t for t in texts) == 1, texts
+    assert page.locator("#review-items").inner_text().count(comment) == 1
+    # accept frame 1 for the read-only test below
+    r = live.client("reviewer").post(f"/api/frames/{f1}/review", json={"decision": "accept"})
+    assert r.status_code == 200
+    assert not bad, bad
+    ann = new_page("annotator")
+    ann.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={f2}")
+    wait_opened(ann, f2)
+    assert ann.locator("#review-comments").inner_text().count(comment) == 1
+    assert ann.locator("#readonly-banner").count() == 0  # a rejected frame is theirs to fix
+
+
+def test_accepted_frame_opened_by_url_is_read_only(live, sid, new_page):
+    """Defect 2: no tool works, nothing is sent, the banner says why, no reopen offered."""
+    f1 = STATE["frame_1"]
+    page = new_page("annotator")
+    sent = puts(page)
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={f1}")
+    wait_opened(page, f1)
+    banner = page.locator("#readonly-banner")
+    assert banner.get_attribute("data-reason") == "accepted" and "accepted" in banner.inner_text()
+    assert page.locator("#reopen").count() == 0
+    for sel in ("button[data-tool='brush']", "button[data-tool='polygon']", "button[data-tool='flood']",
+                "#submit", "#save-draft", "#prefill", ".swatch-btn"):
+        assert page.locator(sel).first.is_disabled(), sel
+    before = editor_ids(page)
+    page.locator(".layer-overlay").focus()
+    page.keyboard.press("b")  # even the brush key: painting stays off
+    drag(page, [(0.2, 0.5), (0.8, 0.5)])
+    page.keyboard.press("Control+z")
+    page.keyboard.press("Control+s")
+    page.keyboard.press("Control+Enter")
+    page.wait_for_timeout(800)
+    assert np.array_equal(editor_ids(page), before)
+    assert not sent and page.locator("dialog[open]").count() == 0
+    shot(page, "17_04_accepted_read_only")
+
+
+def test_prefill_clicked_while_the_next_frame_loads_is_bound_to_its_frame(live, sid, new_page):
+    """Defect 3: no stale dialog and no prefill of the previous frame on the new one."""
+    f1 = STATE["frame_1"]
+    frames = live.client("admin").get(f"/api/scenes/{sid}/frames").json()
+    fresh = next(f["id"] for f in frames if f["current_version"] is None and f["id"] != f1)
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={f1}")
+    wait_opened(page, f1)
+    assert painted_share(page) > 0  # a painted frame: a prefill on it would ask first
+    held = []
+    page.route(f"**/api/frames/{fresh}/image*", lambda route: held.append(route))
+    page.evaluate(f"() => {{ window.__occufly.page.openOrExplain({fresh}); }}")
+    page.wait_for_function("() => true")
+    for _ in range(100):
+        if held:
+            break
+        page.wait_for_timeout(50)
+    assert held, "the new frame's image request was not made"
+    assert page.locator("#prefill").is_disabled(), "Prefill stays clickable while the next frame loads"
+    page.evaluate("() => { window.__occufly.page.prefill(); }")  # a click that slips through
+    page.wait_for_timeout(1200)
+    assert page.locator("dialog[open]").count() == 0
+    held[0].continue_()
+    page.unroute(f"**/api/frames/{fresh}/image*")
+    wait_opened(page, fresh)
+    page.wait_for_timeout(500)
+    assert page.locator("dialog[open]").count() == 0
+    assert painted_share(page) == 0.0 and not editor_ids(page).any()
+    assert not page.locator("#prefill").is_disabled()
+
+
+def test_admin_histogram_coverage_plot_and_readable_metrics(live, sid, new_page):
+    """Defect 9 (+10 on the admin page)."""
+    admin = live.client("admin")
+    if admin.get(f"/api/scenes/{sid}/metrics").status_code != 200:
+        job = admin.post(f"/api/scenes/{sid}/eval").json()
+        assert live.wait_job(job)["status"] == "done"
+    page = new_page("admin")
+    bad = watch(page)
+    page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.wait_for_selector("#coverage-plot")
+    page.wait_for_selector("#sec-labels p")
+    page.wait_for_selector("#metrics")
+    assert "null" not in page.locator("#sec-labels").inner_text()
+    sel = admin.get(f"/api/scenes/{sid}/selection").json()
+    curve = sel["curve"]
+    plot = page.locator("#coverage-plot")
+    first = plot.get_attribute("data-first")
+    assert first is not None and [round(v, 6) for v in eval(first)] == [round(v, 6) for v in curve[0]]
+    assert curve[0][0] > 0  # the curve starts at the stratified set: no invented (0, 0)
+    assert float(plot.get_attribute("data-x1")) >= curve[-1][0]  # the last point is inside the axis
+    visible = page.locator("#metrics").inner_text()
+    assert "job_id" not in visible and "finished_at" not in visible and "frame_id" not in visible
+    assert not re.search(r"\d{4}-\d\d-\d\dT\d\d:", visible), "raw ISO timestamp shown"
+    assert "Evaluation job #" in visible
+    m = admin.get(f"/api/scenes/{sid}/metrics").json()
+    if m.get("agreement") is not None:
+        assert f"{100 * m['agreement']:.2f} %" in visible
+    page.locator("#metrics").scroll_into_view_if_needed()
+    shot(page, "17_05_admin_metrics", full_page=True)
+    assert not bad, bad

@@ -18,6 +18,9 @@
 ``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
 ``OCCUFLY_JOB_PROCESSES``      1 (default): heavy jobs run in worker processes (or on Dask);
                                0: in threads of the server process (debugging)
+``OCCUFLY_LIFTING``            ``embedded`` (default: the lifting worker runs in the server
+                               process), ``external`` (a separate ``occufly lifting-worker``;
+                               what ``occufly serve --workers N`` starts) or ``off``
 ``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
 ``OCCUFLY_ARGON2_MEMORY_KIB``  argon2id memory cost (default 65536 = argon2-cffi's default)
 ``OCCUFLY_ARGON2_TIME_COST``   argon2id iterations (default 3)
@@ -67,6 +70,7 @@ class Settings:
     argon2_time_cost: int = 3
     auto_upgrade: bool = True
     live_lifting: bool = True
+    lifting: str = "embedded"  # embedded | external | off (see app.lifting.client)
     trusted_proxies: list[str] = field(default_factory=list)
     allowed_origins: list[str] = field(default_factory=list)
     login_user_free_factor: int = 10  # an account's failures from all addresses before a lock
@@ -81,6 +85,11 @@ class Settings:
             self.import_roots = [self.data_dir / "imports"]
         self.import_roots = [Path(p).absolute() for p in self.import_roots]
         self.frontend_dir = Path(self.frontend_dir)
+        if self.lifting not in ("embedded", "external", "off"):
+            raise ConfigError(f"OCCUFLY_LIFTING must be 'embedded', 'external' or 'off', got "
+                              f"{self.lifting!r}")
+        if not self.live_lifting:
+            self.lifting = "off"
         if self.env not in ("production", "development"):
             raise ConfigError(f"OCCUFLY_ENV must be 'production' or 'development', got {self.env!r}")
         if self.secret_key == DEFAULT_SECRET and self.env != "development":
@@ -137,6 +146,7 @@ class Settings:
             job_processes=bool(num("OCCUFLY_JOB_PROCESSES", 1)),
             argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
+            lifting=env.get("OCCUFLY_LIFTING") or "embedded",
         )
         kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
                                   .split(",") if p.strip()]

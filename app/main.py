@@ -14,27 +14,33 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import db, errors
-from app.annotations.lifting import LiftingManager
 from app.config import Settings
 from app.context import AppContext
 from app.jobs import service as jobs_service
 from app.jobs.runner import JobRunner
+from app.lifting.client import LiftingClient
+from app.lifting.events import EventBus
 from app.storage import BlobStore
 
 log = logging.getLogger("occufly.app")
 
 
-def build_context(settings: Settings) -> AppContext:
+def build_context(settings: Settings, *, lifting: str | None = None,
+                  jobs: bool = True) -> AppContext:
+    """The per-process context; ``lifting`` overrides ``settings.lifting`` (the job and
+    lifting worker processes pass ``"off"`` / ``"external"``)."""
     engine = db.make_engine(settings.database_url)
+    sessions = db.make_sessionmaker(engine)
     holder: list[AppContext] = []
     ctx = AppContext(
-        settings=settings, engine=engine, sessions=db.make_sessionmaker(engine),
+        settings=settings, engine=engine, sessions=sessions,
         store=BlobStore(settings.mask_store_dir),
-        lifting=LiftingManager(lambda: holder[0], debounce_s=settings.fill_debounce_s,
-                               enabled=settings.live_lifting),
-        jobs=JobRunner(settings.job_workers, processes=settings.job_processes))
+        lifting=LiftingClient(lambda: holder[0], mode=lifting or settings.lifting),
+        jobs=JobRunner(settings.job_workers, processes=settings.job_processes) if jobs else None,
+        events=EventBus(engine, sessions))
     holder.append(ctx)
-    ctx.jobs.bind(ctx)
+    if ctx.jobs is not None:
+        ctx.jobs.bind(ctx)
     return ctx
 
 
@@ -52,6 +58,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if interrupted:
         log.warning("jobs %s were interrupted by a server stop; resume them via the API",
                     interrupted)
+    ctx.jobs.start()
+    ctx.lifting.start()
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):
@@ -95,6 +103,8 @@ def close(app: FastAPI) -> None:
     ctx: AppContext = app.state.ctx
     ctx.jobs.shutdown(wait=True)
     ctx.lifting.stop()
+    if ctx.events is not None:
+        ctx.events.close()
     ctx.engine.dispose()
 
 

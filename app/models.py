@@ -4,11 +4,13 @@ from app.annotations.models import MaskVersion
 from app.audit.models import AuditEvent
 from app.db import Base
 from app.jobs.models import Job
+from app.lifting.models import Event, LiftQueueEntry, LiftStatus
 from app.review.models import ReviewComment, ReviewItem
 from app.scenes.models import Frame, Scene, SceneMember
 from app.users.models import AuthToken, LoginThrottle, User
 
 metadata = Base.metadata
 
-__all__ = ["AuditEvent", "AuthToken", "Frame", "Job", "LoginThrottle", "MaskVersion",
+__all__ = ["AuditEvent", "AuthToken", "Event", "Frame", "Job", "LiftQueueEntry", "LiftStatus",
+           "LoginThrottle", "MaskVersion",
            "ReviewComment", "ReviewItem", "Scene", "SceneMember", "User", "metadata"]

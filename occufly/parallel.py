@@ -59,11 +59,13 @@ class SerialExecutor:
 
 
 class LocalExecutor(SerialExecutor):
-    """A local process pool."""
+    """A local process pool. ``initializer(*initargs)`` runs in every worker first (e.g. a
+    parent-death watchdog, :func:`die_with_parent`)."""
 
     kind = "local"
 
-    def __init__(self, workers: int | None = None) -> None:
+    def __init__(self, workers: int | None = None, *, initializer: Callable | None = None,
+                 initargs: tuple = ()) -> None:
         import multiprocessing as mp
 
         self.workers = int(workers or os.cpu_count() or 1)
@@ -71,7 +73,8 @@ class LocalExecutor(SerialExecutor):
         # (web server, Dask client, progress bars); spawn where forkserver does not exist
         methods = mp.get_all_start_methods()
         ctx = mp.get_context("forkserver" if "forkserver" in methods else "spawn")
-        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
+                                         initializer=initializer, initargs=initargs)
 
     def submit(self, fn: Callable, *args: Any, **kwargs: Any) -> Future:
         return self._pool.submit(fn, *args, **kwargs)
@@ -138,13 +141,60 @@ class DaskExecutor(SerialExecutor):
         self.client.close()
 
 
-def get_executor(dask_address: str | None = None, workers: int | None = None) -> SerialExecutor:
+def die_with_parent(parent_pid: int, interval_s: float = 0.5) -> None:
+    """Make this (worker) process exit when ``parent_pid`` or its own parent is gone.
+
+    Linux: ``PR_SET_PDEATHSIG`` = SIGKILL (the kernel kills us when the parent thread exits);
+    everywhere: a daemon thread that checks every ``interval_s`` that ``parent_pid`` is alive
+    and our parent has not changed (a forkserver between us and the caller exits when the
+    caller dies), then ``os._exit(70)``. Use as a pool ``initializer``.
+    """
+    import signal
+    import sys
+    import threading
+    import time
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    ppid = os.getppid()
+
+    def alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != ppid or not alive(parent_pid):
+                os._exit(70)
+            time.sleep(interval_s)
+
+    if os.getppid() != ppid or not alive(parent_pid):
+        os._exit(70)
+    threading.Thread(target=watch, name="occufly-parent-watchdog", daemon=True).start()
+
+
+def get_executor(dask_address: str | None = None, workers: int | None = None, *,
+                 die_with_caller: bool = False) -> SerialExecutor:
     """The executor for fan-out work: Dask when ``dask_address`` is given (or the
     ``OCCUFLY_DASK`` environment variable is set), else a local process pool with ``workers``
-    processes (default: CPU count); ``workers`` 0 or 1 runs in-process."""
+    processes (default: CPU count); ``workers`` 0 or 1 runs in-process.
+    ``die_with_caller``: local workers exit when the calling process dies
+    (:func:`die_with_parent`)."""
     address = dask_address or os.environ.get("OCCUFLY_DASK") or None
     if address:
         return DaskExecutor(address)
     if workers is not None and workers <= 1:
         return SerialExecutor()
+    if die_with_caller:
+        return LocalExecutor(workers, initializer=die_with_parent, initargs=(os.getpid(),))
     return LocalExecutor(workers)

@@ -168,6 +168,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
             f" is not the current version {current}; your upload was kept as conflict version "
             f"{version.id}", reason="stale", current_version=current,
             current_number=_number_of(session, frame.id, current), conflict_version=version.id)
+    ctx.lifting.enqueue(session, frame, version.id)  # durable: commits with the save
     session.commit()
     ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
     return version

@@ -24,7 +24,13 @@ class Job(Base):
     params: Mapped[dict] = mapped_column(JSON, default=dict)
     result: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    # the attempt number is the fencing token: every write of an attempt (progress, log,
+    # outcome, output folder) is conditional on it still being the job's current attempt
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    # the runner (host:pid:nonce) that holds the job and its last sign of life; a job whose
+    # owner stopped beating is interrupted by any other process
+    owner: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
     created_by_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)

@@ -2,13 +2,25 @@
 
 Each job kind is a function ``run(jc: JobContext) -> dict | None`` registered in
 :data:`KINDS` (see ``app/jobs/kinds.py``). Kinds marked ``remote`` (import, selection,
-voxelize, export) run in :func:`run_job_process` on the job executor -- a local process pool
-(``spawn``, so no server threads or database connections are inherited), or the Dask
-cluster when ``OCCUFLY_DASK_ADDRESS`` is set (``occufly.parallel``) -- so heavy pipeline work
-never competes with the API for the server's interpreter. With ``job_processes=False`` (tests,
-debugging) they run in the supervisor thread. The child talks to the same database: status,
-progress, log and result are written there, and cancellation is read from there. Pipeline
-fan-out inside a job (per-frame export) uses :meth:`JobContext.executor`.
+voxelize, export) run in :func:`run_job_process` on the job executor from
+:mod:`occufly.parallel` -- a local process pool whose workers die with this process
+(:func:`occufly.parallel.die_with_parent`: parent-death signal + watchdog), or the Dask cluster
+when ``OCCUFLY_DASK_ADDRESS`` is set -- so heavy pipeline work never competes with the API for
+the server's interpreter. With ``job_processes=False`` (tests, debugging) they run in the
+supervisor thread. The child talks to the same database: status, progress, log and result are
+written there, and cancellation is read from there. Pipeline fan-out inside a job (per-frame
+export) uses :meth:`JobContext.executor`.
+
+Fencing: claiming a job increments ``jobs.attempts``; that number is the attempt's token.
+Every write of an attempt -- progress, log, the outcome -- is an ``UPDATE ... WHERE attempts =
+<token> AND status = 'running'``; a write that matches nothing raises :class:`StaleAttempt`
+and the attempt stops. Output folders are written under an attempt-private name
+(:meth:`JobContext.output_dir`) and moved into place inside the transaction that records
+``done`` for that attempt, so a stale attempt can neither mark the job nor touch its output.
+
+Several processes: each runner has an ``owner`` id and beats ``jobs.heartbeat_at`` of the jobs
+it holds every :data:`HEARTBEAT_S`; any runner marks ``interrupted`` a queued/running job whose
+owner has not beaten for :data:`STALE_S` (a killed API process), at start-up and periodically.
 
 Progress is written to the job row at most every 0.3 s; cancellation is cooperative (the
 progress callback raises :class:`JobCancelled` once a cancel was requested).
@@ -17,12 +29,17 @@ progress callback raises :class:`JobCancelled` once a cancel was requested).
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import socket
 import threading
 import time
 import traceback
+import uuid
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select, update
@@ -38,9 +55,20 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("occufly.jobs")
 
+HEARTBEAT_S = 2.0
+STALE_S = 15.0
+
 
 class JobCancelled(Exception):
     pass
+
+
+class StaleAttempt(Exception):
+    """This attempt is no longer the job's current one: it must not write anything."""
+
+
+def _fenced(job_id: int, attempt: int):
+    return update(Job).where(Job.id == job_id, Job.attempts == attempt, Job.status == "running")
 
 
 @dataclass
@@ -50,9 +78,19 @@ class JobContext:
     kind: str
     scene_id: int | None
     params: dict
+    attempt: int = 0
     _last_write: float = 0.0
     _last_msg: str = ""
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    outputs: list[tuple[Path, Path]] = field(default_factory=list)  # (staging, final)
+
+    def _current(self, s) -> Job:  # noqa: ANN001
+        job = s.get(Job, self.job_id)
+        if job is None or job.attempts != self.attempt or job.status != "running":
+            raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale (the job is "
+                               f"{getattr(job, 'status', 'gone')}, attempt "
+                               f"{getattr(job, 'attempts', '?')})")
+        return job
 
     def progress(self, fraction: float, message: str = "") -> None:
         now = time.monotonic()
@@ -60,27 +98,48 @@ class JobContext:
             return
         self._last_write = now
         with self._lock, self.ctx.sessions() as s:
-            job = s.get(Job, self.job_id)
+            job = self._current(s)
             if job.cancel_requested:
                 raise JobCancelled()
-            job.progress = float(max(0.0, min(1.0, fraction)))
+            values: dict = {"progress": float(max(0.0, min(1.0, fraction)))}
             if message:
-                job.message = message[:500]
+                values["message"] = message[:500]
                 if message != self._last_msg:
-                    job.log = service.append_log(job, f"{fraction:6.1%} {message}")
+                    values["log"] = service.append_log(job, f"{fraction:6.1%} {message}")
+            if s.execute(_fenced(self.job_id, self.attempt).values(**values)).rowcount != 1:
+                s.rollback()
+                raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale")
             s.commit()
         self._last_msg = message
 
     def log(self, line: str) -> None:
         with self._lock, self.ctx.sessions() as s:
-            job = s.get(Job, self.job_id)
-            job.log = service.append_log(job, line)
+            job = self._current(s)
+            if s.execute(_fenced(self.job_id, self.attempt).values(
+                    log=service.append_log(job, line))).rowcount != 1:
+                s.rollback()
+                raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale")
             s.commit()
 
-    def executor(self):
-        from app.pipeline import get_executor
+    def output_dir(self, final: Path) -> Path:
+        """An attempt-private folder to write ``final``'s content into; it replaces ``final``
+        when (and only if) this attempt records ``done``."""
+        final = Path(final)
+        staging = final.parent / f".{final.name}.attempt{self.attempt}"
+        final.parent.mkdir(parents=True, exist_ok=True)
+        for old in final.parent.glob(f".{final.name}.attempt*"):  # this and earlier attempts'
+            tail = old.name.rsplit(".attempt", 1)[-1]
+            if tail.isdigit() and int(tail) <= self.attempt:
+                shutil.rmtree(old, ignore_errors=True)
+        self.outputs.append((staging, final))
+        return staging
 
-        return get_executor(self.ctx.settings.dask_address)
+    def executor(self):
+        """Fan-out executor inside a job: Dask when configured, else a local pool whose
+        workers die with this job process."""
+        from occufly.parallel import get_executor
+
+        return get_executor(self.ctx.settings.dask_address, die_with_caller=True)
 
 
 KINDS: dict[str, Callable[[JobContext], dict | None]] = {}
@@ -101,33 +160,43 @@ class JobRunner:
         self.processes = processes
         self.ctx: AppContext | None = None
         self.futures: dict[int, Future] = {}
+        self.owner = f"{socket.gethostname()[:30]}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self._closed = False
         self._executor = None
         self._executor_lock = threading.Lock()
+        self._held: set[int] = set()
+        self._stop = threading.Event()
+        self._beat: threading.Thread | None = None
 
     def job_executor(self):
-        """The executor remote job kinds run on (created on first use, one per runner)."""
+        """The executor remote job kinds run on (created on first use, one per runner):
+        ``occufly.parallel``'s, with workers that die with this process."""
         with self._executor_lock:
             if self._executor is None:
-                address = self.ctx.settings.dask_address
-                if address:
-                    from app.pipeline import get_executor
+                from occufly.parallel import get_executor
 
-                    self._executor = get_executor(address)
-                else:
-                    import multiprocessing
-                    from concurrent.futures import ProcessPoolExecutor
-
-                    self._executor = ProcessPoolExecutor(
-                        max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"))
+                self._executor = get_executor(self.ctx.settings.dask_address,
+                                              workers=max(2, self.workers), die_with_caller=True)
             return self._executor
 
     def bind(self, ctx: AppContext) -> None:
         self.ctx = ctx
 
+    def start(self) -> None:
+        """Start the heartbeat / stale-job sweep thread (idempotent)."""
+        if self._beat is None:
+            self._beat = threading.Thread(target=self._heartbeat_loop, daemon=True,
+                                          name="occufly-job-heartbeat")
+            self._beat.start()
+
     def submit(self, job_id: int) -> None:
         if self._closed:
             return
+        with self.ctx.sessions() as s:  # ours from now on: no other process sweeps it
+            s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
+                      .values(owner=self.owner, heartbeat_at=utcnow()))
+            s.commit()
+        self._held.add(job_id)
         self.futures[job_id] = self.pool.submit(self._run, job_id)
 
     def wait(self, job_id: int, timeout: float = 60.0) -> None:
@@ -137,100 +206,170 @@ class JobRunner:
 
     def shutdown(self, wait: bool = True) -> None:
         self._closed = True
+        self._stop.set()
         self.pool.shutdown(wait=wait, cancel_futures=True)
+        if self._beat is not None:
+            self._beat.join(timeout=5)
         if self._executor is not None:
-            close = getattr(self._executor, "close", None)
-            if close is not None:
-                close()
-            else:
-                self._executor.shutdown(wait=wait, cancel_futures=True)
+            self._executor.close()
+
+    def _heartbeat_loop(self) -> None:
+        last_sweep = 0.0
+        while not self._stop.wait(HEARTBEAT_S):
+            try:
+                with self.ctx.sessions() as s:
+                    held = sorted(self._held)
+                    if held:
+                        s.execute(update(Job).where(Job.id.in_(held), Job.owner == self.owner,
+                                                    Job.status.in_(("queued", "running")))
+                                  .values(heartbeat_at=utcnow()))
+                        s.commit()
+                    if time.monotonic() - last_sweep > STALE_S / 2:
+                        last_sweep = time.monotonic()
+                        ids = service.mark_interrupted(session=s, stale_s=STALE_S,
+                                                       alive_owner=self.owner)
+                        if ids:
+                            log.warning("jobs %s lost their runner; marked interrupted", ids)
+            except Exception:  # noqa: BLE001 - database briefly away
+                log.warning("job heartbeat failed", exc_info=True)
 
     def _run(self, job_id: int) -> None:
+        try:
+            self._run_attempt(job_id)
+        finally:
+            self._held.discard(job_id)
+
+    def _run_attempt(self, job_id: int) -> None:
         from app.jobs import kinds  # noqa: F401 - registers the job kinds
 
         ctx = self.ctx
         with ctx.sessions() as s:
             res = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
                             .values(status="running", started_at=utcnow(), progress=0.0,
-                                    attempts=Job.attempts + 1, message="running"))
+                                    attempts=Job.attempts + 1, message="running",
+                                    owner=self.owner, heartbeat_at=utcnow()))
             s.commit()
             if res.rowcount != 1:
-                return  # cancelled before it started
-            kind_name = s.scalar(select(Job.kind).where(Job.id == job_id))
+                return  # cancelled (or taken) before it started
+            kind_name, attempt = s.execute(select(Job.kind, Job.attempts)
+                                           .where(Job.id == job_id)).one()
         fn = KINDS.get(kind_name)
         if self.processes and getattr(fn, "remote", False):
             try:
-                self.job_executor().submit(run_job_process, ctx.settings, job_id).result()
+                self.job_executor().submit(run_job_process, ctx.settings, job_id,
+                                           attempt).result()
             except Exception as e:  # noqa: BLE001 - the child died or could not start
                 log.exception("job %s: executor failure", job_id)
-                _finish(ctx, job_id, status="failed",
+                _finish(ctx, job_id, attempt, status="failed",
                         message=f"job process failed: {type(e).__name__}: {e}",
                         log_line=f"job process failed: {e}")
             return
-        execute_job(ctx, job_id)
+        execute_job(ctx, job_id, attempt)
 
 
-def _finish(ctx: AppContext, job_id: int, **values: Any) -> None:
+def _finish(ctx: AppContext, job_id: int, attempt: int, *,
+            outputs: list[tuple[Path, Path]] = (), **values: Any) -> bool:
+    """Record the attempt's outcome, if it is still the job's current attempt; move its
+    output folders into place in the same transaction. False (and the staging folders
+    removed) for a stale attempt."""
     with ctx.sessions() as s:
         values.setdefault("finished_at", utcnow())
-        job = s.get(Job, job_id)
         line = values.pop("log_line", None)
-        if line:
-            job.log = service.append_log(job, line)
-        for k, v in values.items():
-            setattr(job, k, v)
-        s.commit()
+        job = s.get(Job, job_id)
+        if job is not None and line:
+            values["log"] = service.append_log(job, line)
+        res = s.execute(_fenced(job_id, attempt).values(**values))
+        ok = res.rowcount == 1
+        if ok:
+            try:
+                for staging, final in outputs:
+                    _replace_dir(staging, final)
+            except OSError:
+                s.rollback()
+                raise
+            s.commit()
+        else:
+            s.rollback()
+    if not ok:
+        log.warning("job %s: attempt %s is stale; its outcome (%s) is discarded", job_id,
+                    attempt, values.get("status"))
+    for staging, _final in outputs:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return ok
 
 
-def execute_job(ctx: AppContext, job_id: int) -> None:
-    """Run a job already marked ``running`` and record its outcome (any process)."""
+def _replace_dir(staging: Path, final: Path) -> None:
+    if not staging.exists():
+        return
+    old = None
+    if final.exists():
+        old = final.parent / f".{final.name}.old.{uuid.uuid4().hex[:8]}"
+        os.replace(final, old)
+    os.replace(staging, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> None:
+    """Run attempt ``attempt`` of a job already marked ``running`` and record its outcome
+    (any process). ``attempt`` None = the job's current attempt."""
     from app.jobs import kinds  # noqa: F401 - registers the job kinds
 
     with ctx.sessions() as s:
         job = s.get(Job, job_id)
+        attempt = job.attempts if attempt is None else attempt
         jc = JobContext(ctx=ctx, job_id=job.id, kind=job.kind, scene_id=job.scene_id,
-                        params=dict(job.params or {}))
+                        params=dict(job.params or {}), attempt=attempt)
+        if job.attempts != attempt or job.status != "running":
+            log.warning("job %s: attempt %s is stale before it started", job_id, attempt)
+            return
     fn = KINDS.get(jc.kind)
     if fn is None:
-        _finish(ctx, job_id, status="failed", message=f"unknown job kind {jc.kind!r}")
+        _finish(ctx, job_id, attempt, status="failed", message=f"unknown job kind {jc.kind!r}")
         return
     try:
         result = fn(jc)
+    except StaleAttempt as e:
+        log.warning("job %s: %s; stopping without writing", job_id, e)
+        _drop_staging(jc)
     except JobCancelled:
-        _finish(ctx, job_id, status="cancelled", message="cancelled", log_line="cancelled")
-        _on_failure(jc, "cancelled")
+        if _finish(ctx, job_id, attempt, status="cancelled", message="cancelled",
+                   log_line="cancelled"):
+            _on_failure(jc, "cancelled")
+        _drop_staging(jc)
     except (PipelineMissing, OccuflyError) as e:
-        _finish(ctx, job_id, status="failed", message=str(e), log_line=f"failed: {e}")
-        _on_failure(jc, str(e))
+        if _finish(ctx, job_id, attempt, status="failed", message=str(e)[:500],
+                   log_line=f"failed: {e}"):
+            _on_failure(jc, str(e))
+        _drop_staging(jc)
     except Exception as e:  # a bug: keep the traceback in the job log
         log.exception("job %s (%s) crashed", job_id, jc.kind)
         tb = traceback.format_exc(limit=8)
-        _finish(ctx, job_id, status="failed", message=f"internal error: {type(e).__name__}: {e}",
-                log_line=tb)
-        _on_failure(jc, str(e))
+        if _finish(ctx, job_id, attempt, status="failed",
+                   message=f"internal error: {type(e).__name__}: {e}"[:500], log_line=tb):
+            _on_failure(jc, str(e))
+        _drop_staging(jc)
     else:
-        _finish(ctx, job_id, status="done", progress=1.0, message="done",
-                result=_jsonable(result or {}), log_line="done")
+        _finish(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
+                message="done", result=_jsonable(result or {}), log_line="done")
 
 
-def run_job_process(settings, job_id: int) -> None:  # noqa: ANN001
-    """Entry point on the job executor (a spawned process or a Dask worker)."""
-    from app import db
-    from app.annotations.lifting import LiftingManager
-    from app.context import AppContext
-    from app.storage import BlobStore
+def _drop_staging(jc: JobContext) -> None:
+    for staging, _final in jc.outputs:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
 
-    engine = db.make_engine(settings.database_url, pooled=False)
-    holder: list = []
-    ctx = AppContext(settings=settings, engine=engine, sessions=db.make_sessionmaker(engine),
-                     store=BlobStore(settings.mask_store_dir),
-                     lifting=LiftingManager(lambda: holder[0], enabled=False),
-                     jobs=None)  # type: ignore[arg-type]
-    holder.append(ctx)
+
+def run_job_process(settings, job_id: int, attempt: int | None = None) -> None:  # noqa: ANN001
+    """Entry point on the job executor (a local worker process or a Dask worker)."""
+    from app.main import build_context
+
+    ctx = build_context(settings, lifting="off", jobs=False)
     try:
-        execute_job(ctx, job_id)
+        execute_job(ctx, job_id, attempt)
     finally:
-        engine.dispose()
+        ctx.engine.dispose()
 
 
 def _on_failure(jc: JobContext, message: str) -> None:

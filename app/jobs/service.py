@@ -63,7 +63,8 @@ def prepare_resume(*, session: Session, job: Job) -> Job:
     res = session.execute(
         update(Job).where(Job.id == job.id,
                           Job.status.in_(("interrupted", "failed", "cancelled")))
-        .values(status="queued", cancel_requested=False, message="resumed", finished_at=None))
+        .values(status="queued", cancel_requested=False, message="resumed", finished_at=None,
+                heartbeat_at=utcnow()))
     session.commit()
     if res.rowcount != 1:
         session.refresh(job)
@@ -73,13 +74,26 @@ def prepare_resume(*, session: Session, job: Job) -> Job:
     return job
 
 
-def mark_interrupted(*, session: Session) -> list[int]:
-    """At start-up: jobs the previous server left running or queued can no longer finish."""
-    ids = list(session.scalars(select(Job.id).where(Job.status.in_(("running", "queued")))))
+def mark_interrupted(*, session: Session, stale_s: float = 15.0,
+                     alive_owner: str | None = None) -> list[int]:
+    """Queued/running jobs whose runner is gone can no longer finish: those no runner holds
+    (no heartbeat) or whose runner has not beaten for ``stale_s`` (another API process may
+    still be running the rest). ``alive_owner``: the caller's own runner, never swept."""
+    from datetime import timedelta
+
+    from sqlalchemy import or_
+
+    limit = utcnow() - timedelta(seconds=stale_s)
+    lost = or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < limit)
+    q = select(Job.id).where(Job.status.in_(("running", "queued")), lost)
+    if alive_owner is not None:
+        q = q.where(or_(Job.owner.is_(None), Job.owner != alive_owner))
+    ids = list(session.scalars(q))
     if ids:
-        session.execute(update(Job).where(Job.id.in_(ids)).values(
-            status="interrupted", message="interrupted: the server stopped while this job was "
-            "running; resume it to run again"))
+        session.execute(update(Job).where(Job.id.in_(ids), Job.status.in_(("running", "queued")),
+                                          lost).values(
+            status="interrupted", owner=None, message="interrupted: the server stopped while "
+            "this job was running; resume it to run again"))
         session.commit()
     return ids
 

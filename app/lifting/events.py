@@ -1,0 +1,190 @@
+"""Events between processes: ``publish(kind, scene_id, **payload)`` / ``subscribe(kind, fn)``.
+
+Every event is a row of the ``events`` table (so a subscriber that was briefly away misses
+nothing recent) and, on PostgreSQL, a ``NOTIFY occufly_events`` sent in the same transaction,
+so subscribers (one ``LISTEN`` connection per process) learn of it at once. On SQLite the
+table is polled (``poll_s``, default 0.25 s). Subscribers in the publishing process are called
+synchronously by :meth:`EventBus.publish`; other processes' subscribers are called from the
+bus's listener thread, in event-id order. Events are kept ``keep_s`` seconds (default 1 h).
+
+Events published here (payload fields):
+
+``labels_updated``  scene_id, stamp (``Workspace.stamp()`` after the write), versions
+                    (frame index -> version tag counted), fills (count for the scene)
+
+Only one process (the lifting worker) publishes ``labels_updated``, so ids grow in commit
+order and "every id above the last one seen" never skips an event.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import timedelta
+
+from sqlalchemy import delete, func, select, text
+from sqlalchemy.engine import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.db import utcnow
+from app.lifting.models import Event
+
+log = logging.getLogger("occufly.events")
+
+CHANNEL = "occufly_events"
+LIFT_CHANNEL = "occufly_lift"  # "frame queued for lifting" wake-ups (payload: scene id)
+
+
+@dataclass(frozen=True)
+class Message:
+    id: int
+    kind: str
+    scene_id: int | None
+    payload: dict = field(default_factory=dict)
+
+
+def psycopg_dsn(engine: Engine) -> str:
+    """A libpq DSN for the engine's PostgreSQL database (for a raw LISTEN connection)."""
+    return engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
+
+
+def listen(engine: Engine, channels: tuple[str, ...], *, stop: threading.Event,
+           on_wake: Callable[[], None], timeout_s: float = 1.0) -> None:
+    """Block until ``stop``: call ``on_wake()`` for every NOTIFY on ``channels`` and at least
+    every ``timeout_s`` (so a lost connection costs at most one poll interval). PostgreSQL
+    only; reconnects with back-off."""
+    import psycopg
+
+    delay = 0.5
+    while not stop.is_set():
+        try:
+            with psycopg.connect(psycopg_dsn(engine), autocommit=True) as conn:
+                for ch in channels:
+                    conn.execute(f"LISTEN {ch}")
+                delay = 0.5
+                on_wake()  # anything published while we were not listening
+                while not stop.is_set():
+                    for _n in conn.notifies(timeout=timeout_s, stop_after=64):
+                        pass
+                    on_wake()
+        except Exception as e:  # noqa: BLE001 - the database restarts; keep listening
+            if stop.is_set():
+                return
+            log.warning("LISTEN %s: %s; reconnecting in %.1f s", channels, e, delay)
+            stop.wait(delay)
+            delay = min(delay * 2, 10.0)
+
+
+class EventBus:
+    def __init__(self, engine: Engine, sessions: sessionmaker[Session], *, poll_s: float = 0.25,
+                 keep_s: float = 3600.0) -> None:
+        self.engine = engine
+        self.sessions = sessions
+        self.poll_s = poll_s
+        self.keep_s = keep_s
+        self.origin = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+        self._subs: list[tuple[str, Callable[[Message], None]]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._listener: threading.Thread | None = None
+        self._last_id: int | None = None
+        self._last_prune = 0.0
+
+    @property
+    def is_postgres(self) -> bool:
+        return self.engine.dialect.name == "postgresql"
+
+    # ---- publish ----------------------------------------------------------------------------
+    def publish(self, kind: str, scene_id: int | None = None, **payload) -> Message:
+        payload = {**payload, "origin": self.origin}
+        with self.sessions() as s:
+            ev = Event(kind=kind, scene_id=scene_id, payload=payload, created_at=utcnow())
+            s.add(ev)
+            s.flush()
+            if self.is_postgres:
+                s.execute(text("SELECT pg_notify(:c, :p)"), {"c": CHANNEL, "p": str(ev.id)})
+            s.commit()
+            msg = Message(ev.id, kind, scene_id, payload)
+        self._deliver(msg)
+        if time.monotonic() - self._last_prune > 60:
+            self._prune()
+        return msg
+
+    def _prune(self) -> None:
+        self._last_prune = time.monotonic()
+        try:
+            with self.sessions() as s:
+                s.execute(delete(Event).where(
+                    Event.created_at < utcnow() - timedelta(seconds=self.keep_s)))
+                s.commit()
+        except Exception:  # noqa: BLE001 - pruning is housekeeping
+            log.warning("pruning events failed", exc_info=True)
+
+    # ---- subscribe --------------------------------------------------------------------------
+    def subscribe(self, kind: str, fn: Callable[[Message], None]) -> None:
+        """Call ``fn(message)`` for every ``kind`` event from now on (any process)."""
+        with self._lock:
+            self._subs.append((kind, fn))
+            if self._thread is None:
+                with self.sessions() as s:
+                    self._last_id = s.scalar(select(func.max(Event.id))) or 0
+                self._thread = threading.Thread(target=self._loop, name="occufly-events",
+                                                daemon=True)
+                self._thread.start()
+                if self.is_postgres:
+                    self._listener = threading.Thread(
+                        target=listen, name="occufly-events-listen", daemon=True,
+                        args=(self.engine, (CHANNEL,)),
+                        kwargs=dict(stop=self._stop, on_wake=self._wake.set))
+                    self._listener.start()
+
+    def _deliver(self, msg: Message, *, remote_only: bool = False) -> None:
+        if remote_only and msg.payload.get("origin") == self.origin:
+            return  # already delivered by publish()
+        with self._lock:
+            subs = [fn for k, fn in self._subs if k == msg.kind]
+        for fn in subs:
+            try:
+                fn(msg)
+            except Exception:  # noqa: BLE001 - one subscriber must not starve the others
+                log.exception("subscriber of %s failed", msg.kind)
+
+    def poll(self) -> int:
+        """Deliver events newer than the last one seen; returns how many."""
+        with self.sessions() as s:
+            rows = s.execute(select(Event.id, Event.kind, Event.scene_id, Event.payload)
+                             .where(Event.id > (self._last_id or 0)).order_by(Event.id)
+                             .limit(1000)).all()
+        for r in rows:
+            self._last_id = r.id
+            self._deliver(Message(r.id, r.kind, r.scene_id, dict(r.payload or {})),
+                          remote_only=True)
+        return len(rows)
+
+    def _loop(self) -> None:
+        # PostgreSQL: woken by NOTIFY (and the listener's 1 s heartbeat); SQLite: polled
+        interval = 5.0 if self.is_postgres else self.poll_s
+        while not self._stop.is_set():
+            self._wake.wait(interval)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self.poll()
+            except Exception:  # noqa: BLE001 - database briefly away
+                log.warning("polling events failed", exc_info=True)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        for t in (self._thread, self._listener):
+            if t is not None:
+                t.join(timeout=5)

@@ -1,0 +1,40 @@
+"""The lifting worker as its own process: ``occufly lifting-worker`` or ``python -m app.lifting``.
+
+Settings come from the same ``OCCUFLY_*`` environment as the API processes (database, data
+directory). Exits 2 with a message when another worker already owns the data directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+
+def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
+    from app import db
+    from app.config import Settings
+    from app.lifting.service import LiftingBusy, LiftingService
+    from app.main import build_context
+    from occufly.errors import OccuflyError
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        settings = Settings.from_env()
+    except OccuflyError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if settings.auto_upgrade:
+        db.upgrade(settings.database_url)
+    ctx = build_context(settings, lifting="external", jobs=False)
+    svc = LiftingService(ctx, ctx.events)
+    try:
+        svc.acquire()
+    except LiftingBusy as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    try:
+        svc.run_forever()
+    finally:
+        ctx.events.close()
+        ctx.engine.dispose()
+    return 0

@@ -11,9 +11,20 @@ from occufly.progress import tqdm_progress
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "import", _import, help="import a reconstruction into a scene workspace")
-    p.add_argument("source", type=Path, help="reconstruction folder (COLMAP model, images/, dense/)")
+    p.add_argument("source", type=Path,
+                   help="the reconstruction: a COLMAP folder (model, images/, dense/), an "
+                        "OpenDroneMap project folder, a Metashape camera XML or a Pix4D project "
+                        "folder (kind detected; --format forces one)")
+    p.add_argument("--format", dest="fmt", choices=("colmap", "odm", "metashape", "pix4d"),
+                   help="the project kind, when detection should not decide")
+    p.add_argument("--crs", type=str,
+                   help="CRS of the cloud when its file declares none (EPSG:32633, WKT or "
+                        "PROJ); LAS/LAZ CRS records and a .prj beside a PLY are read")
     p.add_argument("--workspace", "-w", type=Path, required=True, help="workspace folder to create")
-    p.add_argument("--cloud", type=Path, help="dense cloud (.ply/.las/.laz); default dense/fused.ply")
+    p.add_argument("--cloud", type=Path,
+                   help="dense cloud (.ply/.las/.laz); default COLMAP dense/fused.ply, ODM "
+                        "odm_georeferencing/odm_georeferenced_model.laz, Pix4D "
+                        "2_densification/point_cloud/*_densified_point_cloud.las|laz")
     p.add_argument("--depth-maps", type=Path, help="folder of COLMAP *.geometric.bin depth maps")
     p.add_argument("--images", type=Path, help="image folder; default SOURCE/images")
     p.add_argument("--taxonomy", type=Path, help="class table (.json/.yaml); default OccuFly")
@@ -38,9 +49,16 @@ def _import(args: argparse.Namespace) -> dict:
         scene = import_scene(
             args.source, args.workspace, cloud=args.cloud, depth_maps=args.depth_maps,
             images=args.images, taxonomy=args.taxonomy, nominal_altitudes=nominal,
-            rel_tol=args.rel_tol, visibility=args.visibility, overwrite=args.force, progress=bar,
+            rel_tol=args.rel_tol, visibility=args.visibility, fmt=args.fmt, crs=args.crs,
+            overwrite=args.force, progress=bar,
         )
-    return {"workspace": str(args.workspace), **scene.summary()}
+    meta = scene.meta
+    return {"workspace": str(args.workspace), "format": meta.get("format"),
+            "visibility_source": meta.get("visibility_source"),
+            # what the importer computed itself (ODM/Metashape/Pix4D export no visibility)
+            "visibility_computed": meta.get("visibility_depth_test"),
+            "visibility_from_reconstruction": meta.get("visibility_mode") != "depth",
+            "notes": meta.get("import_notes", []), **scene.summary()}
 
 
 def _info(args: argparse.Namespace) -> dict:

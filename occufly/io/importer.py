@@ -1,6 +1,8 @@
 """Import a reconstruction on disk into a scene workspace.
 
 Input: a COLMAP model (``SOURCE``, ``SOURCE/sparse`` or ``SOURCE/sparse/0``; text or binary),
+an OpenDroneMap/WebODM project, a Metashape camera XML or a Pix4D project (``fmt``, detected
+when None: :mod:`occufly.io.sources`, which also states the CRS rules),
 the images (``SOURCE/images`` unless given), a dense cloud (``--cloud``; else
 ``SOURCE/dense/fused.ply`` or ``SOURCE/fused.ply``; else the sparse points), optional MVS
 depth maps (``--depth-maps``; else ``SOURCE[/dense]/stereo/depth_maps``).
@@ -41,9 +43,10 @@ import numpy as np
 
 from occufly.camera import make_pose
 from occufly.errors import InputFormatError, WorkspaceError
-from occufly.io.colmap import read_sparse_model
+from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
 from occufly.io.pointcloud import read_point_cloud
+from occufly.io.sources import into_cloud_crs, read_source, resolve_image_names
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Frame, Scene, assign_altitudes
 from occufly.taxonomy import Taxonomy, default_taxonomy
@@ -66,6 +69,8 @@ def import_scene(
     nominal_altitudes: list[float] | None = None,
     rel_tol: float = 0.02,
     visibility: str = "union",
+    fmt: str | None = None,
+    crs: str | None = None,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
 ) -> Scene:
@@ -90,19 +95,24 @@ def import_scene(
     else:
         tax = Taxonomy.load(taxonomy)
 
-    report(0.0, "reading COLMAP model")
-    model = read_sparse_model(source)
-    image_dir = _find_image_dir(source, images)
+    report(0.0, "reading the reconstruction")
+    model = read_source(source, fmt, images=Path(images) if images is not None else None)
+    for note in model.notes:
+        log.warning("import %s: %s", source, note)
+    image_dir = _find_image_dir(source, images, model.default_images)
+    resolve_image_names(image_dir, model)
     _check_images(image_dir, [im.name for im in model.images], model)
 
     report(0.05, "reading point cloud")
-    cloud_path = _find_cloud(source, cloud)
+    cloud_path = _find_cloud(source, cloud, model.default_cloud)
+    scene_crs, crs_info = into_cloud_crs(model, cloud_path, crs)
     if cloud_path is not None:
         xyz_w, rgb = read_point_cloud(cloud_path)
     else:
         if not len(model.xyz):
             raise InputFormatError(
-                f"{source}: no dense cloud (dense/fused.ply) and the sparse model has no points"
+                f"{source}: no dense cloud ({'dense/fused.ply' if model.kind == 'colmap' else model.kind + ' default'}) "
+                f"and the {model.kind} model has no points: pass the dense cloud with --cloud"
             )
         xyz_w, rgb = model.xyz, model.rgb
     if len(xyz_w) == 0:
@@ -110,7 +120,8 @@ def import_scene(
 
     centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
     georef = bool(
-        (cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz"))
+        scene_crs is not None
+        or (cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz"))
         or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
         or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M
     )
@@ -185,6 +196,7 @@ def import_scene(
         log.warning("import %s: %s", source, w)
 
     scene = Scene(
+        crs=crsmod.crs_record(scene_crs),
         frames=frames,
         xyz=xyz_local,
         rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
@@ -193,7 +205,11 @@ def import_scene(
         taxonomy=tax,
         meta={
             "source": str(source.resolve()),
+            "format": model.kind,
             "sparse_model": str(model.path.resolve()),
+            "crs": crsmod.crs_label(scene_crs) if scene_crs is not None else None,
+            "crs_handling": crs_info,
+            "import_notes": list(model.notes),
             "cloud": str(cloud_path.resolve()) if cloud_path else None,
             "images": str(image_dir.resolve()),
             "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
@@ -228,13 +244,15 @@ def _sub_progress(report: ProgressFn, start: float, end: float) -> ProgressFn:
     return lambda frac, msg="": report(start + (end - start) * frac, msg)
 
 
-def _find_image_dir(source: Path, images: str | Path | None) -> Path:
+def _find_image_dir(source: Path, images: str | Path | None, default: Path | None = None) -> Path:
     if images is not None:
         d = Path(images)
         if not d.is_dir():
             raise InputFormatError(f"{d}: image folder not found")
         return d
-    for cand in (source / "images", source / "dense" / "images"):
+    for cand in (source / "images", source / "dense" / "images", default):
+        if cand is None:
+            continue
         if cand.is_dir():
             return cand
     raise InputFormatError(f"{source}: no image folder (expected {source}/images or --images DIR)")
@@ -247,7 +265,8 @@ def _check_images(image_dir: Path, names: list[str], model) -> None:
     if missing:
         raise InputFormatError(
             f"{image_dir}: does not match the model {model.path}: {len(missing)} of "
-            f"{len(names)} images are missing (first: {missing[0]})"
+            f"{len(names)} images are missing: {', '.join(missing[:10])}"
+            f"{' ...' if len(missing) > 10 else ''}"
         )
     for im in model.images:
         p = image_dir / im.name
@@ -263,7 +282,7 @@ def _check_images(image_dir: Path, names: list[str], model) -> None:
             )
 
 
-def _find_cloud(source: Path, cloud: str | Path | None) -> Path | None:
+def _find_cloud(source: Path, cloud: str | Path | None, default: Path | None = None) -> Path | None:
     if cloud is not None:
         p = Path(cloud)
         if not p.is_file():
@@ -272,7 +291,7 @@ def _find_cloud(source: Path, cloud: str | Path | None) -> Path | None:
     for cand in (source / "dense" / "fused.ply", source / "fused.ply"):
         if cand.is_file():
             return cand
-    return None
+    return default
 
 
 def _find_depth_dir(source: Path, depth_maps: str | Path | None) -> Path | None:

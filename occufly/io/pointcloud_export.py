@@ -8,9 +8,16 @@
 - LAS / LAZ 1.4, point format 7 (8-bit classification, RGB): ``classification`` = raw class
   id, RGB scaled to 16 bit, offsets = floor of the minimum, scales 0.001 (millimetres). LAZ
   is compressed with laspy's lazrs backend. The taxonomy's ids are written verbatim (they are
-  not the ASPRS codes); ``user_data`` holds the label origin.
+  not the ASPRS codes); ``user_data`` holds the label origin. When the scene's cloud was a
+  LAS/LAZ whose point format can hold these fields (7, 8, 10; or 2, 3, 5 with 5-bit
+  classification when every id is <= 31) that format is kept.
 
-Writes are atomic: a temporary file in the target folder, renamed into place when complete.
+CRS: the scene's CRS (the imported cloud's) goes into the LAS/LAZ as a WKT VLR (laspy
+``add_crs``); a PLY gets a side-car ``<name>.prj`` (ESRI WKT) and header comments naming the
+CRS and the scene origin (``comment origin x y z``: scene-local = world - origin).
+
+Writes are atomic: a temporary file in the target folder, renamed into place when complete;
+the files get ordinary permissions (0666 minus the umask, 0644 usually), not mkstemp's 0600.
 """
 
 from __future__ import annotations
@@ -34,7 +41,14 @@ def _tmp_for(path: Path) -> Path:
     return Path(tmp)
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _finish(tmp: Path, path: Path) -> None:
+    os.chmod(tmp, 0o666 & ~_umask())
     fd = os.open(tmp, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -62,9 +76,11 @@ def _check(xyz_world: np.ndarray, labels: np.ndarray, rgb: np.ndarray | None,
 
 def write_semantic_ply(path: str | Path, xyz_world: np.ndarray, labels: np.ndarray,
                        rgb: np.ndarray | None = None, confidence: np.ndarray | None = None,
-                       origin: np.ndarray | None = None, *, chunk: int = 2_000_000) -> None:
+                       origin: np.ndarray | None = None, *, chunk: int = 2_000_000,
+                       crs=None, scene_origin: np.ndarray | None = None) -> None:
     """xyz_world: (N, 3) float64 georeferenced metres; labels: (N,) uint8 raw ids;
-    rgb: (N, 3) uint8; confidence: (N,) float32; origin: (N,) uint8 label origin."""
+    rgb: (N, 3) uint8; confidence: (N,) float32; origin: (N,) uint8 label origin;
+    crs: pyproj CRS (side-car .prj + comment); scene_origin: (3,) float64 for the comment."""
     path = Path(path)
     n = _check(xyz_world, labels, rgb, {"confidence": confidence, "origin": origin})
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -77,8 +93,13 @@ def write_semantic_ply(path: str | Path, xyz_world: np.ndarray, labels: np.ndarr
         fields.append(("origin", "u1"))
     ply_type = {"<f8": "double", "<f4": "float", "u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0", "comment OccuFly semantic point cloud",
-              "comment coordinates: original georeferenced metres",
-              f"element vertex {n}"]
+              "comment coordinates: original georeferenced metres"]
+    if crs is not None:
+        code = crs.to_epsg(min_confidence=70)
+        header.append(f"comment crs {crs.name}" + (f" (EPSG:{code})" if code else ""))
+    if scene_origin is not None:
+        header.append("comment origin " + " ".join(repr(float(v)) for v in scene_origin))
+    header.append(f"element vertex {n}")
     header += [f"property {ply_type[t]} {name}" for name, t in fields]
     header.append("end_header")
     dt = np.dtype(fields)
@@ -100,6 +121,23 @@ def write_semantic_ply(path: str | Path, xyz_world: np.ndarray, labels: np.ndarr
                 if origin is not None:
                     rec["origin"] = np.asarray(origin[a:b])
                 f.write(rec.tobytes())
+        if crs is not None:
+            _write_prj(path.with_suffix(".prj"), crs)
+        _finish(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_prj(path: Path, crs) -> None:
+    """ESRI-style WKT (what GIS tools read from a .prj), atomically."""
+    try:
+        text = crs.to_wkt(version="WKT1_ESRI")
+    except Exception:  # noqa: BLE001 - pyproj: not every CRS has an ESRI form
+        text = crs.to_wkt()
+    tmp = _tmp_for(path)
+    try:
+        tmp.write_text(text)
         _finish(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -132,13 +170,28 @@ def read_semantic_ply(path: str | Path) -> dict[str, np.ndarray]:
     return {name: data[name] for name, _ in fields}
 
 
+RGB_FORMATS = (7, 8, 10)
+LEGACY_RGB_FORMATS = (2, 3, 5)  # 5-bit classification
+
+
+def choose_point_format(input_format: int | None, labels: np.ndarray) -> int:
+    """The input cloud's LAS point format if it can hold RGB + our class ids, else 7."""
+    if input_format in RGB_FORMATS:
+        return int(input_format)
+    if input_format in LEGACY_RGB_FORMATS and (not len(labels) or int(np.max(labels)) <= 31):
+        return int(input_format)
+    return 7
+
+
 def write_semantic_las(path: str | Path, xyz_world: np.ndarray, labels: np.ndarray,
                        rgb: np.ndarray | None = None, origin: np.ndarray | None = None, *,
-                       compress: bool | None = None) -> None:
-    """LAS/LAZ 1.4 point format 7; ``compress`` defaults to the ``.laz`` suffix.
+                       compress: bool | None = None, crs=None, point_format: int = 7) -> None:
+    """LAS/LAZ (1.4 for formats >= 6, else 1.2); ``compress`` defaults to the ``.laz`` suffix.
 
     xyz_world: (N, 3) float64 georeferenced metres; labels: (N,) uint8 raw ids;
-    rgb: (N, 3) uint8; origin: (N,) uint8 label origin (stored in user_data).
+    rgb: (N, 3) uint8; origin: (N,) uint8 label origin (stored in user_data);
+    crs: pyproj CRS written as the file's CRS record; point_format: see
+    :func:`choose_point_format`.
     """
     import laspy
 
@@ -146,8 +199,13 @@ def write_semantic_las(path: str | Path, xyz_world: np.ndarray, labels: np.ndarr
     n = _check(xyz_world, labels, rgb, {"origin": origin})
     if compress is None:
         compress = path.suffix.lower() == ".laz"
+    if point_format not in RGB_FORMATS + LEGACY_RGB_FORMATS:
+        raise ValueError(f"point_format {point_format}: expected one of "
+                         f"{RGB_FORMATS + LEGACY_RGB_FORMATS}")
     xyz = np.asarray(xyz_world, dtype=np.float64)
-    hdr = laspy.LasHeader(point_format=7, version="1.4")
+    hdr = laspy.LasHeader(point_format=point_format, version="1.4" if point_format >= 6 else "1.2")
+    if crs is not None:
+        hdr.add_crs(crs)
     mn = np.floor(xyz.min(axis=0)) if n else np.zeros(3)
     hdr.offsets = mn
     hdr.scales = np.array([LAS_SCALE] * 3)
@@ -172,22 +230,47 @@ def write_semantic_las(path: str | Path, xyz_world: np.ndarray, labels: np.ndarr
         raise
 
 
+def _input_point_format(scene) -> int | None:
+    """The LAS point format of the cloud the scene was imported from, if it was LAS/LAZ."""
+    cloud = (scene.meta or {}).get("cloud")
+    if not cloud or Path(cloud).suffix.lower() not in (".las", ".laz") or not Path(cloud).is_file():
+        return None
+    import laspy
+
+    try:
+        with laspy.open(cloud) as f:
+            return int(f.header.point_format.id)
+    except Exception:  # noqa: BLE001 - the source may have changed since the import; not fatal
+        return None
+
+
 def export_scene_points(scene, labels: np.ndarray, out: str | Path, *,
                         confidence: np.ndarray | None = None,
                         origin: np.ndarray | None = None) -> dict:
-    """Write the scene's points with ``labels`` to ``out`` (.ply, .las or .laz) in world coords."""
+    """Write the scene's points with ``labels`` to ``out`` (.ply, .las or .laz) in world coords,
+    with the scene's CRS (LAS record / PLY side-car .prj)."""
+    from occufly.io.crs import crs_from_record, crs_label
+
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in (".ply", ".las", ".laz"):
         raise InputFormatError(f"{out}: unsupported export format {suffix!r}; expected .ply, .las or .laz")
     xyz_world = scene.xyz_world()
     rgb = np.asarray(scene.rgb)
+    crs = crs_from_record(getattr(scene, "crs", None))
+    extra: dict = {}
     if suffix == ".ply":
-        write_semantic_ply(out, xyz_world, labels, rgb, confidence, origin)
+        write_semantic_ply(out, xyz_world, labels, rgb, confidence, origin, crs=crs,
+                           scene_origin=scene.origin)
+        if crs is not None:
+            extra["prj"] = str(out.with_suffix(".prj"))
     else:
-        write_semantic_las(out, xyz_world, labels, rgb, origin)
+        fmt = choose_point_format(_input_point_format(scene), np.asarray(labels))
+        write_semantic_las(out, xyz_world, labels, rgb, origin, crs=crs, point_format=fmt)
+        extra["point_format"] = fmt
     counts = np.bincount(np.asarray(labels), minlength=256)
     return {"path": str(out), "format": suffix.lstrip("."), "points": int(len(labels)),
+            "crs": crs_label(crs) if crs is not None else None, **extra,
             "labelled": int(len(labels) - counts[0]),
             "classes": {scene.taxonomy[int(i)].name: int(counts[i])
                         for i in np.flatnonzero(counts) if int(i) in scene.taxonomy}}

@@ -169,11 +169,12 @@ def test_conflict_dialog_keeps_both_versions(live, new_page):
     page = new_page("admin")
     page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame={fb}")
     wait_opened(page, fb)
-    # someone else saves a different mask meanwhile (a reviewer's correction)
+    # someone else saves a different mask meanwhile (another admin session's correction:
+    # reviewers no longer write masks since the hardening of issue 14)
     theirs = editor_ids(page).copy()
     theirs[: theirs.shape[0] // 4] = STATE["cls"]
     rev = live.client("reviewer")
-    r = rev.put(f"/api/frames/{fb}/mask?kind=draft", content=grey_png(theirs),
+    r = live.client("admin").put(f"/api/frames/{fb}/mask?kind=draft", content=grey_png(theirs),
                 headers={"Content-Type": "image/png", "If-Match": str(base)})
     assert r.status_code == 200, r.text
     theirs_version = r.json()["version"]

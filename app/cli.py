@@ -132,9 +132,9 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
     from pathlib import Path
 
     from app.config import Settings
+    from app.demo import DemoSteps
     from app.demo import seed as seed_demo
     from app.main import create_app
-    from occufly.progress import tqdm_progress
 
     env = dict(os.environ)
     if not env.get("OCCUFLY_SECRET_KEY"):
@@ -142,9 +142,10 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
         env["OCCUFLY_SECRET_KEY"] = secrets.token_urlsafe(32)
     settings = Settings.from_env(env)
     app = create_app(settings)
-    with tqdm_progress(f"synthesizing {preset}") as bar:
-        info = seed_demo(settings, Path(source) if source else None, preset=preset,
-                         seed_value=seed, app=app, progress=bar, dev_passwords=dev)
+    # each step (synthesize, users, import, select) prints as it starts and ends, with its time
+    info = seed_demo(settings, Path(source) if source else None, preset=preset,
+                     seed_value=seed, app=app, dev_passwords=dev,
+                     steps=DemoSteps(sys.stderr, total=4 if source is None else 3))
     print(f"OccuFly Studio demo: scene {info['scene_id']} from {info['source']}", file=sys.stderr)
     sel = info["selection"]
     if sel.get("frames") is not None:

@@ -231,14 +231,14 @@ def _read_prediction(pred_root: Path, layout: str, scene: str, alt: int, fid: st
         if not path.is_file():
             continue
         if kind == "npy":
-            try:
-                t = np.load(path, allow_pickle=False)
+            try:  # header first (memory-mapped): a wrong size fails before anything is read
+                t = np.load(path, allow_pickle=False, mmap_mode="r")
             except ValueError as e:
                 raise InputFormatError(f"{path}: not a numpy label grid ({e})") from None
             if t.size != n or not np.issubdtype(t.dtype, np.integer):
                 raise InputFormatError(f"{path}: {t.size} {t.dtype} values, expected {n} integer "
                                        f"training ids for grid {shape}")
-            t = t.reshape(-1)
+            t = np.asarray(t).reshape(-1)
             if t.min(initial=0) < 0 or t.max(initial=0) > 255 or np.any(inv_lut[t.astype(np.int64)] < 0):
                 bad = t[(t < 0) | (t > 255)]
                 bad = bad if bad.size else t[inv_lut[np.clip(t, 0, 255).astype(np.int64)] < 0]

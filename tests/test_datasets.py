@@ -362,3 +362,32 @@ def test_eval_ssc_either_layout_and_tables(ssc, occ, tmp_path, capsys):
     np.save(bad, a)
     assert main(["eval-ssc", str(flat), str(ssc)]) == 2
     assert "training id 99" in capsys.readouterr().err
+
+
+def test_reader_refuses_code_in_a_pkl_and_bad_ids(occ, ssc, tmp_path, ws):
+    from occufly.errors import InputFormatError
+    from occufly.export import ExportError
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, ("touch " + str(tmp_path / "pwned"),))
+
+    bad = tmp_path / "occ"
+    shutil.copytree(occ, bad, symlinks=True)
+    pkl = next(bad.glob("OccuFly_Dataset/scene_01/*/preprocess/*.pkl"))
+    pkl.write_bytes(pickle.dumps({"frame_id": "000000", "1_1": Evil()}, protocol=4))
+    ds = open_dataset(bad)
+    key = next(k for k in ds.frames if k.frame_id == pkl.stem)
+    with pytest.raises(InputFormatError, match="not allowed"):
+        ds.read(key)
+    assert not (tmp_path / "pwned").exists()
+    bad2 = tmp_path / "ssc"
+    shutil.copytree(ssc, bad2, symlinks=True)
+    mp = bad2 / "manifests" / "scene_01.json"
+    m = json.loads(mp.read_text())
+    m["frames"]["../../x"] = {"altitude": 30}
+    mp.write_text(json.dumps(m))
+    with pytest.raises(InputFormatError, match="not a valid export name"):
+        open_dataset(bad2)
+    with pytest.raises(ExportError, match="SSCBench"):
+        export_dataset(ws, tmp_path / "v", spec=SPEC, workers=1, velodyne=True)

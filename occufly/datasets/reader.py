@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +47,39 @@ from occufly.errors import InputFormatError
 from occufly.taxonomy import INVALID, Taxonomy, default_taxonomy
 
 LAYOUTS = ("occufly", "sscbench")
+_FRAME_ID = re.compile(r"^[0-9]{1,12}$")
+_SCENE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+# what an export's .pkl may contain: plain containers, numbers, strings and numpy arrays
+_PKL_ALLOWED = {
+    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"), ("numpy", "dtype"),
+}
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickles dicts of numpy arrays and nothing else: a .pkl from someone else's dataset
+    cannot run code (``pickle.load`` would call any global it names)."""
+
+    def find_class(self, module: str, name: str):
+        if (module, name) in _PKL_ALLOWED:
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in a dataset .pkl")
+
+
+def load_pkl(path: Path) -> dict:
+    """The ``preprocess/<frame>.pkl`` dict, through :class:`_ArrayUnpickler`."""
+    try:
+        with open(path, "rb") as fh:
+            data = _ArrayUnpickler(fh).load()
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read ({e.strerror})") from None
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as e:
+        raise InputFormatError(f"{path}: not a dataset .pkl of arrays ({e})") from None
+    if not isinstance(data, dict):
+        raise InputFormatError(f"{path}: expected a dict, got {type(data).__name__}")
+    return data
 
 
 @dataclass(frozen=True)
@@ -261,9 +295,7 @@ class OccuFlyReader(ExportReader):
                      "sequence": key.sequence, "label": label, "invalid": invalid}
         for m in ("occluded", "surface"):
             out[m] = _unpack(gtd / f"{key.frame_id}.{m}", n, shape)
-        pkl_path = base / "preprocess" / f"{key.frame_id}.pkl"
-        with open(pkl_path, "rb") as fh:
-            pkl = pickle.load(fh)  # our own export: the .pkl is a plain dict of arrays
+        pkl = load_pkl(base / "preprocess" / f"{key.frame_id}.pkl")
         out["grids"] = {k: np.asarray(v) for k, v in pkl.items() if k.startswith("1_")}
         out["pose"] = np.asarray(pkl["pose"], dtype=np.float64)
         out["image"] = _image(base / "images" / "visual" / f"{key.frame_id}.png")
@@ -292,9 +324,17 @@ class SSCBenchReader(ExportReader):
         keys = []
         for sid, m in self.manifests.items():
             for fid, fr in sorted(m.get("frames", {}).items()):
-                seq = f"{sid}_{int(fr['altitude'])}"
+                try:
+                    alt = int(fr["altitude"])
+                except (KeyError, TypeError, ValueError):
+                    raise InputFormatError(f"{self.root}/manifests/{sid}.json: frame {fid!r} has no "
+                                           "integer altitude") from None
+                if not _FRAME_ID.match(str(fid)) or not _SCENE_ID.match(sid) or not 0 <= alt < 100_000:
+                    raise InputFormatError(f"{self.root}/manifests/{sid}.json: frame id {fid!r} / "
+                                           f"altitude {alt} is not a valid export name")
+                seq = f"{sid}_{alt}"
                 if (self.root / "data_2d_raw" / seq / "voxels" / f"{fid}.bin").is_file():
-                    keys.append(FrameKey(sid, int(fr["altitude"]), fid, seq))
+                    keys.append(FrameKey(sid, alt, fid, seq))
         return sorted(keys, key=lambda k: (k.sequence, k.frame_id))
 
     def _split_key(self, key: FrameKey) -> str:

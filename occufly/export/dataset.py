@@ -329,6 +329,8 @@ def export_dataset(
         raise ExportError(f"scene id {scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
     if split is not None and split not in SPLITS:
         raise ExportError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
+    if velodyne and layout != "sscbench":
+        raise ExportError("--velodyne writes velodyne_points/ of the SSCBench layout; use --layout sscbench")
     if downsample_rule not in DOWNSAMPLE_RULES:
         raise ExportError(f"downsample rule {downsample_rule!r}: expected one of {', '.join(DOWNSAMPLE_RULES)}")
     lay = LAYOUTS[layout]

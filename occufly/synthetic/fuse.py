@@ -9,6 +9,7 @@ optionally, every image whose depth map agrees with the fused point.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -123,11 +124,40 @@ def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray,
     xyz = samples.xyz
     lo = xyz.min(axis=0).astype(np.float64) - voxel
     dims = np.floor((xyz.max(axis=0) - lo) / voxel).astype(np.int64) + 2
+    parts = _fuse_cells(samples, lo, dims, voxel, n_frames, priority, min_views)
+    return _cloud(parts[:5], np.zeros(len(parts[0]) + 1, np.int64)), (parts[5], parts[6])
+
+
+def _cloud(fields: tuple[np.ndarray, ...], vis_offsets: np.ndarray,
+           vis_frames: np.ndarray | None = None) -> FusedCloud:
+    xyz, rgb, nrm, label, cnt = fields
+    return FusedCloud(xyz, rgb, nrm, label, cnt, vis_offsets,
+                      np.zeros(0, np.uint32) if vis_frames is None else vis_frames)
+
+
+def _fuse_cells(samples: Samples, lo: np.ndarray, dims: np.ndarray, voxel: float, n_frames: int,
+                priority: np.ndarray, min_views: int, ix_stop: int | None = None):
+    """Fusion on the lattice ``lo`` (3,) float64, ``dims`` (3,) int64. With ``ix_stop``, only the
+    cells with x index < ix_stop are fused; the samples of the others are returned (in their
+    input order) as the last element. Sums run over each cell's samples in input order.
+    Returns (xyz, rgb, normal, label, n_samples, contrib point ids, contrib frames[, held])."""
+    xyz = samples.xyz
     key = np.zeros(len(xyz), np.int64)  # built column by column (no (S, 3) int64 temporary)
     for k in range(3):
         key *= dims[k]
         key += np.floor((xyz[:, k] - lo[k]) / voxel).astype(np.int64)
+    held = None
+    if ix_stop is not None:
+        late = key >= ix_stop * dims[1] * dims[2]  # x index >= ix_stop
+        if late.any():
+            held = np.flatnonzero(late)
+            now = np.flatnonzero(~late)
+            samples = Samples(*(getattr(samples, f)[now] for f in ("xyz", "rgb", "cls", "normal", "frame")))
+            xyz, key = samples.xyz, key[now]
+        else:
+            held = np.zeros(0, np.int64)
     _, inv, cnt = unique_inverse(key)
+    del key
     n = len(cnt)
     out_xyz = np.empty((n, 3), np.float64)
     for k in range(3):
@@ -141,16 +171,129 @@ def fuse(samples: Samples, voxel: float, n_frames: int, priority: np.ndarray,
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     label = _majority(inv, samples.cls, n, priority)
     pairs, _ = unique_sorted(inv * n_frames + samples.frame)
+    del inv
     pc = pairs // n_frames
     pf = (pairs - pc * n_frames).astype(np.int32)
     keep = np.bincount(pc, minlength=n) >= min_views
     new_id = np.cumsum(keep) - 1
     m = keep[pc]
-    contrib = (new_id[pc[m]], pf[m])
-    cloud = FusedCloud(out_xyz[keep], rgb[keep], nrm[keep].astype(np.float32), label[keep],
-                       cnt[keep].astype(np.int32), np.zeros(int(keep.sum()) + 1, np.int64),
-                       np.zeros(0, np.uint32))
-    return cloud, contrib
+    out = (out_xyz[keep], rgb[keep], nrm[keep].astype(np.float32), label[keep],
+           cnt[keep].astype(np.int32), new_id[pc[m]], pf[m])
+    return out if ix_stop is None else (*out, held)
+
+
+_SPILL_FIELDS = (("xyz", np.float32, 3), ("rgb", np.uint8, 3), ("cls", np.uint8, 1),
+                 ("normal", np.float16, 3), ("frame", np.int32, 1), ("pix", np.int32, 1))
+
+
+class SampleSpill:
+    """Depth samples streamed to disk in x strips, then fused strip by strip.
+
+    The generator renders one frame at a time and appends its samples here, so memory holds one
+    frame's samples, not the whole flight's; :meth:`fuse` then holds one strip's samples (plus
+    the one-voxel-wide seam carried to the next strip). The result is identical, bit for bit
+    and point for point, to :func:`fuse` on all samples at once: the lattice comes from the
+    global bounds, each cell's samples are summed in the same (frame, pixel) order, and strips
+    in x order concatenate to the global key order.
+
+    folder: where the strip files go (removed by :meth:`close`); x_edges: (S + 1,) float64
+    increasing strip boundaries in scene-local x (samples outside go to the first/last strip).
+    """
+
+    def __init__(self, folder: Path, x_edges: np.ndarray) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.edges = np.asarray(x_edges, np.float64)
+        self.n_strips = len(self.edges) - 1
+        if self.n_strips < 1 or np.any(np.diff(self.edges) <= 0):
+            raise ValueError("x_edges must be increasing with at least two values")
+        self.counts = np.zeros(self.n_strips, np.int64)
+        self.lo = np.full(3, np.inf, np.float32)
+        self.hi = np.full(3, -np.inf, np.float32)
+
+    def _path(self, s: int, field: str) -> Path:
+        return self.folder / f"strip{s:04d}.{field}"
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.counts.sum())
+
+    def add(self, xyz: np.ndarray, rgb: np.ndarray, cls: np.ndarray, normal: np.ndarray,
+            frame: int, pix: np.ndarray) -> None:
+        """One frame's samples, in pixel order. xyz (K, 3) float32 local; rgb (K, 3) uint8;
+        cls (K,) uint8; normal (K, 3) float16; pix (K,) int32 increasing sample index."""
+        if not len(xyz):
+            return
+        self.lo = np.minimum(self.lo, xyz.min(axis=0))
+        self.hi = np.maximum(self.hi, xyz.max(axis=0))
+        strip = np.clip(np.searchsorted(self.edges, xyz[:, 0].astype(np.float64), side="right") - 1,
+                        0, self.n_strips - 1)
+        order = np.argsort(strip, kind="stable")
+        bounds = np.searchsorted(strip[order], np.arange(self.n_strips + 1))
+        cols = {"xyz": xyz, "rgb": rgb, "cls": cls, "normal": normal,
+                "frame": np.full(len(xyz), frame, np.int32), "pix": pix.astype(np.int32)}
+        for s in np.flatnonzero(np.diff(bounds)):
+            sel = order[bounds[s] : bounds[s + 1]]
+            for name, dtype, _ in _SPILL_FIELDS:
+                with open(self._path(s, name), "ab") as fh:
+                    np.ascontiguousarray(cols[name][sel], dtype=dtype).tofile(fh)
+            self.counts[s] += len(sel)
+
+    def _load(self, s: int) -> dict[str, np.ndarray]:
+        out = {}
+        for name, dtype, width in _SPILL_FIELDS:
+            p = self._path(s, name)
+            a = np.fromfile(p, dtype=dtype) if p.exists() else np.zeros(0, dtype)
+            out[name] = a.reshape(-1, width) if width > 1 else a
+        return out
+
+    def fuse(self, voxel: float, n_frames: int, priority: np.ndarray, min_views: int = 1,
+             progress=None) -> tuple[FusedCloud, tuple[np.ndarray, np.ndarray]]:
+        """Same result as :func:`fuse` on every sample added, strip by strip."""
+        if not self.n_samples:
+            raise ValueError("no depth samples to fuse")
+        lo = self.lo.astype(np.float64) - voxel
+        dims = np.floor((self.hi - lo) / voxel).astype(np.int64) + 2
+        parts: list[tuple] = []
+        carry: dict[str, np.ndarray] | None = None
+        offset = 0
+        for s in range(self.n_strips):
+            cur = self._load(s)
+            if carry is not None and len(carry["frame"]):  # seam cells: restore (frame, pixel) order
+                cur = {k: np.concatenate([carry[k], cur[k]]) for k in cur}
+                order = np.lexsort((cur["pix"], cur["frame"]))
+                cur = {k: v[order] for k, v in cur.items()}
+            if not len(cur["frame"]):
+                carry = None
+                continue
+            last = s == self.n_strips - 1
+            # cells with x index >= ix_stop may also hold samples of the next strips
+            ix_stop = None if last else int(np.floor((self.edges[s + 1] - lo[0]) / voxel))
+            smp = Samples(cur["xyz"], cur["rgb"], cur["cls"], cur["normal"], cur["frame"])
+            res = _fuse_cells(smp, lo, dims, voxel, n_frames, priority, min_views, ix_stop)
+            if last:
+                carry = None
+            else:
+                held = res[7]
+                carry = {k: v[held] for k, v in cur.items()}
+                res = res[:7]
+            del cur, smp
+            xyz_, rgb_, nrm_, lab_, cnt_, cp, cf = res
+            parts.append((xyz_, rgb_, nrm_, lab_, cnt_, cp + offset, cf))
+            offset += len(xyz_)
+            if progress is not None:
+                progress((s + 1) / self.n_strips, f"fusing strip {s + 1}/{self.n_strips}")
+        fields = tuple(np.concatenate([p[k] for p in parts]) for k in range(7))
+        return _cloud(fields[:5], np.zeros(offset + 1, np.int64)), (fields[5], fields[6])
+
+    def close(self) -> None:
+        for s in range(self.n_strips):
+            for name, _, _ in _SPILL_FIELDS:
+                self._path(s, name).unlink(missing_ok=True)
+        try:
+            self.folder.rmdir()
+        except OSError:
+            pass
 
 
 class TileIndex:

@@ -3,7 +3,8 @@
 Output layout (world coordinates = scene-local + ``meta.json`` ``world_offset``)::
 
     OUT/images/frame_000000.png|jpg        RGB 8-bit
-    OUT/sparse/{cameras,images,points3D}.bin   COLMAP model: 1 PINHOLE camera, image ids 1..F
+    OUT/sparse/{cameras,images,points3D}.bin   COLMAP model: 1 PINHOLE camera (2 with full-size
+                                           frames: camera 2 is the full sensor), image ids 1..F
     OUT/dense/fused.ply (+ .vis)           fused cloud (x, y, z double), visibility per point
     OUT/dense/stereo/depth_maps/<image name>.geometric.bin   noisy MVS-like z-depth, 0 = none
     OUT/truth/masks/<image stem>.png       uint8 raw class ids (0 = nothing / sky)
@@ -25,20 +26,24 @@ from PIL import Image
 from occufly.camera import Camera, project_world
 from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_directory
-from occufly.io.colmap_dense import write_depth_map, write_fused_ply, write_fused_vis
+from occufly.io.colmap_dense import (
+    read_depth_map,
+    write_depth_map,
+    write_fused_ply,
+    write_fused_vis,
+)
 from occufly.progress import ProgressFn, noop
 from occufly.synthetic.flight import make_camera, plan_flight
 from occufly.synthetic.fuse import (
-    Samples,
+    SampleSpill,
     TileIndex,
     back_project,
     build_visibility,
     depth_agreement,
-    fuse,
     sample_grid,
 )
-from occufly.synthetic.presets import get_preset
-from occufly.synthetic.render import Renderer, noisy_depth
+from occufly.synthetic.presets import Preset, get_preset
+from occufly.synthetic.render import Renderer, noisy_depth, render_banded
 from occufly.synthetic.sparse import write_sparse_model
 from occufly.synthetic.truth import truth_grid
 from occufly.synthetic.world import build_world
@@ -48,18 +53,29 @@ FORMAT = "occufly-synthetic"
 VERSION = 1
 
 
+def full_size_frames(P: Preset, n_frames: int) -> set[int]:
+    """Indices of the frames rendered at the full sensor size: ``P.full_frames`` of them,
+    spread evenly over the flight (every altitude, pass and pitch gets some)."""
+    n = min(P.full_frames, n_frames)
+    return {int((k + 0.5) * n_frames / n) for k in range(n)} if n else set()
+
+
 def _is_nonempty_dir(p: Path) -> bool:
     return p.exists() and (not p.is_dir() or any(p.iterdir()))
 
 
 def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
              progress: ProgressFn | None = None, overwrite: bool = False,
-             camera: Camera | None = None) -> dict:
+             camera: Camera | None = None, strip_samples: int = 6_000_000) -> dict:
     """Generate the synthetic scene ``preset`` for ``seed`` into ``out``.
 
     The folder is built under a temporary sibling name and renamed into place at the end, so an
     interrupted run leaves nothing half-written. An existing non-empty ``out`` is replaced only
     with ``overwrite``. Returns a summary dict (frames, points, classes present, timings).
+
+    Memory is bounded by one frame's render plus one x strip of about ``strip_samples`` depth
+    samples (frames stream their samples to disk; fusion runs strip by strip, with the same
+    result as fusing everything at once) plus the fused cloud itself.
     """
     out = Path(out)
     if _is_nonempty_dir(out) and not overwrite:
@@ -76,6 +92,9 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
     world = build_world(P, seed)
     camera = make_camera(P) if camera is None else camera  # a lens-distorted one: synthetic/formats.py
     frames = plan_flight(P, world, camera)
+    full = full_size_frames(P, len(frames))
+    camera_full = camera.scaled(P.full_scale) if len(full) else None
+    cams = [camera_full if f in full else camera for f in range(len(frames))]
     renderer = Renderer(world, seed)
     timings["world"] = time.perf_counter() - t0
     F = len(frames)
@@ -87,16 +106,20 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         depth_dir = tmp / "dense" / "stereo" / "depth_maps"
         depth_dir.mkdir(parents=True)
 
-        # ---- render every frame; keep depth samples for fusion -------------------------
+        # ---- render every frame; stream its depth samples to disk strips ---------------
         t0 = time.perf_counter()
-        rr, cc, rays = sample_grid(camera, P.pixel_stride)
-        chunks: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "rgb", "cls", "normal", "frame")}
-        keep_depth: list[np.ndarray] = []
+        grids = {c: sample_grid(c, P.pixel_stride * (c.width // camera.width)) for c in set(cams)}
+        expected = sum(len(grids[c][0]) for c in cams)
+        n_strips = max(1, min(int(np.ceil(expected / strip_samples)),
+                              int(world.size / (4 * P.fuse_voxel))))
+        spill = SampleSpill(tmp / ".samples", np.linspace(world.x0, world.x0 + world.size, n_strips + 1))
         bboxes: list[tuple[float, float, float, float]] = []
         mask_classes = np.zeros(256, bool)
         for f, fr in enumerate(frames):
+            cam_f = cams[f]
+            rr, cc, rays = grids[cam_f]
             rng = np.random.default_rng([seed, 1, f])
-            res = renderer.render(camera, fr.T_cam_world, rng)
+            res = render_banded(renderer, cam_f, fr.T_cam_world, rng)
             dn = noisy_depth(res.depth, res.cls, rng, sigma=P.depth_noise)
             stem = Path(fr.name).stem
             img = Image.fromarray(res.rgb)
@@ -109,50 +132,47 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             mask_classes[np.bincount(res.cls.ravel(), minlength=256) > 0] = True
             xyz, keep = back_project(dn, rays, rr, cc, fr.T_cam_world)
             r_, c_ = rr[keep], cc[keep]
-            chunks["xyz"].append(xyz)
-            chunks["rgb"].append(res.rgb[r_, c_])
-            chunks["cls"].append(res.cls[r_, c_])
-            chunks["normal"].append(res.normal[r_, c_].astype(np.float16))
-            chunks["frame"].append(np.full(len(xyz), f, np.int32))
+            spill.add(xyz, res.rgb[r_, c_], res.cls[r_, c_], res.normal[r_, c_].astype(np.float16), f,
+                      np.flatnonzero(keep))
             hit = res.depth > 0
             if hit.any():
                 hx, hy = res.xyz[..., 0][hit], res.xyz[..., 1][hit]
                 bboxes.append((float(hx.min()) - 1, float(hx.max()) + 1, float(hy.min()) - 1, float(hy.max()) + 1))
             else:
                 bboxes.append((0.0, -1.0, 0.0, -1.0))
-            if P.vis_depth_check:
-                keep_depth.append(dn)
+            del res, dn, xyz
             report(0.7 * (f + 1) / F, f"rendering {f + 1}/{F}")
         timings["render"] = time.perf_counter() - t0
 
-        # ---- fuse the dense cloud --------------------------------------------------------
+        # ---- fuse the dense cloud, strip by strip ------------------------------------------
         t0 = time.perf_counter()
-        fields = {}
-        for k in ("xyz", "rgb", "cls", "normal", "frame"):  # one field at a time: lower peak memory
-            fields[k] = np.concatenate(chunks[k])
-            chunks[k] = []
-        samples = Samples(**fields)
-        del fields
-        n_samples = len(samples.xyz)
-        del chunks
-        cloud, contrib = fuse(samples, P.fuse_voxel, F, priority, min_views=P.min_views)
-        del samples
+        n_samples = spill.n_samples
+        try:
+            cloud, contrib = spill.fuse(P.fuse_voxel, F, priority, min_views=P.min_views,
+                                        progress=lambda x, m="": report(0.7 + 0.08 * x, m))
+        finally:
+            spill.close()
         timings["fuse"] = time.perf_counter() - t0
         report(0.78, "visibility")
 
         # ---- visibility: contributing images (+ images whose depth map agrees) ----------
         t0 = time.perf_counter()
         pts_l, frm_l = [contrib[0]], [contrib[1]]
+        N = len(cloud.xyz)
         if P.vis_depth_check:
             index = TileIndex(cloud.xyz)
-            for f, fr in enumerate(frames):
-                pts = depth_agreement(cloud.xyz, index, camera, fr.T_cam_world, keep_depth[f],
+            for f, fr in enumerate(frames):  # the depth maps as written (one in memory at a time)
+                dn = read_depth_map(depth_dir / f"{fr.name}.geometric.bin")
+                pts = depth_agreement(cloud.xyz, index, cams[f], fr.T_cam_world, dn,
                                       bboxes[f], P.vis_tolerance)
                 pts_l.append(pts)
                 frm_l.append(np.full(len(pts), f, np.int32))
-            del keep_depth, index
-        N = len(cloud.xyz)
-        cloud.vis_offsets, cloud.vis_frames = build_visibility(N, F, pts_l, frm_l)
+            del index
+            cloud.vis_offsets, cloud.vis_frames = build_visibility(N, F, pts_l, frm_l)
+        else:  # the contributing pairs are already unique and sorted by (point, frame)
+            cloud.vis_offsets = np.zeros(N + 1, np.int64)
+            np.cumsum(np.bincount(contrib[0], minlength=N), out=cloud.vis_offsets[1:])
+            cloud.vis_frames = contrib[1].astype(np.uint32)
         del pts_l, frm_l, contrib
         timings["visibility"] = time.perf_counter() - t0
         report(0.85, "writing dense cloud")
@@ -178,7 +198,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         obs_ok = np.zeros(len(obs_pt), bool)
         for f in np.unique(obs_f):
             m = np.flatnonzero(obs_f == f)
-            uv, _, vis = project_world(camera, frames[f].T_cam_world, cloud.xyz[obs_pt[m]])
+            uv, _, vis = project_world(cams[f], frames[f].T_cam_world, cloud.xyz[obs_pt[m]])
             obs_uv[m] = uv
             obs_ok[m] = vis
         tracks = []
@@ -196,7 +216,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             T = fr.T_cam_world.copy()
             T[:3, 3] = T[:3, 3] - T[:3, :3] @ offset
             poses_world.append(T)
-        sparse_info = write_sparse_model(tmp / "sparse", camera, names, poses_world,
+        sparse_info = write_sparse_model(tmp / "sparse", cams if len(full) else camera, names, poses_world,
                                          xyz_world[kept_idx], cloud.rgb[kept_idx], tracks)
         timings["sparse"] = time.perf_counter() - t0
         report(0.9, "truth grid")
@@ -230,6 +250,9 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             "classes_present": classes,
             "n_classes_present": len(classes["world"]),
         }
+        if len(full):
+            summary["full_size_frames"] = len(full)
+            summary["full_image_size"] = [camera_full.width, camera_full.height]
         meta = {
             "format": FORMAT,
             "version": VERSION,
@@ -240,6 +263,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             "world_offset": [float(v) for v in offset],
             "sun_direction": [float(v) for v in world.sun],
             "camera": camera.to_dict(),
+            **({"camera_full_size": camera_full.to_dict(),
+                "full_size_frames": [frames[f].name for f in sorted(full)]} if len(full) else {}),
             "up_axis": "z",
             "depth_noise": {"relative_sigma": P.depth_noise, "invalid_near_discontinuities": 0.5,
                             "invalid_random": 0.005, "invalid_water": 0.3},
@@ -258,7 +283,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
                 {"name": fr.name, "image_id": i + 1, "nominal_altitude": fr.nominal_altitude,
                  "altitude_above_ground": round(fr.altitude_above_ground, 3), "pitch_deg": fr.pitch_deg,
                  "heading_deg": fr.heading_deg, "pass": fr.pass_index, "line": fr.line, "station": fr.station,
-                 "center_world": [float(v) for v in fr.center + offset]}
+                 "center_world": [float(v) for v in fr.center + offset],
+                 **({"camera_id": 2 if i in full else 1} if len(full) else {})}
                 for i, fr in enumerate(frames)
             ],
         }

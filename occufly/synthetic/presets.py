@@ -20,6 +20,10 @@ class Preset:
     vis_depth_check: add images whose depth map agrees with a fused point to its visibility
     (besides the images that contributed to it).
     min_views: a fused point needs samples from at least this many distinct images.
+    full_frames / full_width / full_height: that many frames, spread evenly over the flight,
+    are rendered at the full sensor size (the others at ``width`` x ``height``, the same
+    sensor scaled down: same field of view); their depth maps are sampled every
+    ``pixel_stride * full_width / width`` pixels so they add no denser sampling than the rest.
     """
 
     name: str
@@ -41,9 +45,30 @@ class Preset:
     vis_depth_check: bool = True
     vis_tolerance: float = 0.01
     min_views: int = 3
+    full_frames: int = 0
+    full_width: int = 0
+    full_height: int = 0
+
+    def __post_init__(self) -> None:
+        if self.full_frames:
+            scale = self.full_width / self.width
+            if (self.full_width % self.width or self.full_height * self.width != self.height * self.full_width):
+                raise ValueError(f"preset {self.name}: full size {self.full_width}x{self.full_height} must be an "
+                                 f"integer multiple of {self.width}x{self.height}")
+            if scale < 1:
+                raise ValueError(f"preset {self.name}: full size smaller than the reduced size")
+
+    @property
+    def full_scale(self) -> int:
+        """Full-size / reduced-size factor (1 when the preset has no full-size frames)."""
+        return self.full_width // self.width if self.full_frames else 1
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if not self.full_frames:  # presets without full-size frames keep their old meta.json
+            for k in ("full_frames", "full_width", "full_height"):
+                d.pop(k)
+        return d
 
 
 PRESETS: dict[str, Preset] = {
@@ -61,6 +86,22 @@ PRESETS: dict[str, Preset] = {
         name="bench", core=115.0, margin=50.0, width=600, height=400,
         forward_overlap=0.80, side_overlap=0.75, pixel_stride=2, fuse_voxel=0.14,
         image_ext=".jpg", sparse_points=5000, vis_depth_check=False,
+    ),
+    # the OccuFly benchmark's scale: a DJI Phantom 4 Pro-like sensor (5472 x 3648 px, 8.8 mm
+    # lens on a 13.2 mm wide sensor: fx = 3648 px, 73.74 deg horizontal FOV), most frames
+    # rendered at 1/12 of that size (456 x 304, fx = 304 px), 20 at the full 20 MP
+    "survey": Preset(
+        name="survey", core=232.0, margin=50.0, width=456, height=304,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.10,
+        image_ext=".jpg", sparse_points=20000, hfov_deg=73.7397952917,
+        vis_depth_check=False, full_frames=20, full_width=5472, full_height=3648,
+    ),
+    # about half the survey's frames and points (the growth fit's middle size)
+    "survey-half": Preset(
+        name="survey-half", core=162.0, margin=50.0, width=456, height=304,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.10,
+        image_ext=".jpg", sparse_points=10000, hfov_deg=73.7397952917,
+        vis_depth_check=False, full_frames=10, full_width=5472, full_height=3648,
     ),
 }
 

@@ -115,9 +115,18 @@ class Renderer:
         cls[terr] = w.ground.lookup(xyz[terr, 0], xyz[terr, 1])
         return cls
 
-    def render(self, camera: Camera, T_cam_world: np.ndarray, rng: np.random.Generator) -> RenderResult:
+    def render(self, camera: Camera, T_cam_world: np.ndarray, rng: np.random.Generator,
+               rows: tuple[int, int] | None = None) -> RenderResult:
+        """Render the whole image, or only its pixel rows ``rows = (r0, r1)`` (a band of the
+        image: every field then has ``r1 - r0`` rows; vignetting is that of the whole image)."""
         H, W = camera.height, camera.width
         rays_cam, vignette = self._camera_rays(camera)  # (H*W, 3), z = 1
+        if rows is not None:
+            r0, r1 = int(rows[0]), int(rows[1])
+            if not 0 <= r0 < r1 <= H:
+                raise ValueError(f"rows {rows} outside the image's 0..{H}")
+            rays_cam, vignette = rays_cam[r0 * W : r1 * W], vignette[r0 * W : r1 * W]
+            H = r1 - r0
         R = T_cam_world[:3, :3].astype(np.float32)
         # world direction with unit camera z (= rays_cam @ R, written out: numpy's float32
         # (N, 3) @ (3, 3) takes a slow path)
@@ -239,6 +248,21 @@ class Renderer:
             up = dirs[miss, 2] / np.linalg.norm(dirs[miss], axis=1)
             out[miss] = SKY_RGB * (0.9 + 0.1 * np.clip(up + 1, 0, 1))[:, None]
         return out.astype(np.float32)
+
+
+def render_banded(renderer: Renderer, camera: Camera, T_cam_world: np.ndarray, rng: np.random.Generator,
+                  *, band_pixels: int = 1 << 21) -> RenderResult:
+    """:meth:`Renderer.render` of the whole image, cast in bands of about ``band_pixels`` pixels
+    so that a 20 MP frame needs a few hundred MB of temporaries instead of several GB. An image
+    of at most ``band_pixels`` pixels is rendered in one call (identical to ``render``)."""
+    H, W = camera.height, camera.width
+    if H * W <= band_pixels:
+        return renderer.render(camera, T_cam_world, rng)
+    step = max(1, band_pixels // W)
+    parts = [renderer.render(camera, T_cam_world, rng, rows=(r0, min(H, r0 + step)))
+             for r0 in range(0, H, step)]
+    return RenderResult(**{k: np.concatenate([getattr(p, k) for p in parts])
+                           for k in ("rgb", "cls", "inst", "depth", "normal", "xyz")})
 
 
 def noisy_depth(depth: np.ndarray, cls: np.ndarray, rng: np.random.Generator, *, sigma: float,

@@ -11,7 +11,7 @@ from occufly.camera import Camera
 
 def write_sparse_model(
     out_dir: Path,
-    camera: Camera,
+    camera: Camera | list[Camera],
     names: list[str],
     poses_world: list[np.ndarray],
     points_world: np.ndarray,
@@ -20,7 +20,8 @@ def write_sparse_model(
 ) -> dict:
     """Write ``cameras/images/points3D.bin`` into ``out_dir``.
 
-    names: F image names, image ids are 1..F in this order; poses_world: F (4, 4) float64
+    camera: one camera for every image, or one per image (distinct ones get camera ids 1, 2, ...
+    in order of first use); names: F image names, image ids are 1..F in this order; poses_world: F (4, 4) float64
     world-to-camera in WORLD (georeferenced) coordinates; points_world: (P, 3) float64;
     colors: (P, 3) uint8; tracks: per point (frame indices (k,) int, uv (k, 2) float64 pixels).
     """
@@ -29,9 +30,14 @@ def write_sparse_model(
     rec = pycolmap.Reconstruction()
     # the camera's own COLMAP model (PINHOLE for the default scene, FULL_OPENCV with lens
     # distortion for synthetic/formats.py)
-    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height,
-                          params=[float(v) for v in camera.params], camera_id=1)
-    rec.add_camera_with_trivial_rig(cam)
+    per_frame = camera if isinstance(camera, list) else [camera] * len(names)
+    cam_ids: dict[Camera, int] = {}
+    for c in per_frame:
+        if c not in cam_ids:
+            cam_ids[c] = len(cam_ids) + 1
+            rec.add_camera_with_trivial_rig(pycolmap.Camera(
+                model=c.model, width=c.width, height=c.height,
+                params=[float(v) for v in c.params], camera_id=cam_ids[c]))
     # keypoints per image: every observation of every track, in track order
     per_image: list[list[np.ndarray]] = [[] for _ in names]
     obs_index: list[list[tuple[int, int]]] = []
@@ -45,7 +51,7 @@ def write_sparse_model(
         obs_index.append(elems)
     for f, (name, T) in enumerate(zip(names, poses_world, strict=False)):
         kp = np.array(per_image[f], dtype=np.float64).reshape(-1, 2)
-        img = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=f + 1)
+        img = pycolmap.Image(name=name, keypoints=kp, camera_id=cam_ids[per_frame[f]], image_id=f + 1)
         pose = pycolmap.Rigid3d(np.asarray(T[:3, :4], dtype=np.float64))
         rec.add_image_with_trivial_frame(img, pose)
     for xyz, col, elems in zip(points_world, colors, obs_index, strict=False):

@@ -1,4 +1,6 @@
-"""``occufly synth OUT --preset tiny|small|bench --seed N``: the synthetic aerial scene."""
+"""``occufly synth OUT --preset tiny|small|bench --seed N [--format F]``: the synthetic aerial
+scene (``--format``: written as COLMAP, OpenDroneMap, Metashape or Pix4D export it, through a
+lens-distorted camera and in UTM 32N; :mod:`occufly.synthetic.formats`)."""
 
 from __future__ import annotations
 
@@ -19,7 +21,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
                    help="scene size: tiny (tests, seconds), small (demo), bench (~5 M points)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the world (default 0)")
+    p.add_argument("--format", dest="formats", type=_formats,
+                   help="write the scene as a photogrammetry tool exports it: colmap, odm, "
+                        "metashape or pix4d (lens distortion, EPSG:32632); several comma-"
+                        "separated or 'all' give OUT/<format>/ each; default: the plain "
+                        "COLMAP workspace (pinhole camera)")
     p.add_argument("--force", action="store_true", help="replace a non-empty OUT")
+
+
+def _formats(text: str) -> list[str]:
+    from occufly.synthetic.formats import FORMATS
+
+    names = list(FORMATS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
+    bad = [n for n in names if n not in FORMATS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"{', '.join(bad) or text!r}: expected {'|'.join(FORMATS)} (comma-separated) or all")
+    return names
 
 
 def _interrupt(_signum, _frame) -> None:
@@ -34,8 +52,14 @@ def _synth(args: argparse.Namespace) -> dict:
     old = signal.signal(signal.SIGTERM, _interrupt)
     try:
         with tqdm_progress("synth") as bar:
-            summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
-                               overwrite=args.force)
+            if args.formats:
+                from occufly.synthetic.formats import generate_formats
+
+                summary = generate_formats(args.out, args.formats, preset=args.preset,
+                                           seed=args.seed, progress=bar, overwrite=args.force)
+            else:
+                summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
+                                   overwrite=args.force)
     finally:
         signal.signal(signal.SIGTERM, old)
     if not args.json:  # readable: class names instead of four id lists

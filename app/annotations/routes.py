@@ -43,8 +43,10 @@ VidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
 
 @router.post("/scenes/{sid}/next", response_model=FrameOut,
              responses={204: {"description": "no frame left to annotate"}})
-def next_frame(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser):
-    frame = service.next_frame(session=session, ctx=ctx, scene=scene, user=user)
+def next_frame(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser,
+               skip: Annotated[list[int] | None, Query(max_length=1000)] = None):
+    """Lease the next frame; ``?skip=<id>`` (repeatable) leaves those frames for later."""
+    frame = service.next_frame(session=session, ctx=ctx, scene=scene, user=user, skip=skip)
     if frame is None:
         return Response(status_code=204)
     return scenes.frame_out(session=session, frame=frame)

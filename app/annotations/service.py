@@ -35,13 +35,18 @@ def _claimable(user_id: int, now):
                     Frame.lease_expires_at.is_(None), Frame.lease_expires_at < now))
 
 
-def next_frame(*, session: Session, ctx: AppContext, scene: Scene, user: User) -> Frame | None:
-    """Lease the caller's next frame: own held/rejected frames first, then free ones by index."""
+def next_frame(*, session: Session, ctx: AppContext, scene: Scene, user: User,
+               skip: list[int] | None = None) -> Frame | None:
+    """Lease the caller's next frame: own held/rejected frames first, then free ones by index.
+
+    ``skip``: frame ids not to hand out now (the annotator pressed Skip on them).
+    """
     now = utcnow()
     mine = case((Frame.assignee_id == user.id, 0), else_=1)
     rejected_first = case((Frame.state == "rejected", 0), else_=1)
     candidates = list(session.scalars(
-        select(Frame.id).where(Frame.scene_id == scene.id, _claimable(user.id, now))
+        select(Frame.id).where(Frame.scene_id == scene.id, _claimable(user.id, now),
+                               Frame.id.notin_(skip or []))
         .order_by(mine, rejected_first, Frame.index).limit(32)))
     expires = now + timedelta(seconds=ctx.settings.lease_seconds)
     for fid in candidates:

@@ -25,6 +25,14 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def ordinary_mode(*, directory: bool = False) -> int:
+    """0666 (files) or 0777 (folders) minus the umask -- what open()/mkdir() would give;
+    mkstemp/mkdtemp create 0600/0700, which made exports unreadable to anyone else."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return (0o777 if directory else 0o666) & ~mask
+
+
 def write_tmp(path: Path, data: bytes | None = None, *, writer=None) -> Path:
     """Write a hidden, fsynced temporary sibling of ``path`` and return its name.
 
@@ -35,6 +43,7 @@ def write_tmp(path: Path, data: bytes | None = None, *, writer=None) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, ordinary_mode())
         with os.fdopen(fd, "wb") as f:
             if writer is not None:
                 writer(f)
@@ -92,6 +101,7 @@ def atomic_directory(path: str | Path, *, overwrite: bool = False):
         raise FileExistsError(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    os.chmod(tmp, ordinary_mode(directory=True))
     try:
         yield tmp
         for root, _dirs, files in os.walk(tmp):

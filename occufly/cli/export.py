@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "preview", _preview, help="PNG preview of one exported frame")
     p.add_argument("export", type=Path, help="export root (OccuFly layout)")
     p.add_argument("--frame", required=True, help="frame id, e.g. 3 or 000003")
-    p.add_argument("--out", type=Path, required=True, help="PNG to write")
+    p.add_argument("--out", type=Path,
+                   help="PNG to write (default: EXPORT/previews/<scene>_<altitude>_<frame>.png)")
     p.add_argument("--panels", default="image,depth,grid,masks",
                    help="comma list of image, depth, grid, masks")
     p.add_argument("--height", type=int, default=256, help="panel height in pixels")
@@ -137,4 +138,10 @@ def _preview(args: argparse.Namespace) -> dict:
     from occufly.preview import write_preview
 
     panels = tuple(p.strip() for p in args.panels.split(",") if p.strip())
-    return write_preview(args.export, args.frame, args.out, panels=panels, height=args.height)
+    out = args.out
+    if out is None:  # like grid-preview: a default next to the data, outside the dataset tree
+        from occufly.preview import _find_frame
+
+        alt_dir, fid = _find_frame(Path(args.export), str(args.frame))
+        out = Path(args.export) / "previews" / f"{alt_dir.parent.name}_{alt_dir.name}_{fid}.png"
+    return write_preview(args.export, args.frame, out, panels=panels, height=args.height)

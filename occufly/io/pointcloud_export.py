@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import InputFormatError
-from occufly.fsutil import fsync_dir
+from occufly.fsutil import fsync_dir, ordinary_mode
 
 LAS_SCALE = 0.001
 
@@ -41,14 +41,8 @@ def _tmp_for(path: Path) -> Path:
     return Path(tmp)
 
 
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 def _finish(tmp: Path, path: Path) -> None:
-    os.chmod(tmp, 0o666 & ~_umask())
+    os.chmod(tmp, ordinary_mode())
     fd = os.open(tmp, os.O_RDONLY)
     try:
         os.fsync(fd)

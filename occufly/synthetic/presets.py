@@ -92,14 +92,14 @@ PRESETS: dict[str, Preset] = {
     # rendered at 1/12 of that size (456 x 304, fx = 304 px), 20 at the full 20 MP
     "survey": Preset(
         name="survey", core=232.0, margin=50.0, width=456, height=304,
-        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.10,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.11,
         image_ext=".jpg", sparse_points=20000, hfov_deg=73.7397952917,
         vis_depth_check=False, full_frames=20, full_width=5472, full_height=3648,
     ),
     # about half the survey's frames and points (the growth fit's middle size)
     "survey-half": Preset(
         name="survey-half", core=162.0, margin=50.0, width=456, height=304,
-        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.10,
+        forward_overlap=0.80, side_overlap=0.75, pixel_stride=1, fuse_voxel=0.11,
         image_ext=".jpg", sparse_points=10000, hfov_deg=73.7397952917,
         vis_depth_check=False, full_frames=10, full_width=5472, full_height=3648,
     ),

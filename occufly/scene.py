@@ -155,11 +155,9 @@ class Visibility:
     def _project(self, f: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self._frames is None:
             raise ValueError("visibility without stored uv/depth needs bind(frames, xyz) first")
-        frame = self._frames[f]
-        from occufly.camera import transform
+        from occufly.visibility import project_points
 
-        pts = np.asarray(self._xyz[np.asarray(ids, np.int64)], dtype=np.float64)
-        uv, z = frame.camera.project(transform(frame.T_cam_world, pts))
+        uv, z = project_points(self._frames[f], self._xyz, np.asarray(ids, np.int64))
         return uv.astype(np.float32), z.astype(np.float32)
 
     @property

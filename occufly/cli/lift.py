@@ -131,14 +131,23 @@ def _lift(args: argparse.Namespace) -> dict:
     files = _mask_files(scene, args.masks)
     state = LiftState.open(args.workspace, scene)
     included = state.included_versions()
+    if not files and not (args.sync and included):
+        raise InputFormatError(
+            f"{args.masks}: no mask to lift: expected PNGs named after frames of the scene, "
+            f"<image stem>.png (e.g. {scene.frames[0].stem}.png)")
     todo = []
+    painted = 0
     for fi, path in files.items():  # validate everything before touching the votes
         data = path.read_bytes()
         version = hashlib.sha256(data).hexdigest()[:16]
         if included.get(fi) == version:
             continue
-        read_mask(data, scene.frames[fi], scene.taxonomy, name=str(path))
+        painted += int(read_mask(data, scene.frames[fi], scene.taxonomy, name=str(path)).any())
         todo.append((fi, path, version))
+    if todo and not painted and len(todo) == len(files) and not included:
+        raise InputFormatError(
+            f"{args.masks}: all {len(files)} masks are empty (no painted pixel; 0 = unpainted): "
+            f"nothing to lift; expected masks with class ids painted")
     changed = 0
     with tqdm_progress("votes") as bar:
         for k, (fi, path, version) in enumerate(todo):
@@ -203,6 +212,11 @@ def _agreement(args: argparse.Namespace) -> dict:
     annotated = set(LiftState.open(args.workspace, scene).included_versions())
     if args.held_out:
         frames = [f for f in frames if f not in annotated]
+    if not frames:
+        raise InputFormatError(
+            f"{args.masks}: nothing to compare: "
+            + ("every mask there is of an annotated frame (--held-out keeps the others)"
+               if args.held_out and files else "no mask PNG named after a frame of the scene"))
     labels = np.asarray(res.labels)
     per_frame, held, ann = [], [], []
     for fi in frames:
@@ -225,6 +239,10 @@ def _agreement(args: argparse.Namespace) -> dict:
             atomic_write_bytes(args.out / f"{scene.frames[fi].stem}.disagreement.png",
                                buf.getvalue())
     total = merge_agreements(held + ann)
+    if not total.get("pixels"):
+        raise InputFormatError(
+            f"{args.masks}: nothing to compare: no pixel of the {len(frames)} mask(s) has both a "
+            f"painted class and a lifted label rendered into it")
     names = {int(c.id): c.name for c in scene.taxonomy.classes}
     total["per_class_iou"] = {names[i]: v for i, v in total.get("per_class_iou", {}).items()}
     total.pop("confusion", None)

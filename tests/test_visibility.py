@@ -12,7 +12,12 @@ import pytest
 
 from occufly.cli import main
 from occufly.errors import InputFormatError
-from occufly.io.colmap_dense import read_fused_vis, write_depth_map, write_fused_ply, write_fused_vis
+from occufly.io.colmap_dense import (
+    read_fused_vis,
+    write_depth_map,
+    write_fused_ply,
+    write_fused_vis,
+)
 from occufly.io.importer import import_scene
 from occufly.io.pointcloud import read_point_cloud
 from occufly.scene import Scene, Visibility

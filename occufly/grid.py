@@ -31,11 +31,13 @@ class SceneGrid:
     labels: (X, Y, Z) uint8 raw class ids, 0 = empty.
     origin: (3,) float64 world coordinates of the min corner of voxel (0, 0, 0).
     voxel_size: edge length in metres.
+    crs: WKT of the CRS ``origin`` is in (the scene's; stored as ``crs`` in the .npz), or None.
     """
 
     labels: np.ndarray
     origin: np.ndarray
     voxel_size: float
+    crs: str | None = None
 
     def __post_init__(self) -> None:
         labels = np.asarray(self.labels)
@@ -130,6 +132,7 @@ class SceneGrid:
             labels=np.ascontiguousarray(self.labels, dtype=np.uint8),
             origin=self.origin.astype(np.float64),
             voxel_size=np.float64(self.voxel_size),
+            **({"crs": np.array(self.crs)} if self.crs else {}),
         )
         return buf.getvalue()
 
@@ -153,6 +156,7 @@ class SceneGrid:
                         "(expected labels, origin, voxel_size)"
                     )
                 labels, origin, vs = z["labels"], z["origin"], z["voxel_size"]
+                crs = str(z["crs"]) if "crs" in z.files else None
         except InputFormatError:
             raise
         except Exception as e:  # noqa: BLE001 - zip / npy parser errors vary
@@ -162,7 +166,7 @@ class SceneGrid:
                 f"{path}: labels must be a 3-D uint8 array, got {labels.dtype} {labels.shape}"
             )
         try:
-            return cls(labels, origin, float(np.asarray(vs).reshape(-1)[0]))
+            return cls(labels, origin, float(np.asarray(vs).reshape(-1)[0]), crs=crs)
         except (ValueError, IndexError) as e:
             raise InputFormatError(f"{path}: {e}") from None
 

@@ -456,6 +456,8 @@ def voxelize_workspace(
                   views=views, progress=progress)
     out = Path(out_path) if out_path is not None else wsp.grid_path()
     t = time.perf_counter()
+    res.grid.crs = (scene.crs or {}).get("wkt")  # the grid's origin is in the scene's CRS
+    res.report["crs"] = (scene.crs or {}).get("name")
     res.grid.save(out)
     res.report["timings_s"]["load"] = round(t_load, 3)
     res.report["timings_s"]["save"] = round(time.perf_counter() - t, 3)

@@ -442,6 +442,8 @@ def export_dataset(
         "depth_map_shape": list(depth_shape),
         "provenance": {
             "workspace": str(ws), "scene_origin": scene.origin.tolist(),
+            # the CRS of scene_origin and the grids' origins ({name, epsg, wkt}; None: local)
+            "crs": getattr(scene, "crs", None),
             "scene_meta": {k: scene.meta.get(k) for k in ("source", "cloud", "depth_maps",
                                                           "georeferenced", "synthetic")
                            if k in scene.meta},

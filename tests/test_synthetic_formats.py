@@ -234,3 +234,23 @@ def test_detection_and_forced_format(synth):
     assert detect_format(root / "metashape") == "metashape"  # the folder holding the XML
     with pytest.raises(InputFormatError, match="not an ODM project"):
         import_scene(root / "pix4d", root.parent / "ws-x", fmt="odm")
+
+
+def test_grid_and_manifest_carry_crs(tmp_path):
+    from occufly.export import export_dataset
+    from occufly.grid import SceneGrid
+    from occufly.io.crs import crs_record, parse_crs
+    from tests.export_fixtures import SPEC, make_workspace
+
+    rec = crs_record(parse_crs("EPSG:32632", "test"))
+    g = SceneGrid(np.zeros((2, 2, 2), np.uint8), [512480.0, 5403120.0, 263.0], 0.5, crs=rec["wkt"])
+    assert parse_crs(SceneGrid.load(g.save(tmp_path / "g.npz")).crs, "g").to_epsg() == 32632
+    ws = make_workspace(tmp_path / "exp", n_frames=2)
+    header = json.loads((ws / "scene.json").read_text())
+    header["crs"] = rec
+    (ws / "scene.json").write_text(json.dumps(header))
+    out = tmp_path / "dataset"
+    export_dataset(ws, out, spec=SPEC, workers=1, frames=[1])
+    manifest = json.loads(next((out / "OccuFly_Dataset").glob("*/manifest.json")).read_text())
+    assert manifest["provenance"]["crs"]["epsg"] == 32632
+    assert manifest["provenance"]["scene_origin"] == header["origin"]

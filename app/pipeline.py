@@ -48,7 +48,9 @@ def encode_png(arr: np.ndarray) -> bytes:
 
 # ---- import / selection --------------------------------------------------------------------
 def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
-                 depth_maps: Path | None = None, progress: ProgressFn | None = None) -> Scene:
+                 depth_maps: Path | None = None, progress: ProgressFn | None = None,
+                 fmt: str | None = None, images: Path | None = None,
+                 crs: str | None = None) -> Scene:
     """Import a reconstruction into ``workspace``.
 
     ``source`` may be an existing OccuFly workspace (copied); otherwise it is handed to
@@ -66,7 +68,7 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
         return Scene.load(workspace)
     # the workspace belongs to this scene: a resumed import replaces a partial earlier one
     return importer.import_scene(source, workspace, cloud=cloud, depth_maps=depth_maps, taxonomy=None,
-              overwrite=True, progress=progress)
+              overwrite=True, progress=progress, fmt=fmt, images=images, crs=crs)
 
 
 def select_frames(scene: Scene, **params) -> dict:

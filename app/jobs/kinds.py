@@ -29,7 +29,8 @@ def run_import(jc: JobContext) -> dict:
     ws_scene = pipeline.import_scene(
         Path(p["source"]), ws, cloud=Path(p["cloud"]) if p.get("cloud") else None,
         depth_maps=Path(p["depth_maps"]) if p.get("depth_maps") else None,
-        progress=lambda f, m="": jc.progress(0.95 * f, m))
+        fmt=p.get("format"), images=Path(p["images"]) if p.get("images") else None,
+        crs=p.get("crs"), progress=lambda f, m="": jc.progress(0.95 * f, m))
     jc.ctx.scene_cache.pop(str(ws), None)
     with jc.ctx.sessions() as s:
         scene = s.get(Scene, jc.scene_id)

@@ -62,6 +62,11 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
     cloud = service.resolve_import_path(s, body.cloud, field="cloud") if body.cloud else None
     depth = (service.resolve_import_path(s, body.depth_maps, field="depth_maps")
              if body.depth_maps else None)
+    images = service.resolve_import_path(s, body.images, field="images") if body.images else None
+    if body.crs:  # a CRS pyproj cannot read is a 4xx now, not a failed job later
+        from occufly.io.crs import parse_crs
+
+        parse_crs(body.crs, "crs")
     if body.members:  # check the ids before anything is created
         service.check_member_ids(session=session, user_ids=body.members)
     scene = service.create_scene(session=session, settings=s, name=body.name, source=source)
@@ -69,7 +74,9 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
         service.set_members(session=session, scene=scene, user_ids=body.members, replace=True)
     job = jobs.create(session=session, kind="import", scene_id=scene.id, user_id=user.id,
                       params={"source": str(source), "cloud": str(cloud) if cloud else None,
-                              "depth_maps": str(depth) if depth else None})
+                              "depth_maps": str(depth) if depth else None,
+                              "format": body.format, "images": str(images) if images else None,
+                              "crs": body.crs})
     ctx.jobs.submit(job.id)
     audit.record(session, "import", actor=user, scene_id=scene.id, target=scene.name,
                  client_ip=ip, detail={"source": str(source), "job_id": job.id,

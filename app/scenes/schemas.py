@@ -46,6 +46,13 @@ class ImportIn(BaseModel):
     source: line(1024, 1)
     cloud: line(1024) | None = None
     depth_maps: line(1024) | None = None
+    format: Literal["colmap", "odm", "metashape", "pix4d"] | None = Field(
+        default=None, description="project kind (detected from the files when omitted): a COLMAP "
+        "model, an OpenDroneMap project, a Metashape camera XML or a Pix4D project")
+    images: line(1024) | None = Field(default=None, description="image folder (default: the "
+                                      "project's images/)")
+    crs: line(4096) | None = Field(default=None, description="CRS of the cloud when its file "
+                                   "declares none: EPSG:n, WKT or PROJ")
     members: list[Id] | None = Field(default=None, max_length=1000,
                                      description="user ids assigned to the scene at import")
 

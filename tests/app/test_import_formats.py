@@ -1,0 +1,38 @@
+"""The import endpoint takes the project kind (format), the image folder and the CRS."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def test_import_validates_format_and_crs(env):
+    adm = env.bearer("admin")
+    (env.import_root / "proj").mkdir()
+    r = env.client.post("/api/scenes/import", json={"name": "p", "source": "proj",
+                                                    "format": "agisoft"}, headers=adm)
+    assert r.status_code == 422
+    r = env.client.post("/api/scenes/import", json={"name": "p", "source": "proj",
+                                                    "crs": "EPSG:not-a-code"}, headers=adm)
+    assert r.status_code == 422 and "crs" in r.text
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not beside the clone")
+def test_import_metashape_xml_reaches_the_reader(env):
+    """A real Metashape export with format=metashape: the job runs the Metashape reader and
+    fails naming the missing photos (the fixture ships none), not a generic error."""
+    adm = env.bearer("admin")
+    shutil.copy(DATA / "metashape-bitbyt3r-local" / "cameras.xml", env.import_root / "cams.xml")
+    (env.import_root / "photos").mkdir()
+    r = env.client.post("/api/scenes/import", json={
+        "name": "ms", "source": "cams.xml", "format": "metashape", "images": "photos"},
+        headers=adm)
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=adm).json()
+    assert j["status"] == "failed"
+    assert "94 of 94 images are missing: 001, 002" in j["message"]

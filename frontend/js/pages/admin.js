@@ -144,13 +144,28 @@ class AdminPage {
     const source = el("input", { id: "imp-source", required: true, placeholder: "/data/surveys/site_01" });
     const cloud = el("input", { id: "imp-cloud", placeholder: "optional: dense cloud (.ply/.las/.laz)" });
     const depth = el("input", { id: "imp-depth", placeholder: "optional: depth map folder" });
+    // the project kinds occufly import reads (the server detects the kind when left on auto)
+    const kind = el(
+      "select",
+      { id: "imp-format" },
+      el("option", { value: "" }, "detect from the files"),
+      el("option", { value: "colmap" }, "COLMAP model / dense workspace"),
+      el("option", { value: "odm" }, "OpenDroneMap / WebODM project"),
+      el("option", { value: "metashape" }, "Agisoft Metashape camera XML"),
+      el("option", { value: "pix4d" }, "Pix4D project"),
+    );
+    const images = el("input", { id: "imp-images", placeholder: "optional: image folder (default: images/)" });
+    const crs = el("input", { id: "imp-crs", placeholder: "optional: cloud CRS if its file has none, e.g. EPSG:32632" });
     const f = el(
       "form",
       { class: "inline-form", "aria-label": "Import a scene" },
       field("Name", name),
       field("Reconstruction folder", source, "must be inside an allowed import root on the server"),
+      field("Kind", kind, "Metashape: the exported cameras .xml; ODM/Pix4D: the project folder"),
       field("Cloud", cloud),
+      field("Images", images),
       field("Depth maps", depth),
+      field("CRS", crs),
       el("button", { type: "submit" }, "Import"),
     );
     f.addEventListener("submit", async (e) => {
@@ -158,6 +173,9 @@ class AdminPage {
       const body = { name: name.value.trim(), source: source.value.trim() };
       if (cloud.value.trim()) body.cloud = cloud.value.trim();
       if (depth.value.trim()) body.depth_maps = depth.value.trim();
+      if (kind.value) body.format = kind.value;
+      if (images.value.trim()) body.images = images.value.trim();
+      if (crs.value.trim()) body.crs = crs.value.trim();
       const job = await this.guard(() => api.post("/scenes/import", body));
       if (job) {
         toast(`Import job ${job.id} started.`);

@@ -455,3 +455,41 @@ def test_public_state_api_snapshot_resume_read_only(ws):
     again._write_state(dirty=True)
     with pytest.raises(WorkspaceError, match="interrupted"):
         LiftState.open(path, scene, read_only=True)
+
+
+def test_boundary_vote_weighting(ws):
+    from occufly.errors import WorkspaceError
+    from occufly.lifting import boundary_weights
+
+    m = np.full((20, 30), GRASS, np.uint8)
+    m[:, 15:] = ROAD
+    w = boundary_weights(m, px=3)
+    assert w[0, 14] == 1 and w[0, 15] == 1  # on the class change
+    assert w[0, 12] == 1 and w[0, 11] == 2  # chessboard distance 2 -> 1, 3 -> 2
+    assert w[0, 9] == 2 and w[0, 8] == 3 and w[0, 0] == 3
+    assert (boundary_weights(np.full((4, 4), GRASS, np.uint8)) == 3).all()
+    path, scene, truth = ws
+    st = LiftState.open(path, scene, vote_weighting="boundary")
+    mask = truth_mask(scene.frames[5])
+    stats = st.apply_frame(5, mask, version="v1")
+    pids, raw = _expected_votes(scene, 5, mask)
+    s = scene.frames[5].camera.width // mask.shape[1]
+    _, uv, _ = scene.visibility.frame(5)
+    uv = np.asarray(uv)
+    keep = np.isin(mask[(uv[:, 1] // s).astype(int), (uv[:, 0] // s).astype(int)], [0, 255],
+                   invert=True)
+    wexp = boundary_weights(mask)[(uv[keep, 1] // s).astype(int), (uv[keep, 0] // s).astype(int)]
+    assert int(np.asarray(st.votes).sum()) == int(wexp.sum()) == stats["votes_added"]
+    assert int(wexp.sum()) > len(pids) and (wexp == 1).any()
+    # the winner is the mask's class either way (one view)
+    assert np.array_equal(st.labels_of_points(pids), raw)
+    st.close()
+    again = LiftState.open(path, scene)
+    assert again.vote_weighting == "boundary"
+    again._write_state(dirty=True)
+    rebuilt = LiftState.open(path, scene)  # recount from the per-frame files, with weights
+    assert int(np.asarray(rebuilt.votes).sum()) == int(wexp.sum())
+    with pytest.raises(WorkspaceError, match="'boundary' votes"):
+        LiftState.open(path, scene, vote_weighting="plain")
+    rebuilt.remove_frame(5)
+    assert int(np.asarray(rebuilt.votes).sum()) == 0

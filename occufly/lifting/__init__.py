@@ -47,11 +47,18 @@ from occufly.lifting.result import (
     load_labels,
     save_result,
 )
-from occufly.lifting.votes import STATE_VERSION, LiftState, VoteSnapshot, fill_snapshot
+from occufly.lifting.votes import (
+    STATE_VERSION,
+    VOTE_WEIGHTINGS,
+    LiftState,
+    VoteSnapshot,
+    boundary_weights,
+    fill_snapshot,
+)
 
 __all__ = [
     "LIFT_DIR", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
-    "ORIGIN_NONE", "STATE_VERSION", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
+    "ORIGIN_NONE", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
     "VoteSnapshot", "evaluate_points", "fill_and_denoise", "fill_and_denoise_exact",
     "fill_snapshot", "load_labels", "params_dict", "save_result", "typical_knn_radius",
 ]

@@ -40,6 +40,33 @@ from occufly.taxonomy import EMPTY, INVALID
 STATE_VERSION = 1
 _CHUNK_ROWS = 1_000_000
 
+#: ``plain``: every view casts one vote. ``boundary``: a view's vote counts 1 within
+#: ``BOUNDARY_PX`` mask pixels of a boundary in its mask (a class change or the edge of an
+#: unpainted area), 2 within twice that, else 3 -- people paint boundaries a few pixels off,
+#: so the views in which a point lies well inside a region outvote those in which it sits on
+#: an edge.
+VOTE_WEIGHTINGS = ("plain", "boundary")
+BOUNDARY_PX = 3
+
+
+def boundary_weights(mask: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarray:
+    """(h, w) uint8 vote weight of each mask pixel: 1 / 2 / 3 by chessboard distance to the
+    nearest pixel whose 4-neighbourhood holds another id (< px, < 2 px, beyond)."""
+    from scipy import ndimage
+
+    m = np.asarray(mask)
+    edge = np.zeros(m.shape, bool)
+    dv = m[1:, :] != m[:-1, :]
+    dh = m[:, 1:] != m[:, :-1]
+    edge[1:, :] |= dv
+    edge[:-1, :] |= dv
+    edge[:, 1:] |= dh
+    edge[:, :-1] |= dh
+    if not edge.any():
+        return np.full(m.shape, 3, np.uint8)
+    d = ndimage.distance_transform_cdt(~edge, metric="chessboard")
+    return (1 + (d >= px).astype(np.uint8) + (d >= 2 * px).astype(np.uint8)).astype(np.uint8)
+
 
 class LiftState:
     """Per-point vote counts for one scene workspace, updated incrementally.
@@ -55,6 +82,7 @@ class LiftState:
         self._versions = versions
         self._cls = ClassColumns(scene.taxonomy)
         self.read_only = False
+        self.vote_weighting = "plain"
 
     # -- paths
     @property
@@ -67,7 +95,7 @@ class LiftState:
     # -- open / save
     @classmethod
     def open(cls, ws: str | Path, scene: Scene | None = None, *,
-             read_only: bool = False) -> LiftState:
+             read_only: bool = False, vote_weighting: str | None = None) -> LiftState:
         """Load the lifting state of workspace ``ws`` (resuming from what is on disk: the
         counts, the per-frame votes and the included versions), or create an empty one.
 
@@ -75,7 +103,14 @@ class LiftState:
         per-frame files. ``read_only=True`` (readers such as the viewer, while a worker owns
         the workspace) never writes: it maps the counts read-only, neither creates nor repairs
         a state, and raises :class:`WorkspaceError` when there is none or it is dirty.
+
+        vote_weighting: ``"plain"`` (one vote per view) or ``"boundary"`` (votes fall off near
+        mask boundaries, see :data:`VOTE_WEIGHTINGS`); fixed when the state is created
+        (None: the stored one, ``"plain"`` for a new state).
         """
+        if vote_weighting is not None and vote_weighting not in VOTE_WEIGHTINGS:
+            raise ValueError(f"vote_weighting {vote_weighting!r}: expected one of "
+                             f"{', '.join(VOTE_WEIGHTINGS)}")
         ws = Path(ws)
         if scene is None:
             scene = Scene.load(ws)
@@ -102,7 +137,13 @@ class LiftState:
             if votes.shape != (n, len(ids)) or votes.dtype != np.uint16:
                 raise WorkspaceError(f"{votes_path}: expected ({n}, {len(ids)}) uint16 vote counts")
             versions = {int(k): v for k, v in state.get("versions", {}).items()}
+            stored = state.get("vote_weighting", "plain")
+            if vote_weighting is not None and vote_weighting != stored:
+                raise WorkspaceError(
+                    f"{state_path}: the lifting state counts {stored!r} votes, not "
+                    f"{vote_weighting!r}; remove {d} to start the lifting over")
             self = cls(ws, scene, votes, versions)
+            self.vote_weighting = stored
             self.read_only = read_only
             if state.get("dirty"):
                 if read_only:
@@ -118,6 +159,7 @@ class LiftState:
         os.replace(tmp, votes_path)
         votes = np.lib.format.open_memmap(votes_path, mode="r+")
         self = cls(ws, scene, votes, {})
+        self.vote_weighting = vote_weighting or "plain"
         stale = sorted((d / "frames").glob("*.npz"))
         if stale:  # frame votes without a state file: recount from them
             self._versions = {int(p.stem): None for p in stale if p.stem.isdigit()}
@@ -132,6 +174,7 @@ class LiftState:
             "n_points": self.scene.n_points,
             "class_ids": [int(i) for i in self._cls.ids],
             "versions": {str(k): v for k, v in sorted(self._versions.items())},
+            "vote_weighting": self.vote_weighting,
             "dirty": dirty,
         }
         atomic_write_text(self.dir / "state.json", json.dumps(state, indent=1))
@@ -164,8 +207,8 @@ class LiftState:
         for p in sorted((self.dir / "frames").glob("*.npz")):
             if not p.stem.isdigit():
                 continue
-            pids, cols = self._load_frame_file(p)
-            np.add.at(flat, pids.astype(np.int64) * C + cols, 1)
+            pids, cols, w = self._load_frame_file(p)
+            np.add.at(flat, pids.astype(np.int64) * C + cols, w)
             self._versions.setdefault(int(p.stem), None)
         for fi in list(self._versions):
             if not self._frame_path(fi).is_file():
@@ -192,6 +235,9 @@ class LiftState:
         serialises updates, then run :meth:`fill_and_denoise` ``(snapshot=...)`` or
         :func:`fill_snapshot` without holding it."""
         direct, margin, top = self._direct()
+        if self.vote_weighting == "boundary":
+            # the confirmation rule counts views: a weight-3 vote is one view
+            top = ((top.astype(np.uint32) + 2) // 3).astype(np.uint16)
         return VoteSnapshot(direct=direct, margin=margin, top=top,
                             versions=self.included_versions())
 
@@ -235,8 +281,9 @@ class LiftState:
         return int(frame_index)
 
     def frame_votes(self, frame_index: int, mask: np.ndarray, *, name: str = "<mask>"
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Validate ``mask`` for a frame and return its votes: (point ids int32, column uint8)."""
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validate ``mask`` for a frame and return its votes: (point ids int32, column uint8,
+        weight uint8 -- all 1 with plain weighting)."""
         from occufly.io.masks import mask_scale, validate_ids
 
         fi = self._check_frame(frame_index, name)
@@ -259,21 +306,27 @@ class LiftState:
         row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
         raw = mask[row, col]
         keep = (raw != EMPTY) & (raw != INVALID)
+        if self.vote_weighting == "boundary":
+            weight = boundary_weights(mask)[row[keep], col[keep]]
+        else:
+            weight = np.ones(int(keep.sum()), np.uint8)
         return (np.asarray(pids)[keep].astype(np.int32),
-                self._cls.col_of[raw[keep]].astype(np.uint8))
+                self._cls.col_of[raw[keep]].astype(np.uint8), weight)
 
     @staticmethod
-    def _load_frame_file(p: Path) -> tuple[np.ndarray, np.ndarray]:
+    def _load_frame_file(p: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with np.load(p, allow_pickle=False) as z:
-            return z["point_ids"], z["cols"]
+            pids, cols = z["point_ids"], z["cols"]
+            w = z["weights"] if "weights" in z.files else np.ones(len(pids), np.uint8)
+            return pids, cols, w
 
     def _old_votes(self, fi: int) -> tuple[np.ndarray, np.ndarray]:
         p = self._frame_path(fi)
         if p.is_file():
             return self._load_frame_file(p)
-        return np.zeros(0, np.int32), np.zeros(0, np.uint8)
+        return np.zeros(0, np.int32), np.zeros(0, np.uint8), np.zeros(0, np.uint8)
 
-    def _apply(self, old: tuple[np.ndarray, np.ndarray], new: tuple[np.ndarray, np.ndarray]) -> dict:
+    def _apply(self, old: tuple[np.ndarray, ...], new: tuple[np.ndarray, ...]) -> dict:
         C = self._cls.C
         mark = np.zeros(self.scene.n_points, dtype=bool)  # O(N) bytes, no sort
         mark[old[0]] = True
@@ -282,15 +335,15 @@ class LiftState:
         before = self.labels_of_points(touched)
         flat = self.votes.reshape(-1)
         if len(old[0]):
-            np.subtract.at(flat, old[0].astype(np.int64) * C + old[1], 1)
+            np.subtract.at(flat, old[0].astype(np.int64) * C + old[1], old[2].astype(np.uint16))
         if len(new[0]):
-            np.add.at(flat, new[0].astype(np.int64) * C + new[1], 1)
+            np.add.at(flat, new[0].astype(np.int64) * C + new[1], new[2].astype(np.uint16))
         after = self.labels_of_points(touched)
         return {
             "points_touched": int(len(touched)),
             "points_changed": int(np.count_nonzero(before != after)),
-            "votes_removed": int(len(old[0])),
-            "votes_added": int(len(new[0])),
+            "votes_removed": int(old[2].sum(dtype=np.int64)),
+            "votes_added": int(new[2].sum(dtype=np.int64)),
         }
 
     def apply_frame(self, frame_index: int, mask: np.ndarray, *, version: str | None = None,
@@ -304,12 +357,15 @@ class LiftState:
         self._writable()
         t0 = time.perf_counter()
         name = name or f"mask of frame {frame_index}"
-        pids, cols = self.frame_votes(frame_index, mask, name=name)
+        pids, cols, weights = self.frame_votes(frame_index, mask, name=name)
         fi = int(frame_index)
         old = self._old_votes(fi)
         self._write_state(dirty=True)
-        atomic_write_bytes(self._frame_path(fi), _npz_bytes(point_ids=pids, cols=cols))
-        stats = self._apply(old, (pids, cols))
+        arrays = {"point_ids": pids, "cols": cols}
+        if self.vote_weighting != "plain":
+            arrays["weights"] = weights
+        atomic_write_bytes(self._frame_path(fi), _npz_bytes(**arrays))
+        stats = self._apply(old, (pids, cols, weights))
         self._versions[fi] = version
         self.save()
         stats["frame_index"] = fi
@@ -329,7 +385,7 @@ class LiftState:
                     "votes_removed": 0, "votes_added": 0, "seconds": time.perf_counter() - t0}
         old = self._old_votes(fi)
         self._write_state(dirty=True)
-        stats = self._apply(old, (np.zeros(0, np.int32), np.zeros(0, np.uint8)))
+        stats = self._apply(old, (np.zeros(0, np.int32), np.zeros(0, np.uint8), np.zeros(0, np.uint8)))
         self.votes.flush()
         p.unlink()
         self._versions.pop(fi, None)

@@ -72,43 +72,16 @@ def shifted(mask: np.ndarray, px: int) -> np.ndarray:
 
 def degrade(mask: np.ndarray, rng: np.random.Generator, *, shift_px: float = 3.0,
             min_blob: int = 60, cell: int = 64) -> np.ndarray:
-    """Paint a mask the way people do: boundaries shifted by a few pixels, small blobs missed.
+    """The quality bench's degradation (unchanged yardstick): boundaries shifted through a
+    smooth random field of up to ``shift_px`` pixels, every blob under ``min_blob`` pixels
+    painted over -- :func:`occufly.synthetic.degrade.degrade_mask` with confusions and
+    unpainted patches off and every small blob skipped (same random stream as before)."""
+    from occufly.synthetic.degrade import Degradation, degrade_mask
+    from occufly.taxonomy import default_taxonomy
 
-    Boundaries: the mask is resampled through a smooth random displacement field (up to
-    ``shift_px`` pixels, varying over ``cell``-pixel blocks), so borders move by different
-    amounts in different directions. Blobs: connected components smaller than ``min_blob``
-    pixels are painted over with the nearest surrounding class.
-    """
-    from scipy import ndimage
-
-    h, w = mask.shape
-    gh, gw = h // cell + 2, w // cell + 2
-    field = rng.uniform(-shift_px, shift_px, (2, gh, gw))
-    zy, zx = (h / (gh - 1)), (w / (gw - 1))
-    rows = np.arange(h) / zy
-    cols = np.arange(w) / zx
-    rr, cc = np.meshgrid(rows, cols, indexing="ij")
-    dy = ndimage.map_coordinates(field[0], [rr, cc], order=1)
-    dx = ndimage.map_coordinates(field[1], [rr, cc], order=1)
-    r = np.clip(np.rint(np.arange(h)[:, None] + dy), 0, h - 1).astype(int)
-    c = np.clip(np.rint(np.arange(w)[None, :] + dx), 0, w - 1).astype(int)
-    out = mask[r, c]
-    drop = np.zeros(mask.shape, bool)
-    for cid in np.unique(out):
-        if cid in (0, 255):
-            continue
-        lab, n = ndimage.label(out == cid)
-        if n == 0:
-            continue
-        sizes = np.bincount(lab.ravel())
-        small = np.flatnonzero(sizes < min_blob)
-        small = small[small > 0]
-        if len(small):
-            drop |= np.isin(lab, small)
-    if drop.any() and not drop.all():
-        _, (ir, ic) = ndimage.distance_transform_edt(drop, return_indices=True)
-        out = out[ir, ic]
-    return out
+    return degrade_mask(mask, default_taxonomy(), rng, Degradation(
+        shift_px=shift_px, cell=cell, min_blob=min_blob, skip_prob=1.0, confusion_rate=0.0,
+        patches=0))
 
 
 def lift_params(args: argparse.Namespace) -> LiftParams:
@@ -186,8 +159,86 @@ def quality(args: argparse.Namespace) -> dict:
     return out
 
 
+def robustness(args: argparse.Namespace) -> dict:
+    """Lifting accuracy with the new (union) vs old (.vis only) visibility on the same
+    selected frames, with exact and degraded masks (occufly.synthetic.degrade), for the
+    plain vote and the robust one. Workspaces: ``--ws`` (union) and ``--ws-old`` (vis)
+    imported from ``--synthetic``; frames: greedy rho >= 0.99 on ``--ws``."""
+    from occufly.render import agreement, merge_agreements, render_for_mask
+    from occufly.synthetic.degrade import degrade_masks
+
+    syn = args.synthetic
+    scenes = {"union": Scene.load(args.ws)}
+    if args.ws_old:
+        scenes["vis"] = Scene.load(args.ws_old)
+    scene = scenes["union"]
+    tax = scene.taxonomy
+    truth = np.load(syn / "truth" / "point_labels.npy")
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    held = [i for i in range(len(scene.frames)) if i not in set(sel.frames)]
+    held = held[:: max(1, len(held) // args.held_out)][: args.held_out]
+
+    def mask(i):
+        return read_mask(syn / "truth" / "masks" / f"{scene.frames[i].stem}.png",
+                         scene.frames[i], tax)
+
+    exact = {fi: mask(fi) for fi in sel.frames}
+    held_masks = {fi: mask(fi) for fi in held}
+    variants = {"exact": exact, "degraded": degrade_masks(exact, tax, seed=args.seed)}
+    out: dict = {"bench": "lifting-robustness", "synthetic": str(syn),
+                 "points": scene.n_points, "frames": len(scene.frames),
+                 "selected": len(sel.frames), "ratio": sel.ratio, "coverage": sel.coverage,
+                 "held_out_frames": len(held),
+                 "degraded_pixels_changed": float(np.mean([(variants["degraded"][f] != exact[f]).mean()
+                                                           for f in exact]))}
+    for vname, sc in scenes.items():
+        vpp = sc.summary()["visibility"]["views_per_point"]
+        out[f"views_per_point_{vname}"] = vpp["mean"]
+        for mname, masks in variants.items():
+            for robust in args.robust_modes.split(","):
+                t = time.perf_counter()
+                tmp = Path(args.cache) / f"robust-{vname}"
+                shutil.rmtree(tmp, ignore_errors=True)
+                tmp.mkdir(parents=True)
+                # a scratch workspace sharing the scene's arrays: only lifting/ is written
+                for name in ("scene.json", "taxonomy.json", "points", "visibility"):
+                    (tmp / name).symlink_to(Path(sc_path(args, vname)) / name)
+                st = LiftState.open(tmp, sc, **({"vote_weighting": robust} if robust != "plain" else {}))
+                for fi in sel.frames:
+                    st.apply_frame(fi, masks[fi], version=mname)
+                direct = st.direct_labels()
+                res = st.fill_and_denoise(write=False)
+                ev = evaluate_points(res.labels, truth, tax, res.origin)
+                has = (direct > 0) & (truth > 0) & (truth < 255)
+                ags = [agreement(held_masks[fi], render_for_mask(sc, np.asarray(res.labels), fi,
+                                                                 held_masks[fi].shape)[0], tax)
+                       for fi in held]
+                ag = merge_agreements(ags)
+                out[f"{vname}/{mname}/{robust}"] = {
+                    "accuracy": round(ev["accuracy"], 4), "miou": round(ev["miou"], 4),
+                    "direct_accuracy": round(float((direct[has] == truth[has]).mean()), 4),
+                    "direct_share": round(float((direct > 0).mean()), 4),
+                    "held_out_agreement": round(ag["agreement"], 4),
+                    "seconds": round(time.perf_counter() - t, 1)}
+                shutil.rmtree(tmp, ignore_errors=True)
+                print(json.dumps({f"{vname}/{mname}/{robust}": out[f"{vname}/{mname}/{robust}"]}),
+                      file=sys.stderr, flush=True)
+    return out
+
+
+def sc_path(args: argparse.Namespace, vname: str) -> Path:
+    return args.ws if vname == "union" else args.ws_old
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robustness", action="store_true",
+                    help="exact vs degraded masks, new vs old visibility (needs --synthetic, "
+                         "--ws, optionally --ws-old)")
+    ap.add_argument("--ws", type=Path)
+    ap.add_argument("--ws-old", type=Path)
+    ap.add_argument("--held-out", type=int, default=20)
+    ap.add_argument("--robust-modes", default="plain")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
     ap.add_argument("--cell", type=float, default=25.0)
@@ -204,6 +255,9 @@ def main() -> None:
     ap.add_argument("--sample", type=int, default=40_000, help="baseline denoise query sample")
     ap.add_argument("--full-baseline", action="store_true")
     args = ap.parse_args()
+    if args.robustness:
+        print(json.dumps(robustness(args), default=_json_default))
+        return
     if args.quality:
         print(json.dumps(quality(args), default=_json_default))
         return

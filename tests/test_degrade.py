@@ -19,7 +19,7 @@ def _mask():
     return m
 
 
-OFF = dict(shift_px=0, min_blob=0, confusion_rate=0, patches=0)
+OFF = dict(shift_px=0, min_blob=0, skip_prob=0, confusion_rate=0, patches=0)
 
 
 def test_each_effect():
@@ -33,8 +33,11 @@ def test_each_effect():
     rows, cols = np.nonzero(changed)
     assert (np.abs(cols - 80) <= 3).sum() + ((rows >= 7) & (rows <= 53)).sum() >= len(rows)
     # tiny objects are painted over by their surroundings
-    s = degrade_mask(m, TAX, 2, Degradation(**{**OFF, "min_blob": 20}))
+    s = degrade_mask(m, TAX, 2, Degradation(**{**OFF, "min_blob": 20, "skip_prob": 1.0}))
     assert not (s == ID["person"]).any() and (s[70:73, 100:103] == ID["grass"]).all()
+    kept = [(degrade_mask(m, TAX, k, Degradation(**{**OFF, "min_blob": 20, "skip_prob": 0.5}))
+             == ID["person"]).any() for k in range(40)]
+    assert 8 < sum(kept) < 32  # skipped in about half the frames
     # confusions swap whole regions with their look-alike only
     c = degrade_mask(m, TAX, 3, Degradation(**{**OFF, "confusion_rate": 1.0}))
     assert (c[m == ID["road"]] == ID["parking_lot"]).all()

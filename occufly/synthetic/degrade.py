@@ -7,8 +7,9 @@ boundaries
     pixels that varies over ``cell``-pixel blocks, so borders move by different amounts in
     different directions (a few pixels off, as with a brush).
 skipped objects
-    Connected components smaller than ``min_blob`` pixels are painted over with the nearest
-    surrounding class (tiny objects nobody bothered with).
+    Each connected component smaller than ``min_blob`` pixels is, with probability
+    ``skip_prob``, painted over with the nearest surrounding class (a tiny object the
+    annotator did not bother with in this frame).
 class confusions
     Whole connected regions of a confusable class are painted as its look-alike with
     probability ``confusion_rate`` per region: road <-> parking lot, grass <-> vegetation,
@@ -40,6 +41,7 @@ class Degradation:
     shift_px: float = 3.0
     cell: int = 64
     min_blob: int = 60
+    skip_prob: float = 0.5
     confusion_rate: float = 0.15
     patches: int = 2
     patch_frac: float = 0.08
@@ -74,10 +76,11 @@ def _shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: floa
     return mask[r, c]
 
 
-def _skip_small(mask: np.ndarray, min_blob: int) -> np.ndarray:
+def _skip_small(mask: np.ndarray, rng: np.random.Generator, min_blob: int, prob: float
+                ) -> np.ndarray:
     from scipy import ndimage
 
-    if min_blob <= 1:
+    if min_blob <= 1 or prob <= 0:
         return mask
     drop = np.zeros(mask.shape, bool)
     for cid in np.unique(mask):
@@ -89,6 +92,8 @@ def _skip_small(mask: np.ndarray, min_blob: int) -> np.ndarray:
         sizes = np.bincount(lab.ravel())
         small = np.flatnonzero(sizes < min_blob)
         small = small[small > 0]
+        if prob < 1.0:  # (no draw at 1: the same stream as a generator without the option)
+            small = small[rng.random(len(small)) < prob]
         if len(small):
             drop |= np.isin(lab, small)
     if drop.any() and not drop.all():
@@ -140,7 +145,7 @@ def degrade_mask(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator 
     if mask.ndim != 2 or mask.dtype != np.uint8:
         raise ValueError(f"degrade_mask: expected an (h, w) uint8 mask, got {mask.shape} {mask.dtype}")
     out = _shift_boundaries(mask, rng, p.shift_px, p.cell)
-    out = _skip_small(out, p.min_blob)
+    out = _skip_small(out, rng, p.min_blob, p.skip_prob)
     out = _confuse(out, rng, _confusion_lut(taxonomy), p.confusion_rate)
     out = _unpaint(out, rng, p.patches, p.patch_frac)
     return out

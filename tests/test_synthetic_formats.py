@@ -254,3 +254,27 @@ def test_grid_and_manifest_carry_crs(tmp_path):
     manifest = json.loads(next((out / "OccuFly_Dataset").glob("*/manifest.json")).read_text())
     assert manifest["provenance"]["crs"]["epsg"] == 32632
     assert manifest["provenance"]["scene_origin"] == header["origin"]
+
+
+def test_las_crs_from_wkt_or_geotiff_keys_and_point_formats(tmp_path):
+    """LAS 1.4 carries the CRS as a WKT VLR, LAS 1.2 as GeoTIFF keys: both are read back."""
+    import laspy
+
+    from occufly.io.crs import cloud_crs, parse_crs
+    from occufly.io.pointcloud_export import choose_point_format, write_semantic_las
+
+    crs = parse_crs("EPSG:32632", "test")
+    xyz = np.random.default_rng(0).uniform(0, 50, (20, 3)) + [512480.0, 5403120.0, 263.0]
+    labels = np.arange(20, dtype=np.uint8)
+    for fmt, vlr in ((7, "WktCoordinateSystemVlr"), (3, "GeoKeyDirectoryVlr")):
+        p = tmp_path / f"c{fmt}.las"
+        write_semantic_las(p, xyz, labels, np.zeros((20, 3), np.uint8), crs=crs, point_format=fmt)
+        las = laspy.read(p)
+        assert las.header.point_format.id == fmt
+        assert vlr in [type(v).__name__ for v in las.header.vlrs]
+        assert cloud_crs(p)[0].to_epsg() == 32632
+        assert np.array_equal(np.asarray(las.classification), labels)
+    assert choose_point_format(8, labels) == 8
+    assert choose_point_format(3, labels) == 3  # ids <= 31 fit the 5-bit classification
+    assert choose_point_format(3, np.array([36], np.uint8)) == 7  # 36 does not
+    assert choose_point_format(6, labels) == 7 and choose_point_format(None, labels) == 7

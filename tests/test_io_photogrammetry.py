@@ -298,3 +298,21 @@ def test_pix4d_truncated_block(tmp_path):
     (d / "pix4d.origin_offset.xyz").unlink()
     with pytest.raises(InputFormatError, match="offset.xyz: missing"):
         read_pix4d(tmp_path)
+
+
+def test_image_names_must_stay_inside_the_image_folder(tmp_path):
+    from occufly.io.sources import read_source
+
+    src = tmp_path / "odm"
+    shutil.copytree(ODM, src)
+    rec = json.loads((ODM / "opensfm" / "reconstruction.json").read_text())
+    shots = rec[0]["shots"]
+    shots["../../etc/secret.JPG"] = shots.pop(next(iter(shots)))
+    (src / "opensfm" / "reconstruction.json").write_text(json.dumps(rec))
+    with pytest.raises(InputFormatError, match=r"reconstruction.json: image name '../../etc/secret.JPG'"):
+        read_source(src)
+    xml = MS_LOCAL.read_text().replace('label="002">', 'label="001">', 1)
+    p = tmp_path / "dup.xml"
+    p.write_text(xml)
+    with pytest.raises(InputFormatError, match=r"dup.xml: 1 image name\(s\) used by several cameras \(001\)"):
+        read_source(p)

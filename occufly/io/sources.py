@@ -94,7 +94,27 @@ def read_source(source: str | Path, fmt: str | None = None, *,
         root = root.parent if root.name == "1_initial" else root
         if (root / "images").is_dir():
             model.default_images = root / "images"
+    check_image_names(model)
     return model
+
+
+def check_image_names(model: SparseModel) -> None:
+    """Image names come from the project files: they must stay inside the image folder
+    (relative, no '..', no NUL) and name each frame once."""
+    seen: dict[str, int] = {}
+    for im in model.images:
+        n = im.name
+        parts = Path(n).parts
+        if (not n or "\x00" in n or Path(n).is_absolute() or ".." in parts
+                or n.startswith(("/", "\\")) or "\\" in n):
+            raise InputFormatError(
+                f"{model.path}: image name {n!r} is not a relative path inside the image folder")
+        seen[n] = seen.get(n, 0) + 1
+    dup = [n for n, c in seen.items() if c > 1]
+    if dup:
+        raise InputFormatError(
+            f"{model.path}: {len(dup)} image name(s) used by several cameras "
+            f"({', '.join(dup[:5])}); each frame needs its own image")
 
 
 def resolve_image_names(image_dir: Path, model: SparseModel) -> None:

@@ -182,6 +182,7 @@ def test_reviewer_sees_who_painted_per_class_names_and_a_pinned_rejection_once(l
     page.mouse.click(b["x"] + 0.5 * b["width"], b["y"] + 0.5 * b["height"])
     comment = "Pinned once: the car edge needs a cleaner outline."
     assert page.locator("#pin-text").inner_text().startswith("Pinned pixel")
+    page.uncheck("#auto-advance")  # stay on this frame to read its items
     page.fill("#review-comment", comment)
     page.click("#reject")
     page.wait_for_selector(".badge.state-rejected")
@@ -288,3 +289,107 @@ def test_admin_histogram_coverage_plot_and_readable_metrics(live, sid, new_page)
     page.locator("#metrics").scroll_into_view_if_needed()
     shot(page, "17_05_admin_metrics", full_page=True)
     assert not bad, bad
+
+
+def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid, new_page):
+    """Step 2: "frame k of n", per-annotator progress, Skip, '?' help, zoom %, minimap, outline
+    mode, per-class hide, brush size and tool kept between frames."""
+    page = new_page("annotator")
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}")
+    page.click("#next-frame")
+    fa = wait_opened(page)
+    frames = [f for f in live.client("admin").get(f"/api/scenes/{sid}/frames").json() if f["selected"]]
+    k = [f["id"] for f in frames].index(fa) + 1
+    left = sum(f["state"] in ("unassigned", "in_progress", "rejected") for f in frames)
+    page.wait_for_selector(f"#queue-pos:has-text('frame {k} of {len(frames)}')")
+    assert f"{left} left" in page.locator("#queue-pos").inner_text()
+    page.click("#scene-progress summary")
+    row = page.locator("#progress-table tr[data-who='annotator (you)']")
+    row.wait_for()
+    mine = [f for f in frames if (f["assignee"] or f["last_annotator"]) == "annotator"]
+    for st in ("submitted", "accepted", "rejected", "in_progress"):
+        assert int(row.locator(f"td[data-state='{st}']").inner_text()) == sum(f["state"] == st for f in mine), st
+    # tool and brush size survive the next frame
+    page.locator(".layer-overlay").focus()
+    page.keyboard.press("e")
+    page.evaluate("() => window.__occufly.page.editor.setSize(57)")
+    # zoom readout and the minimap follow the view
+    z0 = page.locator("#zoom-level").inner_text()
+    page.keyboard.press("+")
+    page.wait_for_function(f"() => document.querySelector('#zoom-level').textContent !== '{z0}'")
+    assert re.fullmatch(r"\d+ %", page.locator("#zoom-level").inner_text())
+    assert page.locator("#minimap").is_visible()
+    # '?' shows the key help
+    page.keyboard.press("?")
+    page.wait_for_selector("dialog[open] #hotkeys")
+    assert "outline" in page.locator("#hotkeys").inner_text()
+    page.keyboard.press("Escape")
+    # Skip: released, and the next frame is another one
+    page.click("#skip")
+    page.wait_for_function(f"() => window.__occufly.page.frame && window.__occufly.page.frame.id !== {fa} && window.__occufly.page.stats.openMs !== null")
+    fb = wait_opened(page)
+    assert fb != fa
+    assert live.client("admin").get(f"/api/frames/{fa}").json()["assignee"] is None
+    assert page.evaluate("() => [window.__occufly.page.editor.tool.name, window.__occufly.page.editor.state.size]") == ["eraser", 57]
+    assert page.get_attribute("button[data-tool='eraser']", "aria-pressed") == "true"
+    # outline mode: inside a painted block the colour layer is faint, on its border opaque
+    page.keyboard.press("b")
+    page.evaluate("""() => { const p = window.__occufly.page, m = p.editor.mask;
+        const ids = new Uint8Array(m.ids.length); const c = p.editor.state.classId;
+        for (let y = 20; y < 60; y++) for (let x = 20; x < 60; x++) ids[y * m.width + x] = c;
+        p.editor.replaceIds('test block', ids); }""")
+    alpha = "(x, y) => window.__occufly.page.editor.mask.ctx.getImageData(x, y, 1, 1).data[3]"
+    assert page.evaluate(f"() => ({alpha})(40, 40)") == 255
+    page.keyboard.press("l")
+    assert page.locator("#outline").is_checked()
+    assert page.evaluate(f"() => ({alpha})(40, 40)") < 80 and page.evaluate(f"() => ({alpha})(20, 40)") == 255
+    page.keyboard.press("l")
+    # hide / show one class in the colour layer (ids untouched)
+    cls = page.evaluate("() => window.__occufly.page.editor.state.classId")
+    page.click(f".eye[data-class='{cls}']")
+    assert page.evaluate(f"() => ({alpha})(40, 40)") == 0
+    assert page.evaluate("() => window.__occufly.page.editor.mask.ids[40 * window.__occufly.page.editor.mask.width + 40]") == cls
+    page.click(f".eye[data-class='{cls}']")
+    assert page.evaluate(f"() => ({alpha})(40, 40)") == 255
+    shot(page, "17_06_annotator_progress_tools")
+    page.keyboard.press("Control+z")
+
+
+def test_reviewer_legend_linked_zoom_and_hotkeys_with_auto_advance(live, sid, new_page):
+    """Step 2 (reviewer): class legend + disagreement key, one zoom for all panels, A accepts
+    and moves on to the next frame of the list."""
+    ann = live.client("annotator")
+    done = []
+    for _ in range(2):  # two more submitted frames to review
+        f = ann.post(f"/api/scenes/{sid}/next").json()
+        ids = np.full((f["height"], f["width"]), int(STATE["ids_1"].max() or 1), np.uint8)
+        r = ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+                    headers={"Content-Type": "image/png",
+                             "If-Match": str(f["current_version"] or "none")})
+        assert r.status_code == 200, r.text
+        done.append(f["id"])
+    page = new_page("reviewer")
+    page.goto(f"{live.base_url}/#/review?scene={sid}&state=submitted")
+    page.locator(f"#frame-list tr[data-frame='{done[0]}'] a").click()
+    page.wait_for_selector("#agreement[data-value]")
+    legend = page.locator("#legend")
+    assert "grey = painted, but no 3D label there" in legend.inner_text()
+    assert legend.locator(".legend-item[data-class]").count() >= 1
+    c0 = page.locator("canvas[data-layer='image']")
+    c0.scroll_into_view_if_needed()
+    b = c0.bounding_box()
+    page.mouse.move(b["x"] + b["width"] / 2, b["y"] + b["height"] / 2)
+    page.mouse.wheel(0, -300)
+    page.wait_for_function("() => window.__occufly_review && window.__occufly_review.view.z > 1")
+    # every panel shows the same zoomed window: the same image pixel sits under each centre
+    fits = page.evaluate("""() => { const p = window.__occufly_review;
+        return p.canvases.map(({c}) => { const f = p.fitOf(c); return [(c.width / 2 - f.ox) / f.s, (c.height / 2 - f.oy) / f.s]; }); }""")
+    assert len(fits) == 4 and all(abs(x - fits[0][0]) < 1e-6 and abs(y - fits[0][1]) < 1e-6 for x, y in fits)
+    order = [int(r.get_attribute("data-frame")) for r in page.locator("#frame-list tr[data-frame]").all()]
+    cur = order.index(done[0])
+    page.keyboard.press("a")
+    page.wait_for_function(f"() => window.__occufly_review.frameId !== {done[0]} && window.__occufly_review.frame && window.__occufly_review.frame.id !== {done[0]}")
+    assert live.client("reviewer").get(f"/api/frames/{done[0]}").json()["state"] == "accepted"
+    assert page.evaluate("() => window.__occufly_review.frameId") != done[0]
+    assert cur < len(order)
+    shot(page, "17_07_reviewer_legend_zoom")

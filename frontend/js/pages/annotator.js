@@ -9,6 +9,29 @@ import { Editor } from "../paint/editor.js";
 import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
 
 const IDLE_SAVE_MS = 2500;
+const PREFS_KEY = "occufly.annotator.prefs";
+const KEYS = [
+  ["B / E / P / F / H", "brush / eraser / polygon / flood fill / pan"],
+  ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
+  [", / .", "previous / next class (reaches every class)"],
+  ["[ / ]", "brush size smaller / larger (kept between frames)"],
+  ["+ / − / Home", "zoom in / out / fit; wheel zooms at the cursor"],
+  ["arrows, Space+drag, middle drag", "pan"],
+  ["O", "mask on / off"],
+  ["L", "outline mode (class borders, faint insides)"],
+  ["Ctrl+Z / Ctrl+Shift+Z", "undo / redo"],
+  ["Ctrl+S / Ctrl+Enter", "save draft / submit"],
+  ["polygon: Enter, Backspace, Esc", "close and fill / remove last vertex / cancel"],
+  ["?", "this help"],
+];
+
+function loadPrefs() {
+  try {
+    return JSON.parse(localStorage.getItem(PREFS_KEY) || "{}") || {};
+  } catch {
+    return {};
+  }
+}
 
 export async function mount(root, ctx) {
   const page = new AnnotatorPage(root, ctx);
@@ -31,6 +54,8 @@ class AnnotatorPage {
     this.saving = null;
     this.idleTimer = null;
     this.stats = { openMs: null, saves: [] };
+    this.prefs = loadPrefs(); // tool, brush size, opacity, outline, hidden classes: kept between frames
+    this.skipped = [];
     this._listeners = [];
     window.__occufly = { page: this }; // used by the e2e tests and bench/bench_browser.py
   }
@@ -56,6 +81,9 @@ class AnnotatorPage {
     if (want) this.sceneSel.value = want;
     this.sceneSel.addEventListener("change", () => this.ctx.setParams({ scene: this.sceneSel.value, frame: null }));
     this.nextBtn = el("button", { type: "button", class: "primary", id: "next-frame", onclick: () => this.next() }, "Next frame");
+    this.skipBtn = el("button", { type: "button", id: "skip", disabled: true, onclick: () => this.skip(), title: "Give this frame back to the queue (saved work stays) and take the next one" }, "Skip");
+    this.queueEl = el("span", { class: "queue-pos", id: "queue-pos" }, "");
+    this.helpBtn = el("button", { type: "button", id: "help", title: "Keyboard shortcuts (?)", onclick: () => this.showHelp() }, "?");
     this.frameInfo = el("span", { class: "frame-info", id: "frame-info" }, "No frame open");
     this.saveState = el("span", { class: "save-state", id: "save-state", role: "status" }, "");
     this.paintedEl = el("span", { class: "painted", id: "painted" }, "");
@@ -67,13 +95,15 @@ class AnnotatorPage {
     this.paletteEl = el("div", { class: "palette", role: "radiogroup", "aria-label": "Class palette" });
     this.sideEl = el("div", { class: "side-info" });
     this.versionsEl = el("div", { class: "side-versions" });
+    this.progressEl = el("details", { class: "progress-box", id: "scene-progress" }, el("summary", {}, "Scene progress"));
+    this.progressEl.addEventListener("toggle", () => this.progressEl.open && this.loadProgress());
     this.statusEl = el("div", { class: "statusline", id: "status" }, "");
     this.root.append(
       el(
         "section",
         { class: "annotator", "aria-label": "Annotator" },
-        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.frameInfo, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.prefillBtn, this.draftBtn, this.submitBtn),
-        el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right", "aria-label": "Classes and review comments" }, this.sideEl, el("h2", {}, "Classes"), this.paletteEl, this.versionsEl)),
+        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.skipBtn, this.frameInfo, this.queueEl, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.prefillBtn, this.draftBtn, this.submitBtn, this.helpBtn),
+        el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right", "aria-label": "Classes and review comments" }, this.sideEl, el("h2", {}, "Classes"), this.paletteEl, this.versionsEl, this.progressEl)),
         this.statusEl,
       ),
     );
@@ -144,7 +174,8 @@ class AnnotatorPage {
     if (this.frame && this.unsaved) await this.save("draft");
     this.nextBtn.disabled = true;
     try {
-      const f = await api.post(`/scenes/${this.sceneSel.value}/next`);
+      const q = this.skipped.length ? "?" + this.skipped.map((id) => `skip=${id}`).join("&") : "";
+      const f = await api.post(`/scenes/${this.sceneSel.value}/next${q}`);
       if (!f) {
         toast("The queue is empty: every selected frame is taken or done.");
         this.host.replaceChildren(el("p", { class: "empty-hint" }, "The annotation queue is empty. Thank you!"));
@@ -157,6 +188,64 @@ class AnnotatorPage {
     } finally {
       this.nextBtn.disabled = false;
     }
+  }
+
+  /** Skip: save, release the lease, take the next frame (this one is not offered again now). */
+  async skip() {
+    if (!this.frame) return;
+    const f = this.frame;
+    try {
+      if (this.unsaved) await this.save("draft");
+      if (!this.readOnly) await api.post(`/frames/${f.id}/release`);
+      if (!this.skipped.includes(f.id)) this.skipped.push(f.id);
+      toast(`Skipped ${f.name}; it stays in the queue for later.`);
+      await this.next();
+    } catch (e) {
+      showError(e);
+    }
+  }
+
+  showHelp() {
+    return dialog({
+      title: "Keyboard shortcuts",
+      body: el("table", { class: "keys", id: "hotkeys" }, el("tbody", {}, KEYS.map(([k, v]) => el("tr", {}, el("th", { scope: "row" }, el("kbd", {}, k)), el("td", {}, v))))),
+      buttons: [{ label: "Close", value: null, primary: true }],
+    });
+  }
+
+  /** Per-scene progress (selected frames by state) and per annotator; "frame 7 of 23". */
+  async loadProgress() {
+    const sid = this.sceneSel.value;
+    let frames;
+    try {
+      frames = ((await api.get(`/scenes/${sid}/frames`)) || []).filter((f) => f.selected);
+    } catch (e) {
+      this.queueEl.textContent = "";
+      return;
+    }
+    this.queueFrames = frames;
+    const order = ["unassigned", "in_progress", "submitted", "accepted", "rejected"];
+    const label = { unassigned: "to do", in_progress: "in progress", submitted: "submitted", accepted: "accepted", rejected: "rejected" };
+    const count = (rows) => Object.fromEntries(order.map((s) => [s, rows.filter((f) => f.state === s).length]));
+    const all = count(frames);
+    const me = this.ctx.session?.user?.username;
+    const who = (f) => f.assignee || f.last_annotator || null;
+    const people = [...new Set(frames.map(who).filter(Boolean))].sort();
+    const left = all.unassigned + all.in_progress + all.rejected;
+    if (this.frame) {
+      const i = frames.findIndex((f) => f.id === this.frame.id);
+      this.queueEl.textContent = i >= 0 ? `frame ${i + 1} of ${frames.length} · ${left} left to do` : `not a selected frame · ${left} of ${frames.length} left`;
+    } else this.queueEl.textContent = `${left} of ${frames.length} frames left`;
+    this.queueEl.dataset.left = String(left);
+    this.queueEl.dataset.total = String(frames.length);
+    if (!this.progressEl.open) return;
+    const bar = el("div", { class: "state-bar", role: "img", "aria-label": order.map((s) => `${all[s]} ${label[s]}`).join(", ") }, order.filter((s) => all[s]).map((s) => el("span", { class: `seg st-${s}`, style: { flexGrow: String(all[s]) }, title: `${all[s]} ${label[s]}` })));
+    const rows = [{ name: "all", ...all }, ...people.map((p) => ({ name: p === me ? `${p} (you)` : p, ...count(frames.filter((f) => who(f) === p)) }))];
+    this.progressEl.replaceChildren(
+      el("summary", {}, "Scene progress"),
+      bar,
+      el("table", { class: "progress-table", id: "progress-table" }, el("thead", {}, el("tr", {}, el("th", {}, ""), order.map((s) => el("th", { scope: "col", title: label[s] }, label[s])))), el("tbody", {}, rows.map((r) => el("tr", { "data-who": r.name }, el("th", { scope: "row" }, r.name), order.map((s) => el("td", { "data-state": s }, String(r[s]))))))),
+    );
   }
 
   async open(fid) {
@@ -211,7 +300,10 @@ class AnnotatorPage {
     ed.view.overlay.focus({ preventScroll: true });
     this.frameInfo.textContent = `${frame.name} · ${W}×${H} · ${frame.state}`;
     this.opening = null;
+    this.applyPrefs();
     this.setReadOnly(this.readOnlyReason(frame));
+    this.skipBtn.disabled = false;
+    this.loadProgress();
     this.updatePainted();
     this.updateSaveState();
     await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
@@ -275,6 +367,32 @@ class AnnotatorPage {
     }
   }
 
+  /** Tool, brush size, opacity, outline mode and hidden classes carry over to the next frame. */
+  applyPrefs() {
+    const ed = this.editor;
+    const p = this.prefs;
+    if (p.size) ed.setSize(p.size);
+    if (p.opacity != null) ed.setOpacity(p.opacity);
+    if (p.tool && ed.tools[p.tool]) ed.setTool(p.tool);
+    if (p.outline || (p.hidden && p.hidden.length)) {
+      ed.mask.hidden = new Set(p.hidden || []);
+      ed.mask.lut = ed.mask.baseLut.slice();
+      for (const id of ed.mask.hidden) ed.mask.lut[id] = 0;
+      ed.mask.setStyle(p.outline ? "outline" : "fill");
+    }
+    this.outlineBox.checked = !!p.outline;
+    this.paletteEl.querySelectorAll(".eye").forEach((b) => b.setAttribute("aria-pressed", String(!ed.mask.hidden.has(Number(b.dataset.class)))));
+  }
+
+  savePrefs(patch) {
+    Object.assign(this.prefs, patch);
+    try {
+      localStorage.setItem(PREFS_KEY, JSON.stringify(this.prefs));
+    } catch {
+      /* private mode: keep them for this page only */
+    }
+  }
+
   buildTools() {
     const ed = this.editor;
     const btns = Object.values(ed.tools).map((t) =>
@@ -301,14 +419,41 @@ class AnnotatorPage {
     };
     ed.history.changed.add(refreshUndo);
     refreshUndo();
-    ed.signals.toolChanged.add((name) => btns.forEach((b) => b.setAttribute("aria-pressed", String(b.dataset.tool === name))));
+    ed.signals.toolChanged.add((name) => {
+      btns.forEach((b) => b.setAttribute("aria-pressed", String(b.dataset.tool === name)));
+      if (!this.readOnly) this.savePrefs({ tool: name });
+    });
+    const zoom = el("output", { id: "zoom-level", title: "Zoom (+ / − / Home)" }, "");
+    const showZoom = () => (zoom.textContent = `${Math.round(ed.view.scale * 100)} %`);
+    ed.view.transformChanged.add(() => {
+      showZoom();
+      this.drawMinimap();
+    });
+    showZoom();
+    this.outlineBox = el("input", { type: "checkbox", id: "outline" });
+    this.outlineBox.addEventListener("change", () => this.setOutline(this.outlineBox.checked));
+    this.minimap = el("canvas", { id: "minimap", class: "minimap", title: "Overview: click to move the view there", width: 150, height: 100 });
+    this.minimap.addEventListener("click", (e) => {
+      const r = this.minimap.getBoundingClientRect();
+      const k = this.minimapScale;
+      if (!k) return;
+      const v = ed.view;
+      const ix = (e.clientX - r.left) / k, iy = (e.clientY - r.top) / k;
+      v.tx = v.cssW / 2 - ix * v.scale;
+      v.ty = v.cssH / 2 - iy * v.scale;
+      v.invalidate();
+      v.transformChanged.dispatch();
+    });
+    this._zoomEl = zoom;
     ed.signals.sizeChanged.add((s) => {
       size.value = s;
       sizeOut.textContent = `${s} px`;
+      this.savePrefs({ size: s });
     });
     ed.signals.opacityChanged.add((a) => {
       op.value = Math.round(a * 100);
       opOut.textContent = `${Math.round(a * 100)} %`;
+      this.savePrefs({ opacity: a });
     });
     this.toolsEl.replaceChildren(
       ...btns,
@@ -319,7 +464,48 @@ class AnnotatorPage {
       op,
       el("label", { for: "tolerance" }, "Flood tolerance ", tolOut),
       tol,
+      el("label", { for: "outline", class: "check" }, this.outlineBox, " Outline mode (L)"),
+      el("div", { class: "row" }, el("span", { class: "muted" }, "Zoom"), zoom),
+      this.minimap,
     );
+    requestAnimationFrame(() => this.drawMinimap());
+  }
+
+  setOutline(on) {
+    this.editor.mask.setStyle(on ? "outline" : "fill");
+    this.outlineBox.checked = on;
+    this.savePrefs({ outline: on });
+  }
+
+  toggleClass(id) {
+    const m = this.editor.mask;
+    const hidden = new Set(m.hidden);
+    if (hidden.has(id)) hidden.delete(id);
+    else hidden.add(id);
+    m.setHidden(hidden);
+    this.savePrefs({ hidden: [...hidden] });
+    this.paletteEl.querySelectorAll(".eye").forEach((b) => b.setAttribute("aria-pressed", String(!hidden.has(Number(b.dataset.class)))));
+  }
+
+  /** The photo scaled into the minimap with the visible part of the view as a rectangle. */
+  drawMinimap() {
+    const c = this.minimap;
+    const ed = this.editor;
+    if (!c || !ed) return;
+    const v = ed.view;
+    const k = Math.min(c.width / v.width, c.height / v.height);
+    this.minimapScale = k;
+    const g = c.getContext("2d");
+    g.fillStyle = "#2b2f36";
+    g.fillRect(0, 0, c.width, c.height);
+    if (ed.photo) g.drawImage(ed.photo, 0, 0, v.width * k, v.height * k);
+    g.globalAlpha = 0.6;
+    g.drawImage(ed.mask.canvas, 0, 0, v.width * k, v.height * k);
+    g.globalAlpha = 1;
+    const [x0, y0] = [-v.tx / v.scale, -v.ty / v.scale];
+    g.strokeStyle = "#ffbf47";
+    g.lineWidth = 2;
+    g.strokeRect(x0 * k, y0 * k, (v.cssW / v.scale) * k, (v.cssH / v.scale) * k);
   }
 
   buildPalette(classes) {
@@ -335,8 +521,12 @@ class AnnotatorPage {
       ),
     );
     items.forEach((b) => b.addEventListener("click", () => ed.selectClass(Number(b.dataset.class))));
+    // per-class hide / show (the colour layer only; the ids stay)
+    const rows = items.map((b, i) =>
+      el("div", { class: "palette-row" }, b, el("button", { type: "button", class: "eye", "data-class": classes[i].id, "aria-pressed": "true", title: `Show / hide ${classes[i].name}`, "aria-label": `Show ${classes[i].name}`, onclick: () => this.toggleClass(classes[i].id) }, "◉")),
+    );
     ed.signals.classChanged.add((id) => items.forEach((b) => b.setAttribute("aria-checked", String(Number(b.dataset.class) === id))));
-    this.paletteEl.replaceChildren(...items);
+    this.paletteEl.replaceChildren(...rows);
   }
 
   buildSide() {
@@ -457,6 +647,16 @@ class AnnotatorPage {
       return;
     }
     if (t && t.tagName === "BUTTON" && (e.key === " " || e.key === "Enter")) return;
+    if (e.type === "keydown" && e.key === "?") {
+      e.preventDefault();
+      this.showHelp();
+      return;
+    }
+    if (e.type === "keydown" && (e.key === "l" || e.key === "L") && !e.ctrlKey && !e.metaKey) {
+      e.preventDefault();
+      this.setOutline(!this.outlineBox.checked);
+      return;
+    }
     if (this.editor.handleKey(e)) e.preventDefault();
   }
 
@@ -474,6 +674,7 @@ class AnnotatorPage {
     setTimeout(() => {
       this._paintedPending = false;
       this.updatePainted();
+      this.drawMinimap();
     }, 200);
   }
 
@@ -663,6 +864,7 @@ class AnnotatorPage {
         this.frame.assignee = null;
         this.setReadOnly(this.readOnlyReason(this.frame));
         this.updateSaveState(`Submitted (version ${n})`);
+        this.loadProgress();
       }
     } catch (e) {
       showError(e);

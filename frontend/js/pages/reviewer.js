@@ -40,6 +40,9 @@ class ReviewerPage {
     this.pin = null;
     this.opacity = { image: 1, mask: 0.5, render: 0, disagreement: 0.8 };
     this.loadSeq = 0;
+    this.view = { z: 1, px: 0, py: 0 }; // linked zoom / pan of every panel (image fractions)
+    this.autoAdvance = true;
+    window.__occufly_review = this; // for the e2e tests
   }
 
   async start() {
@@ -70,6 +73,8 @@ class ReviewerPage {
         this.detailEl,
       ),
     );
+    this._onKey = (e) => this.onKey(e);
+    document.addEventListener("keydown", this._onKey);
     if (!scenes.length) {
       this.listEl.replaceChildren(el("p", {}, "No scenes yet."));
       return;
@@ -80,6 +85,44 @@ class ReviewerPage {
 
   unmount() {
     this.loadSeq++;
+    document.removeEventListener("keydown", this._onKey);
+  }
+
+  /** A accept, R reject (needs a comment), N / J next and P / K previous frame, 0 reset zoom. */
+  onKey(e) {
+    const t = e.target;
+    if (e.ctrlKey || e.metaKey || e.altKey) return;
+    if (t && (t.tagName === "TEXTAREA" || t.tagName === "INPUT" || t.tagName === "SELECT")) {
+      if (e.key === "Escape") t.blur();
+      return;
+    }
+    if (document.querySelector("dialog[open]") || !this.frame) return;
+    const k = e.key.toLowerCase();
+    if (k === "a") this.decide("accept");
+    else if (k === "r") this.decide("reject");
+    else if (k === "n" || k === "j") this.step(1);
+    else if (k === "p" || k === "k") this.step(-1);
+    else if (k === "0") this.resetView();
+    else return;
+    e.preventDefault();
+  }
+
+  /** Open the frame `d` rows below (above) the current one in the list; false at the end. */
+  step(d) {
+    const rows = this.frames || [];
+    const i = rows.findIndex((f) => String(f.id) === String(this.frameId));
+    const j = i + d;
+    if (j < 0 || j >= rows.length) {
+      toast(d > 0 ? "That was the last frame in the list." : "This is the first frame in the list.");
+      return false;
+    }
+    this.openFrame(rows[j].id);
+    return true;
+  }
+
+  resetView() {
+    this.view = { z: 1, px: 0, py: 0 };
+    this.paint();
   }
 
   async loadList() {
@@ -190,6 +233,7 @@ class ReviewerPage {
         ...modeBtns,
       ),
       this.panelsEl,
+      this.legend(),
       el(
         "div",
         { class: "review-actions" },
@@ -200,9 +244,17 @@ class ReviewerPage {
           "div",
           { class: "row" },
           el("button", { type: "button", id: "pin-comment", onclick: () => this.pinComment().then((it) => it && this.renderDetail()).catch(showError) }, "Pin comment"),
-          el("button", { type: "button", id: "accept", class: "primary", onclick: () => this.decide("accept") }, "Accept"),
-          el("button", { type: "button", id: "reject", class: "danger", onclick: () => this.decide("reject") }, "Reject with comment"),
+          el("button", { type: "button", id: "accept", class: "primary", title: "Accept (A)", onclick: () => this.decide("accept") }, "Accept ", el("kbd", {}, "A")),
+          el("button", { type: "button", id: "reject", class: "danger", title: "Reject with comment (R)", onclick: () => this.decide("reject") }, "Reject with comment ", el("kbd", {}, "R")),
+          el("button", { type: "button", id: "next-review", title: "Next frame in the list (N)", onclick: () => this.step(1) }, "Next ", el("kbd", {}, "N")),
+          el("label", { class: "check" }, (() => {
+            const b = el("input", { type: "checkbox", id: "auto-advance" });
+            b.checked = this.autoAdvance;
+            b.addEventListener("change", () => (this.autoAdvance = b.checked));
+            return b;
+          })(), " go to the next frame after a decision"),
         ),
+        el("p", { class: "muted keys-hint" }, "Keys: A accept · R reject · N / P next / previous frame · wheel zooms all panels together, drag pans them · 0 resets the zoom."),
       ),
       perClass.length
         ? el(
@@ -227,6 +279,25 @@ class ReviewerPage {
       this.itemsList(),
     );
     this.drawPanels();
+  }
+
+  /** Which colour is which class, and what the disagreement overlay's colours mean. */
+  legend() {
+    const present = new Set(Object.values((this.agreement && this.agreement.per_class) || {}).map((v) => v && v.id).filter((v) => v != null));
+    const shown = this.classes.filter((c) => present.size === 0 || present.has(c.id));
+    return el(
+      "div",
+      { class: "legend", id: "legend" },
+      el("div", { class: "legend-classes" }, el("strong", {}, present.size ? "Classes in this frame: " : "Classes: "), shown.map((c) => el("span", { class: "legend-item", "data-class": c.id }, el("span", { class: "swatch", style: { background: `rgb(${c.rgb.join(",")})` } }), c.name))),
+      el(
+        "div",
+        { class: "legend-dis" },
+        el("strong", {}, "Disagreement panel: "),
+        el("span", { class: "legend-item" }, el("span", { class: "swatch dis-class" }), "opaque class colour = the 3D labels' class where it differs from the painting"),
+        el("span", { class: "legend-item" }, el("span", { class: "swatch dis-gap" }), "grey = painted, but no 3D label there"),
+        el("span", { class: "legend-item" }, el("span", { class: "swatch dis-none" }), "clear = they agree, or nothing painted"),
+      ),
+    );
   }
 
   itemsList() {
@@ -281,7 +352,14 @@ class ReviewerPage {
       this.canvases.push({ c, layers: null });
     }
     for (const { c } of this.canvases) {
-      c.addEventListener("click", (e) => this.onPick(e, c));
+      this.bindZoomPan(c);
+      c.addEventListener("click", (e) => {
+        if (this._suppressClick) {
+          this._suppressClick = false;
+          return;
+        }
+        this.onPick(e, c);
+      });
       c.addEventListener("keydown", (e) => this.onPinKey(e));
       c.tabIndex = 0;
       c.title = "Click, or use the arrow keys (Shift = 10 px), to pin a comment to a pixel";
@@ -291,8 +369,48 @@ class ReviewerPage {
 
   /** Fit the W x H frame into the canvas; returns {s, ox, oy}. */
   fitOf(c) {
-    const s = Math.min(c.width / this.W, c.height / this.H);
-    return { s, ox: (c.width - this.W * s) / 2, oy: (c.height - this.H * s) / 2 };
+    const base = Math.min(c.width / this.W, c.height / this.H);
+    const { z, px, py } = this.view;
+    const s = base * z;
+    // (px, py): the image point (as a fraction) at the canvas centre is shifted by that much
+    return { s, ox: (c.width - this.W * s) / 2 - px * this.W * s, oy: (c.height - this.H * s) / 2 - py * this.H * s };
+  }
+
+  /** Wheel zooms every panel at the cursor; a drag pans them all (a click still pins). */
+  bindZoomPan(c) {
+    c.addEventListener("wheel", (e) => {
+      e.preventDefault();
+      const r = c.getBoundingClientRect();
+      const f = this.fitOf(c);
+      const mx = (e.clientX - r.left) * (c.width / r.width), my = (e.clientY - r.top) * (c.height / r.height);
+      const ix = (mx - f.ox) / f.s, iy = (my - f.oy) / f.s; // image px under the cursor
+      const z = Math.min(40, Math.max(1, this.view.z * (e.deltaY < 0 ? 1.25 : 0.8)));
+      const base = f.s / this.view.z;
+      const s = base * z;
+      // keep (ix, iy) under the cursor
+      this.view = { z, px: ((c.width - this.W * s) / 2 - mx + ix * s) / (this.W * s), py: ((c.height - this.H * s) / 2 - my + iy * s) / (this.H * s) };
+      if (z === 1) this.view = { z: 1, px: 0, py: 0 };
+      this.paint();
+    }, { passive: false });
+    c.addEventListener("pointerdown", (e) => {
+      if (e.button !== 0) return;
+      this._drag = { x: e.clientX, y: e.clientY, px: this.view.px, py: this.view.py, moved: false, c };
+    });
+    c.addEventListener("pointermove", (e) => {
+      const d = this._drag;
+      if (!d || d.c !== c) return;
+      const dx = e.clientX - d.x, dy = e.clientY - d.y;
+      if (!d.moved && Math.hypot(dx, dy) < 4) return;
+      d.moved = true;
+      const r = c.getBoundingClientRect();
+      const f = this.fitOf(c);
+      this.view = { ...this.view, px: d.px - (dx * (c.width / r.width)) / (this.W * f.s), py: d.py - (dy * (c.height / r.height)) / (this.H * f.s) };
+      this.paint();
+    });
+    c.addEventListener("pointerup", () => {
+      if (this._drag && this._drag.moved) this._suppressClick = true;
+      this._drag = null;
+    });
   }
 
   paint() {
@@ -389,7 +507,18 @@ class ReviewerPage {
       if (fresh) this.items = fresh;
       toast(decision === "accept" ? `Accepted ${this.frame.name}.` : `Rejected ${this.frame.name}; it goes back to its annotator.`);
       this.renderDetail();
-      this.loadList();
+      // auto-advance: the next frame still waiting for review, after this one in the list
+      // (wrapping around to the top), else stay
+      const before = (this.frames || []).map((r) => String(r.id));
+      const i = before.indexOf(String(this.frame.id));
+      await this.loadList();
+      if (this.autoAdvance) {
+        const waiting = (this.frames || []).filter((r) => r.state === "submitted" && String(r.id) !== String(this.frame.id));
+        const pos = (r) => { const k = before.indexOf(String(r.id)); return k < 0 ? Infinity : (k - i + before.length) % before.length; };
+        const nextRow = waiting.sort((x, y) => pos(x) - pos(y))[0];
+        if (nextRow) await this.openFrame(nextRow.id);
+        else toast("No other frame is waiting for review.");
+      }
     } catch (e) {
       showError(e);
     }

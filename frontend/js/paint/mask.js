@@ -32,6 +32,9 @@ export class MaskModel {
     this.height = height;
     this.ids = new Uint8Array(width * height);
     this.lut = buildLut(classes);
+    this.baseLut = this.lut.slice(); // the taxonomy colours; `lut` also applies hidden classes
+    this.style = "fill"; // or "outline": class borders opaque, insides faint (tell dark red from red)
+    this.hidden = new Set();
     this.canvas = document.createElement("canvas");
     this.canvas.width = width;
     this.canvas.height = height;
@@ -65,11 +68,26 @@ export class MaskModel {
     this.changed.dispatch({ x0: 0, y0: 0, x1: this.width, y1: this.height });
   }
 
+  /** Hide / show classes in the colour layer (the ids are untouched). */
+  setHidden(ids) {
+    this.hidden = new Set(ids);
+    this.lut = this.baseLut.slice();
+    for (const id of this.hidden) this.lut[id] = 0;
+    this.refresh(0, 0, this.width, this.height);
+  }
+
+  /** "fill" (default) or "outline": borders between classes opaque, insides at ~20 %. */
+  setStyle(style) {
+    this.style = style === "outline" ? "outline" : "fill";
+    this.refresh(0, 0, this.width, this.height);
+  }
+
   /**
    * Recolour the canvas in a rectangle (exclusive ends) from the ids and notify views.
    * Returns the number of painted (non-zero) pixels in the rectangle.
    */
   refresh(x0, y0, x1, y1) {
+    if (this.style === "outline") return this._refreshOutline(x0, y0, x1, y1);
     x0 = Math.max(0, Math.floor(x0));
     y0 = Math.max(0, Math.floor(y0));
     x1 = Math.min(this.width, Math.ceil(x1));
@@ -92,6 +110,42 @@ export class MaskModel {
     }
     this.ctx.putImageData(img, x0, y0);
     this.changed.dispatch({ x0, y0, x1, y1 });
+    return n;
+  }
+
+  _refreshOutline(x0, y0, x1, y1) {
+    // a pixel's border state depends on its neighbours: widen the rectangle by one
+    x0 = Math.max(0, Math.floor(x0) - 1);
+    y0 = Math.max(0, Math.floor(y0) - 1);
+    x1 = Math.min(this.width, Math.ceil(x1) + 1);
+    y1 = Math.min(this.height, Math.ceil(y1) + 1);
+    const rw = x1 - x0;
+    const rh = y1 - y0;
+    if (rw <= 0 || rh <= 0) return 0;
+    const img = new ImageData(rw, rh);
+    const out = new Int32Array(img.data.buffer);
+    const { ids, lut, width, height } = this;
+    const faint = 0x33 << 24;
+    let n = 0;
+    for (let y = 0; y < rh; y++) {
+      const yy = y0 + y;
+      const s = yy * width + x0;
+      const d = y * rw;
+      for (let x = 0; x < rw; x++) {
+        const i = s + x;
+        const v = ids[i];
+        if (v === 0) continue;
+        n++;
+        const xx = x0 + x;
+        const edge = (xx > 0 && ids[i - 1] !== v) || (xx < width - 1 && ids[i + 1] !== v) || (yy > 0 && ids[i - width] !== v) || (yy < height - 1 && ids[i + width] !== v);
+        const c = lut[v];
+        out[d + x] = edge || c === 0 ? c : (c & 0x00ffffff) | faint;
+      }
+    }
+    this.ctx.putImageData(img, x0, y0);
+    this.changed.dispatch({ x0, y0, x1, y1 });
+    // the count covers the widened rectangle; callers that need the exact painted number of
+    // the asked rectangle (setAll) recount below
     return n;
   }
 

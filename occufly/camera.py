@@ -304,6 +304,14 @@ def camera_center(T_cam_world: np.ndarray) -> np.ndarray:
     return -R.T @ T_cam_world[:3, 3]
 
 
+def pose_in_world(T_cam_local: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(4, 4) world-to-camera in scene-local coordinates (world = origin + local) -> the same
+    pose in world (e.g. UTM) coordinates: t_world = t - R @ origin."""
+    T = np.array(T_cam_local, dtype=np.float64)
+    T[:3, 3] -= T[:3, :3] @ np.asarray(origin, dtype=np.float64)
+    return T
+
+
 def viewing_direction(T_cam_world: np.ndarray) -> np.ndarray:
     """(4, 4) world-to-camera -> (3,) unit vector of the optical axis in world coordinates."""
     return T_cam_world[2, :3].copy()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occufly.camera import transform
+from occufly.camera import pose_in_world, transform
 from occufly.errors import InputFormatError
 from occufly.io.importer import import_scene
 from occufly.scene import Scene
@@ -54,12 +54,7 @@ def imported(synth, tmp_path_factory):
 
 
 def _world_poses(scene: Scene) -> list[np.ndarray]:
-    out = []
-    for f in scene.frames:
-        T = f.T_cam_world.copy()
-        T[:3, 3] -= T[:3, :3] @ scene.origin
-        out.append(T)
-    return out
+    return [pose_in_world(f.T_cam_world, scene.origin) for f in scene.frames]
 
 
 def test_layouts_are_each_tools(synth):

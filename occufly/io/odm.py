@@ -113,18 +113,6 @@ def opensfm_camera(c: dict, where: str, size: tuple[int, int] | None = None) -> 
     return Camera("BROWN", w, h, [fx, fy, cx, cy, 0.0, k1, k2, k3, 0.0, p1, p2])
 
 
-def _rotvec(v, where: str) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    try:
-        a = np.asarray(v, dtype=np.float64).reshape(3)
-    except (TypeError, ValueError):
-        raise InputFormatError(f"{where}: expected 3 numbers, got {v!r}") from None
-    if not np.isfinite(a).all():
-        raise InputFormatError(f"{where}: not finite")
-    return Rotation.from_rotvec(a).as_matrix()
-
-
 def _vec3(v, where: str) -> np.ndarray:
     try:
         a = np.asarray(v, dtype=np.float64).reshape(3)
@@ -133,6 +121,13 @@ def _vec3(v, where: str) -> np.ndarray:
     if not np.isfinite(a).all():
         raise InputFormatError(f"{where}: not finite")
     return a
+
+
+def _rotvec(v, where: str) -> np.ndarray:
+    """Axis-angle (3,) -> (3, 3) rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(_vec3(v, where)).as_matrix()
 
 
 def read_coords(path: Path) -> tuple[object, np.ndarray, np.ndarray]:

@@ -167,8 +167,16 @@ def viewer_callbacks(ctx: AppContext) -> dict:
             return None
         return stored_mask_ids(ctx.store.get(row[0]), ctx.load_scene(row[1]).taxonomy)
 
+    def frame_index(scene_id, frame_id):  # noqa: ANN001, ANN202 - ?frame=<frame id> -> index
+        if not str(frame_id).isdigit() or not str(scene_id).isdigit():
+            return None
+        with ctx.sessions() as s:
+            return s.scalar(select(Frame.index).where(Frame.scene_id == int(scene_id),
+                                                      Frame.id == int(frame_id)))
+
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
-            "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx)}
+            "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx),
+            "frame_index": frame_index}
 
 
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
@@ -187,6 +195,8 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     accepts_all = any(p.kind is p.VAR_KEYWORD for p in params.values())
     kw = {k: v for k, v in hooks.items() if accepts_all or k in params}
     mount(app, settings=ctx.settings, authorize=authorize_viewer(ctx), **kw)
+    if getattr(app.state, "viewer", None) is not None:  # resolves "Open in 3D" (?frame=<id>)
+        app.state.viewer.frame_index = hooks["frame_index"]
 
 
 def _mount_frontend(app: FastAPI, settings: Settings) -> None:

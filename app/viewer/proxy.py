@@ -33,6 +33,7 @@ from app.viewer.server import TICKET_HEADER, ViewerService
 log = logging.getLogger(__name__)
 
 SCENE_COOKIE = "occufly_viewer_scene"
+FRAME_COOKIE = "occufly_viewer_frame"  # ?frame= of the page: the viewer flies to that camera
 SESSION_COOKIE = "occufly_session"
 POLICY_VIOLATION = 1008
 
@@ -91,6 +92,13 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         scene = request.query_params.get("scene")
         if scene is not None and path in ("", "index.html"):
             resp.set_cookie(SCENE_COOKIE, scene, path=prefix, httponly=True, samesite="lax")
+            frame = request.query_params.get("frame")
+            if frame and len(frame) <= 200 and frame.replace("_", "").replace("-", "")\
+                    .replace(".", "").isalnum():
+                resp.set_cookie(FRAME_COOKIE, frame, path=prefix, httponly=True,
+                                samesite="lax")
+            else:  # a page without ?frame= must not fly to the last one
+                resp.delete_cookie(FRAME_COOKIE, path=prefix)
         return resp
 
     async def redirect(request: Request) -> Response:
@@ -114,7 +122,7 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         else:
             user = getattr(websocket.state, "user", None)
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
-        ticket = service.issue_ticket(user, scene_id)
+        ticket = service.issue_ticket(user, scene_id, websocket.cookies.get(FRAME_COOKIE))
         stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
                  "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)

@@ -55,6 +55,7 @@ STATE_COLOURS: dict[str, tuple[int, int, int]] = {
     "accepted": (0, 180, 60),
     "rejected": (230, 20, 20),
 }
+HIGHLIGHT_COLOUR = (255, 0, 200)  # the frame opened with "Open in 3D viewer"
 
 
 # ---- inputs ------------------------------------------------------------------------------

@@ -47,6 +47,7 @@ class Ticket:
     user: Any
     scene_id: str | None
     expires: float
+    frame: str | None = None  # ?frame= of the page: fly to that camera on connect
 
 
 @dataclass
@@ -69,6 +70,8 @@ class ClientState:
     frustum_handles: dict[int, Any] = field(default_factory=dict)
     selection: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     frame_index: int | None = None
+    highlighted: int | None = None  # frame whose frustum is highlighted (Open in 3D)
+    highlight_restore: tuple = ((0, 0, 0), 1.0)
     gui: dict[str, Any] = field(default_factory=dict)
     class_boxes: dict[int, Any] = field(default_factory=dict)
     lock: threading.RLock = field(default_factory=threading.RLock)
@@ -105,6 +108,9 @@ class ViewerService:
         self.scenes = scenes
         self.frame_states = frame_states
         self.frame_mask = frame_mask
+        # frame_index(scene_id, frame) -> frame index or None: resolves the page's ?frame=
+        # (the app's frame id); without it ?frame= is a frame index or a frame's stem
+        self.frame_index: Callable[[str, str], int | None] | None = None
         self.on_review_item = on_review_item
         self.max_points = int(max_points)
         # a scene showing more than 4x this many points first gets a stratified preview of
@@ -170,14 +176,14 @@ class ViewerService:
             self._clients.clear()
 
     # ---- tickets ---------------------------------------------------------------------------
-    def issue_ticket(self, user: Any, scene_id: str | None) -> str:
+    def issue_ticket(self, user: Any, scene_id: str | None, frame: str | None = None) -> str:
         """A one-time token the proxy sends upstream; valid for :data:`TICKET_TTL_S`."""
         tok = secrets.token_urlsafe(24)
         now = time.monotonic()
         with self._lock:
             for k in [k for k, t in self._tickets.items() if t.expires < now]:
                 del self._tickets[k]
-            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S)
+            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S, frame)
         return tok
 
     def _take_ticket(self, client_id: int) -> Ticket | None:
@@ -246,6 +252,12 @@ class ViewerService:
         self._build_gui(st, scenes, scene_id)
         if scene_id is not None:
             self.open_scene(st, scene_id)
+            if ticket is not None and ticket.frame and st.data is not None:
+                idx = self.resolve_frame(scene_id, ticket.frame, st.data)
+                if idx is None:
+                    st.gui["cam_info"].content = f"Frame {ticket.frame} is not in this scene."
+                else:
+                    self.focus_frame(st, idx)
         else:
             st.gui["status"].content = "No scene has been imported yet."
             st.ready.set()
@@ -276,6 +288,7 @@ class ViewerService:
         g["classes"] = gui.add_folder("Classes")
         with gui.add_folder("Voxel grids", expand_by_default=False):
             g["grid_scene"] = gui.add_checkbox("Scene grid", initial_value=False)
+            g["grid_info"] = gui.add_markdown("")
             g["grid_frame"] = gui.add_dropdown("Camera grid of frame", ["(none)"])
             g["grid_surface"] = gui.add_checkbox("Surface voxels only", initial_value=False)
         with gui.add_folder("Review"):
@@ -317,6 +330,17 @@ class ViewerService:
 
         @g["grid_scene"].on_update
         def _(_e: Any) -> None:
+            if g["grid_scene"].value and st.data is not None and st.data.grid is None:
+                # before voxelize there is no grid: say so instead of silently doing nothing
+                msg = ("This scene has no voxel grid yet: run **Voxelize scene** on the admin "
+                       "page first, then tick *Scene grid* again.")
+                g["grid_info"].content = msg
+                st.client.add_notification("No scene grid yet", msg.replace("**", "")
+                                           .replace("*", ""), color="yellow",
+                                           auto_close_seconds=8.0)
+                g["grid_scene"].value = False
+                return
+            g["grid_info"].content = ""
             self.send_grids(st)
 
         @g["grid_frame"].on_update
@@ -487,6 +511,9 @@ class ViewerService:
                     self.show_frame(st, idx)
 
                 h.on_click(clicked)
+            if st.highlighted is not None:  # new handles: highlight the focused frame again
+                idx, st.highlighted = st.highlighted, None
+                self.highlight_frustum(st, idx)
 
     def send_grids(self, st: ClientState) -> None:
         with st.lock:
@@ -541,6 +568,49 @@ class ViewerService:
         if mask is not None:
             rgb = d.taxonomy.colour_lut()[np.asarray(mask, np.uint8)]
             st.gui["mask"] = gui.add_image(_thumb(rgb), label="mask", format="png")
+
+    def resolve_frame(self, scene_id: str, frame: str, data: sb.ViewerData) -> int | None:
+        """The frame index named by a page's ``?frame=`` (app frame id via the hook, else a
+        frame index or stem); None when it is not a frame of the scene."""
+        n = len(data.scene.frames)
+        if self.frame_index is not None:
+            try:
+                idx = self.frame_index(scene_id, frame)
+            except Exception:  # noqa: BLE001 - a bad id is just not found
+                log.exception("viewer: frame_index(%s, %s)", scene_id, frame)
+                idx = None
+            return int(idx) if idx is not None and 0 <= int(idx) < n else None
+        if frame.isdigit() and int(frame) < n:
+            return int(frame)
+        stems = [f.stem for f in data.scene.frames]
+        return stems.index(frame) if frame in stems else None
+
+    def focus_frame(self, st: ClientState, frame_index: int) -> None:
+        """Open in 3D: show the frame's panel, fly just behind its camera (its frustum and
+        what it sees in front) and highlight its frustum."""
+        self.show_frame(st, frame_index)
+        fr = st.data.scene.frames[frame_index]
+        T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        c, fwd, up = T[:3, 3], T[:3, 2], -T[:3, 1]
+        back = 0.12 * sb.scene_extent(st.data)
+        cam = st.client.camera
+        with st.client.atomic():
+            cam.position = tuple(c - back * fwd + 0.3 * back * up)
+            cam.look_at = tuple(c + 20.0 * fwd)
+        self.highlight_frustum(st, frame_index)
+
+    def highlight_frustum(self, st: ClientState, frame_index: int | None) -> None:
+        prev = st.highlighted
+        if prev is not None and prev in st.frustum_handles and prev != frame_index:
+            h = st.frustum_handles[prev]
+            h.color, h.scale = st.highlight_restore
+        st.highlighted = frame_index
+        h = st.frustum_handles.get(frame_index) if frame_index is not None else None
+        if h is not None:
+            if prev != frame_index:
+                st.highlight_restore = (h.color, h.scale)
+            h.color = sb.HIGHLIGHT_COLOUR
+            h.scale = 2.0 * st.highlight_restore[1]
 
     def move_to_camera(self, st: ClientState, frame_index: int) -> None:
         fr = st.data.scene.frames[frame_index]

@@ -394,3 +394,20 @@ def test_reader_refuses_code_in_a_pkl_and_bad_ids(occ, ssc, tmp_path, ws):
         open_dataset(bad2)
     with pytest.raises(ExportError, match="SSCBench"):
         export_dataset(ws, tmp_path / "v", spec=SPEC, workers=1, velodyne=True)
+
+
+def test_adding_frames_of_another_camera_to_a_scene_is_refused(tmp_path):
+    from occufly.export import ExportError
+
+    ws = make_workspace(tmp_path / "wc", n_frames=3)
+    sc = Scene.load(ws)
+    sc.frames[2].camera = Camera("PINHOLE", 64, 48, [44.0, 44.0, 32.0, 24.0])
+    sc.save(ws, overwrite=True)
+    make_grid().save(ws / "grid" / "scene_grid.npz")
+    out = tmp_path / "oc"
+    export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1])
+    cal = (out / "OccuFly_Dataset/scene_01/calibration.txt").read_bytes()
+    with pytest.raises(ExportError, match="another camera"):
+        export_dataset(ws, out, spec=SPEC, workers=1, frames=[2])
+    assert (out / "OccuFly_Dataset/scene_01/calibration.txt").read_bytes() == cal
+    assert export_dataset(ws, out, spec=SPEC, workers=1, frames=[2], scene_id="scene_02")["written"] == 1

@@ -406,6 +406,11 @@ def export_dataset(
     config = sha256_bytes(json.dumps(configs, sort_keys=True).encode())[:32]
 
     camera = scene.frames[idx[0]].camera  # one camera per exported scene (camera_groups)
+    if old and old.get("camera") not in (None, camera.to_dict()):
+        raise ExportError(
+            f"{lay.manifest_path(out, scene_id)}: scene {scene_id!r} was exported with another camera "
+            f"({old['camera']}); its calibration is one camera for every frame -- export these "
+            "frames under another --scene-id")
     depth_shape = quarter_shape(camera)
     by_alt_cam: dict[int, object] = {}
     for i in idx:

@@ -266,6 +266,17 @@ def test_sscbench_read_by_a_kitti360_style_loader(ssc, ws):
             proj = (P @ np.column_stack([pts4[:, :3], np.ones(len(pts4))]).T).T
             u, v = proj[:, 0] / proj[:, 2], proj[:, 1] / proj[:, 2]
             assert np.mean((u > -0.5) & (u < 63.5) & (v > -0.5) & (v < 47.5)) > 0.99
+            # MonoScene's preprocessing (.label + .invalid + learning_map) rebuilds _1_1 bit for bit
+            remap = np.zeros(max(cfg["learning_map"]) + 100, np.int32)
+            remap[list(cfg["learning_map"])] = list(cfg["learning_map"].values())
+            remap[remap == 0] = 255
+            remap[0] = 0
+            raw = np.fromfile(os.path.join(ssc, "data_2d_raw", seq, "voxels", fid + ".label"), np.uint16)
+            inv = np.unpackbits(np.fromfile(os.path.join(ssc, "data_2d_raw", seq, "voxels", fid + ".invalid"),
+                                            np.uint8))[: raw.size]
+            rebuilt = remap[raw.astype(np.int64)]
+            rebuilt[inv == 1] = 255
+            assert np.array_equal(rebuilt.reshape(target.shape).astype(np.uint8), target)
             # _1_8 follows the LMSCNet rule on the training ids (MonoScene's preprocessing)
             t8 = np.load(os.path.join(ssc, "preprocess", "labels", seq, fid + "_1_8.npy"))
             assert np.array_equal(t8, lmscnet_reference(target, 8))

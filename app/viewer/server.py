@@ -340,7 +340,8 @@ class ViewerService:
                                            auto_close_seconds=8.0)
                 g["grid_scene"].value = False
                 return
-            g["grid_info"].content = ""
+            if g["grid_scene"].value:  # (unticking above re-enters here: keep the note)
+                g["grid_info"].content = ""
             self.send_grids(st)
 
         @g["grid_frame"].on_update

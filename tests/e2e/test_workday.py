@@ -393,3 +393,49 @@ def test_reviewer_legend_linked_zoom_and_hotkeys_with_auto_advance(live, sid, ne
     assert page.evaluate("() => window.__occufly_review.frameId") != done[0]
     assert cur < len(order)
     shot(page, "17_07_reviewer_legend_zoom")
+
+
+def test_open_in_3d_flies_to_the_frame_and_scene_grid_before_voxelize_says_so(live, sid, new_page):
+    """Defects 8 and 11, in the viewer page reached through the reviewer's "Open in 3D" link."""
+    import time
+
+    svc = live.app.state.viewer
+    f1 = STATE["frame_1"]
+    frame = live.client("admin").get(f"/api/frames/{f1}").json()
+    page = new_page("reviewer")
+    page.goto(f"{live.base_url}/#/review?scene={sid}&frame={f1}")
+    link = page.locator("#open-3d")
+    link.wait_for()
+    href = link.get_attribute("href")
+    assert href == f"/viewer/?scene={sid}&frame={f1}"
+    before = {id(c) for c in svc.client_states()}
+    page.goto(f"{live.base_url}{href}")
+
+    def mine():
+        return next((c for c in svc.client_states() if id(c) not in before and c.scene_id == str(sid)
+                     and c.ready.is_set()), None)
+
+    t_end = time.monotonic() + 60
+    while (st := mine()) is None or st.highlighted is None:
+        assert time.monotonic() < t_end, "the viewer did not focus the frame"
+        time.sleep(0.2)
+    assert st.highlighted == frame["index"] == st.frame_index
+    h = st.frustum_handles[frame["index"]]
+    assert tuple(h.color) == (255, 0, 200)
+    # the view sits just behind that camera, looking where it looks
+    fr = st.data.scene.frames[frame["index"]]
+    T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+    cam = st.client.camera
+    to_cam = T[:3, 3] - np.asarray(cam.position)
+    assert np.linalg.norm(to_cam) < 0.2 * max(np.ptp(np.asarray(st.data.scene.xyz), axis=0).max(), 1.0)
+    assert float(np.dot(to_cam / np.linalg.norm(to_cam), T[:3, 2])) > 0.9
+    page.wait_for_function(f"() => document.body.innerText.includes('{fr.stem}')", timeout=30_000)
+    # no grid before voxelize: ticking "Scene grid" explains it and unticks
+    assert st.data.grid is None
+    page.get_by_text("Voxel grids").click()
+    box = page.locator("div.mantine-Flex-root", has=page.get_by_text("Scene grid")).locator("input").last
+    box.check()
+    page.wait_for_function("() => document.body.innerText.includes('no voxel grid yet')", timeout=15_000)
+    assert st.gui["grid_scene"].value is False and not st.grid_handles
+    assert "no voxel grid yet" in st.gui["grid_info"].content  # the note stays under the box
+    shot(page, "17_08_viewer_open_in_3d")

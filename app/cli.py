@@ -21,6 +21,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "serve", _serve, help="run the web app (uvicorn) on the configured database")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=1,
+                   help="API processes on one port (default 1). With N > 1 the processes are "
+                        "stateless uvicorn workers over the same database and the lifting "
+                        "worker runs as its own child process")
+    p.add_argument("--no-lifting-worker", action="store_true",
+                   help="with --workers N > 1: do not start the lifting worker here (run "
+                        "'occufly lifting-worker' elsewhere, e.g. its own container)")
+
+    command(sub, "lifting-worker", _lifting_worker,
+            help="run the lifting service (queued mask versions -> votes, fill, events) as its "
+                 "own process; one per data directory")
 
     p = command(sub, "db", _db, help="database schema: 'upgrade' to the newest, 'current' revision")
     p.add_argument("action", choices=["upgrade", "current"])
@@ -50,11 +61,19 @@ def _settings():
     return Settings.from_env()
 
 
+MAX_WORKERS = 64
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.main import create_app
+    from occufly.errors import InputFormatError
 
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise InputFormatError(f"--workers must be between 1 and {MAX_WORKERS}, got {args.workers}")
+    if args.workers > 1:
+        return _serve_workers(args)
     app = create_app(_settings())
     # no permessage-deflate: the /viewer/ socket carries ~15 B/point of float data, which
     # barely compresses and costs ~5 s per 2 M points (bench/bench_viewer.py)
@@ -63,6 +82,45 @@ def _serve(args: argparse.Namespace) -> int:
     uvicorn.run(app, host=args.host, port=args.port, log_level="info", ws_per_message_deflate=False,
                 proxy_headers=False)
     return 0
+
+
+def _serve_workers(args: argparse.Namespace) -> int:
+    """N stateless API processes (uvicorn workers, each ``app.main.app_from_env``) plus the
+    lifting worker as a child that dies with this process."""
+    import subprocess
+
+    import uvicorn
+
+    from app import db
+
+    settings = _settings()  # configuration errors surface once, here
+    db.upgrade(settings.database_url)  # once, before N processes start
+    env = os.environ
+    env["OCCUFLY_AUTO_UPGRADE"] = "0"
+    if settings.lifting != "off":
+        env["OCCUFLY_LIFTING"] = "external"
+    worker = None
+    if settings.lifting != "off" and not args.no_lifting_worker:
+        worker = subprocess.Popen([sys.executable, "-m", "app.lifting"],
+                                  env={**env, "OCCUFLY_DIE_WITH_PARENT": str(os.getpid())})
+    try:
+        uvicorn.run("app.main:app_from_env", factory=True, workers=args.workers,
+                    host=args.host, port=args.port, log_level="info",
+                    ws_per_message_deflate=False, proxy_headers=False)
+    finally:
+        if worker is not None:
+            worker.terminate()
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+    return 0
+
+
+def _lifting_worker(_args: argparse.Namespace) -> int:
+    from app.lifting.worker import main
+
+    return main([])
 
 
 def _db(args: argparse.Namespace) -> dict:

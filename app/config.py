@@ -21,6 +21,8 @@
 ``OCCUFLY_LIFTING``            ``embedded`` (default: the lifting worker runs in the server
                                process), ``external`` (a separate ``occufly lifting-worker``;
                                what ``occufly serve --workers N`` starts) or ``off``
+``OCCUFLY_AUTO_UPGRADE``       1 (default): Alembic upgrade at start-up; 0: never (``occufly
+                               serve --workers N`` upgrades once, before the workers start)
 ``OCCUFLY_FRONTEND_DIR``       static frontend folder (default ``<repo>/frontend``)
 ``OCCUFLY_ARGON2_MEMORY_KIB``  argon2id memory cost (default 65536 = argon2-cffi's default)
 ``OCCUFLY_ARGON2_TIME_COST``   argon2id iterations (default 3)
@@ -147,6 +149,7 @@ class Settings:
             argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
             lifting=env.get("OCCUFLY_LIFTING") or "embedded",
+            auto_upgrade=bool(num("OCCUFLY_AUTO_UPGRADE", 1)),
         )
         kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
                                   .split(",") if p.strip()]

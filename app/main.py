@@ -44,6 +44,12 @@ def build_context(settings: Settings, *, lifting: str | None = None,
     return ctx
 
 
+def app_from_env() -> FastAPI:
+    """The app of one API process configured from ``OCCUFLY_*`` (uvicorn ``--factory``; what
+    each of ``occufly serve --workers N``'s processes runs)."""
+    return create_app(Settings.from_env())
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -190,6 +196,8 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     import inspect
 
     hooks = viewer_callbacks(ctx)
+    if ctx.events is not None:  # refresh open viewers on labels_updated / grid_updated
+        hooks["subscribe"] = ctx.events.subscribe
     app.state.on_review_item = hooks["on_review_item"]
     params = inspect.signature(mount).parameters
     accepts_all = any(p.kind is p.VAR_KEYWORD for p in params.values())

@@ -1,16 +1,21 @@
 """Load benchmark: 20 concurrent annotators saving full-resolution masks against a live server.
 
-For each database (SQLite file, PostgreSQL) it starts ``uvicorn app.main:create_app`` on
-loopback in a subprocess, lets N annotators each lease a frame (``POST /next``) and save
-masks in a loop (bounded by ``--saves`` per annotator and ``--seconds``), then reads back
-every acknowledged version and compares it byte for byte with what was sent.
+For each database (SQLite file, PostgreSQL) and each ``--workers`` count it starts
+``occufly serve --workers N`` on loopback in a subprocess (N = 1: one process with the
+lifting worker in its threads, the default deployment; N > 1: N stateless API processes plus
+the lifting worker as its own process), lets the annotators each lease a frame (``POST
+/next``) and save masks in a loop (bounded by ``--saves`` per annotator, 0 = unbounded, and
+``--seconds``), waits for the lifting queue to drain, then reads back every acknowledged
+version and compares it byte for byte with what was sent.
 
-Prints one JSON object: per backend p50/p95/max save latency, saves/s, acknowledged,
-lost (acknowledged but unreadable) and corrupted (read back different) counts, plus the
-latency of a trivial authenticated GET measured in the same run as a baseline (ratio).
+Prints one JSON object: per backend and worker count p50/p95/max save latency, saves/s,
+lifting lag (save acknowledged -> its votes applied, from the ``lift_queue`` rows: p50/p95/
+max), acknowledged, lost (acknowledged but unreadable, or missing from the lifting queue) and
+corrupted (read back different) counts, the latency of a trivial authenticated GET measured
+in the same run as a baseline, and ``workers_<N>_vs_1`` throughput ratios.
 
-    .venv/bin/python bench/bench_api_load.py [--annotators 20] [--saves 5] [--width 4000]
-        [--height 3000] [--backends sqlite,postgresql]
+    .venv/bin/python bench/bench_api_load.py [--annotators 20] [--saves 0] [--seconds 60]
+        [--width 4000] [--height 3000] [--backends postgresql] [--workers 1,4]
 """
 
 from __future__ import annotations
@@ -120,10 +125,59 @@ def _seed(env: dict, n_annotators: int, src: Path) -> int:
     return sid
 
 
-def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dict:
+def _login(c, username: str) -> None:  # noqa: ANN001
+    """Bearer token, no cookie (cookie-authenticated writes need an Origin, like a browser)."""
+    r = c.post("/api/auth/login", json={"username": username, "password": PASSWORD})
+    r.raise_for_status()
+    c.cookies.clear()
+    c.headers["Authorization"] = f"Bearer {r.json()['token']}"
+
+
+def _lift_lag(url: str, acked: list[tuple[int, int, str]], timeout: float) -> dict:
+    """Wait for the lifting queue to drain; lag = applied_at - created_at of each acked
+    version's queue entry (created in the save's transaction, so <= the acknowledgement)."""
+    from sqlalchemy import create_engine, func, select
+
+    from app.lifting.models import LiftQueueEntry
+
+    eng = create_engine(url)
+    t0 = time.monotonic()
+    try:
+        while True:
+            with eng.connect() as c:
+                pending = c.scalar(select(func.count()).select_from(LiftQueueEntry)
+                                   .where(LiftQueueEntry.status == "pending"))
+            if pending == 0 or time.monotonic() - t0 > timeout:
+                break
+            time.sleep(0.5)
+        with eng.connect() as c:
+            rows = {r.version_id: r for r in c.execute(select(
+                LiftQueueEntry.version_id, LiftQueueEntry.status, LiftQueueEntry.created_at,
+                LiftQueueEntry.applied_at))}
+    finally:
+        eng.dispose()
+    lags, missing, statuses = [], 0, {}
+    for _fid, v, _sha in acked:
+        r = rows.get(v)
+        if r is None:
+            missing += 1
+            continue
+        statuses[r.status] = statuses.get(r.status, 0) + 1
+        if r.applied_at is not None:
+            lags.append((r.applied_at - r.created_at).total_seconds())
+    lag_ms = np.array(lags) * 1000
+    return {"lift_lag_p50_ms": round(float(np.percentile(lag_ms, 50)), 1) if lags else None,
+            "lift_lag_p95_ms": round(float(np.percentile(lag_ms, 95)), 1) if lags else None,
+            "lift_lag_max_ms": round(float(lag_ms.max()), 1) if lags else None,
+            "lift_pending_after_drain": int(pending), "lift_drain_s": round(time.monotonic() - t0, 1),
+            "lift_entries": statuses, "missing_from_lift_queue": missing}
+
+
+def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path,
+                workers: int = 1) -> dict:
     import httpx
 
-    data = tmp / name
+    data = tmp / f"{name}_w{workers}"
     env = dict(os.environ, OCCUFLY_DATA_DIR=str(data), OCCUFLY_DATABASE_URL=url,
                OCCUFLY_IMPORT_ROOTS=str(tmp / "src"), OCCUFLY_SECRET_KEY=uuid.uuid4().hex * 2,
                OCCUFLY_ARGON2_MEMORY_KIB="8192", OCCUFLY_ARGON2_TIME_COST="1",
@@ -131,9 +185,10 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
     sid = _seed(env, args.annotators, tmp / "src" / "ws")
     port = _free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host",
-         "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        [sys.executable, "-m", "occufly.cli", "serve", "--workers", str(workers), "--host",
+         "127.0.0.1", "--port", str(port)],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        start_new_session=True)
     base = f"http://127.0.0.1:{port}"
     try:
         for _ in range(300):
@@ -153,8 +208,7 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
 
         def annotator(i: int) -> None:
             with httpx.Client(base_url=base, timeout=120) as c:
-                r = c.post("/api/auth/login", json={"username": f"ann{i:02d}", "password": PASSWORD})
-                r.raise_for_status()
+                _login(c, f"ann{i:02d}")
                 r = c.post(f"/api/scenes/{sid}/next")
                 if r.status_code != 200:
                     errors.append(f"ann{i}: next {r.status_code}")
@@ -162,7 +216,9 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
                 fid = r.json()["id"]
                 current = "none"
                 barrier.wait()
-                for k in range(args.saves):
+                k = -1
+                while args.saves <= 0 or k + 1 < args.saves:
+                    k += 1
                     if time.monotonic() > deadline:
                         break
                     body = masks[(i * 7 + k) % len(masks)]
@@ -184,7 +240,7 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
         # baseline in the same run: one writer alone (admin, on a frame nobody leases)
         single: list[float] = []
         with httpx.Client(base_url=base, timeout=120) as c:
-            c.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+            _login(c, "admin")
             frames = c.get(f"/api/scenes/{sid}/frames").json()
             fid_single = frames[-1]["id"]
             current = "none"
@@ -205,10 +261,11 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
         for t in threads:
             t.join()
         wall = time.perf_counter() - t0
+        lift = _lift_lag(url, acked, timeout=max(120.0, args.seconds * 2))
         # read every acknowledged version back
         lost = corrupted = 0
         with httpx.Client(base_url=base, timeout=120) as c:
-            c.post("/api/auth/login", json={"username": "admin", "password": PASSWORD})
+            _login(c, "admin")
             for fid, v, sha in acked:
                 r = c.get(f"/api/frames/{fid}/mask/versions/{v}")
                 if r.status_code != 200:
@@ -234,26 +291,33 @@ def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path) -> dic
             "single_writer_saves_per_s": round(1.0 / float(np.median(single)), 2),
             "throughput_vs_single_writer": round((len(lat) / wall) * float(np.median(single)), 2),
             "baseline_get_me_p50_ms": round(float(np.median(base_lat) * 1000), 2),
-            "acknowledged": len(acked), "readback_checked": len(acked), "lost": lost, "corrupted": corrupted,
+            "acknowledged": len(acked), "readback_checked": len(acked),
+            "lost": lost + lift["missing_from_lift_queue"], "corrupted": corrupted,
+            "workers": workers, **lift,
             "errors": errors[:5], "n_errors": len(errors),
         }
     finally:
-        proc.terminate()
+        import signal
+
         try:
-            proc.wait(timeout=20)
+            os.killpg(proc.pid, signal.SIGTERM)  # serve, its API workers, the lifting worker
+            proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
-            proc.kill()
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--annotators", type=int, default=20)
-    ap.add_argument("--saves", type=int, default=5, help="saves per annotator")
-    ap.add_argument("--seconds", type=float, default=120, help="stop saving after this long")
+    ap.add_argument("--saves", type=int, default=0, help="saves per annotator (0: unbounded)")
+    ap.add_argument("--seconds", type=float, default=60, help="stop saving after this long")
+    ap.add_argument("--workers", default="1,4", help="API process counts to compare")
     ap.add_argument("--width", type=int, default=4000)
     ap.add_argument("--height", type=int, default=3000)
     ap.add_argument("--distinct", type=int, default=6, help="distinct mask payloads")
-    ap.add_argument("--backends", default="sqlite,postgresql")
+    ap.add_argument("--backends", default="postgresql")
     ap.add_argument("--postgres-url", default=os.environ.get(
         "OCCUFLY_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"))
     args = ap.parse_args()
@@ -264,10 +328,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="occufly-bench-") as d:
         tmp = Path(d)
         _workspace(tmp / "src", args.annotators + 2, args.width, args.height)
+        counts = [int(w) for w in args.workers.split(",") if w.strip()]
         for backend in args.backends.split(","):
-            if backend == "sqlite":
-                out["sqlite"] = run_backend("sqlite", f"sqlite:///{tmp / 'sqlite.db'}", args, tmp)
-            else:
+            res: dict = {}
+            for workers in counts:
+                key = f"workers_{workers}"
+                if backend == "sqlite":
+                    db = tmp / f"sqlite_w{workers}.db"
+                    res[key] = run_backend("sqlite", f"sqlite:///{db}", args, tmp, workers)
+                    continue
                 base = make_url(args.postgres_url)
                 name = f"occufly_bench_{uuid.uuid4().hex[:8]}"
                 admin = create_engine(base, isolation_level="AUTOCOMMIT")
@@ -275,11 +344,21 @@ def main() -> None:
                     c.execute(text(f'CREATE DATABASE "{name}"'))
                 try:
                     url = base.set(database=name).render_as_string(hide_password=False)
-                    out["postgresql"] = run_backend("postgresql", url, args, tmp)
+                    res[key] = run_backend("postgresql", url, args, tmp, workers)
                 finally:
                     with admin.connect() as c:
                         c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
                     admin.dispose()
+            one = res.get("workers_1", {}).get("saves_per_s")
+            for workers in counts:
+                r = res[f"workers_{workers}"]
+                if workers != 1 and one:
+                    res[f"workers_{workers}_vs_1"] = {
+                        "saves_per_s": round(r["saves_per_s"] / one, 2),
+                        "p95_ms": round(r["p95_ms"] / res["workers_1"]["p95_ms"], 2)
+                        if r.get("p95_ms") and res["workers_1"].get("p95_ms") else None}
+            out[backend] = res
+    out["cpu_count"] = os.cpu_count()
     print(json.dumps(out))
 
 

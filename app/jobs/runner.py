@@ -131,6 +131,7 @@ class JobContext:
             tail = old.name.rsplit(".attempt", 1)[-1]
             if tail.isdigit() and int(tail) <= self.attempt:
                 shutil.rmtree(old, ignore_errors=True)
+        staging.mkdir()
         self.outputs.append((staging, final))
         return staging
 
@@ -351,8 +352,28 @@ def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> Non
             _on_failure(jc, str(e))
         _drop_staging(jc)
     else:
-        _finish(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
-                message="done", result=_jsonable(result or {}), log_line="done")
+        if _finish(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
+                   message="done", result=_jsonable(result or {}), log_line="done"):
+            _publish_done(ctx, jc)
+
+
+# job kinds whose success changes what subscribers show (the viewer's scene grid)
+DONE_EVENTS = {"voxelize": "grid_updated"}
+
+
+def _publish_done(ctx: AppContext, jc: JobContext) -> None:
+    kind_event = DONE_EVENTS.get(jc.kind)
+    if kind_event is None or ctx.events is None or jc.scene_id is None:
+        return
+    try:
+        from app.scenes.models import Scene
+        from occufly.workspace import Workspace
+
+        with ctx.sessions() as s:
+            ws = s.get(Scene, jc.scene_id).workspace
+        ctx.events.publish(kind_event, jc.scene_id, stamp=Workspace(ws).stamp(), job=jc.job_id)
+    except Exception:  # noqa: BLE001 - the job is done; a lost notice only delays a refresh
+        log.warning("job %s: publishing %s failed", jc.job_id, kind_event, exc_info=True)
 
 
 def _drop_staging(jc: JobContext) -> None:

@@ -11,6 +11,8 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
+    import os
+
     from app import db
     from app.config import Settings
     from app.lifting.service import LiftingBusy, LiftingService
@@ -18,6 +20,11 @@ def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
     from occufly.errors import OccuflyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT")
+    if parent and parent.isdigit():  # started by `occufly serve --workers N`
+        from occufly.parallel import die_with_parent
+
+        die_with_parent(int(parent))
     try:
         settings = Settings.from_env()
     except OccuflyError as e:

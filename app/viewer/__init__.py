@@ -29,9 +29,13 @@ frame_mask=None, on_review_item=None, max_points=None, prefix="/viewer") -> None
   showing more than 4x ``settings.viewer_preview_points`` (default 150,000) first get a
   stratified preview of that size, then the full LOD.
 
+- ``subscribe(kind, fn)`` (optional): an event source (the app passes
+  ``ctx.events.subscribe``); the viewer subscribes to ``labels_updated`` and ``grid_updated``
+  and refreshes open viewers of that scene on each event. Without one (a bare data
+  directory), it watches the workspaces' change stamp every 2 s instead.
+
 Live update: ``app.state.viewer.refresh(scene_id, classes=None)`` re-sends the affected class
-nodes to open viewers (also triggered automatically within ~2 s when ``lifting/labels.npy``,
-``confidence.npy``, ``origin.npy`` or ``grid/scene_grid.npz`` change on disk).
+nodes to open viewers (called on every ``labels_updated`` event).
 
 The viser server binds 127.0.0.1 on a free port, starts in the background when the app
 starts (or on the first ``/viewer/`` request) and never creates a share link.
@@ -76,7 +80,8 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
           frame_states: Callable[[str], Any] | None = None,
           frame_mask: Callable[[str, int], Any] | None = None,
           on_review_item: Callable[..., Any] | None = None,
-          max_points: int | None = None, prefix: str = "/viewer") -> None:
+          max_points: int | None = None, prefix: str = "/viewer",
+          subscribe: Callable[[str, Callable[[Any], None]], None] | None = None) -> None:
     """Add the ``/viewer/`` proxy routes and the viser server's lifecycle to ``fastapi_app``.
 
     The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
@@ -92,7 +97,14 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         on_review_item=on_review_item if on_review_item is not None else _default_review_hook(),
         max_points=max_points,
         preview_points=int(getattr(settings, "viewer_preview_points", 150_000)),
+        watch_interval_s=None if subscribe is not None else 2.0,
     )
+    if subscribe is not None:
+        def _on_event(msg: Any) -> None:
+            service.on_labels_updated(str(msg.scene_id), (msg.payload or {}).get("stamp"))
+
+        subscribe("labels_updated", _on_event)
+        subscribe("grid_updated", _on_event)
     fastapi_app.state.viewer = service
     add_routes(fastapi_app, service, authorize=authorize, identify=identify, prefix=prefix)
 

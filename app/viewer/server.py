@@ -9,6 +9,13 @@ talking to the loopback port directly) gets nothing but a notice and is closed.
 Each client has its own scene (``client.scene``) so reviewers can pick colour modes, classes
 and LOD independently. Heavy work (loading, subsampling, colouring) runs in viser's thread
 pool; live refreshes run in one background thread and are coalesced per scene.
+
+Live refresh is event driven: the app subscribes :meth:`ViewerService.on_labels_updated` to
+the lifting service's ``labels_updated(scene, stamp)`` events (and ``grid_updated`` from the
+voxelize job), so an open viewer re-sends the changed classes as soon as new labels are
+written, in whichever process wrote them. Only a viewer mounted without an event source (a
+bare data directory, no backend) falls back to watching ``Workspace.stamp()`` every
+``watch_interval_s``.
 """
 
 from __future__ import annotations
@@ -102,7 +109,7 @@ class ViewerService:
                  on_review_item: ReviewItemFn | None = None,
                  max_points: int = sb.DEFAULT_MAX_POINTS, preview_points: int = 150_000,
                  host: str = "127.0.0.1",
-                 watch_interval_s: float = 2.0, require_ticket: bool = True) -> None:
+                 watch_interval_s: float | None = None, require_ticket: bool = True) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")
         self.scenes = scenes
@@ -677,6 +684,17 @@ class ViewerService:
                 self._pending[scene_id] = set(prev) | {int(c) for c in classes}
         self._wake.set()
 
+    def on_labels_updated(self, scene_id: str, stamp: str | None = None) -> bool:
+        """Event handler: queue a refresh of ``scene_id`` unless nobody has it open or what is
+        loaded already carries ``stamp``. Returns whether a refresh was queued."""
+        with self._lock:
+            if scene_id not in self._data:
+                return False
+            if stamp is not None and self._stamps.get(scene_id) == stamp:
+                return False
+        self.refresh(scene_id)
+        return True
+
     def refresh_now(self, scene_id: str, classes: set[int] | None = None) -> set[int]:
         """Synchronous refresh; returns the class ids re-sent."""
         with self._lock:
@@ -698,7 +716,7 @@ class ViewerService:
 
     def _refresh_loop(self) -> None:
         while not self._stop.is_set():
-            self._wake.wait(timeout=self.watch_interval_s)
+            self._wake.wait(timeout=self.watch_interval_s)  # None: until an event
             self._wake.clear()
             if self._stop.is_set():
                 return
@@ -707,7 +725,8 @@ class ViewerService:
                 open_scenes = {c.scene_id for c in self._clients.values() if c.scene_id}
                 stamps = dict(self._stamps)
                 table = None
-            for sid in open_scenes - set(pending):
+            watched = open_scenes if self.watch_interval_s else set()
+            for sid in watched - set(pending):
                 try:
                     table = table if table is not None else self.scenes()
                     if sid in table and _stamp(Path(table[sid][1])) != stamps.get(sid):

@@ -196,6 +196,8 @@ def robustness(args: argparse.Namespace) -> dict:
         out[f"views_per_point_{vname}"] = vpp["mean"]
         for mname, masks in variants.items():
             for robust in args.robust_modes.split(","):
+                if args.only and f"{vname}/{mname}/{robust}" not in args.only.split(","):
+                    continue
                 t = time.perf_counter()
                 tmp = Path(args.cache) / f"robust-{vname}"
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -238,7 +240,8 @@ def main() -> None:
     ap.add_argument("--ws", type=Path)
     ap.add_argument("--ws-old", type=Path)
     ap.add_argument("--held-out", type=int, default=20)
-    ap.add_argument("--robust-modes", default="plain")
+    ap.add_argument("--robust-modes", default="plain,boundary")
+    ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
     ap.add_argument("--cell", type=float, default=25.0)

@@ -347,7 +347,12 @@ def compute_visibility(
         counts[f] = len(both)
     offsets = np.zeros(F + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    ids = np.concatenate(out) if out and offsets[-1] else np.zeros(0, np.int32)
+    # copy the parts into one array, freeing each as it is copied: np.empty's pages become
+    # resident only when written, so the peak stays about one copy of the output
+    ids = np.empty(int(offsets[-1]), np.int32)
+    for f in range(F):
+        ids[offsets[f]:offsets[f + 1]] = out[f]
+        out[f] = None
     del out
     vis = Visibility(offsets, ids)
     views = np.bincount(ids, minlength=n) if n else np.zeros(0, np.int64)

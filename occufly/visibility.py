@@ -44,20 +44,13 @@ class PointBins:
     def __init__(self, xyz: np.ndarray, cell: float | None = None) -> None:
         xyz = np.asarray(xyz)
         self.n = len(xyz)
-        if self.n == 0:
-            self.cell = 1.0
-            self.order = np.zeros(0, np.int64)
-            self.starts = np.zeros(1, np.int64)
-            self.centers = np.zeros((0, 3))
-            self.loose = np.zeros(0, np.int64)
-            return
-        finite = np.isfinite(xyz).all(axis=1)
-        if not finite.any():
-            self.cell = 1.0
-            self.order = np.zeros(0, np.int64)
-            self.starts = np.zeros(1, np.int64)
-            self.centers = np.zeros((0, 3))
-            self.loose = np.zeros(0, np.int64)
+        self.cell = 1.0
+        self.order = np.zeros(0, np.int64)
+        self.starts = np.zeros(1, np.int64)
+        self.centers = np.zeros((0, 3))
+        self.loose = np.zeros(0, np.int64)
+        finite = np.isfinite(xyz).all(axis=1) if self.n else np.zeros(0, bool)
+        if not finite.any():  # no points, or none with finite coordinates: no bins
             return
         # the bins cover the bulk of the cloud (0.1 .. 99.9 % per axis, widened by 10 %); the
         # few points beyond it (far outliers) are candidates of every frame instead, so a

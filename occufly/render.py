@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occufly.camera import transform
+from occufly.camera import Camera, transform
 from occufly.confusion import Confusion
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
@@ -26,6 +26,8 @@ from occufly.taxonomy import Taxonomy
 MAX_SPLAT = 8  # largest splat side in pixels (radius 4)
 SPLAT_FACTOR = 1.5
 _SPACING_CACHE: dict[tuple[int, int], float] = {}
+_BINS_CACHE: dict[tuple[int, int], object] = {}
+_CULL_MIN_POINTS = 200_000  # below this a full pass over the cloud is as fast as culling
 
 
 def estimate_point_spacing(xyz: np.ndarray, *, sample: int = 200_000, queries: int = 5000,
@@ -64,6 +66,39 @@ def scene_point_spacing(scene: Scene) -> float:
     return _SPACING_CACHE[key]
 
 
+def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
+                       margin: float = MAX_SPLAT) -> np.ndarray | None:
+    """Sorted (K,) int64 ids of the points whose splat can reach the image of ``cam`` (a
+    conservative cull: every point whose bin sphere is not entirely outside one of the frustum's
+    side planes, widened by ``margin`` pixels, or behind the camera), or None for "all points"
+    (small clouds, distorted cameras). The cull drops only points that cannot touch the image,
+    so renderings are identical with and without it. The bins are built once per cloud."""
+    if scene.n_points < _CULL_MIN_POINTS or cam.has_distortion:
+        return None
+    key = (id(scene.xyz), scene.n_points)
+    bins = _BINS_CACHE.get(key)
+    if bins is None:
+        from occufly.visibility import PointBins
+
+        _BINS_CACHE.clear()  # one cloud at a time: a long-lived process switches scenes
+        bins = _BINS_CACHE[key] = PointBins(scene.xyz)
+    if not len(bins.centers):
+        return None
+    c = transform(T_cam_world, bins.centers)
+    r = bins.cell * 0.8661  # bin half diagonal
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    w, h, m = cam.width, cam.height, float(margin)
+    ok = c[:, 2] > -r
+    # u = fx x / z + cx in [-m, w + m] and v likewise, as half-spaces through the camera centre
+    for a, b, d in ((fx, 0.0, cx + m), (-fx, 0.0, w + m - cx), (0.0, fy, cy + m), (0.0, -fy, h + m - cy)):
+        ok &= (a * c[:, 0] + b * c[:, 1] + d * c[:, 2]) >= -r * float(np.sqrt(a * a + b * b + d * d))
+    sel = np.flatnonzero(ok)
+    lens = bins.starts[sel + 1] - bins.starts[sel]
+    idx = np.repeat(bins.starts[sel] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
+    return np.sort(np.concatenate([bins.order[idx], bins.loose]))
+
+
 def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
                   surface_tol: float = 3.0,
@@ -83,11 +118,15 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
     f = 0.5 * sum(cam.focal)
 
+    cand = frustum_candidates(scene, cam, frame.T_cam_world)
+    n_cand = scene.n_points if cand is None else len(cand)
+
     def fragments():
         """Per chunk of points and splat offset: (pixel, depth, d2 to pixel centre, label)."""
-        for a in range(0, scene.n_points, chunk):
-            b = min(scene.n_points, a + chunk)
-            xyz_cam = transform(frame.T_cam_world, scene.xyz[a:b])
+        for a in range(0, n_cand, chunk):
+            b = min(n_cand, a + chunk)
+            sub = slice(a, b) if cand is None else cand[a:b]
+            xyz_cam = transform(frame.T_cam_world, scene.xyz[sub])
             idx = np.flatnonzero(xyz_cam[:, 2] > 1e-6)
             uv, z = cam.project(xyz_cam[idx])
             # keep points whose largest splat could touch the image
@@ -100,7 +139,7 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
             # the s x s pixels whose centres lie within s/2 of the projected point
             col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
             row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
-            lab = labels[a:b][idx]
+            lab = labels[sub][idx]
             for dy in range(MAX_SPLAT):
                 for dx in range(MAX_SPLAT):
                     sel = np.flatnonzero(size > max(dx, dy))

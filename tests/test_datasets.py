@@ -422,3 +422,25 @@ def test_adding_frames_of_another_camera_to_a_scene_is_refused(tmp_path):
         export_dataset(ws, out, spec=SPEC, workers=1, frames=[2])
     assert (out / "OccuFly_Dataset/scene_01/calibration.txt").read_bytes() == cal
     assert export_dataset(ws, out, spec=SPEC, workers=1, frames=[2], scene_id="scene_02")["written"] == 1
+
+
+def test_example_train_loop_on_an_export(ssc, tmp_path, capsys):
+    if not os.environ.get("CI"):
+        pytest.importorskip("torch")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "train_loop", Path(__file__).resolve().parents[1] / "examples" / "04_train_loop.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mod.run(ssc, "train", 2, tmp_path)
+    out = capsys.readouterr().out
+    assert "4 frames through the DataLoader" in out
+    empty, up = out.split("## baseline: upsample_1_8")
+    assert "| all | 4 | 0.00 | n/a | 0.00 | 0.00 |" in empty
+    row = next(ln for ln in up.splitlines() if ln.startswith("| all |"))
+    iou, rec = float(row.split("|")[3]), float(row.split("|")[5])
+    # the coarse grid covers nearly every occupied voxel (LMSCNet rule: blocks < 5 % occupied
+    # are empty), and much more
+    assert 90 < rec <= 100 and 0 < iou < 50
+    assert len(list((tmp_path / "pred_empty").glob("*/*_1_1.npy"))) == 4

@@ -211,8 +211,28 @@ class SampleSpill:
         self.lo = np.full(3, np.inf, np.float32)
         self.hi = np.full(3, -np.inf, np.float32)
 
-    def _path(self, s: int, field: str) -> Path:
-        return self.folder / f"strip{s:04d}.{field}"
+        self.parts: list[Path] = [self.folder]  # more than one after :meth:`union`
+
+    @classmethod
+    def union(cls, spills: list[SampleSpill]) -> SampleSpill:
+        """The spills of consecutive frame ranges (in frame order) as one: strip ``s`` is the
+        concatenation of every part's strip ``s``. They must share their strip edges."""
+        out = spills[0]
+        if len(spills) == 1:
+            return out
+        for sp in spills[1:]:
+            if not np.array_equal(sp.edges, out.edges):
+                raise ValueError("spills with different strip edges cannot be joined")
+        joined = object.__new__(cls)
+        joined.folder, joined.edges, joined.n_strips = out.folder, out.edges, out.n_strips
+        joined.counts = np.sum([sp.counts for sp in spills], axis=0)
+        joined.lo = np.min([sp.lo for sp in spills], axis=0)
+        joined.hi = np.max([sp.hi for sp in spills], axis=0)
+        joined.parts = [p for sp in spills for p in sp.parts]
+        return joined
+
+    def _path(self, s: int, field: str, part: Path | None = None) -> Path:
+        return (part or self.folder) / f"strip{s:04d}.{field}"
 
     @property
     def n_samples(self) -> int:
@@ -242,8 +262,9 @@ class SampleSpill:
     def _load(self, s: int) -> dict[str, np.ndarray]:
         out = {}
         for name, dtype, width in _SPILL_FIELDS:
-            p = self._path(s, name)
-            a = np.fromfile(p, dtype=dtype) if p.exists() else np.zeros(0, dtype)
+            chunks = [np.fromfile(p, dtype=dtype) for p in (self._path(s, name, part) for part in self.parts)
+                      if p.exists()]
+            a = np.concatenate(chunks) if chunks else np.zeros(0, dtype)
             out[name] = a.reshape(-1, width) if width > 1 else a
         return out
 
@@ -287,13 +308,15 @@ class SampleSpill:
         return _cloud(fields[:5], np.zeros(offset + 1, np.int64)), (fields[5], fields[6])
 
     def close(self) -> None:
-        for s in range(self.n_strips):
-            for name, _, _ in _SPILL_FIELDS:
-                self._path(s, name).unlink(missing_ok=True)
-        try:
-            self.folder.rmdir()
-        except OSError:
-            pass
+        for part in self.parts:
+            for s in range(self.n_strips):
+                for name, _, _ in _SPILL_FIELDS:
+                    self._path(s, name, part).unlink(missing_ok=True)
+            for d in (part, part.parent):
+                try:
+                    d.rmdir()
+                except OSError:
+                    pass
 
 
 class TileIndex:

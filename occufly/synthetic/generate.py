@@ -60,13 +60,58 @@ def full_size_frames(P: Preset, n_frames: int) -> set[int]:
     return {int((k + 0.5) * n_frames / n) for k in range(n)} if n else set()
 
 
+def _render_frames(job: dict, renderer: Renderer | None = None, report=None) -> dict:
+    """Render frames ``job["frames"]`` (indices, ascending): write image, truth mask and noisy
+    depth map of each, stream its depth samples into a :class:`SampleSpill` of its own. Runs
+    in-process or in a worker process (then it builds the world itself: it is deterministic)."""
+    P, seed, tmp = job["preset"], job["seed"], Path(job["tmp"])
+    if renderer is None:
+        renderer = Renderer(build_world(P, seed), seed)
+    cams = job["cams"]
+    base = cams[0] if not P.full_frames else min(cams, key=lambda c: c.width)
+    grids = {c: sample_grid(c, P.pixel_stride * (c.width // base.width)) for c in set(cams)}
+    spill = SampleSpill(job["spill"], job["edges"])
+    depth_dir = tmp / "dense" / "stereo" / "depth_maps"
+    bboxes: list[tuple[float, float, float, float]] = []
+    mask_classes = np.zeros(256, bool)
+    for k, f in enumerate(job["frames"]):
+        cam_f, name, T = cams[f], job["names"][f], job["poses"][f]
+        rr, cc, rays = grids[cam_f]
+        rng = np.random.default_rng([seed, 1, f])
+        res = render_banded(renderer, cam_f, T, rng)
+        dn = noisy_depth(res.depth, res.cls, rng, sigma=P.depth_noise)
+        stem = Path(name).stem
+        img = Image.fromarray(res.rgb)
+        if P.image_ext == ".png":
+            img.save(tmp / "images" / name, compress_level=1)
+        else:
+            img.save(tmp / "images" / name, quality=92)
+        Image.fromarray(res.cls, mode="L").save(tmp / "truth" / "masks" / f"{stem}.png", compress_level=1)
+        write_depth_map(depth_dir / f"{name}.geometric.bin", dn)
+        mask_classes[np.bincount(res.cls.ravel(), minlength=256) > 0] = True
+        xyz, keep = back_project(dn, rays, rr, cc, T)
+        r_, c_ = rr[keep], cc[keep]
+        spill.add(xyz, res.rgb[r_, c_], res.cls[r_, c_], res.normal[r_, c_].astype(np.float16), int(f),
+                  np.flatnonzero(keep))
+        hit = res.depth > 0
+        if hit.any():
+            hx, hy = res.xyz[..., 0][hit], res.xyz[..., 1][hit]
+            bboxes.append((float(hx.min()) - 1, float(hx.max()) + 1, float(hy.min()) - 1, float(hy.max()) + 1))
+        else:
+            bboxes.append((0.0, -1.0, 0.0, -1.0))
+        del res, dn, xyz
+        if report is not None:
+            report(k + 1)
+    return {"spill": spill, "bboxes": bboxes, "mask_classes": mask_classes}
+
+
 def _is_nonempty_dir(p: Path) -> bool:
     return p.exists() and (not p.is_dir() or any(p.iterdir()))
 
 
 def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
              progress: ProgressFn | None = None, overwrite: bool = False,
-             camera: Camera | None = None, strip_samples: int = 6_000_000) -> dict:
+             camera: Camera | None = None, strip_samples: int = 6_000_000, workers: int = 1) -> dict:
     """Generate the synthetic scene ``preset`` for ``seed`` into ``out``.
 
     The folder is built under a temporary sibling name and renamed into place at the end, so an
@@ -75,7 +120,8 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
     Memory is bounded by one frame's render plus one x strip of about ``strip_samples`` depth
     samples (frames stream their samples to disk; fusion runs strip by strip, with the same
-    result as fusing everything at once) plus the fused cloud itself.
+    result as fusing everything at once) plus the fused cloud itself. ``workers`` > 1 renders
+    contiguous frame ranges in that many processes (same files, byte for byte).
     """
     out = Path(out)
     if _is_nonempty_dir(out) and not overwrite:
@@ -112,36 +158,28 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         expected = sum(len(grids[c][0]) for c in cams)
         n_strips = max(1, min(int(np.ceil(expected / strip_samples)),
                               int(world.size / (4 * P.fuse_voxel))))
-        spill = SampleSpill(tmp / ".samples", np.linspace(world.x0, world.x0 + world.size, n_strips + 1))
-        bboxes: list[tuple[float, float, float, float]] = []
-        mask_classes = np.zeros(256, bool)
-        for f, fr in enumerate(frames):
-            cam_f = cams[f]
-            rr, cc, rays = grids[cam_f]
-            rng = np.random.default_rng([seed, 1, f])
-            res = render_banded(renderer, cam_f, fr.T_cam_world, rng)
-            dn = noisy_depth(res.depth, res.cls, rng, sigma=P.depth_noise)
-            stem = Path(fr.name).stem
-            img = Image.fromarray(res.rgb)
-            if P.image_ext == ".png":
-                img.save(tmp / "images" / fr.name, compress_level=1)
-            else:
-                img.save(tmp / "images" / fr.name, quality=92)
-            Image.fromarray(res.cls, mode="L").save(tmp / "truth" / "masks" / f"{stem}.png", compress_level=1)
-            write_depth_map(depth_dir / f"{fr.name}.geometric.bin", dn)
-            mask_classes[np.bincount(res.cls.ravel(), minlength=256) > 0] = True
-            xyz, keep = back_project(dn, rays, rr, cc, fr.T_cam_world)
-            r_, c_ = rr[keep], cc[keep]
-            spill.add(xyz, res.rgb[r_, c_], res.cls[r_, c_], res.normal[r_, c_].astype(np.float16), f,
-                      np.flatnonzero(keep))
-            hit = res.depth > 0
-            if hit.any():
-                hx, hy = res.xyz[..., 0][hit], res.xyz[..., 1][hit]
-                bboxes.append((float(hx.min()) - 1, float(hx.max()) + 1, float(hy.min()) - 1, float(hy.max()) + 1))
-            else:
-                bboxes.append((0.0, -1.0, 0.0, -1.0))
-            del res, dn, xyz
-            report(0.7 * (f + 1) / F, f"rendering {f + 1}/{F}")
+        edges = np.linspace(world.x0, world.x0 + world.size, n_strips + 1)
+        jobs = [{"preset": P, "seed": seed, "frames": list(r), "names": names, "cams": cams,
+                 "poses": [fr.T_cam_world for fr in frames], "tmp": tmp, "edges": edges,
+                 "spill": tmp / ".samples" / f"part{k:02d}"}
+                for k, r in enumerate(np.array_split(np.arange(F), max(1, min(workers, F)))) if len(r)]
+        if len(jobs) == 1:
+            parts = [_render_frames(jobs[0], renderer=renderer, report=lambda k: report(0.7 * k / F,
+                                                                                        f"rendering {k}/{F}"))]
+        else:  # contiguous frame ranges, one process each: the spills concatenate in frame order
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn")) as ex:
+                futs = [ex.submit(_render_frames, j) for j in jobs]
+                parts, done = [], 0
+                for j, fu in zip(jobs, futs, strict=True):
+                    parts.append(fu.result())
+                    done += len(j["frames"])
+                    report(0.7 * done / F, f"rendering {done}/{F}")
+        spill = SampleSpill.union([p_["spill"] for p_ in parts])
+        bboxes = [b_ for p_ in parts for b_ in p_["bboxes"]]
+        mask_classes = np.logical_or.reduce([p_["mask_classes"] for p_ in parts])
         timings["render"] = time.perf_counter() - t0
 
         # ---- fuse the dense cloud, strip by strip ------------------------------------------

@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                 help="generate the synthetic aerial scene (COLMAP dense workspace + exact truth)")
     p.add_argument("out", type=Path, help="output folder (must not exist or be empty, unless --force)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="small",
-                   help="scene size: tiny (tests, seconds), small (demo), bench (~5 M points)")
+                   help="scene size: tiny (tests, seconds), small (demo), bench (~5 M points), survey-half, "
+                        "survey (the benchmark's scale: 2,100 frames, 20 at 20 MP, > 20 M points)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the world (default 0)")
     p.add_argument("--format", dest="formats", type=_formats,
                    help="write the scene as a photogrammetry tool exports it: colmap, odm, "
@@ -27,6 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "separated or 'all' give OUT/<format>/ each; default: the plain "
                         "COLMAP workspace (pinhole camera)")
     p.add_argument("--force", action="store_true", help="replace a non-empty OUT")
+    p.add_argument("--workers", type=int, default=1,
+                   help="render frames in this many processes (same output; default 1)")
 
 
 def _formats(text: str) -> list[str]:
@@ -45,8 +48,11 @@ def _interrupt(_signum, _frame) -> None:
 
 
 def _synth(args: argparse.Namespace) -> dict:
+    from occufly.errors import InputFormatError
     from occufly.synthetic import generate
 
+    if not 1 <= args.workers <= 64:
+        raise InputFormatError(f"--workers: expected 1..64 processes, got {args.workers}")
     # SIGTERM (e.g. a job runner stopping us) unwinds like Ctrl-C, so the temporary output
     # folder is removed and OUT is left as it was
     old = signal.signal(signal.SIGTERM, _interrupt)
@@ -59,7 +65,7 @@ def _synth(args: argparse.Namespace) -> dict:
                                            seed=args.seed, progress=bar, overwrite=args.force)
             else:
                 summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
-                                   overwrite=args.force)
+                                   overwrite=args.force, workers=args.workers)
     finally:
         signal.signal(signal.SIGTERM, old)
     if not args.json:  # readable: class names instead of four id lists

@@ -76,9 +76,9 @@ def _truncate_pg(url: str) -> None:
     eng.dispose()
 
 
-def make_tiny_scene(n_frames: int = 4) -> Scene:
+def make_tiny_scene(n_frames: int = 4, n_side: int = 20) -> Scene:
     """A flat 40 m x 40 m ground of 400 points seen by ``n_frames`` nadir cameras at 30 m."""
-    g = np.linspace(-19.0, 19.0, 20)
+    g = np.linspace(-19.0, 19.0, n_side)  # n_side^2 points (20: 400)
     xx, yy = np.meshgrid(g, g)
     xyz = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], axis=1).astype(np.float32)
     rgb = np.full_like(xyz, 128, dtype=np.uint8)
@@ -98,8 +98,8 @@ def make_tiny_scene(n_frames: int = 4) -> Scene:
                  taxonomy=default_taxonomy())
 
 
-def write_tiny_workspace(path: Path, n_frames: int = 4) -> Path:
-    scene = make_tiny_scene(n_frames)
+def write_tiny_workspace(path: Path, n_frames: int = 4, n_side: int = 20) -> Path:
+    scene = make_tiny_scene(n_frames, n_side)
     scene.save(path)
     (path / "images").mkdir()
     rng = np.random.default_rng(0)

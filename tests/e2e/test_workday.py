@@ -7,6 +7,7 @@ Ordered: the first test paints and submits the frames the later ones review.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -434,8 +435,60 @@ def test_open_in_3d_flies_to_the_frame_and_scene_grid_before_voxelize_says_so(li
     assert st.data.grid is None
     page.get_by_text("Voxel grids").click()
     box = page.locator("div.mantine-Flex-root", has=page.get_by_text("Scene grid")).locator("input").last
-    box.check()
+    box.evaluate("e => e.click()")  # the server unticks it at once, so no .check()
     page.wait_for_function("() => document.body.innerText.includes('no voxel grid yet')", timeout=15_000)
     assert st.gui["grid_scene"].value is False and not st.grid_handles
     assert "no voxel grid yet" in st.gui["grid_info"].content  # the note stays under the box
     shot(page, "17_08_viewer_open_in_3d")
+
+
+def test_export_downloads_as_a_compressed_archive_with_its_size_and_no_bookkeeping(live, sid, new_page):
+    """Step 4: zip / tar.gz of an export, its size on the page before the download, no
+    .occufly_export/ inside."""
+    import io
+    import tarfile
+    import zipfile
+
+    admin = live.client("admin")
+    # an export another module made already (test_browser's) saves a voxelize + export run
+    done = [j for j in admin.get("/api/jobs").json() if j["kind"] == "export" and j["status"] == "done"]
+    job = done[0] if done else None
+    for kind in () if job else ("voxelize", "export"):
+        body = {"layout": "occufly"} if kind == "export" else None
+        r = admin.post(f"/api/scenes/{sid}/{kind}", json=body) if body else admin.post(f"/api/scenes/{sid}/{kind}")
+        assert r.status_code in (200, 202), r.text
+        job = live.wait_job(r.json(), timeout=300)
+        assert job["status"] == "done", job
+    jid = job["id"]
+    page_scene = job["scene_id"]
+    out = Path(job["result"]["output"])
+    want = sorted(p.relative_to(out).as_posix() for p in out.rglob("*")
+                  if p.is_file() and not any(part.startswith(".occufly") for part in p.relative_to(out).parts))
+    assert want  # (the exporter also writes .occufly_export/ bookkeeping there: left out)
+    page = new_page("admin")
+    page.goto(f"{live.base_url}/#/admin?scene={page_scene}")
+    li = page.locator(f"li.job[data-job='{jid}']")
+    li.wait_for()
+    li.locator(".archive-content").wait_for()
+    assert f"{len(want)} files" in li.locator(".archive-content").inner_text()
+    li.locator(".archive-build").click()
+    link = li.locator("a.archive-link")
+    link.wait_for(timeout=60_000)
+    size = int(link.get_attribute("data-bytes"))
+    assert " MB" in link.inner_text() or " kB" in link.inner_text() or " GB" in link.inner_text()
+    with page.expect_download() as dl:
+        link.click()
+    data = open(dl.value.path(), "rb").read()
+    assert len(data) == size and dl.value.suggested_filename == f"{out.name}.tar.gz"
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as t:
+        names = sorted(m.name.split("/", 1)[1] for m in t.getmembers() if m.isfile())
+    assert names == want and not any(".occufly" in n for n in names)
+    raw = sum((out / n).stat().st_size for n in want)
+    # zip too, through the API (same files)
+    z = admin.get(f"/api/jobs/{jid}/archive?format=zip")
+    assert z.status_code == 200 and int(z.headers["content-length"]) == len(z.content)
+    with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
+        assert sorted(n.split("/", 1)[1] for n in zf.namelist()) == want
+    li.scroll_into_view_if_needed()
+    shot(page, "17_09_admin_export_archive")
+    assert size < raw  # compressed

@@ -321,13 +321,67 @@ class AdminPage {
               el("span", { class: "spacer" }),
               ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
               ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
-              j.kind === "export" && j.status === "done" ? el("a", { href: `/api/jobs/${j.id}/download`, class: "button", download: "" }, "Download") : null,
+              j.kind === "export" && j.status === "done" ? this.archiveControls(j) : null,
+              j.kind === "export" && j.status === "done" ? el("a", { href: `/api/jobs/${j.id}/download`, class: "button", download: "", title: "the export folder as an uncompressed tar stream" }, "Download (tar)") : null,
             ),
             j.log_tail && j.log_tail.length ? el("details", { open: ACTIVE.has(j.status) || j.status === "failed" }, el("summary", {}, "log"), el("pre", { class: "log" }, j.log_tail.join("\n"))) : null,
           ),
         ),
       ),
     );
+  }
+
+  /** Compressed archive of an export: pick zip / tar.gz, build it, see its size, then save. */
+  archiveControls(j) {
+    this.archives ||= new Map();
+    const st = this.archives.get(j.id) || { format: "tar.gz", info: null, busy: false };
+    this.archives.set(j.id, st);
+    const fmt = el("select", { "aria-label": `archive format of job ${j.id}`, class: "archive-format" }, ["tar.gz", "zip"].map((f) => el("option", { value: f }, f)));
+    fmt.value = st.format;
+    fmt.addEventListener("change", () => {
+      st.format = fmt.value;
+      st.info = null;
+      this.renderJobs();
+      this.archiveInfo(j.id);
+    });
+    const mb = (b) => (b >= 1e9 ? `${(b / 1e9).toFixed(2)} GB` : b >= 1e6 ? `${(b / 1e6).toFixed(1)} MB` : `${(b / 1e3).toFixed(0)} kB`);
+    const i = st.info;
+    let action;
+    if (st.busy) action = el("span", { class: "muted" }, "Compressing…");
+    else if (i && i.ready) action = el("a", { href: i.url, class: "button primary archive-link", download: i.name, "data-bytes": i.archive_bytes }, `Save ${i.name} · ${mb(i.archive_bytes)}`);
+    else action = el("button", { type: "button", class: "archive-build", onclick: () => this.buildArchive(j.id) }, `Compress (${fmt.value})`);
+    if (!i && !st.busy && !st.asked) {
+      st.asked = true;
+      this.archiveInfo(j.id);
+    }
+    return el(
+      "span",
+      { class: "archive", "data-job": j.id },
+      fmt,
+      action,
+      i ? el("span", { class: "muted archive-content" }, `${i.files} files, ${mb(i.content_bytes)} before compression${i.ready ? `; archive ${mb(i.archive_bytes)}` : ""}`) : null,
+    );
+  }
+
+  async archiveInfo(jid) {
+    const st = this.archives.get(jid);
+    const info = await api.get(`/jobs/${jid}/archive/info?format=${encodeURIComponent(st.format)}`).catch(() => null);
+    if (info && info.format === st.format) st.info = info;
+    this.renderJobs();
+  }
+
+  async buildArchive(jid) {
+    const st = this.archives.get(jid);
+    st.busy = true;
+    this.renderJobs();
+    try {
+      st.info = await api.post(`/jobs/${jid}/archive?format=${encodeURIComponent(st.format)}`);
+    } catch (e) {
+      showError(e);
+    } finally {
+      st.busy = false;
+      this.renderJobs();
+    }
   }
 
   async jobAction(j, action) {

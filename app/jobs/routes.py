@@ -111,3 +111,6 @@ def _tar_stream(root: FsPath, chunk: int = 1 << 20):
     threading.Thread(target=produce, daemon=True).start()
     while (b := q.get()) is not None:
         yield b
+
+
+from app.jobs import archive as _archive  # noqa: E402, F401 - registers the archive routes

@@ -273,3 +273,27 @@ def test_las_crs_from_wkt_or_geotiff_keys_and_point_formats(tmp_path):
     assert choose_point_format(3, labels) == 3  # ids <= 31 fit the 5-bit classification
     assert choose_point_format(3, np.array([36], np.uint8)) == 7  # 36 does not
     assert choose_point_format(6, labels) == 7 and choose_point_format(None, labels) == 7
+
+
+def test_odm_topocentric_reconstruction_imports_to_the_same_cameras(synth, imported, tmp_path):
+    """OpenSfM's own topocentric reconstruction (no coords.txt, no shots.geojson): poses go
+    ENU -> ECEF -> the LAZ's UTM 32N through the local Jacobian and still match COLMAP's."""
+    root, _ = synth
+    _, scenes = imported
+    src = tmp_path / "odm"
+    shutil.copytree(root / "odm", src, copy_function=os.link)
+    (src / "opensfm" / "reconstruction.json").unlink()
+    (src / "opensfm" / "reconstruction.topocentric.json").rename(src / "opensfm" / "reconstruction.json")
+    (src / "odm_report" / "shots.geojson").unlink()
+    (src / "odm_georeferencing" / "coords.txt").unlink()
+    sc = import_scene(src, tmp_path / "ws", visibility="depth")
+    assert sc.meta["crs_handling"]["cameras_transformed"] is True
+    ref = scenes["colmap"]
+    pts = ref.xyz_world()[::25]
+    for fa, fb in zip(sc.frames, ref.frames, strict=True):
+        a, b = pose_in_world(fa.T_cam_world, sc.origin), pose_in_world(fb.T_cam_world, ref.origin)
+        assert np.linalg.norm(-a[:3, :3].T @ a[:3, 3] + b[:3, :3].T @ b[:3, 3]) < 1e-3
+        ua, _ = fa.camera.project(transform(a, pts))
+        ub, zb = fb.camera.project(transform(b, pts))
+        ok = (zb > 0) & fb.camera.in_image(ub)
+        assert np.abs(ua[ok] - ub[ok]).max() < 0.05

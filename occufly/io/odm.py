@@ -268,8 +268,9 @@ def _from_reconstruction(source, recon_p, utm, offset, geo, notes, meta) -> Spar
                    dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.get("color", [128, 128, 128]) for p in pts.values()],
                    dtype=np.float64).reshape(-1, 3).clip(0, 255).astype(np.uint8)
-    frame = _decide_frame(source, rec, names, Ts, utm, offset, geo)
+    frame, why = _decide_frame(source, rec, names, Ts, utm, offset, geo)
     meta["pose_frame"] = frame
+    meta["pose_frame_decided_by"] = why
     ref = _reference_lla(source, rec)
     if frame == "utm_offset":
         if utm is None:
@@ -306,10 +307,14 @@ def _utm_for(ref: dict):
     return crsmod._pyproj().CRS.from_epsg((32600 if ref["latitude"] >= 0 else 32700) + zone)
 
 
-def _decide_frame(source, rec, names, Ts, utm, offset, geo) -> str:
-    """'utm_offset' or 'topocentric' (see the module docstring)."""
+def _decide_frame(source, rec, names, Ts, utm, offset, geo) -> tuple[str, str]:
+    """('utm_offset' or 'topocentric', what decided it) -- see the module docstring.
+
+    The GPS rule is the last resort: where it cannot tell the frames apart (a small survey near
+    the zone's central meridian) they differ by less than the GPS noise, e.g. 5 cm over 100 m.
+    """
     if utm is None:
-        return "topocentric"
+        return "topocentric", "no coords.txt"
     C = np.array([-T[:3, :3].T @ T[:3, 3] for T in Ts])
     if geo:
         common = [i for i, n in enumerate(names) if n in geo]
@@ -317,20 +322,21 @@ def _decide_frame(source, rec, names, Ts, utm, offset, geo) -> str:
             d = np.linalg.norm(C[common] + offset - np.array([geo[names[i]]["translation"]
                                                              for i in common]), axis=1)
             if np.median(d) < 0.01:
-                return "utm_offset"
+                return "utm_offset", "centres + offset equal shots.geojson"
     if (source / "opensfm" / "reconstruction.topocentric.json").is_file():
-        return "utm_offset"
+        return "utm_offset", "reconstruction.topocentric.json exists"
     ref = _reference_lla(source, rec)
     gps = [(i, rec["shots"][n]["gps_position"]) for i, n in enumerate(names)
            if "gps_position" in rec["shots"][n]]
     if ref is None or not gps:
-        return "topocentric"
+        return "topocentric", "no GPS positions to compare"
     idx = [i for i, _ in gps]
     g = np.array([v for _, v in gps], dtype=np.float64)
     g_utm = crsmod.transform_points(_topo_to_ecef(ref)(g), crsmod.ecef_crs(), utm) - offset
     r_topo = np.median(np.linalg.norm(C[idx] - g, axis=1))
     r_utm = np.median(np.linalg.norm(C[idx] - g_utm, axis=1))
-    return "utm_offset" if r_utm < r_topo else "topocentric"
+    why = (f"GPS: median |C - gps| {r_utm:.3f} m as UTM-offset, {r_topo:.3f} m as topocentric")
+    return ("utm_offset" if r_utm < r_topo else "topocentric"), why
 
 
 def _from_webodm_assets(source, image_dir, utm, geo, notes, meta) -> SparseModel:

@@ -263,11 +263,7 @@ def _from_reconstruction(source, recon_p, utm, offset, geo, notes, meta) -> Spar
         t = _vec3(s.get("translation"), f"{where} translation")
         names.append(name)
         Ts.append(make_pose(R, t))
-    pts = rec.get("points") or {}
-    xyz = np.array([_vec3(p.get("coordinates"), f"{recon_p}: point {k}") for k, p in pts.items()],
-                   dtype=np.float64).reshape(-1, 3)
-    rgb = np.array([p.get("color", [128, 128, 128]) for p in pts.values()],
-                   dtype=np.float64).reshape(-1, 3).clip(0, 255).astype(np.uint8)
+    xyz, rgb = _points(rec.get("points") or {}, recon_p)
     frame, why = _decide_frame(source, rec, names, Ts, utm, offset, geo)
     meta["pose_frame"] = frame
     meta["pose_frame_decided_by"] = why
@@ -300,6 +296,27 @@ def _from_reconstruction(source, recon_p, utm, offset, geo, notes, meta) -> Spar
     return SparseModel(images, np.arange(len(xyz), dtype=np.int64), xyz, rgb, recon_p,
                        kind="odm", crs=crs, output_crs=output_crs, local_frame=crs is None,
                        has_tracks=False, notes=notes, meta=meta)
+
+
+def _points(pts: dict, where: Path) -> tuple[np.ndarray, np.ndarray]:
+    """OpenSfM ``points`` -> (P, 3) float64, (P, 3) uint8, checked in one pass (no per-point
+    Python validation)."""
+    if not isinstance(pts, dict):
+        raise InputFormatError(f"{where}: 'points' must be an object")
+    try:
+        xyz = np.array([p["coordinates"] for p in pts.values()], dtype=np.float64).reshape(-1, 3)
+        rgb = np.array([p.get("color", (128, 128, 128)) for p in pts.values()],
+                       dtype=np.float64).reshape(-1, 3)
+    except (KeyError, TypeError, ValueError):
+        raise InputFormatError(f"{where}: every point needs 3 'coordinates' (and 3 'color' "
+                               f"values)") from None
+    if len(xyz) != len(pts) or len(rgb) != len(pts):
+        raise InputFormatError(f"{where}: every point needs 3 'coordinates' and 3 'color' values")
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise InputFormatError(f"{where}: point {list(pts)[int(np.flatnonzero(bad)[0])]} has "
+                               f"non-finite coordinates")
+    return xyz, np.nan_to_num(rgb).clip(0, 255).astype(np.uint8)
 
 
 def _utm_for(ref: dict):

@@ -177,3 +177,29 @@ def test_render_cull_is_exact(tinyfull, tmp_path, monkeypatch):
         assert cand is not None and 0 < len(cand) < scene.n_points
         assert np.array_equal(a, b) and np.array_equal(da, db)
         assert (a > 0).mean() > 0.3
+
+
+def test_too_big_for_the_machine_is_a_clear_error_before_writing(tmp_path, monkeypatch):
+    import sys
+
+    from occufly.errors import OccuflyError
+    from occufly.synthetic.generate import estimate_resources
+
+    P = presets_mod.PRESETS["survey"]
+    est = estimate_resources(P, 2100, workers=2)
+    assert 2e9 < est["memory_bytes"] < 16e9 and est["disk_bytes"] > 5e9
+    # memory grows with the workers (one frame render each), disk does not
+    assert estimate_resources(P, 2100, workers=1)["memory_bytes"] < est["memory_bytes"]
+    G = sys.modules["occufly.synthetic.generate"]  # the package re-exports the function's name
+    monkeypatch.setattr(G, "_available_memory", lambda: 1 << 30)
+    with pytest.raises(OccuflyError, match=r"needs about .* GB of memory .* 1.0 GB are available"):
+        generate(tmp_path / "s", preset="survey", workers=2)
+    assert not any(tmp_path.iterdir())  # nothing written, not even a partial folder
+
+    class Usage:
+        free = 1 << 20
+
+    monkeypatch.setattr("shutil.disk_usage", lambda _p: Usage)
+    with pytest.raises(OccuflyError, match=r"needs about .* GB of disk .* 0.0 GB free"):
+        generate(tmp_path / "t", preset="tiny")
+    assert not any(tmp_path.iterdir())

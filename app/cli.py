@@ -95,14 +95,14 @@ def _serve_workers(args: argparse.Namespace) -> int:
 
     settings = _settings()  # configuration errors surface once, here
     db.upgrade(settings.database_url)  # once, before N processes start
-    env = os.environ
+    env = os.environ  # inherited by the uvicorn workers (spawned) and the lifting worker
     env["OCCUFLY_AUTO_UPGRADE"] = "0"
+    env["OCCUFLY_DIE_WITH_PARENT"] = str(os.getpid())  # no orphan serves on after kill -9
     if settings.lifting != "off":
         env["OCCUFLY_LIFTING"] = "external"
     worker = None
     if settings.lifting != "off" and not args.no_lifting_worker:
-        worker = subprocess.Popen([sys.executable, "-m", "app.lifting"],
-                                  env={**env, "OCCUFLY_DIE_WITH_PARENT": str(os.getpid())})
+        worker = subprocess.Popen([sys.executable, "-m", "app.lifting"], env=dict(env))
     try:
         uvicorn.run("app.main:app_from_env", factory=True, workers=args.workers,
                     host=args.host, port=args.port, log_level="info",

@@ -46,7 +46,16 @@ def build_context(settings: Settings, *, lifting: str | None = None,
 
 def app_from_env() -> FastAPI:
     """The app of one API process configured from ``OCCUFLY_*`` (uvicorn ``--factory``; what
-    each of ``occufly serve --workers N``'s processes runs)."""
+    each of ``occufly serve --workers N``'s processes runs). With ``OCCUFLY_DIE_WITH_PARENT``
+    (set by ``serve --workers``) the process exits when that supervisor is gone, so no
+    orphaned API process keeps serving after a ``kill -9``."""
+    import os
+
+    parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT", "")
+    if parent.isdigit():
+        from occufly.parallel import die_with_parent
+
+        die_with_parent(int(parent))
     return create_app(Settings.from_env())
 
 

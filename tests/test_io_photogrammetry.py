@@ -316,3 +316,47 @@ def test_image_names_must_stay_inside_the_image_folder(tmp_path):
     p.write_text(xml)
     with pytest.raises(InputFormatError, match=r"dup.xml: 1 image name\(s\) used by several cameras \(001\)"):
         read_source(p)
+
+
+def _make_psx(root: Path, photo_dir: Path) -> Path:
+    """A Metashape .psx project around the wheat chunk: project.zip -> 0/chunk.zip (the real
+    doc.xml) -> 0/0/frame.zip with each camera's photo path (relative to the frame zip)."""
+    import os
+    import xml.etree.ElementTree as ET
+    import zipfile
+
+    files = root / "wheat.files"
+    (files / "0" / "0").mkdir(parents=True)
+    psx = root / "wheat.psx"
+    psx.write_text('<?xml version="1.0" encoding="UTF-8"?>\n'
+                   '<document version="1.2.0" path="{projectname}.files/project.zip"/>\n')
+    with zipfile.ZipFile(files / "project.zip", "w") as z:
+        z.writestr("doc.xml", '<document version="1.2.0"><chunks next_id="1">'
+                              '<chunk id="0" path="0/chunk.zip"/></chunks></document>')
+    text = MS_WHEAT.read_text()
+    with zipfile.ZipFile(files / "0" / "chunk.zip", "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("doc.xml", text)
+    ids = [(c.get("id"), c.get("label")) for c in ET.fromstring(text).find("cameras").iter("camera")]
+    rel = os.path.relpath(photo_dir, files / "0" / "0")
+    cams = "".join(f'<camera camera_id="{i}"><photo path="{rel}/{lab}.JPG"/></camera>'
+                   for i, lab in ids)
+    with zipfile.ZipFile(files / "0" / "0" / "frame.zip", "w") as z:
+        z.writestr("doc.xml", f'<frame version="1.2.0"><cameras>{cams}</cameras></frame>')
+    return psx
+
+
+def test_metashape_psx_project(tmp_path):
+    from occufly.io.sources import detect_format, read_source
+
+    photos = tmp_path / "flight" / "photos"
+    photos.mkdir(parents=True)
+    psx = _make_psx(tmp_path / "proj", photos)
+    assert detect_format(psx) == "metashape" and detect_format(psx.parent) == "metashape"
+    m = read_source(psx)
+    ref = read_metashape(MS_WHEAT)
+    assert len(m.images) == 138 and m.images[0].name == "DJI_0001.JPG"
+    assert m.default_images == photos.resolve()
+    np.testing.assert_allclose(centers(m), centers(ref))
+    (tmp_path / "proj" / "wheat.files" / "0" / "chunk.zip").write_bytes(b"PK not a zip")
+    with pytest.raises(InputFormatError, match=r"chunk.zip: not a Metashape project zip"):
+        read_source(psx)

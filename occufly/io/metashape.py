@@ -48,11 +48,14 @@ def is_metashape_xml(path: Path) -> bool:
 
 
 def find_metashape_xml(source: Path) -> Path | None:
-    """``source`` itself, or the one Metashape XML in a folder."""
+    """``source`` itself (an XML or a ``.psx`` project), or the one Metashape XML in a folder."""
     if source.is_file():
+        if source.suffix.lower() == ".psx":
+            return source
         return source if is_metashape_xml(source) else None
     if source.is_dir():
         found = [p for p in sorted(source.glob("*.xml")) if is_metashape_xml(p)]
+        found = found or sorted(p for p in source.glob("*.psx") if p.is_file())
         if len(found) == 1:
             return found[0]
         if len(found) > 1:
@@ -131,16 +134,75 @@ def _sensor_camera(sensor: ET.Element, where: str) -> Camera | str:
             f"cameras are supported")
 
 
+def _zip_xml(zpath: Path, where: str) -> ET.Element:
+    """``doc.xml`` of one of a project's zip files (size-checked before it is inflated)."""
+    import zipfile
+
+    if not zpath.is_file():
+        raise InputFormatError(f"{zpath}: missing ({where})")
+    try:
+        with zipfile.ZipFile(zpath) as z:
+            info = z.getinfo("doc.xml")
+            if info.file_size > MAX_XML_BYTES:
+                raise InputFormatError(f"{zpath}: doc.xml inflates to {info.file_size} bytes "
+                                       f"(limit {MAX_XML_BYTES})")
+            data = z.read(info)
+    except (zipfile.BadZipFile, KeyError, OSError) as e:
+        raise InputFormatError(f"{zpath}: not a Metashape project zip with doc.xml ({e})") from None
+    try:
+        return ET.fromstring(data)
+    except ET.ParseError as e:
+        raise InputFormatError(f"{zpath}: doc.xml is not valid XML ({e})") from None
+
+
+def _read_psx(path: Path) -> tuple[ET.Element, dict[str, Path], list[str]]:
+    """A ``.psx`` project -> (its first chunk's <chunk>, {camera id: photo path}, notes).
+
+    Layout: ``<name>.files/project.zip`` lists the chunks (``<chunk id path="0/chunk.zip">``);
+    each ``chunk.zip`` holds the chunk's doc.xml; its ``<frames><frame path="0/frame.zip">``
+    (relative to the chunk's folder) hold ``<camera camera_id><photo path>`` (relative to the
+    frame's folder unless absolute).
+    """
+    files = path.with_name(path.stem + ".files")
+    proj = _zip_xml(files / "project.zip", f"the project zip of {path.name}")
+    entries = [c for c in proj.iter("chunk") if c.get("path")]
+    if not entries:
+        raise InputFormatError(f"{files / 'project.zip'}: the project lists no chunk")
+    notes = []
+    if len(entries) > 1:
+        notes.append(f"{path.name}: {len(entries)} chunks; used the first ({entries[0].get('path')})")
+    chunk_zip = files / entries[0].get("path")
+    chunk = _zip_xml(chunk_zip, f"chunk {entries[0].get('id')} of {path.name}")
+    photos: dict[str, Path] = {}
+    frames = chunk.find("frames")
+    for fr in (frames.findall("frame") if frames is not None else [])[:1]:
+        fz = chunk_zip.parent / fr.get("path", "")
+        if not fz.is_file():
+            notes.append(f"{fz}: frame zip missing; photos matched by camera label")
+            break
+        for cam in _zip_xml(fz, "the chunk's frame").iter("camera"):
+            ph = cam.find("photo")
+            if ph is not None and ph.get("path") and cam.get("camera_id") is not None:
+                p = Path(ph.get("path").replace("{projectfolder}", str(path.parent)))
+                photos[cam.get("camera_id")] = p if p.is_absolute() else (fz.parent / p)
+    return chunk, photos, notes
+
+
 def read_metashape(path: str | Path) -> SparseModel:
     path = Path(path)
     if not path.is_file():
         raise InputFormatError(f"{path}: Metashape XML not found")
     if path.stat().st_size > MAX_XML_BYTES:
         raise InputFormatError(f"{path}: larger than {MAX_XML_BYTES} bytes")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as e:
-        raise InputFormatError(f"{path}: not valid XML ({e})") from None
+    photos: dict[str, Path] = {}
+    psx_notes: list[str] = []
+    if path.suffix.lower() == ".psx":
+        root, photos, psx_notes = _read_psx(path)
+    else:
+        try:
+            root = ET.parse(path).getroot()
+        except ET.ParseError as e:
+            raise InputFormatError(f"{path}: not valid XML ({e})") from None
     if root.tag == "document":
         chunks = root.findall("chunk")
         if not chunks:
@@ -151,7 +213,7 @@ def read_metashape(path: str | Path) -> SparseModel:
     else:
         raise InputFormatError(f"{path}: root element <{root.tag}> is not a Metashape "
                                f"<document> or <chunk>")
-    notes: list[str] = []
+    notes: list[str] = list(psx_notes)
     if len(chunks) > 1:
         notes.append(f"{path.name}: {len(chunks)} chunks; used the first ({chunk.get('label')!r})")
 
@@ -204,8 +266,9 @@ def read_metashape(path: str | Path) -> SparseModel:
         T = np.eye(4)
         T[:3, :3] = R_wc.T
         T[:3, 3] = -R_wc.T @ M_world[:3, 3]
-        images.append(SparseImage(len(images) + 1, label, sensor, T, np.zeros(0, np.int64),
-                                  np.zeros((0, 2))))
+        photo = photos.get(c.get("id", ""))
+        images.append(SparseImage(len(images) + 1, photo.name if photo is not None else label,
+                                  sensor, T, np.zeros(0, np.int64), np.zeros((0, 2))))
         r = c.find("reference")
         if r is not None and r.get("x") is not None:
             ref_pos[label] = [float(r.get(k, "nan")) for k in ("x", "y", "z")]
@@ -228,6 +291,9 @@ def read_metashape(path: str | Path) -> SparseModel:
               "disabled": disabled, "reference_positions": ref_pos,
               "chunk_transform": chunk_T.tolist() if chunk_T is not None else None},
     )
+    dirs = {photos[c].parent for c in photos}
+    if len(dirs) == 1 and next(iter(dirs)).is_dir():
+        model.default_images = next(iter(dirs)).resolve()  # where the project's photos are
     if not local and not georef:
         notes.append(f"{path.name}: <reference> is {crsmod.crs_label(ref_crs)} but the chunk has "
                      f"no <transform>: cameras are taken to be in that CRS")

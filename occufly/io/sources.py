@@ -84,7 +84,7 @@ def read_source(source: str | Path, fmt: str | None = None, *,
             raise InputFormatError(f"{source}: not a Metashape camera XML (expected a <document> "
                                    f"or <chunk> root, or a folder holding one .xml)")
         model = read_metashape(xml)
-        if (xml.parent / "images").is_dir():
+        if model.default_images is None and (xml.parent / "images").is_dir():
             model.default_images = xml.parent / "images"
     else:
         from occufly.io.pix4d import read_pix4d

@@ -205,11 +205,12 @@ def robustness(args: argparse.Namespace) -> dict:
                 # a scratch workspace sharing the scene's arrays: only lifting/ is written
                 for name in ("scene.json", "taxonomy.json", "points", "visibility"):
                     (tmp / name).symlink_to(Path(sc_path(args, vname)) / name)
-                st = LiftState.open(tmp, sc, **({"vote_weighting": robust} if robust != "plain" else {}))
+                # tieorder: the lifting before tie_fill; plain: the default; boundary: weighted votes
+                st = LiftState.open(tmp, sc, vote_weighting="boundary" if robust == "boundary" else "plain")
                 for fi in sel.frames:
                     st.apply_frame(fi, masks[fi], version=mname)
                 direct = st.direct_labels()
-                res = st.fill_and_denoise(write=False)
+                res = st.fill_and_denoise(write=False, params=LiftParams(tie_fill=robust != "tieorder"))
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
                 ags = [agreement(held_masks[fi], render_for_mask(sc, np.asarray(res.labels), fi,
@@ -240,7 +241,9 @@ def main() -> None:
     ap.add_argument("--ws", type=Path)
     ap.add_argument("--ws-old", type=Path)
     ap.add_argument("--held-out", type=int, default=20)
-    ap.add_argument("--robust-modes", default="plain,boundary")
+    ap.add_argument("--robust-modes", default="tieorder,plain,boundary",
+                    help="robustness: tieorder (ties by taxonomy order, the lifting before "
+                         "tie_fill), plain (the default lifting), boundary (weighted votes)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")

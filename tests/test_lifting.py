@@ -493,3 +493,24 @@ def test_boundary_vote_weighting(ws):
         LiftState.open(path, scene, vote_weighting="plain")
     rebuilt.remove_frame(5)
     assert int(np.asarray(rebuilt.votes).sum()) == 0
+
+
+def test_ties_are_left_to_the_fill():
+    # a line of road points with one point tied road:grass (1:1); grass comes first in the
+    # tie order, but every neighbour is road -- the fill decides, not the table
+    xyz = np.column_stack([np.arange(50) * 0.1, np.zeros(50), np.zeros(50)]).astype(np.float32)
+    direct = np.full(50, ROAD, np.uint8)
+    margin = np.ones(50, np.float32)
+    top = np.full(50, 3, np.uint16)
+    direct[25], margin[25], top[25] = GRASS, 0.0, 1
+    on = fill_and_denoise(xyz, direct, TAX, params=LiftParams(method="exact"), vote_margin=margin,
+                          vote_top=top)
+    off = fill_and_denoise(xyz, direct, TAX, params=LiftParams(method="exact", tie_fill=False,
+                                                               denoise_keep_share=0.0),
+                           vote_margin=margin, vote_top=top)
+    assert on.labels[25] == ROAD and on.origin[25] == ORIGIN_FILLED
+    assert off.labels[25] == GRASS  # tie order kept, and the keep rule keeps it
+    for method in ("voxel", "exact"):
+        r = fill_and_denoise(xyz, direct, TAX, params=LiftParams(method=method),
+                             vote_margin=margin, vote_top=top)
+        assert r.labels[25] == ROAD

@@ -8,6 +8,12 @@ Fill and denoise (:func:`fill_and_denoise`)
     the method's plain k-NN fill does (``fill_far=False`` leaves them unlabelled; measured on
     ``small`` seed 2 with the 24 stratified frames: 7,174 points stayed unlabelled with the
     3 m bound alone, point accuracy 0.9739 -> 0.9843, scene-grid completion IoU 0.834 -> 0.879).
+    Ties: a point whose top classes have equal votes (typically 1:1 from two views) is filled
+    like an unvoted one -- its labelled neighbours decide -- rather than by the taxonomy's tie
+    order (``tie_fill``, default on). Measured on ``small`` seed 0, greedy rho 0.99 frames (19),
+    union visibility: truth masks accuracy 0.9881 -> 0.9889, mIoU 0.8812 -> 0.8851; degraded
+    masks (:mod:`occufly.synthetic.degrade` defaults) 0.9584 -> 0.9595, mIoU 0.7238 -> 0.7429.
+    Demoting every point with margin < 1/3 instead lowered the degraded accuracy to 0.9433.
     Denoise: every labelled point takes the dominant class of its k=200 nearest labelled points
     (itself included) within ``denoise_radius``, unless its own class holds at least ``denoise_keep_share`` (default
     0.25) of that neighbourhood. The keep rule is our addition: the paper's plain rule
@@ -77,6 +83,10 @@ class LiftParams:
     # annotated views is stronger evidence than the spatial neighbourhood (see module docstring).
     confirm_views: int | None = 2
     confirm_margin: float = 0.5
+    # A point whose top classes tie (equal votes, e.g. 1:1 from two views) is left to the
+    # fill instead of the taxonomy's tie order: its labelled neighbours decide (needs the
+    # vote margin/top; see the module docstring for the measurement). False = tie order.
+    tie_fill: bool = True
     workers: int = 1  # cKDTree query workers
 
 
@@ -89,6 +99,17 @@ def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.n
     if direct.shape != (len(xyz),):
         raise ValueError(f"labels must be ({len(xyz)},), got {direct.shape}")
     return np.ascontiguousarray(xyz, dtype=np.float32), direct.astype(np.uint8, copy=False)
+
+
+def _untie(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
+           p: LiftParams) -> np.ndarray:
+    """``direct`` with tied points (margin 0, some votes) set to 0 when ``p.tie_fill``."""
+    if not p.tie_fill or vote_margin is None or vote_top is None:
+        return direct
+    tied = (np.asarray(vote_margin) <= 0) & (np.asarray(vote_top) > 0) & (direct > 0)
+    if not tied.any():
+        return direct
+    return np.where(tied, np.uint8(0), direct)
 
 
 def _scores_to_cols(cls: ClassColumns, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -225,6 +246,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     p = params or LiftParams()
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
+    direct = _untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     t0 = time.perf_counter()
     dcols = cls.col_of[direct].astype(np.int64)  # -1 where no label
@@ -436,6 +458,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
+    direct = _untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     C = cls.C
     n = len(xyz)

@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         r["visibility_bytes_on_disk"] = _dir_bytes(ws / "visibility")
         r["selection"] = _selection(ws)
         res["modes"][mode] = r
+        print(json.dumps({mode: r}), file=sys.stderr, flush=True)  # progress, one line per mode
         if not a.keep:
             shutil.rmtree(ws, ignore_errors=True)
     m = res["modes"]

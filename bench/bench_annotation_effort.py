@@ -178,7 +178,7 @@ def plot(results: list[dict], path: Path) -> None:
     colours = [(10, 102, 194), (217, 48, 37), (46, 125, 50)]
     y_leg = mt + 10
     d.text((W - mr + 10, y_leg), "from empty", fill=(120, 120, 120))
-    for r, c in zip(results, colours):
+    for r, c in zip(results, colours, strict=False):
         pts = [(X(f["n"]), Y(f["prefill_share"] or 0.0)) for f in r["frames"]]
         d.line(pts, fill=c, width=2)
         for p in pts:

@@ -305,11 +305,13 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     page.wait_for_selector(f"#queue-pos:has-text('frame {k} of {len(frames)}')")
     assert f"{left} left" in page.locator("#queue-pos").inner_text()
     page.click("#scene-progress summary")
-    row = page.locator("#progress-table tr[data-who='annotator (you)']")
-    row.wait_for()
+    page.locator("#progress-table th[data-who='annotator (you)']").wait_for()
     mine = [f for f in frames if (f["assignee"] or f["last_annotator"]) == "annotator"]
     for st in ("submitted", "accepted", "rejected", "in_progress"):
-        assert int(row.locator(f"td[data-state='{st}']").inner_text()) == sum(f["state"] == st for f in mine), st
+        cell = page.locator(f"#progress-table tr[data-state='{st}'] td[data-who='annotator (you)']")
+        assert int(cell.inner_text()) == sum(f["state"] == st for f in mine), st
+        assert int(page.locator(f"#progress-table tr[data-state='{st}'] td[data-who='all']").inner_text()) \
+            == sum(f["state"] == st for f in frames), st
     # tool and brush size survive the next frame
     page.locator(".layer-overlay").focus()
     page.keyboard.press("e")
@@ -353,6 +355,19 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     page.click(f".eye[data-class='{cls}']")
     assert page.evaluate(f"() => ({alpha})(40, 40)") == 255
     shot(page, "17_06_annotator_progress_tools")
+    # a prefill from few masks says so (2 frames of this scene are lifted at this point)
+    n_masks = len(live.client("admin").get(f"/api/scenes/{sid}/labels/status").json()["included_versions"])
+    page.click("#prefill")
+    dlg = page.locator("dialog.modal")
+    dlg.wait_for()  # the frame has the test block painted: fill only the unpainted pixels
+    dlg.get_by_role("button", name="Fill unpainted only").click()
+    if n_masks < 3:
+        page.wait_for_selector("#prefill-warning")
+        assert f"only {n_masks} submitted mask" in page.locator("#prefill-warning").inner_text()
+    else:
+        page.wait_for_selector("#prefill-info")
+        assert f"from {n_masks} masks" in page.locator("#prefill-info").inner_text()
+    page.keyboard.press("Control+z")
     page.keyboard.press("Control+z")
 
 

@@ -280,7 +280,12 @@ class AdminPage {
       ),
       el("div", { class: "row wrap" }, el("figure", {}, curveC, el("figcaption", {}, "Coverage vs number of selected frames")), el("figure", {}, mapC, el("figcaption", {}, cells.length ? "Top-down map: cameras (blue), selected frames (red), occupied grid cells" : `Top-down map: cameras (blue), selected frames (red); the API sent no cell geometry (${typeof sel.cells === "number" ? sel.cells : "?"} occupied cells of ${edge} m)`))),
     );
-    linePlot(curveC, curve, { xLabel: "frames", yLabel: "coverage", xMin: 0, yMin: 0, yMax: 1, dots: true, marker: curve.length ? curve[curve.length - 1] : null, yFmt: (v) => `${Math.round(v * 100)}%` });
+    // the greedy additions draw a line; a final pruning step (fewer frames, same coverage)
+    // is the red marker only, not a line drawn back to the left
+    let grow = curve.length;
+    for (let i = 1; i < curve.length; i++) if (curve[i][0] < curve[i - 1][0]) { grow = i; break; }
+    const line = curve.slice(0, grow);
+    linePlot(curveC, line.length ? line : curve, { xLabel: "frames", yLabel: "coverage", xMin: 0, yMin: 0, yMax: 1, dots: true, marker: curve.length ? curve[curve.length - 1] : null, markerLabel: curve.length ? `${curve[curve.length - 1][0]} frames${grow < curve.length ? " after pruning" : ""}` : "", yFmt: (v) => `${Math.round(v * 100)}%` });
     mapPlot(mapC, { cameras: sel.cameras || [], selected, cells, lattice });
   }
 

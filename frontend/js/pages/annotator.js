@@ -10,6 +10,7 @@ import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
 
 const IDLE_SAVE_MS = 2500;
 const PREFS_KEY = "occufly.annotator.prefs";
+const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this gets a warning
 const KEYS = [
   ["B / E / P / F / H", "brush / eraser / polygon / flood fill / pan"],
   ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
@@ -240,11 +241,17 @@ class AnnotatorPage {
     this.queueEl.dataset.total = String(frames.length);
     if (!this.progressEl.open) return;
     const bar = el("div", { class: "state-bar", role: "img", "aria-label": order.map((s) => `${all[s]} ${label[s]}`).join(", ") }, order.filter((s) => all[s]).map((s) => el("span", { class: `seg st-${s}`, style: { flexGrow: String(all[s]) }, title: `${all[s]} ${label[s]}` })));
-    const rows = [{ name: "all", ...all }, ...people.map((p) => ({ name: p === me ? `${p} (you)` : p, ...count(frames.filter((f) => who(f) === p)) }))];
+    const cols = [{ name: "all", ...all }, ...people.map((p) => ({ name: p === me ? `${p} (you)` : p, ...count(frames.filter((f) => who(f) === p)) }))];
+    // one column per person (the side panel is narrow; states are the rows)
     this.progressEl.replaceChildren(
       el("summary", {}, "Scene progress"),
       bar,
-      el("table", { class: "progress-table", id: "progress-table" }, el("thead", {}, el("tr", {}, el("th", {}, ""), order.map((s) => el("th", { scope: "col", title: label[s] }, label[s])))), el("tbody", {}, rows.map((r) => el("tr", { "data-who": r.name }, el("th", { scope: "row" }, r.name), order.map((s) => el("td", { "data-state": s }, String(r[s]))))))),
+      el(
+        "table",
+        { class: "progress-table", id: "progress-table" },
+        el("thead", {}, el("tr", {}, el("th", {}, ""), cols.map((c) => el("th", { scope: "col", "data-who": c.name }, c.name)))),
+        el("tbody", {}, order.map((s) => el("tr", { "data-state": s }, el("th", { scope: "row" }, el("span", { class: `dot st-${s}` }), ` ${label[s]}`), cols.map((c) => el("td", { "data-who": c.name }, String(c[s])))))),
+      ),
     );
   }
 
@@ -255,6 +262,7 @@ class AnnotatorPage {
     // nothing may act on the previous frame while this one loads (prefill, save, submit)
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = true;
     this.opening = fid;
+    this.prefillWarning = this.prefillInfo = null;
     const frame = await api.get(`/frames/${fid}`);
     const sid = frame.scene_id ?? this.sceneSel.value;
     if (frame.scene_id !== undefined) this.sceneSel.value = String(frame.scene_id);
@@ -298,7 +306,8 @@ class AnnotatorPage {
     this.buildSide();
     ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
     ed.view.overlay.focus({ preventScroll: true });
-    this.frameInfo.textContent = `${frame.name} · ${W}×${H} · ${frame.state}`;
+    this.frameInfo.textContent = `${frame.name} · ${frame.state.replace("_", " ")}`;
+    this.frameInfo.title = `${frame.name}: ${W}×${H} px, ${frame.state.replace("_", " ")}`;
     this.opening = null;
     this.applyPrefs();
     this.setReadOnly(this.readOnlyReason(frame));
@@ -534,6 +543,8 @@ class AnnotatorPage {
     const parts = [];
     const banner = this.readOnlyBanner();
     if (banner) parts.push(banner);
+    if (this.prefillWarning) parts.push(el("p", { class: "notice", id: "prefill-warning", role: "status" }, this.prefillWarning));
+    else if (this.prefillInfo) parts.push(el("p", { class: "muted", id: "prefill-info" }, this.prefillInfo));
     if (f.state === "rejected") parts.push(el("p", { class: "notice" }, "A reviewer sent this frame back. See the comments below and on the image."));
     if (this.items.length) {
       parts.push(el("h2", {}, "Review comments"));
@@ -915,6 +926,15 @@ class AnnotatorPage {
       }
       ed.replaceIds("prefill from 3D", ids, { onlyUnpainted });
       this.status(`Prefilled ${(100 * (n / ids.length)).toFixed(1)} % of the frame from the 3D labels. Correct it with the tools.`);
+      // how much to trust it: from how many submitted masks the 3D labels were lifted
+      const st = await api.get(`/scenes/${frame.scene_id ?? this.sceneSel.value}/labels/status`).catch(() => null);
+      if (stale() || !st) return;
+      const nMasks = Object.keys(st.included_versions || {}).length;
+      this.prefillWarning = nMasks < FEW_MASKS
+        ? `This prefill comes from only ${nMasks} submitted mask${nMasks === 1 ? "" : "s"}: expect rough borders and missing small objects; check every region.`
+        : null;
+      this.prefillInfo = `Prefill: ${(100 * (n / ids.length)).toFixed(1)} % of the frame, lifted from ${nMasks} mask${nMasks === 1 ? "" : "s"}.`;
+      this.buildSide();
     } catch (e) {
       if (!stale()) showError(e);
     } finally {

@@ -25,7 +25,7 @@ function niceTicks(lo, hi, n = 5) {
 }
 
 /** points: [[x, y], ...]; opts: {xLabel, yLabel, yMin, yMax, marker: [x, y]} */
-export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null, yMin = null, yMax = null, marker = null, dots = false, width = 460, height = 260, yFmt = (v) => v } = {}) {
+export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null, yMin = null, yMax = null, marker = null, markerLabel = "", dots = false, width = 460, height = 260, yFmt = (v) => v } = {}) {
   const ctx = setup(canvas, width, height);
   const m = { l: 52, r: 12, t: 12, b: 40 };
   const W = width - m.l - m.r;
@@ -38,8 +38,8 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null
   const ys = points.map((p) => p[1]);
   // x axis from xMin (or the data) to a tick at or beyond the last point, so the curve and
   // its end marker stay inside the plot
-  const x0 = Math.min(xMin ?? Infinity, ...xs);
-  const xTop = Math.max(...xs);
+  const x0 = Math.min(xMin ?? Infinity, ...xs, ...(marker ? [marker[0]] : []));
+  const xTop = Math.max(...xs, ...(marker ? [marker[0]] : []));
   const xt = niceTicks(x0, xTop > x0 ? xTop : x0 + 1);
   const x1 = xt.length && xt[xt.length - 1] >= xTop ? xt[xt.length - 1] : xTop + (xt.length > 1 ? xt[1] - xt[0] : 1);
   const y0 = yMin ?? Math.min(...ys), y1 = yMax ?? Math.max(...ys);
@@ -85,6 +85,10 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null
     ctx.beginPath();
     ctx.arc(X(marker[0]), Y(marker[1]), 5, 0, Math.PI * 2);
     ctx.fill();
+    if (markerLabel) {
+      ctx.textAlign = X(marker[0]) > m.l + W / 2 ? "right" : "left";
+      ctx.fillText(markerLabel, X(marker[0]) + (ctx.textAlign === "left" ? 8 : -8), Y(marker[1]) + 16);
+    }
   }
   canvas.setAttribute("role", "img");
   canvas.setAttribute("aria-label", `${yLabel} vs ${xLabel}: from ${yFmt(ys[0])} at ${xs[0]} to ${yFmt(ys[ys.length - 1])} at ${xs[xs.length - 1]}`);

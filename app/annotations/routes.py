@@ -134,3 +134,6 @@ def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser
 @router.get("/scenes/{sid}/labels/status", response_model=LabelsStatus)
 def labels_status(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: CurrentUser):
     return service.labels_status(session=session, ctx=ctx, scene=scene)
+
+
+from app.annotations import confidence as _confidence  # noqa: E402, F401 - registers its route

@@ -1,0 +1,49 @@
+"""How much to trust a prefill: the lifted labels' confidence rendered into a frame.
+
+``GET /api/frames/{fid}/prefill/confidence`` -- a single-channel PNG at the frame's size (or
+1/``downscale``): 0 where no lifted label reaches the pixel, else ``1 + round(254 *
+confidence)`` of the point seen there (confidence in [0, 1] from the kNN fill / denoise:
+the share of its neighbours agreeing). 404 before the first fill (direct votes carry none).
+Registered on the annotations router (app/annotations/routes.py imports this module).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from fastapi import Query, Response
+
+from app import pipeline
+from app.annotations import routes, service
+from app.deps import CtxDep, CurrentUser, FrameDep, SessionDep
+from app.errors import NotFound
+from app.scenes.models import Scene
+
+
+def confidence_image(ctx, scene: Scene, frame, *, downscale: int = 1) -> np.ndarray:  # noqa: ANN001
+    res = pipeline.load_labels(scene.workspace)
+    if res is None:
+        raise NotFound(f"scene {scene.id} has no filled labels yet, so no confidence")
+    conf = np.nan_to_num(np.asarray(res.confidence, np.float32), nan=0.0)
+    q = np.where(np.asarray(res.labels) > 0,
+                 1 + np.rint(254.0 * np.clip(conf, 0.0, 1.0)), 0).astype(np.uint8)
+    img, _depth = pipeline.render_labels(ctx.load_scene(scene.workspace), q, frame.index,
+                                         scale=1.0 / downscale)
+    return np.asarray(img, dtype=np.uint8)
+
+
+@routes.router.get("/frames/{fid}/prefill/confidence", response_class=Response,
+                   responses={200: routes.PNG})
+def prefill_confidence(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser,
+                       downscale: Annotated[int, Query(ge=1, le=64)] = 1):
+    service.check_read(session, frame, user)
+    scene = session.get(Scene, frame.scene_id)
+    img = confidence_image(ctx, scene, frame, downscale=downscale)
+    return Response(pipeline.encode_png(img), media_type="image/png",
+                    headers={"Cache-Control": "private, no-cache"})
+
+
+_access = getattr(routes, "ACCESS", None)
+if _access is not None:  # app/access.py: who may call what
+    _access["GET /api/frames/{fid}/prefill/confidence"] = "member"

@@ -16,6 +16,8 @@ mask and the rendering both have a label (mask not 0/255, rendering not 0) and a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from occufly.camera import Camera, transform
@@ -108,6 +110,9 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
 
     labels: (N,) uint8 raw class ids (0 = unlabelled). scale: resolution factor (0.25 = quarter).
     Returns ((h, w) uint8 class image, 0 = nothing; (h, w) float32 depth in metres, 0 = none).
+    Images of more than 4 MP whose points are spread wider than ~4 px (a 20 MP frame: ~10 px)
+    are rendered at 1/k and each pixel repeated k x k, k chosen for <= 1.5 px splats: the cloud has
+    no finer detail there, the surfaces close, and the work drops by k^2.
     """
     labels = np.asarray(labels)
     if labels.shape != (scene.n_points,):
@@ -116,13 +121,56 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
     cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
     h, w = cam.height, cam.width
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
-    f = 0.5 * sum(cam.focal)
-
     cand = frustum_candidates(scene, cam, frame.T_cam_world)
+    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    if k > 1:  # a large image finer than the cloud: render k x coarser, repeat each pixel k x k
+        if cand is not None:  # the coarse splats reach k x farther in full-size pixels
+            cand = frustum_candidates(scene, cam, frame.T_cam_world, margin=MAX_SPLAT * k)
+        cls, depth = _render(scene, labels, frame, cam.scaled(1.0 / k), spacing, splat_factor,
+                             surface_tol, chunk, cand)
+        return _upsample(cls, k, h, w), _upsample(depth, k, h, w)
+    return _render(scene, labels, frame, cam, spacing, splat_factor, surface_tol, chunk, cand)
+
+
+# images above this many pixels whose typical splat is wider than COARSE_SPLAT px are rendered
+# coarser (20 MP frames: point spacing ~10 px): same information, closed surfaces, ~1/k^2 work
+COARSE_MIN_PIXELS = 4_000_000
+COARSE_SPLAT = 4.0
+
+
+def _coarsening(scene: Scene, cam: Camera, T_cam_world: np.ndarray, spacing: float,
+                splat_factor: float, cand: np.ndarray | None) -> int:
+    """Integer factor k >= 1: render at 1/k so that the typical splat is <= 1.5 px (only for
+    images above COARSE_MIN_PIXELS whose typical splat exceeds COARSE_SPLAT px)."""
+    if cam.width * cam.height <= COARSE_MIN_PIXELS or scene.n_points == 0:
+        return 1
+    ids = np.arange(0, scene.n_points, max(1, scene.n_points // 20_000)) if cand is None \
+        else cand[:: max(1, len(cand) // 20_000)]
+    z = transform(T_cam_world, np.asarray(scene.xyz[ids], dtype=np.float64))[:, 2]
+    z = z[z > 1e-6]
+    if not len(z):
+        return 1
+    s_typ = splat_factor * 0.5 * sum(cam.focal) * spacing / float(np.median(z))
+    return int(min(16, math.ceil(s_typ / 1.5))) if s_typ > COARSE_SPLAT else 1
+
+
+def _upsample(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
+    """Repeat every pixel k x k and fit to (h, w) (edge pixels repeated where short)."""
+    big = np.repeat(np.repeat(img, k, axis=0), k, axis=1)[:h, :w]
+    if big.shape != (h, w):
+        big = np.pad(big, ((0, h - big.shape[0]), (0, w - big.shape[1])), mode="edge")
+    return np.ascontiguousarray(big)
+
+
+def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float, splat_factor: float,
+            surface_tol: float, chunk: int, cand: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The splat renderer at ``cam``'s resolution (``cand``: the frustum cull of the points)."""
+    h, w = cam.height, cam.width
+    f = 0.5 * sum(cam.focal)
     n_cand = scene.n_points if cand is None else len(cand)
 
-    def fragments():
-        """Per chunk of points and splat offset: (pixel, depth, d2 to pixel centre, label)."""
+    def projected():
+        """Per chunk of points: (uv, z, splat size, first column, first row, label)."""
         for a in range(0, n_cand, chunk):
             b = min(n_cand, a + chunk)
             sub = slice(a, b) if cand is None else cand[a:b]
@@ -139,7 +187,14 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
             # the s x s pixels whose centres lie within s/2 of the projected point
             col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
             row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
-            lab = labels[sub][idx]
+            yield uv, z, size, col0, row0, labels[sub][idx]
+
+    # the projections are kept for the second pass when they are small (culled frames)
+    kept = list(projected()) if n_cand <= 4_000_000 else None
+
+    def fragments():
+        """Per chunk of points and splat offset: (pixel, depth, d2 to pixel centre, label)."""
+        for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
             for dy in range(MAX_SPLAT):
                 for dx in range(MAX_SPLAT):
                     sel = np.flatnonzero(size > max(dx, dy))

@@ -203,3 +203,32 @@ def test_too_big_for_the_machine_is_a_clear_error_before_writing(tmp_path, monke
     with pytest.raises(OccuflyError, match=r"needs about .* GB of disk .* 0.0 GB free"):
         generate(tmp_path / "t", preset="tiny")
     assert not any(tmp_path.iterdir())
+
+
+def test_large_frames_render_coarse_and_repeat(tinyfull, tmp_path, monkeypatch):
+    """Above COARSE_MIN_PIXELS a frame whose splats would be wide is rendered k x coarser and
+    each pixel repeated: same result as rendering the coarse camera, fewer holes than full size."""
+    import occufly.render as R
+    from occufly.io.importer import import_scene
+    from occufly.scene import Scene
+
+    out, _ = tinyfull
+    ws = tmp_path / "ws"
+    import_scene(out, ws)
+    scene = Scene.load(ws)
+    labels = np.load(out / "truth" / "point_labels.npy")
+    f = scene.frame_index(json.loads((out / "truth" / "meta.json").read_text())["full_size_frames"][0])
+    cam = scene.frames[f].camera
+    fine, _ = R.render_labels(scene, labels, f)  # 0.6 MP: below the threshold, unchanged path
+    monkeypatch.setattr(R, "COARSE_MIN_PIXELS", 0)
+    spacing = R.scene_point_spacing(scene)
+    k = R._coarsening(scene, cam, scene.frames[f].T_cam_world, spacing, R.SPLAT_FACTOR, None)
+    assert k >= 2
+    got, depth = R.render_labels(scene, labels, f)
+    assert got.shape == fine.shape == (cam.height, cam.width) and depth.shape == got.shape
+    small, _ = R._render(scene, labels, scene.frames[f], cam.scaled(1.0 / k), spacing, R.SPLAT_FACTOR,
+                         3.0, 500_000, None)
+    assert np.array_equal(got, R._upsample(small, k, cam.height, cam.width))
+    assert (got > 0).mean() > (fine > 0).mean()  # the surfaces close
+    agree = (got == fine) & (fine > 0)
+    assert agree.sum() / (fine > 0).sum() > 0.85

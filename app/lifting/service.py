@@ -68,6 +68,8 @@ class _Scene:
 
 
 class LiftingService:
+    RETRY_S = 5.0  # a scene whose entries cannot be applied is retried after this long
+
     def __init__(self, ctx: AppContext, bus: EventBus, *, debounce_s: float | None = None,
                  poll_s: float = 0.5, batch: int = 256) -> None:
         self.ctx = ctx
@@ -83,6 +85,7 @@ class LiftingService:
         self._threads: list[threading.Thread] = []
         self._hints: dict[tuple[int, int], object] = {}  # (frame id, version id) -> mask
         self._seq = 0
+        self._backoff: dict[int, float] = {}  # scene id -> monotonic time to retry it
         self._lock_fd: int | None = None
         self.applied = 0  # entries applied by this process (tests, benchmarks)
 
@@ -212,22 +215,36 @@ class LiftingService:
         from app.annotations.models import MaskVersion
         from app.scenes.models import Scene
 
+        now = time.monotonic()
+        waiting = [sid for sid, t in self._backoff.items() if t > now]
+        q = (select(LiftQueueEntry.id, LiftQueueEntry.scene_id, LiftQueueEntry.frame_id,
+                    LiftQueueEntry.frame_index, LiftQueueEntry.version_id, MaskVersion.sha256,
+                    Scene.workspace)
+             .outerjoin(MaskVersion, MaskVersion.id == LiftQueueEntry.version_id)
+             .join(Scene, Scene.id == LiftQueueEntry.scene_id)
+             .where(LiftQueueEntry.status == "pending"))
+        if waiting:  # a scene that just failed must not hold up the others
+            q = q.where(LiftQueueEntry.scene_id.not_in(waiting))
         with self.ctx.sessions() as s:
-            rows = s.execute(
-                select(LiftQueueEntry.id, LiftQueueEntry.scene_id, LiftQueueEntry.frame_id,
-                       LiftQueueEntry.frame_index, LiftQueueEntry.version_id, MaskVersion.sha256,
-                       Scene.workspace)
-                .outerjoin(MaskVersion, MaskVersion.id == LiftQueueEntry.version_id)
-                .join(Scene, Scene.id == LiftQueueEntry.scene_id)
-                .where(LiftQueueEntry.status == "pending")
-                .order_by(LiftQueueEntry.id).limit(self.batch)).all()
+            rows = s.execute(q.order_by(LiftQueueEntry.id).limit(self.batch)).all()
         by_scene: dict[int, list] = {}
         for r in rows:
             by_scene.setdefault(r.scene_id, []).append(r)
         for sid, entries in by_scene.items():
             if self._stop.is_set():
                 break
-            self._apply_scene(sid, entries)
+            try:
+                self._apply_scene(sid, entries)
+                self._backoff.pop(sid, None)
+            except Exception as e:  # noqa: BLE001 - e.g. a workspace being re-imported
+                log.exception("lifting: scene %s; retrying in %.0f s", sid, self.RETRY_S)
+                self._backoff[sid] = time.monotonic() + self.RETRY_S
+                try:
+                    with self.ctx.sessions() as s:
+                        self._set_status(s, sid, last_error=f"{type(e).__name__}: {e}")
+                        s.commit()
+                except Exception:  # noqa: BLE001 - the database itself is away
+                    log.warning("lifting: cannot record the error of scene %s", sid)
         return len(rows)
 
     def _apply_scene(self, scene_id: int, entries: list) -> None:

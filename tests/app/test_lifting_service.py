@@ -103,6 +103,40 @@ def test_queue_applied_in_version_order_exactly_once_and_resumed_after_a_crash(e
     assert idx[fa] != idx[fb]
 
 
+def test_a_broken_scene_does_not_hold_up_the_others(env):
+    """Entries of a scene whose workspace cannot be opened wait (error in its status); the
+    other scenes' entries are applied meanwhile."""
+    from app.lifting.models import LiftQueueEntry, LiftStatus
+    from app.scenes.models import Frame, Scene
+
+    admin, ann = env.bearer("admin"), env.bearer("annotator")
+    env.import_tiny(admin)
+    scene, _frames_ = _frames(env, admin)
+    env.select_all(scene["id"])
+    ctx = env.app.state.ctx
+    ctx.lifting.stop()
+    with ctx.sessions() as s:
+        bad = Scene(name="gone", status="ready", workspace=str(env.settings.data_dir / "nope"))
+        s.add(bad)
+        s.flush()
+        fr = Frame(scene_id=bad.id, index=0, name="x.png", width=W, height=H)
+        s.add(fr)
+        s.flush()
+        s.add_all([LiftQueueEntry(scene_id=bad.id, frame_id=fr.id, frame_index=0,
+                                  version_id=None, status="pending") for _ in range(300)])
+        s.commit()  # more than one batch of the broken scene, queued first
+        bad_id = bad.id
+    fid = env.client.post(f"/api/scenes/{scene['id']}/next", headers=ann).json()["id"]
+    v = _put(env, ann, fid, 6, None)
+    ctx.lifting.start()
+    assert ctx.lifting.wait_idle(scene["id"], timeout=30)
+    assert [r.status for r in _queue(env, scene["id"])] == ["applied"]
+    with ctx.sessions() as s:
+        assert s.get(LiftStatus, bad_id).last_error  # reported, kept pending
+        assert s.query(LiftQueueEntry).filter_by(scene_id=bad_id, status="pending").count() == 300
+    assert v
+
+
 def test_a_second_worker_on_the_same_data_dir_is_refused(env):
     from app.lifting.service import LiftingBusy, LiftingService
 

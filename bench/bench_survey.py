@@ -464,6 +464,42 @@ def budgets(res: Results) -> dict:
     return out
 
 
+def _count(n: int) -> str:
+    return f"{n / 1e6:.1f} M" if n >= 1e6 else f"{n / 1e3:.0f} k"
+
+
+def markdown_table(data: dict) -> str:
+    """README's "How big, how long" table from a results file: per size and stage, wall time
+    and peak memory (the larger of the biggest process and the sampled process-tree sum)."""
+    order = ["synth", "import", "select", "lift", "fill", "voxelize", "export", "export_dask"]
+    sizes = [n for n in data.get("sizes", {}) if data["sizes"][n].get("scene")]
+    sizes.sort(key=lambda n: data["sizes"][n]["scene"].get("points", 0))
+    rows = ["| stage | " + " | ".join(
+        f"{n} ({data['sizes'][n]['scene']['frames']} frames, {_count(data['sizes'][n]['scene']['points'])} "
+        "points)" for n in sizes) + " |",
+        "|---|" + "---|" * len(sizes)]
+
+    def fmt_s(x: float) -> str:
+        return f"{x:.0f} s" if x < 120 else f"{x / 60:.1f} min"
+
+    for st in order:
+        cells = []
+        for n in sizes:
+            S = data["sizes"][n]
+            f = S["stages"].get(st)
+            if f is None or f.get("exit") != 0:
+                cells.append("not run" if f is None else "failed")
+                continue
+            mem = max(f["peak_rss_mb"], f["peak_rss_tree_mb"]) / 1024
+            note = ""
+            if st.startswith("export") and S.get("export_stride", 1) > 1:
+                note = f" ({S['exported_frames']} frames)"
+            cells.append(f"{fmt_s(f['wall_s'])}, {mem:.1f} GB{note}")
+        if any(c != "not run" for c in cells):
+            rows.append(f"| {st} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--root", type=Path, default=Path("/tmp/occufly-bench-survey"))
@@ -478,7 +514,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--export-stride", type=int, default=8,
                     help="export every k-th frame (per-frame export is independent work: its cost "
                     "per frame is what scales; 1 = every frame)")
+    ap.add_argument("--table", type=Path, metavar="RESULTS",
+                    help="print the README table of an earlier results file and exit")
     args = ap.parse_args(argv)
+    if args.table:
+        print(markdown_table(json.loads(args.table.read_text())))
+        return 0
     args.root.mkdir(parents=True, exist_ok=True)
     res = Results(args.out or args.root / "results.json", args.resume)
     stages = args.stages.split(",")

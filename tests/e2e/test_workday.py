@@ -367,6 +367,15 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     else:
         page.wait_for_selector("#prefill-info")
         assert f"from {n_masks} masks" in page.locator("#prefill-info").inner_text()
+    # low-confidence prefill pixels are counted and marked (the server's confidence image)
+    lab = page.locator("label.low-conf")
+    lab.wait_for()
+    low = int(lab.get_attribute("data-low"))
+    conf = png_ids(live.client("admin").get(f"/api/frames/{fb}/prefill/confidence").content)
+    pre = png_ids(live.client("admin").get(f"/api/frames/{fb}/prefill").content)
+    assert conf.shape == pre.shape and (conf[pre > 0] > 0).mean() > 0.9  # confidence where labels are
+    assert low == int(((conf > 0) & (conf < 1 + round(254 * 0.6)) & (pre > 0)).sum())
+    assert page.locator("#show-low-confidence").is_checked()
     page.keyboard.press("Control+z")
     page.keyboard.press("Control+z")
 

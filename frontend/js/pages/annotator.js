@@ -11,6 +11,7 @@ import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
 const IDLE_SAVE_MS = 2500;
 const PREFS_KEY = "occufly.annotator.prefs";
 const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this gets a warning
+const LOW_CONFIDENCE = 0.6; // prefill pixels whose lifted label is less sure than this are marked
 const KEYS = [
   ["B / E / P / F / H", "brush / eraser / polygon / flood fill / pan"],
   ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
@@ -191,6 +192,48 @@ class AnnotatorPage {
     }
   }
 
+  /**
+   * Mark the prefilled pixels whose lifted label has low confidence (hatched overlay, toggle in
+   * the side panel): where to look first.
+   */
+  async loadConfidence(frame, ed, prefillIds) {
+    const r = await api.blob(`/frames/${frame.id}/prefill/confidence`).catch(() => null);
+    if (!r || this.editor !== ed) return;
+    const d = await decodeIdPng(r.blob);
+    const conf = resizeIds(d.ids, d.width, d.height, ed.mask.width, ed.mask.height);
+    const W = ed.mask.width, H = ed.mask.height;
+    const img = new ImageData(W, H);
+    const px = new Uint32Array(img.data.buffer);
+    const cut = 1 + Math.round(254 * LOW_CONFIDENCE);
+    let low = 0, lab = 0;
+    for (let i = 0; i < conf.length; i++) {
+      if (!prefillIds[i] || !conf[i]) continue;
+      lab++;
+      if (conf[i] < cut) {
+        low++;
+        const x = i % W, y = (i / W) | 0;
+        px[i] = ((x + y) & 3) < 2 ? 0xe0ff00ff : 0x60000000; // magenta / dark hatch (ABGR)
+      }
+    }
+    const c = new OffscreenCanvas(W, H);
+    c.getContext("2d").putImageData(img, 0, 0);
+    this.lowConf = { canvas: c, low, share: lab ? low / lab : 0, show: true };
+    if (!this._confPainter) {
+      this._confPainter = (g, v) => {
+        const lc = this.lowConf;
+        if (!lc || !lc.show || this.editor !== ed) return;
+        g.save();
+        g.imageSmoothingEnabled = false;
+        g.translate(v.tx, v.ty);
+        g.scale(v.scale, v.scale);
+        g.drawImage(lc.canvas, 0, 0);
+        g.restore();
+      };
+      ed.view.overlayPainters.unshift(this._confPainter);
+    }
+    ed.view.request();
+  }
+
   /** Skip: save, release the lease, take the next frame (this one is not offered again now). */
   async skip() {
     if (!this.frame) return;
@@ -263,6 +306,8 @@ class AnnotatorPage {
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = true;
     this.opening = fid;
     this.prefillWarning = this.prefillInfo = null;
+    this.lowConf = null;
+    this._confPainter = null;
     const frame = await api.get(`/frames/${fid}`);
     const sid = frame.scene_id ?? this.sceneSel.value;
     if (frame.scene_id !== undefined) this.sceneSel.value = String(frame.scene_id);
@@ -545,6 +590,15 @@ class AnnotatorPage {
     if (banner) parts.push(banner);
     if (this.prefillWarning) parts.push(el("p", { class: "notice", id: "prefill-warning", role: "status" }, this.prefillWarning));
     else if (this.prefillInfo) parts.push(el("p", { class: "muted", id: "prefill-info" }, this.prefillInfo));
+    if (this.lowConf) {
+      const box = el("input", { type: "checkbox", id: "show-low-confidence" });
+      box.checked = this.lowConf.show;
+      box.addEventListener("change", () => {
+        this.lowConf.show = box.checked;
+        this.editor?.view.request();
+      });
+      parts.push(el("label", { class: "check low-conf", for: "show-low-confidence", "data-low": this.lowConf.low }, box, ` Mark low-confidence prefill (${(100 * this.lowConf.share).toFixed(1)} % of it, confidence < ${LOW_CONFIDENCE})`));
+    }
     if (f.state === "rejected") parts.push(el("p", { class: "notice" }, "A reviewer sent this frame back. See the comments below and on the image."));
     if (this.items.length) {
       parts.push(el("h2", {}, "Review comments"));
@@ -934,6 +988,8 @@ class AnnotatorPage {
         ? `This prefill comes from only ${nMasks} submitted mask${nMasks === 1 ? "" : "s"}: expect rough borders and missing small objects; check every region.`
         : null;
       this.prefillInfo = `Prefill: ${(100 * (n / ids.length)).toFixed(1)} % of the frame, lifted from ${nMasks} mask${nMasks === 1 ? "" : "s"}.`;
+      await this.loadConfidence(frame, ed, ids);
+      if (stale()) return;
       this.buildSide();
     } catch (e) {
       if (!stale()) showError(e);

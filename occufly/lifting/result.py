@@ -3,16 +3,13 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from occufly.fsutil import atomic_save_npy, atomic_write_text
 from occufly.taxonomy import Taxonomy
-
-LIFT_DIR = "lifting"
+from occufly.workspace import LIFTING_DIR as LIFT_DIR  # noqa: F401 - the old public name
 
 ORIGIN_NONE = 0
 ORIGIN_DIRECT = 1
@@ -50,35 +47,19 @@ class LiftResult:
 
 
 def save_result(ws: str | Path, result: LiftResult) -> None:
-    d = Path(ws) / LIFT_DIR
-    # labels.npy is what readers test for: write it last so a reader that finds it finds
-    # the companion arrays too (the first fill used to expose labels without confidence)
-    atomic_save_npy(d / "confidence.npy", result.confidence.astype(np.float32))
-    atomic_save_npy(d / "origin.npy", result.origin.astype(np.uint8))
-    atomic_write_text(d / "labels.json", json.dumps(result.stats, indent=1, default=_jsonable))
-    atomic_save_npy(d / "labels.npy", result.labels.astype(np.uint8))
+    """Store a fill result in workspace ``ws`` (labels last: :meth:`Workspace.write_labels`)."""
+    from occufly.workspace import Workspace
 
-
-def _jsonable(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
+    Workspace(ws).write_labels(result.labels, result.confidence, result.origin, result.stats)
 
 
 def load_labels(ws: str | Path) -> LiftResult | None:
     """The latest fill/denoise output of workspace ``ws`` (memory-mapped), or None."""
-    d = Path(ws) / LIFT_DIR
-    if not (d / "labels.npy").is_file():
+    from occufly.workspace import Workspace
+
+    w = Workspace(ws)
+    labels = w.labels()
+    if labels is None:
         return None
-    stats = {}
-    if (d / "labels.json").is_file():
-        try:
-            stats = json.loads((d / "labels.json").read_text())
-        except json.JSONDecodeError:
-            stats = {}
-    return LiftResult(
-        labels=np.load(d / "labels.npy", mmap_mode="r"),
-        confidence=np.load(d / "confidence.npy", mmap_mode="r"),
-        origin=np.load(d / "origin.npy", mmap_mode="r"),
-        stats=stats,
-    )
+    return LiftResult(labels=labels, confidence=w.confidence(), origin=w.label_origin(),
+                      stats=w.lift_stats())

@@ -32,10 +32,11 @@ from occufly.errors import MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_bytes, atomic_write_text
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.knn import LiftParams
-from occufly.lifting.result import LIFT_DIR, LiftResult, save_result
+from occufly.lifting.result import LiftResult, save_result
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID
+from occufly.workspace import Workspace
 
 STATE_VERSION = 1
 _CHUNK_ROWS = 1_000_000
@@ -87,10 +88,10 @@ class LiftState:
     # -- paths
     @property
     def dir(self) -> Path:
-        return self.ws / LIFT_DIR
+        return Workspace(self.ws).lifting_dir
 
     def _frame_path(self, frame_index: int) -> Path:
-        return self.dir / "frames" / f"{frame_index}.npz"
+        return Workspace(self.ws).lifting_frame(frame_index)
 
     # -- open / save
     @classmethod
@@ -114,10 +115,11 @@ class LiftState:
         ws = Path(ws)
         if scene is None:
             scene = Scene.load(ws)
-        d = ws / LIFT_DIR
-        state_path = d / "state.json"
+        w = Workspace(ws)
+        d = w.lifting_dir
+        state_path = w.lifting_state
         n, ids = scene.n_points, [int(i) for i in scene.taxonomy.ids]
-        votes_path = d / "votes.npy"
+        votes_path = w.votes
         if read_only and not state_path.is_file():
             raise WorkspaceError(f"{state_path}: no lifting state yet (no mask has been lifted)")
         if state_path.is_file():
@@ -151,7 +153,7 @@ class LiftState:
                                          "interrupted (open it writable to repair it)")
                 self.rebuild()
             return self
-        (d / "frames").mkdir(parents=True, exist_ok=True)
+        w.lifting_frames_dir.mkdir(parents=True, exist_ok=True)
         tmp = d / f".votes.npy.{os.getpid()}.tmp"
         votes = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint16, shape=(n, len(ids)))
         votes.flush()
@@ -160,7 +162,7 @@ class LiftState:
         votes = np.lib.format.open_memmap(votes_path, mode="r+")
         self = cls(ws, scene, votes, {})
         self.vote_weighting = vote_weighting or "plain"
-        stale = sorted((d / "frames").glob("*.npz"))
+        stale = sorted(w.lifting_frames_dir.glob("*.npz"))
         if stale:  # frame votes without a state file: recount from them
             self._versions = {int(p.stem): None for p in stale if p.stem.isdigit()}
             self.rebuild()
@@ -177,7 +179,7 @@ class LiftState:
             "vote_weighting": self.vote_weighting,
             "dirty": dirty,
         }
-        atomic_write_text(self.dir / "state.json", json.dumps(state, indent=1))
+        atomic_write_text(Workspace(self.ws).lifting_state, json.dumps(state, indent=1))
 
     def save(self) -> None:
         """Flush the vote counts and write ``state.json`` atomically.
@@ -204,7 +206,7 @@ class LiftState:
         self.votes[:] = 0
         flat = self.votes.reshape(-1)
         C = self._cls.C
-        for p in sorted((self.dir / "frames").glob("*.npz")):
+        for p in sorted(Workspace(self.ws).lifting_frames_dir.glob("*.npz")):
             if not p.stem.isdigit():
                 continue
             pids, cols, w = self._load_frame_file(p)

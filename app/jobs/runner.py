@@ -56,7 +56,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("occufly.jobs")
 
 HEARTBEAT_S = 2.0
-STALE_S = 15.0
+# a runner silent this long is gone (OCCUFLY_JOB_STALE_S; tests shorten it)
+STALE_S = float(os.environ.get("OCCUFLY_JOB_STALE_S") or 15.0)
 
 
 class JobCancelled(Exception):

@@ -298,36 +298,52 @@ def evaluate_ssc_dirs(pred_root: Path, gt_root: Path) -> dict:
     }
 
 
+def _depth_path(root: Path, layout: str, scene: str, alt: int, fid: str, seq: str) -> Path:
+    if layout == "occufly":
+        return root / "OccuFly_Dataset" / scene / str(alt) / "depth_maps" / f"{fid}.npy"
+    if layout == "sscbench":
+        return root / "depth" / seq / f"{fid}.npy"
+    return root / seq / f"{fid}.npy"
+
+
 def evaluate_depth_dirs(pred_root: Path, gt_root: Path, *, max_depth: float = 1000.0) -> dict:
-    """Depth metrics of ``depth_maps/<frame>.npy`` of a prediction export against the ground
-    truth export, per image then averaged; overall and per altitude."""
+    """Depth metrics of the predicted 1/4-resolution depth maps against the ground-truth
+    export's (OccuFly layout ``depth_maps/<frame>.npy``, SSCBench layout ``depth/<seq>/<frame>.npy``;
+    predictions in either, or ``<seq>/<frame>.npy`` under PRED), per image then averaged;
+    overall and per altitude. Maps are compared by value count (flattened or 2-D)."""
+    from occufly.datasets.reader import open_dataset
+
     pred_root, gt_root = Path(pred_root), Path(gt_root)
-    frames = []
-    for d in sorted((gt_root / "OccuFly_Dataset").glob("*/*/depth_maps/*.npy")):
-        frames.append((d.parents[2].name, int(d.parents[1].name), d.stem))
-    if not frames:
-        raise InputFormatError(f"{gt_root}: no ground-truth depth maps found (OccuFly layout)")
+    gt = open_dataset(gt_root)
+    layout = prediction_layout(pred_root)
     per_alt: dict[int, list[dict]] = {}
-    skipped = 0
-    for scene_id, alt, fid in frames:
-        rel = Path("OccuFly_Dataset") / scene_id / str(alt) / "depth_maps" / f"{fid}.npy"
-        if not (pred_root / rel).is_file():
-            raise InputFormatError(f"{pred_root / rel}: predicted depth map is missing")
+    skipped = found = 0
+    for key in gt.frames:
+        gp = _depth_path(gt_root, gt.layout, key.scene, key.altitude, key.frame_id, key.sequence)
+        if not gp.is_file():
+            continue
+        found += 1
+        pp = _depth_path(pred_root, layout, key.scene, key.altitude, key.frame_id, key.sequence)
+        if not pp.is_file():
+            raise InputFormatError(f"{pp}: predicted depth map is missing")
         try:
-            gt = np.load(gt_root / rel, allow_pickle=False)
-            pred = np.load(pred_root / rel, allow_pickle=False)
+            g = np.load(gp, allow_pickle=False)
+            pm = np.load(pp, allow_pickle=False, mmap_mode="r")
         except ValueError as e:
-            raise InputFormatError(f"{rel}: not a numpy depth map ({e})") from None
-        if pred.size != gt.size:
-            raise InputFormatError(f"{pred_root / rel}: {pred.size} pixels, expected {gt.size}")
-        r = depth_metrics(pred, gt, max_depth=max_depth)
+            raise InputFormatError(f"{pp}: not a numpy depth map ({e})") from None
+        if pm.size != g.size:
+            raise InputFormatError(f"{pp}: {pm.size} pixels, expected {g.size}")
+        r = depth_metrics(np.asarray(pm), g, max_depth=max_depth)
         if r is None:
             skipped += 1
             continue
-        per_alt.setdefault(alt, []).append(r)
+        per_alt.setdefault(key.altitude, []).append(r)
+    if not found:
+        raise InputFormatError(f"{gt_root}: no ground-truth depth maps found")
     all_images = [r for rs in per_alt.values() for r in rs]
     return {
         "images": len(all_images), "skipped_no_gt": skipped, "max_depth": max_depth,
+        "gt_layout": gt.layout, "pred_layout": layout,
         "overall": average_depth(all_images),
         "per_altitude": {str(a): average_depth(per_alt[a]) for a in sorted(per_alt)},
     }

@@ -343,10 +343,14 @@ def test_torch_dataset_and_collate(ssc, occ):
 # ---- eval-ssc: predictions in either layout, tables out -----------------------------------------
 def test_eval_ssc_either_layout_and_tables(ssc, occ, tmp_path, capsys):
     from occufly.cli import main
-    from occufly.metrics import evaluate_ssc_dirs, ssc_report
+    from occufly.metrics import evaluate_depth_dirs, evaluate_ssc_dirs, ssc_report
 
     ref = evaluate_ssc_dirs(occ, occ)
     assert ref["overall"]["miou"] == 1.0
+    # depth too: the two layouts hold the same 1/4 maps (flattened / 2-D)
+    dref = evaluate_depth_dirs(occ, occ)
+    assert dref["images"] == 4 and dref["overall"]["d1"] == 1.0
+    assert evaluate_depth_dirs(occ, ssc)["overall"] == dref["overall"] == evaluate_depth_dirs(ssc, occ)["overall"]
     # the SSCBench ground truth evaluated against OccuFly-layout predictions and vice versa
     assert evaluate_ssc_dirs(occ, ssc)["overall"] == ref["overall"]
     assert evaluate_ssc_dirs(ssc, occ)["overall"] == ref["overall"]

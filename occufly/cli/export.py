@@ -68,8 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="table format: the per-altitude and per-class tables (default text)")
 
     p = command(sub, "eval-depth", _eval_depth, help="depth metrics of predicted depth maps against ground truth")
-    p.add_argument("pred", type=Path)
-    p.add_argument("gt", type=Path)
+    p.add_argument("pred", type=Path, help="predicted 1/4-resolution depth maps: an OccuFly- or SSCBench-layout "
+                                           "folder, or <seq>/<frame>.npy directly under it")
+    p.add_argument("gt", type=Path, help="ground-truth export root (OccuFly or SSCBench layout)")
     p.add_argument("--max-depth", type=float, default=1000.0, help="ignore GT depth at or beyond (m)")
 
     p = command(sub, "preview", _preview, help="PNG preview of one exported frame")

@@ -114,12 +114,9 @@ def test_occufly_layout_with_the_official_loading_rules(ws, tmp_path):
 
 
 def test_non_4_3_depth_needs_the_recorded_shape(tmp_path):
-    ws = make_workspace(tmp_path / "w169", n_frames=2)
-    sc = Scene.load(ws)
-    for f in sc.frames:  # 16:9 images: the visualizer's 4:3 fallback cannot reshape these
-        f.camera = Camera("PINHOLE", 64, 36, [40.0, 40.0, 32.0, 18.0])
-    sc.save(ws, overwrite=True)
-    make_grid().save(ws / "grid" / "scene_grid.npz")
+    # 16:9 images: the visualizer's 4:3 fallback cannot reshape these
+    wide = Camera("PINHOLE", 64, 36, [40.0, 40.0, 32.0, 18.0])
+    ws = workspace_with_cameras(tmp_path / "w169", 2, {0: wide, 1: wide})
     out = tmp_path / "o169"
     export_dataset(ws, out, spec=SPEC, workers=1, scene_id="scene_08")
     d = np.load(out / "OccuFly_Dataset/scene_08/50/depth_maps/000000.npy")
@@ -134,12 +131,22 @@ def test_non_4_3_depth_needs_the_recorded_shape(tmp_path):
     assert (out / "OccuFly_Dataset/splits/test.txt").read_text() == "scene_08\n"  # release rule
 
 
-def test_two_cameras_become_two_scenes(tmp_path):
-    ws = make_workspace(tmp_path / "w2", n_frames=4)
+def workspace_with_cameras(root: Path, n_frames: int, cameras: dict[int, Camera]) -> Path:
+    """The export fixture's workspace with some frames' cameras replaced."""
+    ws = make_workspace(root, n_frames=n_frames)
     sc = Scene.load(ws)
-    sc.frames[1].camera = Camera("PINHOLE", 64, 48, [44.0, 44.0, 32.0, 24.0])
+    for i, cam in cameras.items():
+        sc.frames[i].camera = cam
     sc.save(ws, overwrite=True)
     make_grid().save(ws / "grid" / "scene_grid.npz")
+    return ws
+
+
+CAM_B = Camera("PINHOLE", 64, 48, [44.0, 44.0, 32.0, 24.0])
+
+
+def test_two_cameras_become_two_scenes(tmp_path):
+    ws = workspace_with_cameras(tmp_path / "w2", 4, {1: CAM_B})
     out = tmp_path / "o2"
     res = export_dataset(ws, out, spec=SPEC, workers=1)
     assert [s["scene_id"] for s in res["scenes"]] == ["scene_01", "scene_01_cam2"]
@@ -414,11 +421,7 @@ def test_reader_refuses_code_in_a_pkl_and_bad_ids(occ, ssc, tmp_path, ws):
 def test_adding_frames_of_another_camera_to_a_scene_is_refused(tmp_path):
     from occufly.export import ExportError
 
-    ws = make_workspace(tmp_path / "wc", n_frames=3)
-    sc = Scene.load(ws)
-    sc.frames[2].camera = Camera("PINHOLE", 64, 48, [44.0, 44.0, 32.0, 24.0])
-    sc.save(ws, overwrite=True)
-    make_grid().save(ws / "grid" / "scene_grid.npz")
+    ws = workspace_with_cameras(tmp_path / "wc", 3, {2: CAM_B})
     out = tmp_path / "oc"
     export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1])
     cal = (out / "OccuFly_Dataset/scene_01/calibration.txt").read_bytes()

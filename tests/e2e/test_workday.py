@@ -355,6 +355,27 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     page.click(f".eye[data-class='{cls}']")
     assert page.evaluate(f"() => ({alpha})(40, 40)") == 255
     shot(page, "17_06_annotator_progress_tools")
+    # region fill on superpixels: one click fills exactly the superpixel under it, one undo step
+    before = editor_ids(page)
+    page.keyboard.press("r")
+    assert page.get_attribute("button[data-tool='superpixel']", "aria-pressed") == "true"
+    x, y = page.evaluate("() => window.__occufly.page.editor.view.toScreen(150.5, 120.5)")
+    ov = page.locator(".layer-overlay").bounding_box()
+    page.mouse.click(ov["x"] + x, ov["y"] + y)
+    page.wait_for_selector("#status:has-text('Region fill:')")
+    member = np.array(page.evaluate("""() => { const t = window.__occufly.page.editor.tools.superpixel;
+        const m = window.__occufly.page.editor.mask, s = t.seg, want = t.at([150.5, 120.5]);
+        const out = new Array(m.width * m.height);
+        for (let yy = 0; yy < m.height; yy++) for (let xx = 0; xx < m.width; xx++)
+          out[yy * m.width + xx] = s.labels[Math.min(s.h - 1, Math.floor(yy * s.h / m.height)) * s.w
+                                            + Math.min(s.w - 1, Math.floor(xx * s.w / m.width))] === want ? 1 : 0;
+        return out; }""")).reshape(before.shape).astype(bool)
+    after = editor_ids(page)
+    assert 20 < member.sum() < member.size // 10  # a superpixel, not the whole photo
+    assert (after[member] == cls).all() and np.array_equal(after[~member], before[~member])
+    page.keyboard.press("Control+z")
+    assert np.array_equal(editor_ids(page), before)
+    page.keyboard.press("b")
     # a prefill from few masks says so (2 frames of this scene are lifted at this point)
     n_masks = len(live.client("admin").get(f"/api/scenes/{sid}/labels/status").json()["included_versions"])
     page.click("#prefill")

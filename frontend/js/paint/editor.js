@@ -10,6 +10,7 @@ import { EraserTool } from "../tools/eraser.js";
 import { PolygonTool } from "../tools/polygon.js";
 import { FloodTool } from "../tools/flood.js";
 import { PanTool, installWheelZoom } from "../tools/panzoom.js";
+import { SuperpixelTool } from "../tools/superpixel.js";
 
 export class Editor {
   /**
@@ -27,7 +28,7 @@ export class Editor {
     this.view.setMask(this.mask);
     this.view.setOpacity(this.state.opacity);
     this.tools = {};
-    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, PanTool]) {
+    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, SuperpixelTool, PanTool]) {
       const t = new T(this);
       this.tools[t.name] = t;
     }

@@ -207,8 +207,14 @@ class Visibility:
         return np.diff(self.offsets)
 
     def views_per_point(self, n_points: int) -> np.ndarray:
-        """(N,) int64 number of frames that see each point."""
-        return np.bincount(np.asarray(self.point_ids), minlength=n_points)
+        """(N,) int64 number of frames that see each point (chunked: bincount casts its input
+        to int64, which on 266 M correspondences alone is 2 GB)."""
+        out = np.zeros(n_points, np.int64)
+        ids = self.point_ids
+        step = 1 << 24
+        for a in range(0, len(ids), step):
+            out += np.bincount(np.asarray(ids[a:a + step]), minlength=n_points)
+        return out
 
     def frames_of_entries(self) -> np.ndarray:
         """(M,) int32 frame index of each correspondence."""

@@ -283,6 +283,8 @@ def compute_visibility(
     out: list[np.ndarray] = []
     counts = np.zeros(F, np.int64)
     flags = np.zeros(n, np.uint8)  # per frame: 1 = in the lists, 2 = passes the depth test
+    views = np.zeros(n, np.int32)  # frames seeing each point (a bincount of the output would
+    # cast all of it to int64: 8 bytes per correspondence)
     for f, frame in enumerate(frames):
         report(f / max(F, 1), "visibility")
         cam = frame.camera
@@ -327,6 +329,7 @@ def compute_visibility(
         both = np.flatnonzero(flags)
         fl = flags[both]
         flags[both] = 0
+        views[both] += 1  # ids are unique within a frame
         if use_depth:
             stats["depth_test_entries"] += int(np.count_nonzero(fl & 2))
         if ids_l is not None and ids_d is not None:
@@ -348,7 +351,6 @@ def compute_visibility(
         out[f] = None
     del out
     vis = Visibility(offsets, ids)
-    views = np.bincount(ids, minlength=n) if n else np.zeros(0, np.int64)
     stats["correspondences"] = int(offsets[-1])
     stats["views_per_point"] = views_summary(views)
     stats["warnings"] = warnings[:MAX_WARNINGS]

@@ -7,13 +7,30 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from app import pipeline
 from app.annotations import service
 from app.annotations.schemas import LabelsStatus, VersionOut
-from app.deps import AnnotatorUser, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
+from app.audit import service as audit
+from app.deps import AnnotatorUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
 from app.errors import Invalid, PayloadTooLarge
 from app.scenes import service as scenes
 from app.scenes.models import Scene
 from app.scenes.schemas import FrameOut
 
 router = APIRouter(prefix="/api", tags=["annotations"])
+
+# who may call what (see app/access.py; tests/app/test_security.py walks them all). Object
+# checks on top: an annotator writes only a frame leased to them and reads masks of frames
+# they hold or worked on.
+ACCESS = {
+    "POST /api/scenes/{sid}/next": "annotator",
+    "POST /api/frames/{fid}/release": "annotator",
+    "POST /api/frames/{fid}/reopen": "annotator",
+    "GET /api/frames/{fid}/mask": "member",
+    "PUT /api/frames/{fid}/mask": "annotator",
+    "GET /api/frames/{fid}/mask/versions": "member",
+    "GET /api/frames/{fid}/mask/versions/{vid}": "member",
+    "POST /api/frames/{fid}/mask/versions/{vid}/restore": "annotator",
+    "GET /api/frames/{fid}/prefill": "member",
+    "GET /api/scenes/{sid}/labels/status": "member",
+}
 
 PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}
 PNG_BODY = {"requestBody": {"required": True, **PNG}}
@@ -84,13 +101,21 @@ def get_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUse
 @router.put("/frames/{fid}/mask", response_model=VersionOut, openapi_extra=PNG_BODY,
             responses={409: {"description": "stale If-Match; upload kept as a conflict version"},
                        413: {"description": "too large"}, 428: {"description": "no If-Match"}})
-def put_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser, body: BodyDep,
-             kind: Literal["draft", "submitted"] = "draft",
+def put_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser,
+             body: BodyDep, ip: ClientIp, kind: Literal["draft", "submitted"] = "draft",
              if_match: Annotated[str | None, Header(max_length=100)] = None):
+    """Save a mask version: the annotator holding the frame's lease, or an admin."""
     expected = service.parse_if_match(if_match)
     v = service.store_version(session=session, ctx=ctx, frame=frame, user=user, data=body,
                               kind=kind, expected=expected)
+    _audit_version(session, user, frame, v, ip, "mask_submit" if kind == "submitted" else "mask_save")
     return service.version_out(v, user.username, number=service.version_number(session, v))
+
+
+def _audit_version(session, user, frame, v, ip: str, action: str) -> None:  # noqa: ANN001
+    audit.record(session, action, actor=user, scene_id=frame.scene_id, frame_id=frame.id,
+                 client_ip=ip, detail={"version": v.id, "kind": v.kind, "sha256": v.sha256,
+                                       "restored_from": v.restored_from_id})
 
 
 @router.get("/frames/{fid}/mask/versions", response_model=list[VersionOut])
@@ -110,11 +135,14 @@ def get_version(frame: FrameDep, vid: VidPath,
 @router.post("/frames/{fid}/mask/versions/{vid}/restore", response_model=VersionOut,
              responses={409: {"description": "stale If-Match"}})
 def restore_version(frame: FrameDep, vid: VidPath, session: SessionDep, ctx: CtxDep,
-                    user: CurrentUser, kind: Literal["draft", "submitted"] = "draft",
+                    user: AnnotatorUser, ip: ClientIp,
+                    kind: Literal["draft", "submitted"] = "draft",
                     if_match: Annotated[str | None, Header(max_length=100)] = None):
+    """Make an old version current again (a new version): lease holder or admin only."""
     expected = service.parse_if_match(if_match) if if_match is not None else None
     v = service.restore(session=session, ctx=ctx, frame=frame, user=user, version_id=vid,
                         expected=expected, kind=kind)
+    _audit_version(session, user, frame, v, ip, "mask_restore")
     return service.version_out(v, user.username, number=service.version_number(session, v))
 
 
@@ -137,3 +165,4 @@ def labels_status(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: Curr
 
 
 from app.annotations import confidence as _confidence  # noqa: E402, F401 - registers its route
+from app.annotations import smart as _smart  # noqa: E402, F401 - GrabCut route

@@ -232,13 +232,20 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
-            with ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn")) as ex:
+            ex = ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn"))
+            try:
                 futs = [ex.submit(_render_frames, j) for j in jobs]
                 parts, done = [], 0
                 for j, fu in zip(jobs, futs, strict=True):
                     parts.append(fu.result())
                     done += len(j["frames"])
                     report(0.7 * done / F, f"rendering {done}/{F}")
+            except BaseException:  # Ctrl-C / SIGTERM / a worker's error: stop the others now
+                for proc in list(getattr(ex, "_processes", {}).values()):
+                    proc.terminate()
+                ex.shutdown(wait=False, cancel_futures=True)
+                raise
+            ex.shutdown()
         spill = SampleSpill.union([p_["spill"] for p_ in parts])
         bboxes = [b_ for p_ in parts for b_ in p_["bboxes"]]
         mask_classes = np.logical_or.reduce([p_["mask_classes"] for p_ in parts])

@@ -375,6 +375,29 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     assert (after[member] == cls).all() and np.array_equal(after[~member], before[~member])
     page.keyboard.press("Control+z")
     assert np.array_equal(editor_ids(page), before)
+    # GrabCut box (server-side OpenCV): exactly the server's cut-out, inside the box, one undo
+    page.keyboard.press("g")
+    p0 = page.evaluate("() => window.__occufly.page.editor.view.toScreen(60.5, 70.5)")
+    p1 = page.evaluate("() => window.__occufly.page.editor.view.toScreen(150.5, 140.5)")
+    page.mouse.move(ov["x"] + p0[0], ov["y"] + p0[1])
+    page.mouse.down()
+    page.mouse.move(ov["x"] + p1[0], ov["y"] + p1[1], steps=6)
+    page.mouse.up()
+    page.wait_for_selector("#status:has-text('GrabCut:') >> text=/pixels of the box/", timeout=30_000)
+    rect = page.evaluate("() => window.__occufly.page.editor.tools.grabcut.lastRect")
+    x0, y0, x1, y1 = rect
+    r = live.client("annotator").post(f"/api/frames/{fb}/grabcut", json={"rect": rect})
+    assert r.status_code == 200 and r.headers["x-box"] == ",".join(map(str, rect))
+    cut = png_ids(r.content) > 0
+    assert 0 < cut.sum() < cut.size  # an object, not the whole box
+    g = editor_ids(page)
+    inside = np.zeros(g.shape, bool)
+    inside[y0:y1, x0:x1] = cut
+    assert (g[inside] == cls).all() and np.array_equal(g[~inside], before[~inside])
+    page.keyboard.press("Control+z")
+    assert np.array_equal(editor_ids(page), before)
+    assert live.client("annotator").post(f"/api/frames/{fb}/grabcut",
+                                         json={"rect": [0, 0, 10 ** 6, 5]}).status_code == 422
     page.keyboard.press("b")
     # a prefill from few masks says so (2 frames of this scene are lifted at this point)
     n_masks = len(live.client("admin").get(f"/api/scenes/{sid}/labels/status").json()["included_versions"])

@@ -13,7 +13,7 @@ const PREFS_KEY = "occufly.annotator.prefs";
 const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this gets a warning
 const LOW_CONFIDENCE = 0.6; // prefill pixels whose lifted label is less sure than this are marked
 const KEYS = [
-  ["B / E / P / F / R / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / pan"],
+  ["B / E / P / F / R / G / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / pan"],
   ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
   [", / .", "previous / next class (reaches every class)"],
   ["[ / ]", "brush size smaller / larger (kept between frames)"],
@@ -343,6 +343,15 @@ class AnnotatorPage {
     this.versionNumber = maskRes ? maskRes.number : null;
     this.editSeq = this.savedSeq = 0;
     ed.signals.edited.add(() => this.onEdited());
+    // server-side smart tools, bound to this frame
+    ed.smart = {
+      grabcut: async (rect) => {
+        const res = await api.send("POST", `/frames/${frame.id}/grabcut`, { json: { rect } });
+        const box = (res.headers.get("X-Box") || rect.join(",")).split(",").map(Number);
+        const d = await decodeIdPng(await res.blob());
+        return this.editor === ed ? { ids: d.ids, width: d.width, height: d.height, box } : null;
+      },
+    };
     ed.signals.status.add((m) => this.status(m));
     ed.mask.changed.add(() => this.schedulePainted());
     this.buildTools();
@@ -364,7 +373,7 @@ class AnnotatorPage {
     this.stats.openMs = performance.now() - t0;
     ph.painted = this.stats.openMs;
     this.stats.openPhases = Object.fromEntries(Object.entries(ph).map(([k, v]) => [k, Math.round(v)]));
-    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, R region fill, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
+    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, R region fill, G GrabCut box, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
   }
 
   /** Why an annotator may not edit this frame (null: editable). Reviewers/admins always may. */

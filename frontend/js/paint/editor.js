@@ -11,6 +11,7 @@ import { PolygonTool } from "../tools/polygon.js";
 import { FloodTool } from "../tools/flood.js";
 import { PanTool, installWheelZoom } from "../tools/panzoom.js";
 import { SuperpixelTool } from "../tools/superpixel.js";
+import { GrabCutTool } from "../tools/grabcut.js";
 
 export class Editor {
   /**
@@ -28,7 +29,7 @@ export class Editor {
     this.view.setMask(this.mask);
     this.view.setOpacity(this.state.opacity);
     this.tools = {};
-    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, SuperpixelTool, PanTool]) {
+    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, SuperpixelTool, GrabCutTool, PanTool]) {
       const t = new T(this);
       this.tools[t.name] = t;
     }

@@ -494,6 +494,19 @@ class AdminPage {
 }
 
 const ISO = /^\d{4}-\d\d-\d\dT\d\d:\d\d/;
+// shares (agreement, IoU, precision, recall, delta_k, coverage) show as percentages
+const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
+
+/** One metric value as text; `dates`: ISO timestamps as local dates. */
+function formatMetric(v, key = "", { dates = false } = {}) {
+  if (typeof v === "number") {
+    if (SHARE.test(key) && v >= 0 && v <= 1) return `${(100 * v).toFixed(2)} %`;
+    return Math.abs(v) <= 1 && !Number.isInteger(v) ? v.toFixed(4) : v.toLocaleString();
+  }
+  if (v === null || v === undefined) return "n/a";
+  if (dates && typeof v === "string" && ISO.test(v)) return fmtDate(v);
+  return typeof v === "object" ? JSON.stringify(v) : String(v);
+}
 // bookkeeping keys: identify the job or the row, not a measurement
 const BOOKKEEPING = new Set(["job_id", "table", "frame_id", "index", "scene_id", "id", "finished_at", "created_at", "started_at"]);
 const TABLE_TITLES = { agreement_2d: "2D agreement of the masks with the rendered 3D labels" };
@@ -510,21 +523,7 @@ function humanKey(k) {
  * (collapsed) for whoever needs the exact keys.
  */
 export function readableMetrics(m) {
-  const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
-  const fmt = (v, key = "") =>
-    typeof v === "number"
-      ? SHARE.test(key) && v >= 0 && v <= 1
-        ? `${(100 * v).toFixed(2)} %`
-        : Math.abs(v) <= 1 && !Number.isInteger(v)
-          ? v.toFixed(4)
-          : v.toLocaleString()
-      : v === null || v === undefined
-        ? "n/a"
-        : typeof v === "string" && ISO.test(v)
-          ? fmtDate(v)
-          : typeof v === "object"
-            ? JSON.stringify(v)
-            : String(v);
+  const fmt = (v, key = "") => formatMetric(v, key, { dates: true });
   const out = el("div", { class: "metrics readable", id: "metrics" });
   const when = m.finished_at ? ` · finished ${fmtDate(m.finished_at)}` : "";
   out.append(el("p", { class: "metrics-head" }, `Evaluation${m.job_id != null ? ` job #${m.job_id}` : ""}${when}`));
@@ -561,20 +560,7 @@ export function readableMetrics(m) {
 /** Render an eval result (nested dicts / lists of rows) as tables. */
 export function metricsView(m, id = "metrics") {
   const out = el("div", { class: "metrics", id });
-  // shares (agreement, IoU, precision, recall, delta_k, coverage) as percentages
-  const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
-  const fmtv = (v, key = "") =>
-    typeof v === "number"
-      ? SHARE.test(key) && v >= 0 && v <= 1
-        ? `${(100 * v).toFixed(2)} %`
-        : Math.abs(v) <= 1 && !Number.isInteger(v)
-          ? v.toFixed(4)
-          : v.toLocaleString()
-      : v === null
-        ? "n/a"
-        : typeof v === "object"
-          ? JSON.stringify(v)
-          : String(v);
+  const fmtv = (v, key = "") => formatMetric(v, key);
   const walk = (obj, title) => {
     // a table of shares keyed by class name (per_class_iou, ...) takes its unit from the title
     const fmt = (v, row) => fmtv(v, SHARE.test(title) ? title : row && row.k !== undefined ? row.k : "");

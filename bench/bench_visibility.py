@@ -6,7 +6,7 @@ measured in the same run on the same reconstruction.
         [--modes union,vis,depth] [--keep]
 
 SRC is a reconstruction (e.g. ``occufly synth SRC --preset bench --seed 0``). Each import runs
-in its own process, so its peak RSS (``ru_maxrss``) is its own. Prints one JSON object; the
+in its own process, so its peak RSS (``VmHWM`` of /proc/self/status) is its own. Prints one JSON object; the
 baseline is ``vis`` (the visibility a COLMAP ``fused.ply.vis`` alone gives, the old default).
 Exits 1 when the default (union) selection misses the issue's bars (greedy/cover rho >= 0.99
 with <= 6 % of the frames, stratified <= 10 %).
@@ -27,12 +27,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 _CHILD = r"""
-import json, resource, sys, time
+import json, sys, time
 from occufly.io.importer import import_scene
 t = time.perf_counter()
 s = import_scene(sys.argv[1], sys.argv[2], visibility=sys.argv[3], overwrite=True)
 dt = time.perf_counter() - t
-print(json.dumps({"seconds": dt, "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+# VmHWM, not ru_maxrss: ru_maxrss survives exec, so a child would report its parent's peak
+hwm = [int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM")][0]
+print(json.dumps({"seconds": dt, "peak_rss_gb": hwm / 2**20,
                   "visibility": s.summary()["visibility"],
                   "stats": {k: v for k, v in s.meta["visibility_stats"].items() if k != "warnings"}}))
 """

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import secrets
 from datetime import timedelta
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
 
+log = logging.getLogger("occufly.security")
 _hasher = PasswordHasher()  # argon2id with the library's current recommended parameters
 # verifying against this keeps the time of "unknown user" equal to "wrong password"
 _DUMMY_HASH = _hasher.hash("not-a-real-password-0")
@@ -218,14 +220,20 @@ class SecurityMiddleware:
         async def watch() -> None:
             from starlette.concurrency import run_in_threadpool
 
+            failures = 0
             while not state["closed"]:
                 await asyncio.sleep(ctx.settings.session_check_s)
                 if state["closed"]:
                     return
                 try:
                     alive = await run_in_threadpool(session_alive)
-                except Exception:  # noqa: BLE001 - a database hiccup is not a logout
-                    continue
+                    failures = 0
+                except Exception:  # noqa: BLE001 - one database hiccup is not a logout ...
+                    failures += 1
+                    log.warning("viewer socket: session check failed", exc_info=True)
+                    if failures < 5:
+                        continue
+                    alive = False  # ... but a session that cannot be verified ends
                 if not alive:
                     async with lock:
                         if not state["closed"]:

@@ -12,6 +12,7 @@ Concurrency rules (race free on SQLite and PostgreSQL alike, no SELECT ... FOR U
 
 from __future__ import annotations
 
+import threading
 from datetime import timedelta
 
 from sqlalchemy import and_, case, func, or_, select, update
@@ -22,8 +23,10 @@ from app.annotations.models import MaskVersion
 from app.context import AppContext
 from app.db import utcnow
 from app.errors import Conflict, Forbidden, Invalid, NotFound, PreconditionRequired, StaleVersion
+from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
 from app.users.models import User
+from occufly.io import masks
 
 CLAIMABLE = ("unassigned", "in_progress", "rejected")
 
@@ -103,16 +106,26 @@ def parse_if_match(raw: str | None) -> int | None:
     v = v.strip('"').strip()
     if v.lower() == "none":
         return None
-    if not v.isdigit() or len(v) > 12:
-        raise Invalid(f"If-Match must be a mask version id or 'none', got {raw!r}")
+    if not v.isdigit() or len(v) > 10 or int(v) > INT32_MAX:
+        raise Invalid(f"If-Match must be a mask version id (1..{INT32_MAX}) or 'none', got "
+                      f"{raw[:40]!r}")
     return int(v)
+
+
+# at most this many uploads are decoded at once per process: with the PNG header checked
+# against the frame size first (occufly.io.masks.check_png_size), decoding memory is bounded
+# by DECODE_SLOTS x the largest frame (x 4 bytes for RGBA), whatever the uploads claim
+DECODE_SLOTS = threading.BoundedSemaphore(2)
 
 
 def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: bytes):
     scene = session.get(Scene, frame.scene_id)
     ws_scene = ctx.load_scene(scene.workspace)
     sf = ws_scene.frames[frame.index]
-    return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=f"mask upload for {frame.name}")
+    name = f"mask upload for {frame.name}"
+    masks.check_png_size(data, name=name, frame=sf)  # a bomb is refused before it waits
+    with DECODE_SLOTS:
+        return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=name)
 
 
 def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
@@ -124,6 +137,9 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     """
     if kind not in ("draft", "submitted"):
         raise Invalid(f"kind must be 'draft' or 'submitted', got {kind!r}")
+    if user.role not in ("annotator", "admin"):
+        raise Forbidden(f"frame {frame.id}: only the annotator holding its lease (or an admin) "
+                        f"writes its mask; reviewers accept or reject")
     if user.role == "annotator" and frame.assignee_id != user.id:
         if not has_authored(session, frame, user):
             raise Forbidden(f"frame {frame.id} is not leased to you; ask for it with 'next'")
@@ -160,6 +176,8 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     elif user.role == "annotator":
         values.update(state="in_progress", last_annotator_id=user.id,
                       lease_expires_at=now + timedelta(seconds=ctx.settings.lease_seconds))
+    else:  # an admin's draft: an accepted frame no longer shows what was reviewed
+        values.update(state=case((Frame.state == "accepted", "in_progress"), else_=Frame.state))
     cond = (Frame.current_version_id.is_(None) if expected is None
             else Frame.current_version_id == expected)
     res = session.execute(update(Frame).where(Frame.id == frame.id, cond).values(**values)

@@ -109,12 +109,18 @@ def run_export(jc: JobContext) -> dict:
 
     ws, _scene_obj = _scene(jc)
     out = jc.ctx.settings.exports_dir / f"job_{jc.job_id}"
+    from app.review import service as review
+
+    # which mask version of each frame the exported labels come from, and whether a reviewer
+    # accepted exactly that version (taken before the export reads the labels)
+    review_record = review.export_record(jc.ctx, jc.scene_id, Path(ws))
     # written under an attempt-private name, moved to ``out`` when this attempt is recorded
     # done (a stale attempt of the same job can never touch it; app.jobs.runner)
     summary = fn(Path(ws), jc.output_dir(out), scene_id=f"scene_{jc.scene_id:02d}",
                  layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
                  executor=jc.executor(), progress=jc.progress)
-    return {"output": str(out), "summary": summary if isinstance(summary, dict) else {}}
+    return {"output": str(out), "summary": summary if isinstance(summary, dict) else {},
+            "review": review_record}
 
 
 run_export.remote = True

@@ -3,26 +3,53 @@ from __future__ import annotations
 from pathlib import Path as FsPath
 from typing import Annotated
 
-from fastapi import APIRouter, Path
+from fastapi import APIRouter, Path, Query
 from fastapi.responses import StreamingResponse
 
-from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep
-from app.errors import Conflict, NotFound
+from app.audit import service as audit
+from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
+from app.errors import Conflict, Forbidden, NotFound
 from app.jobs import service
 from app.jobs.schemas import EvalIn, ExportIn, JobOut, VoxelizeIn
+from app.limits import INT32_MAX
 
 router = APIRouter(prefix="/api", tags=["jobs"])
 JidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
 
+# who may call what (see app/access.py; tests/app/test_security.py walks them all)
+ACCESS = {
+    "GET /api/jobs": "staff",  # reviewers: the jobs of their scenes only
+    "GET /api/jobs/{jid}": "staff",  # reviewers: 403 for a job of another scene
+    "POST /api/jobs/{jid}/cancel": "admin",
+    "POST /api/jobs/{jid}/resume": "admin",
+    "POST /api/scenes/{sid}/voxelize": "admin",
+    "POST /api/scenes/{sid}/export": "admin",
+    "POST /api/scenes/{sid}/eval": "admin",
+    "GET /api/scenes/{sid}/metrics": "reviewer",
+    "GET /api/jobs/{jid}/download": "admin",
+}
+
 
 @router.get("/jobs", response_model=list[JobOut])
-def list_jobs(session: SessionDep, _user: ReviewerUser, scene_id: int | None = None):
-    return [service.out(j) for j in service.list_jobs(session=session, scene_id=scene_id)]
+def list_jobs(session: SessionDep, user: ReviewerUser,
+              scene_id: Annotated[int | None, Query(ge=1, le=INT32_MAX)] = None):
+    from app.scenes.service import visible_scene_ids
+
+    rows = service.list_jobs(session=session, scene_id=scene_id)
+    visible = visible_scene_ids(session, user)
+    if visible is not None:
+        rows = [j for j in rows if j.scene_id in set(visible)]
+    return [service.out(j) for j in rows]
 
 
 @router.get("/jobs/{jid}", response_model=JobOut)
-def get_job(jid: JidPath, session: SessionDep, _user: ReviewerUser):
-    return service.out(service.get(session=session, job_id=jid))
+def get_job(jid: JidPath, session: SessionDep, user: ReviewerUser):
+    job = service.get(session=session, job_id=jid)
+    if user.role != "admin":
+        if job.scene_id is None:
+            raise Forbidden(f"job {jid} is not about one of your scenes")
+        check_member(session, user, job.scene_id)
+    return service.out(job)
 
 
 @router.post("/jobs/{jid}/cancel", response_model=JobOut)
@@ -44,6 +71,8 @@ def _start(session, ctx, scene, user, kind: str, params: dict) -> dict:  # noqa:
     job = service.create(session=session, kind=kind, scene_id=scene.id, params=params,
                          user_id=user.id)
     ctx.jobs.submit(job.id)
+    audit.record(session, "export" if kind == "export" else "job", actor=user,
+                 scene_id=scene.id, target=kind, detail={"job_id": job.id, "params": params})
     return service.out(job)
 
 

@@ -5,6 +5,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from app.limits import Count
+
 
 class JobOut(BaseModel):
     id: int
@@ -24,7 +26,7 @@ class JobOut(BaseModel):
 
 class ExportIn(BaseModel):
     layout: Literal["occufly", "sscbench"] = "occufly"
-    frames: list[int] | None = Field(default=None, max_length=100000)
+    frames: list[Count] | None = Field(default=None, max_length=100000)  # frame indices
 
 
 class VoxelizeIn(BaseModel):
@@ -32,4 +34,4 @@ class VoxelizeIn(BaseModel):
 
 
 class EvalIn(BaseModel):
-    frames: list[int] | None = Field(default=None, max_length=100000)
+    frames: list[Count] | None = Field(default=None, max_length=100000)  # frame indices

@@ -5,8 +5,10 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Path, Query, Response
 
 from app import pipeline
-from app.deps import CtxDep, CurrentUser, FrameDep, ReviewerUser, SceneDep, SessionDep
+from app.audit import service as audit
+from app.deps import ClientIp, CtxDep, CurrentUser, FrameDep, ReviewerUser, SceneDep, SessionDep
 from app.errors import Forbidden
+from app.limits import INT32_MAX
 from app.review import service
 from app.review.schemas import (
     AgreementOut,
@@ -23,6 +25,19 @@ from app.scenes.schemas import FrameOut
 router = APIRouter(prefix="/api", tags=["review"])
 PNG = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}}
 RidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
+
+# who may call what (see app/access.py; tests/app/test_security.py walks them all). Review
+# items: annotators see and comment on those about frames they hold or worked on.
+ACCESS = {
+    "GET /api/frames/{fid}/render": "reviewer",
+    "GET /api/frames/{fid}/disagreement": "reviewer",
+    "GET /api/frames/{fid}/agreement": "reviewer",
+    "POST /api/frames/{fid}/review": "reviewer",
+    "GET /api/scenes/{sid}/review-items": "member",
+    "POST /api/scenes/{sid}/review-items": "reviewer",
+    "POST /api/review-items/{rid}/comments": "member",
+    "PATCH /api/review-items/{rid}": "member",
+}
 
 
 @router.get("/frames/{fid}/render", response_class=Response, responses=PNG)
@@ -49,15 +64,19 @@ def agreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: Reviewer
 
 @router.post("/frames/{fid}/review", response_model=FrameOut)
 def review_frame(body: ReviewDecisionIn, frame: FrameDep, session: SessionDep, ctx: CtxDep,
-                 user: ReviewerUser):
+                 user: ReviewerUser, ip: ClientIp):
     frame = service.decide(session=session, ctx=ctx, frame=frame, user=user,
-                           decision=body.decision, comment=body.comment)
+                           decision=body.decision, comment=body.comment, version=body.version)
+    audit.record(session, f"review_{body.decision}", actor=user, scene_id=frame.scene_id,
+                 frame_id=frame.id, client_ip=ip,
+                 detail={"version": frame.reviewed_version_id, "comment": bool(body.comment)})
     return scenes.frame_out(session=session, frame=frame)
 
 
 @router.get("/scenes/{sid}/review-items", response_model=list[ReviewItemOut])
 def list_items(scene: SceneDep, session: SessionDep, user: CurrentUser,
-               status: Literal["open", "resolved"] | None = None, frame_id: int | None = None):
+               status: Literal["open", "resolved"] | None = None,
+               frame_id: Annotated[int | None, Query(ge=1, le=INT32_MAX)] = None):
     return service.list_items(session=session, scene=scene, user=user, status=status,
                               frame_id=frame_id)
 

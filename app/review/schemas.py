@@ -5,21 +5,26 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from app.limits import Count, Id, text
+
 
 class ReviewDecisionIn(BaseModel):
     decision: Literal["accept", "reject"]
-    comment: str | None = Field(default=None, max_length=10000)
+    comment: text(10000) | None = None
+    # the mask version the reviewer looked at; if the frame moved on since, 409 (optional:
+    # without it the decision is about the version current at that moment)
+    version: Id | None = None
 
 
 class ReviewItemIn(BaseModel):
-    frame_id: int | None = Field(default=None, ge=1, le=2**31 - 1)
-    pixel: list[int] | None = Field(default=None, min_length=2, max_length=2)
-    point_ids: list[int] | None = Field(default=None, max_length=1_000_000)
-    comment: str = Field(min_length=1, max_length=10000)
+    frame_id: Id | None = None
+    pixel: list[Count] | None = Field(default=None, min_length=2, max_length=2)
+    point_ids: list[Count] | None = Field(default=None, max_length=1_000_000)
+    comment: text(10000, 1)
 
 
 class CommentIn(BaseModel):
-    text: str = Field(min_length=1, max_length=10000)
+    text: text(10000, 1)
 
 
 class ItemPatch(BaseModel):

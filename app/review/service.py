@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import timedelta
 
 import numpy as np
-from sqlalchemy import or_, select
+from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from app import pipeline
@@ -91,22 +91,41 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
 
 # ---- decisions ------------------------------------------------------------------------------
 def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decision: str,
-           comment: str | None) -> Frame:
+           comment: str | None, version: int | None = None) -> Frame:
+    """Accept or reject the frame's current mask version (recorded as reviewed_version_id).
+
+    The decision is one conditional UPDATE on (state, current_version_id): a mask saved
+    between the reviewer's look and the click makes it a 409 instead of accepting a version
+    nobody reviewed. ``version`` (optional) names the version the reviewer looked at.
+    """
     if frame.state not in ("submitted", "accepted", "rejected"):
         raise Conflict(f"frame {frame.id} is {frame.state}; only submitted frames can be reviewed")
+    if frame.current_version_id is None:
+        raise Conflict(f"frame {frame.id} has no mask to review")
+    if version is not None and version != frame.current_version_id:
+        raise Conflict(f"frame {frame.id} has a newer mask (version {frame.current_version_id}) "
+                       f"than the version {version} you reviewed; look at it again",
+                       current_version=frame.current_version_id)
     now = utcnow()
-    frame.reviewed_by_id = user.id
-    frame.reviewed_at = now
+    values: dict = dict(reviewed_by_id=user.id, reviewed_at=now,
+                        reviewed_version_id=frame.current_version_id)
     if decision == "accept":
-        frame.state = "accepted"
-        frame.assignee_id = None
-        frame.lease_expires_at = None
+        values.update(state="accepted", assignee_id=None, lease_expires_at=None)
     else:
-        frame.state = "rejected"
         # back to the annotator's own queue first; others may take it after the hold expires
-        frame.assignee_id = frame.last_annotator_id
-        frame.lease_expires_at = (now + timedelta(seconds=ctx.settings.reject_hold_seconds)
-                                  if frame.last_annotator_id else None)
+        values.update(state="rejected", assignee_id=frame.last_annotator_id,
+                      lease_expires_at=(now + timedelta(seconds=ctx.settings.reject_hold_seconds)
+                                        if frame.last_annotator_id else None))
+    res = session.execute(update(Frame).where(
+        Frame.id == frame.id, Frame.state == frame.state,
+        Frame.current_version_id == frame.current_version_id).values(**values)
+        .execution_options(synchronize_session=False))
+    if res.rowcount != 1:
+        session.rollback()
+        session.refresh(frame)
+        raise Conflict(f"frame {frame.id} changed while you reviewed it (now {frame.state}, "
+                       f"version {frame.current_version_id}); look at it again",
+                       current_version=frame.current_version_id)
     if comment:
         item = ReviewItem(scene_id=frame.scene_id, frame_id=frame.id, author_id=user.id,
                           status="open" if decision == "reject" else "resolved",
@@ -116,7 +135,22 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         session.add(ReviewComment(item_id=item.id, author_id=user.id,
                                   text=f"[{decision}] {comment}"))
     session.commit()
+    session.refresh(frame)
     return frame
+
+
+def reviewed_versions(session: Session, scene_id: int) -> list[dict]:
+    """Per frame with a mask: its state, current version and the version a reviewer decided
+    on -- what an export records (accepted frames whose current version is not the reviewed
+    one cannot exist: a new version resets the state)."""
+    rows = session.execute(select(Frame.id, Frame.index, Frame.state, Frame.current_version_id,
+                                  Frame.reviewed_version_id)
+                           .where(Frame.scene_id == scene_id,
+                                  Frame.current_version_id.is_not(None)).order_by(Frame.index))
+    return [dict(frame_id=fid, index=idx, state=st, current_version=cur,
+                 reviewed_version=rev if st in ("accepted", "rejected") else None,
+                 accepted=st == "accepted" and rev == cur)
+            for fid, idx, st, cur, rev in rows]
 
 
 # ---- review items ---------------------------------------------------------------------------
@@ -200,6 +234,9 @@ def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
     item = session.get(ReviewItem, item_id)
     if item is None:
         raise NotFound(f"review item {item_id} does not exist")
+    from app.deps import check_member
+
+    check_member(session, user, item.scene_id)
     if user.role == "annotator":
         frame = session.get(Frame, item.frame_id) if item.frame_id else None
         if frame is None or user.id not in (frame.assignee_id, frame.last_annotator_id):
@@ -232,3 +269,23 @@ def item_out(session: Session, item: ReviewItem) -> dict:
                 resolved_at=item.resolved_at,
                 comments=[dict(id=c.id, author=names.get(c.author_id), text=c.text,
                                created_at=c.created_at) for c in comments])
+
+
+def export_record(ctx: AppContext, scene_id: int, workspace) -> dict:  # noqa: ANN001
+    """What an export job records about review: per frame with a mask, the version the lifted
+    labels were built from (``labels_version``), the frame's current version, the version a
+    reviewer accepted, and ``reviewed`` = the labels use exactly the accepted version."""
+    with ctx.sessions() as s:
+        rows = reviewed_versions(s, scene_id)
+    res = pipeline.load_labels(workspace)
+    used = {}
+    for index, tag in ((res.stats.get("versions") if res is not None else None) or {}).items():
+        used[int(index)] = int(tag) if tag is not None and str(tag).isdigit() else None
+    frames = []
+    for r in rows:
+        lv = used.get(r["index"])
+        frames.append({**r, "labels_version": lv,
+                       "reviewed": r["accepted"] and lv is not None and lv == r["reviewed_version"]})
+    return {"frames": frames, "n_frames": len(frames),
+            "n_reviewed": sum(f["reviewed"] for f in frames),
+            "unreviewed_frames": [f["index"] for f in frames if not f["reviewed"]]}

@@ -8,6 +8,12 @@ lifting maps a point's pixel ``uv`` to ``floor(uv / s)``.
 Accepted encodings: single-channel PNG (mode L, P -- palette *indices* are the ids -- or
 16-bit I;16/I with every value <= 255) and RGB/RGBA PNGs whose colours are all in the
 taxonomy's colour table (black = unpainted; in RGBA, fully transparent = unpainted).
+
+Decompression bombs: a PNG's size is read from its IHDR chunk (the first 33 bytes) *before*
+anything is decoded. :func:`read_mask` refuses any size other than the frame's (or an exact
+integer downscale), :func:`decode_mask_png` anything above ``MAX_MASK_PIXELS``; so a 1 KB file
+claiming 30000 x 30000 pixels costs nothing, and decoding never allocates more than the
+frame's own pixels (times at most 4 bytes per pixel for RGBA).
 """
 
 from __future__ import annotations
@@ -23,6 +29,40 @@ from occufly.scene import Frame
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+MAX_MASK_PIXELS = 200_000_000  # a 200 MP image is beyond any drone camera; decoding stops here
+_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # PNG colour type -> samples per pixel
+
+
+def png_header(data: bytes, *, name: str = "<mask>") -> tuple[int, int, int, int]:
+    """(width, height, bit_depth, colour_type) from the IHDR chunk, without decoding.
+
+    Raises MaskError naming ``name`` when the bytes are not a PNG or IHDR is malformed.
+    """
+    import struct
+
+    if not data.startswith(PNG_SIGNATURE):
+        raise MaskError(f"{name}: not a PNG file; expected a single-channel PNG of raw class ids")
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise MaskError(f"{name}: damaged PNG (no IHDR header chunk)")
+    length, = struct.unpack(">I", data[8:12])
+    w, h, depth, colour = struct.unpack(">IIBB", data[16:26])
+    if length != 13 or w == 0 or h == 0 or colour not in _CHANNELS or depth not in (1, 2, 4, 8, 16):
+        raise MaskError(f"{name}: damaged PNG (invalid IHDR: {w}x{h}, depth {depth}, "
+                        f"colour type {colour})")
+    return int(w), int(h), int(depth), int(colour)
+
+
+def check_png_size(data: bytes, *, name: str, frame: Frame | None = None,
+                   max_pixels: int = MAX_MASK_PIXELS) -> tuple[int, int]:
+    """The (width, height) a PNG declares, checked before decoding: the frame's size or an
+    exact integer downscale of it when ``frame`` is given, at most ``max_pixels`` always."""
+    w, h, _depth, _colour = png_header(data, name=name)
+    if frame is not None:
+        mask_scale((h, w), frame, name=name)
+    if w * h > max_pixels:
+        raise MaskError(f"{name}: PNG declares {w}x{h} pixels, more than the {max_pixels} a "
+                        f"mask may have")
+    return w, h
 
 
 def mask_scale(shape: tuple[int, int], frame: Frame, *, name: str = "<mask>") -> int:
@@ -94,12 +134,14 @@ def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str) -
             data = Path(src).read_bytes()
         except OSError as e:
             raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
-    if not data.startswith(PNG_SIGNATURE):
-        raise MaskError(f"{name}: not a PNG file; expected a single-channel PNG of raw class ids")
+    w, h = check_png_size(data, name=name)  # before decoding: the header's size is bounded
     try:
         img = Image.open(io.BytesIO(data))
+        if img.size != (w, h):
+            raise MaskError(f"{name}: damaged PNG (header says {w}x{h}, decoder {img.size})")
         img.load()
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError,
+            Image.DecompressionBombError) as e:
         raise MaskError(f"{name}: damaged PNG ({e})") from None
     mode = img.mode
     if mode in ("L", "P"):
@@ -141,6 +183,14 @@ def read_mask(
     """
     if name is None:
         name = "<upload>" if isinstance(src, (bytes, bytearray, memoryview)) else str(src)
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        src = bytes(src)
+    else:
+        try:
+            src = Path(src).read_bytes()
+        except OSError as e:
+            raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
+    check_png_size(src, name=name, frame=frame)  # refuse a wrong size before decoding it
     ids = decode_mask_png(src, taxonomy, name=name)
     mask_scale(ids.shape, frame, name=name)
     validate_ids(ids, taxonomy, name=name)

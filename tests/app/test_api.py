@@ -258,9 +258,13 @@ def test_mask_versions_history_restore(world):
     assert [(h["version"], h["kind"], h["author"]) for h in hist] == [
         (v1, "draft", "annotator"), (v2, "submitted", "annotator")]
     assert env.client.get(f"/api/frames/{fid}/mask/versions/{v1}", headers=a).content == m1
-    # restore (reviewer) makes v1's content current as a new version
+    # restore (an admin; reviewers may not write masks: issue 14 defect 3) makes v1's content
+    # current as a new version
     r3 = env.client.post(f"/api/frames/{fid}/mask/versions/{v1}/restore",
                          headers={**hdr["reviewer"], "If-Match": str(v2)})
+    assert r3.status_code == 403
+    r3 = env.client.post(f"/api/frames/{fid}/mask/versions/{v1}/restore",
+                         headers={**hdr["admin"], "If-Match": str(v2)})
     assert r3.status_code == 200 and r3.json()["restored_from"] == v1
     assert env.client.get(f"/api/frames/{fid}/mask", headers=a).content == m1
     f = env.client.get(f"/api/frames/{fid}", headers=a).json()

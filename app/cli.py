@@ -13,6 +13,7 @@ import argparse
 import os
 import secrets
 import sys
+from pathlib import Path
 
 from occufly.cli import command
 
@@ -43,6 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--password", help="default: $OCCUFLY_NEW_PASSWORD, else prompt (or generate "
                                       "one when stdin is not a terminal)")
 
+    p = command(sub, "backup", _backup, help="back up the database, mask store and scene "
+                                              "workspaces into a new folder (safe while serving)")
+    p.add_argument("dir", help="the backup folder to create (must not exist or be empty)")
+    p = command(sub, "restore", _restore, help="restore a backup folder into this fresh data "
+                                                "directory and database")
+    p.add_argument("dir", help="a folder written by 'occufly backup'")
+
     p = command(sub, "demo", _demo, help="synthesize a scene, import it, select frames, create "
                                         "one user per role, and serve")
     p.add_argument("--preset", default="small", help="synthetic preset (tiny|small|bench)")
@@ -53,6 +61,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-serve", action="store_true", help="seed only")
     p.add_argument("--dev", action="store_true",
                    help="well-known passwords occufly-<role> (default: random ones, printed)")
+
+
+def _backup(args: argparse.Namespace) -> dict:
+    from app.backup import backup
+
+    return backup(_settings(), Path(args.dir))
+
+
+def _restore(args: argparse.Namespace) -> dict:
+    from app import security
+    from app.backup import restore
+
+    s = _settings()
+    security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
+    return restore(s, Path(args.dir))
 
 
 def _settings():

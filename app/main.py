@@ -124,8 +124,10 @@ def close(app: FastAPI) -> None:
 
 
 def authorize_viewer(ctx: AppContext):
-    """authorize(request_or_websocket) -> bool for the 3D viewer: a logged-in reviewer/admin."""
-    from app.deps import token_from
+    """authorize(request_or_websocket) -> bool for the 3D viewer: a logged-in reviewer/admin,
+    and for a reviewer the requested scene (``?scene=`` or the viewer's scene cookie) must be
+    one they are a member of."""
+    from app.deps import is_member, token_from
     from app.users import service
 
     def authorize(conn) -> bool:  # noqa: ANN001
@@ -134,7 +136,12 @@ def authorize_viewer(ctx: AppContext):
             return False
         with ctx.sessions() as s:
             user = service.user_for_token(session=s, settings=ctx.settings, token=token)
-            return user is not None and user.role in ("reviewer", "admin")
+            if user is None or user.role not in ("reviewer", "admin"):
+                return False
+            scene = conn.query_params.get("scene") or conn.cookies.get("occufly_viewer_scene")
+            if scene is not None and user.role != "admin":
+                return scene.isdigit() and len(scene) < 10 and is_member(s, user, int(scene))
+            return True
 
     return authorize
 

@@ -190,3 +190,27 @@ def test_annotators_see_only_their_scenes(env):
     assert env.client.get(f"/api/scenes/{sid}", headers=hdr["annotator2"]).status_code == 403
     r = env.client.put(f"/api/scenes/{sid}/members", json={"user_ids": [1]}, headers=hdr["admin"])
     assert r.status_code == 422 and "admins" in r.json()["detail"]
+
+
+def test_viewer_is_scoped_to_member_scenes(env):
+    from starlette.requests import Request
+
+    from app.main import authorize_viewer
+    from app.users import service as users
+
+    adm = env.bearer("admin")
+    scene = env.import_tiny(adm, members=("annotator",))  # the reviewer is not a member
+    auth = authorize_viewer(env.app.state.ctx)
+
+    def conn(who: str, query: str) -> Request:
+        with env.app.state.ctx.sessions() as s:
+            tok = users.issue_token(session=s, settings=env.settings,
+                                    user=users.get_by_name(session=s, username=who))
+        return Request({"type": "http", "method": "GET", "path": "/viewer/", "query_string":
+                        query.encode(), "headers": [(b"authorization", f"Bearer {tok}".encode())]})
+
+    q = f"scene={scene['id']}"
+    assert auth(conn("admin", q)) and not auth(conn("reviewer", q))
+    assert not auth(conn("annotator", q))  # annotators never open the 3D viewer
+    env.add_members(scene["id"], ("reviewer",), adm)
+    assert auth(conn("reviewer", q)) and not auth(conn("reviewer", "scene=99999"))

@@ -19,16 +19,6 @@ def _count(env, model) -> int:
         return int(s.scalar(select(func.count()).select_from(model)))
 
 
-@pytest.fixture
-def world(env):
-    """The tiny scene imported, all frames selected; bearer headers per role."""
-    hdr = {r: env.bearer(r) for r in ("admin", "reviewer", "annotator", "annotator2")}
-    scene = env.import_tiny(hdr["admin"])
-    env.select_all(scene["id"])
-    frames = env.client.get(f"/api/scenes/{scene['id']}/frames", headers=hdr["admin"]).json()
-    return env, hdr, scene, frames
-
-
 # ---- auth -----------------------------------------------------------------------------------
 def test_login_cookie_bearer_logout(env):
     c = env.login("reviewer")
@@ -616,7 +606,10 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     assert met["agreement"] == pytest.approx(1.0)
     assert "scene_grid" not in met  # no grid, no truth grid yet
     # with a densified grid and a truth grid in the workspace the eval job scores the grid too
-    from occufly.grid import TRUTH_GRID_RELPATH, SceneGrid, workspace_grid_path
+    from occufly.grid import SceneGrid, workspace_grid_path
+    from occufly.workspace import Workspace
+
+    TRUTH_GRID_RELPATH = Workspace(".").truth_grid_path.relative_to(".")
 
     ws = env.settings.workspaces_dir / "tiny"
     truth = np.zeros((4, 4, 4), np.uint8)

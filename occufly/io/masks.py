@@ -123,17 +123,21 @@ def _rgb_to_ids(rgb: np.ndarray, alpha: np.ndarray | None, taxonomy: Taxonomy, n
     return out.reshape(code.shape)
 
 
+def _mask_bytes(src: str | Path | bytes, name: str) -> bytes:
+    """The PNG bytes of an upload (bytes) or a file (path); MaskError naming ``name``."""
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        return bytes(src)
+    try:
+        return Path(src).read_bytes()
+    except OSError as e:
+        raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
+
+
 def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str) -> np.ndarray:
     """Decode a mask PNG into (h, w) uint8 raw ids without checking any frame size."""
     from PIL import Image, UnidentifiedImageError
 
-    if isinstance(src, (bytes, bytearray, memoryview)):
-        data = bytes(src)
-    else:
-        try:
-            data = Path(src).read_bytes()
-        except OSError as e:
-            raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
+    data = _mask_bytes(src, name)
     w, h = check_png_size(data, name=name)  # before decoding: the header's size is bounded
     try:
         img = Image.open(io.BytesIO(data))
@@ -183,13 +187,7 @@ def read_mask(
     """
     if name is None:
         name = "<upload>" if isinstance(src, (bytes, bytearray, memoryview)) else str(src)
-    if isinstance(src, (bytes, bytearray, memoryview)):
-        src = bytes(src)
-    else:
-        try:
-            src = Path(src).read_bytes()
-        except OSError as e:
-            raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
+    src = _mask_bytes(src, name)
     check_png_size(src, name=name, frame=frame)  # refuse a wrong size before decoding it
     ids = decode_mask_png(src, taxonomy, name=name)
     mask_scale(ids.shape, frame, name=name)

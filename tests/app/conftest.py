@@ -225,6 +225,16 @@ def env(request, tmp_path: Path):
     close(e.app)
 
 
+@pytest.fixture
+def world(env):
+    """The tiny scene imported, all frames selected; bearer headers per role."""
+    hdr = {r: env.bearer(r) for r in ("admin", "reviewer", "annotator", "annotator2")}
+    scene = env.import_tiny(hdr["admin"])
+    env.select_all(scene["id"])
+    frames = env.client.get(f"/api/scenes/{scene['id']}/frames", headers=hdr["admin"]).json()
+    return env, hdr, scene, frames
+
+
 def pytest_configure(config) -> None:  # noqa: ANN001
     config.addinivalue_line(
         "markers", "job_processes: run remote job kinds in spawned worker processes")

@@ -19,21 +19,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from tests.app.conftest import PASSWORD, H, W, png
-
-
-@pytest.fixture
-def world(env):
-    hdr = {r: env.bearer(r) for r in ("admin", "reviewer", "annotator", "annotator2")}
-    scene = env.import_tiny(hdr["admin"])
-    env.select_all(scene["id"])
-    frames = env.client.get(f"/api/scenes/{scene['id']}/frames", headers=hdr["admin"]).json()
-    return env, hdr, scene, frames
-
-
-def _lease(env, hdr, scene, who="annotator") -> int:
-    r = env.client.post(f"/api/scenes/{scene['id']}/next", headers=hdr[who])
-    assert r.status_code == 200, r.text
-    return r.json()["id"]
+from tests.app.test_api import _lease
 
 
 def _mask(cls: int = 6) -> bytes:

@@ -138,7 +138,9 @@ def authorize_viewer(ctx: AppContext):
             user = service.user_for_token(session=s, settings=ctx.settings, token=token)
             if user is None or user.role not in ("reviewer", "admin"):
                 return False
-            scene = conn.query_params.get("scene") or conn.cookies.get("occufly_viewer_scene")
+            query = getattr(conn, "query_params", None) or {}
+            cookies = getattr(conn, "cookies", None) or {}
+            scene = query.get("scene") or cookies.get("occufly_viewer_scene")
             if scene is not None and user.role != "admin":
                 return scene.isdigit() and len(scene) < 10 and is_member(s, user, int(scene))
             return True

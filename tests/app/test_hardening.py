@@ -71,23 +71,39 @@ def _png_chunk(kind: bytes, data: bytes) -> bytes:
 
 
 def bomb(width: int, height: int, colour_type: int = 0) -> bytes:
-    """A real PNG of width x height zero pixels (8-bit grey or RGB), compressed to almost
-    nothing: each row is a filter byte plus zeros."""
+    """A real, valid PNG of width x height zero pixels (8-bit grey or RGB), a few hundred KB.
+
+    Each row is a filter byte plus zeros. After a full flush deflate starts afresh, so every
+    further block of identical rows compresses to the same bytes: two blocks are compressed,
+    the second is repeated, and the stream's Adler-32 is computed over all of the rows."""
     ch = {0: 1, 2: 3}[colour_type]
     row = b"\x00" * (1 + width * ch)
+    k = next(d for d in range(max(1, min(height, (16 << 20) // len(row))), 0, -1) if height % d == 0)
+    block, n = row * k, height // k
     comp = zlib.compressobj(9)
-    parts = []
-    block = row * max(1, (8 << 20) // len(row))
-    rows_per_block = len(block) // len(row)
-    done = 0
-    while done < height:
-        n = min(rows_per_block, height - done)
-        parts.append(comp.compress(block if n == rows_per_block else row * n))
-        done += n
-    parts.append(comp.flush())
+    first = comp.compress(block) + comp.flush(zlib.Z_FULL_FLUSH)
+    parts = [first]
+    if n > 1:
+        again = comp.compress(block) + comp.flush(zlib.Z_FULL_FLUSH)
+        parts += [again] * (n - 1)
+    adler = 1
+    for _ in range(n):
+        adler = zlib.adler32(block, adler)
+    parts.append(comp.flush()[:-4] + struct.pack(">I", adler))
     ihdr = struct.pack(">IIBBBBB", width, height, 8, colour_type, 0, 0, 0)
     return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", b"".join(parts))
             + _png_chunk(b"IEND", b""))
+
+
+def test_bomb_builder_makes_real_pngs():
+    """The bombs below are real images, not just lying headers."""
+    import io
+
+    from PIL import Image
+
+    with Image.open(io.BytesIO(bomb(3000, 2000, 2))) as im:
+        im.load()
+        assert im.size == (3000, 2000) and im.mode == "RGB" and not np.asarray(im).any()
 
 
 @pytest.fixture(scope="module")

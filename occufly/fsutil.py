@@ -25,12 +25,26 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def ordinary_mode(*, directory: bool = False) -> int:
-    """0666 (files) or 0777 (folders) minus the umask -- what open()/mkdir() would give;
-    mkstemp/mkdtemp create 0600/0700, which made exports unreadable to anyone else."""
+def _process_umask() -> int:
+    """The process umask, read without changing it where the OS tells it (Linux
+    /proc/self/status); elsewhere set-and-restore (racy only against concurrent creators)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     mask = os.umask(0o022)
     os.umask(mask)
-    return (0o777 if directory else 0o666) & ~mask
+    return mask
+
+
+def ordinary_mode(*, directory: bool = False) -> int:
+    """0666 (files) or 0777 (folders) minus the umask -- what open()/mkdir() would give;
+    mkstemp/mkdtemp create 0600/0700, which made exports unreadable to anyone else. A
+    deployment that wants its data dir private runs with umask 077."""
+    return (0o777 if directory else 0o666) & ~_process_umask()
 
 
 def write_tmp(path: Path, data: bytes | None = None, *, writer=None) -> Path:

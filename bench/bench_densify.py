@@ -35,7 +35,7 @@ def _binning_vs_open3d(xyz: np.ndarray, labels: np.ndarray, prio: np.ndarray, vo
     """Our direct binning + majority vote vs Open3D VoxelGrid on the same points."""
     import open3d as o3d
 
-    from occufly.densify.voxelize import GridSpec, majority_vote
+    from occufly.densify.voxelize import SceneGridSpec, majority_vote
 
     pts64 = np.asarray(xyz, dtype=np.float64)
     t = time.perf_counter()
@@ -47,7 +47,7 @@ def _binning_vs_open3d(xyz: np.ndarray, labels: np.ndarray, prio: np.ndarray, vo
     lo = pts64.min(axis=0) - voxel / 2
     hi = pts64.max(axis=0) + voxel / 2
     shape = tuple(int(s) for s in np.floor((hi - lo) / voxel).astype(np.int64) + 1)
-    spec = GridSpec(origin=lo, local_origin=lo, shape=shape, voxel_size=voxel)
+    spec = SceneGridSpec(origin=lo, local_origin=lo, shape=shape, voxel_size=voxel)
     t = time.perf_counter()
     keys, inside = spec.keys_of_local(xyz)
     k, _, _ = majority_vote(keys[inside], labels[inside], prio)

@@ -114,12 +114,12 @@ def main() -> None:
     out, ws = ensure_scene(args.root, args.preset)
 
     from occufly.grid import SceneGrid
-    from occufly.sampling import GridSpec, sample_frame
+    from occufly.sampling import FrameGridSpec, sample_frame
     from occufly.scene import Scene
 
     scene = Scene.load(ws)
     grid = SceneGrid.load(args.grid or out / "truth" / "scene_grid.npz")
-    spec = GridSpec()
+    spec = FrameGridSpec()
     pick = np.linspace(0, len(scene.frames) - 1, args.frames).round().astype(int)
     ours_cpu, ref_cpu = [], []
     ours_t, ref_t, agree = [], [], {"labels": [], "invalid": [], "surface": [], "occluded": []}

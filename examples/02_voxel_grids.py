@@ -19,7 +19,7 @@ import viser
 from app.viewer import scene_builder as sb
 from app.viewer.demo_scene import make_demo_workspace
 from app.viewer.server import load_camera_grid
-from occufly.sampling import GridSpec
+from occufly.sampling import FrameGridSpec
 
 
 def main() -> None:
@@ -33,7 +33,7 @@ def main() -> None:
     server = viser.ViserServer(host="127.0.0.1", port=0)
     server.scene.set_up_direction("+z")
     nodes = sb.scene_grid_nodes(data.grid, data.scene.origin, data.taxonomy)
-    cg = load_camera_grid(data, args.frame, GridSpec(shape=(96, 64, 64), voxel_size=1.0))
+    cg = load_camera_grid(data, args.frame, FrameGridSpec(shape=(96, 64, 64), voxel_size=1.0))
     nodes += sb.camera_grid_nodes(*cg, taxonomy=data.taxonomy)
     sb.send_voxel_nodes(server.scene, nodes)
     sb.send_frustum_nodes(server.scene, sb.frustum_nodes(data.scene), scale=5.0)

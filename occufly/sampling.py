@@ -60,7 +60,7 @@ from occufly.taxonomy import INVALID
 
 
 @dataclass(frozen=True)
-class GridSpec:
+class FrameGridSpec:
     """Camera-centric grid and frustum parameters.
 
     shape: (X, Y, Z) voxels; voxel_size: metres; near/far: clip distances along the optical
@@ -78,12 +78,12 @@ class GridSpec:
     def __post_init__(self) -> None:
         shape = tuple(int(s) for s in self.shape)
         if len(shape) != 3 or min(shape) <= 0:
-            raise ValueError(f"GridSpec.shape must be 3 positive ints, got {self.shape!r}")
+            raise ValueError(f"FrameGridSpec.shape must be 3 positive ints, got {self.shape!r}")
         object.__setattr__(self, "shape", shape)
         if not self.voxel_size > 0:
-            raise ValueError(f"GridSpec.voxel_size must be > 0, got {self.voxel_size}")
+            raise ValueError(f"FrameGridSpec.voxel_size must be > 0, got {self.voxel_size}")
         if not (self.near >= 0 and self.far_m > self.near):
-            raise ValueError(f"GridSpec needs 0 <= near < far, got near={self.near} far={self.far_m}")
+            raise ValueError(f"FrameGridSpec needs 0 <= near < far, got near={self.near} far={self.far_m}")
 
     @property
     def far_m(self) -> float:
@@ -143,7 +143,7 @@ def check_pose(T_cam_world: np.ndarray, where: str) -> np.ndarray:
 
 # ---- sampling -------------------------------------------------------------------------------
 def sample_labels(
-    grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: GridSpec,
+    grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: FrameGridSpec,
     rects: list[tuple[int, int, int, int, int]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sample the scene grid at frame-grid voxel centres.
@@ -189,7 +189,7 @@ def sample_labels(
     return labels, inside
 
 
-def region_rects(camera: Camera, spec: GridSpec) -> list[tuple[int, int, int, int, int]]:
+def region_rects(camera: Camera, spec: FrameGridSpec) -> list[tuple[int, int, int, int, int]]:
     """Per-slice rectangles [(k, i0, i1, j0, j1)] covering every voxel that sampling needs:
     the widened frustum (:func:`frustum_mask` with ``margin``), dilated by one slice in z so
     that every valid voxel's 6 neighbours are sampled."""
@@ -232,7 +232,7 @@ def normalized_bounds(camera: Camera) -> tuple[float, float, float, float]:
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
-def _bounds_parts(camera: Camera, spec: GridSpec, *, margin: bool
+def _bounds_parts(camera: Camera, spec: FrameGridSpec, *, margin: bool
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Separable test of voxel-centre directions against :func:`normalized_bounds`:
     (X, Z) and (Y, Z) bool. With ``margin`` each box's angular half-extent (+1 voxel of
@@ -250,7 +250,7 @@ def _bounds_parts(camera: Camera, spec: GridSpec, *, margin: bool
     return (a >= a_lo - ma) & (a <= a_hi + ma), (b >= b_lo - mb) & (b <= b_hi + mb)
 
 
-def _margin_parts(camera: Camera, spec: GridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _margin_parts(camera: Camera, spec: FrameGridSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Separable widened frustum test: (X, Z), (Y, Z), (Z,) bool."""
     aok, bok = _bounds_parts(camera, spec, margin=True)
     _, _, cz = spec.axis_centers()
@@ -258,7 +258,7 @@ def _margin_parts(camera: Camera, spec: GridSpec) -> tuple[np.ndarray, np.ndarra
     return aok, bok, zok
 
 
-def frustum_mask(camera: Camera, spec: GridSpec, *, margin: bool = False) -> np.ndarray:
+def frustum_mask(camera: Camera, spec: FrameGridSpec, *, margin: bool = False) -> np.ndarray:
     """(X, Y, Z) bool: voxel centre inside the image and with near <= z <= far.
 
     With ``margin`` the test is widened (separably, in normalised coordinates) so that every
@@ -319,7 +319,7 @@ class Raster:
     nb: int
 
     @classmethod
-    def for_camera(cls, camera: Camera, spec: GridSpec) -> Raster:
+    def for_camera(cls, camera: Camera, spec: FrameGridSpec) -> Raster:
         ab = _border_normalised(camera)
         lo, hi = ab.min(axis=0), ab.max(axis=0)
         step = spec.voxel_size / (spec.oversample * spec.far_m)
@@ -339,7 +339,7 @@ class Raster:
 
 
 def first_hit_zbuffer(
-    ijk: np.ndarray, spec: GridSpec, raster: Raster, *, max_pairs: int = 20_000_000
+    ijk: np.ndarray, spec: FrameGridSpec, raster: Raster, *, max_pairs: int = 20_000_000
 ) -> np.ndarray:
     """Z-buffer of box entry depths.
 
@@ -461,7 +461,7 @@ def _nonzero_ijk(mask: np.ndarray) -> np.ndarray:
 
 
 def occlusion_mask(
-    occupied: np.ndarray, surface_all: np.ndarray, valid: np.ndarray, camera: Camera, spec: GridSpec,
+    occupied: np.ndarray, surface_all: np.ndarray, valid: np.ndarray, camera: Camera, spec: FrameGridSpec,
     near_frustum: np.ndarray | None = None,
 ) -> np.ndarray:
     """(X, Y, Z) bool occluded mask (see the module docstring)."""
@@ -496,13 +496,13 @@ def sample_frame(
     camera: Camera,
     T_cam_world: np.ndarray,
     scene_origin: np.ndarray,
-    spec: GridSpec | None = None,
+    spec: FrameGridSpec | None = None,
 ) -> FrameGT:
     """Labels and masks of one frame (no depth map; see :func:`frame_depth_map`).
 
     T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64.
     """
-    spec = spec or GridSpec()
+    spec = spec or FrameGridSpec()
     rects = region_rects(camera, spec)
     labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec, rects)
     nodata = labels_all == INVALID

@@ -9,10 +9,10 @@ from PIL import Image
 
 from occufly.camera import Camera, look_at
 from occufly.grid import SceneGrid
-from occufly.sampling import GridSpec
+from occufly.sampling import FrameGridSpec
 from occufly.scene import Frame, Scene
 
-SPEC = GridSpec(shape=(64, 48, 64), voxel_size=1.0, near=1.0)
+SPEC = FrameGridSpec(shape=(64, 48, 64), voxel_size=1.0, near=1.0)
 ORIGIN = np.array([500_000.0, 4_000_000.0, 100.0])  # UTM-sized scene origin
 
 

@@ -20,7 +20,7 @@ from occufly.camera import Camera
 from occufly.datasets import open_dataset
 from occufly.export import export_dataset
 from occufly.export.common import lmscnet_pool
-from occufly.sampling import GridSpec, sample_frame
+from occufly.sampling import FrameGridSpec, sample_frame
 from occufly.scene import Scene
 from occufly.taxonomy import default_taxonomy
 from tests.export_fixtures import SPEC, make_grid, make_workspace
@@ -77,7 +77,7 @@ def official_voxels(label: np.ndarray, r: float) -> np.ndarray:
 
 def test_occufly_layout_with_the_official_loading_rules(ws, tmp_path):
     out = tmp_path / "official"
-    spec = GridSpec(voxel_size=1.0, near=1.0)  # the official 192 x 128 x 128 grid
+    spec = FrameGridSpec(voxel_size=1.0, near=1.0)  # the official 192 x 128 x 128 grid
     export_dataset(ws, out, spec=spec, workers=1, frames=[0, 1])
     scene = Scene.load(ws)
     sd = out / "OccuFly_Dataset" / "scene_01"

@@ -9,7 +9,7 @@ from occufly.camera import Camera, look_at, transform
 from occufly.errors import WorkspaceError
 from occufly.grid import SceneGrid
 from occufly.sampling import (
-    GridSpec,
+    FrameGridSpec,
     Raster,
     check_pose,
     frustum_mask,
@@ -18,11 +18,11 @@ from occufly.sampling import (
     sample_frame,
 )
 
-SPEC = GridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
+SPEC = FrameGridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
 CAM = Camera("PINHOLE", 320, 240, [200.0, 200.0, 160.0, 120.0])
 
 
-def aligned_grid(labels: np.ndarray, spec: GridSpec = SPEC, origin=(0.0, 0.0, 0.0)) -> SceneGrid:
+def aligned_grid(labels: np.ndarray, spec: FrameGridSpec = SPEC, origin=(0.0, 0.0, 0.0)) -> SceneGrid:
     """A scene grid whose voxels coincide with the frame grid of a camera at the origin with
     identity pose (camera axes = world axes)."""
     X, Y, _ = spec.shape
@@ -67,7 +67,7 @@ def test_thin_plate_occludes_and_side_box_does_not():
 
 
 def test_point_behind_far_plane_is_invalid_and_exported_as_255():
-    spec = GridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0, far=20.0)
+    spec = FrameGridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0, far=20.0)
     lab = np.zeros(spec.shape, np.uint8)
     lab[32, 24, 30] = 16  # centre z = 15.25 m: inside
     lab[32, 24, 50] = 16  # centre z = 25.25 m: behind the far plane
@@ -125,7 +125,7 @@ def test_sampling_follows_pose_and_utm_origin():
 
 def test_frustum_with_distortion_matches_projection():
     cam = Camera("OPENCV", 160, 120, [100, 100, 80, 60, -0.2, 0.05, 0.001, -0.002])
-    spec = GridSpec(shape=(32, 24, 32), voxel_size=1.0, near=2.0)
+    spec = FrameGridSpec(shape=(32, 24, 32), voxel_size=1.0, near=2.0)
     m = frustum_mask(cam, spec)
     cx, cy, cz = spec.axis_centers()
     xx, yy, zz = np.meshgrid(cx, cy, cz, indexing="ij")
@@ -223,7 +223,7 @@ def test_distorted_camera_region_loses_nothing():
     from occufly.sampling import sample_labels, surface_mask
 
     cam = Camera("OPENCV", 160, 120, [100, 100, 80, 60, -0.2, 0.05, 0.001, -0.002])
-    spec = GridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
+    spec = FrameGridSpec(shape=(64, 48, 64), voxel_size=0.5, near=1.0)
     rng = np.random.default_rng(7)
     lab = (rng.random((80, 80, 70)) < 0.95).astype(np.uint8) * 8  # dense: surface hinges on each neighbour
     grid = SceneGrid(lab, [-20.0, -20.0, -2.0], 0.5)

@@ -790,12 +790,12 @@ def _frame_image(d: sb.ViewerData, frame_index: int) -> np.ndarray | None:
 
 def load_camera_grid(d: sb.ViewerData, frame_index: int, spec: Any = None) -> tuple | None:
     """(labels, invalid, occluded, surface, T_cam_world, voxel_size) of a frame sampled from
-    the scene grid with ``occufly.sampling.sample_frame`` (default GridSpec), or None."""
+    the scene grid with ``occufly.sampling.sample_frame`` (default FrameGridSpec), or None."""
     if d.grid is None:
         return None
-    from occufly.sampling import GridSpec, sample_frame
+    from occufly.sampling import FrameGridSpec, sample_frame
 
-    spec = spec or GridSpec()
+    spec = spec or FrameGridSpec()
     fr = d.scene.frames[frame_index]
     gt = sample_frame(d.grid, fr.camera, fr.T_cam_world, d.scene.origin, spec)
     return gt.labels, gt.invalid, gt.occluded, gt.surface, fr.T_cam_world, spec.voxel_size

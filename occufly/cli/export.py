@@ -105,9 +105,9 @@ def _export(args: argparse.Namespace) -> dict:
     from occufly.export import export_dataset
     from occufly.grid import SceneGrid
     from occufly.parallel import get_executor
-    from occufly.sampling import GridSpec
+    from occufly.sampling import FrameGridSpec
 
-    spec = GridSpec(shape=args.grid_shape, voxel_size=args.voxel_size, near=args.near, far=args.far)
+    spec = FrameGridSpec(shape=args.grid_shape, voxel_size=args.voxel_size, near=args.near, far=args.far)
     grid = SceneGrid.load(args.grid) if args.grid else None
     with get_executor(args.dask, args.workers if args.workers is not None else 2) as ex, \
             tqdm_progress("export") as bar:

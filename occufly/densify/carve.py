@@ -38,7 +38,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError
 
-from occufly.densify.voxelize import GridSpec
+from occufly.densify.voxelize import SceneGridSpec
 
 
 @dataclass(frozen=True)
@@ -176,7 +176,7 @@ def _disk(radius: float) -> np.ndarray:
 
 
 def carve_instance(
-    xyz: np.ndarray, spec: GridSpec, params: CarveParams = CarveParams()
+    xyz: np.ndarray, spec: SceneGridSpec, params: CarveParams = CarveParams()
 ) -> np.ndarray:
     """Voxels of the visual hull of one instance.
 

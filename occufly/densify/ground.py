@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from occufly.densify.smooth import plane_offsets, project_to_planes
-from occufly.densify.voxelize import GridSpec, majority_vote
+from occufly.densify.voxelize import SceneGridSpec, majority_vote
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +230,7 @@ def sample_triangles(
 
 
 def voxelize_ground(
-    spec: GridSpec,
+    spec: SceneGridSpec,
     xyz: np.ndarray,
     labels: np.ndarray,
     priority_lut: np.ndarray,

@@ -29,7 +29,7 @@ from occufly.densify.dbscan import dbscan
 from occufly.densify.freespace import FrameDepths, FreeSpaceParams
 from occufly.densify.ground import PoissonParams, voxelize_ground
 from occufly.densify.smooth import project_to_planes
-from occufly.densify.voxelize import GridSpec, bin_points, grid_spec_for, majority_vote
+from occufly.densify.voxelize import SceneGridSpec, bin_points, grid_spec_for, majority_vote
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn, noop
@@ -467,9 +467,9 @@ def voxelize_workspace(
     return res.report
 
 
-def spec_of_grid(grid: SceneGrid, scene_origin: np.ndarray) -> GridSpec:
-    """The :class:`GridSpec` of an existing grid, for a scene with ``scene_origin`` (3,)."""
-    return GridSpec(
+def spec_of_grid(grid: SceneGrid, scene_origin: np.ndarray) -> SceneGridSpec:
+    """The :class:`SceneGridSpec` of an existing grid, for a scene with ``scene_origin`` (3,)."""
+    return SceneGridSpec(
         origin=grid.origin.copy(),
         local_origin=grid.origin - np.asarray(scene_origin, np.float64),
         shape=grid.shape,

@@ -13,7 +13,7 @@ import numpy as np
 
 
 @dataclass(frozen=True)
-class GridSpec:
+class SceneGridSpec:
     """Where a scene grid lies.
 
     origin: (3,) float64 WORLD metres of the min corner of voxel (0, 0, 0);
@@ -76,7 +76,7 @@ def grid_spec_for(
     voxel_size: float,
     *,
     pad: int = 2,
-) -> GridSpec:
+) -> SceneGridSpec:
     """A grid covering the local box [lo, hi] plus ``pad`` voxels on every side.
 
     lo_local, hi_local: (3,) scene-local metres. The world origin is snapped to a multiple of
@@ -90,7 +90,7 @@ def grid_spec_for(
     origin = (np.floor(lo_w / voxel_size) - pad) * voxel_size
     shape = np.floor((hi_w - origin) / voxel_size).astype(np.int64) + 1 + pad
     shape = np.maximum(shape, 1)
-    return GridSpec(
+    return SceneGridSpec(
         origin=origin,
         local_origin=origin - scene_origin,
         shape=(int(shape[0]), int(shape[1]), int(shape[2])),
@@ -127,7 +127,7 @@ def majority_vote(
 
 
 def bin_points(
-    spec: GridSpec, xyz: np.ndarray, labels: np.ndarray, priority_lut: np.ndarray
+    spec: SceneGridSpec, xyz: np.ndarray, labels: np.ndarray, priority_lut: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Direct binning with a majority vote per voxel.
 

@@ -54,7 +54,7 @@ from occufly.fsutil import atomic_write_bytes
 from occufly.grid import SceneGrid, workspace_grid_path
 from occufly.progress import ProgressFn
 from occufly.sampling import (
-    GridSpec,
+    FrameGridSpec,
     check_pose,
     frame_depth_map,
     quarter_shape,
@@ -200,7 +200,7 @@ def export_frame_task(task: dict) -> dict:
                   lambda: SceneGrid.load(task["grid_path"]))
     f = task["frame_index"]
     frame = scene.frames[f]
-    spec = GridSpec(**task["spec"])
+    spec = FrameGridSpec(**task["spec"])
     gt = sample_frame(grid, frame.camera, frame.T_cam_world, scene.origin, spec)
     t_sample = time.perf_counter() - t0
     depth, depth_src = frame_depth_map(scene, f)
@@ -299,7 +299,7 @@ def export_dataset(
     frames: list[int] | None = None,
     executor=None,
     progress: ProgressFn | None = None,
-    spec: GridSpec | None = None,
+    spec: FrameGridSpec | None = None,
     grid_for_altitude: dict[int, int] | None = None,
     workers: int | None = None,
     split: str | None = None,
@@ -334,7 +334,7 @@ def export_dataset(
     if downsample_rule not in DOWNSAMPLE_RULES:
         raise ExportError(f"downsample rule {downsample_rule!r}: expected one of {', '.join(DOWNSAMPLE_RULES)}")
     lay = LAYOUTS[layout]
-    spec = spec or GridSpec()
+    spec = spec or FrameGridSpec()
     scene = Scene.load(ws)
     n = len(scene.frames)
     idx = list(range(n)) if frames is None else [int(i) for i in frames]

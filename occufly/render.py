@@ -22,6 +22,7 @@ import numpy as np
 
 from occufly.camera import Camera, transform
 from occufly.confusion import Confusion
+from occufly.density import point_spacing as estimate_point_spacing  # noqa: F401 (re-export)
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 
@@ -30,32 +31,6 @@ SPLAT_FACTOR = 1.5
 _SPACING_CACHE: dict[tuple[int, int], float] = {}
 _BINS_CACHE: dict[tuple[int, int], object] = {}
 _CULL_MIN_POINTS = 200_000  # below this a full pass over the cloud is as fast as culling
-
-
-def estimate_point_spacing(xyz: np.ndarray, *, sample: int = 200_000, queries: int = 5000,
-                           seed: int = 0) -> float:
-    """Median nearest-neighbour distance of the cloud, from a subsample.
-
-    xyz: (N, 3) float32 scene-local metres. Aerial clouds are surfaces, so the spacing of an
-    m-point subsample is scaled by sqrt(m / N).
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(xyz)
-    if n < 2:
-        return 1.0
-    rng = np.random.default_rng(seed)
-    m = min(n, sample)
-    sub = np.asarray(xyz[np.sort(rng.choice(n, size=m, replace=False))] if m < n else xyz,
-                     dtype=np.float64)
-    tree = cKDTree(sub)
-    q = sub[rng.choice(m, size=min(queries, m), replace=False)]
-    d, _ = tree.query(q, k=2)
-    d = d[:, 1]
-    d = d[np.isfinite(d) & (d > 0)]
-    if not len(d):
-        return 1.0
-    return float(np.median(d) * np.sqrt(m / n))
 
 
 def scene_point_spacing(scene: Scene) -> float:

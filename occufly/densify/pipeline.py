@@ -30,6 +30,7 @@ from occufly.densify.freespace import FrameDepths, FreeSpaceParams
 from occufly.densify.ground import PoissonParams, voxelize_ground
 from occufly.densify.smooth import project_to_planes
 from occufly.densify.voxelize import SceneGridSpec, bin_points, grid_spec_for, majority_vote
+from occufly.density import surface_density
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn, noop
@@ -94,26 +95,6 @@ REFERENCE_SURFACE_DENSITY = 400.0
 # The aggregation holds a few dense uint8 / bool copies of the grid: 1.5 G voxels stays well
 # inside the 8 GB budget (e.g. 1.5 x 1.5 km x 160 m at 0.5 m is 0.29 G).
 MAX_GRID_VOXELS = 1_500_000_000
-
-
-def surface_density(xyz: np.ndarray, *, radius: float = 0.5, samples: int = 2000, seed: int = 0) -> float:
-    """Median points per m^2 around sampled points (neighbours within ``radius`` / (π r²)).
-
-    xyz: (N, 3) float32, scene-local metres. A k-d tree is built on a random subset; the
-    count is rescaled by the subset fraction.
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(xyz)
-    if n < 10:
-        return 0.0
-    rng = np.random.default_rng(seed)
-    m = min(n, 400_000)
-    sub = np.asarray(xyz[np.sort(rng.choice(n, m, replace=False))], dtype=np.float64)
-    tree = cKDTree(sub)
-    q = sub[rng.choice(m, min(samples, m), replace=False)]
-    cnt = tree.query_ball_point(q, r=radius, return_length=True) * (n / m)
-    return float(np.median(cnt) / (np.pi * radius * radius))
 
 
 def _smoothed(xyz: np.ndarray, sel: np.ndarray, radius: float) -> np.ndarray:

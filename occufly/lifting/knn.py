@@ -56,6 +56,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from occufly.density import knn_radius as typical_knn_radius
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
 from occufly.progress import ProgressFn, noop
@@ -412,31 +413,6 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         unsafe[q] = ~((reach <= border * 0.999) | (radius <= border * 0.999))
     report(1.0, "denoise: exact k-NN at boundaries")
     return out_c, out_s, unsafe
-
-
-def typical_knn_radius(xyz: np.ndarray, k: int, *, quantile: float = 0.75, sample: int = 2000,
-                       seed: int = 0) -> float:
-    """Estimate the ``quantile`` of the k-NN radius over the cloud from a random subsample.
-
-    The k-th neighbour in the full cloud is about the (k f)-th in a subsample of fraction f.
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(xyz)
-    if n <= k:
-        ext = np.ptp(xyz, axis=0) if n else np.ones(3)
-        return float(max(np.max(ext), 1e-3))
-    rng = np.random.default_rng(seed)
-    kk = 8
-    m = min(n, max(int(math.ceil(n * kk / k)), kk + 1))
-    sub = xyz[rng.choice(n, size=m, replace=False)] if m < n else xyz
-    kk = max(1, min(kk, int(round(k * m / n))))
-    tree = cKDTree(sub)
-    qi = rng.choice(n, size=min(sample, n), replace=False)
-    d, _ = tree.query(xyz[qi], k=kk + 1)
-    r = d[:, -1]
-    r = r[np.isfinite(r)]
-    return float(np.quantile(r, quantile)) if len(r) else 1.0
 
 
 def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,

@@ -110,7 +110,8 @@ def estimate_resources(P: Preset, n_frames: int, *, workers: int = 1) -> dict:
 
     Measured on this generator (2 cores): a frame costs about 110 B per pixel while it is
     rendered (20 MP frames are cast in bands, their full-size fields ~40 B per pixel), fusion
-    ~110 B per sample of one strip, the fused cloud ~140 B per point with its visibility; on
+    ~110 B per sample of one strip, then ~330 B per fused point (the cloud, its visibility, the
+sparse model and the truth grid; survey, 32 M points: 10.7 GB peak measured); on
     disk the sample spill takes 30 B per sample until fusion, depth maps 4 B per pixel, JPEGs
     ~0.4 B and masks ~0.1 B per pixel, the fused cloud + .vis ~60 B per point. Points are
     taken as 1/10 of the samples (the survey presets fuse 9-12 samples per point).
@@ -122,8 +123,9 @@ def estimate_resources(P: Preset, n_frames: int, *, workers: int = 1) -> dict:
     samples = (n_frames * px_small) // (P.pixel_stride ** 2)
     points = samples // 10
     frame_mem = max(px_small * 110, min(px_full, 1 << 21) * 110 + px_full * 40)
-    memory = (400 << 20) + workers * (frame_mem + (300 << 20)) + max(
-        min(samples, 6_000_000) * 110 + points * 140, 0)
+    render = workers * (frame_mem + (300 << 20))
+    after = min(samples, 6_000_000) * 110 + points * 330  # fusion, visibility, sparse, truth grid
+    memory = (400 << 20) + max(render, after)
     disk = samples * 30 + pixels * 4.5 + points * 60 + (50 << 20)
     return {"memory_bytes": int(memory), "disk_bytes": int(disk), "frames": n_frames,
             "full_size_frames": n_full, "depth_samples": int(samples), "points_estimate": int(points)}

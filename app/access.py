@@ -24,15 +24,17 @@ ACCESS = {"GET /api/health": "public"}
 
 
 def table() -> dict[str, str]:
+    from app.annotations import confidence, smart
     from app.annotations import routes as annotations
     from app.audit import routes as audit
+    from app.jobs import archive
     from app.jobs import routes as jobs
     from app.review import routes as review
     from app.scenes import routes as scenes
     from app.users import routes as users
 
     merged: dict[str, str] = dict(ACCESS)
-    for mod in (users, scenes, annotations, review, jobs, audit):
+    for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit):
         for key, level in getattr(mod, "ACCESS", {}).items():
             if level not in LEVELS:
                 raise ValueError(f"{mod.__name__}.ACCESS[{key!r}]: unknown level {level!r}")

@@ -89,15 +89,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)  # domain errors and the (NaN-safe) 422 handler
     app.add_middleware(security.SecurityMiddleware, get_ctx=lambda: ctx)  # CSRF, headers
 
+    from app.annotations.confidence import router as confidence_router
     from app.annotations.routes import router as annotations_router
+    from app.annotations.smart import router as smart_router
     from app.audit.routes import router as audit_router
+    from app.jobs.archive import router as archive_router
     from app.jobs.routes import router as jobs_router
     from app.review.routes import router as review_router
     from app.scenes.routes import router as scenes_router
     from app.users.routes import router as users_router
 
-    for r in (users_router, scenes_router, annotations_router, review_router, jobs_router,
-              audit_router):
+    for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
+              review_router, jobs_router, archive_router, audit_router):
         app.include_router(r)
 
     @app.get("/api/health", tags=["meta"])

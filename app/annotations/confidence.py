@@ -4,7 +4,7 @@
 1/``downscale``): 0 where no lifted label reaches the pixel, else ``1 + round(254 *
 confidence)`` of the point seen there (confidence in [0, 1] from the kNN fill / denoise:
 the share of its neighbours agreeing). 404 before the first fill (direct votes carry none).
-Registered on the annotations router (app/annotations/routes.py imports this module).
+Its own router, included by app/main.py.
 """
 
 from __future__ import annotations
@@ -12,13 +12,16 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
-from fastapi import Query, Response
+from fastapi import APIRouter, Query, Response
 
 from app import pipeline
-from app.annotations import routes, service
+from app.annotations import service
+from app.annotations.schemas import PNG
 from app.deps import CtxDep, CurrentUser, FrameDep, SessionDep
 from app.errors import NotFound
 from app.scenes.models import Scene
+
+router = APIRouter(prefix="/api", tags=["annotations"])
 
 
 def confidence_image(ctx, scene: Scene, frame, *, downscale: int = 1) -> np.ndarray:  # noqa: ANN001
@@ -33,8 +36,8 @@ def confidence_image(ctx, scene: Scene, frame, *, downscale: int = 1) -> np.ndar
     return np.asarray(img, dtype=np.uint8)
 
 
-@routes.router.get("/frames/{fid}/prefill/confidence", response_class=Response,
-                   responses={200: routes.PNG})
+@router.get("/frames/{fid}/prefill/confidence", response_class=Response,
+             responses={200: PNG})
 def prefill_confidence(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser,
                        downscale: Annotated[int, Query(ge=1, le=64)] = 1):
     service.check_read(session, frame, user)
@@ -44,6 +47,5 @@ def prefill_confidence(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: 
                     headers={"Cache-Control": "private, no-cache"})
 
 
-_access = getattr(routes, "ACCESS", None)
-if _access is not None:  # app/access.py: who may call what
-    _access["GET /api/frames/{fid}/prefill/confidence"] = "member"
+# app/access.py: who may call what
+ACCESS = {"GET /api/frames/{fid}/prefill/confidence": "member"}

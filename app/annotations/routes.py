@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
 from app import pipeline
 from app.annotations import service
-from app.annotations.schemas import LabelsStatus, VersionOut
+from app.annotations.schemas import PNG, LabelsStatus, VersionOut
 from app.audit import service as audit
 from app.deps import AnnotatorUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
 from app.errors import Invalid, PayloadTooLarge
@@ -32,7 +32,6 @@ ACCESS = {
     "GET /api/scenes/{sid}/labels/status": "member",
 }
 
-PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}
 PNG_BODY = {"requestBody": {"required": True, **PNG}}
 
 
@@ -150,11 +149,9 @@ def restore_version(frame: FrameDep, vid: VidPath, session: SessionDep, ctx: Ctx
 def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser,
             downscale: Annotated[int, Query(ge=1, le=64)] = 1):
     """Lifted labels rendered into the frame: single-channel raw ids (0 = nothing known)."""
-    from app.review.service import rendered
-
     service.check_read(session, frame, user)
     scene = session.get(Scene, frame.scene_id)
-    img = rendered(ctx, scene, frame, downscale=downscale)
+    img = service.rendered(ctx, scene, frame, downscale=downscale)
     return Response(pipeline.encode_png(img), media_type="image/png",
                     headers={"Cache-Control": "private, no-cache"})
 
@@ -162,7 +159,3 @@ def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser
 @router.get("/scenes/{sid}/labels/status", response_model=LabelsStatus)
 def labels_status(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: CurrentUser):
     return service.labels_status(session=session, ctx=ctx, scene=scene)
-
-
-from app.annotations import confidence as _confidence  # noqa: E402, F401 - registers its route
-from app.annotations import smart as _smart  # noqa: E402, F401 - GrabCut route

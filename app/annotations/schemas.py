@@ -30,3 +30,7 @@ class LabelsStatus(BaseModel):
     last_error: str | None
     class_histogram: dict[str, int]
     labels_source: str | None
+
+
+#: OpenAPI content of a PNG request or response body
+PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}

@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 from datetime import timedelta
 
+import numpy as np
 from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
@@ -267,7 +268,6 @@ def version_out(v: MaskVersion, author: str | None, *, number: int | None = None
 
 # ---- lifted labels --------------------------------------------------------------------------
 def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
-    import numpy as np
 
     available = True  # the lifting library is part of every installation
     st = ctx.lifting.status(scene.id)
@@ -302,10 +302,19 @@ def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
 
 def current_labels(ctx: AppContext, scene: Scene):
     """(N,) uint8 lifted labels: filled/denoised if available, else direct votes, else None."""
-    import numpy as np
 
     res = pipeline.load_labels(scene.workspace)
     if res is not None:
         return np.asarray(res.labels)
     state = ctx.lifting.state_for(scene.id, scene.workspace)
     return None if state is None else state.direct_labels()
+
+
+def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> np.ndarray:
+    """(H/s, W/s) uint8 lifted labels rendered into the frame (s = ``downscale``)."""
+    labels = current_labels(ctx, scene)
+    if labels is None:
+        raise NotFound(f"scene {scene.id} has no lifted labels yet")
+    ws_scene = ctx.load_scene(scene.workspace)
+    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
+    return np.asarray(img, dtype=np.uint8)

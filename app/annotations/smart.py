@@ -13,14 +13,17 @@ from __future__ import annotations
 import io
 
 import numpy as np
-from fastapi import Response
+from fastapi import APIRouter, Response
 from pydantic import BaseModel, Field
 
-from app.annotations import routes, service
+from app.annotations import service
+from app.annotations.schemas import PNG
 from app.deps import AnnotatorUser, CtxDep, FrameDep, SessionDep
 from app.errors import Invalid
 from app.scenes import service as scenes
 from app.scenes.models import Scene
+
+router = APIRouter(prefix="/api", tags=["annotations"])
 
 WORK_SIDE = 640  # longest side of the box GrabCut works on
 Coord = Field(ge=0, le=200_000)
@@ -66,8 +69,8 @@ def grabcut(rgb: np.ndarray, rect: tuple[int, int, int, int], fg=(), bg=(),  # n
     return obj[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].astype(bool)
 
 
-@routes.router.post("/frames/{fid}/grabcut", response_class=Response,
-                    responses={200: routes.PNG, 422: {"description": "box outside the image"}})
+@router.post("/frames/{fid}/grabcut", response_class=Response,
+              responses={200: PNG, 422: {"description": "box outside the image"}})
 def grabcut_route(body: GrabCutIn, frame: FrameDep, session: SessionDep, ctx: CtxDep,
                   user: AnnotatorUser):
     from PIL import Image
@@ -97,6 +100,5 @@ def grabcut_route(body: GrabCutIn, frame: FrameDep, session: SessionDep, ctx: Ct
                              "Access-Control-Expose-Headers": "X-Box"})
 
 
-_access = getattr(routes, "ACCESS", None)
-if _access is not None:  # app/access.py: who may call what
-    _access["POST /api/frames/{fid}/grabcut"] = "annotator"
+# app/access.py: who may call what
+ACCESS = {"POST /api/frames/{fid}/grabcut": "annotator"}

@@ -2,7 +2,7 @@
 without the exporter's internal bookkeeping (``.occufly_export/`` and any other ``.occufly*``
 entry), built once next to the data dir's cache and served with its exact size.
 
-Routes (registered on the jobs router):
+Routes (its own router, included by app/main.py):
 
 * ``GET  /api/jobs/{jid}/archive/info?format=zip|tar.gz`` -- files and bytes of the content,
   and the archive's size when it is built (``ready``);
@@ -19,13 +19,16 @@ import zipfile
 from pathlib import Path
 from typing import Annotated, Literal
 
-from fastapi import Query
+from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
 from app.deps import AdminUser, CtxDep, SessionDep
 from app.errors import Conflict, NotFound
-from app.jobs import routes, service
+from app.jobs import service
+from app.jobs.schemas import JidPath
+
+router = APIRouter(prefix="/api", tags=["jobs"])
 
 Format = Literal["zip", "tar.gz"]
 FormatQ = Annotated[Format, Query(description="zip or tar.gz")]
@@ -94,14 +97,14 @@ def info(ctx, root: Path, jid: int, fmt: str) -> dict:  # noqa: ANN001
             "url": f"/api/jobs/{jid}/archive?format={fmt}"}
 
 
-@routes.router.get("/jobs/{jid}/archive/info")
-def archive_info(jid: routes.JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser,
+@router.get("/jobs/{jid}/archive/info")
+def archive_info(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser,
                  format: FormatQ = "tar.gz") -> dict:  # noqa: A002 - the query's name
     return info(ctx, export_root(ctx, session, jid), jid, format)
 
 
-@routes.router.post("/jobs/{jid}/archive")
-async def archive_build(jid: routes.JidPath, session: SessionDep, ctx: CtxDep,
+@router.post("/jobs/{jid}/archive")
+async def archive_build(jid: JidPath, session: SessionDep, ctx: CtxDep,
                         _user: AdminUser, format: FormatQ = "tar.gz") -> dict:  # noqa: A002
     root = export_root(ctx, session, jid)
     if not info(ctx, root, jid, format)["ready"]:
@@ -109,9 +112,9 @@ async def archive_build(jid: routes.JidPath, session: SessionDep, ctx: CtxDep,
     return info(ctx, root, jid, format)
 
 
-@routes.router.get("/jobs/{jid}/archive", response_class=FileResponse,
+@router.get("/jobs/{jid}/archive", response_class=FileResponse,
                    responses={200: {"content": {"application/zip": {}, "application/gzip": {}}}})
-async def archive_download(jid: routes.JidPath, session: SessionDep, ctx: CtxDep,
+async def archive_download(jid: JidPath, session: SessionDep, ctx: CtxDep,
                            _user: AdminUser, format: FormatQ = "tar.gz"):  # noqa: A002, ANN201
     root = export_root(ctx, session, jid)
     dest = archive_path(ctx, jid, format)
@@ -121,8 +124,7 @@ async def archive_download(jid: routes.JidPath, session: SessionDep, ctx: CtxDep
                         media_type="application/zip" if format == "zip" else "application/gzip")
 
 
-_access = getattr(routes, "ACCESS", None)
-if _access is not None:  # app/access.py: who may call what
-    _access.update({"GET /api/jobs/{jid}/archive/info": "admin",
-                    "POST /api/jobs/{jid}/archive": "admin",
-                    "GET /api/jobs/{jid}/archive": "admin"})
+# app/access.py: who may call what
+ACCESS = {"GET /api/jobs/{jid}/archive/info": "admin",
+          "POST /api/jobs/{jid}/archive": "admin",
+          "GET /api/jobs/{jid}/archive": "admin"}

@@ -3,18 +3,17 @@ from __future__ import annotations
 from pathlib import Path as FsPath
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 
 from app.audit import service as audit
 from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
 from app.errors import Conflict, Forbidden, NotFound
 from app.jobs import service
-from app.jobs.schemas import EvalIn, ExportIn, JobOut, VoxelizeIn
+from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
 
 router = APIRouter(prefix="/api", tags=["jobs"])
-JidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]
 
 # who may call what (see app/access.py; tests/app/test_security.py walks them all)
 ACCESS = {
@@ -140,6 +139,3 @@ def _tar_stream(root: FsPath, chunk: int = 1 << 20):
     threading.Thread(target=produce, daemon=True).start()
     while (b := q.get()) is not None:
         yield b
-
-
-from app.jobs import archive as _archive  # noqa: E402, F401 - registers the archive routes

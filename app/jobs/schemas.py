@@ -1,8 +1,9 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
+from fastapi import Path
 from pydantic import BaseModel, Field
 
 from app.limits import Count
@@ -35,3 +36,7 @@ class VoxelizeIn(BaseModel):
 
 class EvalIn(BaseModel):
     frames: list[Count] | None = Field(default=None, max_length=100000)  # frame indices
+
+
+#: a job id in a path: a positive 32-bit integer
+JidPath = Annotated[int, Path(ge=1, le=2**31 - 1)]

@@ -23,14 +23,7 @@ def _mask_array(ctx: AppContext, scene: Scene, sha256: str) -> np.ndarray:
     return pipeline.stored_mask_ids(ctx.store.get(sha256), ctx.load_scene(scene.workspace).taxonomy)
 
 
-def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> np.ndarray:
-    """(H/s, W/s) uint8 lifted labels rendered into the frame (s = ``downscale``)."""
-    labels = annotations.current_labels(ctx, scene)
-    if labels is None:
-        raise NotFound(f"scene {scene.id} has no lifted labels yet")
-    ws_scene = ctx.load_scene(scene.workspace)
-    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
-    return np.asarray(img, dtype=np.uint8)
+rendered = annotations.rendered  # the prefill render lives with the annotations
 
 
 def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:

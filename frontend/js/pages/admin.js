@@ -38,6 +38,8 @@ class AdminPage {
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
     this.histEl = el("div");
+    this.membersEl = el("div", { id: "members" });
+    this.auditEl = el("div", { id: "audit" });
     this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
     this.sceneSel.addEventListener("change", () => {
       this.ctx.setParams({ scene: this.sceneSel.value });
@@ -51,18 +53,21 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["users", "scenes", "selection", "jobs", "exports", "labels"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["users", "scenes", "members", "selection", "jobs", "exports", "labels", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
         section("sec-users", "Users", this.usersEl, this.userForm()),
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
+        section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
         section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
+        section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
       ),
     );
     await Promise.all([this.loadUsers(), this.loadScenes()]);
     await this.loadScene();
+    this.loadAudit();
     this.poll();
   }
 
@@ -188,7 +193,92 @@ class AdminPage {
   async loadScene() {
     if (!this.sid) return;
     // metrics only once the jobs say an evaluation finished (else the API answers 404)
-    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram()]);
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadMembers()]);
+  }
+
+  // ---- scene members -------------------------------------------------------------------------
+  async loadMembers() {
+    const sid = this.sid;
+    await this.guard(async () => {
+      const [members, users] = await Promise.all([api.get(`/scenes/${sid}/members`), api.get("/users")]);
+      if (sid !== this.sid) return;
+      const ids = new Set((members || []).map((m) => m.user_id));
+      const candidates = (users || []).filter((u) => u.role !== "admin" && !ids.has(u.id));
+      const pick = el("select", { id: "member-add", "aria-label": "User to add" }, candidates.map((u) => el("option", { value: u.id }, `${u.username} (${u.role})`)));
+      const add = el("button", { type: "submit", disabled: !candidates.length }, "Add member");
+      const f = candidates.length
+        ? el("form", { class: "inline-form", "aria-label": "Add scene member" }, pick, add)
+        : el("p", { class: "hint" }, "Every annotator and reviewer is a member of this scene.");
+      f.addEventListener("submit", async (e) => {
+        e.preventDefault();
+        if (await this.guard(() => api.post(`/scenes/${sid}/members`, { user_ids: [Number(pick.value)] }))) {
+          toast("Member added.");
+          this.loadMembers();
+        }
+      });
+      const remove = (m) =>
+        el("button", {
+          class: "small",
+          "aria-label": `Remove ${m.username}`,
+          onclick: async () => {
+            if (await this.guard(() => api.send("DELETE", `/scenes/${sid}/members/${m.user_id}`))) {
+              toast(`${m.username} removed from the scene.`);
+              this.loadMembers();
+            }
+          },
+        }, "Remove");
+      this.membersEl.replaceChildren(
+        members && members.length
+          ? table(members, [
+              { key: "username", label: "User" },
+              { key: "role", label: "Role" },
+              { key: "active", label: "Active", fmt: (v) => (v ? "yes" : "deactivated") },
+              { key: "user_id", label: "", fmt: (_v, m) => remove(m) },
+            ])
+          : el("p", { class: "hint" }, "No members yet: annotators and reviewers cannot see this scene."),
+        f,
+      );
+    });
+  }
+
+  // ---- audit log ---------------------------------------------------------------------------
+  auditForm() {
+    this.auditAction = el("input", { id: "audit-action", placeholder: "e.g. login,mask_save", pattern: "[a-z_,]*", autocomplete: "off" });
+    this.auditScene = el("input", { id: "audit-scene", type: "checkbox" });
+    const f = el("form", { class: "inline-form", "aria-label": "Filter audit log" }, field("Actions", this.auditAction, "comma-separated; empty = all"), el("label", {}, this.auditScene, " this scene only"), el("button", { type: "submit" }, "Show"));
+    f.addEventListener("submit", (e) => {
+      e.preventDefault();
+      this.loadAudit();
+    });
+    return f;
+  }
+
+  async loadAudit({ before = null } = {}) {
+    await this.guard(async () => {
+      const q = new URLSearchParams({ limit: "50" });
+      const action = this.auditAction.value.trim();
+      if (action) q.set("action", action);
+      if (this.auditScene.checked && this.sid) q.set("scene_id", this.sid);
+      if (before) q.set("before_id", before);
+      const events = (await api.get(`/audit?${q}`)) || [];
+      const rows = before ? [...(this.auditRows || []), ...events] : events;
+      this.auditRows = rows;
+      const more = events.length === 50 ? el("button", { type: "button", onclick: () => this.loadAudit({ before: events[events.length - 1].id }) }, "Older events") : null;
+      this.auditEl.replaceChildren(
+        rows.length
+          ? table(rows, [
+              { key: "at", label: "When", fmt: fmtDate },
+              { key: "actor", label: "Who", fmt: (v) => v ?? "–" },
+              { key: "action", label: "Action" },
+              { key: "scene_id", label: "Scene", fmt: (v) => v ?? "" },
+              { key: "frame_id", label: "Frame", fmt: (v) => v ?? "" },
+              { key: "target", label: "Target", fmt: (v) => v ?? "" },
+              { key: "client_ip", label: "Address", fmt: (v) => v ?? "" },
+            ], { caption: `${rows.length} event(s), newest first` })
+          : el("p", { class: "hint" }, "No events match."),
+        ...(more ? [more] : []),
+      );
+    });
   }
 
   // ---- selection ---------------------------------------------------------------------------

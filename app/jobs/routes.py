@@ -10,6 +10,7 @@ from app.audit import service as audit
 from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
 from app.errors import Conflict, Forbidden, NotFound
 from app.jobs import service
+from app.jobs.archive import export_root
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
 
@@ -105,13 +106,7 @@ def metrics(scene: SceneDep, session: SessionDep, _user: ReviewerUser) -> dict:
 @router.get("/jobs/{jid}/download", response_class=StreamingResponse,
             responses={200: {"content": {"application/x-tar": {}}}})
 def download(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser):
-    job = service.get(session=session, job_id=jid)
-    if job.kind != "export" or job.status != "done":
-        raise Conflict(f"job {jid} is not a finished export")
-    root = FsPath((job.result or {}).get("output", ""))
-    base = ctx.settings.exports_dir.resolve()
-    if not root.is_dir() or not root.resolve().is_relative_to(base):
-        raise NotFound(f"the output of job {jid} is no longer on disk")
+    root = export_root(ctx, session, jid)
     return StreamingResponse(_tar_stream(root), media_type="application/x-tar", headers={
         "Content-Disposition": f'attachment; filename="export_job_{jid}.tar"'})
 

@@ -194,16 +194,24 @@ def _frame_ids(scene, names: list[str]) -> list[int]:
     return out
 
 
-def _agreement(args: argparse.Namespace) -> dict:
-    from occufly.io.masks import read_mask
-    from occufly.lifting import LiftState, load_labels
-    from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
+def _scene_and_labels(workspace: Path):  # noqa: ANN202
+    """(Scene, LiftResult) of a workspace; WorkspaceError before the first ``occufly lift``."""
+    from occufly.lifting import load_labels
     from occufly.scene import Scene
 
-    scene = Scene.load(args.workspace)
-    res = load_labels(args.workspace)
+    scene = Scene.load(workspace)
+    res = load_labels(workspace)
     if res is None:
-        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+        raise WorkspaceError(f"{workspace}: no lifted labels yet; run `occufly lift` first")
+    return scene, res
+
+
+def _agreement(args: argparse.Namespace) -> dict:
+    from occufly.io.masks import read_mask
+    from occufly.lifting import LiftState
+    from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
+
+    scene, res = _scene_and_labels(args.workspace)
     files = _mask_files(scene, args.masks)
     frames = sorted(files) if not args.frames else _frame_ids(scene, args.frames)
     missing = [scene.frames[f].name for f in frames if f not in files]
@@ -285,13 +293,9 @@ def load_truth_labels(ws: Path, truth_path: Path, n_points: int) -> np.ndarray:
 
 
 def _eval_points(args: argparse.Namespace) -> dict:
-    from occufly.lifting import LiftState, evaluate_points, load_labels
-    from occufly.scene import Scene
+    from occufly.lifting import LiftState, evaluate_points
 
-    scene = Scene.load(args.workspace)
-    res = load_labels(args.workspace)
-    if res is None:
-        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+    scene, res = _scene_and_labels(args.workspace)
     truth = load_truth_labels(args.workspace, args.truth, scene.n_points)
     out = evaluate_points(np.asarray(res.labels), truth, scene.taxonomy, np.asarray(res.origin))
     direct = LiftState.open(args.workspace, scene).direct_labels()
@@ -304,12 +308,7 @@ def _eval_points(args: argparse.Namespace) -> dict:
 # ---- export-points -----------------------------------------------------------------------
 def _export_points(args: argparse.Namespace) -> dict:
     from occufly.io.pointcloud_export import export_scene_points
-    from occufly.lifting import load_labels
-    from occufly.scene import Scene
 
-    scene = Scene.load(args.workspace)
-    res = load_labels(args.workspace)
-    if res is None:
-        raise WorkspaceError(f"{args.workspace}: no lifted labels yet; run `occufly lift` first")
+    scene, res = _scene_and_labels(args.workspace)
     return export_scene_points(scene, np.asarray(res.labels), args.out,
                                confidence=np.asarray(res.confidence), origin=np.asarray(res.origin))

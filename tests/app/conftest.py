@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import os
 import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,16 +31,13 @@ from occufly.scene import Frame, Scene, Visibility
 from occufly.taxonomy import default_taxonomy
 
 PG_DEFAULT = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
-BACKENDS = ["sqlite", "postgresql"]
-PASSWORD = "correct-horse-battery"
-W, H = 64, 48  # frame size of the tiny scene
 
 
-@pytest.fixture(scope="session")
-def pg_url():
-    """A fresh, migrated PostgreSQL database for this test session (dropped afterwards)."""
+@contextmanager
+def scratch_postgres(prefix: str):
+    """URL of a fresh PostgreSQL database ``<prefix>_<random>``, dropped afterwards."""
     base = make_url(os.environ.get("OCCUFLY_TEST_POSTGRES_URL", PG_DEFAULT))
-    name = f"occufly_test_{uuid.uuid4().hex[:10]}"
+    name = f"{prefix}_{uuid.uuid4().hex[:8]}"
     admin = create_engine(base, isolation_level="AUTOCOMMIT")
     try:
         with admin.connect() as c:
@@ -50,12 +48,23 @@ def pg_url():
             f"PostgreSQL at {base.render_as_string(hide_password=True)} is unreachable or "
             f"refused CREATE DATABASE: {e}. The web-app tests need it (set "
             "OCCUFLY_TEST_POSTGRES_URL).") from e
-    url = base.set(database=name).render_as_string(hide_password=False)
-    db.upgrade(url)
-    yield url
-    with admin.connect() as c:
-        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    try:
+        yield base.set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as c:
+            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+BACKENDS = ["sqlite", "postgresql"]
+PASSWORD = "correct-horse-battery"
+W, H = 64, 48  # frame size of the tiny scene
+
+
+@pytest.fixture(scope="session")
+def pg_url():
+    """A fresh, migrated PostgreSQL database for this test session (dropped afterwards)."""
+    with scratch_postgres("occufly_test") as url:
+        db.upgrade(url)
+        yield url
 
 
 @pytest.fixture(scope="session")

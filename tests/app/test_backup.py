@@ -5,18 +5,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import threading
-import uuid
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, select, text
-from sqlalchemy.engine import make_url
+from sqlalchemy import select
 
 from app.config import Settings
-from tests.app.conftest import PASSWORD, PG_DEFAULT, H, W, png
+from tests.app.conftest import PASSWORD, H, W, png, scratch_postgres
 
 
 @pytest.fixture
@@ -27,17 +24,9 @@ def fresh_target(env, tmp_path):
         yield Settings(data_dir=data, env="development", argon2_memory_kib=1024,
                        argon2_time_cost=1, job_processes=False)
         return
-    base = make_url(os.environ.get("OCCUFLY_TEST_POSTGRES_URL", PG_DEFAULT))
-    name = f"h3_restore_{uuid.uuid4().hex[:8]}"
-    admin = create_engine(base, isolation_level="AUTOCOMMIT")
-    with admin.connect() as c:
-        c.execute(text(f'CREATE DATABASE "{name}"'))
-    url = base.set(database=name).render_as_string(hide_password=False)
-    yield Settings(data_dir=data, database_url=url, env="development", argon2_memory_kib=1024,
-                   argon2_time_cost=1, job_processes=False)
-    with admin.connect() as c:
-        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    with scratch_postgres("h3_restore") as url:
+        yield Settings(data_dir=data, database_url=url, env="development", argon2_memory_kib=1024,
+                       argon2_time_cost=1, job_processes=False)
 
 
 def test_backup_while_saving_then_restore_into_a_fresh_data_dir(env, fresh_target, tmp_path):

@@ -16,16 +16,14 @@ import subprocess
 import sys
 import threading
 import time
-import uuid
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from sqlalchemy import create_engine, select, text, update
-from sqlalchemy.engine import make_url
+from sqlalchemy import select, update
 
-from tests.app.conftest import PASSWORD, PG_DEFAULT, H, W, png, write_tiny_workspace
+from tests.app.conftest import PASSWORD, H, W, png, scratch_postgres, write_tiny_workspace
 
 pytestmark = pytest.mark.postgres
 
@@ -104,16 +102,8 @@ class Topology:
 
 @pytest.fixture(scope="module")
 def scratch_pg():
-    base = make_url(os.environ.get("OCCUFLY_TEST_POSTGRES_URL", PG_DEFAULT))
-    name = f"h6_topology_{uuid.uuid4().hex[:8]}"
-    admin = create_engine(base, isolation_level="AUTOCOMMIT")
-    with admin.connect() as c:
-        c.execute(text(f'CREATE DATABASE "{name}"'))
-    url = base.set(database=name).render_as_string(hide_password=False)
-    yield url
-    with admin.connect() as c:
-        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    with scratch_postgres("h6_topology") as url:
+        yield url
 
 
 def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noqa: PLR0915

@@ -193,12 +193,14 @@ class Workspace:
         """(N,) uint8 majority of the direct votes (0 = no vote), or None without a vote state.
 
         The vote state (:class:`occufly.lifting.LiftState`) decides; ties follow the taxonomy.
+        Opened read-only: a reader never writes, so a state left dirty by an interrupted
+        update is a :class:`WorkspaceError` here (the lifting worker repairs it).
         """
         if not self.lifting_state.is_file():
             return None
         from occufly.lifting import LiftState
 
-        return LiftState.open(self.root).direct_labels()
+        return LiftState.open(self.root, read_only=True).direct_labels()
 
     def lift_stats(self) -> dict:
         """Statistics of the last fill (``labels.json``), ``{}`` when absent or unreadable."""

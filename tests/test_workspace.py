@@ -78,3 +78,24 @@ def test_no_module_spells_a_workspace_path():
                 if _SPELLINGS.search(line) and not line.lstrip().startswith("#"):
                     offenders.append(f"{rel}:{n}: {line.strip()}")
     assert not offenders, "workspace paths spelled outside occufly/workspace.py:\n" + "\n".join(offenders)
+
+
+
+def test_direct_labels_is_a_read_only_reader(tmp_path):
+    from occufly.lifting import LiftState
+    from tests.lift_scene import make_scene, truth_mask
+
+    scene, _truth = make_scene()
+    scene.save(tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    assert ws.direct_labels() is None  # no vote state yet, and none is created
+    assert not ws.lifting_dir.exists()
+    st = LiftState.open(ws.root, scene)
+    st.apply_frame(5, truth_mask(scene.frames[5]), version="v1")
+    st.save()
+    expected = st.direct_labels()
+    st.close()
+    before = {p: p.stat().st_mtime_ns for p in ws.lifting_dir.rglob("*") if p.is_file()}
+    got = ws.direct_labels()
+    assert np.array_equal(got, expected) and (got > 0).any()
+    assert {p: p.stat().st_mtime_ns for p in ws.lifting_dir.rglob("*") if p.is_file()} == before

@@ -201,9 +201,19 @@ def viewer_callbacks(ctx: AppContext) -> dict:
             return s.scalar(select(Frame.index).where(Frame.scene_id == int(scene_id),
                                                       Frame.id == int(frame_id)))
 
+    def can_open(user, scene_id) -> bool:  # noqa: ANN001 - the dropdown of a reviewer
+        from app.deps import is_member
+
+        if getattr(user, "role", None) == "admin":
+            return True
+        if getattr(user, "role", None) != "reviewer" or not str(scene_id).isdigit():
+            return False
+        with ctx.sessions() as s:
+            return is_member(s, user, int(scene_id))
+
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
             "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx),
-            "frame_index": frame_index}
+            "frame_index": frame_index, "can_open": can_open}
 
 
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:

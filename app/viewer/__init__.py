@@ -17,6 +17,9 @@ frame_mask=None, on_review_item=None, max_points=None, prefix="/viewer") -> None
 - ``scenes() -> {scene_id: (name, workspace_path)}`` (optional): the scenes a reviewer can
   open; default: every workspace (a folder with ``scene.json``) up to three levels below
   ``settings.data_dir``, id = folder name. Open a scene with ``/viewer/?scene=<id>``.
+- ``can_open(user, scene_id) -> bool`` (optional): whether the ticket's user may open a scene;
+  the scene dropdown lists only those, and opening any other is refused (the app: admins
+  every scene, reviewers the scenes they are members of). Default: every scene.
 - ``frame_states(scene_id) -> {frame_index: state}`` (optional) with state one of
   ``not_selected | selected | annotated | accepted | rejected`` (see
   :func:`app.viewer.scene_builder.viewer_state` to map the API's ``selected`` + ``state``).
@@ -81,7 +84,8 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
           frame_mask: Callable[[str, int], Any] | None = None,
           on_review_item: Callable[..., Any] | None = None,
           max_points: int | None = None, prefix: str = "/viewer",
-          subscribe: Callable[[str, Callable[[Any], None]], None] | None = None) -> None:
+          subscribe: Callable[[str, Callable[[Any], None]], None] | None = None,
+          can_open: Callable[[Any, str], bool] | None = None) -> None:
     """Add the ``/viewer/`` proxy routes and the viser server's lifecycle to ``fastapi_app``.
 
     The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
@@ -98,6 +102,7 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         max_points=max_points,
         preview_points=int(getattr(settings, "viewer_preview_points", 150_000)),
         watch_interval_s=None if subscribe is not None else 2.0,
+        can_open=can_open,
     )
     if subscribe is not None:
         def _on_event(msg: Any) -> None:

@@ -109,10 +109,14 @@ class ViewerService:
                  on_review_item: ReviewItemFn | None = None,
                  max_points: int = sb.DEFAULT_MAX_POINTS, preview_points: int = 150_000,
                  host: str = "127.0.0.1",
-                 watch_interval_s: float | None = None, require_ticket: bool = True) -> None:
+                 watch_interval_s: float | None = None, require_ticket: bool = True,
+                 can_open: Callable[[Any, str], bool] | None = None) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")
         self.scenes = scenes
+        # can_open(user, scene_id) -> bool: which of the scenes a ticket's user may open (the
+        # app: admins every scene, reviewers their member scenes); None: every scene
+        self.can_open = can_open
         self.frame_states = frame_states
         self.frame_mask = frame_mask
         # frame_index(scene_id, frame) -> frame index or None: resolves the page's ?frame=
@@ -232,6 +236,13 @@ class ViewerService:
             self._stamps[scene_id] = _stamp(ws)
         return data
 
+    def scenes_for(self, user: Any) -> dict:
+        """The scenes ``user`` may open (the dropdown lists only these)."""
+        table = self.scenes()
+        if self.can_open is None or user is None:
+            return dict(table)
+        return {sid: v for sid, v in table.items() if self.can_open(user, sid)}
+
     def clients_of(self, scene_id: str) -> list[ClientState]:
         with self._lock:
             return [c for c in self._clients.values() if c.scene_id == scene_id]
@@ -252,7 +263,7 @@ class ViewerService:
         st.user = ticket.user if ticket else None
         with self._lock:
             self._clients[client.client_id] = st
-        scenes = self.scenes()
+        scenes = self.scenes_for(st.user)
         scene_id = ticket.scene_id if ticket and ticket.scene_id in scenes else None
         if scene_id is None and scenes:
             scene_id = next(iter(scenes))
@@ -422,6 +433,10 @@ class ViewerService:
     # ---- scene content ---------------------------------------------------------------------
     def open_scene(self, st: ClientState, scene_id: str) -> None:
         st.ready.clear()
+        if scene_id not in self.scenes_for(st.user):  # the dropdown lists only these; a
+            st.gui["status"].content = f"You cannot open scene {scene_id}."  # stale list
+            st.ready.set()
+            return
         with st.lock:
             st.scene_id = scene_id
             st.gui["status"].content = f"Loading scene **{scene_id}**..."

@@ -87,6 +87,8 @@ def _request_for(method: str, path: str, w: dict) -> dict:
         req["json"] = bodies[key]
     if key == "POST /api/frames/{fid}/grabcut":
         req["json"] = {"x": 0, "y": 0, "width": 8, "height": 8, "class_id": 6}
+    if key == "POST /api/frames/{fid}/scissors":
+        req["json"] = {"start": [2, 2], "end": [30, 20]}
     return req
 
 

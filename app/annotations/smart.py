@@ -1,7 +1,7 @@
 """Smart annotation tools that run server-side, without model downloads.
 
 ``POST /api/frames/{fid}/grabcut`` -- OpenCV GrabCut in a box the annotator drew (optionally
-with foreground / background scribble points): answers a single-channel PNG of the box
+with foreground / background scribble points or strokes): answers a single-channel PNG of the box
 (255 = the object, 0 = not) with ``X-Box: x0,y0,x1,y1`` (image pixels, exclusive ends). The
 page fills those pixels with the active class as one undoable command, and re-runs the cut
 with the scribbles the annotator paints afterwards (the new cut replaces the old one in that
@@ -27,6 +27,7 @@ import io
 import threading
 import time
 from collections import OrderedDict
+from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Response
@@ -47,10 +48,23 @@ PHOTO_CACHE = 2  # decoded photos kept (a 20 MP photo is 60 MB)
 Coord = Field(ge=0, le=200_000)
 
 
+MAX_STROKE_POINTS = 20_000  # all scribble strokes of one request together
+
+
+class Scribble(BaseModel):
+    kind: Literal["fg", "bg"] = Field(description="fg: the object, bg: not the object")
+    points: list[list[int]] = Field(min_length=1, max_length=MAX_STROKE_POINTS,
+                                    description="x, y image px along the stroke")
+
+
 class GrabCutIn(BaseModel):
     rect: list[int] = Field(min_length=4, max_length=4, description="x0, y0, x1, y1 (image px)")
     fg: list[list[int]] = Field(default_factory=list, max_length=20_000)
     bg: list[list[int]] = Field(default_factory=list, max_length=20_000)
+    strokes: list[Scribble] = Field(
+        default_factory=list, max_length=500,
+        description="scribbles in the order they were painted (a later one wins where they "
+                    "overlap), drawn as lines after the fg / bg points")
     iterations: int = Field(default=4, ge=1, le=10)
 
 
@@ -95,8 +109,11 @@ def _photo(session, ctx, frame: Frame) -> np.ndarray:  # noqa: ANN001
 
 
 def grabcut(rgb: np.ndarray, rect: tuple[int, int, int, int], fg=(), bg=(),  # noqa: ANN001
-            iterations: int = 4) -> np.ndarray:
-    """(y1-y0, x1-x0) bool mask of the object in ``rect`` of ``rgb`` (H, W, 3 uint8)."""
+            iterations: int = 4, strokes=()) -> np.ndarray:  # noqa: ANN001
+    """(y1-y0, x1-x0) bool mask of the object in ``rect`` of ``rgb`` (H, W, 3 uint8).
+
+    ``fg`` / ``bg``: points certainly (not) on the object; ``strokes``: (kind, points) lines in
+    painting order, "fg" or "bg", each ~6 px wide (at least 3 working px)."""
     import cv2
 
     x0, y0, x1, y1 = rect
@@ -117,6 +134,13 @@ def grabcut(rgb: np.ndarray, rect: tuple[int, int, int, int], fg=(), bg=(),  # n
     for pts, val in ((fg, cv2.GC_FGD), (bg, cv2.GC_BGD)):
         for x, y in pts:
             cv2.circle(mask, (int((x - cx0) * s), int((y - cy0) * s)), rad, int(val), -1)
+    for kind, pts in strokes:
+        val = int(cv2.GC_FGD if kind == "fg" else cv2.GC_BGD)
+        line = np.array([[int((x - cx0) * s), int((y - cy0) * s)] for x, y in pts], np.int32)
+        if len(line) == 1:
+            cv2.circle(mask, tuple(int(v) for v in line[0]), rad, val, -1)
+        else:
+            cv2.polylines(mask, [line.reshape(-1, 1, 2)], False, val, thickness=2 * rad + 1)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     mode = cv2.GC_INIT_WITH_MASK
     cv2.setRNGSeed(0)  # GrabCut's k-means start: the same box gives the same cut every time
@@ -201,8 +225,15 @@ def grabcut_route(body: GrabCutIn, frame: FrameDep, session: SessionDep, ctx: Ct
     for name, pts in (("fg", body.fg), ("bg", body.bg)):
         for p in pts:
             _inside(name, p, frame)
+    total = sum(len(st.points) for st in body.strokes)
+    if total > MAX_STROKE_POINTS:
+        raise Invalid(f"strokes: {total} points in all; at most {MAX_STROKE_POINTS}")
+    for i, st in enumerate(body.strokes):
+        for p in st.points:
+            _inside(f"strokes[{i}]", p, frame)
     rgb = _photo(session, ctx, frame)
-    obj = grabcut(rgb, (x0, y0, x1, y1), body.fg, body.bg, body.iterations)
+    obj = grabcut(rgb, (x0, y0, x1, y1), body.fg, body.bg, body.iterations,
+                  [(st.kind, st.points) for st in body.strokes])
     buf = io.BytesIO()
     Image.fromarray(obj.astype(np.uint8) * 255, mode="L").save(buf, format="PNG")
     return Response(buf.getvalue(), media_type="image/png",

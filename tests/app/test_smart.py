@@ -143,7 +143,37 @@ def test_grabcut_scribbles_change_the_cut():
     img[10:38, 34:54] = img[10:38, 10:30]
     box = (6, 6, 58, 42)
     plain = grabcut(img, box)
-    assert plain[20, 40 - 6] and plain[20, 20 - 6]
+    assert plain[20 - 6, 40 - 6] and plain[20 - 6, 20 - 6]
     bg = [[x, y] for x in range(36, 52, 2) for y in range(12, 36, 2)]
     refined = grabcut(img, box, fg=[[20, 24]], bg=bg)
-    assert refined[20, 20 - 6] and not refined[20:30, 36 - 6:52 - 6].any()
+    assert refined[20 - 6, 20 - 6] and not refined[20 - 6:30 - 6, 36 - 6:52 - 6].any()
+
+
+def test_grabcut_strokes_in_painting_order_the_later_wins():
+    img = edge_photo(rect=(10, 10, 30, 38))
+    img[10:38, 34:54] = img[10:38, 10:30]
+    box = (6, 6, 58, 42)
+    bg = ("bg", [[38, 14], [50, 34], [38, 34]])
+    fg = ("fg", [[36, 24], [52, 24]])  # crosses the background stroke
+    cut = grabcut(img, box, strokes=[bg, fg])
+    assert cut[24 - 6, 36 - 6:53 - 6].all()  # the later (foreground) line wins where they cross
+    cut = grabcut(img, box, strokes=[fg, bg])
+    assert not cut[24 - 6, 44 - 6]  # ... and the other way round
+
+
+def test_grabcut_route_takes_strokes_and_checks_them(edge_world):
+    env, hdr, fid = edge_world
+    url = f"/api/frames/{fid}/grabcut"
+    ok = {"rect": [4, 4, 60, 44], "strokes": [{"kind": "bg", "points": [[20, 20], [30, 30]]}]}
+    r = env.client.post(url, json=ok, headers=hdr["annotator"])
+    assert r.status_code == 200 and r.headers["x-box"] == "4,4,60,44"
+    for bad, field in (({"kind": "bg", "points": [[20, 20], [W, 30]]}, "strokes[0]"),
+                       ({"kind": "maybe", "points": [[20, 20]]}, "kind"),
+                       ({"kind": "fg", "points": []}, "points")):
+        r = env.client.post(url, json={"rect": [4, 4, 60, 44], "strokes": [bad]},
+                            headers=hdr["annotator"])
+        assert r.status_code == 422 and field in r.text, r.text
+    many = [{"kind": "fg", "points": [[1, 1]] * 15_000}] * 2
+    r = env.client.post(url, json={"rect": [4, 4, 60, 44], "strokes": many}, headers=hdr["annotator"])
+    assert r.status_code == 422 and "at most 20000" in r.text
+    assert env.client.post(url, json=ok, headers=hdr["reviewer"]).status_code == 403

@@ -13,7 +13,7 @@ const PREFS_KEY = "occufly.annotator.prefs";
 const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this gets a warning
 const LOW_CONFIDENCE = 0.6; // prefill pixels whose lifted label is less sure than this are marked
 const KEYS = [
-  ["B / E / P / F / R / G / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / pan"],
+  ["B / E / P / F / R / G / I / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / intelligent scissors / pan"],
   ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
   [", / .", "previous / next class (reaches every class)"],
   ["[ / ]", "brush size smaller / larger (kept between frames)"],
@@ -24,6 +24,9 @@ const KEYS = [
   ["Ctrl+Z / Ctrl+Shift+Z", "undo / redo"],
   ["Ctrl+S / Ctrl+Enter", "save draft / submit"],
   ["polygon: Enter, Backspace, Esc", "close and fill / remove last vertex / cancel"],
+  ["GrabCut: drag a box, then scribble", "left drag: object, right drag (or X to switch): background; each scribble cuts again · Enter accept · Esc cancel (mask as before the box)"],
+  ["scissors: click, Shift+click, Enter", "anchor (path snaps to edges, live preview) / straight segment / close and fill (or click the first anchor)"],
+  ["scissors: Backspace, Esc", "remove the last anchor / cancel"],
   ["?", "this help"],
 ];
 
@@ -345,11 +348,15 @@ class AnnotatorPage {
     ed.signals.edited.add(() => this.onEdited());
     // server-side smart tools, bound to this frame
     ed.smart = {
-      grabcut: async (rect) => {
-        const res = await api.send("POST", `/frames/${frame.id}/grabcut`, { json: { rect } });
+      grabcut: async (rect, { strokes = [] } = {}) => {
+        const res = await api.send("POST", `/frames/${frame.id}/grabcut`, { json: { rect, strokes } });
         const box = (res.headers.get("X-Box") || rect.join(",")).split(",").map(Number);
         const d = await decodeIdPng(await res.blob());
         return this.editor === ed ? { ids: d.ids, width: d.width, height: d.height, box } : null;
+      },
+      scissors: async (start, end) => {
+        const r = await api.post(`/frames/${frame.id}/scissors`, { start, end });
+        return this.editor === ed ? r.path : null;
       },
     };
     ed.signals.status.add((m) => this.status(m));
@@ -373,7 +380,7 @@ class AnnotatorPage {
     this.stats.openMs = performance.now() - t0;
     ph.painted = this.stats.openMs;
     this.stats.openPhases = Object.fromEntries(Object.entries(ph).map(([k, v]) => [k, Math.round(v)]));
-    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, R region fill, G GrabCut box, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
+    this.status(`Opened ${frame.name} in ${(this.stats.openMs / 1000).toFixed(2)} s. B brush, E eraser, P polygon, F flood fill, R region fill, G GrabCut box (then scribble), I scissors, H pan, [ ] size, 1–0 / ⇧1–0 classes, , . previous / next class, Ctrl+Z undo.`);
   }
 
   /** Why an annotator may not edit this frame (null: editable). Reviewers/admins always may. */

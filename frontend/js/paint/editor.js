@@ -12,6 +12,7 @@ import { FloodTool } from "../tools/flood.js";
 import { PanTool, installWheelZoom } from "../tools/panzoom.js";
 import { SuperpixelTool } from "../tools/superpixel.js";
 import { GrabCutTool } from "../tools/grabcut.js";
+import { ScissorsTool } from "../tools/scissors.js";
 
 export class Editor {
   /**
@@ -29,7 +30,7 @@ export class Editor {
     this.view.setMask(this.mask);
     this.view.setOpacity(this.state.opacity);
     this.tools = {};
-    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, SuperpixelTool, GrabCutTool, PanTool]) {
+    for (const T of [BrushTool, EraserTool, PolygonTool, FloodTool, SuperpixelTool, GrabCutTool, ScissorsTool, PanTool]) {
       const t = new T(this);
       this.tools[t.name] = t;
     }
@@ -172,7 +173,7 @@ export class Editor {
         e.preventDefault();
         return;
       }
-      if (e.button !== 0) return;
+      if (e.button !== 0 && !(e.button === 2 && this.tool.rightButton)) return;
       if (this.readOnly && this.tool.name !== "pan") {
         this.setStatus("This frame is read-only: nothing you paint here would be saved.");
         return;

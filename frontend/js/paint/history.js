@@ -30,6 +30,18 @@ export class PatchCommand {
   undo() {
     this.patch.undo();
   }
+  /**
+   * Replace what this (applied, newest) command did by another edit: the mask goes back to
+   * the state before the command, then `apply(patch)` runs on the same patch, so undo still
+   * restores the mask from before the first edit (GrabCut refined with scribbles).
+   */
+  amend(apply) {
+    this.patch.undo();
+    this.patch.after = null;
+    const rect = apply(this.patch);
+    this.patch.finish();
+    if (rect) this.mask.refresh(...rect);
+  }
 }
 
 /**
@@ -114,6 +126,27 @@ export class History {
     this.undos.push(c);
     this.changed.dispatch("redo", c);
     return c;
+  }
+  /** Whether `cmd` is the newest command (the one undo would revert next). */
+  isTop(cmd) {
+    return this.undos.length > 0 && this.undos[this.undos.length - 1] === cmd;
+  }
+  /** Amend the newest command in place (see PatchCommand.amend); false if it is not the newest. */
+  amend(cmd, apply) {
+    if (!this.isTop(cmd)) return false;
+    cmd.amend(apply);
+    this.redos = [];
+    this._trim();
+    this.changed.dispatch("amend", cmd);
+    return true;
+  }
+  /** Revert the newest command and forget it (no redo): an edit the user cancelled. */
+  discard(cmd) {
+    if (!this.isTop(cmd)) return false;
+    this.undos.pop();
+    cmd.undo();
+    this.changed.dispatch("discard", cmd);
+    return true;
   }
   clear() {
     this.undos = [];

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -314,17 +315,24 @@ class Scene:
             self._write_into(tmp)
         return path
 
+    def write_into(self, root: Path) -> None:
+        """Write the workspace's files into the (new, e.g. atomic temporary) folder ``root``;
+        point ids memory-mapped from ``root/visibility/point_ids.npy`` stay where they are."""
+        self._write_into(Path(root))
+
     def _write_into(self, root: Path) -> None:
         from occufly.workspace import Workspace
 
         ws = Workspace(root)
         ws.points_dir.mkdir()
-        ws.visibility_dir.mkdir()
+        ws.visibility_dir.mkdir(exist_ok=True)  # the import may have streamed its ids there
         np.save(ws.points_xyz, np.ascontiguousarray(self.xyz, dtype=np.float32))
         np.save(ws.points_rgb, np.ascontiguousarray(self.rgb, dtype=np.uint8))
         v = self.visibility
         np.save(ws.visibility_array("offsets"), np.asarray(v.offsets, np.int64))
-        np.save(ws.visibility_array("point_ids"), np.asarray(v.point_ids, np.int32))
+        ids_path = ws.visibility_array("point_ids")
+        if not _mapped_from(v.point_ids, ids_path):  # else already written there (streamed)
+            np.save(ids_path, np.asarray(v.point_ids, np.int32))
         if v.stores_projections:  # else they are recomputed on load (workspace version 2)
             np.save(ws.visibility_array("uv"), np.asarray(v.uv, np.float32))
             np.save(ws.visibility_array("depth"), np.asarray(v.depth, np.float32))
@@ -391,6 +399,18 @@ class Scene:
             meta=header.get("meta", {}),
             crs=header.get("crs"),
         )
+
+
+def _mapped_from(a: np.ndarray, path: Path) -> bool:
+    """True when ``a`` is the whole of the int32 ``.npy`` file ``path``, memory-mapped."""
+    fn = getattr(a, "filename", None)
+    if not isinstance(a, np.memmap) or fn is None or not path.is_file():
+        return False
+    try:
+        return (os.path.samefile(fn, path) and a.dtype == np.int32
+                and a.size * 4 + int(a.offset) == path.stat().st_size)
+    except OSError:
+        return False
 
 
 def save_workspace_array(ws: str | Path, rel: str, array: np.ndarray) -> Path:

@@ -25,12 +25,14 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
 from occufly.camera import Camera, transform
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Frame, Visibility
+from occufly.workspace import NpyStreamWriter
 
 log = logging.getLogger(__name__)
 
@@ -81,11 +83,31 @@ class PointBins:
         i = ukey // (dims[1] * dims[2])
         self.centers = lo + (np.column_stack([i, j, k]) + 0.5) * self.cell
 
+    def candidate_count(self, camera: Camera, T_cam_world: np.ndarray, far: float = np.inf) -> int:
+        """len(:meth:`candidates`) without gathering them (an upper bound of what the frame
+        sees)."""
+        if self.n == 0 or not len(self.centers):
+            return int(len(self.loose))
+        sel = self._bins_in_view(camera, T_cam_world, far)
+        return int((self.starts[sel + 1] - self.starts[sel]).sum()) + int(len(self.loose))
+
     def candidates(self, camera: Camera, T_cam_world: np.ndarray, far: float = np.inf) -> np.ndarray:
         """(K,) int64 ids of points in bins that may project into the image (plus the far
         outliers outside the bins, always)."""
         if self.n == 0 or not len(self.centers):
             return self.loose.copy()
+        sel = self._bins_in_view(camera, T_cam_world, far)
+        if not len(sel):
+            return self.loose.copy()
+        a, b = self.starts[sel], self.starts[sel + 1]
+        lens = b - a
+        idx = np.repeat(a - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
+        if len(self.loose):
+            return np.concatenate([self.order[idx], self.loose])
+        return self.order[idx]
+
+    def _bins_in_view(self, camera: Camera, T_cam_world: np.ndarray, far: float) -> np.ndarray:
+        """(B,) int64 indices of the bins that may project into the image."""
         c_cam = transform(T_cam_world, self.centers)
         r = self.cell * 0.8661  # half diagonal
         z = c_cam[:, 2]
@@ -109,15 +131,7 @@ class PointBins:
         inside |= np.linalg.norm(c_cam, axis=1) < 2 * r
         if camera.has_distortion:
             inside |= near  # be generous: distortion moves points near the border
-        sel = np.flatnonzero(inside)
-        if not len(sel):
-            return self.loose.copy()
-        a, b = self.starts[sel], self.starts[sel + 1]
-        lens = b - a
-        idx = np.repeat(a - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
-        if len(self.loose):
-            return np.concatenate([self.order[idx], self.loose])
-        return self.order[idx]
+        return np.flatnonzero(inside)
 
 
 def project_points(frame: Frame, xyz: np.ndarray, ids: np.ndarray
@@ -142,10 +156,33 @@ def project_ids(
 
     Returns (ids (m,) int64, uv (m, 2) float64 pixels, z (m,) float64 camera depth).
     """
-    uv, z = project_points(frame, xyz, ids)
+    cam = frame.camera
+    if cam.has_distortion:
+        uv, z = project_points(frame, xyz, ids)
+        with np.errstate(invalid="ignore"):
+            ok = (z > 0) & cam.in_image(uv)
+        return ids[ok], uv[ok], z[ok]
+    # pinhole: the same arithmetic as project_points + Camera.project (bit-identical), but
+    # the image test runs before the (m, 2) arrays are built, on the points in front only
+    pts = np.asarray(xyz[ids])
+    T = np.asarray(frame.T_cam_world, dtype=np.float64)
+    x, y, w = (pts[:, i].astype(np.float64) for i in range(3))
+    z = x * T[2, 0] + y * T[2, 1] + w * T[2, 2] + T[2, 3]
     with np.errstate(invalid="ignore"):
-        ok = (z > 0) & frame.camera.in_image(uv)
-    return ids[ok], uv[ok], z[ok]
+        front = np.flatnonzero(z > 0)
+    x, y, w, z = x[front], y[front], w[front], z[front]
+    xn = (x * T[0, 0] + y * T[0, 1] + w * T[0, 2] + T[0, 3]) / z
+    yn = (x * T[1, 0] + y * T[1, 1] + w * T[1, 2] + T[1, 3]) / z
+    del x, y, w
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    u = fx * xn + cam.skew * yn + cx
+    v = fy * yn + cy
+    ok = np.flatnonzero((u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height))
+    uv = np.empty((len(ok), 2), np.float64)
+    uv[:, 0] = u[ok]
+    uv[:, 1] = v[ok]
+    return ids[front[ok]], uv, z[ok]
 
 
 def depth_test(
@@ -217,19 +254,109 @@ def _depth_map_ok(dm: np.ndarray, camera: Camera) -> bool:
     return abs(sx - sy) <= 0.01 * max(sx, sy) + 1.0 / min(camera.width, camera.height)
 
 
-def _group_by_frame(n_frames: int, offsets: np.ndarray, frame_indices: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point lists (CSR over points) -> (point ids int32 sorted by frame, bounds (F+1,))."""
-    counts = np.diff(np.asarray(offsets, dtype=np.int64))
-    point_of = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
-    fidx = np.asarray(frame_indices)
-    keep = (fidx >= 0) & (fidx < n_frames)
-    if not keep.all():
-        point_of, fidx = point_of[keep], fidx[keep]
-    order = np.argsort(fidx, kind="stable")
-    point_of = point_of[order]
-    bounds = np.searchsorted(fidx[order], np.arange(n_frames + 1))
-    return point_of, bounds
+class FrameLists:
+    """The reconstruction's visibility lists grouped by frame (CSR over frames).
+
+    point_ids: (L,) int32, for each frame the points its list names, in list order (ascending
+    point id for CSR-by-point input); bounds: (F + 1,) int64. 4 bytes per list entry.
+    """
+
+    def __init__(self, point_ids: np.ndarray, bounds: np.ndarray) -> None:
+        self.point_ids = point_ids
+        self.bounds = bounds
+
+    def __len__(self) -> int:
+        return int(self.bounds[-1])
+
+    def frame(self, f: int) -> np.ndarray:
+        return self.point_ids[self.bounds[f]:self.bounds[f + 1]]
+
+    @classmethod
+    def from_point_lists(cls, n_frames: int, offsets: np.ndarray, frame_indices: np.ndarray,
+                         *, chunk: int = 1 << 23) -> FrameLists:
+        """Per-point lists (offsets (N + 1,), frame indices (M,)) -> grouped by frame.
+
+        Entries naming a frame outside [0, n_frames) are dropped. A counting sort in chunks
+        of ``chunk`` entries: memory is the output (4 bytes per entry) plus one chunk, not
+        the int64 argsort of all entries (the same order as a stable sort by frame).
+        """
+        offsets = np.asarray(offsets, dtype=np.int64)
+        fidx = np.asarray(frame_indices)
+        m = len(fidx)
+        n = len(offsets) - 1
+        per_frame = np.zeros(n_frames, np.int64)
+        for a in range(0, m, chunk):
+            f = fidx[a:a + chunk]
+            f = f[(f >= 0) & (f < n_frames)] if _may_be_outside(f, n_frames) else f
+            per_frame += np.bincount(f, minlength=n_frames)[:n_frames]
+        bounds = np.zeros(n_frames + 1, np.int64)
+        np.cumsum(per_frame, out=bounds[1:])
+        out = np.empty(int(bounds[-1]), np.int32)
+        cursor = bounds[:-1].copy()
+        # chunks aligned to points, so each point's entries are in one chunk
+        cuts = np.unique(np.r_[np.searchsorted(offsets, np.arange(0, m, chunk), side="left"), n])
+        for p0, p1 in zip(cuts[:-1], cuts[1:], strict=True):
+            e0, e1 = int(offsets[p0]), int(offsets[p1])
+            if e1 <= e0:
+                continue
+            f = fidx[e0:e1]
+            pts = np.repeat(np.arange(p0, p1, dtype=np.int32), np.diff(offsets[p0:p1 + 1]))
+            if _may_be_outside(f, n_frames):
+                keep = (f >= 0) & (f < n_frames)
+                f, pts = f[keep], pts[keep]
+            # a stable sort by frame; 16-bit keys sort by radix (linear time)
+            key = f.astype(np.uint16) if n_frames <= 1 << 16 else f
+            order = np.argsort(key, kind="stable")
+            fs = f[order].astype(np.int64)
+            c = np.bincount(fs, minlength=n_frames)
+            first = np.zeros(n_frames, np.int64)
+            np.cumsum(c[:-1], out=first[1:])
+            pos = cursor[fs] + (np.arange(len(fs), dtype=np.int64) - first[fs])
+            out[pos] = pts[order]
+            cursor += c
+        return cls(out, bounds)
+
+
+def _may_be_outside(f: np.ndarray, n_frames: int) -> bool:
+    return bool(len(f)) and (int(f.max()) >= n_frames or int(f.min()) < 0)
+
+
+DISK_SAMPLE_FRAMES = 64  # frames whose candidates are counted for the disk estimate
+
+
+def estimate_correspondences(frames: Sequence[Frame], bins: PointBins | None,
+                             list_entries: int = 0) -> int:
+    """Upper estimate of the correspondences an import will write: every candidate of the
+    depth test (points in bins that may project into the frame, counted on an even sample of
+    up to :data:`DISK_SAMPLE_FRAMES` frames and scaled) plus every list entry."""
+    F = len(frames)
+    if bins is None or not F:
+        return int(list_entries)
+    pick = np.unique(np.linspace(0, F - 1, min(F, DISK_SAMPLE_FRAMES)).round().astype(int))
+    got = sum(bins.candidate_count(frames[f].camera, frames[f].T_cam_world) for f in pick)
+    return int(got * F / len(pick)) + int(list_entries)
+
+
+def check_output_disk(ids_out: Path, frames: Sequence[Frame], bins: PointBins | None,
+                      list_entries: int) -> int:
+    """Refuse, before the frame loop, an output that cannot fit on the disk holding
+    ``ids_out`` (4 bytes per correspondence, upper estimate): an
+    :class:`~occufly.errors.OccuflyError` naming the needed and the free space. Returns the
+    estimated correspondences."""
+    import shutil
+
+    from occufly.errors import OccuflyError
+
+    est = estimate_correspondences(frames, bins, list_entries)
+    need = 4 * est + 8 * (len(frames) + 1) + (1 << 20)
+    free = shutil.disk_usage(ids_out.parent).free
+    if need > free:
+        gb = 2.0 ** 30
+        raise OccuflyError(
+            f"{ids_out.parent}: the visibility of {len(frames)} frames needs up to "
+            f"{need / gb:.1f} GB of disk (about {est / 1e6:.0f} M correspondences at 4 bytes), "
+            f"{free / gb:.1f} GB are free there")
+    return est
 
 
 def compute_visibility(
@@ -237,12 +364,13 @@ def compute_visibility(
     xyz: np.ndarray,
     *,
     mode: str = "union",
-    lists: tuple[np.ndarray, np.ndarray] | None = None,
+    lists: tuple[np.ndarray, np.ndarray] | FrameLists | None = None,
     lists_name: str = "visibility lists",
     depth_for: Callable[[int], np.ndarray | tuple[np.ndarray, str] | None] | None = None,
     rel_tol: float = 0.02,
     render_rel_tol: float = 0.05,
     progress: ProgressFn | None = None,
+    ids_out: str | Path | None = None,
 ) -> tuple[Visibility, dict]:
     """Every frame that sees each point, one frame at a time.
 
@@ -251,6 +379,12 @@ def compute_visibility(
     are dropped (counted). depth_for(f): frame f's MVS depth map (or (map, file name)), or
     None to render one from the cloud. mode: ``union`` (lists + depth test), ``vis`` (lists
     only), ``depth`` (depth test only). Returns (visibility without stored uv/depth, stats).
+
+    lists may also be given grouped by frame (:class:`FrameLists`), so a caller can free
+    the per-point arrays first. ids_out: a ``.npy`` path the point ids are streamed to, one
+    frame at a time (:class:`~occufly.workspace.NpyStreamWriter`, byte-identical to
+    ``np.save`` of the in-memory result); the returned visibility memory-maps it. Without
+    it the ids are assembled in memory (4 bytes per correspondence).
     """
     if mode not in VISIBILITY_MODES:
         raise ValueError(f"visibility mode {mode!r}: expected one of {', '.join(VISIBILITY_MODES)}")
@@ -274,13 +408,18 @@ def compute_visibility(
         warnings.append(msg)
 
     if use_lists:
-        point_of, bounds = _group_by_frame(F, lists[0], lists[1])
-        stats["list_entries"] = int(len(point_of))
+        if not isinstance(lists, FrameLists):
+            lists = FrameLists.from_point_lists(F, lists[0], lists[1])
+        stats["list_entries"] = len(lists)
     bins = PointBins(xyz) if use_depth else None
     if bins is not None and len(bins.loose):
         stats["far_outlier_points"] = int(len(bins.loose))
+    if ids_out is not None:
+        stats["estimated_correspondences_max"] = check_output_disk(
+            Path(ids_out), frames, bins, len(lists) if use_lists else 0)
     spacing = None
     out: list[np.ndarray] = []
+    writer = NpyStreamWriter(ids_out, np.int32) if ids_out is not None else None
     counts = np.zeros(F, np.int64)
     flags = np.zeros(n, np.uint8)  # per frame: 1 = in the lists, 2 = passes the depth test
     views = np.zeros(n, np.int32)  # frames seeing each point (a bincount of the output would
@@ -290,7 +429,7 @@ def compute_visibility(
         cam = frame.camera
         ids_l = ids_d = None
         if use_lists:
-            cand = point_of[bounds[f]:bounds[f + 1]].astype(np.int64)
+            cand = lists.frame(f).astype(np.int64)
             ids_l, _, _ = project_ids(frame, xyz, cand)
             stats["list_entries_outside_image"] += int(len(cand) - len(ids_l))
             flags[ids_l] |= 1
@@ -325,8 +464,17 @@ def compute_visibility(
                 ok = np.zeros(0, bool)
             ids_d = ids[ok]
             flags[ids_d] |= 2
-        # the union, ascending, without a sort: a pass over the (N,) flags
-        both = np.flatnonzero(flags)
+        # the union, ascending, without a sort: a pass over the flags between the smallest
+        # and the largest id touched (not all N: a frame's ids span a part of the cloud)
+        touched = [a for a in (ids_l, ids_d) if a is not None and len(a)]
+        if touched:
+            lo = min(int(a.min()) for a in touched)
+            hi = max(int(a.max()) for a in touched) + 1
+            both = np.flatnonzero(flags[lo:hi])
+            if lo:
+                both += lo
+        else:
+            both = np.zeros(0, np.int64)
         fl = flags[both]
         flags[both] = 0
         views[both] += 1  # ids are unique within a frame
@@ -339,16 +487,23 @@ def compute_visibility(
             stats["frames_seeing_nothing"] += 1
             warn(f"frame {frame.name} sees no point of the cloud (none is in front of the "
                  "camera and inside the image, or none passes the depth test): check its pose")
-        out.append(both.astype(np.int32, copy=False))
+        if writer is not None:
+            writer.append(both)
+        else:
+            out.append(both.astype(np.int32, copy=False))
         counts[f] = len(both)
     offsets = np.zeros(F + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    # copy the parts into one array, freeing each as it is copied: np.empty's pages become
-    # resident only when written, so the peak stays about one copy of the output
-    ids = np.empty(int(offsets[-1]), np.int32)
-    for f in range(F):
-        ids[offsets[f]:offsets[f + 1]] = out[f]
-        out[f] = None
+    if writer is not None:
+        writer.close()
+        ids = np.load(ids_out, mmap_mode="r")
+    else:
+        # copy the parts into one array, freeing each as it is copied: np.empty's pages
+        # become resident only when written, so the peak stays about one copy of the output
+        ids = np.empty(int(offsets[-1]), np.int32)
+        for f in range(F):
+            ids[offsets[f]:offsets[f + 1]] = out[f]
+            out[f] = None
     del out
     vis = Visibility(offsets, ids)
     stats["correspondences"] = int(offsets[-1])

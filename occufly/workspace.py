@@ -320,6 +320,63 @@ class Workspace:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
 
 
+class NpyStreamWriter:
+    """Write a 1-D ``.npy`` file part by part, without the array ever in memory.
+
+    The header is written first with a length of 0 and rewritten with the final length on
+    :meth:`close` (numpy pads a 1-D header for 21 digits, so its size does not change): the
+    file is byte-identical to ``np.save`` of the concatenated parts. Memory is one part.
+    Used inside an atomic directory (the import's visibility ids), so a failed write leaves
+    nothing behind.
+
+        with NpyStreamWriter(path, np.int32) as w:
+            w.append(part)
+    """
+
+    def __init__(self, path: str | Path, dtype: np.dtype | type) -> None:
+        from numpy.lib import format as npy_format
+
+        self.path = Path(path)
+        self.dtype = np.dtype(dtype)
+        self.count = 0
+        self._fmt = npy_format
+        self._fh = open(self.path, "wb")
+        self._header_len = self._write_header()
+
+    def _write_header(self) -> int:
+        d = self._fmt.header_data_from_array_1_0(np.zeros(0, self.dtype))
+        d["shape"] = (self.count,)
+        self._fh.seek(0)
+        self._fmt.write_array_header_1_0(self._fh, d)
+        return self._fh.tell()
+
+    def append(self, part: np.ndarray) -> None:
+        """Append ``part`` (1-D, cast to the writer's dtype)."""
+        a = np.ascontiguousarray(part, dtype=self.dtype).reshape(-1)
+        if len(a):
+            self._fh.write(memoryview(a).cast("B"))
+            self.count += len(a)
+
+    def close(self) -> None:
+        """Rewrite the header with the final length and close the file."""
+        if self._fh.closed:
+            return
+        try:
+            end = self._fh.tell()
+            if self._write_header() != self._header_len:  # cannot happen with numpy's padding
+                raise RuntimeError(f"{self.path}: .npy header changed size")
+            self._fh.seek(end)
+            self._fh.flush()
+        finally:
+            self._fh.close()
+
+    def __enter__(self) -> NpyStreamWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def _jsonable(o: Any) -> Any:
     if isinstance(o, np.generic):
         return o.item()

@@ -21,7 +21,7 @@ from occufly.io.colmap_dense import (
 from occufly.io.importer import import_scene
 from occufly.io.pointcloud import read_point_cloud
 from occufly.scene import Scene, Visibility
-from occufly.visibility import PointBins, compute_visibility, render_shape
+from occufly.visibility import FrameLists, PointBins, compute_visibility, render_shape
 from tests.recon_builder import make_reconstruction
 
 
@@ -219,3 +219,116 @@ def test_union_on_the_colmap_cup_adds_nothing_wrong(tmp_path):
     offsets, idx = read_fused_vis(cup / "fused.ply.vis", 58)
     assert scene.visibility.offsets[-1] == len(idx)
     assert scene.meta["visibility_depth_test"] == "depth test against MVS depth maps"
+
+
+# ---- streamed output, bounded memory, up-front refusal -----------------------------------------
+def test_streamed_ids_are_byte_identical_to_the_in_memory_path(thin, tmp_path):
+    """The import streams the point ids to disk frame by frame; the file is what np.save of
+    the in-memory result writes, and the workspace holds exactly that file."""
+    rec, _, _ = thin
+    scene = import_scene(rec, tmp_path / "ws")
+    xyz = np.asarray(scene.xyz)
+    offsets, idx = read_fused_vis(rec / "dense" / "fused.ply.vis", len(xyz))
+    depth_dir = rec / "dense" / "stereo" / "depth_maps"
+    from occufly.io.colmap_dense import find_depth_map, read_depth_map
+
+    def depth_for(f):
+        return read_depth_map(find_depth_map(depth_dir, scene.frames[f].name))
+
+    frames = list(scene.frames)
+    mem, st_mem = compute_visibility(frames, xyz, lists=(offsets, idx), depth_for=depth_for)
+    out = tmp_path / "ids.npy"
+    streamed, st_str = compute_visibility(frames, xyz, lists=(offsets, idx), depth_for=depth_for,
+                                          ids_out=out)
+    assert isinstance(streamed.point_ids, np.memmap) and not isinstance(mem.point_ids, np.memmap)
+    np.save(tmp_path / "mem.npy", mem.point_ids)
+    assert out.read_bytes() == (tmp_path / "mem.npy").read_bytes()
+    assert (tmp_path / "ws" / "visibility" / "point_ids.npy").read_bytes() == out.read_bytes()
+    np.testing.assert_array_equal(mem.offsets, streamed.offsets)
+    np.testing.assert_array_equal(mem.offsets, scene.visibility.offsets)
+    assert st_mem["views_per_point"] == st_str["views_per_point"]
+    assert st_str["estimated_correspondences_max"] >= st_str["correspondences"]
+    # grouped lists (what the import passes, after freeing the per-point arrays): the same
+    grouped = FrameLists.from_point_lists(len(frames), offsets, idx, chunk=7)
+    g, _ = compute_visibility(frames, xyz, lists=grouped, depth_for=depth_for)
+    np.testing.assert_array_equal(g.point_ids, mem.point_ids)
+
+
+def test_npy_stream_writer_matches_np_save(tmp_path):
+    from occufly.workspace import NpyStreamWriter
+
+    for parts in ([], [np.zeros(0, np.int64)], [np.arange(5), np.arange(3) * 7, np.zeros(0)],
+                  [np.arange(100_000) % 1000]):
+        with NpyStreamWriter(tmp_path / "s.npy", np.int32) as w:
+            for p in parts:
+                w.append(p)
+        full = np.concatenate(parts).astype(np.int32) if parts else np.zeros(0, np.int32)
+        np.save(tmp_path / "r.npy", full)
+        assert (tmp_path / "s.npy").read_bytes() == (tmp_path / "r.npy").read_bytes()
+        assert w.count == len(full)
+    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), np.arange(100_000) % 1000)
+
+
+def test_frame_lists_are_a_stable_grouping_by_frame():
+    rng = np.random.default_rng(3)
+    n, F = 1000, 13
+    counts = rng.integers(0, 9, n)
+    offsets = np.r_[0, np.cumsum(counts)]
+    fidx = rng.integers(0, F + 2, offsets[-1]).astype(np.uint32)  # some name no frame
+    point_of = np.repeat(np.arange(n), counts)
+    keep = fidx < F
+    order = np.argsort(fidx[keep], kind="stable")
+    expected = point_of[keep][order]
+    for chunk in (1, 5, 64, 1 << 20):
+        fl = FrameLists.from_point_lists(F, offsets, fidx, chunk=chunk)
+        assert fl.point_ids.dtype == np.int32 and len(fl) == keep.sum()
+        np.testing.assert_array_equal(fl.point_ids, expected)
+        for f in range(F):
+            np.testing.assert_array_equal(fl.frame(f), point_of[fidx == f])
+
+
+def test_vis_reader_streams_in_windows(thin, tmp_path):
+    """Windows smaller than one point's list widen; truncated and padded files are named."""
+    rec, _, _ = thin
+    p = rec / "dense" / "fused.ply.vis"
+    ref = read_fused_vis(p)
+    for w in (2, 3, 17):
+        got = read_fused_vis(p, window_words=w)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        assert got[1].dtype == np.uint32
+    raw = p.read_bytes()
+    (tmp_path / "short.vis").write_bytes(raw[:-4])
+    with pytest.raises(InputFormatError, match=r"short\.vis: truncated"):
+        read_fused_vis(tmp_path / "short.vis", window_words=5)
+    (tmp_path / "long.vis").write_bytes(raw + b"\0\0\0\0")
+    with pytest.raises(InputFormatError, match=r"long\.vis: .*trailing"):
+        read_fused_vis(tmp_path / "long.vis")
+
+
+def test_an_import_that_cannot_fit_is_refused_up_front(thin, tmp_path, monkeypatch, capsys):
+    """Too little memory or disk: exit 2 with the needed and available figures, before any
+    workspace file exists (never an out-of-memory kill or a full disk halfway)."""
+    import occufly.io.importer as imp
+
+    rec, _, _ = thin
+    est = imp.estimate_import_resources(n_points=1000, frames=import_scene(
+        rec, tmp_path / "ok").frames, list_entries=5000)
+    assert est["memory_bytes"] > imp.IMPORT_BASE_BYTES
+    monkeypatch.setattr(imp, "available_memory", lambda: 1 << 20)
+    monkeypatch.setattr(imp, "_own_rss", lambda: 0)
+    ws = tmp_path / "ws"
+    assert main(["import", str(rec), "-w", str(ws)]) == 2
+    err = capsys.readouterr().err
+    assert "needs about" in err and "GB of memory" in err and "0.0 GB are available" in err
+    assert not ws.exists() and not list(tmp_path.glob(".ws.*"))
+    monkeypatch.undo()
+
+    class Usage:
+        free = 1000
+
+    monkeypatch.setattr("shutil.disk_usage", lambda _p: Usage)
+    assert main(["import", str(rec), "-w", str(ws)]) == 2
+    err = capsys.readouterr().err
+    assert "GB of disk" in err and "correspondences" in err and "are free there" in err
+    assert not ws.exists() and not list(tmp_path.glob(".ws.*"))

@@ -109,56 +109,80 @@ def write_fused_ply(
     write_ply(path, fields)
 
 
-def read_fused_vis(path: str | Path, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``fused.ply.vis`` -> (offsets (N + 1,) int64, image_indices (M,) uint32), CSR by point."""
+def read_fused_vis(path: str | Path, n_points: int | None = None, *,
+                   window_words: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``fused.ply.vis`` -> (offsets (N + 1,) int64, image_indices (M,) uint32), CSR by point.
+
+    Streamed: the file is read in windows of ``window_words`` uint32 values, so memory is the
+    output (8 bytes per point + 4 per entry) plus one window, never the file itself or int64
+    temporaries per entry (a 32 M-point survey's .vis holds ~250 M entries).
+    """
     path = Path(path)
     try:
-        raw = np.fromfile(path, dtype=np.uint8)
+        fh = open(path, "rb")
     except OSError as e:
         raise InputFormatError(f"{path}: cannot read visibility file ({e.strerror})") from None
-    if raw.size < 8:
-        raise InputFormatError(f"{path}: too short for a fused.ply.vis file (need a uint64 count)")
-    n = int(raw[:8].view("<u8")[0])
-    if n_points is not None and n != n_points:
-        raise InputFormatError(f"{path}: lists {n} points but the cloud has {n_points}")
-    if (raw.size - 8) % 4:
-        raise InputFormatError(f"{path}: body is not a whole number of uint32 values")
-    words = raw[8:].view("<u4")
-    heads = _vis_heads(words, n, path)
-    counts = words[heads].astype(np.int64)
-    offsets = np.zeros(n + 1, np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    # index of every entry = its head position + 1 + rank within the point
-    point_of_entry = np.repeat(np.arange(n), counts)
-    rank = np.arange(offsets[-1]) - offsets[point_of_entry]
-    idx = words[heads[point_of_entry] + 1 + rank]
-    return offsets, np.asarray(idx, dtype=np.uint32)
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size < 8:
+            raise InputFormatError(f"{path}: too short for a fused.ply.vis file (need a uint64 count)")
+        n = int(np.frombuffer(fh.read(8), dtype="<u8")[0])
+        if n_points is not None and n != n_points:
+            raise InputFormatError(f"{path}: lists {n} points but the cloud has {n_points}")
+        if (size - 8) % 4:
+            raise InputFormatError(f"{path}: body is not a whole number of uint32 values")
+        total = (size - 8) // 4
+        if total < n:
+            raise InputFormatError(f"{path}: truncated: {total} values for {n} points")
+        # a well-formed file holds one count word per point and the entries: M = total - N
+        offsets = np.zeros(n + 1, np.int64)
+        idx = np.empty(total - n, np.uint32)
+        i = 0  # points read
+        e = 0  # entries written
+        start = 0  # word position of point i's count
+        width = max(2, int(window_words))
+        while i < n:
+            fh.seek(8 + 4 * start)
+            window = np.fromfile(fh, dtype="<u4", count=width)
+            wlen = len(window)
+            if wlen == 0:
+                raise InputFormatError(f"{path}: truncated after {i} of {n} points")
+            heads = _vis_heads_in(window.tolist(), n - i)
+            if not heads:  # one point longer than the window: widen it
+                if start + wlen >= total:
+                    raise InputFormatError(f"{path}: truncated after {i} of {n} points")
+                width = max(width * 2, int(window[0]) + 1)
+                continue
+            h = np.asarray(heads, dtype=np.int64)
+            counts = window[h].astype(np.int64)
+            k, m = len(h), int(counts.sum())
+            if e + m > len(idx):
+                raise InputFormatError(f"{path}: truncated after {i} of {n} points")
+            ends = np.cumsum(counts)
+            offsets[i + 1:i + 1 + k] = e + ends
+            rank = np.arange(m, dtype=np.int64) - np.repeat(ends - counts, counts)
+            idx[e:e + m] = window[np.repeat(h + 1, counts) + rank]
+            i += k
+            e += m
+            start += int(h[-1]) + 1 + int(counts[-1])
+        if start != total:
+            raise InputFormatError(f"{path}: {total - start} trailing values after {n} points")
+    return offsets, idx
 
 
-def _vis_heads(words: np.ndarray, n: int, path: Path) -> np.ndarray:
-    """Positions of the per-point count words (a sequential walk, done in chunks of ints)."""
-    heads = np.empty(n, dtype=np.int64)
-    pos = 0
-    total = len(words)
-    chunk = 1 << 20
-    i = 0
-    while i < n:
-        # Python ints from a bounded window keep memory flat on 10 M-point clouds.
-        window_start = pos
-        window = words[window_start : window_start + chunk].tolist()
-        wlen = len(window)
-        local = 0
-        while i < n and local < wlen:
-            heads[i] = window_start + local
-            local += 1 + window[local]
-            i += 1
-        pos = window_start + local
-        if pos > total or (i < n and pos >= total):
-            raise InputFormatError(f"{path}: truncated after {i} of {n} points")
-        if wlen == 0:
-            raise InputFormatError(f"{path}: truncated after {i} of {n} points")
-    if pos != total:
-        raise InputFormatError(f"{path}: {total - pos} trailing values after {n} points")
+def _vis_heads_in(window: list[int], limit: int) -> list[int]:
+    """Positions of the count words of the (at most ``limit``) points lying wholly inside
+    ``window`` (a sequential walk: each count says where the next point starts)."""
+    heads: list[int] = []
+    add = heads.append
+    pos, wlen, k = 0, len(window), 0
+    while k < limit and pos < wlen:
+        nxt = pos + 1 + window[pos]
+        if nxt > wlen:
+            break
+        add(pos)
+        pos = nxt
+        k += 1
     return heads
 
 

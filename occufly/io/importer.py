@@ -42,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from occufly.camera import make_pose
-from occufly.errors import InputFormatError, WorkspaceError
+from occufly.errors import InputFormatError, OccuflyError, WorkspaceError
+from occufly.fsutil import atomic_directory
 from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
 from occufly.io.pointcloud import read_point_cloud
@@ -50,7 +51,8 @@ from occufly.io.sources import into_cloud_crs, read_source, resolve_image_names
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Frame, Scene, assign_altitudes
 from occufly.taxonomy import Taxonomy, default_taxonomy
-from occufly.visibility import VISIBILITY_MODES, compute_visibility
+from occufly.visibility import VISIBILITY_MODES, FrameLists, compute_visibility
+from occufly.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
@@ -152,22 +154,16 @@ def import_scene(
     depth_dir = _find_depth_dir(source, depth_maps)
     vis_path = Path(str(cloud_path) + ".vis") if cloud_path is not None else None
     vis_sub = _sub_progress(report, 0.15, 0.9)
-    lists, lists_name = None, None
-    if vis_path is not None and vis_path.is_file():
-        offsets, idx = read_fused_vis(vis_path, len(xyz_w))
-        if len(idx) and int(idx.max()) >= len(frames):
-            raise InputFormatError(
-                f"{vis_path}: refers to image index {int(idx.max())} but the model has "
-                f"{len(frames)} registered images"
-            )
-        lists, lists_name = (offsets, idx), vis_path.name
-    elif cloud_path is None and model.has_tracks:
-        lists, lists_name = _tracks_as_lists(model, len(xyz_local)), "COLMAP tracks"
-    if visibility == "vis" and lists is None:
+    has_vis = vis_path is not None and vis_path.is_file()
+    if visibility == "vis" and not has_vis and not (cloud_path is None and model.has_tracks):
         raise InputFormatError(
             f"{cloud_path}: --visibility vis needs the reconstruction's own visibility "
             f"({cloud_path.name}.vis or the sparse model's tracks) and there is none; use "
             "--visibility union or depth")
+    list_entries = (max(0, (vis_path.stat().st_size - 8) // 4 - len(xyz_w)) if has_vis else 0)
+    check_import_resources(workspace, n_points=len(xyz_local), frames=frames,
+                           list_entries=list_entries, source=source)
+    del xyz_w  # the scene keeps the local copy
 
     def depth_for(f: int):
         if depth_dir is None:
@@ -175,61 +171,156 @@ def import_scene(
         p = find_depth_map(depth_dir, frames[f].name)
         return (read_depth_map(p), str(p)) if p is not None else None
 
-    vis_mode = visibility if lists is not None else "depth"
-    visibility_data, vis_stats = compute_visibility(
-        frames, xyz_local, mode=vis_mode, lists=lists, lists_name=lists_name or "",
-        depth_for=depth_for, rel_tol=rel_tol, progress=vis_sub)
-    if vis_stats["correspondences"] == 0:
-        raise InputFormatError(
-            f"{source}: no frame sees any point of {cloud_path or 'the sparse cloud'} -- the "
-            "poses and the cloud do not match (different coordinate frames?)")
-    depth_desc = (
-        None if vis_mode == "vis"
-        else "depth test against MVS depth maps" if vis_stats["frames_rendered"] == 0
-        else "depth test against depth rendered from the cloud"
-        if vis_stats["frames_with_depth_maps"] == 0
-        else "depth test against MVS depth maps and depth rendered from the cloud"
-    )
-    # the reconstruction's own lists keep naming the source; the depth test is recorded apart
-    vis_source = lists_name if lists_name is not None and vis_mode != "depth" else depth_desc
-    for w in vis_stats["warnings"]:
-        log.warning("import %s: %s", source, w)
+    # built in a temporary sibling folder renamed into place at the end: the visibility ids
+    # are streamed into it frame by frame (memory: one frame, not the ~4 bytes per
+    # correspondence of the whole scene), and a failed import leaves nothing behind
+    with atomic_directory(workspace, overwrite=True) as tmp:
+        wtmp = Workspace(tmp)
+        wtmp.visibility_dir.mkdir()
+        lists, lists_name = None, None
+        if has_vis:
+            offsets, idx = read_fused_vis(vis_path, len(xyz_local))
+            if len(idx) and int(idx.max()) >= len(frames):
+                raise InputFormatError(
+                    f"{vis_path}: refers to image index {int(idx.max())} but the model has "
+                    f"{len(frames)} registered images"
+                )
+            lists, lists_name = FrameLists.from_point_lists(len(frames), offsets, idx), vis_path.name
+            del offsets, idx  # 4 bytes per entry remain (grouped by frame)
+        elif cloud_path is None and model.has_tracks:
+            lists, lists_name = _tracks_as_lists(model, len(xyz_local)), "COLMAP tracks"
 
-    scene = Scene(
-        crs=crsmod.crs_record(scene_crs),
-        frames=frames,
-        xyz=xyz_local,
-        rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
-        origin=origin,
-        visibility=visibility_data,
-        taxonomy=tax,
-        meta={
-            "source": str(source.resolve()),
-            "format": model.kind,
-            "sparse_model": str(model.path.resolve()),
-            "crs": crsmod.crs_label(scene_crs) if scene_crs is not None else None,
-            "crs_handling": crs_info,
-            "import_notes": list(model.notes),
-            "cloud": str(cloud_path.resolve()) if cloud_path else None,
-            "images": str(image_dir.resolve()),
-            "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
-            "georeferenced": georef,
-            "up_axis": up_method,
-            "levelling_rotation": R_level.tolist(),
-            "source_origin": origin_src.tolist(),
-            "visibility_source": vis_source,
-            "visibility_mode": vis_mode,
-            "visibility_depth_test": depth_desc,
-            "visibility_stats": vis_stats,
-        },
-    )
-    report(0.9, "altitudes")
-    assign_altitudes(scene, nominal_altitudes)
-    scene.meta["import_seconds"] = round(time.perf_counter() - t0, 3)
-    report(0.95, "writing workspace")
-    scene.save(workspace, overwrite=True)
+        vis_mode = visibility if lists is not None else "depth"
+        visibility_data, vis_stats = compute_visibility(
+            frames, xyz_local, mode=vis_mode, lists=lists, lists_name=lists_name or "",
+            depth_for=depth_for, rel_tol=rel_tol, progress=vis_sub,
+            ids_out=wtmp.visibility_array("point_ids"))
+        del lists
+        if vis_stats["correspondences"] == 0:
+            raise InputFormatError(
+                f"{source}: no frame sees any point of {cloud_path or 'the sparse cloud'} -- the "
+                "poses and the cloud do not match (different coordinate frames?)")
+        depth_desc = (
+            None if vis_mode == "vis"
+            else "depth test against MVS depth maps" if vis_stats["frames_rendered"] == 0
+            else "depth test against depth rendered from the cloud"
+            if vis_stats["frames_with_depth_maps"] == 0
+            else "depth test against MVS depth maps and depth rendered from the cloud"
+        )
+        # the reconstruction's own lists keep naming the source; the depth test is recorded apart
+        vis_source = lists_name if lists_name is not None and vis_mode != "depth" else depth_desc
+        for w in vis_stats["warnings"]:
+            log.warning("import %s: %s", source, w)
+
+        scene = Scene(
+            crs=crsmod.crs_record(scene_crs),
+            frames=frames,
+            xyz=xyz_local,
+            rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
+            origin=origin,
+            visibility=visibility_data,
+            taxonomy=tax,
+            meta={
+                "source": str(source.resolve()),
+                "format": model.kind,
+                "sparse_model": str(model.path.resolve()),
+                "crs": crsmod.crs_label(scene_crs) if scene_crs is not None else None,
+                "crs_handling": crs_info,
+                "import_notes": list(model.notes),
+                "cloud": str(cloud_path.resolve()) if cloud_path else None,
+                "images": str(image_dir.resolve()),
+                "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
+                "georeferenced": georef,
+                "up_axis": up_method,
+                "levelling_rotation": R_level.tolist(),
+                "source_origin": origin_src.tolist(),
+                "visibility_source": vis_source,
+                "visibility_mode": vis_mode,
+                "visibility_depth_test": depth_desc,
+                "visibility_stats": vis_stats,
+            },
+        )
+        report(0.9, "altitudes")
+        assign_altitudes(scene, nominal_altitudes)
+        scene.meta["import_seconds"] = round(time.perf_counter() - t0, 3)
+        report(0.95, "writing workspace")
+        scene.write_into(tmp)
+        del scene, visibility_data
     report(1.0, "done")
     return Scene.load(workspace)
+
+
+# ---- resources -----------------------------------------------------------------------------------
+#: bytes per point the import holds at its peak besides the visibility lists: the cloud as read
+#: (float64 xyz + rgb) and its float32 local copy, the spatial bins and their sort, the per-point
+#: flags and view counts (measured on bench: see README "How big, how long")
+IMPORT_BYTES_PER_POINT = 80
+#: bytes per visibility-list entry: the per-point lists as read (4) and grouped by frame (4)
+IMPORT_BYTES_PER_LIST_ENTRY = 8
+#: bytes per pixel of the largest frame (its depth map and rendered raster) and per candidate
+#: point of a frame (projection in float64)
+IMPORT_BYTES_PER_PIXEL = 12
+IMPORT_BYTES_PER_CANDIDATE = 100
+IMPORT_BASE_BYTES = 400 << 20
+
+
+def estimate_import_resources(*, n_points: int, frames: list[Frame], list_entries: int) -> dict:
+    """Up-front estimate of the import's peak memory (bytes): the cloud, the bins, the lists,
+    and one frame -- its raster and its candidate points (the frame's share of the cloud, at
+    worst all of it for a frame that sees the whole scene: bounded by ``n_points``). The
+    visibility output is streamed to disk and costs no memory."""
+    px = max((f.camera.width * f.camera.height for f in frames), default=0)
+    # a frame's candidates: its footprint's share of the cloud; a nadir survey frame sees a
+    # few percent of it -- take the larger of 10 % and 4 M points, at most all of them
+    cand = min(n_points, max(n_points // 10, 4_000_000))
+    mem = (IMPORT_BASE_BYTES + n_points * IMPORT_BYTES_PER_POINT
+           + list_entries * IMPORT_BYTES_PER_LIST_ENTRY
+           + px * IMPORT_BYTES_PER_PIXEL + cand * IMPORT_BYTES_PER_CANDIDATE)
+    return {"memory_bytes": int(mem), "points": int(n_points), "frames": len(frames),
+            "list_entries": int(list_entries), "largest_frame_pixels": int(px)}
+
+
+def check_import_resources(workspace: Path, *, n_points: int, frames: list[Frame],
+                           list_entries: int, source: Path) -> dict:
+    """:func:`estimate_import_resources` against the memory available (what this process
+    already holds counts as its own); an :class:`OccuflyError` naming both figures when it
+    does not fit, before any workspace file is written. Disk is checked by the visibility
+    pass once the spatial bins can count each frame's candidates
+    (:func:`occufly.visibility.compute_visibility`, ``ids_out``)."""
+    est = estimate_import_resources(n_points=n_points, frames=frames, list_entries=list_entries)
+    avail = available_memory()
+    if avail is not None:
+        avail += _own_rss()
+        if est["memory_bytes"] > avail:
+            gb = 2.0 ** 30
+            raise OccuflyError(
+                f"{source}: importing {n_points:,} points, {len(frames)} frames and "
+                f"{list_entries:,} visibility-list entries needs about "
+                f"{est['memory_bytes'] / gb:.1f} GB of memory, {avail / gb:.1f} GB are "
+                f"available (nothing was written to {workspace})")
+    est["available_bytes"] = avail
+    return est
+
+
+def available_memory() -> int | None:
+    """MemAvailable in bytes (Linux), else None (not checked)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _own_rss() -> int:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return 0
+    return 0
 
 
 def source_coordinates(scene: Scene, xyz_local: np.ndarray) -> np.ndarray:

@@ -55,13 +55,13 @@ def main() -> int:
     ap.add_argument("--keep", type=Path, default=None, help="keep the data directory here")
     args = ap.parse_args()
 
+    from bench_browser import H, W, build_reconstruction
     from fastapi.testclient import TestClient
 
     from app.annotations import smart
     from app.config import Settings
     from app.main import close, create_app
     from app.users import service as users
-    from bench_browser import H, W, build_reconstruction
 
     tmp = Path(args.keep or tempfile.mkdtemp(prefix="bench_smart_"))
     imports = tmp / "imports"

@@ -34,7 +34,7 @@ def border_distance(path: np.ndarray, rect=RECT) -> np.ndarray:  # noqa: ANN001
 
 def densify(path: np.ndarray) -> np.ndarray:
     out = [path[0].astype(float)]
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=True):
         n = max(1, int(np.ceil(np.abs(b - a).max())))
         out.extend(a + (b - a) * t for t in np.arange(1, n + 1) / n)
     return np.array(out)

@@ -225,6 +225,8 @@ class AnnotatorPage {
       this._confPainter = (g, v) => {
         const lc = this.lowConf;
         if (!lc || !lc.show || this.editor !== ed) return;
+        // the marks belong to the prefill: not shown once it is undone
+        if (this.prefillCmd && !ed.history.undos.includes(this.prefillCmd)) return;
         g.save();
         g.imageSmoothingEnabled = false;
         g.translate(v.tx, v.ty);
@@ -995,6 +997,7 @@ class AnnotatorPage {
         onlyUnpainted = c === "unpainted";
       }
       ed.replaceIds("prefill from 3D", ids, { onlyUnpainted });
+      this.prefillCmd = ed.history.undos[ed.history.undos.length - 1] || null;
       this.status(`Prefilled ${(100 * (n / ids.length)).toFixed(1)} % of the frame from the 3D labels. Correct it with the tools.`);
       // how much to trust it: from how many submitted masks the 3D labels were lifted
       const st = await api.get(`/scenes/${frame.scene_id ?? this.sceneSel.value}/labels/status`).catch(() => null);

@@ -40,7 +40,7 @@ export class GrabCutTool {
       this.editor.view.request();
       return;
     }
-    if (this.busy) return;
+    if (this.busy || e?.button === 2) return; // boxes are dragged with the left button
     this.start = p;
     this.at = p;
   }

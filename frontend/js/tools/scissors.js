@@ -163,6 +163,7 @@ export class ScissorsTool {
   up() {}
 
   onKey(e) {
+    if (this.closing) return ["Enter", "Escape", "Backspace"].includes(e.key); // wait for the fill
     if (e.key === "Enter" && this.anchors.length >= 2) {
       this.close(e.shiftKey);
       return true;
@@ -250,7 +251,24 @@ export class ScissorsTool {
 
   overlay(ctx, view) {
     if (!this.anchors.length) return;
-    const col = this.editor.classCss(this.editor.state.classId);
+    const last = this.anchors[this.anchors.length - 1];
+    const pv = this.preview && this.preview.from === last.p && !this.closing && this.at ? this.preview : null;
+    // the region the outline encloses so far (with the preview), lightly in the class colour
+    const ring = this.outline();
+    if (pv) for (const q of pv.path) ring.push(q);
+    if (ring.length >= 3) {
+      ctx.globalAlpha = 0.25;
+      ctx.fillStyle = this.editor.classCss(this.editor.state.classId);
+      ctx.beginPath();
+      ring.forEach((q, i) => {
+        const [x, y] = view.toScreen(q[0] + 0.5, q[1] + 0.5);
+        if (i === 0) ctx.moveTo(x, y);
+        else ctx.lineTo(x, y);
+      });
+      ctx.closePath();
+      ctx.fill();
+      ctx.globalAlpha = 1;
+    }
     const line = (path, dash) => {
       ctx.setLineDash(dash);
       ctx.beginPath();
@@ -262,29 +280,25 @@ export class ScissorsTool {
       ctx.stroke();
     };
     ctx.lineJoin = "round";
-    // a dark halo under the class colour: visible on any photo
-    for (const [w, c] of [[4, "rgba(0,0,0,0.6)"], [2, col]]) {
+    // a bright line on a dark halo: visible on any photo and any class colour
+    for (const [w, c] of [[5, "rgba(0,0,0,0.65)"], [2, "#ffd54a"]]) {
       ctx.lineWidth = w;
       ctx.strokeStyle = c;
       this.anchors.forEach((a, i) => {
         if (i > 0) line(a.seg.path || [this.anchors[i - 1].p, a.p], a.seg.path ? [] : [4, 4]);
       });
-      if (this._closingSeg) line(this._closingSeg.path || [this.anchors[this.anchors.length - 1].p, this.anchors[0].p], [4, 4]);
-      const last = this.anchors[this.anchors.length - 1];
-      if (!this.closing && this.at) {
-        const pv = this.preview;
-        if (pv && pv.from === last.p) line(pv.path, [6, 3]);
-        else line([last.p, this._px(this.at)], [2, 4]);
-      }
+      if (this._closingSeg) line(this._closingSeg.path || [last.p, this.anchors[0].p], [4, 4]);
+      if (pv) line(pv.path, [6, 3]);
+      else if (!this.closing && this.at) line([last.p, this._px(this.at)], [2, 4]);
     }
     ctx.setLineDash([]);
     const near = this.at && this._nearFirst(this.at);
     this.anchors.forEach((a, i) => {
       const [x, y] = view.toScreen(a.p[0] + 0.5, a.p[1] + 0.5);
-      const r = i === 0 && near ? 6 : 3;
-      ctx.fillStyle = i === 0 && near ? "#ffbf47" : "rgba(255,255,255,0.95)";
-      ctx.strokeStyle = "rgba(0,0,0,0.7)";
-      ctx.lineWidth = 1;
+      const r = i === 0 && near ? 6 : 4;
+      ctx.fillStyle = i === 0 && near ? "#ff9f1c" : "#ffffff";
+      ctx.strokeStyle = "rgba(0,0,0,0.8)";
+      ctx.lineWidth = 1.5;
       ctx.fillRect(x - r, y - r, 2 * r, 2 * r);
       ctx.strokeRect(x - r, y - r, 2 * r, 2 * r);
     });

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from occufly.camera import Camera, transform
+from occufly.camera import Camera
 from occufly.confusion import Confusion
 from occufly.density import point_spacing as estimate_point_spacing  # noqa: F401 (re-export)
 from occufly.scene import Scene
@@ -43,6 +43,24 @@ def scene_point_spacing(scene: Scene) -> float:
     return _SPACING_CACHE[key]
 
 
+def _to_camera(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 camera coordinates of world points, as :func:`occufly.camera.transform`
+    computes them, but as 9 multiply-adds per point instead of a BLAS matrix product: the
+    product of an (N, 3) by a (3, 3) matrix spends ~15 x more CPU in OpenBLAS' threads (0.48 s
+    vs 0.03 s for 2 M points on this machine). Equal to ``transform`` within 1e-13 relative."""
+    xyz = np.asarray(xyz)
+    R, t = np.asarray(T, dtype=np.float64)[:3, :3], np.asarray(T, dtype=np.float64)[:3, 3]
+    cols = [xyz[:, i].astype(np.float64) for i in range(3)]
+    out = np.empty((len(xyz), 3), dtype=np.float64)
+    for i in range(3):
+        r = out[:, i]
+        np.multiply(cols[0], R[i, 0], out=r)
+        r += R[i, 1] * cols[1]
+        r += R[i, 2] * cols[2]
+        r += t[i]
+    return out
+
+
 def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
                        margin: float = MAX_SPLAT) -> np.ndarray | None:
     """Sorted (K,) int64 ids of the points whose splat can reach the image of ``cam`` (a
@@ -61,7 +79,7 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
         bins = _BINS_CACHE[key] = PointBins(scene.xyz)
     if not len(bins.centers):
         return None
-    c = transform(T_cam_world, bins.centers)
+    c = _to_camera(T_cam_world, bins.centers)
     r = bins.cell * 0.8661  # bin half diagonal
     fx, fy = cam.focal
     cx, cy = cam.principal_point
@@ -89,6 +107,65 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
     are rendered at 1/k and each pixel repeated k x k, k chosen for <= 1.5 px splats: the cloud has
     no finer detail there, the surfaces close, and the work drops by k^2.
     """
+    cls, depth, _ = _render_scaled(scene, labels, frame_index, scale=scale,
+                                   point_spacing=point_spacing, splat_factor=splat_factor,
+                                   surface_tol=surface_tol, chunk=chunk, hole_radius=0)
+    return cls, depth
+
+
+# the prefill closes holes of up to 2 x this many pixels (at the rendered resolution) between
+# rendered points: sparse parts of the cloud (scene borders, steep walls, far points) leave
+# gaps between splats sized for the typical spacing
+PREFILL_HOLE_RADIUS = 6
+
+
+def render_prefill(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
+                   hole_radius: int = PREFILL_HOLE_RADIUS, **kw
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`render_labels` for a prefill: pixels no point reaches, inside gaps of up to
+    ``2 * hole_radius`` px between rendered pixels, take the label and depth of the nearest
+    rendered pixel (:func:`close_holes`). Returns (class image, depth, (h, w) bool "filled":
+    those pixels, to mark as low confidence). The agreement metric keeps the unfilled
+    :func:`render_labels`."""
+    return _render_scaled(scene, labels, frame_index, scale=scale, hole_radius=hole_radius, **kw)
+
+
+def close_holes(cls: np.ndarray, depth: np.ndarray, radius: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fill the pixels without a point (depth 0) that a morphological closing of the rendered
+    pixels with a (2r+1)^2 square covers, from the nearest rendered pixel (Euclidean). Open
+    borders (where the cloud ends, sky) stay empty: the closing does not grow outwards.
+    Returns (cls, depth, filled) as new arrays."""
+    from scipy import ndimage
+
+    has = depth > 0
+    filled = np.zeros(has.shape, bool)
+    if radius < 1 or has.all() or not has.any():
+        return cls, depth, filled
+    size = 2 * int(radius) + 1
+    closed = ndimage.minimum_filter(ndimage.maximum_filter(has, size=size, mode="constant", cval=0),
+                                    size=size, mode="constant", cval=1)
+    filled = closed & ~has
+    if not filled.any():
+        return cls, depth, filled
+    rows, cols = np.nonzero(filled)
+    r0, r1 = max(0, rows.min() - size), min(has.shape[0], rows.max() + size + 1)
+    c0, c1 = max(0, cols.min() - size), min(has.shape[1], cols.max() + size + 1)
+    win = ~has[r0:r1, c0:c1]  # the nearest rendered pixel lies within the bounding box + size
+    _, (ir, ic) = ndimage.distance_transform_edt(win, return_indices=True)
+    fr, fc = rows - r0, cols - c0
+    sr, sc = ir[fr, fc] + r0, ic[fr, fc] + c0
+    cls, depth = cls.copy(), depth.copy()
+    cls[rows, cols] = cls[sr, sc]
+    depth[rows, cols] = depth[sr, sc]
+    return cls, depth, filled
+
+
+def _render_scaled(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
+                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
+                   surface_tol: float = 3.0, chunk: int = 500_000, hole_radius: int = 0
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`render_labels` / :func:`render_prefill` (``hole_radius`` 0: no hole closing)."""
     labels = np.asarray(labels)
     if labels.shape != (scene.n_points,):
         raise ValueError(f"labels must be ({scene.n_points},), got {labels.shape}")
@@ -103,8 +180,11 @@ def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: 
             cand = frustum_candidates(scene, cam, frame.T_cam_world, margin=MAX_SPLAT * k)
         cls, depth = _render(scene, labels, frame, cam.scaled(1.0 / k), spacing, splat_factor,
                              surface_tol, chunk, cand)
-        return _upsample(cls, k, h, w), _upsample(depth, k, h, w)
-    return _render(scene, labels, frame, cam, spacing, splat_factor, surface_tol, chunk, cand)
+        cls, depth, filled = close_holes(cls, depth, math.ceil(hole_radius / k))
+        return (_upsample(cls, k, h, w), _upsample(depth, k, h, w),
+                _upsample(filled, k, h, w) if hole_radius else np.zeros((h, w), bool))
+    cls, depth = _render(scene, labels, frame, cam, spacing, splat_factor, surface_tol, chunk, cand)
+    return close_holes(cls, depth, hole_radius)
 
 
 # images above this many pixels whose typical splat is wider than COARSE_SPLAT px are rendered
@@ -121,7 +201,7 @@ def _coarsening(scene: Scene, cam: Camera, T_cam_world: np.ndarray, spacing: flo
         return 1
     ids = np.arange(0, scene.n_points, max(1, scene.n_points // 20_000)) if cand is None \
         else cand[:: max(1, len(cand) // 20_000)]
-    z = transform(T_cam_world, np.asarray(scene.xyz[ids], dtype=np.float64))[:, 2]
+    z = _to_camera(T_cam_world, scene.xyz[ids])[:, 2]
     z = z[z > 1e-6]
     if not len(z):
         return 1
@@ -131,7 +211,9 @@ def _coarsening(scene: Scene, cam: Camera, T_cam_world: np.ndarray, spacing: flo
 
 def _upsample(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     """Repeat every pixel k x k and fit to (h, w) (edge pixels repeated where short)."""
-    big = np.repeat(np.repeat(img, k, axis=0), k, axis=1)[:h, :w]
+    h0, w0 = img.shape
+    # one copy through a broadcast view (two np.repeat passes copied twice)
+    big = np.broadcast_to(img[:, None, :, None], (h0, k, w0, k)).reshape(h0 * k, w0 * k)[:h, :w]
     if big.shape != (h, w):
         big = np.pad(big, ((0, h - big.shape[0]), (0, w - big.shape[1])), mode="edge")
     return np.ascontiguousarray(big)
@@ -149,7 +231,7 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
         for a in range(0, n_cand, chunk):
             b = min(n_cand, a + chunk)
             sub = slice(a, b) if cand is None else cand[a:b]
-            xyz_cam = transform(frame.T_cam_world, scene.xyz[sub])
+            xyz_cam = _to_camera(frame.T_cam_world, scene.xyz[sub])
             idx = np.flatnonzero(xyz_cam[:, 2] > 1e-6)
             uv, z = cam.project(xyz_cam[idx])
             # keep points whose largest splat could touch the image
@@ -211,6 +293,18 @@ def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int, mask_sha
     if cls.shape != tuple(mask_shape):
         raise ValueError(f"rendered {cls.shape} does not match mask {tuple(mask_shape)}")
     return cls, depth
+
+
+def prefill_for_mask(scene: Scene, labels: np.ndarray, frame_index: int,
+                     mask_shape: tuple[int, int], **kw
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`render_prefill` at the resolution of a (possibly downscaled) mask of that frame."""
+    W = scene.frames[frame_index].camera.width
+    s = W // int(mask_shape[1])
+    out = render_prefill(scene, labels, frame_index, scale=1.0 / s, **kw)
+    if out[0].shape != tuple(mask_shape):
+        raise ValueError(f"rendered {out[0].shape} does not match mask {tuple(mask_shape)}")
+    return out
 
 
 def _check_pair(mask: np.ndarray, rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -91,6 +91,7 @@ def load_labels(workspace: Path) -> lifting.LiftResult | None:
 
 render_labels = render.render_labels
 render_for_mask = render.render_for_mask
+render_prefill = render.render_prefill
 agreement = render.agreement
 disagreement_image = render.disagreement_image
 

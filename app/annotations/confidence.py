@@ -3,8 +3,9 @@
 ``GET /api/frames/{fid}/prefill/confidence`` -- a single-channel PNG at the frame's size (or
 1/``downscale``): 0 where no lifted label reaches the pixel, else ``1 + round(254 *
 confidence)`` of the point seen there (confidence in [0, 1] from the kNN fill / denoise:
-the share of its neighbours agreeing). 404 before the first fill (direct votes carry none).
-Its own router, included by app/main.py.
+the share of its neighbours agreeing); pixels of a closed hole between rendered points
+(labelled from the nearest rendered pixel) get 1, the lowest. 404 before the first fill
+(direct votes carry none). Its own router, included by app/main.py.
 """
 
 from __future__ import annotations
@@ -31,9 +32,11 @@ def confidence_image(ctx, scene: Scene, frame, *, downscale: int = 1) -> np.ndar
     conf = np.nan_to_num(np.asarray(res.confidence, np.float32), nan=0.0)
     q = np.where(np.asarray(res.labels) > 0,
                  1 + np.rint(254.0 * np.clip(conf, 0.0, 1.0)), 0).astype(np.uint8)
-    img, _depth = pipeline.render_labels(ctx.load_scene(scene.workspace), q, frame.index,
-                                         scale=1.0 / downscale)
-    return np.asarray(img, dtype=np.uint8)
+    # rendered as the prefill is (holes closed); a hole's pixels are guessed from the
+    # nearest rendered pixel, so they get the lowest confidence (1)
+    img, filled = service.prefill_image(ctx, scene, frame, downscale=downscale, labels=q)
+    img[filled & (img > 0)] = 1
+    return img
 
 
 @router.get("/frames/{fid}/prefill/confidence", response_class=Response,

@@ -27,3 +27,28 @@ class MaskVersion(Base):
     height: Mapped[int] = mapped_column(Integer)
     base_version_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
     restored_from_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # annotation effort, recorded for submitted versions (issue 17): the prefill the author
+    # started from (None = painted from an empty mask), the pixels carrying a class or 255 in
+    # this mask (what painting from scratch costs) and the pixels that differ from the prefill
+    prefill_id: Mapped[int | None] = mapped_column(
+        ForeignKey("prefills.id", ondelete="SET NULL"), nullable=True)
+    painted_px: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    changed_px: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class Prefill(Base):
+    """One prefill handed to a user (``GET /frames/{fid}/prefill``): the rendered lifted labels
+    as stored in the content store, so a later submit can count what the person changed."""
+
+    __tablename__ = "prefills"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    frame_id: Mapped[int] = mapped_column(ForeignKey("frames.id", ondelete="CASCADE"), index=True)
+    user_id: Mapped[int | None] = mapped_column(
+        ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    sha256: Mapped[str] = mapped_column(String(64))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    labelled_px: Mapped[int] = mapped_column(Integer)  # pixels the prefill gives a class
+    masks: Mapped[int | None] = mapped_column(Integer, nullable=True)  # masks lifted into it

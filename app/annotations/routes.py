@@ -6,9 +6,18 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
 from app import pipeline
 from app.annotations import service
-from app.annotations.schemas import PNG, LabelsStatus, VersionOut
+from app.annotations.schemas import PNG, EffortOut, LabelsStatus, VersionOut
 from app.audit import service as audit
-from app.deps import AnnotatorUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
+from app.deps import (
+    AdminUser,
+    AnnotatorUser,
+    ClientIp,
+    CtxDep,
+    CurrentUser,
+    FrameDep,
+    SceneDep,
+    SessionDep,
+)
 from app.errors import Invalid, PayloadTooLarge
 from app.scenes import service as scenes
 from app.scenes.models import Scene
@@ -30,6 +39,7 @@ ACCESS = {
     "POST /api/frames/{fid}/mask/versions/{vid}/restore": "annotator",
     "GET /api/frames/{fid}/prefill": "member",
     "GET /api/scenes/{sid}/labels/status": "member",
+    "GET /api/scenes/{sid}/effort": "admin",
 }
 
 PNG_BODY = {"requestBody": {"required": True, **PNG}}
@@ -148,12 +158,27 @@ def restore_version(frame: FrameDep, vid: VidPath, session: SessionDep, ctx: Ctx
 @router.get("/frames/{fid}/prefill", response_class=Response, responses={200: PNG})
 def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser,
             downscale: Annotated[int, Query(ge=1, le=64)] = 1):
-    """Lifted labels rendered into the frame: single-channel raw ids (0 = nothing known)."""
+    """Lifted labels rendered into the frame: single-channel raw ids (0 = nothing known);
+    holes between rendered points are closed from the nearest rendered pixel (the confidence
+    image marks those pixels as low confidence)."""
     service.check_read(session, frame, user)
     scene = session.get(Scene, frame.scene_id)
-    img = service.rendered(ctx, scene, frame, downscale=downscale)
-    return Response(pipeline.encode_png(img), media_type="image/png",
-                    headers={"Cache-Control": "private, no-cache"})
+    img, _filled = service.prefill_image(ctx, scene, frame, downscale=downscale)
+    data = pipeline.encode_png(img)
+    headers = {"Cache-Control": "private, no-cache"}
+    if user.role in ("annotator", "admin"):  # who may submit: their submit counts the changes
+        masks = ctx.lifting.included_versions(scene.id, scene.workspace)
+        p = service.record_prefill(session, ctx, frame, user, img, data,
+                                   masks=None if masks is None else len(masks))
+        headers["X-Prefill-Id"] = str(p.id)
+    return Response(data, media_type="image/png", headers=headers)
+
+
+@router.get("/scenes/{sid}/effort", response_model=EffortOut)
+def effort(scene: SceneDep, session: SessionDep, _user: AdminUser):
+    """Annotation effort of the scene's submitted masks, in submission order: the share of
+    pixels painted (from scratch) and changed versus the prefill the author started from."""
+    return service.effort(session=session, scene=scene)
 
 
 @router.get("/scenes/{sid}/labels/status", response_model=LabelsStatus)

@@ -32,5 +32,37 @@ class LabelsStatus(BaseModel):
     labels_source: str | None
 
 
+class EffortRow(BaseModel):
+    n: int  # submission order in the scene
+    version: int
+    frame_id: int
+    frame: str
+    frame_index: int
+    author: str | None
+    created_at: datetime
+    pixels: int
+    painted_px: int  # a class or 255: what painting from an empty mask costs
+    changed_px: int  # differs from the prefill started from (= painted_px without one)
+    prefilled: bool
+    painted_share: float | None
+    changed_share: float | None
+    changed_of_painted: float | None
+
+
+class EffortTotals(BaseModel):
+    submissions: int
+    prefilled: int
+    painted_px: int
+    changed_px: int
+    reduction_x: float | None
+    median_changed_of_painted_from_6th: float | None
+
+
+class EffortOut(BaseModel):
+    scene_id: int
+    submissions: list[EffortRow]
+    totals: EffortTotals
+
+
 #: OpenAPI content of a PNG request or response body
 PNG = {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}

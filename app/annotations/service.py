@@ -20,7 +20,7 @@ from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from app import pipeline
-from app.annotations.models import MaskVersion
+from app.annotations.models import MaskVersion, Prefill
 from app.context import AppContext
 from app.db import utcnow
 from app.errors import Conflict, Forbidden, Invalid, NotFound, PreconditionRequired, StaleVersion
@@ -41,7 +41,9 @@ def _claimable(user_id: int, now):
 
 def next_frame(*, session: Session, ctx: AppContext, scene: Scene, user: User,
                skip: list[int] | None = None) -> Frame | None:
-    """Lease the caller's next frame: own held/rejected frames first, then free ones by index.
+    """Lease the caller's next frame: own held/rejected frames first, then free ones in the
+    selection's hand-out order (``Frame.handout_rank``, see app.scenes.service.handout_order:
+    the frames over what nobody has painted yet first), unranked ones after, by index.
 
     ``skip``: frame ids not to hand out now (the annotator pressed Skip on them).
     """
@@ -51,7 +53,8 @@ def next_frame(*, session: Session, ctx: AppContext, scene: Scene, user: User,
     candidates = list(session.scalars(
         select(Frame.id).where(Frame.scene_id == scene.id, _claimable(user.id, now),
                                Frame.id.notin_(skip or []))
-        .order_by(mine, rejected_first, Frame.index).limit(32)))
+        .order_by(mine, rejected_first, case((Frame.handout_rank.is_(None), 1), else_=0),
+                  Frame.handout_rank, Frame.index).limit(32)))
     expires = now + timedelta(seconds=ctx.settings.lease_seconds)
     for fid in candidates:
         res = session.execute(
@@ -160,6 +163,8 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
                           author_id=user.id, sha256=sha256, size_bytes=nbytes, width=w, height=h,
                           base_version_id=expected, restored_from_id=restored_from,
                           created_at=utcnow())
+    if kind == "submitted" and not lost_lease:
+        _record_effort(session, ctx, frame, user, version, mask)
     session.add(version)
     session.flush()
     if lost_lease:
@@ -196,6 +201,85 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     session.commit()
     ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
     return version
+
+
+# ---- annotation effort (issue 17) ----------------------------------------------------------
+def record_prefill(session: Session, ctx: AppContext, frame: Frame, user: User, img: np.ndarray,
+                   png: bytes, *, masks: int | None = None) -> Prefill:
+    """Keep the prefill handed to ``user`` (its PNG in the content store) so that the submit
+    of this frame can count how much the person changed."""
+    p = Prefill(frame_id=frame.id, user_id=user.id, sha256=ctx.store.put(png),
+                width=int(img.shape[1]), height=int(img.shape[0]),
+                labelled_px=int(np.count_nonzero(img)), masks=masks, created_at=utcnow())
+    session.add(p)
+    session.commit()
+    return p
+
+
+def _decode_ids_png(data: bytes) -> np.ndarray:
+    """(h, w) uint8 of a single-channel PNG this module wrote (a prefill)."""
+    import io
+
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im, dtype=np.uint8)
+
+
+def _record_effort(session: Session, ctx: AppContext, frame: Frame, user: User,
+                   version: MaskVersion, mask: np.ndarray | None) -> None:
+    """Fill ``version``'s effort columns: the author's latest prefill of this frame (if any),
+    the mask's painted pixels (a class or 255: what painting from an empty mask costs) and the
+    pixels where the mask differs from that prefill (everything painted when there is none).
+    A prefill of another resolution is compared after nearest-neighbour resampling."""
+    if mask is None:
+        mask = _decode_for_frame(ctx, session, frame, ctx.store.get(version.sha256))
+    mask = np.asarray(mask)
+    version.painted_px = int(np.count_nonzero(mask))
+    pre = session.scalars(select(Prefill).where(Prefill.frame_id == frame.id,
+                                                Prefill.user_id == user.id)
+                          .order_by(Prefill.id.desc()).limit(1)).first()
+    img = None
+    if pre is not None and ctx.store.exists(pre.sha256):
+        img = _decode_ids_png(ctx.store.get(pre.sha256))
+        if img.shape != mask.shape:  # nearest-neighbour resampling to the mask's grid
+            H, W = mask.shape
+            img = img[(np.arange(H) * img.shape[0]) // H][:, (np.arange(W) * img.shape[1]) // W]
+    if img is None:
+        version.prefill_id, version.changed_px = None, version.painted_px
+    else:
+        version.prefill_id = pre.id
+        version.changed_px = int(np.count_nonzero(img != mask))
+
+
+def effort(*, session: Session, scene: Scene) -> dict:
+    """The scene's submissions in submission order, each with the share of its pixels painted
+    (from scratch) and changed versus the prefill its author started from; plus totals."""
+    rows = session.execute(
+        select(MaskVersion, Frame.name, Frame.index, User.username)
+        .join(Frame, Frame.id == MaskVersion.frame_id)
+        .outerjoin(User, User.id == MaskVersion.author_id)
+        .where(Frame.scene_id == scene.id, MaskVersion.kind == "submitted",
+               MaskVersion.painted_px.is_not(None))
+        .order_by(MaskVersion.id)).all()
+    out = []
+    for n, (v, name, index, author) in enumerate(rows, 1):
+        px = v.width * v.height
+        out.append(dict(n=n, version=v.id, frame_id=v.frame_id, frame=name, frame_index=index,
+                        author=author, created_at=v.created_at, pixels=px,
+                        painted_px=v.painted_px, changed_px=v.changed_px,
+                        prefilled=v.prefill_id is not None,
+                        painted_share=v.painted_px / px if px else None,
+                        changed_share=v.changed_px / px if px else None,
+                        changed_of_painted=(v.changed_px / v.painted_px if v.painted_px else None)))
+    painted = sum(r["painted_px"] for r in out)
+    changed = sum(r["changed_px"] for r in out)
+    later = [r["changed_of_painted"] for r in out[5:] if r["changed_of_painted"] is not None]
+    totals = dict(submissions=len(out), prefilled=sum(r["prefilled"] for r in out),
+                  painted_px=painted, changed_px=changed,
+                  reduction_x=painted / changed if changed else None,
+                  median_changed_of_painted_from_6th=float(np.median(later)) if later else None)
+    return dict(scene_id=scene.id, submissions=out, totals=totals)
 
 
 def restore(*, session: Session, ctx: AppContext, frame: Frame, user: User, version_id: int,
@@ -311,10 +395,27 @@ def current_labels(ctx: AppContext, scene: Scene):
 
 
 def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> np.ndarray:
-    """(H/s, W/s) uint8 lifted labels rendered into the frame (s = ``downscale``)."""
+    """(H/s, W/s) uint8 lifted labels rendered into the frame (s = ``downscale``): the plain
+    rendering the 2D agreement is measured against (holes between splats stay 0)."""
     labels = current_labels(ctx, scene)
     if labels is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")
     ws_scene = ctx.load_scene(scene.workspace)
     img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
     return np.asarray(img, dtype=np.uint8)
+
+
+def prefill_image(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1,
+                  labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """What "Prefill from 3D" shows: the lifted labels (or ``labels``, per point) rendered
+    into the frame with the holes between splats closed (occufly.render.render_prefill).
+    Returns ((H/s, W/s) uint8 ids, bool "hole filled": pixels no point reached, labelled from
+    the nearest rendered pixel -- the confidence image marks them as low confidence)."""
+    if labels is None:
+        labels = current_labels(ctx, scene)
+    if labels is None:
+        raise NotFound(f"scene {scene.id} has no lifted labels yet")
+    ws_scene = ctx.load_scene(scene.workspace)
+    img, _depth, filled = pipeline.render_prefill(ws_scene, labels, frame.index,
+                                                  scale=1.0 / downscale)
+    return np.asarray(img, dtype=np.uint8), filled

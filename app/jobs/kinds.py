@@ -73,7 +73,8 @@ def run_selection(jc: JobContext) -> dict:
 
     result = _jsonable(result)
     with jc.ctx.sessions() as s:
-        scenes.apply_selection(session=s, scene=s.get(Scene, jc.scene_id), result=result)
+        scenes.apply_selection(session=s, scene=s.get(Scene, jc.scene_id), result=result,
+                               ws_scene=ws_scene)
     jc.progress(1.0, f"{len(result['frames'])} frames selected")
     return result
 

@@ -98,6 +98,7 @@ class FrameOut(BaseModel):
     current_version: int | None
     agreement: float | None
     last_annotator: str | None = None  # who painted it (assignee is cleared on submit)
+    handout_rank: int | None = None  # 0-based place in the hand-out order (selected frames)
 
 
 class FrameDetail(FrameOut):

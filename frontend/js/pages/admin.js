@@ -38,6 +38,7 @@ class AdminPage {
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
     this.histEl = el("div");
+    this.effortEl = el("div", { id: "effort" });
     this.membersEl = el("div", { id: "members" });
     this.auditEl = el("div", { id: "audit" });
     this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
@@ -53,7 +54,7 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["users", "scenes", "members", "selection", "jobs", "exports", "labels", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["users", "scenes", "members", "selection", "jobs", "exports", "labels", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
         section("sec-users", "Users", this.usersEl, this.userForm()),
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
@@ -62,6 +63,7 @@ class AdminPage {
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
+        section("sec-effort", "Annotation effort", el("p", { class: "hint" }, "Per submitted mask, in submission order: the share of the frame's pixels painted (what painting from an empty mask costs) and the share that differs from the 3D prefill its annotator started from."), this.effortEl),
         section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
       ),
     );
@@ -193,7 +195,7 @@ class AdminPage {
   async loadScene() {
     if (!this.sid) return;
     // metrics only once the jobs say an evaluation finished (else the API answers 404)
-    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadMembers()]);
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers()]);
   }
 
   // ---- scene members -------------------------------------------------------------------------
@@ -554,6 +556,50 @@ class AdminPage {
       if (e.status !== 404) showError(e);
     }
     this.exportsEl.replaceChildren(el("h3", {}, "Metrics"), m ? readableMetrics(m) : el("p", {}, "No evaluation results yet."));
+  }
+
+  async loadEffort() {
+    let e = null;
+    try {
+      e = await api.get(`/scenes/${this.sid}/effort`);
+    } catch (err) {
+      this.effortEl.replaceChildren(el("p", {}, `No effort figures: ${err.message}`));
+      return;
+    }
+    const rows = e.submissions || [];
+    if (!rows.length) {
+      this.effortEl.replaceChildren(el("p", {}, "No submitted masks yet."));
+      return;
+    }
+    const t = e.totals;
+    const c = el("canvas", { id: "effort-plot" });
+    const pre = rows.filter((r) => r.prefilled).length;
+    const summary = [
+      `${t.submissions} submitted mask(s), ${pre} started from the 3D prefill. `,
+      `Painted from scratch: ${t.painted_px.toLocaleString()} px; changed versus the prefill: ${t.changed_px.toLocaleString()} px`,
+      t.reduction_x != null ? ` (${t.reduction_x.toFixed(2)}\u00d7 less).` : ".",
+      t.median_changed_of_painted_from_6th != null ? ` From the 6th submission on, the median mask changed ${pct(t.median_changed_of_painted_from_6th, 1)} of what painting it from scratch takes.` : "",
+    ].join("");
+    const last = rows.slice(-50).reverse();
+    this.effortEl.replaceChildren(
+      el("p", { id: "effort-summary" }, summary),
+      c,
+      el("details", {}, el("summary", {}, "Per submission (newest first, at most 50)"),
+        table(last, [
+          { key: "n", label: "#" },
+          { key: "frame", label: "Frame" },
+          { key: "author", label: "Annotator", fmt: (v) => v ?? "\u2013" },
+          { key: "painted_share", label: "Painted", fmt: (v) => pct(v, 1) },
+          { key: "changed_share", label: "Changed vs prefill", fmt: (v, r) => (r.prefilled ? pct(v, 1) : "no prefill") },
+          { key: "created_at", label: "Submitted", fmt: (v) => fmtDate(v) },
+        ])),
+    );
+    const x = (r) => r.n;
+    linePlot(c, rows.map((r) => [x(r), r.changed_share]), {
+      xLabel: "submission", yLabel: "% of the frame's pixels", xMin: 1, yMin: 0, yMax: 1, dots: true, width: 560, height: 280, xInteger: true,
+      label: "changed vs prefill", yFmt: (v) => `${Math.round(v * 100)}%`,
+      series: [{ points: rows.map((r) => [x(r), r.painted_share]), color: "#9e9e9e", dash: [5, 4], label: "painted from scratch", dots: true }],
+    });
   }
 
   async loadHistogram() {

@@ -24,18 +24,25 @@ function niceTicks(lo, hi, n = 5) {
   return out;
 }
 
-/** points: [[x, y], ...]; opts: {xLabel, yLabel, yMin, yMax, marker: [x, y]} */
-export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null, yMin = null, yMax = null, marker = null, markerLabel = "", dots = false, width = 460, height = 260, yFmt = (v) => v } = {}) {
+/**
+ * points: [[x, y], ...]; opts: {xLabel, yLabel, yMin, yMax, marker: [x, y]}; `label`: the
+ * main curve's legend entry; `series`: more curves on the same axes, [{points, color, label,
+ * dash: [on, off], dots}] (drawn under the main curve; a legend row above the plot).
+ */
+export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null, yMin = null, yMax = null, marker = null, markerLabel = "", dots = false, width = 460, height = 260, yFmt = (v) => v, label = "", series = [], xInteger = false } = {}) {
   const ctx = setup(canvas, width, height);
-  const m = { l: 52, r: 12, t: 12, b: 40 };
+  const legend = [{ label, color: "#0a66c2", dash: [] }, ...series].filter((e) => e.label && (label || series.length));
+  // a legend takes one row above the plot area, so it never hides a curve
+  const m = { l: 52, r: 12, t: legend.length ? 28 : 12, b: 40 };
   const W = width - m.l - m.r;
   const H = height - m.t - m.b;
   if (!points.length) {
     ctx.fillText("no data", m.l + 10, m.t + 20);
     return;
   }
-  const xs = points.map((p) => p[0]);
-  const ys = points.map((p) => p[1]);
+  const all = points.concat(...series.map((s) => s.points || []));
+  const xs = all.map((p) => p[0]);
+  const ys = all.map((p) => p[1]);
   // x axis from xMin (or the data) to a tick at or beyond the last point, so the curve and
   // its end marker stay inside the plot
   const x0 = Math.min(xMin ?? Infinity, ...xs, ...(marker ? [marker[0]] : []));
@@ -57,18 +64,50 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null
     ctx.fillText(String(yFmt(t)), m.l - 4, Y(t) + 4);
   }
   ctx.textAlign = "center";
-  for (const t of niceTicks(x0, x1)) if (t <= x1 + 1e-9) ctx.fillText(String(t), X(t), m.t + H + 14);
+  for (const t of niceTicks(x0, x1)) if (t <= x1 + 1e-9 && (!xInteger || Number.isInteger(t))) ctx.fillText(String(t), X(t), m.t + H + 14);
   ctx.fillText(xLabel, m.l + W / 2, height - 6);
   ctx.save();
   ctx.translate(12, m.t + H / 2);
   ctx.rotate(-Math.PI / 2);
   ctx.fillText(yLabel, 0, 0);
   ctx.restore();
+  for (const s of series) {
+    if (!s.points || !s.points.length) continue;
+    ctx.strokeStyle = s.color || "#888";
+    ctx.lineWidth = 2;
+    ctx.setLineDash(s.dash || []);
+    ctx.beginPath();
+    s.points.forEach(([x, y], i) => (i ? ctx.lineTo(X(x), Y(y)) : ctx.moveTo(X(x), Y(y))));
+    ctx.stroke();
+    ctx.setLineDash([]);
+    if (s.dots) {
+      ctx.fillStyle = s.color || "#888";
+      for (const [x, y] of s.points) {
+        ctx.beginPath();
+        ctx.arc(X(x), Y(y), 2.5, 0, Math.PI * 2);
+        ctx.fill();
+      }
+    }
+  }
   ctx.strokeStyle = "#0a66c2";
   ctx.lineWidth = 2;
   ctx.beginPath();
   points.forEach(([x, y], i) => (i ? ctx.lineTo(X(x), Y(y)) : ctx.moveTo(X(x), Y(y))));
   ctx.stroke();
+  let lx = m.l;
+  ctx.textAlign = "left";
+  for (const e of legend) {
+    ctx.strokeStyle = e.color || "#888";
+    ctx.setLineDash(e.dash || []);
+    ctx.beginPath();
+    ctx.moveTo(lx, 10);
+    ctx.lineTo(lx + 22, 10);
+    ctx.stroke();
+    ctx.setLineDash([]);
+    ctx.fillStyle = "#333";
+    ctx.fillText(e.label, lx + 28, 14);
+    lx += 28 + ctx.measureText(e.label).width + 18;
+  }
   if (dots) {
     ctx.fillStyle = "#0a66c2";
     for (const [x, y] of points) {
@@ -91,7 +130,9 @@ export function linePlot(canvas, points, { xLabel = "", yLabel = "", xMin = null
     }
   }
   canvas.setAttribute("role", "img");
-  canvas.setAttribute("aria-label", `${yLabel} vs ${xLabel}: from ${yFmt(ys[0])} at ${xs[0]} to ${yFmt(ys[ys.length - 1])} at ${xs[xs.length - 1]}`);
+  const ends = (p) => `from ${yFmt(p[0][1])} at ${p[0][0]} to ${yFmt(p[p.length - 1][1])} at ${p[p.length - 1][0]}`;
+  const more = series.filter((s) => s.points && s.points.length).map((s) => `; ${s.label || "other"}: ${ends(s.points)}`).join("");
+  canvas.setAttribute("aria-label", `${yLabel} vs ${xLabel}: ${label ? `${label}: ` : ""}${ends(points)}${more}`);
 }
 
 /** bars: [{label, value, color}] (horizontal bars, log-free, sorted as given). */

@@ -321,6 +321,150 @@ def _may_be_outside(f: np.ndarray, n_frames: int) -> bool:
     return bool(len(f)) and (int(f.max()) >= n_frames or int(f.min()) < 0)
 
 
+class _FrameVisibility:
+    """The visibility of one frame at a time: its lists projected, its depth test, their
+    union. ``run(f)`` -> (ids (m,) int64 ascending, stat increments, warnings, spacing or
+    None). Holds an (N,) uint8 scratch of flags (1 = in the lists, 2 = passes the test)."""
+
+    def __init__(self, frames: Sequence[Frame], xyz: np.ndarray, lists: FrameLists | None,
+                 bins: PointBins | None, depth_for, params: dict) -> None:
+        self.frames, self.xyz, self.lists, self.depth_for = frames, xyz, lists, depth_for
+        self.use_lists = bool(params["use_lists"])
+        self.use_depth = bool(params["use_depth"])
+        self.rel_tol, self.render_rel_tol = params["rel_tol"], params["render_rel_tol"]
+        self.bins = bins if bins is not None or not self.use_depth else PointBins(xyz)
+        self.flags = np.zeros(len(xyz), np.uint8)
+        self.spacing: float | None = None
+
+    def run(self, f: int) -> tuple[np.ndarray, dict, list[str], float | None]:
+        frame, xyz, flags = self.frames[f], self.xyz, self.flags
+        cam = frame.camera
+        inc = dict.fromkeys(("list_entries_outside_image", "frames_with_depth_maps",
+                             "frames_rendered", "depth_test_entries", "entries_only_in_lists",
+                             "entries_only_in_depth_test", "frames_seeing_nothing"), 0)
+        warnings: list[str] = []
+        spacing_now = None
+        ids_l = ids_d = None
+        if self.use_lists:
+            cand = self.lists.frame(f).astype(np.int64)
+            ids_l, _, _ = project_ids(frame, xyz, cand)
+            inc["list_entries_outside_image"] += int(len(cand) - len(ids_l))
+            flags[ids_l] |= 1
+        if self.use_depth:
+            ids, uv, z = project_ids(frame, xyz, self.bins.candidates(cam, frame.T_cam_world))
+            got = self.depth_for(f) if self.depth_for is not None and len(ids) else None
+            dm, dname = (got if isinstance(got, tuple) else (got, f"depth map of {frame.name}"))
+            if dm is not None and not _depth_map_ok(np.asarray(dm), cam):
+                warnings.append(
+                    f"{dname}: {np.asarray(dm).shape[1] if np.ndim(dm) == 2 else '?'}x"
+                    f"{np.asarray(dm).shape[0] if np.ndim(dm) == 2 else '?'} is not a scaled "
+                    f"copy of frame {frame.name}'s {cam.width}x{cam.height} image; its depth "
+                    "is rendered from the cloud instead")
+                dm = None
+            if dm is not None:
+                inc["frames_with_depth_maps"] += 1
+                dm = np.nan_to_num(np.asarray(dm, dtype=np.float32), nan=0.0, posinf=0.0,
+                                   neginf=0.0)
+                ok = depth_test(uv, z, dm, (cam.width, cam.height), self.rel_tol)
+            elif len(ids):
+                if self.spacing is None:
+                    from occufly.render import estimate_point_spacing
+
+                    self.spacing = estimate_point_spacing(xyz[np.isfinite(xyz).all(axis=1)])
+                spacing_now = spacing = self.spacing
+                inc["frames_rendered"] += 1
+                shape = render_shape(cam, spacing, float(np.median(z)))
+                fx = cam.focal[0] * shape[1] / cam.width
+                radius = np.clip(0.5 * fx * spacing / np.maximum(z, 1e-6), 0, 3)
+                dm = render_depth(cam, uv, z, radius, shape)
+                ok = depth_test(uv, z, dm, (cam.width, cam.height), self.render_rel_tol)
+            else:
+                ok = np.zeros(0, bool)
+            ids_d = ids[ok]
+            flags[ids_d] |= 2
+        # the union, ascending, without a sort: a pass over the flags between the smallest
+        # and the largest id touched (not all N: a frame's ids span a part of the cloud)
+        touched = [a for a in (ids_l, ids_d) if a is not None and len(a)]
+        if touched:
+            lo = min(int(a.min()) for a in touched)
+            hi = max(int(a.max()) for a in touched) + 1
+            both = np.flatnonzero(flags[lo:hi])
+            if lo:
+                both += lo
+        else:
+            both = np.zeros(0, np.int64)
+        fl = flags[both]
+        flags[both] = 0
+        if self.use_depth:
+            inc["depth_test_entries"] += int(np.count_nonzero(fl & 2))
+        if ids_l is not None and ids_d is not None:
+            inc["entries_only_in_lists"] += int(np.count_nonzero(fl == 1))
+            inc["entries_only_in_depth_test"] += int(np.count_nonzero(fl == 2))
+        if not len(both):
+            inc["frames_seeing_nothing"] += 1
+            warnings.append(
+                f"frame {frame.name} sees no point of the cloud (none is in front of the "
+                "camera and inside the image, or none passes the depth test): check its pose")
+        return both, inc, warnings, spacing_now
+
+
+# ---- frames in parallel ----------------------------------------------------------------------
+BLOCK_FRAMES = 4  # consecutive frames per task
+_WORKER: dict = {}
+
+
+def _init_worker(frames, xyz_path: str, lists_path: str | None, bounds, depth_for,
+                 params: dict) -> None:
+    xyz = np.load(xyz_path, mmap_mode="r")
+    lists = (FrameLists(np.load(lists_path, mmap_mode="r"), bounds)
+             if lists_path is not None else None)
+    _WORKER["fv"] = _FrameVisibility(frames, xyz, lists, None, depth_for, params)
+
+
+def _run_block(fs: list[int]) -> list[tuple[np.ndarray, dict, list[str], float | None]]:
+    fv: _FrameVisibility = _WORKER["fv"]
+    out = []
+    for f in fs:
+        both, inc, w, sp = fv.run(f)
+        out.append((both.astype(np.int32), inc, w, sp))
+    return out
+
+
+def _parallel_frames(frames, xyz, lists: FrameLists | None, depth_for, params: dict,
+                     workers: int, scratch_dir: Path | None):
+    """Yield each frame's result in frame order, computed by ``workers`` processes; at most
+    2 x workers blocks are in flight (bounded memory)."""
+    import shutil
+    import tempfile
+    from collections import deque
+
+    from occufly.parallel import LocalExecutor
+
+    tmp = Path(tempfile.mkdtemp(prefix=".visibility-", dir=scratch_dir))
+    try:
+        xyz_path = str(tmp / "xyz.npy")  # 12 bytes per point, memory-mapped by the workers
+        np.save(xyz_path, np.ascontiguousarray(xyz))
+        lists_path = None
+        if lists is not None:
+            lists_path = str(tmp / "lists.npy")
+            np.save(lists_path, np.asarray(lists.point_ids, np.int32))
+        blocks = [list(range(a, min(a + BLOCK_FRAMES, len(frames))))
+                  for a in range(0, len(frames), BLOCK_FRAMES)]
+        with LocalExecutor(workers, initializer=_init_worker,
+                           initargs=(list(frames), xyz_path, lists_path,
+                                     None if lists is None else np.asarray(lists.bounds),
+                                     depth_for, params)) as ex:
+            pending: deque = deque()
+            nxt = 0
+            while nxt < len(blocks) or pending:
+                while nxt < len(blocks) and len(pending) < 2 * workers:
+                    pending.append(ex.submit(_run_block, blocks[nxt]))
+                    nxt += 1
+                yield from pending.popleft().result()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 DISK_SAMPLE_FRAMES = 64  # frames whose candidates are counted for the disk estimate
 
 
@@ -371,6 +515,7 @@ def compute_visibility(
     render_rel_tol: float = 0.05,
     progress: ProgressFn | None = None,
     ids_out: str | Path | None = None,
+    workers: int = 1,
 ) -> tuple[Visibility, dict]:
     """Every frame that sees each point, one frame at a time.
 
@@ -385,6 +530,11 @@ def compute_visibility(
     frame at a time (:class:`~occufly.workspace.NpyStreamWriter`, byte-identical to
     ``np.save`` of the in-memory result); the returned visibility memory-maps it. Without
     it the ids are assembled in memory (4 bytes per correspondence).
+
+    workers > 1: frames are computed by a local process pool (:mod:`occufly.parallel`), in
+    blocks of consecutive frames, and written in frame order -- the same output. Each worker
+    memory-maps the points and the lists (scratch copies beside ``ids_out`` when they are not
+    files already) and builds its own spatial bins; ``depth_for`` must then pickle.
     """
     if mode not in VISIBILITY_MODES:
         raise ValueError(f"visibility mode {mode!r}: expected one of {', '.join(VISIBILITY_MODES)}")
@@ -417,76 +567,29 @@ def compute_visibility(
     if ids_out is not None:
         stats["estimated_correspondences_max"] = check_output_disk(
             Path(ids_out), frames, bins, len(lists) if use_lists else 0)
-    spacing = None
     out: list[np.ndarray] = []
     writer = NpyStreamWriter(ids_out, np.int32) if ids_out is not None else None
     counts = np.zeros(F, np.int64)
-    flags = np.zeros(n, np.uint8)  # per frame: 1 = in the lists, 2 = passes the depth test
     views = np.zeros(n, np.int32)  # frames seeing each point (a bincount of the output would
     # cast all of it to int64: 8 bytes per correspondence)
-    for f, frame in enumerate(frames):
+    params = {"use_lists": use_lists, "use_depth": use_depth, "rel_tol": rel_tol,
+              "render_rel_tol": render_rel_tol}
+    if workers > 1 and F > 1:
+        bins = None  # each worker builds its own
+        results = _parallel_frames(frames, xyz, lists if use_lists else None, depth_for, params,
+                                   workers, Path(ids_out).parent if ids_out is not None else None)
+    else:
+        one = _FrameVisibility(frames, xyz, lists if use_lists else None, bins, depth_for, params)
+        results = (one.run(f) for f in range(F))
+    for f, (both, inc, frame_warnings, spacing) in enumerate(results):
         report(f / max(F, 1), "visibility")
-        cam = frame.camera
-        ids_l = ids_d = None
-        if use_lists:
-            cand = lists.frame(f).astype(np.int64)
-            ids_l, _, _ = project_ids(frame, xyz, cand)
-            stats["list_entries_outside_image"] += int(len(cand) - len(ids_l))
-            flags[ids_l] |= 1
-        if use_depth:
-            ids, uv, z = project_ids(frame, xyz, bins.candidates(cam, frame.T_cam_world))
-            got = depth_for(f) if depth_for is not None and len(ids) else None
-            dm, dname = (got if isinstance(got, tuple) else (got, f"depth map of {frame.name}"))
-            if dm is not None and not _depth_map_ok(np.asarray(dm), cam):
-                warn(f"{dname}: {np.asarray(dm).shape[1] if np.ndim(dm) == 2 else '?'}x"
-                     f"{np.asarray(dm).shape[0] if np.ndim(dm) == 2 else '?'} is not a scaled "
-                     f"copy of frame {frame.name}'s {cam.width}x{cam.height} image; its depth "
-                     "is rendered from the cloud instead")
-                dm = None
-            if dm is not None:
-                stats["frames_with_depth_maps"] += 1
-                dm = np.nan_to_num(np.asarray(dm, dtype=np.float32), nan=0.0, posinf=0.0,
-                                   neginf=0.0)
-                ok = depth_test(uv, z, dm, (cam.width, cam.height), rel_tol)
-            elif len(ids):
-                if spacing is None:
-                    from occufly.render import estimate_point_spacing
-
-                    spacing = estimate_point_spacing(xyz[np.isfinite(xyz).all(axis=1)])
-                    stats["point_spacing"] = spacing
-                stats["frames_rendered"] += 1
-                shape = render_shape(cam, spacing, float(np.median(z)))
-                fx = cam.focal[0] * shape[1] / cam.width
-                radius = np.clip(0.5 * fx * spacing / np.maximum(z, 1e-6), 0, 3)
-                dm = render_depth(cam, uv, z, radius, shape)
-                ok = depth_test(uv, z, dm, (cam.width, cam.height), render_rel_tol)
-            else:
-                ok = np.zeros(0, bool)
-            ids_d = ids[ok]
-            flags[ids_d] |= 2
-        # the union, ascending, without a sort: a pass over the flags between the smallest
-        # and the largest id touched (not all N: a frame's ids span a part of the cloud)
-        touched = [a for a in (ids_l, ids_d) if a is not None and len(a)]
-        if touched:
-            lo = min(int(a.min()) for a in touched)
-            hi = max(int(a.max()) for a in touched) + 1
-            both = np.flatnonzero(flags[lo:hi])
-            if lo:
-                both += lo
-        else:
-            both = np.zeros(0, np.int64)
-        fl = flags[both]
-        flags[both] = 0
+        for k, v in inc.items():
+            stats[k] += v
+        if spacing is not None and "point_spacing" not in stats:
+            stats["point_spacing"] = spacing
+        for w in frame_warnings:
+            warn(w)
         views[both] += 1  # ids are unique within a frame
-        if use_depth:
-            stats["depth_test_entries"] += int(np.count_nonzero(fl & 2))
-        if ids_l is not None and ids_d is not None:
-            stats["entries_only_in_lists"] += int(np.count_nonzero(fl == 1))
-            stats["entries_only_in_depth_test"] += int(np.count_nonzero(fl == 2))
-        if not len(both):
-            stats["frames_seeing_nothing"] += 1
-            warn(f"frame {frame.name} sees no point of the cloud (none is in front of the "
-                 "camera and inside the image, or none passes the depth test): check its pose")
         if writer is not None:
             writer.append(both)
         else:

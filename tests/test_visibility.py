@@ -332,3 +332,25 @@ def test_an_import_that_cannot_fit_is_refused_up_front(thin, tmp_path, monkeypat
     err = capsys.readouterr().err
     assert "GB of disk" in err and "correspondences" in err and "are free there" in err
     assert not ws.exists() and not list(tmp_path.glob(".ws.*"))
+
+
+def test_parallel_frames_give_the_same_workspace(tmp_path):
+    """--workers 2: frame blocks computed by a process pool, written in frame order: the
+    same bytes and statistics as one process (lists, MVS depth maps and a rendered frame)."""
+    rec = tmp_path / "rec"
+    truth = make_reconstruction(rec, vis=True, depth_maps=True, n_cams=5)
+    _thin_vis(rec, truth)
+    bad = sorted((rec / "dense" / "stereo" / "depth_maps").glob("*.geometric.bin"))[0]
+    write_depth_map(bad, np.full((10, 50), 30.0, np.float32))  # one frame renders its depth
+    one = import_scene(rec, tmp_path / "one")
+    two = import_scene(rec, tmp_path / "two", workers=2)
+    for name in ("offsets", "point_ids"):
+        assert ((tmp_path / "one" / "visibility" / f"{name}.npy").read_bytes()
+                == (tmp_path / "two" / "visibility" / f"{name}.npy").read_bytes())
+    a, b = one.meta["visibility_stats"], two.meta["visibility_stats"]
+    a.pop("seconds"), b.pop("seconds")
+    assert a == b and a["frames_rendered"] == 1 and "point_spacing" in a
+    assert a["entries_only_in_depth_test"] > 0 and a["entries_only_in_lists"] >= 0
+    assert not list((tmp_path / "two").rglob(".visibility-*"))  # scratch files removed
+    with pytest.raises(InputFormatError, match="--workers 0"):
+        import_scene(rec, tmp_path / "zero", workers=0)

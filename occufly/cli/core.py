@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "lists (fused.ply.vis / tracks) united with a depth test against the "
                         "MVS depth maps or depth rendered from the cloud; vis = the lists "
                         "only; depth = the depth test only")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes computing the visibility, frame blocks in parallel (same "
+                        "output for any number; default 1)")
     p.add_argument("--force", action="store_true", help="replace an existing workspace")
 
     p = command(sub, "info", _info, help="summarise a scene workspace")
@@ -50,7 +53,7 @@ def _import(args: argparse.Namespace) -> dict:
             args.source, args.workspace, cloud=args.cloud, depth_maps=args.depth_maps,
             images=args.images, taxonomy=args.taxonomy, nominal_altitudes=nominal,
             rel_tol=args.rel_tol, visibility=args.visibility, fmt=args.fmt, crs=args.crs,
-            overwrite=args.force, progress=bar,
+            overwrite=args.force, progress=bar, workers=args.workers,
         )
     meta = scene.meta
     return {"workspace": str(args.workspace), "format": meta.get("format"),

@@ -75,12 +75,17 @@ def import_scene(
     crs: str | None = None,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
+    workers: int = 1,
 ) -> Scene:
     """Read the reconstruction at ``source`` and write the workspace ``workspace``.
 
     visibility: ``union`` (default: the reconstruction's lists united with the depth test),
     ``vis`` (lists only) or ``depth`` (depth test only), see :mod:`occufly.visibility`.
+    workers: processes computing the visibility's frames (1: in this process); the output
+    is the same for any number.
     """
+    if int(workers) < 1:
+        raise InputFormatError(f"--workers {workers}: expected a number >= 1")
     if visibility not in VISIBILITY_MODES:
         raise InputFormatError(f"--visibility {visibility!r}: expected one of "
                                f"{', '.join(VISIBILITY_MODES)}")
@@ -165,11 +170,7 @@ def import_scene(
                            list_entries=list_entries, source=source)
     del xyz_w  # the scene keeps the local copy
 
-    def depth_for(f: int):
-        if depth_dir is None:
-            return None
-        p = find_depth_map(depth_dir, frames[f].name)
-        return (read_depth_map(p), str(p)) if p is not None else None
+    depth_for = DepthMaps(depth_dir, [f.name for f in frames]) if depth_dir is not None else None
 
     # built in a temporary sibling folder renamed into place at the end: the visibility ids
     # are streamed into it frame by frame (memory: one frame, not the ~4 bytes per
@@ -194,7 +195,7 @@ def import_scene(
         visibility_data, vis_stats = compute_visibility(
             frames, xyz_local, mode=vis_mode, lists=lists, lists_name=lists_name or "",
             depth_for=depth_for, rel_tol=rel_tol, progress=vis_sub,
-            ids_out=wtmp.visibility_array("point_ids"))
+            ids_out=wtmp.visibility_array("point_ids"), workers=workers)
         del lists
         if vis_stats["correspondences"] == 0:
             raise InputFormatError(
@@ -248,6 +249,19 @@ def import_scene(
         del scene, visibility_data
     report(1.0, "done")
     return Scene.load(workspace)
+
+
+class DepthMaps:
+    """Frame ``f``'s MVS depth map from ``depth_dir`` as (map, file name), or None (picklable,
+    for the visibility's worker processes)."""
+
+    def __init__(self, depth_dir: Path, names: list[str]) -> None:
+        self.depth_dir = Path(depth_dir)
+        self.names = list(names)
+
+    def __call__(self, f: int):
+        p = find_depth_map(self.depth_dir, self.names[f])
+        return (read_depth_map(p), str(p)) if p is not None else None
 
 
 # ---- resources -----------------------------------------------------------------------------------

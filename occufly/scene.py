@@ -215,6 +215,7 @@ class Visibility:
         step = 1 << 24
         for a in range(0, len(ids), step):
             out += np.bincount(np.asarray(ids[a:a + step]), minlength=n_points)
+            _drop_resident(ids)  # a memory-mapped file read once: keep RSS at one chunk
         return out
 
     def frames_of_entries(self) -> np.ndarray:
@@ -399,6 +400,20 @@ class Scene:
             meta=header.get("meta", {}),
             crs=header.get("crs"),
         )
+
+
+def _drop_resident(a: np.ndarray) -> None:
+    """Release the resident pages of a memory-mapped array (read-only use: the file keeps
+    them; the page cache may too). A no-op for arrays in memory."""
+    mm = getattr(a, "_mmap", None)
+    if mm is None or not hasattr(mm, "madvise"):
+        return
+    try:
+        import mmap
+
+        mm.madvise(mmap.MADV_DONTNEED)
+    except (OSError, ValueError, AttributeError):
+        pass
 
 
 def _mapped_from(a: np.ndarray, path: Path) -> bool:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # README screenshots, made on the demo with headless Chromium so they stay current:
-# docs/screenshots/{annotator,reviewer,admin,viewer,grid_preview}.png
+# docs/screenshots/{annotator,annotator_grabcut,annotator_scissors,reviewer,admin[,admin_effort],viewer,grid_preview}.png
 #
 #   scripts/screenshots.sh                 # the small demo scene (synthesized once, cached)
 #   PRESET=tiny scripts/screenshots.sh     # quicker, for a look at the pages

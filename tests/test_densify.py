@@ -635,3 +635,23 @@ def test_class_counts_are_exact_across_chunks():
     lab[0, 0, :7] = 6
     lab[-1, -1, -5:] = 16
     assert SceneGrid(lab, np.zeros(3), 0.5).class_counts() == {6: 7, 16: 5}
+
+
+def test_voxelize_that_cannot_fit_in_memory_exits_2_before_writing(tmp_path, monkeypatch, capsys):
+    from occufly.cli import main
+    from occufly.densify import pipeline
+    from occufly.scene import Scene
+
+    rng = np.random.default_rng(7)
+    xyz, labels, _ = _scene(rng)
+    ws = tmp_path / "ws"
+    Scene(frames=[], xyz=xyz, rgb=np.zeros_like(xyz, dtype=np.uint8), origin=UTM, taxonomy=TAX).save(ws)
+    np.save(tmp_path / "labels.npy", labels)
+    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: 100 * 2**20)
+    rc = main(["voxelize", str(ws), "--labels", str(tmp_path / "labels.npy")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert f"densifying {len(xyz):,} points" in err and "0.1 GB are available" in err
+    assert not (ws / "grid" / "scene_grid.npz").exists()
+    est = pipeline.densify_memory_estimate(10**6, 10**7) - pipeline.densify_memory_estimate(0, 0)
+    assert est == 10**6 * pipeline.DENSIFY_BYTES_PER_POINT + 10**7 * pipeline.DENSIFY_BYTES_PER_VOXEL

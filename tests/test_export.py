@@ -250,3 +250,55 @@ def test_preview_png(exported, tmp_path):
     colours = {tuple(c) for c in im.reshape(-1, 3)}
     assert (255, 0, 0) in colours and (0, 255, 0) in colours  # building and grass voxels drawn
     assert main(["preview", str(out), "--frame", "999", "--out", str(png)]) == 2
+
+
+# ---- the exported image: fast PNG encoding, same pixels -------------------------------------
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7, 3), (9, 1, 4), (13, 17), (31, 29, 3), (6, 5, 4)])
+def test_encode_png_round_trips_exactly(shape):
+    import io
+
+    from PIL import Image
+
+    from occufly.export.common import encode_png
+
+    a = np.random.default_rng(len(shape) * 100 + shape[0]).integers(0, 256, shape, dtype=np.uint8)
+    data = encode_png(a)
+    assert data == encode_png(a.copy())  # deterministic
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.format == "PNG"
+        assert im.mode == ("L" if a.ndim == 2 else "RGB" if shape[2] == 3 else "RGBA")
+        assert np.array_equal(np.asarray(im), a)
+
+
+def test_encode_png_refuses_other_arrays():
+    from occufly.export.common import encode_png
+
+    for bad in (np.zeros((4, 4), np.uint16), np.zeros((4, 4, 2), np.uint8), np.zeros((0, 4), np.uint8)):
+        with pytest.raises(ValueError, match="encode_png"):
+            encode_png(bad)
+
+
+def test_exported_jpeg_is_the_same_pixels_and_keeps_icc(tmp_path):
+    """A JPEG frame becomes a PNG holding exactly PIL's decoded pixels (and its ICC profile);
+    a palette image goes through PIL unchanged in meaning."""
+    import io
+
+    from PIL import Image
+
+    from occufly.export.dataset import _image_png
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    icc = b"\x00fake-icc-profile" * 10
+    p = tmp_path / "f.jpg"
+    Image.fromarray(rgb).save(p, quality=90, icc_profile=icc)
+    png = _image_png(str(p), "frame f")
+    with Image.open(p) as src, Image.open(io.BytesIO(png)) as out:
+        assert out.format == "PNG"
+        assert np.array_equal(np.asarray(out), np.asarray(src))
+        assert out.info.get("icc_profile") == icc
+    pal = tmp_path / "p.gif"
+    Image.fromarray(rgb).convert("P").save(pal)
+    with Image.open(pal) as src, Image.open(io.BytesIO(_image_png(str(pal), "frame p"))) as out:
+        assert out.mode == "P"
+        assert np.array_equal(np.asarray(out.convert("RGB")), np.asarray(src.convert("RGB")))

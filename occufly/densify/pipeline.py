@@ -97,6 +97,38 @@ REFERENCE_SURFACE_DENSITY = 400.0
 MAX_GRID_VOXELS = 1_500_000_000
 
 
+# Peak memory of :func:`densify` beyond its inputs, measured with ``bench/bench_scale.py`` on
+# a 4 M-point crop of the synthetic survey cloud (1.01 GB peak RSS with the inputs; the
+# 2 M-point survey cut through ``occufly voxelize``: 0.89 GB): per point (group and label
+# arrays, per-class point copies, the Poisson input) and per voxel of the scene grid (the
+# aggregation's dense uint8 / bool layers and the saved grid), with some margin.
+DENSIFY_BYTES_PER_POINT = 120
+DENSIFY_BYTES_PER_VOXEL = 6
+DENSIFY_FIXED_BYTES = 400 * 2**20
+
+
+def densify_memory_estimate(n_points: int, n_voxels: int) -> int:
+    """Estimated peak bytes :func:`densify` allocates for a cloud and a grid of these sizes."""
+    return int(DENSIFY_FIXED_BYTES + DENSIFY_BYTES_PER_POINT * int(n_points)
+               + DENSIFY_BYTES_PER_VOXEL * int(n_voxels))
+
+
+def check_densify_memory(n_points: int, n_voxels: int, *, where: str = "voxelize") -> dict:
+    """:class:`InputFormatError` (CLI exit 2) before any heavy work when the densification
+    cannot fit in the memory available now (Linux ``MemAvailable``; unchecked elsewhere)."""
+    from occufly.io.importer import available_memory
+
+    need = densify_memory_estimate(n_points, n_voxels)
+    avail = available_memory()
+    if avail is not None and need > avail:
+        gb = 2.0 ** 30
+        raise InputFormatError(
+            f"{where}: densifying {n_points:,} points into a grid of {n_voxels / 1e6:.1f} M voxels "
+            f"needs about {need / gb:.1f} GB of memory, {avail / gb:.1f} GB are available; "
+            f"nothing was written (free memory, use a larger --voxel, or crop the cloud)")
+    return {"memory_bytes": need, "available_bytes": avail}
+
+
 def _smoothed(xyz: np.ndarray, sel: np.ndarray, radius: float) -> np.ndarray:
     """(len(sel), 3) float32 points of one class, projected onto local planes within
     ``radius`` metres (as they are for radius 0)."""
@@ -186,6 +218,7 @@ def densify(
             f"the limit is {MAX_GRID_VOXELS / 1e9:.2f} G (memory): use a larger --voxel "
             f"(>= {vs * (spec.n_voxels / MAX_GRID_VOXELS) ** (1 / 3):.3g} m) or crop the cloud"
         )
+    check_densify_memory(len(xyz), spec.n_voxels, where=f"voxel size {vs:g} m")
     counts_per_class = np.bincount(labels[labelled], minlength=256)
     for c in taxonomy.classes:
         if counts_per_class[c.id] == 0:

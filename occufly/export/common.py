@@ -149,6 +149,87 @@ def pool_grid(labels: np.ndarray, factor: int, priority_lut: np.ndarray, rule: s
     raise ValueError(f"unknown downsample rule {rule!r}; expected one of {', '.join(DOWNSAMPLE_RULES)}")
 
 
+# ---- images ------------------------------------------------------------------------------------
+# PNG colour types of the 8-bit PIL modes encoded by :func:`png_bytes` (others go through PIL)
+_PNG_COLOUR_TYPE = {"L": 0, "RGB": 2, "RGBA": 6}
+PNG_ZLIB_LEVEL = 1
+# run-length matches only: on Up-filtered photos ~25 % faster than zlib's default matcher at
+# level 1 for ~12 % more bytes (about the size PIL's compress_level=1 writes; Huffman-only
+# was measured ~15 % faster still for another ~13 % of bytes)
+PNG_ZLIB_STRATEGY = 3  # zlib.Z_RLE
+
+
+def _png_chunk(tag: bytes, body: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(body, zlib.crc32(tag)))
+
+
+def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes:
+    """A PNG of an 8-bit (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array, fast.
+
+    Every row uses the PNG "Up" filter (one vectorised subtraction of the previous row) and
+    the filtered bytes are deflated in one stream at zlib level 1, run-length strategy. On a
+    5472 x 3648 photo this takes ~0.5 s of one core (PIL's ``compress_level=1``: 1.3 s, most
+    of it the per-row adaptive filter choice) for about the same size (24.4 vs 23.2 MB).
+    Deterministic: the same pixels give the same bytes in any process (same zlib).
+    ``icc_profile`` is stored as an iCCP chunk.
+    """
+    import struct
+    import zlib
+
+    a = np.ascontiguousarray(pixels)
+    if a.dtype != np.uint8 or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise ValueError(f"encode_png: expected uint8 (H, W[, 3|4]), got {a.dtype} {a.shape}")
+    h, w = a.shape[:2]
+    if h < 1 or w < 1:
+        raise ValueError(f"encode_png: empty image {a.shape}")
+    ch = 1 if a.ndim == 2 else a.shape[2]
+    colour = {1: 0, 3: 2, 4: 6}[ch]
+    rows = a.reshape(h, w * ch)
+    # bands of rows filtered into one small reused buffer (stays in cache, no image-sized
+    # allocation) and fed to one deflate stream: the same bytes as filtering all at once
+    band = max(1, (1 << 20) // (w * ch + 1))
+    filt = np.empty((min(band, h), w * ch + 1), np.uint8)
+    filt[:, 0] = 2  # filter type Up: byte - byte above (mod 256); row 0 has a zero row above
+    co = zlib.compressobj(PNG_ZLIB_LEVEL, zlib.DEFLATED, 15, 9, PNG_ZLIB_STRATEGY)
+    out = []
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        f = filt[: r1 - r0]
+        if r0 == 0:
+            f[0, 1:] = rows[0]
+            np.subtract(rows[1:r1], rows[: r1 - 1], out=f[1:, 1:])
+        else:
+            np.subtract(rows[r0:r1], rows[r0 - 1 : r1 - 1], out=f[:, 1:])
+        out.append(co.compress(memoryview(f).cast("B")))
+    out.append(co.flush())
+    # one IDAT chunk: length and CRC over the pieces, then a single join of the whole file
+    crc = zlib.crc32(b"IDAT")
+    for piece in out:
+        crc = zlib.crc32(piece, crc)
+    parts = [b"\x89PNG\r\n\x1a\n", _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0))]
+    if icc_profile:
+        parts.append(_png_chunk(b"iCCP", b"ICC Profile\x00\x00" + zlib.compress(icc_profile)))
+    parts += [struct.pack(">I", sum(len(piece) for piece in out)), b"IDAT", *out,
+              struct.pack(">I", crc), _png_chunk(b"IEND", b"")]
+    return b"".join(parts)
+
+
+def image_as_png(im) -> bytes:
+    """PNG bytes of an opened PIL image: 8-bit grey / RGB / RGBA through :func:`encode_png`
+    (its ICC profile kept, as PIL's PNG writer keeps it), any other mode through PIL
+    (``compress_level=1``)."""
+    import io
+
+    if im.mode in _PNG_COLOUR_TYPE:
+        return encode_png(np.asarray(im), icc_profile=im.info.get("icc_profile"))
+    buf = io.BytesIO()
+    im.save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
 # ---- hashing / identity ------------------------------------------------------------------------
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()

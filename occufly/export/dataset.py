@@ -24,7 +24,6 @@ altitude available ("frames at 40/30 m sample the grid built from the 50 m data"
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import re
@@ -45,6 +44,7 @@ from occufly.export.common import (
     clean_stray_temporaries,
     frame_done,
     grid_digest,
+    image_as_png,
     is_disk_full,
     scene_fingerprint,
     sha256_bytes,
@@ -161,9 +161,7 @@ def _image_png(path: str | None, where: str) -> bytes:
 
     try:
         with Image.open(p) as im:
-            buf = io.BytesIO()
-            im.save(buf, format="PNG", compress_level=1)
-            return buf.getvalue()
+            return image_as_png(im)
     except OSError as e:
         raise InputFormatError(f"{p}: cannot read image ({e})") from None
 

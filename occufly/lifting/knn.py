@@ -91,10 +91,59 @@ class LiftParams:
     # fill instead of the taxonomy's tie order: its labelled neighbours decide (needs the
     # vote margin/top; see the module docstring for the measurement). False = tie order.
     tie_fill: bool = True
-    workers: int = 1  # cKDTree query workers
+    # threads of the k-NN queries and of the boundary brute force (-1 = every core, as in
+    # cKDTree); the result does not depend on it
+    workers: int = -1
+
+
+# ---- memory: up-front estimate ------------------------------------------------------------
+# Peak memory of :func:`fill_and_denoise` beyond its inputs, measured with
+# ``bench/bench_scale.py`` (a 4 M-point crop of the synthetic survey cloud, 90 % voted:
+# 1.03 GB peak RSS with the inputs; tiled ``small``, 30 % voted: 0.83 GB at 4 M, 0.49 GB at
+# 1.1 M): per point (the voxel hash, the per-point class / share / origin arrays, the k-NN
+# trees over the labelled points) plus the fixed k-NN query chunks (50,000 queries x k
+# neighbours x distances, indices and vote keys), with some margin.
+FILL_BYTES_PER_POINT = 200
+FILL_FIXED_BYTES = 400 * 2**20
+
+
+def fill_memory_estimate(n_points: int) -> int:
+    """Estimated peak bytes :func:`fill_and_denoise` allocates for ``n_points`` points."""
+    return int(FILL_FIXED_BYTES + FILL_BYTES_PER_POINT * int(n_points))
+
+
+def check_fill_memory(n_points: int) -> dict:
+    """Raise :class:`~occufly.errors.OccuflyError` (CLI exit 2, HTTP 4xx) before any work when
+    the fill + denoise of ``n_points`` points cannot fit in the memory available now (Linux
+    ``MemAvailable``; not checked where that is unknown). Returns the figures."""
+    from occufly.errors import OccuflyError
+    from occufly.io.importer import available_memory
+
+    need = fill_memory_estimate(n_points)
+    avail = available_memory()
+    if avail is not None and need > avail:
+        gb = 2.0 ** 30
+        raise OccuflyError(
+            f"kNN fill + denoise of {n_points:,} points needs about {need / gb:.1f} GB of memory "
+            f"({FILL_BYTES_PER_POINT} bytes per point + {FILL_FIXED_BYTES / gb:.1f} GB), "
+            f"{avail / gb:.1f} GB are available; nothing was written (free memory, or lift a "
+            f"cropped scene)")
+    return {"memory_bytes": need, "available_bytes": avail}
 
 
 # ---- kNN fill and denoise -----------------------------------------------------------------
+def _threads(workers: int) -> int:
+    """Thread count for ``workers`` (cKDTree convention: -1 = every core of this machine)."""
+    import os
+
+    if workers is None or workers < 0:
+        try:
+            return max(1, len(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):
+            return max(1, os.cpu_count() or 1)
+    return max(1, int(workers))
+
+
 def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -250,6 +299,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     p = params or LiftParams()
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
+    check_fill_memory(len(xyz))
     direct = _untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     t0 = time.perf_counter()
@@ -348,7 +398,7 @@ class _VoxelGrid:
 def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _VoxelGrid,
                todo: np.ndarray, k: int, radius: float, cls: ClassColumns,
                progress: ProgressFn | None = None, keep_share: float | None = None,
-               only: np.ndarray | None = None
+               only: np.ndarray | None = None, workers: int = 1
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact k-NN majority for the labelled points of voxels ``todo`` by brute force over
     each voxel's 3x3x3 block of labelled points.
@@ -356,7 +406,7 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     cols: (N,) column per point (-1 = unlabelled); lab_idx: indices of labelled points.
     Returns (column (N,), share (N,), unsafe (N,) bool) -- filled for the points of ``todo``;
     ``unsafe`` marks points whose k-th neighbour is farther than the block reaches (they need
-    a query against a larger neighbourhood).
+    a query against a larger neighbourhood). ``workers`` threads share the voxels (same result).
     """
     n = len(xyz)
     out_c = np.full(n, -1, dtype=np.int64)
@@ -374,15 +424,13 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     e = grid.edge
     r2 = radius * radius
     report = progress or noop
-    every = max(1, len(todo) // 50)
-    for t, u in enumerate(todo.tolist()):
-        if t % every == 0:
-            report(t / len(todo), "denoise: exact k-NN at boundaries")
+
+    def one(t: int, u: int) -> None:
         q = order[starts[u]:ends[u]]
         if only is not None:
             q = q[only[q]]
         if not len(q):
-            continue
+            return
         cand = np.concatenate([order[starts[j]:ends[j]] for j in nb[t] if j >= 0])
         # candidates grouped by class, so per-class neighbour counts are segment sums
         ccol = cols[cand]
@@ -411,6 +459,31 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         border = e + np.maximum(frac, 0.0)
         reach = np.sqrt(np.maximum(dsel_max, 0.0)) if kk == k else np.full(len(q), np.inf)
         unsafe[q] = ~((reach <= border * 0.999) | (radius <= border * 0.999))
+
+    def run(a: int, b: int) -> int:
+        for t in range(a, b):
+            one(t, int(todo[t]))
+        return b - a
+
+    # voxels write disjoint points: threads (numpy releases the GIL in the matrix product,
+    # the partition and the reductions) give the same result as one loop
+    T = len(todo)
+    step = max(1, min(2000, -(-T // 50)))
+    n_threads = _threads(workers)
+    report(0.0, "denoise: exact k-NN at boundaries")
+    if n_threads <= 1 or T < 2 * step:
+        for a in range(0, T, step):
+            run(a, min(T, a + step))
+            report(min(T, a + step) / max(T, 1), "denoise: exact k-NN at boundaries")
+    else:
+        from concurrent.futures import ThreadPoolExecutor, as_completed
+
+        done = 0
+        with ThreadPoolExecutor(n_threads) as ex:
+            futs = [ex.submit(run, a, min(T, a + step)) for a in range(0, T, step)]
+            for f in as_completed(futs):
+                done += f.result()
+                report(done / T, "denoise: exact k-NN at boundaries")
     report(1.0, "denoise: exact k-NN at boundaries")
     return out_c, out_s, unsafe
 
@@ -437,12 +510,13 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
+    stats_mem = check_fill_memory(len(xyz))
     direct = _untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     C = cls.C
     n = len(xyz)
     t0 = time.perf_counter()
-    stats: dict = {"method": "voxel"}
+    stats: dict = {"method": "voxel", "memory_estimate_bytes": stats_mem["memory_bytes"]}
     dcols = cls.col_of[direct].astype(np.int64)
     if n == 0 or not (dcols >= 0).any():
         res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin)
@@ -526,7 +600,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         todo = np.unique(vox[rest])
         c, s, unsafe = _block_knn(xyz, filled, lab_idx, grid, todo, k, p.denoise_radius, cls,
                                   progress=lambda f, m: report(0.5 + 0.4 * f, m),
-                                  keep_share=p.denoise_keep_share, only=need)
+                                  keep_share=p.denoise_keep_share, only=need, workers=p.workers)
         final[rest], agree[rest] = c[rest], s[rest]
         # points whose k-th neighbour could lie outside their 3x3x3 block (sparse areas):
         # the same brute force on a coarser grid, then a cKDTree for what is still unsafe
@@ -541,7 +615,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
             todo2 = np.unique(coarse.inverse[unsafe])
             c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
                                          p.denoise_radius, cls, keep_share=p.denoise_keep_share,
-                                         only=unsafe)
+                                         only=unsafe, workers=p.workers)
             sel2 = np.flatnonzero(unsafe)
             final[sel2], agree[sel2] = c2[sel2], s2[sel2]
             unsafe = unsafe2

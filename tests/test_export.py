@@ -302,3 +302,25 @@ def test_exported_jpeg_is_the_same_pixels_and_keeps_icc(tmp_path):
     with Image.open(pal) as src, Image.open(io.BytesIO(_image_png(str(pal), "frame p"))) as out:
         assert out.mode == "P"
         assert np.array_equal(np.asarray(out.convert("RGB")), np.asarray(src.convert("RGB")))
+
+
+def test_export_that_cannot_fit_in_memory_is_refused_before_writing(ws, tmp_path, monkeypatch):
+    from occufly.export import dataset
+    from occufly.parallel import DaskExecutor, LocalExecutor, SerialExecutor
+
+    out = tmp_path / "big"
+    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: 50 * 2**20)
+    with pytest.raises(ExportError, match=r"2 local worker\(s\) .* needs about .* GB of memory, 0\.0 GB are available"):
+        export_dataset(ws, out, spec=SPEC, workers=2)
+    assert not out.exists() or not any(out.rglob("*"))
+    # the estimate: workers x (fixed + grid + image + frame grid) + the caller's grid
+    grid = SceneGrid.load(ws / "grid" / "scene_grid.npz")
+    one = dataset.export_memory_estimate([grid], SPEC, 1000, 0)
+    assert dataset.export_memory_estimate([grid], SPEC, 1000, 3) == grid.labels.nbytes + 3 * one
+    assert dataset._local_workers(None, None, 5) == 2 and dataset._local_workers(None, 1, 5) == 0
+    assert dataset._local_workers(SerialExecutor(), None, 5) == 0
+    assert dataset._local_workers(object.__new__(DaskExecutor), None, 5) is None  # remote: unchecked
+    with LocalExecutor(3) as ex:
+        assert dataset._local_workers(ex, None, 5) == 3
+    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: None)
+    assert export_dataset(ws, out, spec=SPEC, workers=1)["written"] == 4

@@ -286,6 +286,67 @@ def _atomic_write(path: Path, data: bytes) -> None:
         raise
 
 
+# ---- memory: up-front estimate -----------------------------------------------------------------
+# Peak memory of one export worker, measured on one 5472 x 3648 frame of a survey cut with the
+# default 192 x 128 x 128 frame grid (308 MB peak RSS in-process, scene and grid loaded), with
+# some margin: interpreter + memory-mapped scene, the scene grid(s) it loads, the decoded
+# image and its PNG encoding, the frame grid's sampling and pooling arrays.
+EXPORT_WORKER_FIXED_BYTES = 200 * 2**20
+EXPORT_BYTES_PER_IMAGE_PIXEL = 8
+EXPORT_BYTES_PER_FRAME_VOXEL = 32
+
+
+def _local_workers(executor, workers: int | None, n_frames: int) -> int | None:
+    """Worker processes on this machine for the export (None: remote, e.g. Dask)."""
+    import os
+
+    from occufly.parallel import DaskExecutor, LocalExecutor, SerialExecutor
+
+    if executor is None:
+        if os.environ.get("OCCUFLY_DASK"):
+            return None
+        n = workers if workers is not None else min(n_frames, 2)
+        return 0 if n <= 1 else int(n)  # 0: in this process
+    if isinstance(executor, DaskExecutor):
+        return None
+    if isinstance(executor, LocalExecutor):
+        return int(executor.workers)
+    return 0 if isinstance(executor, SerialExecutor) else None
+
+
+def export_memory_estimate(grids: list[SceneGrid], spec: FrameGridSpec, image_pixels: int,
+                           workers: int) -> int:
+    """Estimated peak bytes of an export on this machine: ``workers`` processes (0 = in this
+    process) each holding the grids, one frame's image of ``image_pixels`` and its grid, plus
+    the caller's copy of the grids."""
+    grid_bytes = sum(int(g.labels.nbytes) for g in grids)
+    per = (EXPORT_WORKER_FIXED_BYTES + grid_bytes + EXPORT_BYTES_PER_IMAGE_PIXEL * int(image_pixels)
+           + EXPORT_BYTES_PER_FRAME_VOXEL * int(np.prod(spec.shape)))
+    return int(per if workers == 0 else grid_bytes + workers * per)
+
+
+def check_export_memory(grids: list[SceneGrid], spec: FrameGridSpec, image_pixels: int,
+                        workers: int | None, *, where: str) -> dict:
+    """:class:`ExportError` (CLI exit 2) before anything is written when the local export
+    cannot fit in the memory available now (Linux ``MemAvailable``; remote workers and
+    systems without it are not checked)."""
+    from occufly.io.importer import available_memory
+
+    if workers is None:
+        return {}
+    need = export_memory_estimate(grids, spec, image_pixels, workers)
+    avail = available_memory()
+    if avail is not None and need > avail:
+        gb = 2.0 ** 30
+        raise ExportError(
+            f"{where}: exporting with {max(workers, 1)} local worker(s) (grids of "
+            f"{sum(g.labels.nbytes for g in grids) / 1e6:.0f} MB, frames up to "
+            f"{image_pixels / 1e6:.1f} MP) needs about {need / gb:.1f} GB of memory, "
+            f"{avail / gb:.1f} GB are available; nothing was written (use --workers 1, or "
+            f"export on a Dask cluster with --dask)")
+    return {"memory_bytes": need, "available_bytes": avail}
+
+
 # ---- entry point -------------------------------------------------------------------------------
 def export_dataset(
     ws: Path,
@@ -379,6 +440,9 @@ def export_dataset(
     grids, mapping, grid_src = _resolve_grids(ws, grid, all_alts, grid_for_altitude)
     fingerprint = scene_fingerprint(scene)
     old = _check_target(out, lay, scene_id, fingerprint, layout)
+    check_export_memory([grids[k] for k in set(mapping.values())], spec,
+                        max(scene.frames[i].camera.width * scene.frames[i].camera.height for i in idx),
+                        _local_workers(executor, workers, len(idx)), where=str(out))
 
     # -- grids used, stored next to the export state so workers (local or remote) load them
     sdir = lay.state_dir(out, scene_id)

@@ -105,20 +105,24 @@ MAX_GRID_VOXELS = 1_500_000_000
 DENSIFY_BYTES_PER_POINT = 120
 DENSIFY_BYTES_PER_VOXEL = 6
 DENSIFY_FIXED_BYTES = 400 * 2**20
+# the free-space check's nearest-depth raster per frame (at most 512 px on its long side)
+DENSIFY_BYTES_PER_FRAME = 2**20
 
 
-def densify_memory_estimate(n_points: int, n_voxels: int) -> int:
-    """Estimated peak bytes :func:`densify` allocates for a cloud and a grid of these sizes."""
+def densify_memory_estimate(n_points: int, n_voxels: int, frames: int = 0) -> int:
+    """Estimated peak bytes :func:`densify` allocates for a cloud and a grid of these sizes
+    (``frames``: depth rasters of the free-space check)."""
     return int(DENSIFY_FIXED_BYTES + DENSIFY_BYTES_PER_POINT * int(n_points)
-               + DENSIFY_BYTES_PER_VOXEL * int(n_voxels))
+               + DENSIFY_BYTES_PER_VOXEL * int(n_voxels) + DENSIFY_BYTES_PER_FRAME * int(frames))
 
 
-def check_densify_memory(n_points: int, n_voxels: int, *, where: str = "voxelize") -> dict:
+def check_densify_memory(n_points: int, n_voxels: int, *, where: str = "voxelize",
+                         frames: int = 0) -> dict:
     """:class:`InputFormatError` (CLI exit 2) before any heavy work when the densification
     cannot fit in the memory available now (Linux ``MemAvailable``; unchecked elsewhere)."""
     from occufly.io.importer import available_memory
 
-    need = densify_memory_estimate(n_points, n_voxels)
+    need = densify_memory_estimate(n_points, n_voxels, frames)
     avail = available_memory()
     if avail is not None and need > avail:
         gb = 2.0 ** 30
@@ -460,9 +464,16 @@ def voxelize_workspace(
     scene = wsp.scene()
     lp = Path(labels_path) if labels_path is not None else wsp.labels_path
     labels = load_point_labels(lp, scene.n_points)
+    use_views = bool(options.carve and options.free_space)
+    if scene.n_points:  # up front, before the frames' depth rasters: the whole cloud's box
+        xyz = np.asarray(scene.xyz)
+        spec0 = grid_spec_for(xyz.min(axis=0), xyz.max(axis=0), scene.origin, float(options.voxel_size),
+                              pad=options.pad)
+        check_densify_memory(scene.n_points, spec0.n_voxels, where=str(lp),
+                             frames=len(scene.frames) if use_views else 0)
     t_load = time.perf_counter() - t
     views = None
-    if options.carve and options.free_space:
+    if use_views:
         t = time.perf_counter()
         views = FrameDepths(scene.frames, scene.visibility, options.voxel_size, options.free_space_params)
         t_load += time.perf_counter() - t

@@ -263,10 +263,6 @@ def main() -> None:
         login(page, args.url, "annotator", pw["annotator"])
         page.goto(f"{args.url}/#/annotate?scene={sid}&frame={frame['id']}")
         page.wait_for_function("() => window.__occufly && window.__occufly.page.stats.openMs !== null")
-        # the smart tools first, on the empty mask; both are cancelled after their shot
-        shots.update(smart_tool_shots(page, obj, cls, args.out))
-        page.evaluate("() => window.__occufly.page.editor.view.fit()")
-        page.keyboard.press("b")
         page.click("#prefill")
         page.wait_for_function("() => Number(document.querySelector('#painted').dataset.share) > 0")
         page.click("#scene-progress summary")
@@ -274,6 +270,12 @@ def main() -> None:
         page.wait_for_timeout(600)
         shots["annotator"] = args.out / "annotator.png"
         page.screenshot(path=str(shots["annotator"]))
+        # then the smart tools on the same frame from an empty mask (the prefill undone, so no
+        # draft of this frame was saved before its prefill); both are cancelled after the shot
+        page.click("#scene-progress summary")
+        page.keyboard.press("Control+z")
+        page.wait_for_function("() => Number(document.querySelector('#painted').dataset.share) === 0")
+        shots.update(smart_tool_shots(page, obj, cls, args.out))
         ctx.close()
         # reviewer: side by side, per-class agreement open
         ctx = b.new_context(viewport={"width": 1440, "height": 900})

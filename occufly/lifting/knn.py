@@ -98,9 +98,9 @@ class LiftParams:
 
 # ---- memory: up-front estimate ------------------------------------------------------------
 # Peak memory of :func:`fill_and_denoise` beyond its inputs, measured with
-# ``bench/bench_scale.py`` (a 4 M-point crop of the synthetic survey cloud, 90 % voted:
-# 1.03 GB peak RSS with the inputs; tiled ``small``, 30 % voted: 0.83 GB at 4 M, 0.49 GB at
-# 1.1 M): per point (the voxel hash, the per-point class / share / origin arrays, the k-NN
+# ``bench/bench_scale.py`` (crops of the synthetic survey cloud, 90 % voted: 1.03 GB peak RSS
+# with the inputs at 4 M points, 3.50 GB at 15 M, i.e. ~225 bytes per point with the inputs;
+# tiled ``small``, 30 % voted: 0.83 GB at 4 M, 0.49 GB at 1.1 M): per point (the voxel hash, the per-point class / share / origin arrays, the k-NN
 # trees over the labelled points) plus the fixed k-NN query chunks (50,000 queries x k
 # neighbours x distances, indices and vote keys), with some margin.
 FILL_BYTES_PER_POINT = 200

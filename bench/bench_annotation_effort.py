@@ -297,7 +297,7 @@ def plot(results: list[dict], path: Path) -> None:
     """Per-frame share of pixels to change (from empty = 100 %, from the prefill) per preset."""
     from PIL import Image, ImageDraw
 
-    W, H, ml, mr, mt, mb = 820, 380, 60, 190, 20, 44
+    W, H, ml, mr, mt, mb = 820, 400, 60, 190, 34, 44
     im = Image.new("RGB", (W, H), "white")
     d = ImageDraw.Draw(im)
     n_max = max(len(r["frames"]) for r in results)
@@ -308,7 +308,7 @@ def plot(results: list[dict], path: Path) -> None:
         d.text((8, Y(v) - 6), f"{int(v * 100):3d} %", fill="black")
     for n in range(1, n_max + 1, max(1, n_max // 10)):
         d.text((X(n) - 4, H - mb + 6), str(n), fill="black")
-    d.text((ml + 120, H - 18), "frame in the order the app hands them out", fill="black")
+    d.text((ml + 120, H - 18), "n-th frame handed out (each curve in its own order)", fill="black")
     d.line([(X(1), Y(1.0)), (X(n_max), Y(1.0))], fill=(120, 120, 120), width=2)
     colours = [(10, 102, 194), (217, 48, 37), (46, 125, 50)]
     y_leg = mt + 10
@@ -334,7 +334,7 @@ def plot(results: list[dict], path: Path) -> None:
         y_leg += 13
         d.text((W - mr + 18, y_leg), f"{t['reduction_x']:.1f}x, med {100 * t['median_prefill_share_from_6th']:.1f} %",
                fill=c)
-    d.text((ml, 4), "share of labelled pixels to change: from the 3D prefill vs from empty",
+    d.text((ml, 4), "share of labelled pixels to change: from the 3D prefill (holes closed) vs from empty",
            fill="black")
     path.parent.mkdir(parents=True, exist_ok=True)
     im.save(path)

@@ -205,12 +205,17 @@ def robustness(args: argparse.Namespace) -> dict:
                 # a scratch workspace sharing the scene's arrays: only lifting/ is written
                 for name in ("scene.json", "taxonomy.json", "points", "visibility"):
                     (tmp / name).symlink_to(Path(sc_path(args, vname)) / name)
-                # tieorder: the lifting before tie_fill; plain: the default; boundary: weighted votes
+                # tieorder: the plain vote, ties by taxonomy order; plain: the plain vote, ties
+                # to the fill (the default before the robust decision); robust: the default;
+                # boundary: weighted votes (plain decision)
                 st = LiftState.open(tmp, sc, vote_weighting="boundary" if robust == "boundary" else "plain")
                 for fi in sel.frames:
                     st.apply_frame(fi, masks[fi], version=mname)
                 direct = st.direct_labels()
-                res = st.fill_and_denoise(write=False, params=LiftParams(tie_fill=robust != "tieorder"))
+                t_fill, c_fill = time.perf_counter(), time.process_time()
+                res = st.fill_and_denoise(write=False, params=LiftParams(
+                    tie_fill=robust != "tieorder", robust=robust == "robust"))
+                t_fill, c_fill = time.perf_counter() - t_fill, time.process_time() - c_fill
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
                 ags = [agreement(held_masks[fi], render_for_mask(sc, np.asarray(res.labels), fi,
@@ -222,10 +227,142 @@ def robustness(args: argparse.Namespace) -> dict:
                     "direct_accuracy": round(float((direct[has] == truth[has]).mean()), 4),
                     "direct_share": round(float((direct > 0).mean()), 4),
                     "held_out_agreement": round(ag["agreement"], 4),
+                    "per_class_iou": {k: (round(v["iou"], 4) if v["iou"] is not None else None)
+                                      for k, v in ev["per_class"].items()},
+                    "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
+                    "lift_stats": {k: v for k, v in res.stats.items()
+                                   if k.startswith("robust") or k.endswith("seconds")},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
                 print(json.dumps({f"{vname}/{mname}/{robust}": out[f"{vname}/{mname}/{robust}"]}),
                       file=sys.stderr, flush=True)
+    return out
+
+
+# ---- the 20 MP vote update (issue 16 item 3) ----------------------------------------------------
+def _apply_reference(self, old: tuple, new: tuple) -> dict:
+    """LiftState._apply before the incremental update (the baseline of --vote-update): a
+    mark over all points, the winner of every touched point before and after through the
+    column-permuted argmax, ``ufunc.at`` on the memory-mapped counts."""
+    C = self._cls.C
+    mark = np.zeros(self.scene.n_points, dtype=bool)
+    mark[old[0]] = True
+    mark[new[0]] = True
+    touched = np.flatnonzero(mark)
+
+    def labels(ids):
+        c = np.asarray(self.votes[ids])[:, self._cls.perm]
+        arg = np.argmax(c, axis=1)
+        col = self._cls.perm[arg].astype(np.int64)
+        col[np.take_along_axis(c, arg[:, None], axis=1)[:, 0] <= 0] = -1
+        return self._cls.labels_of(col)
+
+    before = labels(touched)
+    flat = self.votes.reshape(-1)
+    if len(old[0]):
+        np.subtract.at(flat, old[0].astype(np.int64) * C + old[1], old[2].astype(np.uint16))
+    if len(new[0]):
+        np.add.at(flat, new[0].astype(np.int64) * C + new[1], new[2].astype(np.uint16))
+    after = labels(touched)
+    return {"points_touched": int(len(touched)),
+            "points_changed": int(np.count_nonzero(before != after)),
+            "votes_removed": int(old[2].sum(dtype=np.int64)),
+            "votes_added": int(new[2].sum(dtype=np.int64))}
+
+
+def vote_update(args: argparse.Namespace) -> dict:
+    """Mask save -> votes updated on a fabricated 5472 x 3648 frame that sees ``--seen``
+    points of a ``--points`` cloud (a nadir view at 50 m, f = 3648 px; workspace v2, so
+    uv are projected on demand as in an imported workspace). Times, as CPU seconds (best of
+    ``--repeat``), the PNG decode + check of a realistic mask and ``apply_frame`` for a first
+    save (no earlier votes of the frame), an edit (a 400 x 400 px region repainted) and the
+    same edit with the baseline update (:func:`_apply_reference`), checking that the counts
+    and the changed-point figures are identical."""
+    from occufly.camera import Camera
+    from occufly.io.masks import encode_mask_png
+    from occufly.scene import Frame, Visibility
+
+    root = Path(args.cache) / "vote-update-20mp"
+    shutil.rmtree(root, ignore_errors=True)
+    rng = np.random.default_rng(0)
+    W, H, f = 5472, 3648, 3648.0
+    n_all, n_seen = args.points, args.seen
+    gx, gy = W / f * 50, H / f * 50
+    xyz = np.zeros((n_all, 3), np.float32)
+    xyz[:n_seen, 0] = rng.uniform(-gx / 2 * 0.98, gx / 2 * 0.98, n_seen)
+    xyz[:n_seen, 1] = rng.uniform(-gy / 2 * 0.98, gy / 2 * 0.98, n_seen)
+    xyz[n_seen:, 0] = rng.uniform(gx, 3 * gx, n_all - n_seen)
+    xyz[n_seen:, 1] = rng.uniform(-gy, gy, n_all - n_seen)
+    xyz[:, 2] = rng.normal(0.0, 0.05, n_all)
+    order = rng.permutation(n_all)
+    xyz = xyz[order]
+    seen = np.flatnonzero(order < n_seen).astype(np.int32)
+    cam = Camera("PINHOLE", W, H, np.array([f, f, W / 2, H / 2]))
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[2, 3] = 50.0  # nadir, 50 m above the plane
+    frames = [Frame("big.jpg", cam, T), Frame("other.jpg", cam, T)]
+    vis = Visibility(np.array([0, n_seen, 2 * n_seen], np.int64), np.concatenate([seen, seen]))
+    from occufly.taxonomy import default_taxonomy
+
+    tax = default_taxonomy()
+    Scene(frames=frames, xyz=xyz, rgb=np.zeros((n_all, 3), np.uint8), visibility=vis,
+          taxonomy=tax).save(root / "ws")
+    scene = Scene.load(root / "ws")
+    # a mask of irregular class regions (smooth noise, thresholded), PNG-encoded
+    from scipy import ndimage
+
+    noise = ndimage.zoom(rng.random((H // 64 + 1, W // 64 + 1)), 64, order=1)[:H, :W]
+    mask = tax.ids[np.minimum((noise * len(tax.ids)).astype(np.int64), len(tax.ids) - 1)]
+    mask = mask.astype(np.uint8)
+    edited = mask.copy()
+    edited[1000:1400, 2000:2400] = tax.ids[0]
+    png = encode_mask_png(mask)
+
+    def cpu(fn):
+        c0 = time.process_time()
+        r = fn()
+        return time.process_time() - c0, r
+
+    out: dict = {"bench": "lifting-vote-update-20mp", "points": n_all, "seen": n_seen,
+                 "mask": [W, H], "png_bytes": len(png), "repeat": args.repeat,
+                 "load_average": list(__import__("os").getloadavg())}
+    decode = [cpu(lambda: read_mask(png, frames[0], tax, name="big.png"))[0]
+              for _ in range(args.repeat)]
+    out["png_decode_cpu_s"] = round(min(decode), 3)
+    results: dict = {}
+    for impl in ("new", "baseline"):
+        ws = root / f"ws-{impl}"
+        ws.mkdir()
+        for name in ("scene.json", "taxonomy.json", "points", "visibility"):
+            (ws / name).symlink_to(root / "ws" / name)
+        st = LiftState.open(ws, scene)
+        if impl == "baseline":
+            st._apply = _apply_reference.__get__(st)
+        st.apply_frame(1, np.roll(mask, 500, axis=1), version="other")
+        first, edit, changed = [], [], []
+        for _ in range(args.repeat):
+            st.remove_frame(0)
+            t, r1 = cpu(lambda st=st: st.apply_frame(0, mask, version="first"))
+            first.append(t)
+            t, r2 = cpu(lambda st=st: st.apply_frame(0, edited, version="edit"))
+            edit.append(t)
+            changed.append((r1["points_changed"], r2["points_changed"], r2["points_touched"]))
+        results[impl] = (np.asarray(st.votes).copy(), changed)
+        out[impl] = {"first_save_cpu_s": round(min(first), 3),
+                     "first_save_cpu_s_median": round(float(np.median(first)), 3),
+                     "edit_cpu_s": round(min(edit), 3),
+                     "edit_cpu_s_median": round(float(np.median(edit)), 3),
+                     "points_changed_first_edit": list(changed[0][:2]),
+                     "points_touched": changed[0][2]}
+        st.close()
+    out["identical"] = bool(np.array_equal(results["new"][0], results["baseline"][0])
+                            and results["new"][1] == results["baseline"][1])
+    for impl in ("new", "baseline"):
+        o = out[impl]
+        o["save_to_votes_first_cpu_s"] = round(out["png_decode_cpu_s"] + o["first_save_cpu_s"], 3)
+        o["save_to_votes_edit_cpu_s"] = round(out["png_decode_cpu_s"] + o["edit_cpu_s"], 3)
+    out["target_cpu_s"] = 1.0
+    shutil.rmtree(root, ignore_errors=True)
     return out
 
 
@@ -238,12 +375,18 @@ def main() -> None:
     ap.add_argument("--robustness", action="store_true",
                     help="exact vs degraded masks, new vs old visibility (needs --synthetic, "
                          "--ws, optionally --ws-old)")
+    ap.add_argument("--vote-update", action="store_true",
+                    help="the 20 MP mask save -> votes update, new vs baseline (fabricated scene)")
+    ap.add_argument("--points", type=int, default=3_000_000, help="vote-update: cloud size")
+    ap.add_argument("--seen", type=int, default=1_700_000, help="vote-update: points the frame sees")
+    ap.add_argument("--repeat", type=int, default=5, help="vote-update: repetitions (best CPU)")
     ap.add_argument("--ws", type=Path)
     ap.add_argument("--ws-old", type=Path)
     ap.add_argument("--held-out", type=int, default=20)
-    ap.add_argument("--robust-modes", default="tieorder,plain,boundary",
-                    help="robustness: tieorder (ties by taxonomy order, the lifting before "
-                         "tie_fill), plain (the default lifting), boundary (weighted votes)")
+    ap.add_argument("--robust-modes", default="plain,robust",
+                    help="robustness: tieorder (plain vote, ties by taxonomy order), plain "
+                         "(plain vote, ties to the fill: the default before the robust "
+                         "decision), robust (the default), boundary (weighted votes)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
@@ -261,6 +404,10 @@ def main() -> None:
     ap.add_argument("--sample", type=int, default=40_000, help="baseline denoise query sample")
     ap.add_argument("--full-baseline", action="store_true")
     args = ap.parse_args()
+    if args.vote_update:
+        out = vote_update(args)
+        print(json.dumps(out, default=_json_default))
+        sys.exit(0 if out["identical"] else 1)
     if args.robustness:
         print(json.dumps(robustness(args), default=_json_default))
         return

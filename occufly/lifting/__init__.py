@@ -10,6 +10,10 @@ The package has three parts (each module's docstring gives the details):
 ``occufly.lifting.knn``
     :func:`fill_and_denoise` (certified voxels plus exact k-NN at class boundaries) and
     :func:`fill_and_denoise_exact`, the plain cKDTree reference it must agree with.
+``occufly.lifting.robust``
+    :func:`~occufly.lifting.robust.redecide`: the votes of imperfect annotators re-decided
+    before the fill with an annotator model estimated from the votes and a per-scene point
+    classifier (``LiftParams.robust``, on by default; :class:`RobustParams`).
 ``occufly.lifting.result``
     :class:`LiftResult` (labels, confidence, origin) and its files (:func:`save_result`,
     :func:`load_labels`).
@@ -47,6 +51,7 @@ from occufly.lifting.result import (
     load_labels,
     save_result,
 )
+from occufly.lifting.robust import RobustParams
 from occufly.lifting.votes import (
     STATE_VERSION,
     VOTE_WEIGHTINGS,
@@ -58,7 +63,7 @@ from occufly.lifting.votes import (
 
 __all__ = [
     "LIFT_DIR", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
-    "ORIGIN_NONE", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
+    "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
     "VoteSnapshot", "evaluate_points", "fill_and_denoise", "fill_and_denoise_exact",
     "fill_snapshot", "load_labels", "params_dict", "save_result", "typical_knn_radius",
 ]

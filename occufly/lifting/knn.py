@@ -91,6 +91,12 @@ class LiftParams:
     # fill instead of the taxonomy's tie order: its labelled neighbours decide (needs the
     # vote margin/top; see the module docstring for the measurement). False = tie order.
     tie_fill: bool = True
+    # Re-decide the voted points before the fill (occufly.lifting.robust): a Dawid-Skene
+    # annotator model estimated from the votes plus a per-scene point classifier trained on
+    # the unanimous points. False = the plain vote majority (see the robust module docstring
+    # and the README for the measurements). robust_params: its RobustParams (None = defaults).
+    robust: bool = True
+    robust_params: object | None = None
     # threads of the k-NN queries and of the boundary brute force (-1 = every core, as in
     # cKDTree); the result does not depend on it
     workers: int = -1

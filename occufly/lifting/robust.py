@@ -1,0 +1,469 @@
+"""Robust vote decision: imperfect annotators, the points' own evidence.
+
+With two or three annotated views per point, the plain majority cannot tell a confused view
+from a correct one: a region one annotator painted as its look-alike (road / parking lot,
+grass / low vegetation, building / roof) is a 1:1 tie or, where only that view sees it, a
+unanimous wrong vote; a small object skipped in one view ties with the ground around it.
+This stage re-decides every voted point from two kinds of evidence, before the kNN fill and
+denoise (:func:`redecide`, on by default through ``LiftParams.robust``):
+
+Annotator model (Dawid-Skene, pooled over the frames)
+    ``pi[t, c]``: the probability that a view of a point of true class ``t`` votes ``c``,
+    estimated by EM from the votes alone (over the histogram of vote patterns of all voted
+    points, a Dirichlet prior that favours the diagonal). It learns which classes people confuse and that confusions are
+    asymmetric (a skipped person is voted ground; ground is almost never voted person).
+    Per point the votes give ``log L(t) = sum_c n_c log pi[t, c]`` over its two leading
+    vote classes (:class:`~occufly.lifting.votes.VoteSnapshot` keeps them).
+Point classifier (per scene, trained on the votes)
+    A quadratic discriminant (one Gaussian per class, full covariance) over per-point
+    features that do not depend on any label (:func:`point_features`): the point's colour
+    and its voxel's mean colour, height above a morphological ground estimate, and the
+    voxel's normal verticality, surface variation and linearity. It is trained on the points
+    whose votes are unanimous from at least two views (at most ``train_per_class`` per class,
+    seeded); a class with fewer than ``min_train`` such points gets a neutral likelihood (one
+    Gaussian over all training points), so the votes alone decide it.
+Decision
+    ``argmax_t  log L(t) + log p(x | t) + prior_weight * log prior(t)`` over the candidate
+    classes of each point (the ``candidates`` classes the votes and the prior make likeliest,
+    those within ``candidate_nats`` of the best; the classifier is evaluated on those only). The output replaces the vote majority
+    (direct labels, a margin = posterior top - second that feeds the confirmation rule and the
+    confidence, the winner's votes) and the fill and denoise run on it unchanged.
+
+No synthetic truth enters anywhere. The features depend only on the cloud and are cached in
+``ws/lifting/features.npy`` (float16, with ``features.json`` naming the point count and a
+checksum); everything that scales with points is chunked (``chunk`` points at a time), so
+memory is bounded by the feature cache plus a few arrays of one byte to four per point.
+
+Measured (bench/bench_lifting.py --robustness, greedy rho 0.99 frames, union visibility; the
+README's "Lifting with imperfect annotators" has the tables): see the README.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occufly.lifting.classes import ClassColumns
+from occufly.progress import ProgressFn, noop
+
+FEATURES_VERSION = 1
+FEATURE_NAMES = ("r", "g", "b", "voxel_r", "voxel_g", "voxel_b", "log_height_above_ground",
+                 "normal_verticality", "surface_variation", "linearity")
+
+
+@dataclass
+class RobustParams:
+    """Parameters of :func:`redecide` (distances in scene metres)."""
+
+    voxel: float = 0.6           # edge of the voxels whose covariance / mean colour are features
+    ground_cell: float = 1.0     # cell of the ground grid (per-cell lowest point)
+    ground_radius: float = 10.0  # morphological opening radius: objects narrower than ~2x this
+    em_iterations: int = 10
+    em_sample: int = 300_000     # sampled points, only when vote counts are beyond the histogram
+    diag_prior: float = 20.0     # Dirichlet pseudo-votes on pi's diagonal (per class)
+    off_prior: float = 0.05      # ... on every entry
+    train_per_class: int = 20_000
+    min_train: int = 20          # fewer training points: the class gets a neutral likelihood
+    cov_reg: float = 1e-3
+    prior: str = "vote"          # class prior: "vote" (majority shares), "train" or "em"
+    prior_weight: float = 1.0    # weight of the log class prior (1 = Bayes; < 1 favours rare classes)
+    candidates: int = 3          # classes per point the classifier weighs (the likeliest by votes)
+    candidate_nats: float = 12.0
+    chunk: int = 1_000_000
+    seed: int = 0
+
+
+# ---- features ------------------------------------------------------------------------------
+def _checksum(xyz: np.ndarray) -> str:
+    n = len(xyz)
+    idx = np.unique(np.linspace(0, max(n - 1, 0), num=min(n, 4096)).astype(np.int64))
+    h = hashlib.sha256(np.ascontiguousarray(np.asarray(xyz[idx], np.float32)).tobytes())
+    h.update(str(n).encode())
+    return h.hexdigest()[:16]
+
+
+def point_features(xyz: np.ndarray, rgb: np.ndarray, params: RobustParams | None = None
+                   ) -> np.ndarray:
+    """(N, F) float16 per-point features (:data:`FEATURE_NAMES`), from the cloud alone.
+
+    Voxel statistics (mean colour, covariance eigenvalues / normal) are accumulated with
+    bincounts in chunks; the ground is a grey opening (min filter, then max filter) of the
+    per-cell lowest point, so buildings and trees narrower than twice ``ground_radius`` stand
+    on the terrain around them.
+    """
+    from scipy import ndimage
+
+    p = params or RobustParams()
+    xyz = np.asarray(xyz)
+    n = len(xyz)
+    F = len(FEATURE_NAMES)
+    out = np.zeros((n, F), np.float16)
+    if n == 0:
+        return out
+    ch = max(1, int(p.chunk))
+    mn = np.asarray(xyz.min(axis=0), np.float64)
+    e = float(p.voxel)
+
+    # voxel keys (int64, one pass) and per-voxel sums
+    def vkey(a: int, b: int) -> np.ndarray:
+        q = np.floor((np.asarray(xyz[a:b], np.float64) - mn) / e).astype(np.int64)
+        return q
+
+    dims = np.floor((np.asarray(xyz.max(axis=0), np.float64) - mn) / e).astype(np.int64) + 1
+    keys = np.empty(n, np.int64)
+    for a in range(0, n, ch):
+        b = min(n, a + ch)
+        q = vkey(a, b)
+        keys[a:b] = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+    uk, inv = np.unique(keys, return_inverse=True)
+    del keys
+    inv = inv.reshape(-1).astype(np.int32 if len(uk) < 2**31 else np.int64)
+    V = len(uk)
+    del uk
+    # per-voxel sums in float32 (coordinates relative to the voxel centre, |x| < voxel)
+    acc = np.zeros((13, V), np.float32)  # count, x, y, z, xx, xy, xz, yy, yz, zz, r, g, b
+    for a in range(0, n, ch):
+        b = min(n, a + ch)
+        iv = inv[a:b]
+        pts = np.asarray(xyz[a:b], np.float64)
+        loc = pts - mn - (np.floor((pts - mn) / e) + 0.5) * e
+        acc[0] += np.bincount(iv, minlength=V)
+        for i in range(3):
+            acc[1 + i] += np.bincount(iv, loc[:, i], V)
+        k = 4
+        for i in range(3):
+            for j in range(i, 3):
+                acc[k] += np.bincount(iv, loc[:, i] * loc[:, j], V)
+                k += 1
+        col = np.asarray(rgb[a:b], np.float64)
+        for i in range(3):
+            acc[10 + i] += np.bincount(iv, col[:, i], V)
+    vcol = np.empty((3, V), np.float32)
+    vert = np.empty(V, np.float32)
+    curv = np.empty(V, np.float32)
+    lin = np.empty(V, np.float32)
+    for a in range(0, V, ch):  # covariance, eigen decomposition: chunks of voxels
+        b = min(V, a + ch)
+        cnt = acc[0, a:b].astype(np.float64)
+        mean = acc[1:4, a:b] / cnt
+        cov = np.empty((b - a, 3, 3), np.float64)
+        k = 4
+        for i in range(3):
+            for j in range(i, 3):
+                cov[:, i, j] = cov[:, j, i] = acc[k, a:b] / cnt - mean[i] * mean[j]
+                k += 1
+        w, vec = np.linalg.eigh(cov + 1e-9 * np.eye(3))
+        vert[a:b] = 1.0 - np.abs(vec[:, 2, 0])  # 0: horizontal surface, 1: vertical
+        curv[a:b] = 3.0 * w[:, 0] / np.maximum(w.sum(axis=1), 1e-12)
+        lin[a:b] = (w[:, 2] - w[:, 1]) / np.maximum(w[:, 2], 1e-12)
+        vcol[:, a:b] = acc[10:13, a:b] / cnt / 255.0
+        single = cnt < 3  # a voxel of one or two points has no shape
+        vert[a:b][single], curv[a:b][single], lin[a:b][single] = 0.5, 0.0, 0.0
+    del acc
+
+    # ground: grey opening of the per-cell lowest point
+    c = float(p.ground_cell)
+    gd = np.floor((np.asarray(xyz.max(axis=0), np.float64)[:2] - mn[:2]) / c).astype(np.int64) + 1
+    zmin = np.full(int(gd[0] * gd[1]), np.inf)
+    for a in range(0, n, ch):
+        b = min(n, a + ch)
+        pts = np.asarray(xyz[a:b], np.float64)
+        g = np.floor((pts[:, :2] - mn[:2]) / c).astype(np.int64)
+        np.minimum.at(zmin, g[:, 0] * gd[1] + g[:, 1], pts[:, 2])
+    zmin = zmin.reshape(gd)
+    r = max(1, int(round(p.ground_radius / c)))
+    ero = ndimage.minimum_filter(zmin, size=2 * r + 1, mode="nearest")
+    ero[~np.isfinite(ero)] = -np.inf
+    ground = ndimage.maximum_filter(ero, size=2 * r + 1, mode="nearest").ravel()
+    del zmin, ero
+
+    for a in range(0, n, ch):
+        b = min(n, a + ch)
+        pts = np.asarray(xyz[a:b], np.float64)
+        g = np.floor((pts[:, :2] - mn[:2]) / c).astype(np.int64)
+        gz = ground[g[:, 0] * gd[1] + g[:, 1]]
+        hag = np.where(np.isfinite(gz), pts[:, 2] - gz, 0.0)
+        iv = inv[a:b]
+        col = np.asarray(rgb[a:b], np.float32) / 255.0
+        blk = np.empty((b - a, F), np.float32)
+        blk[:, 0:3] = col
+        blk[:, 3:6] = vcol[:, iv].T
+        blk[:, 6] = np.log1p(np.clip(hag, 0.0, 100.0))
+        blk[:, 7] = vert[iv]
+        blk[:, 8] = curv[iv]
+        blk[:, 9] = lin[iv]
+        out[a:b] = blk
+    return out
+
+
+def cached_features(ws: str | Path | None, xyz: np.ndarray, rgb: np.ndarray,
+                    params: RobustParams | None = None, *, read_only: bool = False
+                    ) -> np.ndarray:
+    """:func:`point_features`, cached in ``ws/lifting/features.npy`` (recomputed when the
+    point count, the checksum of the cloud or the feature parameters differ). ``ws=None``
+    or ``read_only``: computed, not stored (an existing valid cache is still used)."""
+    p = params or RobustParams()
+    key = {"version": FEATURES_VERSION, "n_points": int(len(xyz)), "checksum": _checksum(xyz),
+           "voxel": p.voxel, "ground_cell": p.ground_cell, "ground_radius": p.ground_radius,
+           "names": list(FEATURE_NAMES)}
+    if ws is not None:
+        from occufly.workspace import Workspace
+
+        d = Workspace(ws).lifting_dir
+        fp, jp = d / "features.npy", d / "features.json"
+        try:
+            if jp.is_file() and fp.is_file() and json.loads(jp.read_text()) == key:
+                f = np.load(fp, mmap_mode="r")
+                if f.shape == (len(xyz), len(FEATURE_NAMES)) and f.dtype == np.float16:
+                    return f
+        except (OSError, ValueError):
+            pass
+    f = point_features(xyz, rgb, p)
+    if ws is not None and not read_only and d.is_dir():
+        from occufly.fsutil import atomic_save_npy, atomic_write_text
+
+        atomic_save_npy(fp, f)
+        atomic_write_text(jp, json.dumps(key, indent=1))
+    return f
+
+
+# ---- annotator model -------------------------------------------------------------------------
+def _vote_loglik(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
+                 n2: np.ndarray) -> np.ndarray:
+    """(m, C) float32 sum_c n_c log pi[t, c] over the two leading vote classes."""
+    L = logpi.T[np.maximum(c1, 0)] * n1[:, None].astype(np.float32)
+    has2 = n2 > 0
+    if has2.any():
+        idx = np.flatnonzero(has2)
+        L[idx] += logpi.T[c2[idx]] * n2[idx, None].astype(np.float32)
+    return L
+
+
+def estimate_confusion(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.ndarray, C: int,
+                       p: RobustParams) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled Dawid-Skene EM over every voted point: (pi (C, C) float64 with rows = true
+    class, columns = voted class; class prior (C,) float64).
+
+    The likelihood of a point depends only on its vote pattern (leading class and votes,
+    second class and votes), so the EM runs on the histogram of patterns (one bincount over
+    the points, chunked) weighted by how many points share each -- exact, deterministic and
+    independent of the point count after that pass. A pattern space beyond ``2**26`` keys
+    (vote counts in the thousands) falls back to a seeded sample of ``em_sample`` points."""
+    n = len(c1)
+    voted = n1 > 0
+    if not voted.any():
+        return np.eye(C) * 0.9 + 0.1 / C, np.full(C, 1.0 / C)
+    integral = all(np.issubdtype(np.asarray(v).dtype, np.integer) for v in (n1, n2))
+    m1 = int(np.max(n1)) + 1
+    m2 = int(np.max(n2)) + 1
+    space = C * (C + 1) * m1 * m2
+    if integral and space <= 1 << 26:
+        hist = np.zeros(space, np.int64)
+        for a in range(0, n, p.chunk):
+            b = min(n, a + p.chunk)
+            v = voted[a:b]
+            k = ((np.asarray(c1[a:b])[v].astype(np.int64) * (C + 1)
+                  + (np.asarray(c2[a:b])[v].astype(np.int64) + 1)) * m1
+                 + np.asarray(n1[a:b])[v]) * m2 + np.asarray(n2[a:b])[v]
+            hist += np.bincount(k, minlength=space)
+        keys = np.flatnonzero(hist)
+        weight = hist[keys].astype(np.float64)
+        b2 = (keys % m2).astype(np.float64)
+        keys //= m2
+        b1 = (keys % m1).astype(np.float64)
+        keys //= m1
+        a2 = (keys % (C + 1)) - 1
+        a1 = keys // (C + 1)
+    else:
+        rng = np.random.default_rng(p.seed)
+        idx = np.flatnonzero(voted)
+        if len(idx) > p.em_sample:
+            idx = np.sort(rng.choice(idx, p.em_sample, replace=False))
+        a1, a2 = np.asarray(c1)[idx].astype(np.int64), np.asarray(c2)[idx].astype(np.int64)
+        b1, b2 = np.asarray(n1)[idx].astype(np.float64), np.asarray(n2)[idx].astype(np.float64)
+        weight = np.ones(len(idx))
+    m = len(a1)
+    rows = np.arange(m)
+    M = np.zeros((m, C), np.float64)  # vote counts of each pattern over its two classes
+    M[rows, a1] += b1
+    has2 = a2 >= 0
+    M[rows[has2], a2[has2]] += b2[has2]
+    post = M / M.sum(axis=1, keepdims=True)  # start: the vote shares
+    W = M * weight[:, None]
+    wsum = weight.sum()
+    pi = np.eye(C)
+    prior = np.full(C, 1.0 / C)
+    for _ in range(max(1, p.em_iterations)):
+        # M-step: expected (true, voted) counts; einsum, not BLAS (threads on a busy machine)
+        A = np.einsum("nt,nc->tc", post, W) + p.off_prior + p.diag_prior * np.eye(C)
+        pi = A / A.sum(axis=1, keepdims=True)
+        prior = np.einsum("nt,n->t", post, weight) / wsum + 1e-6
+        prior /= prior.sum()
+        # E-step
+        L = np.einsum("nc,tc->nt", M, np.log(pi)) + np.log(prior)
+        L -= L.max(axis=1, keepdims=True)
+        post = np.exp(L)
+        post /= post.sum(axis=1, keepdims=True)
+    return pi, prior
+
+
+# ---- classifier ------------------------------------------------------------------------------
+@dataclass
+class _QDA:
+    mean: np.ndarray      # (C, F) float32
+    whiten: np.ndarray    # (C, F, F) float32: Cholesky factor of the precision (L^T)
+    logdet: np.ndarray    # (C,) float32 (of the covariance)
+    ok: np.ndarray        # (C,) bool: fitted
+    pooled: tuple         # (mean, whiten, logdet) of all training points: the neutral density
+
+
+def _fit_qda(features: np.ndarray, train: np.ndarray, cols: np.ndarray, C: int,
+             p: RobustParams) -> _QDA:
+    """One Gaussian per class over a seeded sample of its training points, and one over all
+    of them (the neutral density of classes with too few)."""
+    rng = np.random.default_rng(p.seed + 1)
+    F = features.shape[1]
+    mean = np.zeros((C, F), np.float32)
+    whiten = np.zeros((C, F, F), np.float32)
+    logdet = np.zeros(C, np.float32)
+    ok = np.zeros(C, bool)
+    tc = cols[train]
+    order = np.argsort(tc, kind="stable")
+    bounds = np.searchsorted(tc[order], np.arange(C + 1))
+    for c in range(C):
+        idx = train[order[bounds[c]:bounds[c + 1]]]
+        if len(idx) < max(p.min_train, F + 2):
+            continue
+        if len(idx) > p.train_per_class:
+            idx = np.sort(rng.choice(idx, p.train_per_class, replace=False))
+        g = _gaussian(np.asarray(features[idx], np.float64), p.cov_reg)
+        if g is None:
+            continue
+        mean[c], whiten[c], logdet[c] = g
+        ok[c] = True
+    sample = train if len(train) <= 100_000 else np.sort(rng.choice(train, 100_000, replace=False))
+    pooled = _gaussian(np.asarray(features[sample], np.float64), p.cov_reg) if len(sample) > F else None
+    if pooled is None:
+        pooled = (np.zeros(F, np.float32), np.eye(F, dtype=np.float32), np.float32(0.0))
+    return _QDA(mean, whiten, logdet, ok, pooled)
+
+
+def _gaussian(x: np.ndarray, reg: float) -> tuple | None:
+    """(mean, whitening L^T with ||(x - mean) @ L||^2 the Mahalanobis distance, log det cov)."""
+    F = x.shape[1]
+    cov = np.cov(x.T) + reg * np.eye(F)
+    try:
+        Lc = np.linalg.cholesky(np.linalg.inv(cov))
+    except np.linalg.LinAlgError:
+        return None
+    return (x.mean(axis=0).astype(np.float32), Lc.T.astype(np.float32),
+            np.float32(np.linalg.slogdet(cov)[1]))
+
+
+def _gauss_loglik(x: np.ndarray, mean: np.ndarray, whiten: np.ndarray, logdet) -> np.ndarray:
+    z = np.einsum("nf,gf->ng", x - mean, whiten)
+    return -0.5 * (np.einsum("ng,ng->n", z, z) + logdet)
+
+
+# ---- the decision ------------------------------------------------------------------------------
+def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.ndarray,
+             col2: np.ndarray, n2: np.ndarray, params: RobustParams | None = None,
+             progress: ProgressFn | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Re-decide every voted point from its votes, the annotator model and the classifier.
+
+    col1/n1: (N,) leading vote column (-1 = no votes) and its votes; col2/n2: the second
+    (n2 = 0 where none). Returns (labels (N,) uint8 raw ids, 0 = no votes; margin (N,) float32
+    posterior top - second; top (N,) uint16 votes of the decided class, at least 1 on voted
+    points; stats).
+    """
+    p = params or RobustParams()
+    report = progress or noop
+    t0 = time.perf_counter()
+    C = cls.C
+    n = len(col1)
+    col1, col2, n1, n2 = (np.asarray(v) for v in (col1, col2, n1, n2))
+    labels = np.zeros(n, np.uint8)
+    margin = np.zeros(n, np.float32)
+    top = np.zeros(n, np.uint16)
+    stats: dict = {}
+    voted = n1 > 0
+    if not voted.any():
+        return labels, margin, top, {"robust_seconds": 0.0}
+    report(0.0, "annotator model")
+    pi, prior = estimate_confusion(col1, n1, col2, n2, C, p)
+    logpi = np.log(pi).astype(np.float32)
+    t_em = time.perf_counter()
+    report(0.2, "point classifier")
+    train = np.flatnonzero(voted & (n2 == 0) & (n1 >= 2))
+    vidx_all = np.flatnonzero(voted)
+    q = _fit_qda(features, train, col1, C, p)
+    stats["robust_classifier_classes"] = int(q.ok.sum())
+    stats["robust_train_points"] = int(len(train))
+    t_fit = time.perf_counter()
+    if p.prior in ("train", "vote"):
+        # "vote": the shares of the vote majority over all voted points; "train": over the
+        # unanimous ones (biased against classes few views see, such as facades). Both are
+        # steadier than the EM's prior, which can trade a confusable class's mass for its
+        # look-alike's.
+        sel = train if p.prior == "train" else vidx_all
+        share = np.bincount(col1[sel], minlength=C).astype(np.float64) + 1.0
+        prior = share / share.sum()
+    logprior = (p.prior_weight * np.log(prior)).astype(np.float32)
+    K = min(p.candidates, C)
+    changed = 0
+    evaluated = 0
+    vidx = np.flatnonzero(voted)
+    for a in range(0, len(vidx), p.chunk):
+        report(0.3 + 0.7 * a / len(vidx), "robust decision")
+        ids = vidx[a:a + p.chunk]
+        c1, c2 = col1[ids].astype(np.int64), col2[ids].astype(np.int64)
+        L = _vote_loglik(logpi, c1, n1[ids], c2, n2[ids])
+        L += logprior
+        # candidates: the K classes the votes make likeliest, within candidate_nats of the best
+        cand = np.argpartition(L, C - K, axis=1)[:, C - K:] if K < C else np.tile(
+            np.arange(C), (len(ids), 1))
+        Lk = np.take_along_axis(L, cand, axis=1)
+        del L
+        Lk[Lk < Lk.max(axis=1, keepdims=True) - p.candidate_nats] = -np.inf
+        multi = np.flatnonzero(np.isfinite(Lk).sum(axis=1) > 1)
+        evaluated += len(multi)
+        best = np.take_along_axis(cand, np.argmax(Lk, axis=1)[:, None], axis=1)[:, 0]
+        m = np.ones(len(ids), np.float32)
+        if len(multi):
+            x = np.asarray(features[ids[multi]], np.float32)
+            cm, Lm = cand[multi], Lk[multi]
+            live = np.isfinite(Lm)
+            neutral = None
+            for c in np.unique(cm[live]):
+                r, j = np.nonzero((cm == c) & live)
+                if q.ok[c]:
+                    Lm[r, j] += _gauss_loglik(x[r], q.mean[c], q.whiten[c], q.logdet[c])
+                else:  # no classifier for this class: the density of all training points
+                    if neutral is None:
+                        neutral = _gauss_loglik(x, *q.pooled)
+                    Lm[r, j] += neutral[r]
+            arg = np.argmax(Lm, axis=1)
+            best[multi] = np.take_along_axis(cm, arg[:, None], axis=1)[:, 0]
+            post = np.exp(Lm - np.take_along_axis(Lm, arg[:, None], axis=1))
+            post /= post.sum(axis=1, keepdims=True)
+            srt = np.sort(post, axis=1)
+            m[multi] = srt[:, -1] - srt[:, -2]
+        labels[ids] = cls.ids[best]
+        margin[ids] = m
+        votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
+        top[ids] = np.maximum(votes_best, 1).astype(np.uint16)
+        changed += int(np.count_nonzero(best != c1))
+    stats.update({
+        "robust_points_evaluated": int(evaluated),
+        "robust_points_changed": int(changed),
+        "robust_em_seconds": round(t_em - t0, 3),
+        "robust_fit_seconds": round(t_fit - t_em, 3),
+        "robust_seconds": round(time.perf_counter() - t0, 3),
+    })
+    report(1.0, "robust decision")
+    return labels, margin, top, stats

@@ -5,9 +5,10 @@ shows, per submission, the share painted from scratch and the share changed vers
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from tests.e2e.conftest import grant_members, grey_png, shot
+from tests.e2e.conftest import ARTIFACTS, grant_members, grey_png, shot
 from tests.e2e.test_browser import drag, editor_ids, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -44,8 +45,6 @@ def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, n
     assert r.status_code == 200, r.text
     f1 = r.json()
     assert f1["index"] == order[0]
-    import numpy as np
-
     ids = np.full((f1["height"], f1["width"]), 6, np.uint8)  # grass
     ids[: f1["height"] // 3] = 1  # road
     r = ann.put(f"/api/frames/{f1['id']}/mask?kind=submitted", content=grey_png(ids),
@@ -102,4 +101,4 @@ def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, n
     assert rows.count() == 2 and "no prefill" in rows.nth(1).inner_text()
     adm.locator("#sec-effort").scroll_into_view_if_needed()
     shot(adm, "17_effort_curve")
-    adm.locator("#sec-effort").screenshot(path=str(shot.__globals__["ARTIFACTS"] / "17_effort_curve_section.png"))
+    adm.locator("#sec-effort").screenshot(path=str(ARTIFACTS / "17_effort_curve_section.png"))

@@ -39,7 +39,8 @@ def sid(live):
     from tests.app.conftest import write_tiny_workspace
 
     root = live.app.state.ctx.settings.import_roots[0]
-    src = write_tiny_workspace(root / "smart_tools_src")
+    # named to sort after the session's own source: test_workday imports "the first folder"
+    src = write_tiny_workspace(root / "zz_smart_tools_src")
     for p in (src / "images").iterdir():
         Image.fromarray(photo()).save(p)
     admin = live.client("admin")

@@ -46,7 +46,7 @@ export class ScissorsTool {
     this.label = "Scissors";
     this.key = "i";
     this.cursor = "crosshair";
-    this.anchors = []; // {p: [x, y], path: [[x, y]...] from the previous anchor | null, pending}
+    this.anchors = []; // {p: [x, y], seg: {path: [[x, y]...] from the previous anchor, pending} | null}
     this.at = null;
     this.preview = null; // {from: anchor, to: [x, y], path}
     this._previewBusy = false;
@@ -107,12 +107,7 @@ export class ScissorsTool {
     const q = this._px(p);
     const last = this.anchors[this.anchors.length - 1];
     if (last && last.p[0] === q[0] && last.p[1] === q[1]) return;
-    const a = { p: q, path: null, pending: null };
-    if (last) {
-      const seg = this._segment(last.p, q, e?.shiftKey);
-      a.seg = seg;
-    }
-    this.anchors.push(a);
+    this.anchors.push({ p: q, seg: last ? this._segment(last.p, q, e?.shiftKey) : null });
     this.preview = null;
     if (this.anchors.length === 1) this.editor.setStatus("Scissors: click along the outline; the path snaps to edges (Shift+click: straight). Click the first point or press Enter to fill, Backspace removes the last point, Esc cancels.");
     this.editor.view.request();

@@ -446,7 +446,13 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
         centre = xyz[q[0]]
         P = (xyz[q] - centre).astype(np.float32)
         Q = (xyz[cand] - centre).astype(np.float32)
-        d2 = (P * P).sum(1)[:, None] + (Q * Q).sum(1)[None, :] - 2.0 * (P @ Q.T)
+        # |p|^2 + |q|^2 - 2 p.q with two matrix-sized temporaries instead of four (doubling
+        # is exact in floating point: the same bits as ``a + b - 2.0 * (P @ Q.T)``)
+        pq = P @ Q.T
+        pq *= 2.0
+        d2 = (P * P).sum(1)[:, None] + (Q * Q).sum(1)[None, :]
+        d2 -= pq
+        del pq
         kk = min(k, len(cand))
         if kk < len(cand):
             kth = np.partition(d2, kk - 1, axis=1)[:, kk - 1]
@@ -473,23 +479,28 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
 
     # voxels write disjoint points: threads (numpy releases the GIL in the matrix product,
     # the partition and the reductions) give the same result as one loop
+    # the same result as one loop; each small matrix product on one BLAS thread (its thread
+    # pool costs ~40x more than the product itself, see occufly.parallel.single_threaded_blas)
+    from occufly.parallel import single_threaded_blas
+
     T = len(todo)
     step = max(1, min(2000, -(-T // 50)))
     n_threads = _threads(workers)
     report(0.0, "denoise: exact k-NN at boundaries")
-    if n_threads <= 1 or T < 2 * step:
-        for a in range(0, T, step):
-            run(a, min(T, a + step))
-            report(min(T, a + step) / max(T, 1), "denoise: exact k-NN at boundaries")
-    else:
-        from concurrent.futures import ThreadPoolExecutor, as_completed
+    with single_threaded_blas():
+        if n_threads <= 1 or T < 2 * step:
+            for a in range(0, T, step):
+                run(a, min(T, a + step))
+                report(min(T, a + step) / max(T, 1), "denoise: exact k-NN at boundaries")
+        else:
+            from concurrent.futures import ThreadPoolExecutor, as_completed
 
-        done = 0
-        with ThreadPoolExecutor(n_threads) as ex:
-            futs = [ex.submit(run, a, min(T, a + step)) for a in range(0, T, step)]
-            for f in as_completed(futs):
-                done += f.result()
-                report(done / T, "denoise: exact k-NN at boundaries")
+            done = 0
+            with ThreadPoolExecutor(n_threads) as ex:
+                futs = [ex.submit(run, a, min(T, a + step)) for a in range(0, T, step)]
+                for f in as_completed(futs):
+                    done += f.result()
+                    report(done / T, "denoise: exact k-NN at boundaries")
     report(1.0, "denoise: exact k-NN at boundaries")
     return out_c, out_s, unsafe
 

@@ -193,3 +193,41 @@ def test_scissors_polygon_snaps_to_the_edges_and_fills_the_block(live, sid, new_
     page.keyboard.press("Escape")
     assert page.evaluate("() => window.__occufly.page.editor.tools.scissors.anchors.length") == 0
     assert np.array_equal(editor_ids(page), got) and n_undo(page) == steps0 + 1
+
+
+def test_low_confidence_marks_hide_when_the_prefill_is_undone(live, sid, new_page):
+    from tests.e2e.conftest import grey_png
+
+    # one submitted mask on this scene, so the next frame has lifted labels to prefill from
+    ann = live.client("annotator")
+    f = ann.post(f"/api/scenes/{sid}/next").json()
+    ids = np.zeros((H, W), np.uint8)
+    ids[:, : W // 2], ids[:, W // 2:] = 6, 1
+    ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+            headers={"Content-Type": "image/png",
+                     "If-Match": str(f["current_version"] or "none")}).raise_for_status()
+    admin = live.client("admin")
+
+    def lifted():
+        r = admin.get(f"/api/scenes/{sid}/labels/status")
+        return r.status_code == 200 and not r.json()["pending_fill"] and r.json()["included_versions"]
+    live.wait_until(lifted, timeout=90, what="the lifted labels of the smart-tools scene")
+    page = open_frame(live, sid, new_page)
+    assert page.evaluate("() => window.__occufly.page.frame.id") != f["id"]
+    page.click("#prefill")
+    page.locator("label.low-conf").wait_for()
+    assert int(page.get_attribute("label.low-conf", "data-low")) > 0
+    # a marked pixel, and what the overlay shows there before / after undoing the prefill
+    probe = """async () => { const p = window.__occufly.page, lc = p.lowConf, v = p.editor.view;
+        const d = lc.canvas.getContext('2d').getImageData(0, 0, lc.canvas.width, lc.canvas.height).data;
+        let i = 0; while (i < d.length / 4 && d[4 * i + 3] < 200) i++;
+        const x = i % lc.canvas.width, y = Math.floor(i / lc.canvas.width);
+        await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+        const [sx, sy] = v.toScreen(x + 0.5, y + 0.5), k = v.dpr || 1;
+        return v.overlay.getContext('2d').getImageData(Math.floor(sx * k), Math.floor(sy * k), 1, 1).data[3]; }"""
+    assert page.evaluate(probe) > 100
+    page.keyboard.press("Control+z")
+    assert page.evaluate("() => Number(document.querySelector('#painted').dataset.share)") == 0
+    assert page.evaluate(probe) == 0
+    page.keyboard.press("Control+Shift+z")  # redo: the prefill and its marks are back
+    assert page.evaluate(probe) > 100

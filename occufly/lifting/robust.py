@@ -34,8 +34,12 @@ No synthetic truth enters anywhere. The features depend only on the cloud and ar
 checksum); everything that scales with points is chunked (``chunk`` points at a time), so
 memory is bounded by the feature cache plus a few arrays of one byte to four per point.
 
-Measured (bench/bench_lifting.py --robustness, greedy rho 0.99 frames, union visibility; the
-README's "Lifting with imperfect annotators" has the tables): see the README.
+Measured (bench/bench_lifting.py --robustness --robust-modes plain,robust: greedy rho 0.99
+frames, union visibility, degrade.py defaults; accuracy / mIoU, plain vote -> robust):
+small (19 frames) exact 0.9889 / 0.8851 -> 0.9912 / 0.9118, degraded 0.9595 / 0.7429 ->
+0.9701 / 0.7952; bench (30 frames) exact 0.9891 / 0.9364 -> 0.9894 / 0.9359, degraded
+0.9392 / 0.7658 -> 0.9644 / 0.8437. The README's "Lifting with imperfect annotators" has the
+held-out agreement, the cost and what was tried.
 """
 
 from __future__ import annotations

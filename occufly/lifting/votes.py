@@ -22,9 +22,10 @@ Update cost
     :meth:`LiftState.apply_frame` reads and writes only the points whose vote from that frame
     changes (a per-point code of the frame's old and new vote), updates their counts in memory
     and recounts a winner only where the winning class lost a vote. On a fabricated
-    5472 x 3648 frame seeing 1.7 M points (``bench/bench_lifting.py --vote-update``) an edit
-    went from 1.40 s to 0.24 s CPU and a first save from 0.59 s to 0.45 s (best of 3, load
-    11-14; identical counts and changed-point figures).
+    5472 x 3648 frame seeing 1.7 M points (``bench/bench_lifting.py --vote-update``, best of
+    5 CPU at load 4.6) an edit went from 0.54 s to 0.24 s and a first save from 0.54 s to
+    0.47 s (at load 11-14: 1.40 -> 0.24 s and 0.59 -> 0.45 s); identical counts and
+    changed-point figures.
 
 Robust decision
     :meth:`LiftState.snapshot` also keeps each point's second vote class, which the robust

@@ -426,6 +426,12 @@ def _driver(stage: str, S: dict) -> tuple[str, float | None]:
     return "points", sc.get("points")
 
 
+def _stage_cpu(f: dict) -> float:
+    """CPU seconds of a stage: its process tree plus, for the Dask stage, the cluster's
+    workers (the CLI is only the client there)."""
+    return float(f.get("cpu_s") or 0.0) + float(f.get("cluster_cpu_s") or 0.0)
+
+
 def growth(res: Results) -> dict:
     sizes = res.data["sizes"]
     out = {}
@@ -438,7 +444,7 @@ def growth(res: Results) -> dict:
             if f and f.get("exit") == 0 and x and f["wall_s"] > 0:
                 xs.append(float(x))
                 ys.append(float(f["wall_s"]))
-                cs.append(max(float(f.get("cpu_s") or 0.0), 1e-3))
+                cs.append(max(_stage_cpu(f), 1e-3))
                 names.append(name)
         if len(xs) < 2 or len(set(xs)) < 2:
             continue
@@ -514,7 +520,7 @@ def markdown_table(data: dict) -> str:
             note = ""
             if st.startswith("export") and S.get("export_stride", 1) > 1:
                 note = f" ({S['exported_frames']} frames)"
-            cells.append(f"{fmt_s(f['wall_s'])} ({fmt_s(f['cpu_s'])} CPU), {mem:.1f} GB{note}")
+            cells.append(f"{fmt_s(f['wall_s'])} ({fmt_s(_stage_cpu(f))} CPU), {mem:.1f} GB{note}")
         if any(c != "not run" for c in cells):
             rows.append(f"| {st} | " + " | ".join(cells) + " |")
     return "\n".join(rows)

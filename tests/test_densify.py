@@ -655,3 +655,21 @@ def test_voxelize_that_cannot_fit_in_memory_exits_2_before_writing(tmp_path, mon
     assert not (ws / "grid" / "scene_grid.npz").exists()
     est = pipeline.densify_memory_estimate(10**6, 10**7) - pipeline.densify_memory_estimate(0, 0)
     assert est == 10**6 * pipeline.DENSIFY_BYTES_PER_POINT + 10**7 * pipeline.DENSIFY_BYTES_PER_VOXEL
+
+
+def test_poisson_ground_mesh_is_reproducible():
+    """The same ground cloud gives the same mesh bytes on every run (multi-threaded
+    PoissonRecon gave a different mesh on each of three runs of this cloud)."""
+    import hashlib
+
+    from occufly.densify.ground import poisson_mesh
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 40, (40_000, 2))
+    z = np.sin(xy[:, 0] / 6) + 0.3 * np.cos(xy[:, 1] / 5) + rng.normal(0, 0.02, len(xy))
+    pts = np.c_[xy, z].astype(np.float32)
+    digests = set()
+    for _ in range(3):
+        verts, tris, _stats = poisson_mesh(pts, 0.2)
+        digests.add(hashlib.sha1(verts.tobytes() + tris.tobytes()).hexdigest())
+    assert len(digests) == 1

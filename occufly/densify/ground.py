@@ -161,7 +161,8 @@ def poisson_mesh(
     pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            pcd, depth=params.depth, scale=params.scale, linear_fit=False
+            pcd, depth=params.depth, scale=params.scale, linear_fit=False,
+            n_threads=1,  # multi-threaded PoissonRecon differs run to run; ground truth must not
         )
     verts = np.asarray(mesh.vertices)
     tris = np.asarray(mesh.triangles).astype(np.int64)

@@ -362,7 +362,9 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     x, y = page.evaluate("() => window.__occufly.page.editor.view.toScreen(150.5, 120.5)")
     ov = page.locator(".layer-overlay").bounding_box()
     page.mouse.click(ov["x"] + x, ov["y"] + y)
-    page.wait_for_selector("#status:has-text('Region fill:')")
+    # the fill's own status (not "Region fill: cutting the photo into superpixels...", which
+    # shows while the segmentation is still being computed)
+    page.wait_for_selector("#status:has-text('pixels in')")
     member = np.array(page.evaluate("""() => { const t = window.__occufly.page.editor.tools.superpixel;
         const m = window.__occufly.page.editor.mask, s = t.seg, want = t.at([150.5, 120.5]);
         const out = new Array(m.width * m.height);

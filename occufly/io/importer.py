@@ -43,7 +43,7 @@ import numpy as np
 
 from occufly.camera import make_pose
 from occufly.errors import InputFormatError, OccuflyError, WorkspaceError
-from occufly.fsutil import atomic_directory
+from occufly.fsutil import atomic_directory, available_memory
 from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
 from occufly.io.pointcloud import read_point_cloud
@@ -314,17 +314,6 @@ def check_import_resources(workspace: Path, *, n_points: int, frames: list[Frame
                 f"available (nothing was written to {workspace})")
     est["available_bytes"] = avail
     return est
-
-
-def available_memory() -> int | None:
-    """MemAvailable in bytes (Linux), else None (not checked)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def _own_rss() -> int:

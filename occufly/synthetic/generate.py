@@ -26,6 +26,7 @@ from PIL import Image
 from occufly.camera import Camera, project_world
 from occufly.errors import OccuflyError, WorkspaceError
 from occufly.fsutil import atomic_directory
+from occufly.fsutil import available_memory as _available_memory
 from occufly.io.colmap_dense import (
     read_depth_map,
     write_depth_map,
@@ -155,17 +156,6 @@ def check_resources(P: Preset, n_frames: int, out: Path, *, workers: int = 1) ->
             f"--workers {workers}, {avail / gb:.1f} GB are available"
             + (" (try --workers 1)" if workers > 1 else ""))
     return est
-
-
-def _available_memory() -> int | None:
-    """MemAvailable in bytes (Linux), else None (not checked)."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
 
 
 def _is_nonempty_dir(p: Path) -> bool:

@@ -161,6 +161,25 @@ def grant_members(lv: Live, scene_id: int) -> None:
     assert r.status_code in (200, 404, 405), r.text  # 404/405: an app without membership
 
 
+def import_own_scene(lv: Live, name: str) -> int:
+    """Import the first source of the import root again as scene ``name`` (a module's own
+    scene: its queue and submissions untouched by the other modules), grant every seeded user
+    membership and run a stratified selection; returns the scene id."""
+    admin = lv.client("admin")
+    root = lv.app.state.ctx.settings.import_roots[0]
+    source = next(p for p in sorted(root.iterdir()) if p.is_dir())
+    r = admin.post("/api/scenes/import", json={"name": name, "source": str(source)})
+    assert r.status_code in (200, 202), r.text
+    job = lv.wait_job(r.json())
+    assert job["status"] == "done", job
+    scene_id = job["scene_id"]
+    grant_members(lv, scene_id)
+    r = admin.post(f"/api/scenes/{scene_id}/selection",
+                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
+    assert lv.wait_job(r.json())["status"] == "done"
+    return scene_id
+
+
 @pytest.fixture(scope="package")
 def browser():
     # package scope: the sync API keeps an event loop running in this thread while it is

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import ARTIFACTS, grant_members, grey_png, shot
+from tests.e2e.conftest import ARTIFACTS, grey_png, import_own_scene, shot
 from tests.e2e.test_browser import drag, editor_ids, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -18,19 +18,7 @@ pytestmark = pytest.mark.e2e
 def sid(live):
     """A scene of its own (the same source imported again), so the curve holds only this
     module's submissions."""
-    admin = live.client("admin")
-    root = live.app.state.ctx.settings.import_roots[0]
-    source = next(p for p in sorted(root.iterdir()) if p.is_dir())
-    r = admin.post("/api/scenes/import", json={"name": "effort_scene", "source": str(source)})
-    assert r.status_code in (200, 202), r.text
-    job = live.wait_job(r.json())
-    assert job["status"] == "done", job
-    scene_id = job["scene_id"]
-    grant_members(live, scene_id)
-    r = admin.post(f"/api/scenes/{scene_id}/selection",
-                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
-    assert live.wait_job(r.json())["status"] == "done"
-    return scene_id
+    return import_own_scene(live, "effort_scene")
 
 
 def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, new_page):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import grant_members, grey_png, png_ids, shot
+from tests.e2e.conftest import grey_png, import_own_scene, png_ids, shot
 from tests.e2e.test_browser import drag, editor_ids, painted_share, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -24,19 +24,7 @@ STATE: dict = {}
 def sid(live):
     """A scene of its own (the same source imported again): a clean queue for this module,
     whatever the other modules leased, submitted or rejected."""
-    admin = live.client("admin")
-    root = live.app.state.ctx.settings.import_roots[0]
-    source = next(p for p in sorted(root.iterdir()) if p.is_dir())
-    r = admin.post("/api/scenes/import", json={"name": "workday_scene", "source": str(source)})
-    assert r.status_code in (200, 202), r.text
-    job = live.wait_job(r.json())
-    assert job["status"] == "done", job
-    scene_id = job["scene_id"]
-    grant_members(live, scene_id)
-    r = admin.post(f"/api/scenes/{scene_id}/selection",
-                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
-    assert live.wait_job(r.json())["status"] == "done"
-    return scene_id
+    return import_own_scene(live, "workday_scene")
 
 
 def watch(page) -> list[str]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -114,7 +115,11 @@ def atomic_directory(path: str | Path, *, overwrite: bool = False):
     if path.exists() and not overwrite:
         raise FileExistsError(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    remove_stale_partials(path)
+    # the owner's pid is in the name, so that a later run can tell a killed run's leftovers
+    # (SIGKILL, an out-of-memory kill, a power cut) from a live one's work in progress
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.{os.getpid()}-", suffix=".partial",
+                                dir=path.parent))
     os.chmod(tmp, ordinary_mode(directory=True))
     try:
         yield tmp
@@ -136,6 +141,38 @@ def atomic_directory(path: str | Path, *, overwrite: bool = False):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_partials(path: str | Path) -> list[Path]:
+    """Remove what killed runs of :func:`atomic_directory` left beside ``path``.
+
+    ``.NAME.<pid>-XXXX.partial`` (a folder being built) and ``.NAME.old-<pid>`` (the previous
+    version during the swap) whose process no longer runs. A live process's folders stay.
+    Returns the folders removed."""
+    path = Path(path).absolute()
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    pat = re.compile(rf"^\.{re.escape(path.name)}\.(?:(\d+)-.*\.partial|old-(\d+))$")
+    for p in path.parent.iterdir():
+        m = pat.match(p.name)
+        if not m or not p.is_dir() or p.is_symlink():
+            continue
+        pid = int(m.group(1) or m.group(2))
+        if pid != os.getpid() and not _pid_alive(pid):
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
 
 
 def available_memory() -> int | None:

@@ -5,7 +5,6 @@ lens-distorted camera and in UTM 32N; :mod:`occufly.synthetic.formats`)."""
 from __future__ import annotations
 
 import argparse
-import signal
 from pathlib import Path
 
 from occufly.cli import command
@@ -43,31 +42,23 @@ def _formats(text: str) -> list[str]:
     return names
 
 
-def _interrupt(_signum, _frame) -> None:
-    raise KeyboardInterrupt
-
-
 def _synth(args: argparse.Namespace) -> dict:
     from occufly.errors import InputFormatError
     from occufly.synthetic import generate
 
     if not 1 <= args.workers <= 64:
         raise InputFormatError(f"--workers: expected 1..64 processes, got {args.workers}")
-    # SIGTERM (e.g. a job runner stopping us) unwinds like Ctrl-C, so the temporary output
-    # folder is removed and OUT is left as it was
-    old = signal.signal(signal.SIGTERM, _interrupt)
-    try:
-        with tqdm_progress("synth") as bar:
-            if args.formats:
-                from occufly.synthetic.formats import generate_formats
+    # SIGTERM unwinds like Ctrl-C (occufly.cli.main): the temporary output folder is removed
+    # and OUT is left as it was
+    with tqdm_progress("synth") as bar:
+        if args.formats:
+            from occufly.synthetic.formats import generate_formats
 
-                summary = generate_formats(args.out, args.formats, preset=args.preset,
-                                           seed=args.seed, progress=bar, overwrite=args.force)
-            else:
-                summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
-                                   overwrite=args.force, workers=args.workers)
-    finally:
-        signal.signal(signal.SIGTERM, old)
+            summary = generate_formats(args.out, args.formats, preset=args.preset,
+                                       seed=args.seed, progress=bar, overwrite=args.force)
+        else:
+            summary = generate(args.out, preset=args.preset, seed=args.seed, progress=bar,
+                               overwrite=args.force, workers=args.workers)
     if not args.json:  # readable: class names instead of four id lists
         from occufly.taxonomy import default_taxonomy
 

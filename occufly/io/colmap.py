@@ -69,12 +69,29 @@ def find_sparse_dir(source: Path) -> Path:
     )
 
 
+def import_pycolmap():
+    """``import pycolmap`` keeping Python's SIGTERM handler.
+
+    pycolmap's glog installs a failure handler for SIGTERM at import that aborts the process
+    with a stack dump, replacing the CLI's handler (SIGTERM unwinds like Ctrl-C so that a
+    stopped command removes its temporary output). The Python handler is put back."""
+    import signal
+    import threading
+
+    before = signal.getsignal(signal.SIGTERM)
+    import pycolmap
+
+    if threading.current_thread() is threading.main_thread() and before is not None:
+        signal.signal(signal.SIGTERM, before)
+    return pycolmap
+
+
 def read_sparse_model(source: str | Path) -> SparseModel:
     source = Path(source)
     if not source.exists():
         raise InputFormatError(f"{source}: reconstruction folder not found")
     sparse = find_sparse_dir(source)
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     try:
         rec = pycolmap.Reconstruction(str(sparse))

@@ -25,8 +25,9 @@ def write_sparse_model(
     world-to-camera in WORLD (georeferenced) coordinates; points_world: (P, 3) float64;
     colors: (P, 3) uint8; tracks: per point (frame indices (k,) int, uv (k, 2) float64 pixels).
     """
-    import pycolmap
+    from occufly.io.colmap import import_pycolmap
 
+    pycolmap = import_pycolmap()
     rec = pycolmap.Reconstruction()
     # the camera's own COLMAP model (PINHOLE for the default scene, FULL_OPENCV with lens
     # distortion for synthetic/formats.py)

@@ -549,6 +549,30 @@ def frustum_nodes(scene: Scene, states: dict[int, str] | None = None) -> list[Fr
     return nodes
 
 
+#: the viewer's "Show cameras" choices
+CAMERA_FILTERS = ("all", "selected and annotated", "none")
+#: above this many frames the viewer starts with only the selected and annotated cameras
+MANY_FRAMES = 400
+
+
+def default_camera_filter(n_frames: int) -> str:
+    return CAMERA_FILTERS[0] if n_frames <= MANY_FRAMES else CAMERA_FILTERS[1]
+
+
+def filter_frustum_nodes(nodes: list[FrustumNode], mode: str,
+                         keep: set[int] | None = None) -> list[FrustumNode]:
+    """The frusta shown for a "Show cameras" choice; frames in ``keep`` (the focused frame of
+    "Open in 3D") are always shown."""
+    if mode not in CAMERA_FILTERS:
+        raise ValueError(f"camera filter must be one of {CAMERA_FILTERS}, got {mode!r}")
+    keep = keep or set()
+    if mode == "all":
+        return list(nodes)
+    if mode == "none":
+        return [nd for nd in nodes if nd.frame_index in keep]
+    return [nd for nd in nodes if nd.state != "not_selected" or nd.frame_index in keep]
+
+
 def send_frustum_nodes(scene_api: Any, nodes: list[FrustumNode], *, scale: float = 2.0) -> dict[int, Any]:
     handles = {}
     for nd in nodes:

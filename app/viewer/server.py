@@ -78,6 +78,7 @@ class ClientState:
     selection: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     frame_index: int | None = None
     highlighted: int | None = None  # frame whose frustum is highlighted (Open in 3D)
+    camera_filter: str = sb.CAMERA_FILTERS[0]  # "Show cameras"
     highlight_restore: tuple = ((0, 0, 0), 1.0)
     gui: dict[str, Any] = field(default_factory=dict)
     class_boxes: dict[int, Any] = field(default_factory=dict)
@@ -315,6 +316,9 @@ class ViewerService:
             g["comment"] = gui.add_text("Comment", initial_value="")
             g["file_btn"] = gui.add_button("File review item", disabled=True)
         with gui.add_folder("Camera"):
+            g["frusta"] = gui.add_dropdown("Show cameras", list(sb.CAMERA_FILTERS),
+                                           initial_value=sb.CAMERA_FILTERS[0])
+            g["frusta_info"] = gui.add_markdown("")
             g["cam_info"] = gui.add_markdown("Click a camera frustum.")
             g["goto"] = gui.add_button("Move view to camera", disabled=True)
         g["image"] = None
@@ -329,6 +333,12 @@ class ViewerService:
         def _(_e: Any) -> None:
             st.mode = g["mode"].value
             self.send_points(st)
+
+        @g["frusta"].on_update
+        def _(_e: Any) -> None:
+            if st.data is not None and g["frusta"].value != st.camera_filter:
+                st.camera_filter = g["frusta"].value
+                self.send_frusta(st)
 
         @g["size"].on_update
         def _(_e: Any) -> None:
@@ -466,6 +476,8 @@ class ViewerService:
                 st.gui["size"].value = st.point_size
             frames = ["(none)"] + [f.stem for f in st.data.scene.frames]
             st.gui["grid_frame"].options = frames
+            st.camera_filter = sb.default_camera_filter(len(st.data.scene.frames))
+            st.gui["frusta"].value = st.camera_filter
             self._place_camera(st)
             d = st.data
             n_show = min(st.max_points, d.scene.n_points)
@@ -523,12 +535,21 @@ class ViewerService:
             return nodes
 
     def send_frusta(self, st: ClientState) -> None:
+        """(Re)send the camera frusta the "Show cameras" choice keeps (the focused frame of
+        "Open in 3D" always); a survey of thousands of frames starts with only the selected
+        and annotated ones."""
         with st.lock:
             d = st.data
             states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
-            nodes = sb.frustum_nodes(d.scene, states)
+            every = sb.frustum_nodes(d.scene, states)
+            keep = {st.highlighted} if st.highlighted is not None else set()
+            nodes = sb.filter_frustum_nodes(every, st.camera_filter, keep)
+            for h in st.frustum_handles.values():
+                h.remove()
             scale = 0.04 * sb.scene_extent(d)
             st.frustum_handles = sb.send_frustum_nodes(st.client.scene, nodes, scale=scale)
+            if st.gui.get("frusta_info") is not None:
+                st.gui["frusta_info"].content = f"{len(nodes):,} of {len(every):,} cameras shown."
             for idx, h in st.frustum_handles.items():
                 def clicked(_e: Any, idx: int = idx) -> None:
                     self.show_frame(st, idx)
@@ -623,6 +644,13 @@ class ViewerService:
         self.highlight_frustum(st, frame_index)
 
     def highlight_frustum(self, st: ClientState, frame_index: int | None) -> None:
+        if (frame_index is not None and frame_index not in st.frustum_handles
+                and st.data is not None and 0 <= frame_index < len(st.data.scene.frames)):
+            # hidden by "Show cameras": send the frusta again with this one kept (fresh
+            # handles, so nothing to restore); send_frusta highlights it
+            st.highlighted = frame_index
+            self.send_frusta(st)
+            return
         prev = st.highlighted
         if prev is not None and prev in st.frustum_handles and prev != frame_index:
             h = st.frustum_handles[prev]

@@ -137,6 +137,28 @@ def test_reviewer_sees_scene_toggles_classes_selects_and_gets_live_updates(env):
     assert env["masks"] == [("demo", 0)]
     assert st.gui["mask"] is not None  # the mask image is in the side panel
 
+    # 4b. "Show cameras" (Camera folder): only the selected/annotated frames, none, all again
+    n_all = len(st.data.scene.frames)
+    assert len(st.frustum_handles) == n_all
+    assert f"{n_all} of {n_all} cameras shown" in page.inner_text("body")
+
+    def show_cameras(choice: str) -> None:
+        sel = page.get_by_label("Show cameras")
+        sel.click()
+        page.get_by_role("option", name=choice, exact=True).click()
+
+    show_cameras("selected and annotated")
+    assert wait_for(lambda: sorted(st.frustum_handles) == sorted(STATES), 10), sorted(st.frustum_handles)
+    assert wait_for(lambda: f"{len(STATES)} of {n_all} cameras shown" in page.inner_text("body"), 5)
+    show_cameras("none")
+    assert wait_for(lambda: not st.frustum_handles, 10), sorted(st.frustum_handles)
+    svc.focus_frame(st, 5)  # "Open in 3D" on a hidden camera shows and highlights it
+    assert sorted(st.frustum_handles) == [5] and st.highlighted == 5
+    assert st.frustum_handles[5].color == sb.HIGHLIGHT_COLOUR
+    show_cameras("all")
+    assert wait_for(lambda: len(st.frustum_handles) == n_all, 10)
+    assert st.frustum_handles[5].color == sb.HIGHLIGHT_COLOUR and st.highlighted == 5
+
     # 5. the scene voxel grid as instanced boxes, toggled from the panel
     page.get_by_text("Voxel grids").click()
     grid_box = page.locator("div.mantine-Flex-root", has=page.get_by_text("Scene grid")).locator("input").last

@@ -215,6 +215,20 @@ def test_frusta_pose_fov_and_state_colours(tiny):
         sb.frustum_nodes(tiny.scene, {0: "bogus"})
 
 
+def test_show_cameras_filter_keeps_the_focused_frame(tiny):
+    nodes = sb.frustum_nodes(tiny.scene, {0: "accepted"})
+    assert [nd.frame_index for nd in sb.filter_frustum_nodes(nodes, "all")] == [0, 1]
+    assert [nd.frame_index for nd in sb.filter_frustum_nodes(nodes, "selected and annotated")] == [0]
+    assert sb.filter_frustum_nodes(nodes, "none") == []
+    # "Open in 3D" on a frame the filter hides still shows (and highlights) it
+    assert [nd.frame_index for nd in sb.filter_frustum_nodes(nodes, "none", {1})] == [1]
+    assert [nd.frame_index for nd in sb.filter_frustum_nodes(nodes, "selected and annotated", {1})] == [0, 1]
+    with pytest.raises(ValueError, match="camera filter"):
+        sb.filter_frustum_nodes(nodes, "some")
+    assert sb.default_camera_filter(240) == "all"
+    assert sb.default_camera_filter(2100) == "selected and annotated"
+
+
 def test_changed_classes_detects_relabelled_points(tiny):
     old = sb.ViewerData.load(tiny.ws)
     labels = tiny.labels.copy()

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -40,6 +41,7 @@ from occufly.scene import Frame, Scene, Visibility  # noqa: E402
 from occufly.taxonomy import default_taxonomy  # noqa: E402
 
 BASELINE = "0cb5735"  # main before the 20 MP render work (issue 17 session)
+EXPORT_BASELINE = "7fa56f7"  # main before the 20 MP export work (PNG encoder of 5594c36)
 SHAPE = (3648, 5472)
 
 
@@ -91,20 +93,203 @@ def best_cpu(fn, repeat: int):
     return best
 
 
+# ---- export of one 20 MP frame (issue 16 item 3, the fourth step) --------------------------------
+# A real 20 MP frame: the `small` synthetic world rendered at 5472 x 3648 from the pose of one of
+# its own 50 m nadir frames (the survey sensor's field of view, the generator's JPEG quality 92 and
+# its full-resolution noisy MVS depth map), put into a copy of the imported `small` workspace in
+# place of that frame, with the synthetic truth scene grid. The export task of that frame is then
+# timed in fresh processes, for the code at --export-baseline (``git archive``) and for the working
+# tree, in the same run, cold (the first export in a process, as bench_survey's frame_path times
+# it: the scene and grid loads included) and warm (best of --repeat, scene and grid cached).
+EXPORT_CHILD = r'''
+import cProfile, json, pstats, shutil, sys, tempfile, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+ws, fi, repeat = Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+import numpy as np
+from occufly.export.dataset import export_dataset
+assert Path(__import__("occufly").__file__).resolve().is_relative_to(Path(sys.argv[1]).resolve())
+tmp = Path(tempfile.mkdtemp(prefix="export20mp_", dir=str(ws.parent)))
+def one(k, prof=None):
+    out = tmp / f"o{k}"
+    if prof is not None:
+        prof.enable()
+    s = export_dataset(ws, out, frames=[fi], workers=1)
+    if prof is not None:
+        prof.disable()
+    r = s["results"][0]
+    return r, out
+try:
+    r, out = one(0)
+    res = {"cold_cpu_s": r["cpu_seconds"], "cold_s": r["seconds"], "bytes": r["bytes"]}
+    best = None
+    for k in range(1, repeat + 1):
+        r, o = one(k)
+        if best is None or r["cpu_seconds"] < best["cpu_seconds"]:
+            best = r
+        if k > 1:
+            shutil.rmtree(o, ignore_errors=True)
+    res.update(warm_cpu_s=best["cpu_seconds"], warm_s=best["seconds"])
+    prof = cProfile.Profile(time.process_time)
+    one(repeat + 1, prof)
+    st = pstats.Stats(prof)
+    steps = {}
+    for (fn, line, name), (cc, nc, tt, ct, callers) in st.stats.items():
+        key = f"{Path(fn).name}:{name}"
+        steps[key] = max(steps.get(key, 0.0), ct)
+    res["profile_cum_cpu_s"] = {k: round(v, 3) for k, v in sorted(steps.items(), key=lambda kv: -kv[1])
+                                if v >= 0.01}
+    res["out"] = str(tmp / "o1")
+    print(json.dumps(res))
+finally:
+    pass
+'''
+
+
+def fabricate_export_ws(root: Path, *, frame: int | None = None) -> tuple[Path, int, dict]:
+    """``root/export20mp/ws``: the imported ``small`` workspace with one 50 m nadir frame
+    replaced by its 20 MP rendering (cached; see the comment above)."""
+    import shutil
+
+    from PIL import Image
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from _scene import ensure_scene
+
+    from occufly.grid import SceneGrid
+    from occufly.io.colmap_dense import write_depth_map
+    from occufly.synthetic.flight import make_camera, plan_flight
+    from occufly.synthetic.presets import get_preset
+    from occufly.synthetic.render import Renderer, noisy_depth, render_banded
+    from occufly.synthetic.world import build_world
+
+    src, ws_small = ensure_scene(root, "small")
+    d = root / "export20mp"
+    ws = d / "ws"
+    info_p = d / "info.json"
+    if info_p.is_file() and (ws / "scene.json").is_file():
+        info = json.loads(info_p.read_text())
+        return ws, info["frame_index"], info
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    P = get_preset("small")
+    world = build_world(P, 0)
+    cam = make_camera(P)
+    plan = plan_flight(P, world, cam)
+    scene = Scene.load(ws_small, mmap=False)
+    if frame is None:  # the first nadir frame at 50 m
+        frame = next(i for i, fr in enumerate(scene.frames)
+                     if fr.nominal_altitude == 50 and abs(np.linalg.inv(fr.T_cam_world)[2, 2] + 1) < 1e-3)
+    fr = scene.frames[frame]
+    assert plan[frame].name == fr.name, (plan[frame].name, fr.name)
+    big = cam.scaled(SHAPE[1] / cam.width)
+    assert (big.width, big.height) == SHAPE[::-1]
+    rng = np.random.default_rng([0, 1, frame])
+    t0 = time.process_time()
+    res = render_banded(Renderer(world, 0), big, plan[frame].T_cam_world, rng)
+    dn = noisy_depth(res.depth, res.cls, rng, sigma=P.depth_noise)
+    render_cpu = time.process_time() - t0
+    (d / "images").mkdir()
+    (d / "depth_maps").mkdir()
+    img = d / "images" / fr.name
+    Image.fromarray(res.rgb).save(img, quality=92)  # as the generator writes its JPEGs
+    write_depth_map(d / "depth_maps" / f"{fr.name}.geometric.bin", dn)
+    ddir = Path(scene.meta.get("depth_maps") or "")
+    for p in ddir.glob("*.bin") if ddir.is_dir() else []:  # the other frames' maps, unchanged
+        if not (d / "depth_maps" / p.name).exists():
+            os.symlink(p, d / "depth_maps" / p.name)
+    scene.frames[frame] = Frame(name=fr.name, camera=big, T_cam_world=fr.T_cam_world,
+                                image_path=str(img), altitude=fr.altitude,
+                                nominal_altitude=fr.nominal_altitude)
+    scene.meta["depth_maps"] = str(d / "depth_maps")
+    scene.save(ws)
+    SceneGrid.load(src / "truth" / "scene_grid.npz").save(ws / "grid" / "scene_grid.npz")
+    info = {"frame_index": frame, "frame": fr.name, "size": list(SHAPE[::-1]),
+            "jpeg_bytes": img.stat().st_size, "render_cpu_s": round(render_cpu, 1)}
+    info_p.write_text(json.dumps(info))
+    return ws, frame, info
+
+
+def code_tree(rev: str, dest: Path) -> Path:
+    """``occufly/`` of git revision ``rev`` extracted under ``dest`` (for PYTHONPATH)."""
+    import shutil
+
+    shutil.rmtree(dest, ignore_errors=True)
+    dest.mkdir(parents=True)
+    arch = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "occufly"], capture_output=True,
+                          check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=arch, check=True)
+    return dest
+
+
+def export_bench(root: Path, baseline: str, repeat: int, rounds: int) -> dict:
+    """Export of the 20 MP frame: baseline code vs the working tree, alternating processes."""
+    import shutil
+
+    from PIL import Image
+
+    ws, fi, info = fabricate_export_ws(root)
+    trees = {"baseline": code_tree(baseline, root / "export20mp" / f"code_{baseline}"), "now": ROOT}
+    runs: dict[str, list[dict]] = {k: [] for k in trees}
+    for _ in range(rounds):
+        for k, tree in trees.items():
+            p = subprocess.run([sys.executable, "-c", EXPORT_CHILD, str(tree), str(ws), str(fi), str(repeat)],
+                               capture_output=True, text=True, check=True, env={**os.environ, "PYTHONPATH": ""})
+            runs[k].append(json.loads(p.stdout.strip().splitlines()[-1]))
+    out: dict = {"frame": info, "baseline": baseline, "repeat": repeat, "rounds": rounds}
+    pngs = {}
+    for k, rs in runs.items():
+        out[k] = {"cold_cpu_s": [r["cold_cpu_s"] for r in rs], "warm_cpu_s": [r["warm_cpu_s"] for r in rs],
+                  "bytes": rs[-1]["bytes"], "profile_cum_cpu_s": rs[-1]["profile_cum_cpu_s"]}
+        pngs[k] = next(Path(rs[-1]["out"]).rglob("*.png"))
+    # the exported image: Pillow reads the same pixels from both, and they are the JPEG's decode
+    a, b = (np.asarray(Image.open(pngs[k])) for k in ("baseline", "now"))
+    with Image.open(root / "export20mp" / "images" / info["frame"]) as im:
+        src = np.asarray(im.convert("RGB"))
+    out["png_pixels_identical"] = bool(np.array_equal(a, b) and np.array_equal(b, src))
+    out["png_bytes"] = {k: pngs[k].stat().st_size for k in pngs}
+    out["budget_le_1s_cpu"] = max(out["now"]["cold_cpu_s"] + out["now"]["warm_cpu_s"]) <= 1.0
+    for rs in runs.values():
+        for r in rs:
+            shutil.rmtree(Path(r["out"]).parent, ignore_errors=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--baseline", default=BASELINE, help="git revision of the baseline render")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--export-root", type=Path,
+                    help="also time the export of a 20 MP frame; the small scene and the frame are "
+                         "generated (once) under this folder")
+    ap.add_argument("--export-baseline", default=EXPORT_BASELINE,
+                    help="git revision of the baseline export code")
+    ap.add_argument("--export-rounds", type=int, default=2,
+                    help="fresh processes per code version (alternating)")
+    ap.add_argument("--only-export", action="store_true", help="skip the render / agreement part")
     args = ap.parse_args()
     t0 = time.perf_counter()
+    if args.only_export and not args.export_root:
+        ap.error("--only-export needs --export-root")
+    out: dict = {"bench": "frame-path-20mp", "frame": list(SHAPE[::-1]), "repeat": args.repeat}
+    if not args.only_export:
+        render_part(args, out)
+    if args.export_root:
+        out["export"] = export_bench(args.export_root.absolute(), args.export_baseline, args.repeat,
+                                     args.export_rounds)
+        out.setdefault("budget", {})["export_le_1s_cpu"] = out["export"]["budget_le_1s_cpu"]
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    print(json.dumps(out, indent=1))
+
+
+def render_part(args, out: dict) -> None:
     scene, labels, in_view = fabricate()
     old = module_at(args.baseline)
     from app.pipeline import encode_png
 
     for m in (old, render):  # warm the per-scene caches (point bins, spacing)
         m.render_labels(scene, labels, 0, scale=0.05)
-    out: dict = {"bench": "frame-path-20mp", "frame": list(SHAPE[::-1]), "points": scene.n_points,
-                 "points_in_view": in_view, "baseline": args.baseline, "repeat": args.repeat}
+    out.update(points=scene.n_points, points_in_view=in_view, baseline=args.baseline)
     c, w, (a_cls, a_dep) = best_cpu(lambda: old.render_for_mask(scene, labels, 0, SHAPE), args.repeat)
     out["render_baseline"] = {"cpu_s": round(c, 3), "wall_s": round(w, 3)}
     c, w, (b_cls, b_dep) = best_cpu(lambda: render.render_for_mask(scene, labels, 0, SHAPE), args.repeat)
@@ -125,8 +310,6 @@ def main() -> None:
     out["agreement"] = {"cpu_s": round(c, 3), "wall_s": round(w, 3), "value": round(float(ag["agreement"]), 4)}
     out["budget"] = {"prefill_le_1s_cpu": out["prefill"]["cpu_s"] <= 1.0,
                      "agreement_le_1s_cpu": out["agreement"]["cpu_s"] <= 1.0}
-    out["seconds"] = round(time.perf_counter() - t0, 1)
-    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

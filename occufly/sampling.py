@@ -528,13 +528,51 @@ def quarter_shape(camera: Camera) -> tuple[int, int]:
     return q.height, q.width
 
 
+def _nearest_indices(n_out: int, n_in: int) -> np.ndarray:
+    return np.minimum(((np.arange(n_out) + 0.5) * n_in / n_out).astype(np.int64), n_in - 1)
+
+
 def resample_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Nearest-sample an (H', W') depth map at the pixel centres of an (h, w) map -> float32."""
     h, w = shape
     H, W = depth.shape
-    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
-    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    rows, cols = _nearest_indices(h, H), _nearest_indices(w, W)
     return np.ascontiguousarray(depth[rows[:, None], cols[None, :]], dtype=np.float32)
+
+
+def read_depth_map_resampled(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
+    """``resample_depth(read_depth_map(path), shape)`` of a COLMAP ``.bin`` depth map, reading
+    only the rows it keeps (a quarter of a 1/4-resolution export's file: for a 20 MP map 20 of
+    80 MB, 0.07 -> ~0.02 s). Same values (non-finite and negative depths are 0); a file that
+    is not a well-formed map goes through :func:`occufly.io.colmap_dense.read_depth_map`,
+    which names its problem."""
+    import os
+
+    from occufly.io.colmap_dense import read_depth_map
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+        parts = head.split(b"&", 3)
+        width, height, channels = (int(v) for v in parts[:3])
+        offset = sum(len(v) for v in parts[:3]) + 3
+        ok = (len(parts) == 4 and offset <= 64 and width > 0 and height > 0 and channels == 1
+              and os.path.getsize(path) - offset == width * height * 4)
+    except (OSError, ValueError):
+        ok = False
+    if not ok:
+        return resample_depth(read_depth_map(path), shape)
+    h, w = shape
+    # the file holds the map row by row (COLMAP's column-major (W, H) array)
+    mm = np.memmap(path, dtype="<f4", mode="r", offset=offset, shape=(height, width))
+    try:
+        d = np.ascontiguousarray(mm[_nearest_indices(h, height)][:, _nearest_indices(w, width)],
+                                 dtype=np.float32)
+    finally:
+        del mm
+    d[~np.isfinite(d) | (d < 0)] = 0.0
+    return d
 
 
 def render_depth(camera: Camera, uv: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -561,11 +599,11 @@ def frame_depth_map(scene, f: int, *, depth_dir: str | Path | None = None) -> tu
     shape = quarter_shape(frame.camera)
     ddir = depth_dir if depth_dir is not None else scene.meta.get("depth_maps")
     if ddir:
-        from occufly.io.colmap_dense import find_depth_map, read_depth_map
+        from occufly.io.colmap_dense import find_depth_map
 
         p = find_depth_map(Path(ddir), frame.name)
         if p is not None:
-            return resample_depth(read_depth_map(p), shape), "mvs"
+            return read_depth_map_resampled(p, shape), "mvs"
     vis = scene.visibility
     if vis is not None and vis.n_frames > f and vis.offsets[f + 1] > vis.offsets[f]:
         _ids, uv, z = vis.frame(f)

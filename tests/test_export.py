@@ -357,6 +357,32 @@ def test_jpeg_export_is_the_same_bytes_in_any_process(tmp_path):
             assert np.array_equal(_inflate_png(a[k]), np.asarray(src))
 
 
+@pytest.mark.parametrize("hw,shape", [((48, 64), (12, 16)), ((13, 17), (13, 17)), ((7, 5), (2, 1)),
+                                      ((401, 603), (100, 151))])
+def test_depth_map_read_only_at_the_samples_it_keeps(tmp_path, hw, shape):
+    """The export's depth read (only the kept rows of the file) gives what reading the whole
+    COLMAP map and nearest-sampling it gives: non-finite and negative depths 0. A malformed
+    file is refused by the full reader, naming the file."""
+    from occufly.errors import InputFormatError
+    from occufly.sampling import read_depth_map_resampled, resample_depth
+
+    H, W = hw
+    x = np.random.default_rng(H).normal(3.0, 2.0, hw).astype(np.float32)  # some < 0
+    x[0, 0], x[-1, -1], x[H // 2, 0] = np.nan, np.inf, -np.inf
+    p = tmp_path / "f.jpg.geometric.bin"
+    p.write_bytes(f"{W}&{H}&1&".encode() + np.asfortranarray(x.T).tobytes(order="F"))  # COLMAP layout
+    ref = np.where(np.isfinite(x) & (x >= 0), x, 0).astype(np.float32)
+    got = read_depth_map_resampled(p, shape)
+    assert got.dtype == np.float32 and got.shape == shape and got.flags.c_contiguous
+    assert np.array_equal(got, resample_depth(ref, shape))
+    p.write_bytes(p.read_bytes()[:-4])  # truncated
+    with pytest.raises(InputFormatError, match=r"f\.jpg\.geometric\.bin: depth map is truncated"):
+        read_depth_map_resampled(p, shape)
+    p.write_bytes(b"not a depth map")
+    with pytest.raises(InputFormatError, match="not a COLMAP depth map"):
+        read_depth_map_resampled(p, shape)
+
+
 def test_encode_png_refuses_other_arrays():
     from occufly.export.common import encode_png
 

@@ -14,9 +14,17 @@ in one run, with warm per-scene caches (point bins), best CPU of ``--repeat``:
 - ``agreement``: ``occufly.render.agreement`` of a mask (the rendering with a 400 x 400 block
   changed) against the rendering.
 
-Budget (issue 16): prefill render <= 1 s CPU, agreement <= 1 s CPU. Prints one JSON object.
+With ``--export-root R`` also the export of one 20 MP frame (``export``; see
+:func:`fabricate_export_ws`): the export task's CPU, cold and warm, for the code at
+``--export-baseline`` and for the working tree in alternating fresh processes, a cProfile of
+the task by function (cumulative CPU), and whether both PNGs hold exactly PIL's decode of the
+JPEG. ``--only-export`` skips the render part.
+
+Budget (issue 16): prefill render <= 1 s CPU, agreement <= 1 s CPU, export of the frame <= 1 s
+CPU on one core. Prints one JSON object.
 
     .venv/bin/python bench/bench_frame_path_20mp.py
+    .venv/bin/python bench/bench_frame_path_20mp.py --only-export --export-root /tmp/occufly_bench
 """
 
 from __future__ import annotations

@@ -208,6 +208,19 @@ def test_truncated_depth_map(tmp_path):
     _expect_error(tmp_path, tmp_path / "rec", "truncated or padded")
 
 
+def test_depth_map_with_nan_inf_and_negative_values_reads_them_as_no_depth(tmp_path):
+    from occufly.io.colmap_dense import write_depth_map
+
+    d = np.arange(12, dtype=np.float32).reshape(3, 4) + 1.0
+    d[0, 1], d[1, 2], d[2, 3] = np.nan, np.inf, -5.0
+    write_depth_map(tmp_path / "d.bin", d)
+    got = read_depth_map(tmp_path / "d.bin")
+    want = d.copy()
+    want[0, 1] = want[1, 2] = want[2, 3] = 0.0
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == np.float32 and got.flags.c_contiguous
+
+
 def test_cli_reports_error_in_one_line(tmp_path, capsys):
     assert main(["import", str(tmp_path / "nowhere"), "--workspace", str(tmp_path / "ws")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -59,8 +59,8 @@ def read_depth_map(path: str | Path) -> np.ndarray:
     depth = data.reshape((width, height), order="F").T  # column-major -> (H, W)
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     bad = ~np.isfinite(depth) | (depth < 0)
-    if bad.any():
-        depth[bad] = 0.0
+    if bad.any():  # NaN / inf / negative = no depth (the view above may be read-only)
+        depth = np.where(bad, np.float32(0.0), depth)
     return depth
 
 

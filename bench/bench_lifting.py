@@ -34,6 +34,7 @@ from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import (  # noqa: E402
     LiftParams,
     LiftState,
+    RobustParams,
     evaluate_points,
     fill_and_denoise,
     fill_and_denoise_exact,
@@ -159,6 +160,12 @@ def quality(args: argparse.Namespace) -> dict:
     return out
 
 
+#: the robust decision before the tiny-object work (issue 18's last round): scene-wide prior
+#: only, classifier trained on unanimous points only, the fill's two-view confirmation
+BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
+                           confirm_needs_vote=False)
+
+
 def robustness(args: argparse.Namespace) -> dict:
     """Lifting accuracy with the new (union) vs old (.vis only) visibility on the same
     selected frames, with exact and degraded masks (occufly.synthetic.degrade), for the
@@ -214,7 +221,8 @@ def robustness(args: argparse.Namespace) -> dict:
                 direct = st.direct_labels()
                 t_fill, c_fill = time.perf_counter(), time.process_time()
                 res = st.fill_and_denoise(write=False, params=LiftParams(
-                    tie_fill=robust != "tieorder", robust=robust == "robust"))
+                    tie_fill=robust != "tieorder", robust=robust in ("robust", "robust-before"),
+                    robust_params=BEFORE_TINY if robust == "robust-before" else None))
                 t_fill, c_fill = time.perf_counter() - t_fill, time.process_time() - c_fill
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
@@ -386,7 +394,8 @@ def main() -> None:
     ap.add_argument("--robust-modes", default="plain,robust",
                     help="robustness: tieorder (plain vote, ties by taxonomy order), plain "
                          "(plain vote, ties to the fill: the default before the robust "
-                         "decision), robust (the default), boundary (weighted votes)")
+                         "decision), robust (the default), robust-before (the robust "
+                         "decision before the tiny-object work), boundary (weighted votes)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")

@@ -545,7 +545,11 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
                   read_only: bool = True) -> LiftResult:
     """Robust decision (``params.robust``, :mod:`occufly.lifting.robust`) then kNN fill +
     denoise of a :class:`VoteSnapshot` (does not write anything but, with ``ws`` and not
-    ``read_only``, the feature cache ``ws/lifting/features.npy``)."""
+    ``read_only``, the feature cache ``ws/lifting/features.npy``).
+
+    After a robust decision the fill's confirmation rule counts ``RobustParams.confirm_views``
+    (default 1) instead of ``LiftParams.confirm_views``: its margin is a posterior margin, and
+    a tiny object seen by two or three views rarely has two votes for itself."""
     # looked up on the package at call time, so that a test (or a profiler) patching
     # ``occufly.lifting.fill_and_denoise`` sees every fill, whichever entry point ran it
     import occufly.lifting as pkg
@@ -556,7 +560,9 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     robust_stats: dict = {}
     fill_progress = progress
     if getattr(p, "robust", False) and snapshot.second_col is not None:
-        from occufly.lifting.robust import cached_features, redecide
+        from dataclasses import replace
+
+        from occufly.lifting.robust import RobustParams, cached_features, redecide
 
         t0 = time.perf_counter()
         report(0.0, "robust decision: point features")
@@ -568,9 +574,13 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
         second = snapshot.second
         if snapshot.vote_unit != 1:  # weighted votes: the model counts views
             second = second.astype(np.float32) / snapshot.vote_unit
+        rp = getattr(p, "robust_params", None) or RobustParams()
         direct, margin, top, robust_stats = redecide(
             cls, feats, col1, top1, snapshot.second_col, second,
-            getattr(p, "robust_params", None), progress=lambda f, m: report(0.3 * f, m))
+            rp, progress=lambda f, m: report(0.3 * f, m), xyz=scene.xyz)
+        if rp.confirm_views is not None and p.confirm_views is not None:
+            # the robust margin is a posterior margin, not a vote share: it confirms alone
+            p = replace(p, confirm_views=rp.confirm_views)
         robust_stats["robust_features_seconds"] = round(t_feat, 3)
         fill_progress = lambda f, m: report(0.3 + 0.7 * f, m)  # noqa: E731
     result = pkg.fill_and_denoise(

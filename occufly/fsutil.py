@@ -175,6 +175,38 @@ def remove_stale_partials(path: str | Path) -> list[Path]:
     return removed
 
 
+def own_rss() -> int:
+    """This process's resident memory in bytes (Linux; 0 where unknown)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return 0
+    return 0
+
+
+def require_memory(need: int, what: str, *, detail: str = "", hint: str = "",
+                   error: type[Exception] | None = None, count_own: bool = False) -> dict:
+    """Refuse up front when a step's memory estimate does not fit.
+
+    ``need`` bytes are compared with the memory available now (Linux ``MemAvailable``, plus
+    this process's own resident memory with ``count_own``; not checked where it is unknown).
+    When it does not fit, ``error`` (default :class:`~occufly.errors.OccuflyError`: CLI exit 2,
+    HTTP 4xx) is raised before any work with "WHAT needs about N GB of memoryDETAIL, M GB are
+    available; HINT". Returns ``{"memory_bytes", "available_bytes"}`` for the step's report."""
+    avail = available_memory()
+    if avail is not None and count_own:
+        avail += own_rss()
+    if avail is not None and need > avail:
+        if error is None:
+            from occufly.errors import OccuflyError as error
+        gb = 2.0 ** 30
+        raise error(f"{what} needs about {need / gb:.1f} GB of memory{detail}, {avail / gb:.1f} GB "
+                    f"are available" + (f"; {hint}" if hint else ""))
+    return {"memory_bytes": need, "available_bytes": avail}
+
+
 def available_memory() -> int | None:
     """MemAvailable in bytes (Linux), else None (not checked)."""
     try:

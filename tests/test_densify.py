@@ -647,7 +647,7 @@ def test_voxelize_that_cannot_fit_in_memory_exits_2_before_writing(tmp_path, mon
     ws = tmp_path / "ws"
     Scene(frames=[], xyz=xyz, rgb=np.zeros_like(xyz, dtype=np.uint8), origin=UTM, taxonomy=TAX).save(ws)
     np.save(tmp_path / "labels.npy", labels)
-    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: 100 * 2**20)
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: 100 * 2**20)
     rc = main(["voxelize", str(ws), "--labels", str(tmp_path / "labels.npy")])
     assert rc == 2
     err = capsys.readouterr().err

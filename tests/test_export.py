@@ -422,7 +422,7 @@ def test_export_that_cannot_fit_in_memory_is_refused_before_writing(ws, tmp_path
     from occufly.parallel import DaskExecutor, LocalExecutor, SerialExecutor
 
     out = tmp_path / "big"
-    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: 50 * 2**20)
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: 50 * 2**20)
     with pytest.raises(ExportError, match=r"2 local worker\(s\) .* needs about .* GB of memory, 0\.0 GB are available"):
         export_dataset(ws, out, spec=SPEC, workers=2)
     assert not out.exists() or not any(out.rglob("*"))
@@ -435,5 +435,5 @@ def test_export_that_cannot_fit_in_memory_is_refused_before_writing(ws, tmp_path
     assert dataset._local_workers(object.__new__(DaskExecutor), None, 5) is None  # remote: unchecked
     with LocalExecutor(3) as ex:
         assert dataset._local_workers(ex, None, 5) == 3
-    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: None)
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: None)
     assert export_dataset(ws, out, spec=SPEC, workers=1)["written"] == 4

@@ -47,12 +47,12 @@ def test_threads_give_the_same_bytes(k):
 
 def test_memory_check_refuses_before_any_work(monkeypatch):
     xyz, direct, margin, top = _cloud(2000)
-    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: 64 * 2**20)
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: 64 * 2**20)
     with pytest.raises(OccuflyError, match=r"2,000 points needs about 0\.4 GB .* 0\.1 GB are available"):
         fill_and_denoise(xyz, direct, TAX, vote_margin=margin, vote_top=top)
     with pytest.raises(OccuflyError, match="needs about"):
         fill_and_denoise(xyz, direct, TAX, params=LiftParams(method="exact"))
-    monkeypatch.setattr("occufly.io.importer.available_memory", lambda: None)  # unknown: no check
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: None)  # unknown: no check
     assert len(fill_and_denoise(xyz, direct, TAX).labels) == 2000
 
 

@@ -180,7 +180,6 @@ def test_render_cull_is_exact(tinyfull, tmp_path, monkeypatch):
 
 
 def test_too_big_for_the_machine_is_a_clear_error_before_writing(tmp_path, monkeypatch):
-    import sys
 
     from occufly.errors import OccuflyError
     from occufly.synthetic.generate import estimate_resources
@@ -191,9 +190,8 @@ def test_too_big_for_the_machine_is_a_clear_error_before_writing(tmp_path, monke
     # memory grows with the workers (one frame render each), disk does not
     assert estimate_resources(P, 2100, workers=1)["memory_bytes"] <= est["memory_bytes"]
     assert estimate_resources(P, 2100, workers=64)["memory_bytes"] > est["memory_bytes"]
-    G = sys.modules["occufly.synthetic.generate"]  # the package re-exports the function's name
-    monkeypatch.setattr(G, "_available_memory", lambda: 1 << 30)
-    with pytest.raises(OccuflyError, match=r"needs about .* GB of memory .* 1.0 GB are available"):
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: 1 << 30)
+    with pytest.raises(OccuflyError, match=r"needs about .* GB of memory .* 1.0 GB are available; try --workers 1"):
         generate(tmp_path / "s", preset="survey", workers=2)
     assert not any(tmp_path.iterdir())  # nothing written, not even a partial folder
 

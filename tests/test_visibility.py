@@ -315,8 +315,8 @@ def test_an_import_that_cannot_fit_is_refused_up_front(thin, tmp_path, monkeypat
     est = imp.estimate_import_resources(n_points=1000, frames=import_scene(
         rec, tmp_path / "ok").frames, list_entries=5000)
     assert est["memory_bytes"] > imp.IMPORT_BASE_BYTES
-    monkeypatch.setattr(imp, "available_memory", lambda: 1 << 20)
-    monkeypatch.setattr(imp, "_own_rss", lambda: 0)
+    monkeypatch.setattr("occufly.fsutil.available_memory", lambda: 1 << 20)
+    monkeypatch.setattr("occufly.fsutil.own_rss", lambda: 0)
     ws = tmp_path / "ws"
     assert main(["import", str(rec), "-w", str(ws)]) == 2
     err = capsys.readouterr().err

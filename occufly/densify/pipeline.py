@@ -120,17 +120,13 @@ def check_densify_memory(n_points: int, n_voxels: int, *, where: str = "voxelize
                          frames: int = 0) -> dict:
     """:class:`InputFormatError` (CLI exit 2) before any heavy work when the densification
     cannot fit in the memory available now (Linux ``MemAvailable``; unchecked elsewhere)."""
-    from occufly.io.importer import available_memory
+    from occufly.fsutil import require_memory
 
-    need = densify_memory_estimate(n_points, n_voxels, frames)
-    avail = available_memory()
-    if avail is not None and need > avail:
-        gb = 2.0 ** 30
-        raise InputFormatError(
-            f"{where}: densifying {n_points:,} points into a grid of {n_voxels / 1e6:.1f} M voxels "
-            f"needs about {need / gb:.1f} GB of memory, {avail / gb:.1f} GB are available; "
-            f"nothing was written (free memory, use a larger --voxel, or crop the cloud)")
-    return {"memory_bytes": need, "available_bytes": avail}
+    return require_memory(
+        densify_memory_estimate(n_points, n_voxels, frames),
+        f"{where}: densifying {n_points:,} points into a grid of {n_voxels / 1e6:.1f} M voxels",
+        error=InputFormatError,
+        hint="nothing was written (free memory, use a larger --voxel, or crop the cloud)")
 
 
 def _smoothed(xyz: np.ndarray, sel: np.ndarray, radius: float) -> np.ndarray:

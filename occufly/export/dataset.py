@@ -330,21 +330,16 @@ def check_export_memory(grids: list[SceneGrid], spec: FrameGridSpec, image_pixel
     """:class:`ExportError` (CLI exit 2) before anything is written when the local export
     cannot fit in the memory available now (Linux ``MemAvailable``; remote workers and
     systems without it are not checked)."""
-    from occufly.io.importer import available_memory
+    from occufly.fsutil import require_memory
 
     if workers is None:
         return {}
-    need = export_memory_estimate(grids, spec, image_pixels, workers)
-    avail = available_memory()
-    if avail is not None and need > avail:
-        gb = 2.0 ** 30
-        raise ExportError(
-            f"{where}: exporting with {max(workers, 1)} local worker(s) (grids of "
-            f"{sum(g.labels.nbytes for g in grids) / 1e6:.0f} MB, frames up to "
-            f"{image_pixels / 1e6:.1f} MP) needs about {need / gb:.1f} GB of memory, "
-            f"{avail / gb:.1f} GB are available; nothing was written (use --workers 1, or "
-            f"export on a Dask cluster with --dask)")
-    return {"memory_bytes": need, "available_bytes": avail}
+    return require_memory(
+        export_memory_estimate(grids, spec, image_pixels, workers),
+        f"{where}: exporting with {max(workers, 1)} local worker(s) (grids of "
+        f"{sum(g.labels.nbytes for g in grids) / 1e6:.0f} MB, frames up to "
+        f"{image_pixels / 1e6:.1f} MP)", error=ExportError,
+        hint="nothing was written (use --workers 1, or export on a Dask cluster with --dask)")
 
 
 # ---- entry point -------------------------------------------------------------------------------

@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from occufly.camera import make_pose
-from occufly.errors import InputFormatError, OccuflyError, WorkspaceError
-from occufly.fsutil import atomic_directory, available_memory
+from occufly.errors import InputFormatError, WorkspaceError
+from occufly.fsutil import atomic_directory, require_memory
 from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
 from occufly.io.pointcloud import read_point_cloud
@@ -302,28 +302,11 @@ def check_import_resources(workspace: Path, *, n_points: int, frames: list[Frame
     pass once the spatial bins can count each frame's candidates
     (:func:`occufly.visibility.compute_visibility`, ``ids_out``)."""
     est = estimate_import_resources(n_points=n_points, frames=frames, list_entries=list_entries)
-    avail = available_memory()
-    if avail is not None:
-        avail += _own_rss()
-        if est["memory_bytes"] > avail:
-            gb = 2.0 ** 30
-            raise OccuflyError(
-                f"{source}: importing {n_points:,} points, {len(frames)} frames and "
-                f"{list_entries:,} visibility-list entries needs about "
-                f"{est['memory_bytes'] / gb:.1f} GB of memory, {avail / gb:.1f} GB are "
-                f"available (nothing was written to {workspace})")
-    est["available_bytes"] = avail
+    est["available_bytes"] = require_memory(
+        est["memory_bytes"], f"{source}: importing {n_points:,} points, {len(frames)} frames and "
+        f"{list_entries:,} visibility-list entries", count_own=True,
+        hint=f"nothing was written to {workspace}")["available_bytes"]
     return est
-
-
-def _own_rss() -> int:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return 0
-    return 0
 
 
 def source_coordinates(scene: Scene, xyz_local: np.ndarray) -> np.ndarray:

@@ -122,19 +122,12 @@ def check_fill_memory(n_points: int) -> dict:
     """Raise :class:`~occufly.errors.OccuflyError` (CLI exit 2, HTTP 4xx) before any work when
     the fill + denoise of ``n_points`` points cannot fit in the memory available now (Linux
     ``MemAvailable``; not checked where that is unknown). Returns the figures."""
-    from occufly.errors import OccuflyError
-    from occufly.io.importer import available_memory
+    from occufly.fsutil import require_memory
 
-    need = fill_memory_estimate(n_points)
-    avail = available_memory()
-    if avail is not None and need > avail:
-        gb = 2.0 ** 30
-        raise OccuflyError(
-            f"kNN fill + denoise of {n_points:,} points needs about {need / gb:.1f} GB of memory "
-            f"({FILL_BYTES_PER_POINT} bytes per point + {FILL_FIXED_BYTES / gb:.1f} GB), "
-            f"{avail / gb:.1f} GB are available; nothing was written (free memory, or lift a "
-            f"cropped scene)")
-    return {"memory_bytes": need, "available_bytes": avail}
+    return require_memory(
+        fill_memory_estimate(n_points), f"kNN fill + denoise of {n_points:,} points",
+        detail=f" ({FILL_BYTES_PER_POINT} bytes per point + {FILL_FIXED_BYTES / 2**30:.1f} GB)",
+        hint="nothing was written (free memory, or lift a cropped scene)")
 
 
 # ---- kNN fill and denoise -----------------------------------------------------------------

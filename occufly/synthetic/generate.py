@@ -25,8 +25,7 @@ from PIL import Image
 
 from occufly.camera import Camera, project_world
 from occufly.errors import OccuflyError, WorkspaceError
-from occufly.fsutil import atomic_directory
-from occufly.fsutil import available_memory as _available_memory
+from occufly.fsutil import atomic_directory, require_memory
 from occufly.io.colmap_dense import (
     read_depth_map,
     write_depth_map,
@@ -149,12 +148,8 @@ def check_resources(P: Preset, n_frames: int, out: Path, *, workers: int = 1) ->
             f"{out}: preset {P.name} needs about {est['disk_bytes'] / gb:.1f} GB of disk "
             f"({n_frames} frames, ~{est['depth_samples'] / 1e6:.0f} M depth samples), "
             f"{parent} has {free / gb:.1f} GB free")
-    avail = _available_memory()
-    if avail is not None and est["memory_bytes"] > avail:
-        raise OccuflyError(
-            f"preset {P.name} needs about {est['memory_bytes'] / gb:.1f} GB of memory with "
-            f"--workers {workers}, {avail / gb:.1f} GB are available"
-            + (" (try --workers 1)" if workers > 1 else ""))
+    require_memory(est["memory_bytes"], f"preset {P.name}", detail=f" with --workers {workers}",
+                   hint="try --workers 1" if workers > 1 else "")
     return est
 
 

@@ -523,9 +523,8 @@ def test_robust_decision_survives_degraded_masks(tiny):
     the plain vote majority did (measured: seed 0 0.759 -> 0.933, seed 1 0.825 -> 0.952),
     and stays close to the exact-mask figure with exact masks; tiny objects reach an IoU
     floor the decision before the neighbourhood prior did not."""
-    from occufly.synthetic.degrade import degrade_masks
-
     from occufly.lifting import RobustParams
+    from occufly.synthetic.degrade import degrade_masks
 
     path, scene, truth, masks = tiny
     sel = select_frames(scene, mode="greedy", target_coverage=0.99)

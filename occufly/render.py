@@ -91,7 +91,12 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     sel = np.flatnonzero(ok)
     lens = bins.starts[sel + 1] - bins.starts[sel]
     idx = np.repeat(bins.starts[sel] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(lens.sum())
-    return np.sort(np.concatenate([bins.order[idx], bins.loose]))
+    ids = np.concatenate([bins.order[idx], bins.loose])  # distinct ids
+    if len(ids) * 16 > scene.n_points:  # a large share of the cloud: a mask beats the sort
+        keep = np.zeros(scene.n_points, dtype=bool)
+        keep[ids] = True
+        return np.flatnonzero(keep)
+    return np.sort(ids)
 
 
 def render_labels(scene: Scene, labels: np.ndarray, frame_index: int, *, scale: float = 1.0,
@@ -173,11 +178,14 @@ def _render_scaled(scene: Scene, labels: np.ndarray, frame_index: int, *, scale:
     cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
     h, w = cam.height, cam.width
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
-    cand = frustum_candidates(scene, cam, frame.T_cam_world)
+    # a large image may be rendered up to MAX_COARSE x coarser, whose splats reach that much
+    # farther in full-size pixels: one cull wide enough for any k (the cull is conservative,
+    # so the image is the same as with the narrowest cull; one cull instead of two)
+    big = cam.width * cam.height > COARSE_MIN_PIXELS
+    cand = frustum_candidates(scene, cam, frame.T_cam_world,
+                              margin=MAX_SPLAT * (MAX_COARSE if big else 1))
     k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
     if k > 1:  # a large image finer than the cloud: render k x coarser, repeat each pixel k x k
-        if cand is not None:  # the coarse splats reach k x farther in full-size pixels
-            cand = frustum_candidates(scene, cam, frame.T_cam_world, margin=MAX_SPLAT * k)
         cls, depth = _render(scene, labels, frame, cam.scaled(1.0 / k), spacing, splat_factor,
                              surface_tol, chunk, cand)
         cls, depth, filled = close_holes(cls, depth, math.ceil(hole_radius / k))
@@ -188,9 +196,14 @@ def _render_scaled(scene: Scene, labels: np.ndarray, frame_index: int, *, scale:
 
 
 # images above this many pixels whose typical splat is wider than COARSE_SPLAT px are rendered
-# coarser (20 MP frames: point spacing ~10 px): same information, closed surfaces, ~1/k^2 work
+# coarser: same information, closed surfaces, ~1/k^2 work. The survey preset's own 20 MP
+# frames (50 m, a 32 M-point cloud) have 3.1 px splats: with the earlier 4 px threshold they
+# rendered at full size (2.8 s CPU, the prefill with holes closed 5-7 s); at k = 3 the
+# prefill takes 1.2-1.5 s and gets 0.2-1.3 points more pixels right (three full-size frames,
+# bench/bench_survey.py's frame path)
 COARSE_MIN_PIXELS = 4_000_000
-COARSE_SPLAT = 4.0
+COARSE_SPLAT = 2.0
+MAX_COARSE = 16
 
 
 def _coarsening(scene: Scene, cam: Camera, T_cam_world: np.ndarray, spacing: float,
@@ -206,7 +219,7 @@ def _coarsening(scene: Scene, cam: Camera, T_cam_world: np.ndarray, spacing: flo
     if not len(z):
         return 1
     s_typ = splat_factor * 0.5 * sum(cam.focal) * spacing / float(np.median(z))
-    return int(min(16, math.ceil(s_typ / 1.5))) if s_typ > COARSE_SPLAT else 1
+    return int(min(MAX_COARSE, math.ceil(s_typ / 1.5))) if s_typ > COARSE_SPLAT else 1
 
 
 def _upsample(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:

@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from occufly.camera import Camera, camera_center
 from occufly.synthetic.world import (
@@ -65,6 +64,7 @@ class Renderer:
     """Holds the ray-casting scene and texture lattices of one world."""
 
     def __init__(self, world: World, seed: int) -> None:
+        import open3d as o3d  # here, not at module level: every CLI command imports this package
         if world.vertices is None:
             world.build_mesh()
         self.world = world
@@ -99,6 +99,7 @@ class Renderer:
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
         """origins, dirs: (N, 3) float32 local. Returns t_hit (N,) (inf on miss), prim (N,) int64
         triangle index (-1 on miss), normal (N, 3) float32 raw triangle normals."""
+        import open3d as o3d  # here, not at module level: every CLI command imports this package
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
         ans = self.scene.cast_rays(o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy()
@@ -178,6 +179,7 @@ class Renderer:
 
     def _shade(self, xyz: np.ndarray, n: np.ndarray, prim: np.ndarray, cls: np.ndarray,
                hit: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        import open3d as o3d  # here, not at module level: every CLI command imports this package
         w = self.world
         # full-array arithmetic (most rays hit); misses are overwritten with the sky at the end
         p = np.nan_to_num(xyz)

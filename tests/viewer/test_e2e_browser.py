@@ -156,8 +156,10 @@ def test_reviewer_sees_scene_toggles_classes_selects_and_gets_live_updates(env):
     assert sorted(st.frustum_handles) == [5] and st.highlighted == 5
     assert st.frustum_handles[5].color == sb.HIGHLIGHT_COLOUR
     show_cameras("all")
-    assert wait_for(lambda: len(st.frustum_handles) == n_all, 10)
-    assert st.frustum_handles[5].color == sb.HIGHLIGHT_COLOUR and st.highlighted == 5
+    # the handles are replaced first, then the focused one highlighted again (GUI thread)
+    assert wait_for(lambda: len(st.frustum_handles) == n_all
+                    and st.frustum_handles[5].color == sb.HIGHLIGHT_COLOUR, 10)
+    assert st.highlighted == 5
 
     # 5. the scene voxel grid as instanced boxes, toggled from the panel
     page.get_by_text("Voxel grids").click()

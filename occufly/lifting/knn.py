@@ -373,6 +373,21 @@ class _VoxelGrid:
         pos = np.minimum(pos, len(self.keys) - 1)
         return np.where(self.keys[pos] == nk, pos, -1)
 
+    def block_sum(self, counts: np.ndarray) -> np.ndarray:
+        """(V, C) per-voxel counts -> (V, C) sums over each voxel's 3x3x3 block (occupied
+        neighbours only), in ``counts``' dtype."""
+        block = counts.copy()
+        allv = np.arange(self.n_voxels)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    if dx == dy == dz == 0:
+                        continue
+                    nb = self.neighbour(allv, dx, dy, dz)
+                    ok = nb >= 0
+                    block[ok] += counts[nb[ok]]
+        return block
+
     def dilate(self, voxels: np.ndarray, r: int) -> np.ndarray:
         """(m,) voxel indices -> sorted voxel indices within Chebyshev distance r (occupied only)."""
         mark = np.zeros(self.n_voxels, dtype=bool)
@@ -574,16 +589,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     lab_idx = np.flatnonzero(lab)
     counts = np.bincount(vox[lab_idx] * C + filled[lab_idx], minlength=V * C)
     counts = counts.reshape(V, C).astype(np.int32)
-    block = counts.copy()
-    allv = np.arange(V)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                if dx == dy == dz == 0:
-                    continue
-                nb = grid.neighbour(allv, dx, dy, dz)
-                ok = nb >= 0
-                block[ok] += counts[nb[ok]]
+    block = grid.block_sum(counts)
     bcol, btop, _ = cls.majority(block)
     btotal = block.sum(axis=1)
     k = p.denoise_k

@@ -511,18 +511,7 @@ def local_votes(xyz: np.ndarray, voted: np.ndarray, col1: np.ndarray, n1: np.nda
         h2 = c2 >= 0
         counts += np.bincount((v + c2)[h2], np.asarray(n2[ids], np.float64)[h2],
                               V * C).astype(np.float32)
-    counts = counts.reshape(V, C)
-    block = counts.copy()
-    allv = np.arange(V)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                if dx == dy == dz == 0:
-                    continue
-                nb = grid.neighbour(allv, dx, dy, dz)
-                okn = nb >= 0
-                block[okn] += counts[nb[okn]]
-    return vox, block
+    return vox, grid.block_sum(counts.reshape(V, C))
 
 
 def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.ndarray,

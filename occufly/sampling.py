@@ -543,26 +543,20 @@ def resample_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def read_depth_map_resampled(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     """``resample_depth(read_depth_map(path), shape)`` of a COLMAP ``.bin`` depth map, reading
     only the rows it keeps (a quarter of a 1/4-resolution export's file: for a 20 MP map 20 of
-    80 MB, 0.07 -> ~0.02 s). Same values (non-finite and negative depths are 0); a file that
-    is not a well-formed map goes through :func:`occufly.io.colmap_dense.read_depth_map`,
-    which names its problem."""
-    import os
-
-    from occufly.io.colmap_dense import read_depth_map
+    80 MB, 0.07 -> ~0.02 s). Same values (non-finite and negative depths are 0) and the same
+    errors as :func:`occufly.io.colmap_dense.read_depth_map` for a file that is not a
+    well-formed map."""
+    from occufly.errors import InputFormatError
+    from occufly.io.colmap_dense import depth_map_layout, no_depth_where_invalid
 
     path = Path(path)
     try:
         with open(path, "rb") as fh:
             head = fh.read(64)
-        parts = head.split(b"&", 3)
-        width, height, channels = (int(v) for v in parts[:3])
-        offset = sum(len(v) for v in parts[:3]) + 3
-        ok = (len(parts) == 4 and offset <= 64 and width > 0 and height > 0 and channels == 1
-              and os.path.getsize(path) - offset == width * height * 4)
-    except (OSError, ValueError):
-        ok = False
-    if not ok:
-        return resample_depth(read_depth_map(path), shape)
+            size = fh.seek(0, 2)
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read depth map ({e.strerror})") from None
+    width, height, offset = depth_map_layout(path, head, size)
     h, w = shape
     # the file holds the map row by row (COLMAP's column-major (W, H) array)
     mm = np.memmap(path, dtype="<f4", mode="r", offset=offset, shape=(height, width))
@@ -571,8 +565,7 @@ def read_depth_map_resampled(path: str | Path, shape: tuple[int, int]) -> np.nda
                                  dtype=np.float32)
     finally:
         del mm
-    d[~np.isfinite(d) | (d < 0)] = 0.0
-    return d
+    return no_depth_where_invalid(d)
 
 
 def render_depth(camera: Camera, uv: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

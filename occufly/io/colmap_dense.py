@@ -21,17 +21,15 @@ from occufly.io.ply import read_ply, write_ply
 
 
 # ---- depth maps ------------------------------------------------------------------------------
-def read_depth_map(path: str | Path) -> np.ndarray:
-    """Read a COLMAP ``.bin`` depth map -> (H, W) float32 metres (0 = no depth)."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise InputFormatError(f"{path}: cannot read depth map ({e.strerror})") from None
+def depth_map_layout(path: str | Path, head: bytes, size: int) -> tuple[int, int, int]:
+    """(width, height, data offset) of a COLMAP ``.bin`` depth map from its first bytes
+    ``head`` (at least 64, or the whole file) and its ``size`` in bytes; an
+    :class:`InputFormatError` naming the problem when it is not a one-channel map whose data
+    fills the rest of the file exactly."""
     header_end = 0
     amps = 0
-    for i in range(min(len(raw), 64)):
-        if raw[i : i + 1] == b"&":
+    for i in range(min(len(head), 64)):
+        if head[i : i + 1] == b"&":
             amps += 1
             if amps == 3:
                 header_end = i + 1
@@ -41,27 +39,41 @@ def read_depth_map(path: str | Path) -> np.ndarray:
             f"{path}: not a COLMAP depth map (expected an ASCII header 'width&height&channels&')"
         )
     try:
-        width, height, channels = (int(v) for v in raw[: header_end - 1].decode().split("&"))
+        width, height, channels = (int(v) for v in head[: header_end - 1].decode().split("&"))
     except ValueError:
-        raise InputFormatError(f"{path}: malformed depth-map header {raw[:header_end]!r}") from None
+        raise InputFormatError(f"{path}: malformed depth-map header {head[:header_end]!r}") from None
     if width <= 0 or height <= 0 or channels != 1:
         raise InputFormatError(
             f"{path}: depth map header says {width}x{height}x{channels}; expected one channel"
         )
     expected = width * height * channels * 4
-    body = len(raw) - header_end
+    body = size - header_end
     if body != expected:
         raise InputFormatError(
             f"{path}: depth map is truncated or padded: {body} bytes of data, expected "
             f"{expected} for {width}x{height}"
         )
+    return width, height, header_end
+
+
+def no_depth_where_invalid(depth: np.ndarray) -> np.ndarray:
+    """``depth`` with NaN, inf and negative values set to 0 (no depth); a new array when any
+    (the input may be a read-only view), else the input."""
+    bad = ~np.isfinite(depth) | (depth < 0)
+    return np.where(bad, np.float32(0.0), depth) if bad.any() else depth
+
+
+def read_depth_map(path: str | Path) -> np.ndarray:
+    """Read a COLMAP ``.bin`` depth map -> (H, W) float32 metres (0 = no depth)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise InputFormatError(f"{path}: cannot read depth map ({e.strerror})") from None
+    width, height, header_end = depth_map_layout(path, raw[:64], len(raw))
     data = np.frombuffer(raw, dtype="<f4", offset=header_end)
     depth = data.reshape((width, height), order="F").T  # column-major -> (H, W)
-    depth = np.ascontiguousarray(depth, dtype=np.float32)
-    bad = ~np.isfinite(depth) | (depth < 0)
-    if bad.any():  # NaN / inf / negative = no depth (the view above may be read-only)
-        depth = np.where(bad, np.float32(0.0), depth)
-    return depth
+    return no_depth_where_invalid(np.ascontiguousarray(depth, dtype=np.float32))
 
 
 def write_depth_map(path: str | Path, depth: np.ndarray) -> None:

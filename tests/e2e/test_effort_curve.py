@@ -76,6 +76,11 @@ def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, n
     adm = new_page("admin")
     adm.goto(f"{live.base_url}/#/admin?scene={sid}")
     adm.wait_for_selector("#effort-plot")
+    try:  # the page may draw a first, older answer before the refresh that holds both masks
+        adm.wait_for_function("document.querySelector('#effort-summary')?.innerText"
+                              ".includes('2 submitted mask(s)')", timeout=15_000)
+    except Exception:  # noqa: BLE001 - the assertion below reports what the page shows
+        pass
     summary = adm.locator("#effort-summary").inner_text()
     assert "2 submitted mask(s), 1 started from the 3D prefill" in summary
     t = e["totals"]

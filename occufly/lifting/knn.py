@@ -37,7 +37,7 @@ Fill and denoise (:func:`fill_and_denoise`)
     rule, a point of another class is certified only if the block holds fewer than
     ``keep_share * k`` points of its class). Points of uncertified voxels (class boundaries,
     sparse areas) get their exact k nearest neighbours by brute force over their voxel's
-    3x3x3 block (vectorised per voxel); where the k-th neighbour is farther than the block
+    3x3x3 block (a compiled kernel, :mod:`occufly.lifting.blockknn`); where the k-th neighbour is farther than the block
     reaches, a cKDTree over the surrounding labelled points answers instead. :func:`fill_and_denoise_exact` is the plain
     cKDTree baseline used by tests and the benchmark.
 
@@ -422,6 +422,8 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     ``unsafe`` marks points whose k-th neighbour is farther than the block reaches (they need
     a query against a larger neighbourhood). ``workers`` threads share the voxels (same result).
     """
+    from occufly.lifting.blockknn import block_votes
+
     n = len(xyz)
     out_c = np.full(n, -1, dtype=np.int64)
     out_s = np.zeros(n, dtype=np.float32)
@@ -438,57 +440,31 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     e = grid.edge
     r2 = radius * radius
     report = progress or noop
-
-    def one(t: int, u: int) -> None:
-        q = order[starts[u]:ends[u]]
-        if only is not None:
-            q = q[only[q]]
-        if not len(q):
-            return
-        cand = np.concatenate([order[starts[j]:ends[j]] for j in nb[t] if j >= 0])
-        # candidates grouped by class, so per-class neighbour counts are segment sums
-        ccol = cols[cand]
-        by = np.argsort(ccol, kind="stable")
-        cand, ccol = cand[by], ccol[by]
-        seg = np.flatnonzero(np.r_[True, ccol[1:] != ccol[:-1]])
-        centre = xyz[q[0]]
-        P = (xyz[q] - centre).astype(np.float32)
-        Q = (xyz[cand] - centre).astype(np.float32)
-        # |p|^2 + |q|^2 - 2 p.q with two matrix-sized temporaries instead of four (doubling
-        # is exact in floating point: the same bits as ``a + b - 2.0 * (P @ Q.T)``)
-        pq = P @ Q.T
-        pq *= 2.0
-        d2 = (P * P).sum(1)[:, None] + (Q * Q).sum(1)[None, :]
-        d2 -= pq
-        del pq
-        kk = min(k, len(cand))
-        if kk < len(cand):
-            kth = np.partition(d2, kk - 1, axis=1)[:, kk - 1]
-        else:
-            kth = d2.max(axis=1)
-        # the k nearest (one more on an exact distance tie), within the radius
-        within = (d2 <= np.minimum(kth, r2)[:, None]).view(np.uint8)
-        votes = np.zeros((len(q), C), dtype=np.int64)
-        votes[:, ccol[seg]] = np.add.reduceat(within, seg, axis=1, dtype=np.int64)
-        c, s = _keep_own(cls, votes, cols[q], keep_share)
-        out_c[q], out_s[q] = c, s
-        dsel_max = kth
-        # safe if the k-th neighbour (or the radius) is within the block around the point
-        lo = (np.floor((xyz[q] - grid.mn) / e) - 1 + 1) * e + grid.mn  # own voxel's low corner
-        frac = np.minimum(xyz[q] - lo, lo + e - xyz[q]).min(axis=1)
-        border = e + np.maximum(frac, 0.0)
-        reach = np.sqrt(np.maximum(dsel_max, 0.0)) if kk == k else np.full(len(q), np.inf)
-        unsafe[q] = ~((reach <= border * 0.999) | (radius <= border * 0.999))
+    xyz32 = np.ascontiguousarray(xyz, dtype=np.float32)
+    cols64 = np.ascontiguousarray(cols, dtype=np.int64)
+    only_arr = np.zeros(1, bool) if only is None else np.ascontiguousarray(only, dtype=bool)
 
     def run(a: int, b: int) -> int:
-        for t in range(a, b):
-            one(t, int(todo[t]))
+        # the compiled kernel (no GIL) counts the k nearest per class; numpy decides
+        q, votes, kth, full = block_votes(xyz32, cols64, order, starts, ends, todo[a:b],
+                                          np.ascontiguousarray(nb[a:b]), only_arr,
+                                          only is not None, int(k), float(r2), int(C))
+        if not len(q):
+            return b - a
+        c, s = _keep_own(cls, votes, cols[q], keep_share)
+        out_c[q], out_s[q] = c, s
+        # safe if the k-th neighbour (or the radius) is within the block around the point
+        xq = xyz[q]
+        lo = np.floor((xq - grid.mn) / e) * e + grid.mn  # own voxel's low corner
+        frac = np.minimum(xq - lo, lo + e - xq).min(axis=1)
+        border = e + np.maximum(frac, 0.0)
+        reach = np.where(full, np.sqrt(np.maximum(kth, 0.0)), np.inf)
+        unsafe[q] = ~((reach <= border * 0.999) | (radius <= border * 0.999))
         return b - a
 
-    # voxels write disjoint points: threads (numpy releases the GIL in the matrix product,
-    # the partition and the reductions) give the same result as one loop
-    # the same result as one loop; each small matrix product on one BLAS thread (its thread
-    # pool costs ~40x more than the product itself, see occufly.parallel.single_threaded_blas)
+    # voxels write disjoint points: threads (the kernel runs without the GIL) give the same
+    # result as one loop; one BLAS thread each for the small numpy steps (a BLAS thread pool
+    # costs more than they do, see occufly.parallel.single_threaded_blas)
     from occufly.parallel import single_threaded_blas
 
     T = len(todo)

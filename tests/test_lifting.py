@@ -685,3 +685,46 @@ def test_robust_neighbourhood_votes_are_block_sums():
             if c2[j] >= 0:
                 want[c2[j]] += n2[j]
         assert np.allclose(block[vox[i]], want)
+
+
+@pytest.mark.parametrize("case", ["random", "duplicates", "few"])
+def test_block_knn_kernel_counts_the_exact_k_nearest(case):
+    """The compiled boundary kernel against a plain numpy brute force: per point, the class
+    counts of its k nearest (ties at the k-th included) within the radius, and whether the
+    block was full -- on a random cloud, on coincident points (all distances 0) and on a
+    block with fewer than k candidates."""
+    from occufly.lifting.blockknn import block_votes
+    from occufly.lifting.knn import _VoxelGrid
+
+    rng = np.random.default_rng(7)
+    n, k, radius, C = {"random": (3000, 40, 1.5, 5), "duplicates": (300, 50, 1.0, 3),
+                       "few": (30, 50, 2.0, 4)}[case]
+    xyz = (rng.random((n, 3)) * 6).astype(np.float32)
+    if case == "duplicates":
+        xyz[:] = xyz[0]
+    cols = rng.integers(0, C, n).astype(np.int64)
+    grid = _VoxelGrid(xyz, 1.0, pad=2)
+    vox = grid.inverse
+    order = np.argsort(vox, kind="stable").astype(np.int64)
+    vs = vox[order]
+    starts = np.searchsorted(vs, np.arange(grid.n_voxels))
+    ends = np.searchsorted(vs, np.arange(grid.n_voxels), side="right")
+    todo = np.arange(grid.n_voxels, dtype=np.int64)
+    offs = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+    nb = np.ascontiguousarray(np.stack([grid.neighbour(todo, *o) for o in offs], axis=1))
+    only = rng.random(n) < 0.7
+    ro = xyz.view()
+    ro.flags.writeable = False
+    q, votes, kth, full = block_votes(ro, cols, order, starts, ends, todo, nb, only, True, k,
+                                      radius * radius, C)
+    assert sorted(q.tolist()) == np.flatnonzero(only).tolist()
+    for r, p in enumerate(q):
+        blk = np.isin(vox, nb[np.searchsorted(todo, vox[p])])
+        cand = np.flatnonzero(blk)
+        d2 = ((xyz[cand].astype(np.float64) - xyz[p]) ** 2).sum(1)
+        kk = min(k, len(cand))
+        want_kth = np.sort(d2)[kk - 1]
+        sel = d2 <= min(want_kth, radius * radius)
+        assert kth[r] == want_kth
+        assert full[r] == (kk == k)
+        assert np.array_equal(votes[r], np.bincount(cols[cand[sel]], minlength=C))

@@ -150,3 +150,15 @@ def block_votes(xyz: np.ndarray, cols: np.ndarray, order: np.ndarray, starts: np
             full[r] = kk == k
             r += 1
     return qids, votes, kth2, full
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the kernels on a tiny input: the Docker image runs
+    this at build time, so a container's first fill does not pay the compilation."""
+    xyz = np.zeros((2, 3), np.float32)
+    xyz[1, 0] = 1.0
+    xyz.flags.writeable = False  # as _block_knn passes it
+    one = np.zeros(1, np.int64)
+    block_votes(xyz, np.zeros(2, np.int64), np.arange(2, dtype=np.int64), one, one + 2, one,
+                np.full((1, 27), -1, np.int64) + np.eye(1, 27, 13, dtype=np.int64), np.ones(2, bool),
+                False, 1, 4.0, 1)

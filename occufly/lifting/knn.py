@@ -440,7 +440,8 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     e = grid.edge
     r2 = radius * radius
     report = progress or noop
-    xyz32 = np.ascontiguousarray(xyz, dtype=np.float32)
+    xyz32 = np.ascontiguousarray(xyz, dtype=np.float32).view()
+    xyz32.flags.writeable = False  # one compiled signature whether or not xyz is a file map
     cols64 = np.ascontiguousarray(cols, dtype=np.int64)
     only_arr = np.zeros(1, bool) if only is None else np.ascontiguousarray(only, dtype=bool)
 

@@ -93,10 +93,12 @@ def test_proxied_socket_sends_float32_cloud_and_direct_socket_is_refused(tiny):
     with LiveServer(app) as srv:
         svc = app.state.viewer
 
-        proxied = asyncio.run(fake_client(
+        # the client's state, read while its socket is still open (a close drops it)
+        got = asyncio.run(fake_client(
             f"ws://127.0.0.1:{srv.port}/viewer",
-            {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"}))["bytes"]
-        states = svc.client_states()
+            {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=tiny"},
+            while_open=svc.client_states))
+        proxied, states = got["bytes"], got["open"]
         assert len(states) == 1 and states[0].scene_id == "tiny"
         assert states[0].user == {"username": "rita", "role": "reviewer"}
         assert states[0].sent_points == n

@@ -103,10 +103,12 @@ def camera_message(position=(0.0, 0.0, 50.0), look_at=(0.0, 0.0, 0.0)) -> bytes:
 
 
 async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
-                      max_s: float = 60.0, min_bytes: int = 0) -> dict:
+                      max_s: float = 60.0, min_bytes: int = 0, while_open=None) -> dict:
     """Connect like viser's client, send the camera, read until ``quiet_s`` of silence
     (once at least ``min_bytes`` arrived; silence before that is waited out up to ``max_s``).
 
+    ``while_open()``, if given, runs after the reading, before the socket closes (the server
+    drops a client's state once it sees the close); its result is returned as ``"open"``.
     Returns bytes, frames, seconds from connect to the last frame, and the close code."""
     import asyncio
     import time
@@ -132,5 +134,7 @@ async def fake_client(url: str, headers: dict, *, quiet_s: float = 1.0,
                 out["last_s"] = time.perf_counter() - t0
         except (TimeoutError, Exception):  # noqa: BLE001 - silence or close ends it
             pass
+        if while_open is not None:
+            out["open"] = while_open()
         out["close_code"] = ws.close_code
     return out

@@ -262,34 +262,19 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
     # the projections are kept for the second pass when they are small (culled frames)
     kept = list(projected()) if n_cand <= 4_000_000 else None
 
-    def fragments():
-        """Per chunk of points and splat offset: (pixel, depth, d2 to pixel centre, label)."""
-        for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
-            for dy in range(MAX_SPLAT):
-                for dx in range(MAX_SPLAT):
-                    sel = np.flatnonzero(size > max(dx, dy))
-                    if not len(sel):
-                        break
-                    r = row0[sel] + dy
-                    c = col0[sel] + dx
-                    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-                    sel, r, c = sel[inside], r[inside], c[inside]
-                    d2 = (c + 0.5 - uv[sel, 0]) ** 2 + (r + 0.5 - uv[sel, 1]) ** 2
-                    yield r * w + c, z[sel], d2.astype(np.float32), lab[sel]
+    # pass 1: nearest depth per pixel; pass 2: among the fragments of the front surface
+    # (depth within a tolerance of the nearest), the point projecting closest to the pixel
+    # centre gives the label (compiled loops over each point's splat, occufly.splat)
+    from occufly.splat import splat_depth, splat_label
 
-    # pass 1: nearest depth per pixel
     depth = np.full(h * w, np.inf, dtype=np.float32)
-    for pix, zz, _, _ in fragments():
-        np.minimum.at(depth, pix, zz)
-    # pass 2: among the fragments of the front surface (depth within a tolerance of the
-    # nearest), the point projecting closest to the pixel centre gives the label
+    for _, z, size, col0, row0, _ in (kept if kept is not None else projected()):
+        splat_depth(depth, z, size, col0, row0, h, w)
     best = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
-    for pix, zz, d2, lab in fragments():
-        zf = depth[pix]
-        front = zz <= zf + (surface_tol * spacing + 0.005 * zf)
-        key = (np.minimum(d2[front] * 65536.0, 2**31).astype(np.uint64) << np.uint64(8)) | \
-            lab[front].astype(np.uint64)
-        np.minimum.at(best, pix[front], key)
+    tol = np.float32(surface_tol * spacing)
+    for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
+        splat_label(best, depth, np.ascontiguousarray(uv), z, size, col0, row0,
+                    np.ascontiguousarray(lab, dtype=np.uint8), tol, h, w)
     hit = best != np.iinfo(np.uint64).max
     cls = np.zeros(h * w, dtype=np.uint8)
     cls[hit] = (best[hit] & np.uint64(255)).astype(np.uint8)

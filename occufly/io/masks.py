@@ -80,11 +80,30 @@ def mask_scale(shape: tuple[int, int], frame: Frame, *, name: str = "<mask>") ->
     )
 
 
+def id_histogram(mask: np.ndarray) -> np.ndarray:
+    """(256,) pixel count of each id in a uint8 mask (exact for any size).
+
+    OpenCV's histogram (no int64 copy of the mask as ``np.bincount`` makes: a 20 MP mask in
+    ~10 ms instead of ~50 ms), in row blocks so its float32 bins stay exact (< 2**24)."""
+    import cv2
+
+    m = np.asarray(mask, dtype=np.uint8)
+    if m.ndim != 2:
+        m = m.reshape(1, -1) if m.size else np.zeros((1, 0), np.uint8)
+    out = np.zeros(256, np.int64)
+    rows = max(1, (1 << 23) // max(1, m.shape[1]))
+    for a in range(0, m.shape[0], rows):
+        blk = np.ascontiguousarray(m[a:a + rows])
+        if blk.size:
+            out += cv2.calcHist([blk], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+    return out
+
+
 def validate_ids(mask: np.ndarray, taxonomy: Taxonomy, *, name: str = "<mask>") -> None:
     """Raise MaskError if ``mask`` holds ids that are neither 0, 255 nor taxonomy classes."""
     ok = taxonomy.valid_lut().copy()
     ok[EMPTY] = ok[INVALID] = True
-    present = np.flatnonzero(np.bincount(np.asarray(mask, dtype=np.uint8).ravel(), minlength=256))
+    present = np.flatnonzero(id_histogram(mask))
     bad = present[~ok[present]]
     if len(bad):
         shown = ", ".join(str(int(b)) for b in bad[:10]) + (" ..." if len(bad) > 10 else "")

@@ -378,8 +378,20 @@ class LiftState:
         n = self.scene.n_points
         code_old = self._vote_codes(n, old)
         code_new = self._vote_codes(n, new)
-        points_touched = int(np.count_nonzero(code_old | code_new))
-        diff = np.flatnonzero(code_old != code_new)
+        # only the frame's points can differ: look there, not at all n (a 20 MP frame sees
+        # ~2.5 M of the survey's 32 M points)
+        po, pn = np.asarray(old[0], np.int64), np.asarray(new[0], np.int64)
+        o_at_n, n_at_n = code_old[pn] != 0, code_new[pn] != 0
+        points_touched = int(np.count_nonzero(code_old[po]) + np.count_nonzero(n_at_n)
+                             - np.count_nonzero(o_at_n & n_at_n))
+        d_old = po[code_old[po] != code_new[po]]
+        d_new = pn[code_old[pn] != code_new[pn]]
+        if len(d_old) and len(d_new):
+            seen = np.zeros(n, bool)  # lazily zeroed pages: only the frame's are touched
+            seen[d_old] = True
+            d_new = d_new[~seen[d_new]]
+        # point ids ascending (two sorted runs: the stable sort merges them in linear time)
+        diff = np.sort(np.concatenate([d_old, d_new]), kind="stable")
         changed = 0
         if len(diff):
             rows = np.asarray(self.votes[diff])  # (T, C) copy of the affected counts

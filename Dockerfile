@@ -18,8 +18,8 @@ COPY frontend ./frontend
 RUN pip install . && useradd --create-home --uid 1000 occufly && mkdir -p /data \
  && chown occufly /data
 USER occufly
-# the denoise's compiled k-NN kernel, into the user's numba cache (the first fill then loads it)
-RUN python -c "from occufly.lifting.blockknn import compile_kernels; compile_kernels()"
+# the compiled kernels (denoise k-NN, label splats) into the user's numba cache
+RUN python -c "import occufly.lifting.blockknn as k, occufly.splat as s; k.compile_kernels(); s.compile_kernels()"
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \

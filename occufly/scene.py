@@ -195,6 +195,11 @@ class Visibility:
         a, b = int(self.offsets[f]), int(self.offsets[f + 1])
         return self.point_ids[a:b]
 
+    def projected_on_demand(self) -> np.ndarray | None:
+        """The (N, 3) cloud :meth:`frame` projects from when uv/depth are not stored (bound by
+        :meth:`bind`), else None: a caller may then project :meth:`frame_ids` itself."""
+        return self._xyz if self._uv is None and self._frames is not None else None
+
     def frame(self, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(point_ids (m,) int32, uv (m, 2) float32, depth (m,) float32) seen by frame ``f``."""
         a, b = int(self.offsets[f]), int(self.offsets[f + 1])

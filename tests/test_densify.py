@@ -622,6 +622,41 @@ def test_free_space_removes_the_hull_between_two_merged_boxes_and_keeps_solids()
         assert (flat[inner] == IDS["building"]).mean() > 0.99
 
 
+def test_frame_depth_rasters_projected_on_demand_match_the_numpy_path():
+    """A workspace's visibility stores only point ids (uv/depth projected on demand): the
+    compiled per-frame raster equals the numpy projection's, pixel for pixel; a camera with
+    distortion keeps the numpy path."""
+    from occufly.camera import Camera
+    from occufly.densify.freespace import FrameDepths
+    from occufly.scene import Frame, Visibility
+
+    rng = np.random.default_rng(4)
+    xyz = np.concatenate([_plane(rng, size=40.0, density=20),
+                          box_surface(rng, np.array([10.0, 12.0, 0.0]), np.array([18.0, 28.0, 6.0]), 5000)])
+    xyz = xyz.astype(np.float32)
+    frames, stored = _survey(xyz.astype(np.float64))
+    frames[3] = Frame(frames[3].name, Camera("SIMPLE_RADIAL", 400, 300, np.array([300.0, 200.0, 150.0, 0.02])),
+                      frames[3].T_cam_world)
+    lazy = Visibility(stored.offsets, stored.point_ids)
+    lazy.bind(frames, xyz)
+    assert lazy.projected_on_demand() is not None
+
+    class NumpyOnly:  # the same visibility, without the compiled path
+        def projected_on_demand(self):
+            return None
+
+        def frame(self, f):
+            return lazy.frame(f)
+
+    fast, slow = FrameDepths(frames, lazy, 0.5), FrameDepths(frames, NumpyOnly(), 0.5)
+    assert len(fast.frames) == len(slow.frames) == len(frames)
+    for (c1, t1, r1, b1), (c2, t2, r2, b2) in zip(fast.frames, slow.frames, strict=True):
+        assert np.array_equal(t1, t2)
+        assert (c1.width, c1.height) == (c2.width, c2.height)
+        assert np.array_equal(r1, r2) and np.isfinite(r1).mean() > 0.3
+        assert np.array_equal(b1[0], b2[0]) and np.array_equal(b1[1], b2[1])
+
+
 def test_a_grid_too_large_for_memory_is_a_clear_error_not_a_crash():
     xyz = np.array([[0.0, 0.0, 0.0], [100.0, 100.0, 30.0], [50.0, 50.0, 1.0]], np.float32)
     labels = np.array([IDS["grass"]] * 3, np.uint8)

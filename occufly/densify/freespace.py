@@ -55,10 +55,22 @@ class FrameDepths:
         self.voxel_size = float(voxel_size)
         self.frames = []  # (scaled camera, T_cam_world, raster (h, w) float32 inf = not seen)
         for f, fr in enumerate(frames):
-            _, uv, depth = visibility.frame(f)
+            cam = fr.camera
+            # frames without distortion, uv/depth not stored: the compiled projection (the
+            # same values, without the per-correspondence temporaries of the numpy one)
+            cloud = visibility.projected_on_demand() if not cam.has_distortion else None
+            fast = cloud is not None
+            if fast:
+                from occufly.densify.depthraster import frame_depths
+
+                ids = np.asarray(visibility.frame_ids(f))
+                xyz = np.asarray(cloud)
+                T = np.ascontiguousarray(fr.T_cam_world, dtype=np.float64)
+                depth = frame_depths(xyz, ids, T) if len(ids) else np.zeros(0, np.float32)
+            else:
+                _, uv, depth = visibility.frame(f)
             if len(depth) == 0:
                 continue
-            cam = fr.camera
             med = float(np.median(depth))
             focal = float(np.mean(cam.focal))
             # pixels per raster pixel: the footprint of pixel_voxels voxel edges at the median depth
@@ -67,12 +79,19 @@ class FrameDepths:
             scale = 1.0 / px
             small = cam.scaled(scale)
             w, h = small.width, small.height
-            c = np.floor(np.asarray(uv, np.float64) * scale).astype(np.int64)
-            ok = (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h) & (depth > 0)
             raster = np.full(h * w, np.inf, np.float32)
-            np.minimum.at(raster, c[ok, 1] * w + c[ok, 0], np.asarray(depth, np.float32)[ok])
+            if fast:
+                from occufly.densify.depthraster import frame_raster
+
+                (fx, fy), (cx, cy) = cam.focal, cam.principal_point
+                zmax = float(frame_raster(xyz, ids, T, float(fx), float(fy), float(cx),
+                                          float(cy), float(cam.skew), float(scale), raster, h, w))
+            else:
+                c = np.floor(np.asarray(uv, np.float64) * scale).astype(np.int64)
+                ok = (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h) & (depth > 0)
+                np.minimum.at(raster, c[ok, 1] * w + c[ok, 0], np.asarray(depth, np.float32)[ok])
+                zmax = float(np.max(np.asarray(depth)[ok])) if ok.any() else 0.0
             T = np.asarray(fr.T_cam_world, np.float64)
-            zmax = float(np.max(np.asarray(depth)[ok])) if ok.any() else 0.0
             self.frames.append((small, T, raster.reshape(h, w), self._frustum_box(cam, T, zmax)))
 
     def _frustum_box(self, cam, T: np.ndarray, zmax: float) -> tuple[np.ndarray, np.ndarray]:

@@ -265,16 +265,15 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
     # pass 1: nearest depth per pixel; pass 2: among the fragments of the front surface
     # (depth within a tolerance of the nearest), the point projecting closest to the pixel
     # centre gives the label (compiled loops over each point's splat, occufly.splat)
-    from occufly.splat import splat_depth, splat_label
+    from occufly.splat import splat_pass
 
     depth = np.full(h * w, np.inf, dtype=np.float32)
-    for _, z, size, col0, row0, _ in (kept if kept is not None else projected()):
-        splat_depth(depth, z, size, col0, row0, h, w)
     best = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
     tol = np.float32(surface_tol * spacing)
-    for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
-        splat_label(best, depth, np.ascontiguousarray(uv), z, size, col0, row0,
-                    np.ascontiguousarray(lab, dtype=np.uint8), tol, h, w)
+    for label_pass in (False, True):
+        for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
+            splat_pass(depth, best, np.ascontiguousarray(uv), z, size, col0, row0,
+                       np.ascontiguousarray(lab, dtype=np.uint8), tol, h, w, label_pass)
     hit = best != np.iinfo(np.uint64).max
     cls = np.zeros(h * w, dtype=np.uint8)
     cls[hit] = (best[hit] & np.uint64(255)).astype(np.uint8)

@@ -18,38 +18,21 @@ import numpy as np
 
 
 @numba.njit(nogil=True, cache=True)
-def splat_depth(depth: np.ndarray, z: np.ndarray, size: np.ndarray, col0: np.ndarray,
-                row0: np.ndarray, h: int, w: int) -> None:
-    """depth: (h * w,) float32, lowered in place to each fragment's z (float32)."""
-    for i in range(z.shape[0]):
-        s = size[i]
-        zi = z[i]
-        for dy in range(s):
-            r = row0[i] + dy
-            if r < 0 or r >= h:
-                continue
-            for dx in range(s):
-                c = col0[i] + dx
-                if c < 0 or c >= w:
-                    continue
-                p = r * w + c
-                if zi < depth[p]:
-                    depth[p] = zi
+def splat_pass(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, z: np.ndarray,
+               size: np.ndarray, col0: np.ndarray, row0: np.ndarray, lab: np.ndarray,
+               tol: np.float32, h: int, w: int, label_pass: bool) -> None:
+    """One pass over every in-image pixel of every point's splat.
 
-
-@numba.njit(nogil=True, cache=True)
-def splat_label(best: np.ndarray, depth: np.ndarray, uv: np.ndarray, z: np.ndarray,
-                size: np.ndarray, col0: np.ndarray, row0: np.ndarray, lab: np.ndarray,
-                tol: np.float32, h: int, w: int) -> None:
-    """best: (h * w,) uint64, lowered in place to ``d2 * 65536 << 8 | label`` of each front
-    fragment (d2: squared distance of the projected point to the pixel centre)."""
+    Pass 1 (``label_pass`` False): ``depth`` ((h * w,) float32) is lowered in place to each
+    fragment's z. Pass 2: ``best`` ((h * w,) uint64) is lowered in place to
+    ``d2 * 65536 << 8 | label`` of each front fragment (d2: squared distance of the projected
+    point to the pixel centre); ``depth`` is read only."""
     k005 = np.float32(0.005)
     k65536 = np.float32(65536.0)
     cap = np.float32(2.0 ** 31)
     for i in range(z.shape[0]):
         s = size[i]
         zi = z[i]
-        u, v = uv[i, 0], uv[i, 1]
         for dy in range(s):
             r = row0[i] + dy
             if r < 0 or r >= h:
@@ -59,11 +42,15 @@ def splat_label(best: np.ndarray, depth: np.ndarray, uv: np.ndarray, z: np.ndarr
                 if c < 0 or c >= w:
                     continue
                 p = r * w + c
+                if not label_pass:
+                    if zi < depth[p]:
+                        depth[p] = zi
+                    continue
                 zf = depth[p]
                 if not zi <= zf + (tol + k005 * zf):
                     continue
-                ex = c + 0.5 - u
-                ey = r + 0.5 - v
+                ex = c + 0.5 - uv[i, 0]
+                ey = r + 0.5 - uv[i, 1]
                 d2 = np.float32(ex * ex + ey * ey)
                 key = (np.uint64(min(d2 * k65536, cap)) << np.uint64(8)) | np.uint64(lab[i])
                 if key < best[p]:
@@ -71,11 +58,11 @@ def splat_label(best: np.ndarray, depth: np.ndarray, uv: np.ndarray, z: np.ndarr
 
 
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) both passes on a one-point input."""
+    """Compile (or load from numba's cache) the pass on a one-point input."""
     depth = np.full(4, np.inf, np.float32)
     best = np.full(4, np.iinfo(np.uint64).max, np.uint64)
     one = np.ones(1, np.int64)
     z = np.ones(1, np.float32)
-    splat_depth(depth, z, one, one - 1, one - 1, 2, 2)
-    splat_label(best, depth, np.full((1, 2), 0.5), z, one, one - 1, one - 1,
-                np.ones(1, np.uint8), np.float32(0.1), 2, 2)
+    for label_pass in (False, True):
+        splat_pass(depth, best, np.full((1, 2), 0.5), z, one, one - 1, one - 1,
+                   np.ones(1, np.uint8), np.float32(0.1), 2, 2, label_pass)

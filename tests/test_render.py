@@ -116,7 +116,7 @@ def test_splat_kernels_match_a_plain_reference():
     """The compiled splat passes against per-fragment numpy: nearest depth per pixel, then
     among the front fragments the smallest (d2 * 65536 << 8 | label) key, in float32 as the
     renderer rounds them; overlapping points, splats leaving the image, equal depths."""
-    from occufly.splat import splat_depth, splat_label
+    from occufly.splat import splat_pass
 
     rng = np.random.default_rng(5)
     h, w, m = 30, 40, 400
@@ -128,9 +128,10 @@ def test_splat_kernels_match_a_plain_reference():
     lab = rng.integers(1, 30, m).astype(np.uint8)
     tol = np.float32(0.3)
     depth = np.full(h * w, np.inf, np.float32)
-    splat_depth(depth, z, size, col0, row0, h, w)
     best = np.full(h * w, np.iinfo(np.uint64).max, np.uint64)
-    splat_label(best, depth, uv, z, size, col0, row0, lab, tol, h, w)
+    splat_pass(depth, best, uv, z, size, col0, row0, lab, tol, h, w, False)
+    assert (best == np.iinfo(np.uint64).max).all()  # the depth pass leaves the keys alone
+    splat_pass(depth, best, uv, z, size, col0, row0, lab, tol, h, w, True)
     want_d = np.full(h * w, np.inf, np.float32)
     frags = []
     for i in range(m):

@@ -54,18 +54,19 @@ class FrameDepths:
         self.params = params
         self.voxel_size = float(voxel_size)
         self.frames = []  # (scaled camera, T_cam_world, raster (h, w) float32 inf = not seen)
+        # uv/depth not stored: frames without distortion take the compiled projection (the
+        # same values, without the per-correspondence temporaries of the numpy one)
+        cloud = visibility.projected_on_demand()
+        if cloud is not None:
+            from occufly.densify.depthraster import frame_depths, frame_raster
+
+            xyz = np.asarray(cloud)
         for f, fr in enumerate(frames):
             cam = fr.camera
-            # frames without distortion, uv/depth not stored: the compiled projection (the
-            # same values, without the per-correspondence temporaries of the numpy one)
-            cloud = visibility.projected_on_demand() if not cam.has_distortion else None
-            fast = cloud is not None
+            T = np.ascontiguousarray(fr.T_cam_world, dtype=np.float64)
+            fast = cloud is not None and not cam.has_distortion
             if fast:
-                from occufly.densify.depthraster import frame_depths
-
                 ids = np.asarray(visibility.frame_ids(f))
-                xyz = np.asarray(cloud)
-                T = np.ascontiguousarray(fr.T_cam_world, dtype=np.float64)
                 depth = frame_depths(xyz, ids, T) if len(ids) else np.zeros(0, np.float32)
             else:
                 _, uv, depth = visibility.frame(f)
@@ -81,8 +82,6 @@ class FrameDepths:
             w, h = small.width, small.height
             raster = np.full(h * w, np.inf, np.float32)
             if fast:
-                from occufly.densify.depthraster import frame_raster
-
                 (fx, fy), (cx, cy) = cam.focal, cam.principal_point
                 zmax = float(frame_raster(xyz, ids, T, float(fx), float(fy), float(cx),
                                           float(cy), float(cam.skew), float(scale), raster, h, w))
@@ -91,7 +90,6 @@ class FrameDepths:
                 ok = (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h) & (depth > 0)
                 np.minimum.at(raster, c[ok, 1] * w + c[ok, 0], np.asarray(depth, np.float32)[ok])
                 zmax = float(np.max(np.asarray(depth)[ok])) if ok.any() else 0.0
-            T = np.asarray(fr.T_cam_world, np.float64)
             self.frames.append((small, T, raster.reshape(h, w), self._frustum_box(cam, T, zmax)))
 
     def _frustum_box(self, cam, T: np.ndarray, zmax: float) -> tuple[np.ndarray, np.ndarray]:

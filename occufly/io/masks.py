@@ -89,7 +89,7 @@ def id_histogram(mask: np.ndarray) -> np.ndarray:
 
     m = np.asarray(mask, dtype=np.uint8)
     if m.ndim != 2:
-        m = m.reshape(1, -1) if m.size else np.zeros((1, 0), np.uint8)
+        m = m.reshape(1, -1)
     out = np.zeros(256, np.int64)
     rows = max(1, (1 << 23) // max(1, m.shape[1]))
     for a in range(0, m.shape[0], rows):

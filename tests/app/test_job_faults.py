@@ -53,7 +53,10 @@ def _listing(root: Path) -> dict[str, int]:
 
 
 def _seed(tmp: Path, env: dict) -> int:
-    """Import a 12-frame tiny scene, give it labels and a scene grid (in-process jobs)."""
+    """Import a 48-frame tiny scene, give it labels and a scene grid (in-process jobs).
+
+    48 frames, not 12: at 12 the export's last 85 % once finished (and published) between the
+    test's last progress poll and the kill, in a fresh-clone CI run."""
     from app.config import Settings
     from app.jobs import service as jobs
     from app.main import close, create_app
@@ -65,7 +68,7 @@ def _seed(tmp: Path, env: dict) -> int:
     app = create_app(settings)
     ctx = app.state.ctx
     src = tmp / "imports" / "tiny_src"
-    write_tiny_workspace(src, n_frames=12, n_side=40)
+    write_tiny_workspace(src, n_frames=48, n_side=40)
     with ctx.sessions() as s:
         users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
         scene = scenes.create_scene(session=s, settings=settings, name="tiny", source=src)

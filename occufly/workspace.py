@@ -19,6 +19,10 @@ path, a reader or an atomic writer::
     WS/lifting/confidence.npy      (N,) float32 in [0, 1]
     WS/lifting/origin.npy          (N,) uint8 label origin: 0 none, 1 direct, 2 filled, 3 denoised
     WS/lifting/labels.json         statistics of the last fill
+    WS/lifting/corrections/overrides.npz
+                                   net effect of reviewers' label corrections (point ids, labels):
+                                   the override layer above votes, fill and denoise
+                                   (occufly.lifting.corrections; applied by load_labels)
     WS/grid/scene_grid.npz         the densified scene grid (``scene_grid_<alt>.npz`` per altitude)
     WS/grid/scene_grid_report.json the densification report
     WS/truth/scene_grid.npz        a truth grid kept with the workspace (synthetic scenes)
@@ -174,6 +178,18 @@ class Workspace:
     def labels_stats_path(self) -> Path:
         return self.lifting_dir / "labels.json"
 
+    @property
+    def corrections_dir(self) -> Path:
+        """Reviewers' label corrections (``lifting/corrections/``): per-edit point-id files and
+        the net override layer (:mod:`occufly.lifting.corrections`)."""
+        return self.lifting_dir / "corrections"
+
+    @property
+    def overrides_path(self) -> Path:
+        """``lifting/corrections/overrides.npz``: the net override layer (``point_ids`` (K,)
+        int64 sorted unique, ``labels`` (K,) uint8 raw ids, 0 = set to unlabelled)."""
+        return self.corrections_dir / "overrides.npz"
+
     def has_labels(self) -> bool:
         return self.labels_path.is_file()
 
@@ -292,7 +308,7 @@ class Workspace:
     def stamp_paths(self) -> list[Path]:
         """The artefacts whose change readers care about (header, labels, grids)."""
         paths = [self.scene_json, self.labels_path, self.confidence_path, self.label_origin_path,
-                 self.lifting_state, self.grid_path()]
+                 self.lifting_state, self.overrides_path, self.grid_path()]
         paths += list(self.altitude_grids().values())
         return paths
 

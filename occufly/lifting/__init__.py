@@ -42,6 +42,7 @@ from occufly.lifting.knn import (
 )
 from occufly.lifting.result import (
     LIFT_DIR,
+    ORIGIN_CORRECTED,
     ORIGIN_DENOISED,
     ORIGIN_DIRECT,
     ORIGIN_FILLED,
@@ -62,7 +63,7 @@ from occufly.lifting.votes import (
 )
 
 __all__ = [
-    "LIFT_DIR", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
+    "LIFT_DIR", "ORIGIN_CORRECTED", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
     "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
     "VoteSnapshot", "evaluate_points", "fill_and_denoise", "fill_and_denoise_exact",
     "fill_snapshot", "load_labels", "params_dict", "save_result", "typical_knn_radius",

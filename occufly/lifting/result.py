@@ -15,8 +15,9 @@ ORIGIN_NONE = 0
 ORIGIN_DIRECT = 1
 ORIGIN_FILLED = 2
 ORIGIN_DENOISED = 3
+ORIGIN_CORRECTED = 4  # a reviewer's correction (occufly.lifting.corrections)
 ORIGIN_NAMES = {ORIGIN_NONE: "none", ORIGIN_DIRECT: "direct", ORIGIN_FILLED: "filled",
-                ORIGIN_DENOISED: "denoised"}
+                ORIGIN_DENOISED: "denoised", ORIGIN_CORRECTED: "corrected"}
 
 
 @dataclass
@@ -24,7 +25,8 @@ class LiftResult:
     """Output of the fill/denoise passes.
 
     labels: (N,) uint8 raw class ids (0 = no label); confidence: (N,) float32 in [0, 1];
-    origin: (N,) uint8 (0 none, 1 direct, 2 filled, 3 denoised); stats: timings and counts.
+    origin: (N,) uint8 (0 none, 1 direct, 2 filled, 3 denoised, 4 corrected by a reviewer);
+    stats: timings and counts.
     """
 
     labels: np.ndarray
@@ -33,10 +35,10 @@ class LiftResult:
     stats: dict = field(default_factory=dict)
 
     def summary(self, taxonomy: Taxonomy | None = None) -> dict:
-        counts = np.bincount(np.asarray(self.origin), minlength=4)
+        counts = np.bincount(np.asarray(self.origin), minlength=len(ORIGIN_NAMES))
         out = {
             "points": int(len(self.labels)),
-            "origin": {ORIGIN_NAMES[i]: int(counts[i]) for i in range(4)},
+            "origin": {ORIGIN_NAMES[i]: int(counts[i]) for i in range(len(ORIGIN_NAMES))},
             "mean_confidence": float(np.mean(self.confidence)) if len(self.confidence) else 0.0,
         }
         if taxonomy is not None:
@@ -53,13 +55,18 @@ def save_result(ws: str | Path, result: LiftResult) -> None:
     Workspace(ws).write_labels(result.labels, result.confidence, result.origin, result.stats)
 
 
-def load_labels(ws: str | Path) -> LiftResult | None:
-    """The latest fill/denoise output of workspace ``ws`` (memory-mapped), or None."""
+def load_labels(ws: str | Path, *, corrections: bool = True) -> LiftResult | None:
+    """The labels every consumer reads: the latest fill/denoise output of workspace ``ws``
+    (memory-mapped) with reviewers' corrections applied on top
+    (:func:`occufly.lifting.corrections.apply_overrides`; ``corrections=False`` gives the
+    fill output alone), or None before the first fill."""
+    from occufly.lifting.corrections import apply_overrides
     from occufly.workspace import Workspace
 
     w = Workspace(ws)
     labels = w.labels()
     if labels is None:
         return None
-    return LiftResult(labels=labels, confidence=w.confidence(), origin=w.label_origin(),
-                      stats=w.lift_stats())
+    res = LiftResult(labels=labels, confidence=w.confidence(), origin=w.label_origin(),
+                     stats=w.lift_stats())
+    return apply_overrides(res, w) if corrections else res

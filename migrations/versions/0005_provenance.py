@@ -1,0 +1,25 @@
+"""mask provenance: version states, voting version, idempotency keys
+
+Revision ID: 0005
+Revises: 0004
+Create Date: 2026-12-03 07:30:00
+
+(Reserved in the chain for issue 23 (provenance); a no-op until that work needs a schema change.)
+"""
+from __future__ import annotations
+
+import sqlalchemy as sa  # noqa: F401
+from alembic import op  # noqa: F401
+
+revision = '0005'
+down_revision = '0004'
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    pass
+
+
+def downgrade() -> None:
+    pass

@@ -1,0 +1,25 @@
+"""security: storage quotas, password policy
+
+Revision ID: 0007
+Revises: 0006
+Create Date: 2026-12-03 07:30:00
+
+(Reserved in the chain for issue 24 (security); a no-op until that work needs a schema change.)
+"""
+from __future__ import annotations
+
+import sqlalchemy as sa  # noqa: F401
+from alembic import op  # noqa: F401
+
+revision = '0007'
+down_revision = '0006'
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    pass
+
+
+def downgrade() -> None:
+    pass

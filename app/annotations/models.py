@@ -7,7 +7,16 @@ from sqlalchemy.orm import Mapped, mapped_column
 
 from app.db import Base, utcnow
 
-VERSION_KINDS = ("draft", "submitted", "conflict")
+#: a version's state (docs/provenance.md). ``draft``: autosaved, informs only its own frame's
+#: editor; ``submitted``: handed in for review; ``accepted`` / ``rejected``: a reviewer decided
+#: on it; ``conflict``: an upload that lost a race (kept, never current); ``imported``: brought
+#: in from another tool by an admin.
+VERSION_KINDS = ("draft", "submitted", "accepted", "rejected", "conflict", "imported")
+#: the states whose newest version of a frame votes (Frame.voting_version_id) -- unless a
+#: rejected version is newer: a rejection withdraws the frame's votes until the next submit
+VOTING_KINDS = ("submitted", "accepted", "imported")
+#: the kinds ``store_version`` creates (accept/reject turn a stored version into a decided one)
+STORED_KINDS = ("draft", "submitted", "imported")
 
 
 class MaskVersion(Base):
@@ -17,7 +26,14 @@ class MaskVersion(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     frame_id: Mapped[int] = mapped_column(ForeignKey("frames.id", ondelete="CASCADE"), index=True)
-    kind: Mapped[str] = mapped_column(String(16))
+    kind: Mapped[str] = mapped_column(String(16))  # the state: one of VERSION_KINDS
+    # where it came from: None / "editor" (painted here), "reviewer_correction", "import:cvat",
+    # "import:coco", ... (free text, at most 64 characters)
+    source: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # who accepted / rejected this version, and when (None while nobody has decided on it)
+    decided_by_id: Mapped[int | None] = mapped_column(
+        ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
+    decided_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
     author_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)

@@ -9,7 +9,7 @@ class VersionOut(BaseModel):
     version: int  # global id (ETag / If-Match)
     number: int | None = None  # 1-based per-frame number (what people see: "version 3")
     frame_id: int
-    kind: str
+    kind: str  # the state: draft submitted accepted rejected conflict imported
     author: str | None
     created_at: datetime
     sha256: str
@@ -18,6 +18,8 @@ class VersionOut(BaseModel):
     height: int
     base_version: int | None
     restored_from: int | None
+    source: str | None = None  # None = painted in the editor; "import:cvat", ...
+    decided_at: datetime | None = None  # when a reviewer accepted / rejected this version
 
 
 class LabelsStatus(BaseModel):

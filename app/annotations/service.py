@@ -8,6 +8,11 @@ Concurrency rules (race free on SQLite and PostgreSQL alike, no SELECT ... FOR U
   ``UPDATE ... WHERE current_version_id = <If-Match>`` in the same transaction. If that
   matches no row, someone else won: the version is kept with kind ``conflict`` (so the
   loser's upload stays recoverable) and the request gets 409.
+
+Provenance (docs/provenance.md): a version's ``kind`` is its state. Only a frame's voting
+version (``Frame.voting_version_id``: its newest submitted / accepted / imported version,
+unless a rejected one is newer) is lifted; the lifting queue carries only changes of it. A
+draft save never reaches the queue: it informs its own frame's editor only.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from app import pipeline
-from app.annotations.models import MaskVersion, Prefill
+from app.annotations.models import STORED_KINDS, VOTING_KINDS, MaskVersion, Prefill
 from app.context import AppContext
 from app.db import utcnow
 from app.errors import Conflict, Forbidden, Invalid, NotFound, PreconditionRequired, StaleVersion
@@ -134,16 +139,27 @@ def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: byt
 
 def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
                   kind: str, expected: int | None, restored_from: int | None = None,
-                  sha256: str | None = None, size: tuple[int, int] | None = None) -> MaskVersion:
+                  sha256: str | None = None, size: tuple[int, int] | None = None,
+                  source: str | None = None) -> MaskVersion:
     """Validate, store and (if ``expected`` is still current) make current a new version.
+
+    kind: ``draft`` (an autosave: never lifted), ``submitted`` (handed in for review) or
+    ``imported`` (an admin brings a mask from another tool; ``source`` e.g. ``"import:cvat"``).
+    A submitted or imported version becomes the frame's voting version and is queued for
+    lifting; a draft leaves the voting version (and so every other consumer) unchanged.
+    source: where the mask came from (None = painted in the editor), at most 64 characters.
 
     Raises StaleVersion (409) after keeping the upload as a ``conflict`` version.
     """
-    if kind not in ("draft", "submitted"):
-        raise Invalid(f"kind must be 'draft' or 'submitted', got {kind!r}")
+    if kind not in STORED_KINDS:
+        raise Invalid(f"kind must be one of {', '.join(STORED_KINDS)}, got {kind!r}")
+    if source is not None and (not isinstance(source, str) or len(source) > 64):
+        raise Invalid("source must be a string of at most 64 characters")
     if user.role not in ("annotator", "admin"):
         raise Forbidden(f"frame {frame.id}: only the annotator holding its lease (or an admin) "
                         f"writes its mask; reviewers accept or reject")
+    if kind == "imported" and user.role != "admin":
+        raise Forbidden(f"frame {frame.id}: only an admin imports masks")
     if user.role == "annotator" and frame.assignee_id != user.id:
         if not has_authored(session, frame, user):
             raise Forbidden(f"frame {frame.id} is not leased to you; ask for it with 'next'")
@@ -162,7 +178,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     version = MaskVersion(frame_id=frame.id, kind="conflict" if lost_lease else kind,
                           author_id=user.id, sha256=sha256, size_bytes=nbytes, width=w, height=h,
                           base_version_id=expected, restored_from_id=restored_from,
-                          created_at=utcnow())
+                          source=source, created_at=utcnow())
     if kind == "submitted" and not lost_lease:
         _record_effort(session, ctx, frame, user, version, mask)
     session.add(version)
@@ -175,10 +191,11 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
                        conflict_version=version.id)
     now = utcnow()
     values: dict = {"current_version_id": version.id}
-    if kind == "submitted":
+    votes = kind in VOTING_KINDS
+    if votes:  # submitted / imported: waits for review, and votes from now on
         values.update(state="submitted", lease_expires_at=None, assignee_id=None,
                       last_annotator_id=user.id if user.role == "annotator" else
-                      Frame.last_annotator_id, agreement=None)
+                      Frame.last_annotator_id, agreement=None, voting_version_id=version.id)
     elif user.role == "annotator":
         values.update(state="in_progress", last_annotator_id=user.id,
                       lease_expires_at=now + timedelta(seconds=ctx.settings.lease_seconds))
@@ -197,10 +214,34 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
             f" is not the current version {current}; your upload was kept as conflict version "
             f"{version.id}", reason="stale", current_version=current,
             current_number=_number_of(session, frame.id, current), conflict_version=version.id)
-    ctx.lifting.enqueue(session, frame, version.id)  # durable: commits with the save
+    if votes:  # only a change of the voting version is lifted; a draft never is
+        ctx.lifting.enqueue(session, frame, version.id)  # durable: commits with the save
     session.commit()
-    ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
+    if votes:
+        ctx.lifting.notify(frame.scene_id, frame.id, version_id=version.id, mask=mask)
     return version
+
+
+def set_voting(*, session: Session, ctx: AppContext, frame: Frame, version_id: int | None) -> bool:
+    """Make ``version_id`` (None: no votes) the frame's voting version and queue the change
+    in the caller's transaction (the caller commits); False (nothing queued) when it already
+    is. The caller has checked the version's state (VOTING_KINDS) and owns the frame row."""
+    old = session.scalar(select(Frame.voting_version_id).where(Frame.id == frame.id))
+    if old == version_id:
+        return False
+    session.execute(update(Frame).where(Frame.id == frame.id)
+                    .values(voting_version_id=version_id)
+                    .execution_options(synchronize_session=False))
+    ctx.lifting.enqueue(session, frame, version_id)
+    return True
+
+
+def voting_versions(session: Session, scene_id: int) -> dict[int, MaskVersion]:
+    """frame index -> the frame's voting version (frames without one left out)."""
+    rows = session.execute(select(Frame.index, MaskVersion)
+                           .join(MaskVersion, MaskVersion.id == Frame.voting_version_id)
+                           .where(Frame.scene_id == scene_id)).all()
+    return {int(i): v for i, v in rows}
 
 
 # ---- annotation effort (issue 17) ----------------------------------------------------------
@@ -259,7 +300,8 @@ def effort(*, session: Session, scene: Scene) -> dict:
         select(MaskVersion, Frame.name, Frame.index, User.username)
         .join(Frame, Frame.id == MaskVersion.frame_id)
         .outerjoin(User, User.id == MaskVersion.author_id)
-        .where(Frame.scene_id == scene.id, MaskVersion.kind == "submitted",
+        .where(Frame.scene_id == scene.id,
+               MaskVersion.kind.in_(("submitted", "accepted", "rejected")),
                MaskVersion.painted_px.is_not(None))
         .order_by(MaskVersion.id)).all()
     out = []
@@ -290,7 +332,7 @@ def restore(*, session: Session, ctx: AppContext, frame: Frame, user: User, vers
         expected = frame.current_version_id
     return store_version(session=session, ctx=ctx, frame=frame, user=user, data=data, kind=kind,
                          expected=expected, restored_from=old.id, sha256=old.sha256,
-                         size=(old.width, old.height))
+                         size=(old.width, old.height), source=old.source)
 
 
 def get_version(*, session: Session, frame: Frame, version_id: int) -> MaskVersion:
@@ -347,7 +389,8 @@ def reopen(*, session: Session, ctx: AppContext, frame: Frame, user: User) -> Fr
 def version_out(v: MaskVersion, author: str | None, *, number: int | None = None) -> dict:
     return dict(version=v.id, number=number, frame_id=v.frame_id, kind=v.kind, author=author,
                 created_at=v.created_at, sha256=v.sha256, size_bytes=v.size_bytes, width=v.width,
-                height=v.height, base_version=v.base_version_id, restored_from=v.restored_from_id)
+                height=v.height, base_version=v.base_version_id, restored_from=v.restored_from_id,
+                source=v.source, decided_at=v.decided_at)
 
 
 # ---- lifted labels --------------------------------------------------------------------------

@@ -67,6 +67,8 @@ def review_frame(body: ReviewDecisionIn, frame: FrameDep, session: SessionDep, c
                  user: ReviewerUser, ip: ClientIp):
     frame = service.decide(session=session, ctx=ctx, frame=frame, user=user,
                            decision=body.decision, comment=body.comment, version=body.version)
+    if getattr(frame, "decision_noop", False):  # the same decision again: nothing to record
+        return scenes.frame_out(session=session, frame=frame)
     audit.record(session, f"review_{body.decision}", actor=user, scene_id=frame.scene_id,
                  frame_id=frame.id, client_ip=ip,
                  detail={"version": frame.reviewed_version_id, "comment": bool(body.comment)})

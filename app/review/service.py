@@ -85,12 +85,22 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
 # ---- decisions ------------------------------------------------------------------------------
 def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decision: str,
            comment: str | None, version: int | None = None) -> Frame:
-    """Accept or reject the frame's current mask version (recorded as reviewed_version_id).
+    """Accept or reject the frame's current mask version (recorded as reviewed_version_id and
+    as the version's state, with its decider: ``MaskVersion.kind`` / ``decided_by_id``).
 
     The decision is one conditional UPDATE on (state, current_version_id): a mask saved
     between the reviewer's look and the click makes it a 409 instead of accepting a version
     nobody reviewed. ``version`` (optional) names the version the reviewer looked at.
+
+    Deciding the version the frame's last decision already decided the same way is a no-op
+    (a double click, a retried request): the frame is returned unchanged, nothing is stored
+    (no second comment) and ``frame.decision_noop`` is True (the route then audits nothing).
+    Accepting makes the version the frame's voting version; rejecting withdraws the frame's
+    votes (queued for lifting only when the voting version changes).
     """
+    from app.annotations.models import MaskVersion
+
+    frame.decision_noop = False
     if frame.state not in ("submitted", "accepted", "rejected"):
         raise Conflict(f"frame {frame.id} is {frame.state}; only submitted frames can be reviewed")
     if frame.current_version_id is None:
@@ -99,9 +109,13 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         raise Conflict(f"frame {frame.id} has a newer mask (version {frame.current_version_id}) "
                        f"than the version {version} you reviewed; look at it again",
                        current_version=frame.current_version_id)
+    target = "accepted" if decision == "accept" else "rejected"
+    if frame.state == target and frame.reviewed_version_id == frame.current_version_id:
+        frame.decision_noop = True
+        return frame
+    vid = frame.current_version_id
     now = utcnow()
-    values: dict = dict(reviewed_by_id=user.id, reviewed_at=now,
-                        reviewed_version_id=frame.current_version_id)
+    values: dict = dict(reviewed_by_id=user.id, reviewed_at=now, reviewed_version_id=vid)
     if decision == "accept":
         values.update(state="accepted", assignee_id=None, lease_expires_at=None)
     else:
@@ -111,7 +125,7 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
                                         if frame.last_annotator_id else None))
     res = session.execute(update(Frame).where(
         Frame.id == frame.id, Frame.state == frame.state,
-        Frame.current_version_id == frame.current_version_id).values(**values)
+        Frame.current_version_id == vid).values(**values)
         .execution_options(synchronize_session=False))
     if res.rowcount != 1:
         session.rollback()
@@ -119,6 +133,13 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         raise Conflict(f"frame {frame.id} changed while you reviewed it (now {frame.state}, "
                        f"version {frame.current_version_id}); look at it again",
                        current_version=frame.current_version_id)
+    # the version's state; a conflict version can never be current, a draft can be (an
+    # admin's draft of a submitted frame): deciding on it makes it accepted / rejected too
+    session.execute(update(MaskVersion).where(MaskVersion.id == vid).values(
+        kind=target, decided_by_id=user.id, decided_at=now)
+        .execution_options(synchronize_session=False))
+    annotations.set_voting(session=session, ctx=ctx, frame=frame,
+                           version_id=vid if decision == "accept" else None)
     if comment:
         item = ReviewItem(scene_id=frame.scene_id, frame_id=frame.id, author_id=user.id,
                           status="open" if decision == "reject" else "resolved",
@@ -128,6 +149,7 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         session.add(ReviewComment(item_id=item.id, author_id=user.id,
                                   text=f"[{decision}] {comment}"))
     session.commit()
+    ctx.lifting.notify(frame.scene_id, frame.id)
     session.refresh(frame)
     return frame
 

@@ -52,6 +52,9 @@ class Frame(Base):
     reviewed_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
     # the mask version the last accept/reject decided on (an export names it per frame)
     reviewed_version_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # the version whose votes count for this frame (the newest submitted / accepted / imported
+    # one, None after a rejection or before any submit; app.annotations.service, provenance)
+    voting_version_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
     # position in which "next" hands the selected frames out (app.scenes.service.handout_order;
     # None: not selected, or selected before this column existed -> after the ranked, by index)
     handout_rank: Mapped[int | None] = mapped_column(Integer, nullable=True)

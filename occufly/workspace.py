@@ -23,6 +23,8 @@ path, a reader or an atomic writer::
                                    net effect of reviewers' label corrections (point ids, labels):
                                    the override layer above votes, fill and denoise
                                    (occufly.lifting.corrections; applied by load_labels)
+    WS/lifting/corrections/edit_<id>.npz
+                                   the point ids of one correction edit (uint32, zlib)
     WS/grid/scene_grid.npz         the densified scene grid (``scene_grid_<alt>.npz`` per altitude)
     WS/grid/scene_grid_report.json the densification report
     WS/truth/scene_grid.npz        a truth grid kept with the workspace (synthetic scenes)
@@ -189,6 +191,12 @@ class Workspace:
         """``lifting/corrections/overrides.npz``: the net override layer (``point_ids`` (K,)
         int64 sorted unique, ``labels`` (K,) uint8 raw ids, 0 = set to unlabelled)."""
         return self.corrections_dir / "overrides.npz"
+
+    def correction_edit(self, edit_id: int) -> Path:
+        """``lifting/corrections/edit_<id>.npz``: the point ids of one correction edit
+        (``point_ids`` (K,) uint32 sorted unique, zlib-compressed; written before the edit's
+        database row, see :func:`occufly.lifting.corrections.write_edit_points`)."""
+        return self.corrections_dir / f"edit_{int(edit_id):08d}.npz"
 
     def has_labels(self) -> bool:
         return self.labels_path.is_file()

@@ -447,7 +447,8 @@ def voxelize_workspace(
 ) -> dict:
     """Densify a workspace's labelled cloud and save ``WS/grid/scene_grid.npz`` (atomic).
 
-    Labels default to ``WS/lifting/labels.npy``. Returns the report (also written next to
+    Labels default to ``WS/lifting/labels.npy`` with the reviewers' corrections applied
+    (:func:`occufly.lifting.corrections.apply_to_labels`). Returns the report (also written next to
     the grid as ``voxelize_report.json``).
     """
     import json
@@ -460,6 +461,10 @@ def voxelize_workspace(
     scene = wsp.scene()
     lp = Path(labels_path) if labels_path is not None else wsp.labels_path
     labels = load_point_labels(lp, scene.n_points)
+    if labels_path is None:  # the workspace's labels: with reviewers' corrections, like every reader
+        from occufly.lifting.corrections import apply_to_labels
+
+        labels = apply_to_labels(labels, wsp)
     use_views = bool(options.carve and options.free_space)
     if scene.n_points:  # up front, before the frames' depth rasters: the whole cloud's box
         xyz = np.asarray(scene.xyz)

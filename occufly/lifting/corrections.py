@@ -59,22 +59,42 @@ def read_overrides(ws: str | Path | Workspace, n_points: int | None = None) -> O
 
 
 def write_overrides(ws: str | Path | Workspace, point_ids: np.ndarray,
-                    labels: np.ndarray) -> None:
+                    labels: np.ndarray, *, edit_ids: np.ndarray | None = None,
+                    applied: np.ndarray | list[int] | None = None) -> None:
     """Store the net override layer atomically (``point_ids`` need not be sorted: the last
-    label given for a point wins). An empty layer removes the file."""
+    label given for a point wins). An empty layer removes the file -- unless ``applied`` is
+    given, then an empty layer is kept so that it records which edits it reflects.
+
+    ``edit_ids`` (optional, (K,) int64 aligned with ``point_ids``): the edit that set each
+    point; ``applied`` (optional): the ids of the active edits the layer reflects (what the
+    app compares with its edit table to repair a layer a crash left behind).
+    """
     w = Workspace.of(ws)
     ids = np.asarray(point_ids, dtype=np.int64).reshape(-1)
     lab = np.asarray(labels, dtype=np.uint8).reshape(-1)
     if ids.shape != lab.shape:
         raise ValueError(f"write_overrides: {len(ids)} point ids but {len(lab)} labels")
-    if len(ids) == 0:
+    if edit_ids is not None:
+        edit_ids = np.asarray(edit_ids, dtype=np.int64).reshape(-1)
+        if edit_ids.shape != ids.shape:
+            raise ValueError(f"write_overrides: {len(ids)} point ids but {len(edit_ids)} edit ids")
+    if len(ids) == 0 and applied is None:
         w.overrides_path.unlink(missing_ok=True)
         return
-    # last occurrence wins: unique over the reversed arrays
-    rev_ids = ids[::-1]
-    uniq, first = np.unique(rev_ids, return_index=True)
+    if len(ids) and np.all(ids[1:] > ids[:-1]):  # already sorted unique (the app's layers)
+        uniq, lab_u = ids, lab
+        eid_u = edit_ids
+    else:  # last occurrence wins: unique over the reversed arrays
+        uniq, first = np.unique(ids[::-1], return_index=True)
+        lab_u = lab[::-1][first]
+        eid_u = edit_ids[::-1][first] if edit_ids is not None else None
+    arrays = {"point_ids": uniq, "labels": lab_u}
+    if eid_u is not None:
+        arrays["edit_ids"] = eid_u
+    if applied is not None:
+        arrays["applied"] = np.unique(np.asarray(applied, dtype=np.int64).reshape(-1))
     buf = io.BytesIO()
-    np.savez(buf, point_ids=uniq, labels=lab[::-1][first])
+    np.savez(buf, **arrays)
     w.corrections_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(w.overrides_path, buf.getvalue())
 
@@ -104,4 +124,196 @@ def apply_to_labels(labels: np.ndarray, ws: str | Path | Workspace) -> np.ndarra
         return labels
     out = np.array(labels, dtype=np.uint8)
     out[ov.point_ids] = ov.labels
+    return out
+
+
+# ---- the edit history's building blocks (used by the app's corrections service) ----------
+# An edit is (edit id, point ids, class). The net layer is the edits applied in id order
+# (the highest id wins on a point); it also records, per point, which edit set it and the
+# set of edits it reflects, so activating or deactivating one edit rewrites only that edit's
+# points: O(edited points), never O(scene).
+
+
+@dataclass(frozen=True)
+class NetLayer:
+    """The net override layer with its bookkeeping.
+
+    point_ids: (K,) int64 sorted unique; labels: (K,) uint8; edit_ids: (K,) int64 the edit that
+    set each point (-1 where a layer was written without them); applied: (E,) int64 sorted ids
+    of the edits the layer reflects (None when the file does not record them).
+    """
+
+    point_ids: np.ndarray
+    labels: np.ndarray
+    edit_ids: np.ndarray
+    applied: np.ndarray | None
+
+    @classmethod
+    def empty(cls) -> NetLayer:
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64),
+                   np.zeros(0, np.int64))
+
+    def __len__(self) -> int:
+        return int(len(self.point_ids))
+
+
+def read_net(ws: str | Path | Workspace, n_points: int | None = None) -> NetLayer:
+    """The workspace's net layer with its bookkeeping (empty when there is none)."""
+    ov = read_overrides(ws, n_points)
+    if ov is None:
+        return NetLayer(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64), None)
+    p = Workspace.of(ws).overrides_path
+    with np.load(p, allow_pickle=False) as z:
+        eids = (np.asarray(z["edit_ids"], np.int64) if "edit_ids" in z.files
+                else np.full(len(ov), -1, np.int64))
+        applied = np.asarray(z["applied"], np.int64) if "applied" in z.files else None
+    if eids.shape != ov.point_ids.shape:
+        raise WorkspaceError(f"{p}: edit_ids {eids.shape} and point_ids {ov.point_ids.shape} differ")
+    return NetLayer(ov.point_ids, ov.labels, eids, applied)
+
+
+def write_net(ws: str | Path | Workspace, net: NetLayer) -> None:
+    """Store ``net`` atomically (kept even when empty, so it records ``applied``)."""
+    write_overrides(ws, net.point_ids, net.labels, edit_ids=net.edit_ids,
+                    applied=net.applied if net.applied is not None else np.zeros(0, np.int64))
+
+
+def normalise_point_ids(point_ids: np.ndarray | list[int], n_points: int) -> np.ndarray:
+    """(K,) int64 sorted unique ids; ValueError naming the range for ids outside 0..n-1."""
+    ids = np.unique(np.asarray(point_ids, dtype=np.int64).reshape(-1))
+    if len(ids) and (ids[0] < 0 or ids[-1] >= n_points):
+        raise ValueError(f"point ids must be in 0..{n_points - 1}, got {int(ids[0])}..{int(ids[-1])}")
+    return ids
+
+
+def write_edit_points(ws: str | Path | Workspace, edit_id: int, point_ids: np.ndarray,
+                      to_class: int) -> Path:
+    """Store one edit's point ids (sorted unique, as uint32 deltas, zlib) atomically;
+    returns the path (:meth:`Workspace.correction_edit`)."""
+    import zlib
+
+    w = Workspace.of(ws)
+    ids = np.asarray(point_ids, dtype=np.int64).reshape(-1)
+    if len(ids) and (ids[0] < 0 or ids[-1] > np.iinfo(np.uint32).max or np.any(np.diff(ids) <= 0)):
+        raise ValueError("write_edit_points: point ids must be sorted unique uint32 values")
+    deltas = np.diff(ids, prepend=0).astype(np.uint32)
+    buf = io.BytesIO()
+    np.savez(buf, deltas_zlib=np.frombuffer(zlib.compress(deltas.tobytes(), 1), np.uint8),
+             n=np.int64(len(ids)), to_class=np.int64(to_class))
+    w.corrections_dir.mkdir(parents=True, exist_ok=True)
+    p = w.correction_edit(edit_id)
+    atomic_write_bytes(p, buf.getvalue())
+    return p
+
+
+def read_edit_points(ws: str | Path | Workspace, edit_id: int) -> np.ndarray:
+    """(K,) int64 sorted point ids of edit ``edit_id``; WorkspaceError when missing/corrupt."""
+    import zlib
+
+    p = Workspace.of(ws).correction_edit(edit_id)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            raw = zlib.decompress(np.asarray(z["deltas_zlib"], np.uint8).tobytes())
+            n = int(z["n"])
+    except (OSError, KeyError, ValueError, zlib.error) as e:
+        raise WorkspaceError(f"{p}: unreadable correction edit ({e})") from None
+    deltas = np.frombuffer(raw, np.uint32)
+    if len(deltas) != n:
+        raise WorkspaceError(f"{p}: {len(deltas)} point ids stored, header says {n}")
+    return np.cumsum(deltas, dtype=np.int64)
+
+
+def activate_edit(net: NetLayer, edit_id: int, point_ids: np.ndarray, to_class: int) -> NetLayer:
+    """``net`` with edit ``edit_id`` applied: its points take ``to_class`` unless a later
+    (higher id) active edit set them. ``point_ids``: (M,) int64 sorted unique. O(M log K + K)."""
+    ids = np.asarray(point_ids, np.int64)
+    K = len(net.point_ids)
+    pos = np.searchsorted(net.point_ids, ids)
+    found = np.zeros(len(ids), bool)
+    inb = pos < K
+    found[inb] = net.point_ids[pos[inb]] == ids[inb]
+    labels = net.labels.copy()
+    eids = net.edit_ids.copy()
+    hit = pos[found]
+    win = eids[hit] <= edit_id
+    labels[hit[win]] = to_class
+    eids[hit[win]] = edit_id
+    new = ~found
+    ins = pos[new]
+    out_ids = np.insert(net.point_ids, ins, ids[new])
+    out_lab = np.insert(labels, ins, np.uint8(to_class))
+    out_eid = np.insert(eids, ins, np.int64(edit_id))
+    applied = np.union1d(net.applied if net.applied is not None else np.zeros(0, np.int64),
+                         [edit_id]).astype(np.int64)
+    return NetLayer(out_ids, out_lab, out_eid, applied)
+
+
+def deactivate_edit(net: NetLayer, edit_id: int, point_ids: np.ndarray,
+                    earlier) -> NetLayer:  # noqa: ANN001 - iterable of (id, class, loader)
+    """``net`` without edit ``edit_id``. Its points that it still decides fall back to the
+    next-newest active edit covering them (``earlier``: (edit id, class, load_point_ids())
+    of the other active edits with lower ids, newest first; loaded only while points remain
+    unresolved) or leave the layer. ``point_ids``: (M,) int64 sorted unique."""
+    ids = np.asarray(point_ids, np.int64)
+    K = len(net.point_ids)
+    pos = np.searchsorted(net.point_ids, ids)
+    found = np.zeros(len(ids), bool)
+    inb = pos < K
+    found[inb] = net.point_ids[pos[inb]] == ids[inb]
+    mine = pos[found][net.edit_ids[pos[found]] == edit_id]  # positions this edit decides
+    labels = net.labels.copy()
+    eids = net.edit_ids.copy()
+    todo = mine  # positions still unresolved (sorted)
+    for eid, cls, load in earlier:
+        if len(todo) == 0:
+            break
+        if eid >= edit_id:
+            continue
+        other = np.asarray(load(), np.int64)
+        q = np.searchsorted(other, net.point_ids[todo])
+        ok = q < len(other)
+        ok[ok] = other[q[ok]] == net.point_ids[todo[ok]]
+        labels[todo[ok]] = cls
+        eids[todo[ok]] = eid
+        todo = todo[~ok]
+    keep = np.ones(K, bool)
+    keep[todo] = False
+    applied = net.applied if net.applied is not None else np.zeros(0, np.int64)
+    applied = applied[applied != edit_id]
+    return NetLayer(net.point_ids[keep], labels[keep], eids[keep], applied)
+
+
+def rebuild_net(edits) -> NetLayer:  # noqa: ANN001 - iterable of (id, class, point ids)
+    """The net layer of ``edits`` (any order; the highest edit id wins on a point).
+    O(total edited points)."""
+    edits = sorted(((int(e), int(c), np.asarray(p, np.int64)) for e, c, p in edits),
+                   key=lambda t: t[0])
+    if not edits:
+        return NetLayer.empty()
+    ids = np.concatenate([p for _e, _c, p in edits])
+    lab = np.concatenate([np.full(len(p), c, np.uint8) for _e, c, p in edits])
+    eid = np.concatenate([np.full(len(p), e, np.int64) for e, _c, p in edits])
+    uniq, first = np.unique(ids[::-1], return_index=True)
+    return NetLayer(uniq, lab[::-1][first], eid[::-1][first],
+                    np.asarray([e for e, _c, _p in edits], np.int64))
+
+
+def labels_at(ws: str | Path | Workspace, point_ids: np.ndarray,
+              net: NetLayer | Overrides | None = None) -> np.ndarray | None:
+    """(M,) uint8 current labels (fill output with corrections) of ``point_ids`` only --
+    O(M log K), the other points are never read; None before the first fill."""
+    w = Workspace.of(ws)
+    base = w.labels()
+    if base is None:
+        return None
+    ids = np.asarray(point_ids, np.int64)
+    out = np.asarray(base[ids], np.uint8).copy()
+    if net is None:
+        net = read_overrides(w, len(base))
+    if net is None or len(net) == 0:
+        return out
+    pos = np.searchsorted(net.point_ids, ids)
+    ok = pos < len(net.point_ids)
+    ok[ok] = net.point_ids[pos[ok]] == ids[ok]
+    out[ok] = net.labels[pos[ok]]
     return out

@@ -27,6 +27,7 @@ def table() -> dict[str, str]:
     from app.annotations import confidence, smart
     from app.annotations import routes as annotations
     from app.audit import routes as audit
+    from app.corrections import routes as corrections
     from app.jobs import archive
     from app.jobs import routes as jobs
     from app.review import routes as review
@@ -34,7 +35,8 @@ def table() -> dict[str, str]:
     from app.users import routes as users
 
     merged: dict[str, str] = dict(ACCESS)
-    for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit):
+    for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
+                corrections):
         for key, level in getattr(mod, "ACCESS", {}).items():
             if level not in LEVELS:
                 raise ValueError(f"{mod.__name__}.ACCESS[{key!r}]: unknown level {level!r}")

@@ -73,6 +73,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if interrupted:
         log.warning("jobs %s were interrupted by a server stop; resume them via the API",
                     interrupted)
+    from app.corrections.service import repair_all
+
+    repair_all(ctx)  # a correction a kill -9 left half-written is applied entirely or not at all
     ctx.jobs.start()
     ctx.lifting.start()
 
@@ -93,6 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from app.annotations.routes import router as annotations_router
     from app.annotations.smart import router as smart_router
     from app.audit.routes import router as audit_router
+    from app.corrections.routes import router as corrections_router
     from app.jobs.archive import router as archive_router
     from app.jobs.routes import router as jobs_router
     from app.review.routes import router as review_router
@@ -100,7 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from app.users.routes import router as users_router
 
     for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
-              review_router, jobs_router, archive_router, audit_router):
+              review_router, jobs_router, archive_router, audit_router, corrections_router):
         app.include_router(r)
 
     @app.get("/api/health", tags=["meta"])

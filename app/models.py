@@ -2,6 +2,7 @@
 
 from app.annotations.models import MaskVersion
 from app.audit.models import AuditEvent
+from app.corrections.models import CorrectionEdit, MaskProposal, Notification
 from app.db import Base
 from app.jobs.models import Job
 from app.lifting.models import Event, LiftQueueEntry, LiftStatus
@@ -11,6 +12,6 @@ from app.users.models import AuthToken, LoginThrottle, User
 
 metadata = Base.metadata
 
-__all__ = ["AuditEvent", "AuthToken", "Event", "Frame", "Job", "LiftQueueEntry", "LiftStatus",
+__all__ = ["AuditEvent", "CorrectionEdit", "MaskProposal", "Notification", "AuthToken", "Event", "Frame", "Job", "LiftQueueEntry", "LiftStatus",
            "LoginThrottle", "MaskVersion",
            "ReviewComment", "ReviewItem", "Scene", "SceneMember", "User", "metadata"]

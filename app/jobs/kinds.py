@@ -23,6 +23,11 @@ def run_import(jc: JobContext) -> dict:
         # the import replaces this folder: it must be the scene's own (never '.', '..', a
         # symlink or anything outside the workspaces folder)
         ws = scenes.own_workspace(jc.ctx.settings, scene)
+        # a re-import replaces the points: never silently under reviewers' corrections (409
+        # naming their count unless the admin asked to drop them; issue 25)
+        from app.corrections.service import guard_reimport
+
+        guard_reimport(session=s, scene=scene, drop=bool(p.get("drop_corrections")), user=None)
         scene.status = "importing"
         s.commit()
     jc.progress(0.0, f"importing {p['source']}")

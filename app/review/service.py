@@ -148,6 +148,12 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         session.flush()
         session.add(ReviewComment(item_id=item.id, author_id=user.id,
                                   text=f"[{decision}] {comment}"))
+    if decision == "reject":  # the annotator learns of it (issue 25: notifications)
+        from app.corrections.service import notify_frame_people
+
+        notify_frame_people(session, frame=frame, actor=user, kind="rejected",
+                            text=f"{user.username} rejected {frame.name}"
+                                 + (f": {comment}" if comment else ""))
     session.commit()
     ctx.lifting.notify(frame.scene_id, frame.id)
     session.refresh(frame)
@@ -195,6 +201,12 @@ def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | N
     session.add(item)
     session.flush()
     session.add(ReviewComment(item_id=item.id, author_id=user.id, text=comment))
+    if frame_id is not None:  # the frame's annotator is told (issue 25: notifications)
+        from app.corrections.service import notify_frame_people
+
+        fr = session.get(Frame, frame_id)
+        notify_frame_people(session, frame=fr, actor=user, kind="comment", item_id=item.id,
+                            text=f"{user.username} commented on {fr.name}: {comment[:200]}")
     session.commit()
     return item
 
@@ -261,6 +273,12 @@ def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
 
 def add_comment(*, session: Session, item: ReviewItem, user: User, text: str) -> ReviewItem:
     session.add(ReviewComment(item_id=item.id, author_id=user.id, text=text))
+    frame = session.get(Frame, item.frame_id) if item.frame_id else None
+    if frame is not None:  # the frame's annotator is told (issue 25: notifications)
+        from app.corrections.service import notify_frame_people
+
+        notify_frame_people(session, frame=frame, actor=user, kind="comment", item_id=item.id,
+                            text=f"{user.username} commented on {frame.name}: {text[:200]}")
     session.commit()
     return item
 

@@ -40,9 +40,10 @@ DEFAULT_MAX_POINTS = 2_000_000
 COLOUR_MODES = ("rgb", "semantic", "confidence", "origin", "disagreement")
 UNLABELLED = "unlabelled"
 
-# origin codes written by occufly.lifting: 0 none, 1 direct, 2 filled, 3 denoised
-ORIGIN_NAMES = ("none", "direct", "filled", "denoised")
-ORIGIN_COLOURS = np.array([[128, 128, 128], [30, 110, 255], [255, 150, 0], [170, 60, 220]], np.uint8)
+# origin codes written by occufly.lifting: 0 none, 1 direct, 2 filled, 3 denoised, 4 corrected
+ORIGIN_NAMES = ("none", "direct", "filled", "denoised", "corrected")
+ORIGIN_COLOURS = np.array([[128, 128, 128], [30, 110, 255], [255, 150, 0], [170, 60, 220],
+                           [255, 20, 147]], np.uint8)
 DISAGREE_COLOUR = np.array([230, 20, 20], np.uint8)
 AGREE_COLOUR = np.array([200, 200, 200], np.uint8)
 NO_VOTE_COLOUR = np.array([90, 90, 90], np.uint8)
@@ -112,6 +113,13 @@ class ViewerData:
         labels = opt(w.labels_path)
         conf = opt(w.confidence_path)
         origin = opt(w.label_origin_path)
+        if labels is not None and conf is not None and origin is not None:
+            # what every reader sees: the fill output with reviewers' corrections on top
+            from occufly.lifting.corrections import apply_overrides
+            from occufly.lifting.result import LiftResult
+
+            res = apply_overrides(LiftResult(labels, conf, origin), w)
+            labels, conf, origin = res.labels, res.confidence, res.origin
         direct = _load_direct(ws, scene)
         grid = w.grid()
         return cls(scene, labels, conf, origin, direct, grid, ws)
@@ -227,7 +235,7 @@ def point_colours(data: ViewerData, mode: str, idx: np.ndarray) -> np.ndarray:
     if mode == "confidence" and data.confidence is not None:
         return confidence_colours(np.asarray(data.confidence[idx]))
     if mode == "origin" and data.origin is not None:
-        return ORIGIN_COLOURS[np.minimum(np.asarray(data.origin[idx]), 3)]
+        return ORIGIN_COLOURS[np.minimum(np.asarray(data.origin[idx]), len(ORIGIN_COLOURS) - 1)]
     if mode == "disagreement" and data.labels is not None:
         lab = np.asarray(data.labels[idx])
         out = np.empty((len(idx), 3), np.uint8)

@@ -1,0 +1,109 @@
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from app.limits import Count, Id, text
+
+
+class EditIn(BaseModel):
+    point_ids: list[Count] = Field(min_length=1, max_length=50_000_000)
+    to_class: int = Field(ge=0, le=255)  # raw class id, 0 = unlabelled
+    comment: text(10000) | None = None
+    frame_id: Id | None = None  # the frame the reviewer was looking through, if any
+
+
+class EditOut(BaseModel):
+    id: int
+    scene_id: int
+    author: str | None
+    created_at: datetime
+    to_class: int
+    comment: str | None
+    n_points: int
+    from_hist: dict[int, int]
+    frame_id: int | None
+    state: Literal["active", "undone", "reverted", "dropped"]
+    redoable: bool
+    undone_by: str | None
+    undone_at: datetime | None
+    reverted_by: str | None
+    reverted_at: datetime | None
+
+
+class StackOut(BaseModel):
+    undo: int | None
+    redo: int | None
+
+
+class LayerOut(BaseModel):
+    corrected_points: int
+    applied: list[int]
+    per_class: dict[int, int]
+
+
+class DisagreeOut(BaseModel):
+    frame_id: int
+    index: int
+    name: str
+    pixels: int
+    disagreeing_px: int
+    version: int
+    state: str
+
+
+class ProposalIn(BaseModel):
+    frame_id: Id
+    dilate: int = Field(default=1, ge=0, le=16)
+
+
+class ProposalOut(BaseModel):
+    id: int
+    frame_id: int
+    edit_id: int | None
+    author: str | None
+    created_at: datetime
+    changed_px: int
+    status: str
+    reply: str | None
+    decided_by: str | None
+    decided_at: datetime | None
+    taken_version: int | None
+
+
+class DeclineIn(BaseModel):
+    reply: text(10000, 1)
+
+
+class NotificationOut(BaseModel):
+    id: int
+    kind: str
+    text: str
+    scene_id: int | None
+    frame_id: int | None
+    item_id: int | None
+    created_at: datetime
+    read_at: datetime | None
+
+
+class NotificationsOut(BaseModel):
+    unread: int
+    items: list[NotificationOut]
+
+
+class ReadIn(BaseModel):
+    ids: list[Id] | None = Field(default=None, max_length=1000)  # None: all
+
+
+class ProjectedItemOut(BaseModel):
+    id: int
+    scene_id: int
+    frame_id: int | None
+    status: str
+    author: str | None
+    n_points: int
+    visible_points: int
+    outline: list[list[float]]
+    comments: list[dict]

@@ -215,9 +215,12 @@ def viewer_callbacks(ctx: AppContext) -> dict:
         with ctx.sessions() as s:
             return is_member(s, user, int(scene_id))
 
+    from app.corrections.service import viewer_hooks
+
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
             "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx),
-            "frame_index": frame_index, "can_open": can_open}
+            "frame_index": frame_index, "can_open": can_open,
+            "corrections": viewer_hooks(ctx)}
 
 
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:

@@ -644,3 +644,58 @@ def mark_read(*, session: Session, user: User, ids: list[int] | None) -> int:
     res = session.execute(q.values(read_at=utcnow()).execution_options(synchronize_session=False))
     session.commit()
     return int(res.rowcount or 0)
+
+
+# ---- the 3D viewer's hooks -----------------------------------------------------------------
+def viewer_hooks(ctx: AppContext) -> dict:
+    """relabel / undo / redo / stack for ``app.viewer`` (``ViewerService.corrections``); the
+    viewer's user is re-read by id, so a role changed since the ticket counts."""
+
+    def _user(s: Session, user) -> User:  # noqa: ANN001
+        uid = user if isinstance(user, int) else getattr(user, "id", None)
+        u = s.get(User, uid) if uid is not None else None
+        if u is None or not u.active:
+            raise Forbidden("log in again")
+        return u
+
+    def relabel(scene_id, point_ids, to_class, comment, user, frame_index=None) -> dict:  # noqa: ANN001
+        with ctx.sessions() as s:
+            scene = s.get(Scene, int(scene_id))
+            if scene is None:
+                raise NotFound(f"scene {scene_id} does not exist")
+            u = _user(s, user)
+            from app.deps import check_member
+
+            check_member(s, u, scene.id)
+            fid = None if frame_index is None else s.scalar(select(Frame.id).where(
+                Frame.scene_id == scene.id, Frame.index == int(frame_index)))
+            e = create_edit(session=s, ctx=ctx, scene=scene, user=u, point_ids=point_ids,
+                            to_class=int(to_class), comment=comment or None, frame_id=fid)
+            from app.audit import service as audit
+
+            out = edit_out(s, e)
+            audit.record(s, "correction", actor=u, scene_id=scene.id, frame_id=fid,
+                         detail={"edit": e.id, "to": e.to_class, "points": e.n_points,
+                                 "via": "viewer"})
+            return out
+
+    def _stacked(which):  # noqa: ANN001, ANN202
+        def run(scene_id, user) -> dict:  # noqa: ANN001
+            with ctx.sessions() as s:
+                scene = s.get(Scene, int(scene_id))
+                u = _user(s, user)
+                e = (undo if which == "undo" else redo)(session=s, ctx=ctx, scene=scene, user=u)
+                from app.audit import service as audit
+
+                out = edit_out(s, e)
+                audit.record(s, f"correction_{which}", actor=u, scene_id=scene.id,
+                             detail={"edit": e.id, "via": "viewer"})
+                return out
+        return run
+
+    def stack_of(scene_id, user) -> dict:  # noqa: ANN001
+        with ctx.sessions() as s:
+            return stack(session=s, scene=s.get(Scene, int(scene_id)), user=_user(s, user))
+
+    return {"relabel": relabel, "undo": _stacked("undo"), "redo": _stacked("redo"),
+            "stack": stack_of}

@@ -211,7 +211,8 @@ def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | N
     return item
 
 
-def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, sessions) -> int:
+def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, sessions,
+                        frame_index: int | None = None) -> int:
     """Callback for the 3D viewer: file a review item on a set of point ids; returns its id.
 
     ``user`` is a User row or a user id; ``sessions`` the app's session factory
@@ -225,15 +226,19 @@ def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, session
         u = s.get(User, uid) if uid is not None else None
         if u is None or u.role not in ("reviewer", "admin"):
             raise Forbidden("only reviewers and admins file review items")
-        item = create_item(session=s, scene=scene, user=u, frame_id=None, pixel=None,
+        # the frame the reviewer looked through, where known (issue 25)
+        frame_id = None if frame_index is None else s.scalar(select(Frame.id).where(
+            Frame.scene_id == scene.id, Frame.index == int(frame_index)))
+        item = create_item(session=s, scene=scene, user=u, frame_id=frame_id, pixel=None,
                            point_ids=[int(i) for i in np.asarray(point_ids).reshape(-1)],
                            comment=comment)
         return item.id
 
 
 def make_viewer_callback(ctx: AppContext):
-    def on_review_item(scene_id, point_ids, comment, user):  # noqa: ANN001
-        return create_item_from_3d(scene_id, point_ids, comment, user, sessions=ctx.sessions)
+    def on_review_item(scene_id, point_ids, comment, user, frame_index=None):  # noqa: ANN001
+        return create_item_from_3d(scene_id, point_ids, comment, user, sessions=ctx.sessions,
+                                   frame_index=frame_index)
 
     return on_review_item
 

@@ -32,6 +32,10 @@ frame_mask=None, on_review_item=None, max_points=None, prefix="/viewer") -> None
   showing more than 4x ``settings.viewer_preview_points`` (default 150,000) first get a
   stratified preview of that size, then the full LOD.
 
+- ``corrections`` (optional): ``{"relabel", "undo", "redo", "stack"}`` callables of the
+  app's corrections service (:func:`app.corrections.service.viewer_hooks`): the "Correct
+  labels" panel relabels the selection through them.
+
 - ``subscribe(kind, fn)`` (optional): an event source (the app passes
   ``ctx.events.subscribe``); the viewer subscribes to ``labels_updated`` and ``grid_updated``
   and refreshes open viewers of that scene on each event. Without one (a bare data
@@ -85,7 +89,8 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
           on_review_item: Callable[..., Any] | None = None,
           max_points: int | None = None, prefix: str = "/viewer",
           subscribe: Callable[[str, Callable[[Any], None]], None] | None = None,
-          can_open: Callable[[Any, str], bool] | None = None) -> None:
+          can_open: Callable[[Any, str], bool] | None = None,
+          corrections: dict[str, Callable[..., Any]] | None = None) -> None:
     """Add the ``/viewer/`` proxy routes and the viser server's lifecycle to ``fastapi_app``.
 
     The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
@@ -103,6 +108,8 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         preview_points=int(getattr(settings, "viewer_preview_points", 150_000)),
         watch_interval_s=None if subscribe is not None else 2.0,
         can_open=can_open,
+        corrections=corrections,  # relabel / undo / redo from 3D (app.corrections)
+        prefs_path=Path(getattr(settings, "data_dir", "data")) / "viewer_prefs.json",
     )
     if subscribe is not None:
         def _on_event(msg: Any) -> None:

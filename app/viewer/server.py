@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
 
 log = logging.getLogger(__name__)
@@ -111,7 +112,9 @@ class ViewerService:
                  max_points: int = sb.DEFAULT_MAX_POINTS, preview_points: int = 150_000,
                  host: str = "127.0.0.1",
                  watch_interval_s: float | None = None, require_ticket: bool = True,
-                 can_open: Callable[[Any, str], bool] | None = None) -> None:
+                 can_open: Callable[[Any, str], bool] | None = None,
+                 corrections: dict[str, Callable[..., Any]] | None = None,
+                 prefs_path: Path | None = None) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")
         self.scenes = scenes
@@ -124,6 +127,11 @@ class ViewerService:
         # (the app's frame id); without it ?frame= is a frame index or a frame's stem
         self.frame_index: Callable[[str, str], int | None] | None = None
         self.on_review_item = on_review_item
+        # relabel / undo / redo / stack hooks of the app's corrections service (issue 25)
+        self.corrections = corrections
+        # per-user viewer preferences (the camera filter), kept in prefs_path if given
+        self.prefs_path = Path(prefs_path) if prefs_path else None
+        self.prefs: dict[str, dict] = _read_prefs(self.prefs_path)
         self.max_points = int(max_points)
         # a scene showing more than 4x this many points first gets a stratified preview of
         # this size (a quick first picture, ~7 % extra bytes), then the full LOD
@@ -321,6 +329,7 @@ class ViewerService:
             g["frusta_info"] = gui.add_markdown("")
             g["cam_info"] = gui.add_markdown("Click a camera frustum.")
             g["goto"] = gui.add_button("Move view to camera", disabled=True)
+        corrections_panel.build(self, st)  # selection tools, relabel, undo/redo, legend
         g["image"] = None
         g["mask"] = None
 
@@ -332,12 +341,15 @@ class ViewerService:
         @g["mode"].on_update
         def _(_e: Any) -> None:
             st.mode = g["mode"].value
+            if "legend" in g:
+                g["legend"].content = corrections_panel.legend(st.mode)
             self.send_points(st)
 
         @g["frusta"].on_update
         def _(_e: Any) -> None:
             if st.data is not None and g["frusta"].value != st.camera_filter:
                 st.camera_filter = g["frusta"].value
+                self.remember(st.user, camera_filter=st.camera_filter)
                 self.send_frusta(st)
 
         @g["size"].on_update
@@ -405,6 +417,7 @@ class ViewerService:
                                    event.screen_max)
             st.gui["sel_info"].content = f"**{len(ids)}** points selected."
             st.gui["file_btn"].disabled = len(ids) == 0
+            corrections_panel.after_selection(self, st)  # highlight + counts by class
 
         scene.on_rect_select()(on_rect)
 
@@ -476,7 +489,10 @@ class ViewerService:
                 st.gui["size"].value = st.point_size
             frames = ["(none)"] + [f.stem for f in st.data.scene.frames]
             st.gui["grid_frame"].options = frames
-            st.camera_filter = sb.default_camera_filter(len(st.data.scene.frames))
+            st.camera_filter = self.pref(st.user, "camera_filter",
+                                         sb.default_camera_filter(len(st.data.scene.frames)))
+            if st.camera_filter not in sb.CAMERA_FILTERS:
+                st.camera_filter = sb.default_camera_filter(len(st.data.scene.frames))
             st.gui["frusta"].value = st.camera_filter
             self._place_camera(st)
             d = st.data
@@ -492,6 +508,7 @@ class ViewerService:
             if not st.frustum_handles:
                 self.send_frusta(st)
             self.send_grids(st)
+            corrections_panel.on_scene_opened(self, st)
             d = st.data
             lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
             st.gui["status"].content = (
@@ -570,7 +587,9 @@ class ViewerService:
             surface_only = bool(st.gui["grid_surface"].value)
             nodes: list[sb.VoxelNode] = []
             if st.gui["grid_scene"].value and d.grid is not None:
-                nodes += sb.scene_grid_nodes(d.grid, d.scene.origin, d.taxonomy)
+                from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
+
+                nodes += scene_grid_nodes_lod(d.grid, d.scene.origin, d.taxonomy)
             frame = st.gui["grid_frame"].value
             if frame and frame != "(none)":
                 cg = load_camera_grid(d, d.scene.frame_index(frame))
@@ -698,7 +717,11 @@ class ViewerService:
         result = None
         if self.on_review_item is not None:
             try:
-                result = self.on_review_item(st.scene_id, ids, comment, st.user)
+                import inspect
+
+                kw = ({"frame_index": st.frame_index} if "frame_index" in
+                      inspect.signature(self.on_review_item).parameters else {})
+                result = self.on_review_item(st.scene_id, ids, comment, st.user, **kw)
             except Exception as e:  # noqa: BLE001 - tell the reviewer instead of dying
                 log.exception("viewer: filing a review item failed")
                 st.client.add_notification("Review item not filed", str(e), color="red")
@@ -709,7 +732,30 @@ class ViewerService:
         st.gui["sel_info"].content = "No points selected."
         st.gui["file_btn"].disabled = True
         st.selection = np.zeros(0, np.int64)
+        corrections_panel.after_selection(self, st)
         return {"item": item, "result": result}
+
+    # ---- per-user preferences --------------------------------------------------------------
+    def pref(self, user: Any, key: str, default: Any = None) -> Any:
+        return self.prefs.get(_user_key(user), {}).get(key, default)
+
+    def remember(self, user: Any, **values: Any) -> None:
+        """Keep a viewer preference of ``user`` (e.g. the camera filter) for their next visit."""
+        k = _user_key(user)
+        if k is None:
+            return
+        with self._lock:
+            self.prefs.setdefault(k, {}).update(values)
+            if self.prefs_path is not None:
+                import json
+
+                from occufly.fsutil import atomic_write_text
+
+                try:
+                    self.prefs_path.parent.mkdir(parents=True, exist_ok=True)
+                    atomic_write_text(self.prefs_path, json.dumps(self.prefs))
+                except OSError:
+                    log.warning("viewer: cannot keep preferences in %s", self.prefs_path)
 
     # ---- live ------------------------------------------------------------------------------
     def refresh(self, scene_id: str, classes: set[int] | list[int] | None = None) -> None:
@@ -784,6 +830,25 @@ class ViewerService:
 
 
 # ---- helpers ---------------------------------------------------------------------------------
+def _user_key(user: Any) -> str | None:
+    if user is None:
+        return None
+    name = user.get("username") if isinstance(user, dict) else getattr(user, "username", None)
+    return str(name) if name else None
+
+
+def _read_prefs(path: Path | None) -> dict:
+    if path is None or not path.is_file():
+        return {}
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
 def _stamp(ws: Path) -> str:
     from occufly.workspace import Workspace
 

@@ -444,9 +444,10 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
         raise Conflict(f"frame {frame.id} does not see the points of correction {edit.id}")
     change = np.zeros(mask.shape, bool)
     change[px] = True
-    if dilate > 0:
-        from scipy.ndimage import binary_dilation
+    if dilate > 0:  # close the gaps between the projected points, then grow the region
+        from scipy.ndimage import binary_closing, binary_dilation
 
+        change = binary_closing(change, iterations=2 * int(dilate)) | change
         change = binary_dilation(change, iterations=int(dilate))
     change &= mask != edit.to_class
     if not change.any():

@@ -234,6 +234,7 @@ def close_lasso(svc: Any, st: Any) -> np.ndarray:
         return st.selection
     poly = np.asarray(st.lasso, np.float64)
     pos, wxyz, fov, asp = st.lasso_cam
+    st.last_lasso, st.last_lasso_cam = poly, st.lasso_cam  # what was selected with
     _disarm(st)
     st.lasso = []
     st.gui["lasso_btn"].disabled = True

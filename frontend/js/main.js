@@ -3,6 +3,7 @@
 
 import { api, ApiError } from "./core/api.js";
 import { el, showError, clearError } from "./core/ui.js";
+import { notificationBadge } from "./pages/corrections.js";
 
 const PAGES = {
   login: { load: () => import("./pages/login.js"), title: "Log in", roles: null },
@@ -51,6 +52,7 @@ function renderNav() {
     ...(u
       ? [
           el("span", {}, `${u.username} (${u.role})`),
+          notificationBadge(),
           el("button", { type: "button", class: "link", onclick: logout }, "Log out"),
         ]
       : []),

@@ -7,6 +7,7 @@ import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.
 import { encodeGreyPngOffThread, decodeIdPng, resizeIds } from "../core/png.js";
 import { Editor } from "../paint/editor.js";
 import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
+import { attachCorrections } from "./corrections.js";
 
 const IDLE_SAVE_MS = 2500;
 const PREFS_KEY = "occufly.annotator.prefs";
@@ -27,6 +28,7 @@ const KEYS = [
   ["GrabCut: drag a box, then scribble", "left drag: object, right drag (or X to switch): background; each scribble cuts again · Enter accept · Esc cancel (mask as before the box)"],
   ["scissors: click, Shift+click, Enter", "anchor (path snaps to edges, live preview) / straight segment / close and fill (or click the first anchor)"],
   ["scissors: Backspace, Esc", "remove the last anchor / cancel"],
+  ["T", "take a reviewer's proposed mask change (a new draft: current mask + proposal)"],
   ["?", "this help"],
 ];
 
@@ -368,6 +370,7 @@ class AnnotatorPage {
     this.items = (items || []).filter((it) => String(it.frame_id) === String(fid));
     this.buildSide();
     ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
+    attachCorrections(this, ed, frame).catch(() => {}); // reviewers' proposals, 3D items (issue 25)
     ed.view.overlay.focus({ preventScroll: true });
     this.frameInfo.textContent = `${frame.name} · ${frame.state.replace("_", " ")}`;
     this.frameInfo.title = `${frame.name}: ${W}×${H} px, ${frame.state.replace("_", " ")}`;
@@ -738,6 +741,10 @@ class AnnotatorPage {
     if (e.type === "keydown" && (e.key === "l" || e.key === "L") && !e.ctrlKey && !e.metaKey) {
       e.preventDefault();
       this.setOutline(!this.outlineBox.checked);
+      return;
+    }
+    if (this.corrections && this.corrections.ed === this.editor && this.corrections.onKey(e)) {
+      e.preventDefault(); // T takes a reviewer's proposed mask change
       return;
     }
     if (this.editor.handleKey(e)) e.preventDefault();

@@ -80,16 +80,16 @@ def _active(session: Session, scene_id: int) -> list[tuple[int, int]]:
 
 def _repair_locked(session: Session, scene: Scene) -> bool:
     ws = scene.workspace
-    net = lib.read_net(ws, scene.n_points or None)
+    applied = lib.read_applied(ws)
     active = _active(session, scene.id)
     want = np.asarray([i for i, _c in active], np.int64)
-    if net.applied is not None and np.array_equal(np.sort(net.applied), want):
+    if applied is not None and np.array_equal(np.sort(applied), want):
         return False
-    if net.applied is None and not active and len(net) == 0:
+    if applied is None and not active and not Workspace(ws).overrides_path.is_file():
         return False  # no corrections at all
     log.warning("scene %s: the label corrections layer reflects edits %s, the active edits are "
                 "%s; rebuilding it", scene.id,
-                None if net.applied is None else net.applied.tolist(), want.tolist())
+                None if applied is None else applied.tolist(), want.tolist())
     rebuilt = lib.rebuild_net((i, c, lib.read_edit_points(ws, i)) for i, c in active)
     lib.write_net(ws, rebuilt)
     return True

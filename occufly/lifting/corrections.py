@@ -88,9 +88,11 @@ def write_overrides(ws: str | Path | Workspace, point_ids: np.ndarray,
         uniq, first = np.unique(ids[::-1], return_index=True)
         lab_u = lab[::-1][first]
         eid_u = edit_ids[::-1][first] if edit_ids is not None else None
-    arrays = {"point_ids": uniq, "labels": lab_u}
+    # compact on disk: ids below 2**32 as uint32 (read back as int64 by read_overrides)
+    small = len(uniq) == 0 or int(uniq[-1]) <= np.iinfo(np.uint32).max
+    arrays = {"point_ids": uniq.astype(np.uint32) if small else uniq, "labels": lab_u}
     if eid_u is not None:
-        arrays["edit_ids"] = eid_u
+        arrays["edit_ids"] = eid_u.astype(np.int32)
     if applied is not None:
         arrays["applied"] = np.unique(np.asarray(applied, dtype=np.int64).reshape(-1))
     buf = io.BytesIO()
@@ -172,6 +174,19 @@ def read_net(ws: str | Path | Workspace, n_points: int | None = None) -> NetLaye
     return NetLayer(ov.point_ids, ov.labels, eids, applied)
 
 
+def read_applied(ws: str | Path | Workspace) -> np.ndarray | None:
+    """Only the ids of the edits the net layer reflects (None: no layer, or a layer that does
+    not record them) -- the cheap consistency check, without reading the point arrays."""
+    p = Workspace.of(ws).overrides_path
+    if not p.is_file():
+        return None
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return np.asarray(z["applied"], np.int64) if "applied" in z.files else None
+    except (OSError, KeyError, ValueError) as e:
+        raise WorkspaceError(f"{p}: unreadable label corrections ({e})") from None
+
+
 def write_net(ws: str | Path | Workspace, net: NetLayer) -> None:
     """Store ``net`` atomically (kept even when empty, so it records ``applied``)."""
     write_overrides(ws, net.point_ids, net.labels, edit_ids=net.edit_ids,
@@ -180,7 +195,9 @@ def write_net(ws: str | Path | Workspace, net: NetLayer) -> None:
 
 def normalise_point_ids(point_ids: np.ndarray | list[int], n_points: int) -> np.ndarray:
     """(K,) int64 sorted unique ids; ValueError naming the range for ids outside 0..n-1."""
-    ids = np.unique(np.asarray(point_ids, dtype=np.int64).reshape(-1))
+    ids = np.sort(np.asarray(point_ids, dtype=np.int64).reshape(-1))  # (np.unique hashes:
+    if len(ids) > 1:                                                  #  ~8x slower on 1 M)
+        ids = ids[np.r_[True, ids[1:] != ids[:-1]]]
     if len(ids) and (ids[0] < 0 or ids[-1] >= n_points):
         raise ValueError(f"point ids must be in 0..{n_points - 1}, got {int(ids[0])}..{int(ids[-1])}")
     return ids

@@ -155,7 +155,9 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         raise Invalid(f"kind must be one of {', '.join(STORED_KINDS)}, got {kind!r}")
     if source is not None and (not isinstance(source, str) or len(source) > 64):
         raise Invalid("source must be a string of at most 64 characters")
-    if user.role not in ("annotator", "admin"):
+    reviewer_fix = (user.role == "reviewer" and source == "reviewer_correction"
+                    and kind == "submitted")  # a reviewer corrects a 2D mask (issue 25)
+    if user.role not in ("annotator", "admin") and not reviewer_fix:
         raise Forbidden(f"frame {frame.id}: only the annotator holding its lease (or an admin) "
                         f"writes its mask; reviewers accept or reject")
     if kind == "imported" and user.role != "admin":

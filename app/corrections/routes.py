@@ -5,10 +5,11 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, Response
+from fastapi import APIRouter, Depends, Header, Response
 from pydantic import BaseModel
 
 from app.annotations import service as annotations
+from app.annotations.routes import png_body
 from app.audit import service as audit
 from app.corrections import service
 from app.corrections.models import CorrectionEdit
@@ -60,6 +61,7 @@ ACCESS = {
     "GET /api/notifications": "user",
     "POST /api/notifications/read": "user",
     "POST /api/scenes/{sid}/reimport": "admin",
+    "PUT /api/frames/{fid}/reviewer-correction": "reviewer",
 }
 
 
@@ -248,3 +250,27 @@ def reimport(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
     audit.record(session, "reimport", actor=user, scene_id=scene.id, client_ip=ip,
                  detail={"job_id": job.id, "dropped_corrections": dropped})
     return {**jobs.out(job), "dropped_corrections": dropped}
+
+
+@router.put("/frames/{fid}/reviewer-correction", status_code=201,
+            openapi_extra={"requestBody": {"required": True, "content": {
+                "image/png": {"schema": {"type": "string", "format": "binary"}}}}},
+            responses={409: {"description": "stale If-Match"}})
+def reviewer_correction(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: ReviewerUser,
+                        ip: ClientIp, body: Annotated[bytes, Depends(png_body)],
+                        if_match: Annotated[str | None, Header(max_length=100)] = None) -> dict:
+    """A reviewer corrects the frame's mask directly: a new *submitted* version authored by the
+    reviewer, ``source = "reviewer_correction"`` (it votes like any submitted version). If-Match
+    names the version corrected (default: the current one). The frame's annotator is told."""
+    expected = annotations.parse_if_match(if_match) if if_match else frame.current_version_id
+    v = annotations.store_version(session=session, ctx=ctx, frame=frame, user=user, data=body,
+                                  kind="submitted", expected=expected,
+                                  source="reviewer_correction")
+    session.refresh(frame)
+    service.notify_frame_people(session, frame=frame, actor=user, kind="corrected",
+                                text=f"{user.username} corrected the mask of {frame.name}")
+    session.commit()
+    audit.record(session, "mask_reviewer_correction", actor=user, scene_id=frame.scene_id,
+                 frame_id=frame.id, client_ip=ip, detail={"version": v.id, "sha256": v.sha256})
+    return annotations.version_out(v, user.username,
+                                   number=annotations.version_number(session, v))

@@ -317,3 +317,36 @@ def test_disagreeing_frames_proposal_taken_or_declined_items_and_notifications(w
     n = env.client.get("/api/notifications?unread=true", headers=a).json()
     assert [x["kind"] for x in n["items"]] == ["comment", "proposal"]  # newest first
     assert "and here" in n["items"][0]["text"]
+
+
+def test_a_reviewer_corrects_a_2d_mask_directly(world):
+    env, hdr, scene, frames = world
+    fid, ws = _lifted(world)
+    a, rv = hdr["annotator"], hdr["reviewer"]
+    cur = env.client.get(f"/api/frames/{fid}", headers=a).json()["current_version"]
+    fixed = np.full((H, W), 6, np.uint8)
+    fixed[:, :10] = 1
+    r = env.client.put(f"/api/frames/{fid}/reviewer-correction", content=png(fixed),
+                       headers={**a, "Content-Type": "image/png"})
+    assert r.status_code == 403  # annotators use their own editor
+    r = env.client.put(f"/api/frames/{fid}/reviewer-correction", content=png(fixed),
+                       headers={**rv, "Content-Type": "image/png", "If-Match": str(cur)})
+    assert r.status_code == 201, r.text
+    v = r.json()
+    assert v["author"] == "reviewer" and v["kind"] == "submitted"
+    from app.annotations.models import MaskVersion
+    from app.scenes.models import Frame
+
+    with env.app.state.ctx.sessions() as s:
+        row = s.get(MaskVersion, v["version"])
+        assert row.source == "reviewer_correction"
+        assert s.get(Frame, fid).voting_version_id == row.id  # it votes
+    # a stale If-Match is a 409 (the upload kept as a conflict)
+    r = env.client.put(f"/api/frames/{fid}/reviewer-correction", content=png(fixed),
+                       headers={**rv, "Content-Type": "image/png", "If-Match": str(cur)})
+    assert r.status_code == 409
+    n = env.client.get("/api/notifications", headers=a).json()
+    assert n["items"][0]["kind"] == "corrected"
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=30, include_fill=True)
+    st = env.client.get(f"/api/scenes/{scene['id']}/labels/status", headers=rv).json()
+    assert st["included_versions"] == {str(fid): v["version"]}  # the correction was lifted

@@ -9,6 +9,7 @@ docs/screenshots/annotator_projected_item.png (proposal overlay + projected 3D i
 
 from __future__ import annotations
 
+import io
 import time
 from pathlib import Path
 
@@ -124,6 +125,9 @@ def test_lasso_relabel_undo_redo_and_what_follows(live, setup, new_page):
     page.get_by_role("button", name="Relabel selection").click()
     edits = _wait(lambda: rev.get(f"/api/scenes/{sid}/corrections").json(), 20, "the edit")
     e = edits[-1]
+    _wait(lambda: e["id"] in rev.get(f"/api/scenes/{sid}/corrections/layer").json()["applied"],
+          20, "the layer")
+    assert len(edits) == 1
     assert e["state"] == "active" and e["n_points"] == len(chosen) and e["to_class"] == TREE
     assert e["author"] == "reviewer" and e["frame_id"] == f["id"]
     assert (np.asarray(load_labels(ws).labels)[chosen] == TREE).all()
@@ -131,11 +135,16 @@ def test_lasso_relabel_undo_redo_and_what_follows(live, setup, new_page):
     _wait(lambda: TREE in st.point_nodes, 20, "the viewer's refresh")
 
     page.get_by_role("button", name="Undo my last correction").click()
-    _wait(lambda: rev.get(f"/api/scenes/{sid}/corrections").json()[-1]["state"] == "undone",
+    # (the row commits first, the layer follows: wait for the layer, what readers apply)
+    _wait(lambda: rev.get(f"/api/scenes/{sid}/corrections").json()[-1]["state"] == "undone"
+          and e["id"] not in rev.get(f"/api/scenes/{sid}/corrections/layer").json()["applied"],
           20, "undo")
-    assert not (np.asarray(load_labels(ws).labels)[chosen] == TREE).any()
+    assert not (np.asarray(load_labels(ws).labels)[chosen] == TREE).any(), (
+        rev.get(f"/api/scenes/{sid}/corrections").json(),
+        rev.get(f"/api/scenes/{sid}/corrections/layer").json())
     page.get_by_role("button", name="Redo", exact=True).click()
-    _wait(lambda: rev.get(f"/api/scenes/{sid}/corrections").json()[-1]["state"] == "active",
+    _wait(lambda: rev.get(f"/api/scenes/{sid}/corrections").json()[-1]["state"] == "active"
+          and e["id"] in rev.get(f"/api/scenes/{sid}/corrections/layer").json()["applied"],
           20, "redo")
     assert (np.asarray(load_labels(ws).labels)[chosen] == TREE).all()
 
@@ -210,6 +219,17 @@ def test_proposal_reaches_the_annotator_with_the_3d_item_and_is_taken_with_one_k
     # the page reopened the frame on the new draft: no proposal left, the 3D item still shown
     page.wait_for_selector("#proposal-take", state="detached")
     page.wait_for_selector("#projected-items")
+
+    # the reviewer page of the frame draws the 3D item's outline too
+    rp = new_page("reviewer")
+    rp.goto(f"{live.base_url}/#/review?scene={sid}&frame={f['id']}")
+    rp.wait_for_selector("canvas.panel-canvas")
+
+    def outlined():
+        img = np.asarray(Image.open(io.BytesIO(rp.screenshot())).convert("RGB")).astype(int)
+        return ((np.abs(img - np.array([0, 229, 255])).sum(axis=2) < 40).sum() > 50)
+
+    _wait(outlined, 20, "the 3D item's outline on the reviewer page")
 
 
 def test_annotators_cannot_edit_in_3d(live, setup):

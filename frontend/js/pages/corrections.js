@@ -75,29 +75,7 @@ class FrameCorrections {
       c.drawImage(this.overlay, x0, y0, x1 - x0, y1 - y0);
       c.restore();
     }
-    for (const it of this.items) {
-      const pts = it.outline || [];
-      if (pts.length < 2) continue;
-      c.save();
-      c.strokeStyle = "#00e5ff";
-      c.lineWidth = 2;
-      c.setLineDash([6, 4]);
-      c.beginPath();
-      pts.forEach(([x, y], i) => {
-        const [sx, sy] = v.toScreen(x, y);
-        if (i === 0) c.moveTo(sx, sy);
-        else c.lineTo(sx, sy);
-      });
-      c.closePath();
-      c.stroke();
-      const [lx, ly] = v.toScreen(pts[0][0], pts[0][1]);
-      c.setLineDash([]);
-      c.fillStyle = "#00e5ff";
-      c.font = "12px sans-serif";
-      const text = (it.comments && it.comments[0] && it.comments[0].text) || `item ${it.id}`;
-      c.fillText(text.slice(0, 60), lx + 4, ly - 4);
-      c.restore();
-    }
+    drawOutlines(c, this.items, (x, y) => v.toScreen(x, y));
   }
 
   onKey(e) {
@@ -136,6 +114,34 @@ class FrameCorrections {
     this.renderBar();
     this.ed.view.invalidate();
     toast("Proposal declined; the reviewer sees your reply.");
+  }
+}
+
+/** Draw review items' outlines (image pixel polygons) with their first comment; `toScreen`
+ * maps image pixels to canvas pixels. Shared by the annotator and reviewer pages. */
+export function drawOutlines(c, items, toScreen) {
+  for (const it of items || []) {
+    const pts = it.outline || [];
+    if (pts.length < 2) continue;
+    c.save();
+    c.strokeStyle = "#00e5ff";
+    c.lineWidth = 2;
+    c.setLineDash([6, 4]);
+    c.beginPath();
+    pts.forEach(([x, y], i) => {
+      const [sx, sy] = toScreen(x, y);
+      if (i === 0) c.moveTo(sx, sy);
+      else c.lineTo(sx, sy);
+    });
+    c.closePath();
+    c.stroke();
+    const [lx, ly] = toScreen(pts[0][0], pts[0][1]);
+    c.setLineDash([]);
+    c.fillStyle = "#00e5ff";
+    c.font = "12px sans-serif";
+    const text = (it.comments && it.comments[0] && it.comments[0].text) || `item ${it.id}`;
+    c.fillText(text.slice(0, 60), lx + 4, ly - 4);
+    c.restore();
   }
 }
 

@@ -6,6 +6,7 @@ import { api } from "../core/api.js";
 import { el, showError, toast, pct, table } from "../core/ui.js";
 import { decodeIdPng } from "../core/png.js";
 import { buildLut } from "../paint/mask.js";
+import { drawOutlines } from "./corrections.js";
 
 const LAYERS = [
   { key: "image", label: "Image" },
@@ -196,6 +197,8 @@ class ReviewerPage {
       else if (disR.error) this.layerErrors.disagreement = disR.error;
       else this.layers.disagreement = await createImageBitmap(disR.blob);
       this.items = (items || []).filter((it) => String(it.frame_id) === String(fid));
+      this.projected = []; // review items selected in 3D that this frame sees (issue 25)
+      api.get(`/frames/${fid}/projected-items`).then((p) => seq === this.loadSeq && ((this.projected = p || []), this.paint())).catch(() => {});
       this.agreement = agreement;
       if (seq !== this.loadSeq) return;
       this.renderDetail();
@@ -442,6 +445,7 @@ class ReviewerPage {
         g.fill();
         g.stroke();
       }
+      drawOutlines(g, this.projected, (x, y) => [ox + x * s, oy + y * s]);
     }
   }
 

@@ -218,13 +218,16 @@ def test_fill_is_inverse_distance_weighted_and_bounded():
     direct = np.concatenate([np.full(200, ROAD), np.full(200, BUILDING), np.zeros(3)]).astype(np.uint8)
     params = LiftParams(fill_k=400, fill_radius=10.0, denoise_k=5, denoise_radius=10.0)
     for method in ("voxel", "exact"):
-        res = fill_and_denoise(xyz, direct, TAX, params=LiftParams(**{**params.__dict__, "method": method}))
+        # the far pass is opt-in since issue 23 (fill_far=True; it was the default, and this
+        # test ran it without naming it): same assertions as before
+        res = fill_and_denoise(xyz, direct, TAX, params=LiftParams(**{**params.__dict__, "method": method,
+                                                                      "fill_far": True}))
         # with k covering both clusters, the nearer cluster wins only through 1/d weights
         assert res.labels[400] == ROAD and res.labels[401] == BUILDING, method
         # beyond the radius: the far pass fills it from the nearest cluster (24 m vs 29 m away)
         assert res.labels[402] == BUILDING and res.origin[402] == ORIGIN_FILLED, method
         assert res.origin[400] == ORIGIN_FILLED and res.origin[0] == ORIGIN_DIRECT
-        # with the far pass off it stays unlabelled
+        # with the far pass off (the default) it stays unlabelled
         bounded = fill_and_denoise(xyz, direct, TAX,
                                    params=LiftParams(**{**params.__dict__, "method": method, "fill_far": False}))
         assert bounded.labels[402] == 0 and bounded.origin[402] == 0, method

@@ -47,9 +47,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=("voxel", "exact"), default="voxel",
                    help="kNN fill/denoise method (exact = plain cKDTree baseline)")
     p.add_argument("--no-fill", action="store_true", help="update the votes only")
+    p.add_argument("--far-fill", action="store_true",
+                   help="let points with no labelled point within 3 m take the vote of their 100 "
+                   "nearest labelled points at any distance, at the lowest confidence (default "
+                   "since issue 23: they stay unlabelled, the fill does not extrapolate)")
     p.add_argument("--no-far-fill", action="store_true",
-                   help="leave points with no labelled point within 3 m unlabelled (default: "
-                   "they take the vote of their 100 nearest labelled points at any distance)")
+                   help="the default (kept for older scripts): points with no labelled point "
+                   "within 3 m stay unlabelled")
     p.add_argument("--confirm-views", type=int, default=2,
                    help="a direct label with this many agreeing views (and margin >= 0.5) survives "
                    "the denoise (0 = off)")
@@ -174,7 +178,7 @@ def _lift(args: argparse.Namespace) -> dict:
         with tqdm_progress("fill/denoise") as bar:
             res = state.fill_and_denoise(progress=bar, params=LiftParams(
                 method=args.method, denoise_keep_share=args.keep_share or None,
-                fill_far=not args.no_far_fill, confirm_views=args.confirm_views or None))
+                fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
     return out

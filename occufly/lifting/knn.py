@@ -3,11 +3,15 @@
 Fill and denoise (:func:`fill_and_denoise`)
     Fill: each point without votes takes the inverse-distance-weighted vote of its k=100
     nearest *directly labelled* points within ``fill_radius`` (exact, cKDTree over the
-    labelled points near unlabelled ones only); points with none that close (the rarely seen
-    periphery) then take the vote of their k=100 nearest labelled points at any distance, as
-    the method's plain k-NN fill does (``fill_far=False`` leaves them unlabelled; measured on
-    ``small`` seed 2 with the 24 stratified frames: 7,174 points stayed unlabelled with the
-    3 m bound alone, point accuracy 0.9739 -> 0.9843, scene-grid completion IoU 0.834 -> 0.879).
+    labelled points near unlabelled ones only). The fill does not extrapolate: points with
+    none that close stay unlabelled (label 0, origin none, confidence 0; the prefill shows
+    them unpainted) -- the default since issue 23. ``fill_far=True`` (opt-in; ``occufly lift
+    --far-fill``) restores the earlier default, the method's plain k-NN fill: they take the
+    vote of their k=100 nearest labelled points at any distance, at the lowest confidence
+    (measured then on ``small`` seed 2 with the 24 stratified frames: 7,174 points stayed
+    unlabelled with the 3 m bound alone, point accuracy 0.9739 -> 0.9843, scene-grid
+    completion IoU 0.834 -> 0.879 -- with the far fill; bench/bench_calibration.py has the
+    coverage / accuracy / prefill figures of both).
     Ties: a point whose top classes have equal votes (typically 1:1 from two views) is filled
     like an unvoted one -- its labelled neighbours decide -- rather than by the taxonomy's tie
     order (``tie_fill``, default on). Measured on ``small`` seed 0, greedy rho 0.99 frames (19),
@@ -42,8 +46,14 @@ Fill and denoise (:func:`fill_and_denoise`)
     cKDTree baseline used by tests and the benchmark.
 
 Confidence (float32 in [0, 1])
-    The share of the denoise neighbourhood that has the final class; for points whose label is
-    the direct vote it is averaged with the vote margin ``(top - second) / votes``.
+    A calibrated probability that the label is right (``LiftParams.confidence="calibrated"``,
+    :mod:`occufly.lifting.calibration`): a raw evidence score per origin -- direct: the vote
+    margin ``(top - second) / votes`` averaged with the denoise share; filled: the IDW share
+    of the winning class among the voted neighbours times ``1 - d / fill_radius`` (``d`` the
+    nearest voted neighbour); denoised: the denoise share -- mapped through the per-origin
+    isotonic table fitted on synthetic truth (``confidence_calibration.json``). ``"raw"``
+    gives the score itself, ``"legacy"`` the earlier confidence (the denoise share, averaged
+    with the vote margin for direct labels: ~0.9 for filled labels however far from a vote).
 Origin (uint8)
     0 none (no label), 1 direct, 2 filled, 3 denoised (denoising changed the direct/fill label).
 """
@@ -69,9 +79,11 @@ class LiftParams:
 
     fill_k: int = 100
     fill_radius: float = 3.0
-    # points with no directly labelled point within fill_radius: True = the method's plain
-    # k-NN fill at any distance (one more pass), False = they stay unlabelled
-    fill_far: bool = True
+    # points with no directly labelled point within fill_radius: False (the default since
+    # issue 23: the fill does not extrapolate) = they stay unlabelled (label 0, origin none,
+    # confidence 0); True = the method's plain k-NN fill at any distance (one more pass, the
+    # earlier default; opt in with ``occufly lift --far-fill``), at the lowest confidence
+    fill_far: bool = False
     denoise_k: int = 200
     denoise_radius: float = 3.0
     method: str = "voxel"  # "voxel" (fast, certified voxels + exact boundaries) or "exact"
@@ -100,6 +112,11 @@ class LiftParams:
     # threads of the k-NN queries and of the boundary brute force (-1 = every core, as in
     # cKDTree); the result does not depend on it
     workers: int = -1
+    # what the confidence is: "calibrated" (the default: the probability that the label is
+    # right, occufly.lifting.calibration's fitted per-origin map of the raw evidence score),
+    # "raw" (that score itself, what the calibration is fitted on) or "legacy" (before issue
+    # 23: the denoise share, averaged with the vote margin for direct labels)
+    confidence: str = "calibrated"
 
 
 # ---- memory: up-front estimate ------------------------------------------------------------
@@ -175,18 +192,22 @@ def _scores_to_cols(cls: ClassColumns, scores: np.ndarray) -> tuple[np.ndarray, 
 
 def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
               cls: ClassColumns, *, weighted: bool, workers: int = 1, chunk: int = 50_000,
-              own: np.ndarray | None = None, keep_share: float | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+              own: np.ndarray | None = None, keep_share: float | None = None,
+              nearest: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact k-NN (within ``radius``) vote of ``queries`` against a cKDTree of labelled points.
 
     tree_cols: (n_tree,) column of each tree point. Returns (column (q,) int64, share (q,)).
     With ``own`` ((q,) columns of the queries) and ``keep_share``, a query keeps its own
-    column when that holds at least ``keep_share`` of its neighbourhood.
+    column when that holds at least ``keep_share`` of its neighbourhood. ``nearest``: an
+    optional (q,) float32 output, the distance to each query's nearest tree point within
+    ``radius`` (inf where none).
     """
     q = len(queries)
     cols = np.full(q, -1, dtype=np.int64)
     share = np.zeros(q, dtype=np.float32)
     n_tree = tree.n
+    if nearest is not None:
+        nearest[:] = np.inf
     if q == 0 or n_tree == 0:
         return cols, share
     k_eff = min(k, n_tree)
@@ -196,6 +217,8 @@ def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: 
         d, idx = tree.query(queries[a:b], k=k_eff, distance_upper_bound=radius, workers=workers)
         if k_eff == 1:
             d, idx = d[:, None], idx[:, None]
+        if nearest is not None:
+            nearest[a:b] = d[:, 0]  # sorted ascending; inf where nothing lies within radius
         ok = idx < n_tree
         rows = np.broadcast_to(np.arange(b - a)[:, None], idx.shape)[ok]
         c = tree_cols[idx[ok]]
@@ -210,10 +233,13 @@ def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: 
 
 
 def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.ndarray,
-              p: LiftParams, cls: ClassColumns, tree=None, tree_idx: np.ndarray | None = None) -> int:
-    """Second fill pass (in place): points still without a label after the ``fill_radius``
-    pass take the IDW vote of their ``fill_k`` nearest directly labelled points at any
-    distance. Returns how many were filled (0 when ``p.fill_far`` is off)."""
+              p: LiftParams, cls: ClassColumns, tree=None, tree_idx: np.ndarray | None = None,
+              nearest: np.ndarray | None = None) -> int:
+    """Second fill pass (in place; opt-in, ``p.fill_far``): points still without a label after
+    the ``fill_radius`` pass take the IDW vote of their ``fill_k`` nearest directly labelled
+    points at any distance (``nearest`` (N,) gets their nearest voted distance, beyond the
+    radius, so their raw confidence score is 0). Returns how many were filled (0 when
+    ``p.fill_far`` is off)."""
     from scipy.spatial import cKDTree
 
     rest = np.flatnonzero(filled < 0)
@@ -224,9 +250,12 @@ def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.
         if not len(tree_idx):
             return 0
         tree = cKDTree(xyz[tree_idx])
+    near = np.empty(len(rest), np.float32)
     c, s = _knn_vote(tree, dcols[tree_idx], xyz[rest], p.fill_k, np.inf, cls, weighted=True,
-                     workers=p.workers)
+                     workers=p.workers, nearest=near)
     filled[rest], share[rest] = c, s
+    if nearest is not None:
+        nearest[rest] = near
     return int(len(rest))
 
 
@@ -258,8 +287,9 @@ def _confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.
 
 
 def _finish(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
-            agree: np.ndarray, vote_margin: np.ndarray | None, confirmed: np.ndarray | None = None
-            ) -> LiftResult:
+            agree: np.ndarray, vote_margin: np.ndarray | None, confirmed: np.ndarray | None = None,
+            *, p: LiftParams | None = None, fill_share: np.ndarray | None = None,
+            fill_distance: np.ndarray | None = None) -> LiftResult:
     if confirmed is not None and confirmed.any():
         # confirmed points the denoise relabelled get their direct class back; their
         # neighbourhood share is unknown for that class, so their confidence is the vote margin
@@ -276,10 +306,29 @@ def _finish(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, fina
     origin[has] = ORIGIN_DENOISED
     origin[is_filled] = ORIGIN_FILLED
     origin[is_direct] = ORIGIN_DIRECT
-    conf = np.where(has, agree, 0.0).astype(np.float32)
-    if vote_margin is not None:
-        conf[is_direct] = 0.5 * (conf[is_direct] + np.asarray(vote_margin, np.float32)[is_direct])
-    return LiftResult(labels=labels, confidence=conf, origin=origin)
+    p = p or LiftParams()
+    if p.confidence == "legacy":  # before issue 23 (kept for the calibration benchmark)
+        conf = np.where(has, agree, 0.0).astype(np.float32)
+        if vote_margin is not None:
+            conf[is_direct] = 0.5 * (conf[is_direct] + np.asarray(vote_margin, np.float32)[is_direct])
+        return LiftResult(labels=labels, confidence=conf, origin=origin)
+    if p.confidence not in ("calibrated", "raw"):
+        raise ValueError(f"LiftParams.confidence {p.confidence!r}: expected 'calibrated', "
+                         "'raw' or 'legacy'")
+    from occufly.lifting import calibration
+
+    n = len(labels)
+    conf = calibration.raw_scores(
+        origin, denoise_share=agree, vote_margin=vote_margin,
+        fill_share=np.zeros(n, np.float32) if fill_share is None else fill_share,
+        fill_distance=np.full(n, np.inf, np.float32) if fill_distance is None else fill_distance,
+        fill_radius=p.fill_radius)
+    if p.confidence == "calibrated":
+        table = calibration.default_table()
+        if table is not None:
+            conf = table.probability(origin, conf)
+    conf[~has] = 0.0
+    return LiftResult(labels=labels, confidence=conf.astype(np.float32), origin=origin)
 
 
 def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
@@ -307,14 +356,16 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     un_idx = np.flatnonzero(dcols < 0)
     filled = dcols.copy()
     fill_share = np.zeros(len(xyz), np.float32)
+    fill_dist = np.full(len(xyz), np.inf, np.float32)
     if len(un_idx) and len(lab_idx):
         report(0.0, "fill: building tree")
         tree = cKDTree(xyz[lab_idx])
         report(0.1, "fill: querying")
+        near = np.empty(len(un_idx), np.float32)
         c, s = _knn_vote(tree, dcols[lab_idx], xyz[un_idx], p.fill_k, p.fill_radius, cls,
-                         weighted=True, workers=p.workers)
-        filled[un_idx], fill_share[un_idx] = c, s
-        _fill_far(xyz, dcols, filled, fill_share, p, cls, tree, lab_idx)
+                         weighted=True, workers=p.workers, nearest=near)
+        filled[un_idx], fill_share[un_idx], fill_dist[un_idx] = c, s, near
+        _fill_far(xyz, dcols, filled, fill_share, p, cls, tree, lab_idx, nearest=fill_dist)
     t1 = time.perf_counter()
     report(0.3, "denoise: building tree")
     lab2 = np.flatnonzero(filled >= 0)
@@ -334,7 +385,8 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
         final[q], agree[q] = c, s
     t2 = time.perf_counter()
     res = _finish(cls, direct, filled, final, agree, vote_margin,
-                  _confirmed(direct, vote_margin, vote_top, p))
+                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
+                  fill_distance=fill_dist)
     res.stats = {"method": "exact", "fill_seconds": t1 - t0, "denoise_seconds": t2 - t1,
                  "denoise_build_seconds": t_build, "denoise_points": int(len(lab2)),
                  "unlabelled_before_fill": int(len(un_idx))}
@@ -521,7 +573,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     stats: dict = {"method": "voxel", "memory_estimate_bytes": stats_mem["memory_bytes"]}
     dcols = cls.col_of[direct].astype(np.int64)
     if n == 0 or not (dcols >= 0).any():
-        res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin)
+        res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin, p=p)
         res.stats = {**stats, "note": "no labelled points"}
         return res
 
@@ -541,6 +593,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     filled = dcols.copy()
     agree = np.zeros(n, np.float32)
     agree[dcols >= 0] = 1.0
+    fill_dist = np.full(n, np.inf, np.float32)  # nearest voted point of each filled point
     un_idx = np.flatnonzero(dcols < 0)
     t_fill = time.perf_counter()
     if len(un_idx):
@@ -551,11 +604,14 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         src = np.flatnonzero((dcols >= 0) & in_near[vox])
         if len(src):
             tree = cKDTree(xyz[src])
+            near = np.empty(len(un_idx), np.float32)
             c, s = _knn_vote(tree, dcols[src], xyz[un_idx], p.fill_k, p.fill_radius, cls,
-                             weighted=True, workers=p.workers)
-            filled[un_idx], agree[un_idx] = c, s
+                             weighted=True, workers=p.workers, nearest=near)
+            filled[un_idx], agree[un_idx], fill_dist[un_idx] = c, s, near
         stats["fill_tree_points"] = int(len(src))
-        stats["filled_far"] = _fill_far(xyz, dcols, filled, agree, p, cls)
+        stats["filled_far"] = _fill_far(xyz, dcols, filled, agree, p, cls, nearest=fill_dist)
+        stats["unlabelled_after_fill"] = int((filled < 0).sum())
+    fill_share = agree.copy()  # the fill's IDW share (the denoise overwrites agree)
     stats["unlabelled_before_fill"] = int(len(un_idx))
     stats["fill_seconds"] = time.perf_counter() - t_fill
 
@@ -628,7 +684,8 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
             final[tree_q], agree[tree_q] = c2, s2
     stats["denoise_seconds"] = time.perf_counter() - t_den
     res = _finish(cls, direct, filled, final, agree, vote_margin,
-                  _confirmed(direct, vote_margin, vote_top, p))
+                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
+                  fill_distance=fill_dist)
     stats["seconds"] = time.perf_counter() - t0
     res.stats = stats
     report(1.0, "done")

@@ -1,0 +1,92 @@
+"""Leave-one-out agreement (issue 23, defect 1): a frame is scored against the labels
+decided without its own votes, so a wrong mask cannot vouch for itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from occufly.lifting import LiftState
+from occufly.lifting.loo import frame_loo, loo_labels
+from occufly.scene import Scene
+from tests.lift_scene import BUILDING, GRASS, ROAD, ROOF, make_scene, truth_mask
+
+WRONG, HALF = 5, 9
+SELECTED = (1, 4, 5, 6, 9, 10)  # the annotated frames; 5 sees the big house near its centre
+
+
+@pytest.fixture(scope="module")
+def lifted(tmp_path_factory):
+    scene, truth = make_scene()
+    path = tmp_path_factory.mktemp("loo") / "ws"
+    scene.save(path)
+    scene = Scene.load(path)
+    st = LiftState.open(path, scene)
+    masks = {}
+    for fi in SELECTED:
+        m = truth_mask(scene.frames[fi])
+        if fi == WRONG:  # houses painted as grass and road
+            m = m.copy()
+            m[m == BUILDING] = GRASS
+            m[m == ROOF] = ROAD
+        if fi == HALF:  # only the left half painted
+            m = m.copy()
+            m[:, m.shape[1] // 2:] = 0
+        masks[fi] = m
+        st.set_mask(fi, m, version=str(fi))
+    res = st.fill_and_denoise()
+    return path, scene, masks, res.labels
+
+
+def test_wrong_frame_scores_low_and_sorts_first(lifted):
+    path, scene, masks, labels = lifted
+    assert (masks[WRONG] == ROOF).sum() == 0 and (truth_mask(scene.frames[WRONG]) == ROOF).sum() > 500
+    out = {fi: frame_loo(path, scene, fi, m, self_labels=labels) for fi, m in masks.items()}
+    wrong = out[WRONG]
+    # the houses (~15 % of its pixels) disagree with what the other frames painted there
+    assert wrong["agreement"] < 0.88
+    assert wrong["independent_coverage"] > 0.9
+    right = [o["agreement"] for fi, o in out.items() if fi != WRONG]
+    assert min(right) > 0.94
+    order = sorted(out, key=lambda fi: out[fi]["agreement"])
+    assert order[0] == WRONG
+    # the per-class table names the damage
+    g = wrong["per_class"]["road"]  # the roofs were painted as road
+    assert g["iou"] < 0.85 and g["mask_pixels"] > g["agree"] + 500
+
+
+def test_half_painted_frame_reports_its_painted_share(lifted):
+    path, scene, masks, labels = lifted
+    o = frame_loo(path, scene, HALF, masks[HALF], self_labels=labels)
+    t = truth_mask(scene.frames[HALF])
+    full_share = ((t > 0) & (t < 255)).mean()
+    assert full_share > 0.6
+    assert o["painted_share"] == pytest.approx(0.5 * full_share, abs=0.03)
+    # a high agreement of the painted half cannot hide the unpainted half
+    assert o["agreement"] > 0.9 and o["painted_share"] <= 0.51
+    assert o["painted_pixels"] == int(((masks[HALF] > 0) & (masks[HALF] < 255)).sum())
+
+
+def test_loo_labels_exclude_the_frames_own_votes(lifted):
+    path, scene, masks, labels = lifted
+    st = LiftState.open(path, scene, read_only=True)
+    loo = loo_labels(path, scene, WRONG)
+    # the LOO labels equal the majority of the counts minus the frame's votes, recomputed here
+    with np.load(path / "lifting" / "frames" / f"{WRONG}.npz") as z:
+        own = dict(zip(z["point_ids"].tolist(), z["cols"].tolist(), strict=True))
+    counts = np.asarray(st.votes[loo.point_ids], np.int64)
+    for row, pid in enumerate(loo.point_ids.tolist()):
+        if pid in own:
+            counts[row, own[pid]] -= 1
+    from occufly.lifting.classes import ClassColumns
+
+    cls = ClassColumns(scene.taxonomy)
+    col = cls.winner(counts.astype(np.uint32))
+    voted = col >= 0
+    assert np.array_equal(loo.voted, voted)
+    assert np.array_equal(loo.labels[voted], cls.labels_of(col[voted]))
+    # a frame nobody else sees has no independent evidence: all-zero counts stay unvoted
+    vis = set(scene.visibility.frame_ids(WRONG).tolist())
+    only_mine = [r for r, pid in enumerate(loo.point_ids.tolist())
+                 if pid in vis and counts[r].sum() == 0]
+    assert not loo.voted[only_mine].any()

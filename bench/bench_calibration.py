@@ -163,6 +163,7 @@ def prefill_report(case: Case, frames: list[int], after: tuple[int, ...], params
         if k + 1 > len(frames):
             continue
         res = case.lift(case.masks(frames[:k], "exact"), **params)
+        pts = point_report(case, res, 10)  # calibration with few masks (far fill matters)
         lab = np.asarray(res.labels)
         # the confidence image as app/annotations/confidence.py renders it (holes get 1)
         q = np.where(lab > 0, 1 + np.rint(254.0 * np.clip(np.asarray(res.confidence), 0, 1)),
@@ -190,6 +191,8 @@ def prefill_report(case: Case, frames: list[int], after: tuple[int, ...], params
                        # and of the right prefill pixels
                        "wrong_marked_low": round(wrong_low / max(1, wrong), 4),
                        "right_marked_low": round(right_low / max(1, right), 4),
+                       "points": {key: pts[key] for key in ("ece", "accuracy_labelled", "coverage",
+                                                            "filled_conf_right_wrong")},
                        "frames": frames[k:k + next_frames]}
     return out
 

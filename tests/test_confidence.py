@@ -138,3 +138,24 @@ def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path):
     assert conf[wrong].mean() < conf[right].mean() - 0.04, (conf[wrong].mean(), conf[right].mean())
     assert conf[lab == 0].max(initial=0.0) == 0.0
     assert (conf[org == ORIGIN_FILLED].mean() < conf[org == ORIGIN_DIRECT].mean())
+
+
+def test_prefill_leaves_unlabelled_points_unpainted():
+    """Unlabelled points (beyond the fill radius) render as 0 in the prefill: the hole
+    closing fills only pixels no point reaches, never pixels of unlabelled points."""
+    from occufly.camera import Camera, look_at
+    from occufly.render import render_prefill
+    from occufly.scene import Frame, Scene
+
+    g = np.arange(0.125, 40, 0.25)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]).astype(np.float32)
+    labels = np.where(xyz[:, 0] < 20, GRASS, 0).astype(np.uint8)  # the right half unlabelled
+    cam = Camera("PINHOLE", 200, 200, np.array([200.0, 200.0, 100.0, 100.0]))
+    T = look_at([20.0, 20.0, 20.0], [20.0, 20.0, 0.0], up=(0.0, 1.0, 0.0))
+    scene = Scene(frames=[Frame("f.jpg", cam, T)], xyz=xyz, rgb=np.zeros_like(xyz, np.uint8))
+    img, depth, holes = render_prefill(scene, labels, 0)
+    assert (depth > 0).mean() > 0.95  # the whole plane is seen
+    seen_unlabelled = img == 0
+    assert 0.4 < seen_unlabelled.mean() < 0.6  # half the image stays unpainted
+    assert (img[:, :90] == GRASS).mean() > 0.95 and (img[:, 110:] == 0).all()

@@ -1,10 +1,12 @@
 """How much to trust a prefill: the lifted labels' confidence rendered into a frame.
 
 ``GET /api/frames/{fid}/prefill/confidence`` -- a single-channel PNG at the frame's size (or
-1/``downscale``): 0 where no lifted label reaches the pixel, else ``1 + round(254 *
-confidence)`` of the point seen there (confidence in [0, 1] from the kNN fill / denoise:
-the share of its neighbours agreeing); pixels of a closed hole between rendered points
-(labelled from the nearest rendered pixel) get 1, the lowest. 404 before the first fill
+1/``downscale``): 0 where no lifted label reaches the pixel (also where the point seen there
+is unlabelled: the fill does not extrapolate beyond its radius, so the prefill leaves it
+unpainted), else ``1 + round(254 * confidence)`` of the point seen there (confidence in
+[0, 1]: the calibrated probability that the label is right, occufly.lifting.calibration;
+docs/confidence.md); pixels of a closed hole between rendered points (labelled from the
+nearest rendered pixel) get 1, the lowest. 404 before the first fill
 (direct votes carry none). Its own router, included by app/main.py.
 """
 

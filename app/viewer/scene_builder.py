@@ -14,7 +14,9 @@ Node names (what a client receives; tests assert them)::
     /cameras/<frame stem>           a frustum per frame, coloured by review state
 
 Colour modes (:data:`COLOUR_MODES`): ``rgb`` (reconstruction colour), ``semantic`` (taxonomy
-colour of the final label), ``confidence`` (dark red 0 -> yellow 1), ``origin`` (grey none,
+colour of the final label), ``confidence`` (the calibrated probability that the label is
+right, occufly.lifting.calibration: dark red 0 -> yellow 1; 0 for unlabelled points; a
+filled label's falls with its distance to the votes), ``origin`` (grey none,
 blue direct, orange kNN-filled, purple denoised) and ``disagreement`` (red where the final
 label differs from the direct vote of the masks, light grey where they agree, dark grey where
 no mask voted).

@@ -41,7 +41,11 @@ def run_import(jc: JobContext) -> dict:
         scene = s.get(Scene, jc.scene_id)
         scenes.sync_frames(session=s, scene=scene, ws_scene=ws_scene)
     jc.progress(1.0, "frames registered")
-    return {"frames": len(ws_scene.frames), "points": ws_scene.n_points}
+    geo = ws_scene.meta.get("georeferencing") or {}
+    return {"frames": len(ws_scene.frames), "points": ws_scene.n_points,
+            # issue 26: the georeferencing checks, and how the scene was made metric
+            "warnings": list(ws_scene.meta.get("import_warnings", [])),
+            "georeferencing": {k: v for k, v in geo.items() if k != "geotags"} or None}
 
 
 def _import_failed(jc: JobContext, message: str) -> None:

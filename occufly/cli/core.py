@@ -38,6 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="processes computing the visibility, frame blocks in parallel (same "
                         "output for any number; default 1)")
+    p.add_argument("--scale", type=float, default=None,
+                   help="metres per model unit for a COLMAP model that is neither "
+                        "georeferenced nor geotagged (1 if it is metric already); without it "
+                        "such a model is aligned to its images' EXIF GPS")
     p.add_argument("--force", action="store_true", help="replace an existing workspace")
 
     p = command(sub, "info", _info, help="summarise a scene workspace")
@@ -53,7 +57,7 @@ def _import(args: argparse.Namespace) -> dict:
             args.source, args.workspace, cloud=args.cloud, depth_maps=args.depth_maps,
             images=args.images, taxonomy=args.taxonomy, nominal_altitudes=nominal,
             rel_tol=args.rel_tol, visibility=args.visibility, fmt=args.fmt, crs=args.crs,
-            overwrite=args.force, progress=bar, workers=args.workers,
+            scale=args.scale, overwrite=args.force, progress=bar, workers=args.workers,
         )
     meta = scene.meta
     return {"workspace": str(args.workspace), "format": meta.get("format"),
@@ -61,7 +65,11 @@ def _import(args: argparse.Namespace) -> dict:
             # what the importer computed itself (ODM/Metashape/Pix4D export no visibility)
             "visibility_computed": meta.get("visibility_depth_test"),
             "visibility_from_reconstruction": meta.get("visibility_mode") != "depth",
-            "notes": meta.get("import_notes", []), **scene.summary()}
+            "notes": meta.get("import_notes", []),
+            "warnings": meta.get("import_warnings", []),
+            "georeferencing": {k: v for k, v in (meta.get("georeferencing") or {}).items()
+                               if k != "geotags"} or None,
+            **scene.summary()}
 
 
 def _info(args: argparse.Namespace) -> dict:

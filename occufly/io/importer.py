@@ -73,6 +73,7 @@ def import_scene(
     visibility: str = "union",
     fmt: str | None = None,
     crs: str | None = None,
+    scale: float | None = None,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
     workers: int = 1,
@@ -126,12 +127,21 @@ def import_scene(
         raise InputFormatError(f"{cloud_path or source}: the point cloud is empty")
 
     centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
-    georef = bool(
-        scene_crs is not None
-        or (cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz"))
-        or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
-        or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M
-    )
+    las_cloud = cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz")
+    georef_by_coords = bool(las_cloud or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
+                            or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M)
+    georef = bool(scene_crs is not None or georef_by_coords)
+    import_warnings: list[str] = []
+    georef_info: dict | None = None
+    if model.kind == "colmap" and not georef_by_coords and (scene_crs is None or crs is not None):
+        # an SfM model in arbitrary units: make it metric from the photos' GPS (or --scale)
+        xyz_w, scene_crs, georef_info = _make_metric(model, image_dir, xyz_w, cloud_path,
+                                                     scene_crs, scale, import_warnings)
+        georef = scene_crs is not None
+        centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3]
+                              for im in model.images])
+    for w in import_warnings:
+        log.warning("import %s: %s", source, w)
     if georef:
         R_level = np.eye(3)
         up_method = "georeferenced: z up"
@@ -232,6 +242,8 @@ def import_scene(
                 "images": str(image_dir.resolve()),
                 "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
                 "georeferenced": georef,
+                "georeferencing": georef_info,
+                "import_warnings": import_warnings,
                 "up_axis": up_method,
                 "levelling_rotation": R_level.tolist(),
                 "source_origin": origin_src.tolist(),
@@ -314,6 +326,53 @@ def source_coordinates(scene: Scene, xyz_local: np.ndarray) -> np.ndarray:
     R = np.asarray(scene.meta.get("levelling_rotation", np.eye(3)), dtype=np.float64)
     o_src = np.asarray(scene.meta.get("source_origin", scene.origin), dtype=np.float64)
     return np.asarray(xyz_local, dtype=np.float64) @ R + o_src
+
+
+# ---- metric scale from GPS -----------------------------------------------------------------------
+def _make_metric(model, image_dir: Path, xyz_w: np.ndarray, cloud_path: Path | None, scene_crs,
+                 scale: float | None, warnings: list[str]):
+    """A COLMAP model in SfM units -> metres: aligned to its photos' EXIF GPS
+    (:mod:`occufly.io.georef`; the scene's CRS becomes the UTM zone or ``--crs``), else scaled
+    by ``scale`` (``--scale``: metres per model unit; 1 for a model that is metric already).
+    The model's poses and points (and ``xyz_w``, the cloud in the model's frame) are changed
+    in place. Returns (xyz_w, CRS or None, georeferencing record for scene.meta)."""
+    from occufly.io.exif import read_geotags
+    from occufly.io.georef import MIN_GPS_CAMERAS, align_to_gps
+
+    tags = read_geotags(image_dir, [im.name for im in model.images]) if scale is None else []
+    n_gps = sum(1 for g in tags if g.has_gps and g.altitude is not None)
+    if scale is None and n_gps >= MIN_GPS_CAMERAS:
+        al = align_to_gps(model, tags, crs=scene_crs)
+        for im in model.images:
+            im.T_cam_world = al.apply_pose(im.T_cam_world)
+        same = xyz_w is model.xyz
+        if len(model.xyz):
+            model.xyz = al.apply_points(model.xyz)
+        xyz_w = model.xyz if same else al.apply_points(xyz_w)
+        warnings.extend(al.warnings)
+        rec = al.report()
+        rec["geotags"] = {g.name: {k: v for k, v in g.to_dict().items() if v is not None}
+                          for g in tags}
+        return xyz_w, al.crs, rec
+    if scale is not None:
+        if not (float(scale) > 0 and np.isfinite(float(scale))):
+            raise InputFormatError(f"--scale {scale}: expected metres per model unit (> 0)")
+        s = float(scale)
+        for im in model.images:
+            im.T_cam_world = im.T_cam_world.copy()
+            im.T_cam_world[:3, 3] *= s
+        same = xyz_w is model.xyz
+        if len(model.xyz):
+            model.xyz = np.asarray(model.xyz, np.float64) * s
+        xyz_w = model.xyz if same else np.asarray(xyz_w, np.float64) * s
+        return xyz_w, scene_crs, {"method": "--scale", "scale": s,
+                                  "crs": crsmod.crs_label(scene_crs) if scene_crs else None}
+    if scene_crs is None:
+        warnings.append(
+            f"{model.path}: not georeferenced and its images carry no GPS ({n_gps} of "
+            f"{len(model.images)} geotagged): the scene is in the model's arbitrary units; "
+            "pass --scale (metres per model unit, 1 if it is metric) or georeference the model")
+    return xyz_w, scene_crs, None
 
 
 # ---- helpers -------------------------------------------------------------------------------------

@@ -61,6 +61,9 @@ class Settings:
     max_upload_bytes: int = 64 * 1024 * 1024
     lease_seconds: int = 30 * 60
     reject_hold_seconds: int = 24 * 3600
+    # review (issue 23): below this share of a frame's painted pixels with independent evidence
+    # (other frames' votes or fill) its LOO agreement is not shown (docs/review.md)
+    min_independent_coverage: float = 0.5
     session_seconds: int = 12 * 3600
     fill_debounce_s: float = 5.0
     job_workers: int = 2
@@ -144,6 +147,7 @@ class Settings:
             lease_seconds=int(num("OCCUFLY_LEASE_MINUTES", 30, float) * 60),
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
+            min_independent_coverage=num("OCCUFLY_MIN_INDEPENDENT_COVERAGE", 0.5, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
             job_processes=bool(num("OCCUFLY_JOB_PROCESSES", 1)),
             argon2_memory_kib=num("OCCUFLY_ARGON2_MEMORY_KIB", 65536),

@@ -53,7 +53,16 @@ class ReviewItemOut(BaseModel):
 
 
 class AgreementOut(BaseModel):
+    # leave-one-out agreement; None when status is "not_enough_independent_views"
     agreement: float | None
-    pixels: int
-    per_class: dict[str, object]
+    status: Literal["ok", "not_enough_independent_views"] = "ok"
+    loo_agreement: float | None = None  # the LOO value even below the coverage threshold
+    self_agreement: float | None = None  # the old circular figure (labels lifted from this mask)
+    independent_coverage: float = 0.0
+    painted_share: float = 0.0
+    independent_pixels: int = 0
+    painted_pixels: int = 0
+    min_independent_coverage: float = 0.5
+    pixels: int  # = independent_pixels
+    per_class: dict[str, object]  # from the LOO rendering
     version: int

@@ -16,6 +16,7 @@ from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.review.models import ReviewComment, ReviewItem
 from app.scenes.models import Frame, Scene
 from app.users.models import User
+from occufly.lifting import loo as lifting_loo
 
 
 # ---- render-back and agreement --------------------------------------------------------------
@@ -27,31 +28,51 @@ rendered = annotations.rendered  # the prefill render lives with the annotations
 
 
 def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
-    """(mask, rendered at the mask's size, version id) of the frame's current mask."""
+    """(mask, leave-one-out rendering at the mask's size, version id) of the frame's current
+    mask: the labels decided without the frame's own votes (:mod:`occufly.lifting.loo`)."""
     v = annotations.current_version(session=session, frame=frame)
     mask = _mask_array(ctx, scene, v.sha256)
-    labels = annotations.current_labels(ctx, scene)
-    if labels is None:
+    ws_scene = ctx.load_scene(scene.workspace)
+    if annotations.current_labels(ctx, scene) is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")
-    ren, _depth = pipeline.render_for_mask(ctx.load_scene(scene.workspace), labels, frame.index,
-                                           mask.shape)
-    return mask, np.asarray(ren, dtype=np.uint8), v.id
+    loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
+    return mask, lifting_loo.render_loo(ws_scene, loo, mask.shape), v.id
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
+    """Leave-one-out agreement of the frame's current mask (``agreement``, None with
+    ``status="not_enough_independent_views"`` when the independent coverage is below
+    ``settings.min_independent_coverage``), the old self-agreement apart, the independent
+    coverage and painted share; stored on the frame (the review list sorts by it)."""
     mask, ren, vid = compare(ctx, session, scene, frame)
     ws_scene = ctx.load_scene(scene.workspace)
-    res = pipeline.agreement(mask, ren, ws_scene.taxonomy)
-    value = res.get("agreement")
-    value = None if value is None or not np.isfinite(value) else float(value)
+    labels = annotations.current_labels(ctx, scene)
+    self_ren = np.asarray(pipeline.render_for_mask(ws_scene, labels, frame.index, mask.shape)[0],
+                          dtype=np.uint8)
+    res = lifting_loo.loo_agreement(mask, ren, ws_scene, self_rendered=self_ren)
+    value = res["agreement"]
+    enough = res["independent_coverage"] >= ctx.settings.min_independent_coverage
+    status = "ok" if enough and value is not None else "not_enough_independent_views"
+    if status != "ok":
+        value = None
     frame.agreement = value
+    frame.self_agreement = res.get("self_agreement")
+    frame.independent_coverage = float(res["independent_coverage"])
+    frame.painted_share = float(res["painted_share"])
     session.commit()
     per_class = {str(k): v for k, v in (res.get("per_class") or {}).items()}
-    return {"agreement": value, "pixels": int(res.get("pixels", 0)), "per_class": per_class,
-            "version": vid}
+    return {"agreement": value, "status": status, "loo_agreement": res["agreement"],
+            "self_agreement": res.get("self_agreement"),
+            "independent_coverage": float(res["independent_coverage"]),
+            "painted_share": float(res["painted_share"]),
+            "independent_pixels": int(res["independent_pixels"]),
+            "painted_pixels": int(res["painted_pixels"]),
+            "min_independent_coverage": float(ctx.settings.min_independent_coverage),
+            "pixels": int(res["independent_pixels"]), "per_class": per_class, "version": vid}
 
 
 def disagreement_png(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> bytes:
+    """The disagreement overlay of the mask against the leave-one-out rendering."""
     mask, ren, _vid = compare(ctx, session, scene, frame)
     rgba = pipeline.disagreement_image(mask, ren, ctx.load_scene(scene.workspace).taxonomy)
     return pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))
@@ -59,7 +80,9 @@ def disagreement_png(ctx: AppContext, session: Session, scene: Scene, frame: Fra
 
 def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None = None,
                    progress=None) -> dict:
-    """2D agreement of every frame with a current mask (the eval job)."""
+    """Leave-one-out 2D agreement of every frame with a current mask (the eval job); frames
+    without enough independent views are listed with agreement None and left out of the
+    pixel-weighted total."""
     with ctx.sessions() as s:
         scene = s.get(Scene, scene_id)
         q = select(Frame).where(Frame.scene_id == scene_id, Frame.current_version_id.is_not(None))
@@ -67,19 +90,28 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
             q = q.where(Frame.index.in_(frames))
         rows = list(s.scalars(q.order_by(Frame.index)))
         per_frame = []
-        total_px = 0
-        agree_px = 0.0
+        total_px = self_w = 0
+        agree_px = self_px = 0.0
         for i, f in enumerate(rows):
             if progress:
                 progress(i / max(len(rows), 1), f"agreement {f.name}")
             r = frame_agreement(ctx, s, scene, f)
             per_frame.append({"frame_id": f.id, "index": f.index, "name": f.name,
-                              "agreement": r["agreement"], "pixels": r["pixels"]})
+                              "agreement": r["agreement"], "pixels": r["pixels"],
+                              "status": r["status"], "self_agreement": r["self_agreement"],
+                              "independent_coverage": r["independent_coverage"],
+                              "painted_share": r["painted_share"]})
             if r["agreement"] is not None:
                 total_px += r["pixels"]
                 agree_px += r["agreement"] * r["pixels"]
+            if r["self_agreement"] is not None:
+                self_w += r["painted_pixels"]
+                self_px += r["self_agreement"] * r["painted_pixels"]
     return {"table": "agreement_2d", "frames": per_frame, "n_frames": len(per_frame),
-            "pixels": total_px, "agreement": agree_px / total_px if total_px else None}
+            "pixels": total_px, "agreement": agree_px / total_px if total_px else None,
+            "self_agreement": self_px / self_w if self_w else None,
+            "n_not_enough_independent_views": sum(
+                f["status"] == "not_enough_independent_views" for f in per_frame)}
 
 
 # ---- decisions ------------------------------------------------------------------------------

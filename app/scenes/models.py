@@ -47,6 +47,11 @@ class Frame(Base):
     last_annotator_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     agreement: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # issue 23 (migration 0011): agreement is the leave-one-out one; the old self-agreement,
+    # the share of painted pixels with independent evidence and the painted share beside it
+    self_agreement: Mapped[float | None] = mapped_column(Float, nullable=True)
+    independent_coverage: Mapped[float | None] = mapped_column(Float, nullable=True)
+    painted_share: Mapped[float | None] = mapped_column(Float, nullable=True)
     reviewed_by_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     reviewed_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)

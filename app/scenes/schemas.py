@@ -99,6 +99,10 @@ class FrameOut(BaseModel):
     agreement: float | None
     last_annotator: str | None = None  # who painted it (assignee is cleared on submit)
     handout_rank: int | None = None  # 0-based place in the hand-out order (selected frames)
+    # issue 23: agreement above is leave-one-out; None with a coverage below the setting
+    self_agreement: float | None = None
+    independent_coverage: float | None = None
+    painted_share: float | None = None
 
 
 class FrameDetail(FrameOut):

@@ -196,7 +196,11 @@ def list_frames(*, session: Session, scene_id: int, sort: str = "index",
     if sort == "name":
         q = q.order_by(Frame.name)
     elif sort == "disagreement":
-        q = q.order_by(Frame.agreement.is_(None), Frame.agreement, Frame.index)
+        # LOO agreement, worst first; then the frames without enough independent views
+        # (a coverage but no agreement, least covered first); then frames never scored
+        q = q.order_by(Frame.agreement.is_(None), Frame.agreement,
+                       Frame.independent_coverage.is_(None), Frame.independent_coverage,
+                       Frame.index)
     else:
         q = q.order_by(Frame.index)
     return [frame_dict(f, a, la) for f, a, la in session.execute(q)]
@@ -208,7 +212,8 @@ def frame_dict(f: Frame, assignee: str | None, last_annotator: str | None = None
                 selected=f.selected, state=f.state, assignee=assignee,
                 lease_expires_at=f.lease_expires_at, current_version=f.current_version_id,
                 agreement=f.agreement, last_annotator=last_annotator,
-                handout_rank=f.handout_rank)
+                handout_rank=f.handout_rank, self_agreement=f.self_agreement,
+                independent_coverage=f.independent_coverage, painted_share=f.painted_share)
 
 
 def frame_out(*, session: Session, frame: Frame) -> dict:

@@ -4,12 +4,12 @@ Revision ID: 0011
 Revises: 0010
 Create Date: 2026-12-03 07:30:00
 
-(Reserved in the chain for issue 23 (independent review); a no-op until that work needs a schema change.)
+frames: self_agreement, independent_coverage, painted_share (issue 23).
 """
 from __future__ import annotations
 
-import sqlalchemy as sa  # noqa: F401
-from alembic import op  # noqa: F401
+import sqlalchemy as sa
+from alembic import op
 
 revision = '0011'
 down_revision = '0010'
@@ -17,9 +17,19 @@ branch_labels = None
 depends_on = None
 
 
+_COLUMNS = ("self_agreement", "independent_coverage", "painted_share")
+
+
 def upgrade() -> None:
-    pass
+    # frames.agreement becomes the leave-one-out agreement (recomputed on the next
+    # labels_updated); the old self-agreement and the figures beside it get columns
+    with op.batch_alter_table("frames") as b:
+        for name in _COLUMNS:
+            b.add_column(sa.Column(name, sa.Float(), nullable=True))
+    op.execute("UPDATE frames SET agreement = NULL")
 
 
 def downgrade() -> None:
-    pass
+    with op.batch_alter_table("frames") as b:
+        for name in reversed(_COLUMNS):
+            b.drop_column(name)

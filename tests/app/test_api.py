@@ -396,7 +396,9 @@ def test_live_lifting_tracks_versions(world):
                    headers={**a, "If-Match": str(v2)})
     assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement", headers=a).json()
-    assert fl[0]["id"] == fid and fl[0]["agreement"] == pytest.approx(1.0)
+    # the only annotated frame: no independent view (issue 23), its self-agreement is stored
+    assert fl[0]["id"] == fid and fl[0]["agreement"] is None
+    assert fl[0]["self_agreement"] == pytest.approx(1.0)
     assert st["included_versions"] == {str(fid): v2} and not st["pending_fill"]
     assert st["filled_versions"] == {str(fid): v2}
     assert st["labels_source"] == "filled"
@@ -491,8 +493,10 @@ def test_agreement_render_and_disagreement(world):
     assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=10)
     r = env.client.get(f"/api/frames/{fid}/agreement", headers=hdr["reviewer"])
     assert r.status_code == 200, r.text
-    # the frame's own votes are all grass: rendering them back agrees everywhere it covers
-    assert r.json()["agreement"] == pytest.approx(1.0) and r.json()["pixels"] > 0
+    # the frame's own votes are all grass: rendering them back agrees everywhere it covers;
+    # but no other frame voted, so there is no independent score (issue 23)
+    assert r.json()["self_agreement"] == pytest.approx(1.0)
+    assert r.json()["agreement"] is None and r.json()["status"] == "not_enough_independent_views"
     img = env.client.get(f"/api/frames/{fid}/disagreement", headers=hdr["reviewer"])
     assert img.status_code == 200 and img.content.startswith(b"\x89PNG")
     pre = env.client.get(f"/api/frames/{fid}/prefill", headers=hdr["annotator"])
@@ -504,7 +508,7 @@ def test_agreement_render_and_disagreement(world):
     assert arr.shape == (H, W) and set(np.unique(arr)) <= {0, 6} and (arr == 6).any()
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
                         headers=hdr["reviewer"]).json()
-    assert fl[0]["id"] == fid and fl[0]["agreement"] == pytest.approx(1.0)
+    assert fl[0]["id"] == fid and fl[0]["self_agreement"] == pytest.approx(1.0)
 
 
 # ---- jobs -----------------------------------------------------------------------------------
@@ -604,10 +608,11 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     env.app.state.ctx.jobs.wait(r.json()["id"])
     met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
     assert met["n_frames"] == 1 and met["frames"][0]["frame_id"] == fid
-    assert met["agreement"] == pytest.approx(1.0)
+    # one annotated frame: no independent score (issue 23); the self-agreement is kept apart
+    assert met["agreement"] is None and met["self_agreement"] == pytest.approx(1.0)
     assert "scene_grid" not in met  # no grid, no truth grid yet
     # with a densified grid and a truth grid in the workspace the eval job scores the grid too
-    from occufly.grid import SceneGrid, workspace_grid_path
+    from occufly.grid import SceneGrid
     from occufly.workspace import Workspace
 
     TRUTH_GRID_RELPATH = Workspace(".").truth_grid_path.relative_to(".")
@@ -619,7 +624,7 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     pred = truth.copy()
     pred[0, :, 0] = 0  # 4 grass voxels missed
     pred[2, 2, 1] = 13  # 1 vehicle voxel too many
-    SceneGrid(pred, np.array([100.0, 200.0, 10.0]), 0.5).save(workspace_grid_path(ws))
+    SceneGrid(pred, np.array([100.0, 200.0, 10.0]), 0.5).save(Workspace(ws).grid_path())
     SceneGrid(truth, np.array([100.0, 200.0, 10.0]), 0.5).save(ws / TRUTH_GRID_RELPATH)
     r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
     env.app.state.ctx.jobs.wait(r.json()["id"])
@@ -629,7 +634,7 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     assert g["per_class_iou"]["grass"] == pytest.approx(12 / 16)
     assert g["per_class_iou"]["vehicle"] == pytest.approx(2 / 3)
     assert g["miou"] == pytest.approx((12 / 16 + 2 / 3) / 2)
-    assert met["agreement"] == pytest.approx(1.0)
+    assert met["self_agreement"] == pytest.approx(1.0)
     # a truth grid that does not fit (other voxel size): the job still reports the agreement,
     # and the grid section says what is wrong
     SceneGrid(truth, np.array([100.0, 200.0, 10.0]), 0.25).save(ws / TRUTH_GRID_RELPATH)
@@ -637,7 +642,7 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     env.app.state.ctx.jobs.wait(r.json()["id"])
     assert env.client.get(f"/api/jobs/{r.json()['id']}", headers=hdr["admin"]).json()["status"] == "done"
     met = env.client.get(f"/api/scenes/{sid}/metrics", headers=hdr["reviewer"]).json()
-    assert met["agreement"] == pytest.approx(1.0) and "voxel sizes" in met["scene_grid"]["error"]
+    assert met["self_agreement"] == pytest.approx(1.0) and "voxel sizes" in met["scene_grid"]["error"]
     (ws / TRUTH_GRID_RELPATH).write_bytes(b"not an npz")
     r = env.client.post(f"/api/scenes/{sid}/eval", json={}, headers=hdr["admin"])
     env.app.state.ctx.jobs.wait(r.json()["id"])

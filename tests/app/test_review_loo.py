@@ -1,0 +1,68 @@
+"""Review agreement is leave-one-out (issue 23, defect 1), through the API on both databases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.app.conftest import H, W, png
+
+
+def _submit(env, hdr, fid: int, m: np.ndarray) -> None:
+    r = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                       headers={**hdr["admin"], "If-Match": "none"})
+    assert r.status_code == 200, r.text
+
+
+def test_wrong_frame_gets_low_loo_agreement_and_sorts_first(world):
+    env, hdr, scene, frames = world
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    grass = np.full((H, W), 6, np.uint8)
+    for fid in ids[:3]:
+        _submit(env, hdr, fid, grass)
+    wrong = ids[3]
+    _submit(env, hdr, wrong, np.full((H, W), 1, np.uint8))  # the grass painted as road
+    lifting = env.app.state.ctx.lifting
+    assert lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    r = env.client.get(f"/api/frames/{wrong}/agreement", headers=hdr["reviewer"]).json()
+    assert r["status"] == "ok" and r["independent_coverage"] >= 0.5
+    # the other frames see the same ground as grass: independently it is almost all wrong
+    assert r["agreement"] < 0.2
+    # the old figure is kept apart (here the three grass frames outvote it too)
+    assert r["self_agreement"] is not None and r["self_agreement"] < 0.5
+    assert r["painted_share"] == pytest.approx(1.0)
+    assert r["pixels"] == r["independent_pixels"] > 0
+    ok = env.client.get(f"/api/frames/{ids[1]}/agreement", headers=hdr["reviewer"]).json()
+    assert ok["agreement"] > 0.9
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
+                        headers=hdr["reviewer"]).json()
+    assert fl[0]["id"] == wrong and fl[0]["agreement"] == pytest.approx(r["agreement"])
+    assert fl[0]["self_agreement"] == pytest.approx(r["self_agreement"])
+    assert fl[0]["independent_coverage"] == pytest.approx(r["independent_coverage"])
+
+
+def test_lonely_and_half_painted_frames(world):
+    env, hdr, scene, frames = world
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    half = np.zeros((H, W), np.uint8)
+    half[:, : W // 2] = 6
+    _submit(env, hdr, ids[0], half)
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    r = env.client.get(f"/api/frames/{ids[0]}/agreement", headers=hdr["reviewer"]).json()
+    # nobody else voted: no score, the reason, the painted share, and the old figure apart
+    assert r["agreement"] is None and r["status"] == "not_enough_independent_views"
+    assert r["independent_coverage"] == 0.0 and r["self_agreement"] == pytest.approx(1.0)
+    assert r["painted_share"] == pytest.approx(0.5)
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
+                        headers=hdr["reviewer"]).json()
+    # grouped after scored frames, before never-scored ones; its painted share is listed
+    assert fl[0]["id"] == ids[0] and fl[0]["agreement"] is None
+    assert fl[0]["painted_share"] == pytest.approx(0.5) and fl[0]["independent_coverage"] == 0.0
+    # a second frame painting the other half gives independent evidence on the first's half
+    other = np.zeros((H, W), np.uint8)
+    other[:, :] = 6
+    _submit(env, hdr, ids[1], other)
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    r = env.client.get(f"/api/frames/{ids[0]}/agreement", headers=hdr["reviewer"]).json()
+    assert r["status"] == "ok" and r["agreement"] == pytest.approx(1.0)
+    assert r["painted_share"] == pytest.approx(0.5)

@@ -14,34 +14,12 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import db, errors
+from app.bootstrap import build_context
 from app.config import Settings
 from app.context import AppContext
 from app.jobs import service as jobs_service
-from app.jobs.runner import JobRunner
-from app.lifting.client import LiftingClient
-from app.lifting.events import EventBus
-from app.storage import BlobStore
 
 log = logging.getLogger("occufly.app")
-
-
-def build_context(settings: Settings, *, lifting: str | None = None,
-                  jobs: bool = True) -> AppContext:
-    """The per-process context; ``lifting`` overrides ``settings.lifting`` (the job and
-    lifting worker processes pass ``"off"`` / ``"external"``)."""
-    engine = db.make_engine(settings.database_url)
-    sessions = db.make_sessionmaker(engine)
-    holder: list[AppContext] = []
-    ctx = AppContext(
-        settings=settings, engine=engine, sessions=sessions,
-        store=BlobStore(settings.mask_store_dir),
-        lifting=LiftingClient(lambda: holder[0], mode=lifting or settings.lifting),
-        jobs=JobRunner(settings.job_workers, processes=settings.job_processes) if jobs else None,
-        events=EventBus(engine, sessions))
-    holder.append(ctx)
-    if ctx.jobs is not None:
-        ctx.jobs.bind(ctx)
-    return ctx
 
 
 def app_from_env() -> FastAPI:

@@ -170,10 +170,3 @@ class SceneGrid:
         except (ValueError, IndexError) as e:
             raise InputFormatError(f"{path}: {e}") from None
 
-
-def workspace_grid_path(ws: str | Path, altitude: int | None = None) -> Path:
-    """``WS/grid/scene_grid.npz`` or, for an altitude-specific grid, ``scene_grid_<alt>.npz``
-    (:meth:`occufly.workspace.Workspace.grid_path`)."""
-    from occufly.workspace import Workspace
-
-    return Workspace(ws).grid_path(altitude)

@@ -23,6 +23,7 @@ import numpy as np
 from occufly.camera import Camera
 from occufly.confusion import Confusion
 from occufly.density import point_spacing as estimate_point_spacing  # noqa: F401 (re-export)
+from occufly.pointbins import PointBins
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 
@@ -73,8 +74,6 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     key = (id(scene.xyz), scene.n_points)
     bins = _BINS_CACHE.get(key)
     if bins is None:
-        from occufly.visibility import PointBins
-
         _BINS_CACHE.clear()  # one cloud at a time: a long-lived process switches scenes
         bins = _BINS_CACHE[key] = PointBins(scene.xyz)
     if not len(bins.centers):

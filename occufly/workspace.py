@@ -39,16 +39,13 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_save_npy, atomic_write_text
-
-if TYPE_CHECKING:
-    from occufly.grid import SceneGrid
-    from occufly.scene import Scene
+from occufly.grid import SceneGrid
 
 SCENE_JSON = "scene.json"
 TAXONOMY_JSON = "taxonomy.json"
@@ -107,12 +104,6 @@ class Workspace:
 
     def write_header(self, header: dict) -> None:
         atomic_write_text(self.scene_json, json.dumps(header, indent=1))
-
-    def scene(self, *, mmap: bool = True) -> Scene:
-        """The workspace's :class:`~occufly.scene.Scene` (arrays memory-mapped by default)."""
-        from occufly.scene import Scene
-
-        return Scene.load(self.root, mmap=mmap)
 
     # ---- points and visibility ----------------------------------------------------------
     @property
@@ -213,19 +204,6 @@ class Workspace:
         """(N,) uint8 origin of each label (0 none, 1 direct, 2 filled, 3 denoised), or None."""
         return self._optional(self.label_origin_path, mmap)
 
-    def direct_labels(self) -> np.ndarray | None:
-        """(N,) uint8 majority of the direct votes (0 = no vote), or None without a vote state.
-
-        The vote state (:class:`occufly.lifting.LiftState`) decides; ties follow the taxonomy.
-        Opened read-only: a reader never writes, so a state left dirty by an interrupted
-        update is a :class:`WorkspaceError` here (the lifting worker repairs it).
-        """
-        if not self.lifting_state.is_file():
-            return None
-        from occufly.lifting import LiftState
-
-        return LiftState.open(self.root, read_only=True).direct_labels()
-
     def lift_stats(self) -> dict:
         """Statistics of the last fill (``labels.json``), ``{}`` when absent or unreadable."""
         p = self.labels_stats_path
@@ -284,8 +262,6 @@ class Workspace:
 
     def grid(self, altitude: int | None = None) -> SceneGrid | None:
         """The densified scene grid, or None before ``occufly voxelize``."""
-        from occufly.grid import SceneGrid
-
         p = self.grid_path(altitude)
         return SceneGrid.load(p) if p.is_file() else None
 
@@ -307,8 +283,6 @@ class Workspace:
         return self.truth_dir / "scene_grid.npz"
 
     def truth_grid(self) -> SceneGrid | None:
-        from occufly.grid import SceneGrid
-
         p = self.truth_grid_path
         return SceneGrid.load(p) if p.is_file() else None
 

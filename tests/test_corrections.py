@@ -11,6 +11,7 @@ import pytest
 from occufly import render
 from occufly.lifting import ORIGIN_CORRECTED, load_labels
 from occufly.lifting import corrections as lib
+from occufly.scene import Scene
 from occufly.workspace import Workspace
 from tests.app.conftest import make_tiny_scene
 
@@ -118,7 +119,7 @@ def test_load_labels_labels_at_and_apply_to_labels_see_the_layer(ws):
 
 
 def test_prefill_of_another_frame_and_agreement_reflect_a_correction(ws):
-    scene = ws.scene()
+    scene = Scene.load(ws.root)
     xyz = np.asarray(scene.xyz)
     ids = np.flatnonzero((xyz[:, 0] > -6) & (xyz[:, 0] < -1))  # a strip of ground
     before, _d, _f = render.render_prefill(scene, np.asarray(load_labels(ws).labels), 1)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from occufly.errors import InputFormatError
-from occufly.grid import SceneGrid, workspace_grid_path
+from occufly.grid import SceneGrid
+from occufly.workspace import Workspace
 
 
 def test_index_centers_lookup_round_trip(tmp_path):
@@ -25,7 +26,7 @@ def test_index_centers_lookup_round_trip(tmp_path):
     ijk_l, inside_l = g.index_of_local(np.float32([[1.75, 2.25, 2.75]]) + np.float32(0.0), origin)
     assert inside_l.all() and ijk_l.tolist() == [[3, 4, 5]]
     assert g.class_counts() == {6: 1, 16: 1}
-    p = g.save(workspace_grid_path(tmp_path))
+    p = g.save(Workspace(tmp_path).grid_path())
     assert p == tmp_path / "grid" / "scene_grid.npz"
     h = SceneGrid.load(p)
     assert np.array_equal(h.labels, lab) and np.array_equal(h.origin, origin) and h.voxel_size == 0.5

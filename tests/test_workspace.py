@@ -82,13 +82,13 @@ def test_no_module_spells_a_workspace_path():
 
 
 def test_direct_labels_is_a_read_only_reader(tmp_path):
-    from occufly.lifting import LiftState
+    from occufly.lifting import LiftState, read_direct_labels
     from tests.lift_scene import make_scene, truth_mask
 
     scene, _truth = make_scene()
     scene.save(tmp_path / "ws")
     ws = Workspace(tmp_path / "ws")
-    assert ws.direct_labels() is None  # no vote state yet, and none is created
+    assert read_direct_labels(ws.root) is None  # no vote state yet, and none is created
     assert not ws.lifting_dir.exists()
     st = LiftState.open(ws.root, scene)
     st.apply_frame(5, truth_mask(scene.frames[5]), version="v1")
@@ -96,6 +96,6 @@ def test_direct_labels_is_a_read_only_reader(tmp_path):
     expected = st.direct_labels()
     st.close()
     before = {p: p.stat().st_mtime_ns for p in ws.lifting_dir.rglob("*") if p.is_file()}
-    got = ws.direct_labels()
+    got = read_direct_labels(ws.root)
     assert np.array_equal(got, expected) and (got > 0).any()
     assert {p: p.stat().st_mtime_ns for p in ws.lifting_dir.rglob("*") if p.is_file()} == before

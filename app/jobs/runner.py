@@ -2,7 +2,7 @@
 
 Each job kind is a function ``run(jc: JobContext) -> dict | None`` registered in
 :data:`KINDS` (see ``app/jobs/kinds.py``). Kinds marked ``remote`` (import, selection,
-voxelize, export) run in :func:`run_job_process` on the job executor from
+voxelize, export) run in :func:`app.bootstrap.run_job_process` on the job executor from
 :mod:`occufly.parallel` -- a local process pool whose workers die with this process
 (:func:`occufly.parallel.die_with_parent`: parent-death signal + watchdog), or the Dask cluster
 when ``OCCUFLY_DASK_ADDRESS`` is set -- so heavy pipeline work never competes with the API for
@@ -156,7 +156,12 @@ def kind(name: str):
 
 
 class JobRunner:
-    def __init__(self, workers: int = 2, *, processes: bool = True) -> None:
+    def __init__(self, workers: int = 2, *, processes: bool = True,
+                 entry: Callable[..., None] | None = None) -> None:
+        """``entry(settings, job_id, attempt)``: what runs a remote job kind on the executor
+        (:func:`app.bootstrap.run_job_process`, which builds that process's own context;
+        injected so this module never imports the composition root)."""
+        self.entry = entry
         self.pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="occufly-job")
         self.workers = max(1, workers)
         self.processes = processes
@@ -258,7 +263,9 @@ class JobRunner:
         fn = KINDS.get(kind_name)
         if self.processes and getattr(fn, "remote", False):
             try:
-                self.job_executor().submit(run_job_process, ctx.settings, job_id,
+                if self.entry is None:
+                    raise RuntimeError("JobRunner has no process entry (app.bootstrap sets it)")
+                self.job_executor().submit(self.entry, ctx.settings, job_id,
                                            attempt).result()
             except Exception as e:  # noqa: BLE001 - the child died or could not start
                 log.exception("job %s: executor failure", job_id)
@@ -381,17 +388,6 @@ def _drop_staging(jc: JobContext) -> None:
     for staging, _final in jc.outputs:
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
-
-
-def run_job_process(settings, job_id: int, attempt: int | None = None) -> None:  # noqa: ANN001
-    """Entry point on the job executor (a local worker process or a Dask worker)."""
-    from app.main import build_context
-
-    ctx = build_context(settings, lifting="off", jobs=False)
-    try:
-        execute_job(ctx, job_id, attempt)
-    finally:
-        ctx.engine.dispose()
 
 
 def _on_failure(jc: JobContext, message: str) -> None:

@@ -14,9 +14,9 @@ def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
     import os
 
     from app import db
+    from app.bootstrap import build_context
     from app.config import Settings
     from app.lifting.service import LiftingBusy, LiftingService
-    from app.main import build_context
     from occufly.errors import OccuflyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")

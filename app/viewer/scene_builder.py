@@ -102,7 +102,7 @@ class ViewerData:
         direct votes (``occufly.lifting.LiftState``) if available, ``grid/scene_grid.npz``."""
         ws = Path(ws)
         w = Workspace(ws)
-        scene = scene if scene is not None else w.scene()
+        scene = scene if scene is not None else Scene.load(ws)
 
         def opt(p: Path) -> np.ndarray | None:
             if not p.is_file():

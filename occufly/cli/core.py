@@ -76,7 +76,9 @@ def _info(args: argparse.Namespace) -> dict:
     from occufly.workspace import Workspace
 
     ws = Workspace(args.workspace)
-    scene = ws.scene()
+    from occufly.scene import Scene
+
+    scene = Scene.load(ws.root)
     out = {"workspace": str(args.workspace), **scene.summary()}
     out["steps"] = ws.steps()
     return out

@@ -297,7 +297,8 @@ def load_truth_labels(ws: Path, truth_path: Path, n_points: int) -> np.ndarray:
 
 
 def _eval_points(args: argparse.Namespace) -> dict:
-    from occufly.lifting import LiftState, evaluate_points
+    from occufly.lifting import LiftState
+    from occufly.metrics import evaluate_points
 
     scene, res = _scene_and_labels(args.workspace)
     truth = load_truth_labels(args.workspace, args.truth, scene.n_points)

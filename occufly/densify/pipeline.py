@@ -34,6 +34,7 @@ from occufly.density import surface_density
 from occufly.errors import InputFormatError
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn, noop
+from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
 log = logging.getLogger(__name__)
@@ -458,7 +459,7 @@ def voxelize_workspace(
 
     wsp = Workspace(ws)
     t = time.perf_counter()
-    scene = wsp.scene()
+    scene = Scene.load(wsp.root)
     lp = Path(labels_path) if labels_path is not None else wsp.labels_path
     labels = load_point_labels(lp, scene.n_points)
     if labels_path is None:  # the workspace's labels: with reviewers' corrections, like every reader

@@ -51,7 +51,7 @@ from occufly.export.common import (
     write_frame_files,
 )
 from occufly.fsutil import atomic_write_bytes
-from occufly.grid import SceneGrid, workspace_grid_path
+from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn
 from occufly.sampling import (
     FrameGridSpec,
@@ -125,7 +125,7 @@ def _resolve_grids(ws: Path, grid, altitudes: set[int], grid_for_altitude: dict[
             if m:
                 grids[int(m.group(1))], source[int(m.group(1))] = SceneGrid.load(p), str(p)
         if not grids:
-            p = workspace_grid_path(ws)
+            p = Workspace(ws).grid_path()
             if not p.is_file():
                 raise ExportError(
                     f"{p}: no scene grid in the workspace; run `occufly voxelize` first "

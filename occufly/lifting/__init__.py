@@ -18,8 +18,8 @@ The package has three parts (each module's docstring gives the details):
     :class:`LiftResult` (labels, confidence, origin) and its files (:func:`save_result`,
     :func:`load_labels`).
 
-Point-level evaluation against truth lives in :func:`occufly.metrics.evaluate_points`
-(re-exported here for older callers).
+Point-level evaluation against truth lives in :func:`occufly.metrics.evaluate_points` (a
+layer above this package: ``pyproject.toml``'s import-linter contracts).
 
 A live worker (the app's lifting service) uses::
 
@@ -60,20 +60,13 @@ from occufly.lifting.votes import (
     VoteSnapshot,
     boundary_weights,
     fill_snapshot,
+    read_direct_labels,
 )
 
 __all__ = [
     "LIFT_DIR", "ORIGIN_CORRECTED", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
     "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
-    "VoteSnapshot", "evaluate_points", "fill_and_denoise", "fill_and_denoise_exact",
-    "fill_snapshot", "load_labels", "params_dict", "save_result", "typical_knn_radius",
+    "VoteSnapshot", "fill_and_denoise", "fill_and_denoise_exact",
+    "fill_snapshot", "load_labels", "read_direct_labels", "params_dict", "save_result", "typical_knn_radius",
 ]
 
-
-def __getattr__(name: str):
-    # lazily, so that occufly.metrics may import from this package without a cycle
-    if name == "evaluate_points":
-        from occufly.metrics import evaluate_points
-
-        return evaluate_points
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -552,6 +552,15 @@ class VoteSnapshot:
         return len(self.versions)
 
 
+def read_direct_labels(ws: str | Path) -> np.ndarray | None:
+    """(N,) uint8 majority of the direct votes of workspace ``ws`` (0 = no vote), or None
+    without a vote state. Opened read-only: a reader never writes, so a state left dirty by an
+    interrupted update is a :class:`WorkspaceError` here (the lifting worker repairs it)."""
+    if not Workspace(ws).lifting_state.is_file():
+        return None
+    return LiftState.open(ws, read_only=True).direct_labels()
+
+
 def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | None = None,
                   progress: ProgressFn | None = None, ws: str | Path | None = None,
                   read_only: bool = True) -> LiftResult:

@@ -14,6 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from occufly.scene import Scene
 from tests.app.conftest import PASSWORD, write_tiny_workspace
 
 REPO = Path(__file__).resolve().parents[2]
@@ -77,7 +78,7 @@ def _seed(tmp: Path, env: dict) -> int:
         sid, ws = scene.id, Workspace(scene.workspace)
     ctx.jobs.submit(job.id)
     ctx.jobs.wait(job.id, timeout=120)
-    n = ws.scene().n_points
+    n = Scene.load(ws.root).n_points
     labels = np.where(np.arange(n) % 9 == 0, 8, 1).astype(np.uint8)  # road with trees
     ws.write_labels(labels, np.ones(n, np.float32), np.ones(n, np.uint8), {})
     with ctx.sessions() as s:

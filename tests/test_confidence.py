@@ -135,7 +135,7 @@ def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path):
     f = ev & (org == ORIGIN_FILLED)
     right, wrong = f & (lab == truth), f & (lab != truth)
     assert right.sum() > 50 and wrong.sum() > 20
-    assert conf[wrong].mean() < conf[right].mean() - 0.04, (conf[wrong].mean(), conf[right].mean())
+    assert conf[wrong].mean() < conf[right].mean() - 0.06, (conf[wrong].mean(), conf[right].mean())
     assert conf[lab == 0].max(initial=0.0) == 0.0
     assert (conf[org == ORIGIN_FILLED].mean() < conf[org == ORIGIN_DIRECT].mean())
 

@@ -9,10 +9,14 @@ Raw score (per origin, from the evidence the fill has; :func:`raw_scores`)
         views (a posterior margin after the robust decision) and the share of the point's
         k = 200 neighbourhood that has its class.
     filled (no vote; the IDW kNN vote of the voted points within ``fill_radius``)
-        ``fill share * (1 - d / R)``: the IDW share of the winning class among the voted
-        neighbours (their agreement) times the closeness of the nearest voted neighbour
-        (``d`` its distance, ``R`` the fill radius; 0 at and beyond the radius, so the opt-in
-        far fill gets the lowest score). It falls with distance and with disagreement.
+        ``fill share * denoise share * (1 - d / 2R)``: the IDW share of the winning class
+        among the voted neighbours (their agreement), the share of its k = 200 neighbourhood
+        that has the class, and the closeness of the nearest voted neighbour (``d`` its
+        distance, ``R`` the fill radius: 1 next to a vote, 0.5 at the radius, 0 beyond it, so
+        the opt-in far fill gets the lowest score). It falls with distance and with
+        disagreement. (``fill share * (1 - d / R)`` alone separated right from wrong filled
+        labels less well: on the tiny scene, degraded masks, right/wrong mean confidence
+        0.822 / 0.781 against 0.818 / 0.733 with this score.)
     denoised (the denoise relabelled the vote or fill label)
         the denoise share of the new class.
 Probability (per origin; :class:`CalibrationTable`)
@@ -234,9 +238,10 @@ def raw_scores(origin: np.ndarray, *, denoise_share: np.ndarray, vote_margin: np
     m = np.ones(len(origin), np.float32) if vote_margin is None else np.asarray(vote_margin, np.float32)
     out[d] = 0.5 * (a[d] + np.clip(m[d], 0.0, 1.0))
     f = origin == ORIGIN_FILLED
-    close = 1.0 - np.asarray(fill_distance, np.float64)[f] / max(float(fill_radius), 1e-9)
-    out[f] = (np.clip(np.asarray(fill_share, np.float32)[f], 0.0, 1.0)
-              * np.clip(np.nan_to_num(close, nan=0.0, neginf=0.0), 0.0, 1.0)).astype(np.float32)
+    r = np.asarray(fill_distance, np.float64)[f] / max(float(fill_radius), 1e-9)
+    close = np.where(r <= 1.0, 1.0 - 0.5 * np.nan_to_num(r, nan=1.0), 0.0)  # 1 -> 0.5, 0 beyond
+    out[f] = (np.clip(np.asarray(fill_share, np.float32)[f], 0.0, 1.0) * a[f]
+              * np.clip(close, 0.0, 1.0)).astype(np.float32)
     dn = origin == ORIGIN_DENOISED
     out[dn] = a[dn]
     return out

@@ -49,8 +49,8 @@ Confidence (float32 in [0, 1])
     A calibrated probability that the label is right (``LiftParams.confidence="calibrated"``,
     :mod:`occufly.lifting.calibration`): a raw evidence score per origin -- direct: the vote
     margin ``(top - second) / votes`` averaged with the denoise share; filled: the IDW share
-    of the winning class among the voted neighbours times ``1 - d / fill_radius`` (``d`` the
-    nearest voted neighbour); denoised: the denoise share -- mapped through the per-origin
+    of the winning class among the voted neighbours times the denoise share times
+    ``1 - d / (2 fill_radius)`` (``d`` the nearest voted neighbour); denoised: the denoise share -- mapped through the per-origin
     isotonic table fitted on synthetic truth (``confidence_calibration.json``). ``"raw"``
     gives the score itself, ``"legacy"`` the earlier confidence (the denoise share, averaged
     with the vote margin for direct labels: ~0.9 for filled labels however far from a vote).
@@ -67,6 +67,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from occufly.density import knn_radius as typical_knn_radius
+from occufly.lifting import calibration
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
 from occufly.progress import ProgressFn, noop
@@ -315,8 +316,6 @@ def _finish(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, fina
     if p.confidence not in ("calibrated", "raw"):
         raise ValueError(f"LiftParams.confidence {p.confidence!r}: expected 'calibrated', "
                          "'raw' or 'legacy'")
-    from occufly.lifting import calibration
-
     n = len(labels)
     conf = calibration.raw_scores(
         origin, denoise_share=agree, vote_margin=vote_margin,

@@ -81,3 +81,27 @@ def test_toledo_import_is_metric(tmp_path):
     assert np.median(z) == pytest.approx(55.3, abs=0.2)
     focal = [w for w in meta["import_warnings"] if "focal" in w]
     assert len(focal) == 1 and "1.70" in focal[0] and "783.7" in focal[0]
+
+
+def test_metashape_folder_imports_with_its_cloud(tmp_path):
+    """Defect 2: ``synth --format metashape`` output imports with no flags (the cloud beside
+    cameras.xml is found); several clouds are listed; none says what was looked for."""
+    import shutil
+
+    from occufly.errors import InputFormatError
+    from occufly.io.importer import import_scene
+    from occufly.synthetic.formats import generate_formats
+
+    root = tmp_path / "synth"
+    generate_formats(root, ("metashape",), preset="tiny", seed=0, nested=True)
+    src = root / "metashape"
+    scene = import_scene(src, tmp_path / "ws", visibility="depth")
+    assert scene.meta["cloud"].endswith("dense_cloud.laz") and scene.crs["epsg"] == 32632
+    assert scene.n_points > 1000  # the dense cloud, not the sparse points
+    shutil.copy(src / "dense_cloud.laz", src / "other.las")
+    with pytest.raises(InputFormatError, match="several point clouds.*dense_cloud.laz, other.las"):
+        import_scene(src, tmp_path / "ws2")
+    (src / "other.las").unlink()
+    (src / "dense_cloud.laz").unlink()
+    with pytest.raises(InputFormatError, match=r"no \.las/\.laz/\.ply file beside cameras.xml"):
+        import_scene(src, tmp_path / "ws3")

@@ -86,6 +86,8 @@ def read_source(source: str | Path, fmt: str | None = None, *,
         model = read_metashape(xml)
         if model.default_images is None and (xml.parent / "images").is_dir():
             model.default_images = xml.parent / "images"
+        if model.default_cloud is None:
+            model.default_cloud = find_cloud_beside(xml)
     else:
         from occufly.io.pix4d import read_pix4d
 
@@ -96,6 +98,23 @@ def read_source(source: str | Path, fmt: str | None = None, *,
             model.default_images = root / "images"
     check_image_names(model)
     return model
+
+
+CLOUD_SUFFIXES = (".las", ".laz", ".ply")
+
+
+def find_cloud_beside(xml: Path) -> Path | None:
+    """The dense cloud exported beside a camera XML (Metashape "Export Cameras" + "Export
+    Point Cloud" into one folder): the one ``.las``/``.laz``/``.ply`` file in the XML's
+    folder, None when there is none, an error listing them when there are several."""
+    folder = xml.parent
+    found = sorted(p for p in folder.iterdir()
+                   if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES) if folder.is_dir() else []
+    if len(found) > 1:
+        raise InputFormatError(
+            f"{folder}: several point clouds beside {xml.name} ({', '.join(p.name for p in found)}); "
+            f"pass the dense cloud with --cloud")
+    return found[0] if found else None
 
 
 def check_image_names(model: SparseModel) -> None:
@@ -157,6 +176,14 @@ def into_cloud_crs(model: SparseModel, cloud_path: Path | None, crs_override: st
         target = given or (model.output_crs if model.output_crs is not None else model.crs)
         info["cloud_crs_from"] = f"{model.kind} project" if target is not None else None
         cloud_name = f"the sparse points of {model.path}"
+    if target is not None and target.is_geographic and cloud_path is None and model.kind != "colmap":
+        looked = (f"no {'/'.join(CLOUD_SUFFIXES)} file beside {model.path.name} in "
+                  f"{model.path.parent}" if model.kind == "metashape"
+                  else f"no dense cloud in the {model.kind} project")
+        raise InputFormatError(
+            f"{model.path}: {looked}, so the sparse points would be the cloud, and they are in "
+            f"the project's CRS {crsmod.crs_label(target)}, which is geographic (degrees): export "
+            f"the dense cloud in a projected CRS (e.g. UTM) next to the XML or pass it with --cloud")
     if target is not None and target.is_geographic:
         raise InputFormatError(
             f"{cloud_name}: its CRS {crsmod.crs_label(target)} is geographic (degrees); the "

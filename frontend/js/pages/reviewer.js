@@ -142,12 +142,17 @@ class ReviewerPage {
           frames,
           [
             { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
-            { key: "agreement", label: "Agreement", fmt: (v) => pct(v) },
+            // leave-one-out agreement (issue 23); frames without enough independent views are
+            // grouped after the scored ones and say so instead of a score
+            { key: "agreement", label: "Agreement (independent)", fmt: (v, r) => (v == null && r.independent_coverage != null ? el("span", { class: "not-enough", title: "fewer than the required share of painted pixels have evidence from other frames" }, "not enough independent views") : pct(v)) },
+            { key: "independent_coverage", label: "Coverage", fmt: (v) => (v == null ? "–" : pct(v)) },
+            { key: "painted_share", label: "Painted", fmt: (v) => (v == null ? "–" : pct(v)) },
+            { key: "self_agreement", label: "Self", fmt: (v) => (v == null ? "–" : pct(v)) },
             { key: "state", label: "State" },
             // the assignee is cleared on submit: who painted it is last_annotator
             { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
           ],
-          { caption: `${frames.length} frames, lowest agreement first`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
+          { caption: `${frames.length} frames, lowest independent agreement first; then frames without enough independent views`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
         ),
       );
     } catch (e) {
@@ -211,7 +216,8 @@ class ReviewerPage {
   renderDetail() {
     const f = this.frame;
     const a = this.agreement || {};
-    const agreeText = a.error ? `agreement unavailable: ${a.error}` : pct(a.agreement);
+    const lonely = a.status === "not_enough_independent_views";
+    const agreeText = a.error ? `agreement unavailable: ${a.error}` : lonely ? "— not enough independent views" : pct(a.agreement);
     const modeBtns = [
       el("button", { type: "button", "aria-pressed": String(this.mode === "side"), onclick: () => this.setMode("side") }, "Side by side"),
       el("button", { type: "button", "aria-pressed": String(this.mode === "blend"), onclick: () => this.setMode("blend") }, "Blended"),
@@ -229,7 +235,10 @@ class ReviewerPage {
         el("h2", {}, f.name),
         el("span", { class: `badge state-${f.state}` }, f.state),
         el("span", { class: "agreement", id: "agreement", "data-value": a.agreement ?? "" }, `Agreement ${agreeText}`),
-        a.pixels != null ? el("span", {}, `over ${Number(a.pixels).toLocaleString()} pixels`) : null,
+        a.pixels != null && !lonely ? el("span", {}, `over ${Number(a.pixels).toLocaleString()} independent pixels`) : null,
+        a.independent_coverage != null ? el("span", { id: "independent-coverage", "data-value": a.independent_coverage }, `independent coverage ${pct(a.independent_coverage)}${lonely ? ` (needs ${pct(a.min_independent_coverage)})` : ""}`) : null,
+        a.painted_share != null ? el("span", { id: "painted-share", "data-value": a.painted_share }, `painted ${pct(a.painted_share)} of the frame`) : null,
+        a.self_agreement != null ? el("span", { id: "self-agreement", title: "against labels lifted from this mask too (circular)" }, `self ${pct(a.self_agreement)}`) : null,
         // the viewer picks its scene from ?scene=; ?frame= names the frame (contract link)
         el("a", { href: `/viewer/?scene=${f.scene_id ?? this.sceneSel.value}&frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
         el("span", { class: "spacer" }),

@@ -12,7 +12,9 @@ in one run, with warm per-scene caches (point bins), best CPU of ``--repeat``:
 - ``prefill``: today's ``prefill_for_mask`` (the prefill: holes closed), and ``prefill_png``
   its PNG encoding as the API sends it;
 - ``agreement``: ``occufly.render.agreement`` of a mask (the rendering with a 400 x 400 block
-  changed) against the rendering.
+  changed) against the rendering;
+- ``loo_agreement`` (issue 23): the review's leave-one-out labels of the frame, their
+  rendering and the agreement (:func:`loo_part`; ``--only-loo`` runs only this row).
 
 With ``--export-root R`` also the export of one 20 MP frame (``export``; see
 :func:`fabricate_export_ws`): the export task's CPU, cold and warm, for the code at
@@ -275,12 +277,16 @@ def main() -> None:
     ap.add_argument("--export-rounds", type=int, default=2,
                     help="fresh processes per code version (alternating)")
     ap.add_argument("--only-export", action="store_true", help="skip the render / agreement part")
+    ap.add_argument("--only-loo", action="store_true",
+                    help="only the leave-one-out agreement row (issue 23)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     if args.only_export and not args.export_root:
         ap.error("--only-export needs --export-root")
     out: dict = {"bench": "frame-path-20mp", "frame": list(SHAPE[::-1]), "repeat": args.repeat}
-    if not args.only_export:
+    if args.only_loo:
+        loo_part(args, out)
+    elif not args.only_export:
         render_part(args, out)
     if args.export_root:
         out["export"] = export_bench(args.export_root.absolute(), args.export_baseline, args.repeat,
@@ -318,6 +324,61 @@ def render_part(args, out: dict) -> None:
     out["agreement"] = {"cpu_s": round(c, 3), "wall_s": round(w, 3), "value": round(float(ag["agreement"]), 4)}
     out["budget"] = {"prefill_le_1s_cpu": out["prefill"]["cpu_s"] <= 1.0,
                      "agreement_le_1s_cpu": out["agreement"]["cpu_s"] <= 1.0}
+    loo_part(args, out, scene, labels)
+
+
+def loo_part(args, out: dict, scene=None, labels=None) -> None:
+    """``loo_agreement`` (issue 23): the leave-one-out labels of the frame (votes of its
+    in-view points minus its own, tie-order majority, k-NN fill of the points left without a
+    vote), their rendering and the agreement, in a workspace whose votes.npy holds two other
+    frames' votes on every point except a 300 x 300 px patch (filled) and the frame's own."""
+    import tempfile
+
+    from occufly.lifting.classes import ClassColumns
+    from occufly.lifting.loo import loo_agreement, loo_labels, render_loo
+    from occufly.workspace import Workspace
+
+    if scene is None:
+        scene, labels, _ = fabricate()
+    fr = scene.frames[0]
+    uv, zc = fr.camera.project(render._to_camera(fr.T_cam_world, scene.xyz))
+    ok = (zc > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < SHAPE[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < SHAPE[0])
+    ids = np.flatnonzero(ok).astype(np.int32)
+    vis = Visibility.from_parts([(ids, uv[ok].astype(np.float32), zc[ok].astype(np.float32))])
+    sc = Scene(frames=[fr], xyz=scene.xyz, rgb=scene.rgb, visibility=vis, taxonomy=scene.taxonomy)
+    sc.meta["point_spacing"] = scene.meta["point_spacing"]
+    cls = ClassColumns(sc.taxonomy)
+    col = cls.col_of[labels].astype(np.int64)
+    with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
+        w = Workspace(Path(tmp))
+        w.lifting_frames_dir.mkdir(parents=True, exist_ok=True)
+        votes = np.lib.format.open_memmap(w.votes, mode="w+", dtype=np.uint16,
+                                          shape=(sc.n_points, cls.C))
+        hole = ok & (np.abs(uv[:, 0] - SHAPE[1] / 2) < 150) & (np.abs(uv[:, 1] - SHAPE[0] / 2) < 150)
+        others = np.flatnonzero(~hole)
+        for a in range(0, len(others), 2_000_000):
+            sl = others[a:a + 2_000_000]
+            votes[sl, col[sl]] = 2
+        votes[ids, col[ids]] += 1
+        votes.flush()
+        del votes
+        np.savez(w.lifting_frame(0), point_ids=ids, cols=col[ids].astype(np.uint8),
+                 weights=np.ones(len(ids), np.uint8))
+        loo_labels(tmp, sc, 0)  # warm (point bins of this scene object)
+
+        def run():
+            loo = loo_labels(tmp, sc, 0)
+            ren = render_loo(sc, loo, SHAPE)
+            return loo_agreement(labels_mask, ren, sc), loo
+
+        labels_mask = render.render_for_mask(sc, labels, 0, SHAPE)[0]
+        c, wall, (res, loo) = best_cpu(run, args.repeat)
+    out["loo_agreement"] = {"cpu_s": round(c, 3), "wall_s": round(wall, 3),
+                            "points_in_view": int(len(ids)), "points_gathered": int(len(loo.point_ids)),
+                            "filled_points": int(hole.sum()),
+                            "value": round(float(res["agreement"]), 4),
+                            "independent_coverage": round(float(res["independent_coverage"]), 4)}
+    out.setdefault("budget", {})["loo_agreement_le_1s_cpu"] = out["loo_agreement"]["cpu_s"] <= 1.0
 
 
 if __name__ == "__main__":

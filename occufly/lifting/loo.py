@@ -70,16 +70,20 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
     if cand is None:
         ids = np.arange(scene.n_points, dtype=np.int64)
     else:
-        ids = np.union1d(np.asarray(cand, np.int64), vis)
-    counts = np.asarray(votes[ids], dtype=np.int64)  # (K, C)
+        ids = np.asarray(cand, np.int64)  # sorted; f's visible points are (almost) all in it
+        pos = np.minimum(np.searchsorted(ids, vis), len(ids) - 1) if len(ids) else vis * 0
+        missing = vis[ids[pos] != vis] if len(ids) else vis
+        if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
+            ids = np.sort(np.concatenate([ids, missing]))
+    counts = np.array(votes[ids])  # (K, C) uint16 copy
     own_p, own_c, own_w = _frame_votes(ws, frame_index)
     if len(own_p):
         pos = np.searchsorted(ids, own_p)
         pos = np.minimum(pos, len(ids) - 1)
         ok = ids[pos] == own_p
-        counts[pos[ok], own_c[ok]] -= own_w[ok]
-    np.maximum(counts, 0, out=counts)
-    col = cls.winner(counts.astype(np.uint32))
+        r, c = pos[ok], own_c[ok]
+        counts[r, c] = np.maximum(counts[r, c].astype(np.int64) - own_w[ok], 0).astype(np.uint16)
+    col = cls.winner(counts)
     voted = col >= 0
     # fill: the points f sees without an independent vote, from the other frames' voted points
     is_vis = np.zeros(len(ids), bool)
@@ -88,8 +92,13 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
     src = np.flatnonzero(voted)
     if len(todo) and len(src):
         xyz = scene.xyz
+        q = np.asarray(xyz[ids[todo]], dtype=np.float64)
+        lo, hi = q.min(0) - p.fill_radius, q.max(0) + p.fill_radius
+        sx = np.asarray(xyz[ids[src]])
+        src = src[np.all((sx >= lo) & (sx <= hi), axis=1)]  # only voted points in reach
+    if len(todo) and len(src):
         tree = cKDTree(np.asarray(xyz[ids[src]], dtype=np.float64))
-        c, _share = _knn_vote(tree, col[src], np.asarray(xyz[ids[todo]], dtype=np.float64),
+        c, _share = _knn_vote(tree, col[src], q,
                               p.fill_k, p.fill_radius, cls, weighted=True, workers=p.workers)
         col[todo] = c
     labels = cls.labels_of(col)

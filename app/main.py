@@ -63,6 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         close(_app)
 
     app = FastAPI(title="OccuFly Studio", version="0.1.0", lifespan=lifespan,
+                  docs_url=None,  # /docs served offline by app.docs_offline (issue 26)
                   description="Annotation, lifting, review and export of drone-survey SSC "
                               "ground truth. Auth: session cookie `occufly_session` or "
                               "`Authorization: Bearer <token>` from POST /api/auth/login.")
@@ -94,6 +95,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return {"status": "ok", "database": ctx.engine.dialect.name}
 
     _mount_viewer(app, ctx)
+    from app.docs_offline import mount_docs
+
+    mount_docs(app)  # Swagger UI from the swagger-ui-bundle package, no CDN (issue 26)
     _mount_frontend(app, settings)
     return app
 

@@ -23,9 +23,14 @@ def _frames(env, admin) -> list[dict]:  # noqa: ANN001
 
 
 def _put(env, hdr, fid: int, cls: int, base) -> int:  # noqa: ANN001
+    """Submit a mask (only submitted versions are lifted); a frame submitted before is
+    reopened first, as its annotator would."""
     m = np.full((H, W), cls, np.uint8)
     m[:, : W // 3] = 1
-    r = env.client.put(f"/api/frames/{fid}/mask", content=png(m),
+    if base is not None:
+        r = env.client.post(f"/api/frames/{fid}/reopen", headers=hdr)
+        assert r.status_code == 200, r.text
+    r = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
                        headers={**hdr, "If-Match": "none" if base is None else str(base)})
     assert r.status_code == 200, r.text
     return r.json()["version"]

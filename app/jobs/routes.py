@@ -3,7 +3,7 @@ from __future__ import annotations
 from pathlib import Path as FsPath
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
 
 from app.audit import service as audit
@@ -65,11 +65,29 @@ def resume_job(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser)
     return service.out(job)
 
 
-def _start(session, ctx, scene, user, kind: str, params: dict) -> dict:  # noqa: ANN001
+IdemKey = Annotated[str | None, Header(alias="Idempotency-Key", max_length=128)]
+
+
+def _start(session, ctx, scene, user, kind: str, params: dict,  # noqa: ANN001
+           key: str | None = None, response: Response | None = None) -> dict:
+    """Create and submit a job. With an ``Idempotency-Key``, the same key from the same user
+    within a day returns the job it started (200) instead of a second one; the same key with
+    another request is 422 (app.jobs.service.find_by_key)."""
+    if key is not None:
+        found = service.find_by_key(session=session, user_id=user.id, key=key, kind=kind,
+                                    scene_id=scene.id, params=params)
+        if found is not None:
+            if response is not None:
+                response.status_code = 200
+            return service.out(found)
     if scene.status != "ready":
         raise Conflict(f"scene {scene.id} is {scene.status}, not ready")
     job = service.create(session=session, kind=kind, scene_id=scene.id, params=params,
-                         user_id=user.id)
+                         user_id=user.id, key=key)
+    if getattr(job, "reused", False):
+        if response is not None:
+            response.status_code = 200
+        return service.out(job)
     ctx.jobs.submit(job.id)
     audit.record(session, "export" if kind == "export" else "job", actor=user,
                  scene_id=scene.id, target=kind, detail={"job_id": job.id, "params": params})
@@ -78,20 +96,23 @@ def _start(session, ctx, scene, user, kind: str, params: dict) -> dict:  # noqa:
 
 @router.post("/scenes/{sid}/voxelize", response_model=JobOut, status_code=202)
 def voxelize(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
-             body: VoxelizeIn | None = None):
-    return _start(session, ctx, scene, user, "voxelize", (body or VoxelizeIn()).model_dump())
+             response: Response, key: IdemKey = None, body: VoxelizeIn | None = None):
+    return _start(session, ctx, scene, user, "voxelize", (body or VoxelizeIn()).model_dump(), key,
+                  response)
 
 
 @router.post("/scenes/{sid}/export", response_model=JobOut, status_code=202)
 def export(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
-           body: ExportIn | None = None):
-    return _start(session, ctx, scene, user, "export", (body or ExportIn()).model_dump())
+           response: Response, key: IdemKey = None, body: ExportIn | None = None):
+    return _start(session, ctx, scene, user, "export", (body or ExportIn()).model_dump(), key,
+                  response)
 
 
 @router.post("/scenes/{sid}/eval", response_model=JobOut, status_code=202)
 def evaluate(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
-             body: EvalIn | None = None):
-    return _start(session, ctx, scene, user, "eval", (body or EvalIn()).model_dump())
+             response: Response, key: IdemKey = None, body: EvalIn | None = None):
+    return _start(session, ctx, scene, user, "eval", (body or EvalIn()).model_dump(), key,
+                  response)
 
 
 @router.get("/scenes/{sid}/metrics")

@@ -2,21 +2,68 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+from datetime import timedelta
+
 from sqlalchemy import select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.db import utcnow
-from app.errors import Conflict, NotFound
-from app.jobs.models import Job
+from app.errors import Conflict, Invalid, NotFound
+from app.jobs.models import Job, JobRequestKey
 
 LOG_LINES = 200
 
 
+IDEMPOTENCY_TTL = timedelta(days=1)
+
+
+def _request_hash(kind: str, scene_id: int | None, params: dict) -> str:
+    raw = json.dumps({"kind": kind, "scene": scene_id, "params": params}, sort_keys=True,
+                     default=str)
+    return hashlib.sha256(raw.encode()).hexdigest()
+
+
+def find_by_key(*, session: Session, user_id: int, key: str, kind: str, scene_id: int | None,
+                params: dict) -> Job | None:
+    """The job ``user_id`` started with ``key`` within a day (None: none); 422 when that key
+    came with another request. An older key is forgotten (it may start a new job)."""
+    row = session.scalar(select(JobRequestKey).where(JobRequestKey.user_id == user_id,
+                                                     JobRequestKey.key == key))
+    if row is None:
+        return None
+    if row.created_at < utcnow() - IDEMPOTENCY_TTL:
+        session.delete(row)
+        session.commit()
+        return None
+    if row.request_hash != _request_hash(kind, scene_id, params):
+        raise Invalid(f"Idempotency-Key {key[:40]!r} was used for another request (job "
+                      f"{row.job_id}); send a new key for a new request")
+    return session.get(Job, row.job_id)
+
+
 def create(*, session: Session, kind: str, scene_id: int | None, params: dict,
-           user_id: int | None) -> Job:
+           user_id: int | None, key: str | None = None) -> Job:
     job = Job(kind=kind, scene_id=scene_id, params=params, status="queued", created_by_id=user_id,
               progress=0.0, message="queued", log="")
     session.add(job)
+    if key is not None and user_id is not None:
+        session.flush()
+        session.add(JobRequestKey(user_id=user_id, key=key, job_id=job.id, created_at=utcnow(),
+                                  request_hash=_request_hash(kind, scene_id, params)))
+        try:
+            session.commit()
+        except IntegrityError:  # the same key raced in from a second request: its job wins
+            session.rollback()
+            found = find_by_key(session=session, user_id=user_id, key=key, kind=kind,
+                                scene_id=scene_id, params=params)
+            if found is None:
+                raise
+            found.reused = True  # the caller must not submit it again
+            return found
+        return job
     session.commit()
     return job
 

@@ -32,6 +32,7 @@ ACCESS = {
     "GET /api/frames/{fid}/render": "reviewer",
     "GET /api/frames/{fid}/disagreement": "reviewer",
     "GET /api/frames/{fid}/agreement": "reviewer",
+    "GET /api/scenes/{sid}/suspects": "reviewer",
     "POST /api/frames/{fid}/review": "reviewer",
     "GET /api/scenes/{sid}/review-items": "member",
     "POST /api/scenes/{sid}/review-items": "reviewer",
@@ -54,6 +55,12 @@ def disagreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: Revie
     scene = session.get(Scene, frame.scene_id)
     return Response(service.disagreement_png(ctx, session, scene, frame), media_type="image/png",
                     headers={"Cache-Control": "private, no-cache"})
+
+
+@router.get("/scenes/{sid}/suspects")
+def suspects(scene: SceneDep, ctx: CtxDep, _user: ReviewerUser):
+    """Contested regions of the scene's labels, largest first (issue 23)."""
+    return service.suspects(ctx, scene)
 
 
 @router.get("/frames/{fid}/agreement", response_model=AgreementOut)

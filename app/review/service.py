@@ -114,6 +114,35 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
                 f["status"] == "not_enough_independent_views" for f in per_frame)}
 
 
+def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
+    """Ranked contested regions of the scene's labels (:mod:`occufly.lifting.suspects`);
+    each with its size, classes, the frames that see it (frame ids and indices), the best
+    frame, bounding box and centroid (scene-local metres)."""
+    from occufly.lifting import LiftState
+    from occufly.lifting.suspects import SuspectParams, find_suspects
+    from occufly.render import scene_point_spacing
+
+    labels = annotations.current_labels(ctx, scene)
+    if labels is None:
+        raise NotFound(f"scene {scene.id} has no lifted labels yet")
+    ws_scene = ctx.load_scene(scene.workspace)
+    st = LiftState.open(scene.workspace, ws_scene, read_only=True)
+    # voxels at least 1.5 point spacings wide, so neighbouring points connect
+    params = SuspectParams(voxel=max(1.0, 1.5 * scene_point_spacing(ws_scene)))
+    rows = find_suspects(ws_scene, st.votes, labels, params)[:limit]
+    with ctx.sessions() as s:
+        fid = dict(s.execute(select(Frame.index, Frame.id).where(Frame.scene_id == scene.id)).all())
+    out = []
+    for r in rows:
+        r = dict(r)
+        r.pop("point_ids")
+        r["frames"] = r["frames"][:50]
+        r["frame_ids"] = [fid.get(i) for i in r["frames"]]
+        r["best_frame_id"] = fid.get(r["best_frame"]) if r["best_frame"] is not None else None
+        out.append(r)
+    return {"scene_id": scene.id, "n": len(out), "suspects": out}
+
+
 # ---- decisions ------------------------------------------------------------------------------
 def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decision: str,
            comment: str | None, version: int | None = None) -> Frame:

@@ -66,3 +66,18 @@ def test_lonely_and_half_painted_frames(world):
     r = env.client.get(f"/api/frames/{ids[0]}/agreement", headers=hdr["reviewer"]).json()
     assert r["status"] == "ok" and r["agreement"] == pytest.approx(1.0)
     assert r["painted_share"] == pytest.approx(0.5)
+
+
+def test_suspects_route(world):
+    env, hdr, scene, frames = world
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):  # two frames say grass, two road
+        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    assert env.client.get(f"/api/scenes/{scene['id']}/suspects",
+                          headers=hdr["annotator"]).status_code == 403
+    r = env.client.get(f"/api/scenes/{scene['id']}/suspects", headers=hdr["reviewer"])
+    assert r.status_code == 200, r.text
+    sus = r.json()["suspects"]
+    assert sus and sus[0]["contested"] > 0 and sus[0]["best_frame_id"] in ids
+    assert set(sus[0]["frame_ids"]) <= set(ids)

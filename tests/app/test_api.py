@@ -375,8 +375,8 @@ def test_live_lifting_tracks_versions(world):
     fid = _lease(env, hdr, scene)
     a = hdr["annotator"]
     m = np.full((H, W), 6, np.uint8)  # all grass
-    v1 = env.client.put(f"/api/frames/{fid}/mask", content=png(m),
-                        headers={**a, "If-Match": "none"}).json()["version"]
+    v1 = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                        headers={**a, "If-Match": "none"}).json()["version"]  # drafts never vote
     lifting = env.app.state.ctx.lifting
     assert lifting.wait_idle(scene["id"], timeout=10)
     st = env.client.get(f"/api/scenes/{scene['id']}/labels/status", headers=a).json()
@@ -387,11 +387,13 @@ def test_live_lifting_tracks_versions(world):
     n_seen = len(ws_scene.visibility.frame(frame["index"])[0])
     assert st["class_histogram"].get("6") == n_seen or st["labels_source"] == "filled"
     m[:] = 1  # now all road
-    v2 = env.client.put(f"/api/frames/{fid}/mask", content=png(m),
+    assert env.client.post(f"/api/frames/{fid}/reopen", headers=a).status_code == 200
+    v2 = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
                         headers={**a, "If-Match": str(v1)}).json()["version"]
     assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
     st = env.client.get(f"/api/scenes/{scene['id']}/labels/status", headers=a).json()
     # a submitted frame gets its agreement refreshed after each fill (the disagreement sort)
+    assert env.client.post(f"/api/frames/{fid}/reopen", headers=a).status_code == 200
     env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
                    headers={**a, "If-Match": str(v2)})
     assert lifting.wait_idle(scene["id"], timeout=10, include_fill=True)
@@ -724,7 +726,7 @@ def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
     monkeypatch.setattr(lifting, "fill_and_denoise", slow_fill)
     f1 = _lease(env, hdr, scene, "annotator")
     f2 = _lease(env, hdr, scene, "annotator2")
-    v1 = env.client.put(f"/api/frames/{f1}/mask", content=mask_png(6),
+    v1 = env.client.put(f"/api/frames/{f1}/mask?kind=submitted", content=mask_png(6),
                         headers={**hdr["annotator"], "If-Match": "none"}).json()["version"]
     lm = env.app.state.ctx.lifting
     end = time.monotonic() + 10
@@ -732,7 +734,7 @@ def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
         time.sleep(0.02)
     assert lm.status(sid)["fill_running"]
     t0 = time.monotonic()
-    v2 = env.client.put(f"/api/frames/{f2}/mask", content=mask_png(8),
+    v2 = env.client.put(f"/api/frames/{f2}/mask?kind=submitted", content=mask_png(8),
                         headers={**hdr["annotator2"], "If-Match": "none"}).json()["version"]
     assert lm.wait_idle(sid, timeout=5)  # votes only
     st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
@@ -742,6 +744,6 @@ def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
     assert lm.wait_idle(sid, timeout=30, include_fill=True)
     st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
     assert st["filled_versions"] == {str(f1): v1, str(f2): v2}  # a second, debounced fill
-    # drafts are not reviewed, so no agreement is stored for them by the fill
+    # only submitted / reviewed frames get an agreement stored by the fill (drafts never vote)
     frames = env.client.get(f"/api/scenes/{sid}/frames", headers=hdr["admin"]).json()
-    assert all(f["agreement"] is None for f in frames)
+    assert all(f["agreement"] is None for f in frames if f["id"] not in (f1, f2))

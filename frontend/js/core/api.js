@@ -39,7 +39,37 @@ export function readableDetail(status, body, statusText = "") {
   return status >= 500 ? `Server error (${status}): ${detail}` : String(detail);
 }
 
-async function send(method, path, { json, body, headers = {}, keepalive = false } = {}) {
+// Idempotent actions (docs/provenance.md): every POST carries an Idempotency-Key; an identical
+// POST sent while the first is still pending reuses its key (the server then returns the same
+// job), and the button that started a request stays disabled until it settles.
+const pendingKeys = new Map();
+
+function newKey() {
+  return globalThis.crypto?.randomUUID ? crypto.randomUUID()
+    : `${Date.now().toString(36)}-${Math.random().toString(36).slice(2)}`;
+}
+
+async function send(method, path, opts = {}) {
+  if (method === "GET" || method === "HEAD") return sendOnce(method, path, opts);
+  const active = globalThis.document?.activeElement;
+  const button = active && active.tagName === "BUTTON" && !active.disabled ? active : null;
+  const sig = method === "POST" && opts.json !== undefined ? `${path} ${JSON.stringify(opts.json)}` : null;
+  let key = null;
+  if (sig !== null) {
+    key = pendingKeys.get(sig) || newKey();
+    pendingKeys.set(sig, key);
+  }
+  if (button) button.disabled = true;
+  try {
+    const headers = key ? { "Idempotency-Key": key, ...(opts.headers || {}) } : opts.headers;
+    return await sendOnce(method, path, { ...opts, headers });
+  } finally {
+    if (sig !== null) pendingKeys.delete(sig);
+    if (button) button.disabled = false;
+  }
+}
+
+async function sendOnce(method, path, { json, body, headers = {}, keepalive = false } = {}) {
   const init = { method, headers: { ...headers }, credentials: "same-origin", keepalive };
   if (json !== undefined) {
     init.body = JSON.stringify(json);

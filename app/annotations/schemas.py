@@ -32,6 +32,7 @@ class LabelsStatus(BaseModel):
     last_error: str | None
     class_histogram: dict[str, int]
     labels_source: str | None
+    lag_s: float = 0.0  # seconds since the scene's oldest entry still waiting to be lifted
 
 
 class EffortRow(BaseModel):

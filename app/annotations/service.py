@@ -426,6 +426,7 @@ def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
                 filled_versions=filled,
                 pending_fill=st["pending_fill"], pending_frames=st["pending_frames"],
                 fill_running=st["fill_running"], last_error=st["last_error"],
+                lag_s=st.get("lag_s", 0.0),
                 class_histogram=hist, labels_source=source)
 
 

@@ -95,12 +95,19 @@ class LiftingClient:
             pending = s.scalar(select(func.count()).select_from(LiftQueueEntry).where(
                 LiftQueueEntry.scene_id == scene_id, LiftQueueEntry.status == "pending")) or 0
             row = s.get(LiftStatus, scene_id)
+            oldest = s.scalar(select(func.min(LiftQueueEntry.created_at)).where(
+                LiftQueueEntry.scene_id == scene_id, LiftQueueEntry.status == "pending"))
+        # lag: seconds since the oldest entry of the scene still waiting to be lifted (0 = none)
+        from app.db import utcnow
+
+        lag_s = max(0.0, (utcnow() - oldest).total_seconds()) if oldest is not None else 0.0
         fill_state = row.fill_state if row is not None else "idle"
         busy = self.service.busy(scene_id) if self.service is not None else {}
         return {"pending_fill": fill_state in ("due", "running") or bool(busy.get("fill_due")),
                 "pending_frames": int(pending),
                 "fill_running": fill_state == "running",
-                "last_error": row.last_error if row is not None else None}
+                "last_error": row.last_error if row is not None else None,
+                "lag_s": round(lag_s, 1)}
 
     def wait_idle(self, scene_id: int, timeout: float = 10.0, *, include_fill: bool = False) -> bool:
         """Until the scene's queue is empty (and, with ``include_fill``, its fill finished)."""

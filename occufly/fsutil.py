@@ -216,3 +216,37 @@ def available_memory() -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+class PathNotConfined(ValueError):
+    """A path read from a file resolves (symlinks followed) outside every allowed root."""
+
+
+def confined(path: str | Path, roots) -> Path:  # noqa: ANN001
+    """``path`` resolved with ``os.path.realpath`` (symlinks followed) if it lies inside one of
+    ``roots`` (each resolved the same way); raises PathNotConfined naming the path otherwise.
+
+    The one confinement check for paths that come from files (scene.json image paths,
+    reconstruction photo paths): used at import and again when an image is served."""
+    real = Path(os.path.realpath(path))
+    for root in roots:
+        r = Path(os.path.realpath(root))
+        if real == r or r in real.parents:
+            return real
+    raise PathNotConfined(f"{path} resolves to {real}, outside the import roots and the data dir")
+
+
+IMAGE_MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"),
+               (b"II*\x00", "image/tiff"), (b"MM\x00*", "image/tiff"))
+
+
+def image_content_type(path: str | Path) -> str | None:
+    """The image media type decided from the file's first bytes (never from its name), or None."""
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    for magic, kind in IMAGE_MAGIC:
+        if head.startswith(magic):
+            return kind
+    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+        return "image/webp"
+    return None

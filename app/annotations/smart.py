@@ -89,7 +89,8 @@ def _photo(session, ctx, frame: Frame) -> np.ndarray:  # noqa: ANN001
     from PIL import Image
 
     scene = session.get(Scene, frame.scene_id)
-    src = scenes.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index)
+    src = scenes.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index,
+                            roots=scenes.image_roots(ctx.settings))
     st = src.stat()
     key = (str(src), st.st_mtime_ns, st.st_size, frame.width, frame.height)
     with _photos_lock:

@@ -175,13 +175,19 @@ def get_frame(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUs
 def frame_image(frame: FrameDep, session: SessionDep, ctx: CtxDep, request: Request,
                 size: Literal["full", "preview", "thumb"] = "full"):
     scene = session.get(Scene, frame.scene_id)
-    src = service.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index)
+    src = service.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index,
+                             roots=service.image_roots(ctx.settings))
+    from occufly.fsutil import image_content_type
+
+    if image_content_type(src) is None:  # decided from content, never from the name
+        raise NotFound(f"image of frame {frame.id} is not a PNG, JPEG, TIFF or WebP file")
     path = src if size == "full" else service.resized_image(ctx.settings, src, scene.id,
                                                             frame.id, size)
     etag = service.file_etag(path)
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers={"ETag": etag, "Cache-Control": CACHE})
-    return FileResponse(path, headers={"ETag": etag, "Cache-Control": CACHE})
+    return FileResponse(path, media_type=image_content_type(path), headers={
+        "ETag": etag, "Cache-Control": CACHE, "X-Content-Type-Options": "nosniff"})
 
 
 def _ready(scene: Scene) -> None:

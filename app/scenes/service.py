@@ -220,16 +220,29 @@ def frame_out(*, session: Session, frame: Frame) -> dict:
     return list_frames(session=session, scene_id=frame.scene_id, frame_ids=[frame.id])[0]
 
 
-def image_file(ws_scene: WsScene, workspace: str, index: int) -> Path:
+def image_file(ws_scene: WsScene, workspace: str, index: int, *, roots) -> Path:  # noqa: ANN001
+    """The frame's image, resolved (symlinks followed) and confined to ``roots`` (the import
+    roots and the data dir): a path from scene.json outside them is refused with 404."""
+    from occufly.fsutil import PathNotConfined, confined
+
     f = ws_scene.frames[index]
     if not f.image_path:
         raise NotFound(f"frame {f.name} has no image in the workspace")
     p = Path(f.image_path)
     if not p.is_absolute():
         p = Path(workspace) / p
+    try:
+        p = confined(p, roots)
+    except PathNotConfined:
+        raise NotFound(f"image of frame {f.name} lies outside the import roots") from None
     if not p.is_file():
         raise NotFound(f"image of frame {f.name} is missing ({p.name})")
     return p
+
+
+def image_roots(settings: Settings) -> list[Path]:
+    """Where a served frame image may live: the import roots and the data dir."""
+    return [*settings.import_roots, settings.data_dir]
 
 
 SIZES = {"preview": 1600, "thumb": 256}

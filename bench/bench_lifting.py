@@ -35,10 +35,10 @@ from occufly.lifting import (  # noqa: E402
     LiftParams,
     LiftState,
     RobustParams,
-    evaluate_points,
     fill_and_denoise,
     fill_and_denoise_exact,
 )
+from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
 

@@ -17,11 +17,11 @@ from occufly.lifting import (
     ORIGIN_FILLED,
     LiftParams,
     LiftState,
-    evaluate_points,
     fill_and_denoise,
     fill_and_denoise_exact,
     load_labels,
 )
+from occufly.metrics import evaluate_points
 from occufly.scene import Scene
 from occufly.selection import select_frames
 from occufly.taxonomy import default_taxonomy

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.viewer import scene_builder as sb
 from app.viewer import selection as sel
+from app.viewer.md import md_text
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +265,7 @@ def after_selection(svc: Any, st: Any) -> None:
         st.gui["counts"].content = "No points selected."
     else:
         counts = sel.class_counts(d.labels if d is not None else None, st.selection)
-        rows = ", ".join(f"{sb.class_name(d.taxonomy, c)} {k:,}" for c, k in
+        rows = ", ".join(f"{md_text(sb.class_name(d.taxonomy, c))} {k:,}" for c, k in
                          list(counts.items())[:8])
         st.gui["counts"].content = f"**{n:,}** points selected: {rows}"
     st.gui["relabel_btn"].disabled = n == 0 or svc.corrections is None
@@ -321,7 +322,7 @@ def undo_redo(svc: Any, st: Any, which: str) -> dict | None:
     try:
         edit = svc.corrections[which](st.scene_id, st.user)
     except Exception as e:  # noqa: BLE001 - nothing to undo, not allowed...
-        st.gui["edit_info"].content = str(getattr(e, "detail", e))
+        st.gui["edit_info"].content = md_text(getattr(e, "detail", e))
         return None
     st.gui["edit_info"].content = (f"Correction **{edit['id']}** "
                                    f"{'undone' if which == 'undo' else 'redone'}.")

@@ -35,6 +35,7 @@ import numpy as np
 
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
+from app.viewer.md import md_text
 
 log = logging.getLogger(__name__)
 
@@ -617,7 +618,7 @@ class ViewerService:
         st.frame_index = frame_index
         states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
         state = states.get(frame_index, "not_selected")
-        st.gui["cam_info"].content = f"**{fr.stem}** - {state.replace('_', ' ')}"
+        st.gui["cam_info"].content = f"**{md_text(fr.stem)}** - {state.replace('_', ' ')}"
         st.gui["goto"].disabled = False
         img = _frame_image(d, frame_index)
         mask = self.frame_mask(st.scene_id, frame_index) if self.frame_mask else None

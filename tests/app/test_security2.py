@@ -72,3 +72,14 @@ def test_confined_follows_symlinks(tmp_path):
         except PathNotConfined:
             continue
         raise AssertionError(f"{bad} was not refused")
+
+
+def test_viewer_markdown_escapes_markup():
+    """Finding 2: a frame stem / class name with markup reaches viser's markdown as text."""
+    from app.viewer.md import md_text
+
+    hostile = '<iframe srcdoc="<script>alert(1)</script>">**x**[a](javascript:1)\n# h'
+    out = md_text(hostile)
+    for bad in ("<", ">", '"', "**", "](", "\n"):
+        assert bad not in out, bad
+    assert "&lt;iframe" in out and "alert" in out

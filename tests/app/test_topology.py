@@ -176,9 +176,13 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
         acked: dict[int, list[int]] = {f1: [], f2: []}
 
         def save(c: httpx.Client, hdr: dict, fid: int) -> int:
+            # only submitted versions are lifted (drafts never vote): every save submits, and
+            # takes the frame back first when an earlier save submitted it (409 = not submitted)
+            r = c.post(f"/api/frames/{fid}/reopen", headers=hdr)
+            assert r.status_code in (200, 409), r.text
             base = acked[fid][-1] if acked[fid] else "none"
             r = c.put(f"/api/frames/{fid}/mask", content=_mask(len(acked[fid]) + fid),
-                      headers={**hdr, "If-Match": str(base)})
+                      params={"kind": "submitted"}, headers={**hdr, "If-Match": str(base)})
             assert r.status_code == 200, r.text
             acked[fid].append(r.json()["version"])
             return acked[fid][-1]

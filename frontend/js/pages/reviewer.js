@@ -142,15 +142,15 @@ class ReviewerPage {
           frames,
           [
             { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
+            // the assignee is cleared on submit: who painted it is last_annotator
+            { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
             // leave-one-out agreement (issue 23); frames without enough independent views are
             // grouped after the scored ones and say so instead of a score
             { key: "agreement", label: "Agreement (independent)", fmt: (v, r) => (v == null && r.independent_coverage != null ? el("span", { class: "not-enough", title: "fewer than the required share of painted pixels have evidence from other frames" }, "not enough independent views") : pct(v)) },
-            { key: "independent_coverage", label: "Coverage", fmt: (v) => (v == null ? "–" : pct(v)) },
-            { key: "painted_share", label: "Painted", fmt: (v) => (v == null ? "–" : pct(v)) },
-            { key: "self_agreement", label: "Self", fmt: (v) => (v == null ? "–" : pct(v)) },
             { key: "state", label: "State" },
-            // the assignee is cleared on submit: who painted it is last_annotator
-            { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
+            // independent coverage, painted share and the old self-agreement, compact (last:
+            // the name, who painted it and the score stay in view in a narrow list)
+            { key: "independent_coverage", label: "Coverage · painted · self", fmt: (v, r) => el("span", { class: "loo-figures", title: "independent coverage: share of the painted pixels other frames give evidence for; painted: share of the frame painted; self: agreement with labels that include this mask's own votes" }, `${v == null ? "–" : pct(v)} · ${r.painted_share == null ? "–" : pct(r.painted_share)} · ${r.self_agreement == null ? "–" : pct(r.self_agreement)}`) },
           ],
           { caption: `${frames.length} frames, lowest independent agreement first; then frames without enough independent views`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
         ),

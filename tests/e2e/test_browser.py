@@ -264,6 +264,26 @@ def test_reviewer_rejects_with_pinned_comment_annotator_gets_it_back(live, new_p
 
 
 def test_admin_export_job_completes(live, new_page):
+    # a rejected mask no longer votes (issue 23): its annotator submits the frame again, so
+    # the scene has labels to voxelize and export
+    fa = STATE["frame_a"]
+    ann = live.client("annotator")
+    cur = ann.get(f"/api/frames/{fa}/mask")
+    assert cur.status_code == 200, cur.text
+    r = ann.put(f"/api/frames/{fa}/mask?kind=submitted", content=grey_png(STATE["ids_a"]),
+                headers={"If-Match": cur.headers["etag"]})
+    assert r.status_code == 200, r.text
+    resubmitted = r.json()["version"]
+    adm = live.client("admin")
+
+    def refilled():
+        r = adm.get(f"/api/scenes/{live.scene_id}/labels/status")
+        if r.status_code != 200:
+            return None
+        st = r.json()
+        return (st["filled_versions"].get(str(fa)) == resubmitted and not st["pending_fill"]
+                and st["class_histogram"])
+    live.wait_until(refilled, timeout=90, what="the resubmitted mask lifted and filled")
     page = new_page("admin")
     page.goto(f"{live.base_url}/#/admin?scene={live.scene_id}")
     page.wait_for_selector("#coverage-plot")

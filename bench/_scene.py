@@ -19,3 +19,21 @@ def ensure_scene(root: Path, preset: str) -> tuple[Path, Path]:
         subprocess.run([py, "-m", "occufly.cli", "import", str(out), "--workspace", str(ws), "--force"],
                        check=True, stdout=subprocess.DEVNULL)
     return out, ws
+
+
+def ensure_seeded_scene(cache: Path, preset: str, seed: int, synthetic: Path | None = None
+                        ) -> tuple[Path, Path]:
+    """The synthetic scene ``preset`` / ``seed`` (``synthetic``, default ``cache/<preset>-<seed>``,
+    with its point truth) and its workspace beside it, each made once in a subprocess."""
+    syn = synthetic or cache / f"{preset}-{seed}"
+    ws = cache / f"{syn.name}-{preset}-{seed}-ws"
+    py = sys.executable
+    root = Path(__file__).resolve().parents[1]
+    if not (syn / "truth" / "point_labels.npy").is_file():
+        subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset,
+                        "--seed", str(seed), "--force", "--json"], check=True, cwd=root,
+                       stdout=subprocess.DEVNULL)
+    if not (ws / "scene.json").is_file():
+        subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
+                        "--force", "--json"], check=True, cwd=root, stdout=subprocess.DEVNULL)
+    return syn, ws

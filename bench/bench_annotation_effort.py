@@ -37,7 +37,6 @@ import argparse
 import hashlib
 import json
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -46,6 +45,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _scene import ensure_seeded_scene  # noqa: E402
 
 from app.scenes.service import handout_order  # noqa: E402
 from occufly.io.masks import read_mask  # noqa: E402
@@ -56,19 +58,6 @@ from occufly.selection import select_frames  # noqa: E402
 
 TARGET_AGREEMENT = 0.98
 
-
-def ensure_scene(cache: Path, preset: str, seed: int) -> tuple[Path, Path]:
-    syn = cache / f"synth_{preset}_{seed}"
-    ws = cache / f"ws_{preset}_{seed}"
-    py = sys.executable
-    if not (syn / "truth" / "point_labels.npy").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset,
-                        "--seed", str(seed), "--force"], check=True, cwd=ROOT,
-                       stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
-                        "--force"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return syn, ws
 
 
 def truth_regions(truth: np.ndarray, labelled: np.ndarray) -> tuple[np.ndarray, int]:
@@ -262,7 +251,7 @@ def grow_order(scene: Scene, frames: list[int]) -> list[int]:
 
 def run_preset(preset: str, args: argparse.Namespace) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
-    syn, ws = ensure_scene(args.cache, preset, args.seed)
+    syn, ws = ensure_seeded_scene(args.cache, preset, args.seed)
     scene = Scene.load(ws)
     # the demo's / app's selection (greedy, best cell of 23-28 m, 99 %), handed out in the
     # app's order (app.scenes.service.handout_order, what POST /scenes/{sid}/next follows)

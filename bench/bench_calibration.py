@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -35,6 +34,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _scene import ensure_seeded_scene  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import LiftParams, LiftState, fill_snapshot  # noqa: E402
@@ -53,26 +55,13 @@ PREFILL_AFTER = (1, 3, 10)
 LOW_CONFIDENCE = 0.6  # frontend/js/pages/annotator.js: prefill pixels below it are hatched
 
 
-def ensure_scene(cache: Path, preset: str, seed: int) -> tuple[Path, Path]:
-    syn = cache / f"{preset}-{seed}"
-    ws = cache / f"{preset}-{seed}-ws"
-    py = sys.executable
-    if not (syn / "truth" / "point_labels.npy").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset,
-                        "--seed", str(seed), "--force", "--json"], check=True, cwd=ROOT,
-                       stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
-                        "--force", "--json"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return syn, ws
-
 
 class Case:
     """One synthetic scene with its truth, masks and frame selections."""
 
     def __init__(self, cache: Path, preset: str, seed: int) -> None:
         self.preset, self.seed = preset, seed
-        self.syn, self.ws = ensure_scene(cache, preset, seed)
+        self.syn, self.ws = ensure_seeded_scene(cache, preset, seed)
         self.scene = Scene.load(self.ws)
         self.truth = np.load(self.syn / "truth" / "point_labels.npy")
         self._masks: dict[int, np.ndarray] = {}

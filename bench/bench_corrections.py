@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -46,20 +45,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
-
-def ensure_scene(cache: Path, preset: str, seed: int) -> tuple[Path, Path]:
-    syn = cache / f"{preset}-{seed}"
-    ws = cache / f"{syn.name}-{preset}-{seed}-ws"
-    py = sys.executable
-    if not (syn / "truth" / "point_labels.npy").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset, "--seed",
-                        str(seed), "--force", "--json"], check=True, cwd=ROOT,
-                       stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
-                        "--force", "--json"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return syn, ws
+from _scene import ensure_seeded_scene  # noqa: E402
 
 
 def accuracy(labels: np.ndarray, truth: np.ndarray) -> float:
@@ -97,7 +85,7 @@ def quality(args: argparse.Namespace) -> dict:
     from occufly.selection import select_frames
     from occufly.synthetic.degrade import degrade_masks
 
-    syn, ws = ensure_scene(args.cache, args.preset, args.seed)
+    syn, ws = ensure_seeded_scene(args.cache, args.preset, args.seed)
     scene = Scene.load(ws)
     tax = scene.taxonomy
     truth = np.load(syn / "truth" / "point_labels.npy")

@@ -20,7 +20,6 @@ import argparse
 import json
 import resource
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _scene import ensure_seeded_scene  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import (  # noqa: E402
@@ -46,20 +48,6 @@ from occufly.selection import select_frames  # noqa: E402
 def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
-
-def ensure_scene(cache: Path, preset: str, seed: int, synthetic: Path | None = None
-                 ) -> tuple[Path, Path]:
-    syn = synthetic or cache / f"{preset}-{seed}"
-    ws = cache / f"{syn.name}-{preset}-{seed}-ws"
-    py = sys.executable
-    if not (syn / "truth" / "point_labels.npy").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "synth", str(syn), "--preset", preset,
-                        "--seed", str(seed), "--force", "--json"], check=True, cwd=ROOT,
-                       stdout=subprocess.DEVNULL)
-    if not (ws / "scene.json").is_file():
-        subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
-                        "--force", "--json"], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return syn, ws
 
 
 def shifted(mask: np.ndarray, px: int) -> np.ndarray:
@@ -100,7 +88,7 @@ def quality(args: argparse.Namespace) -> dict:
     from occufly.lifting import load_labels  # noqa: F401
     from occufly.render import agreement, merge_agreements, render_for_mask
 
-    syn, ws = ensure_scene(args.cache, args.preset, args.seed, args.synthetic)
+    syn, ws = ensure_seeded_scene(args.cache, args.preset, args.seed, args.synthetic)
     scene = Scene.load(ws)
     tax = scene.taxonomy
     truth = np.load(syn / "truth" / "point_labels.npy")
@@ -426,7 +414,7 @@ def main() -> None:
 
     out: dict = {"bench": "lifting", "preset": args.preset, "seed": args.seed}
     t = time.perf_counter()
-    syn, ws = ensure_scene(args.cache, args.preset, args.seed, args.synthetic)
+    syn, ws = ensure_seeded_scene(args.cache, args.preset, args.seed, args.synthetic)
     out["scene_prepare_seconds"] = round(time.perf_counter() - t, 2)
     shutil.rmtree(ws / "lifting", ignore_errors=True)
     scene = Scene.load(ws)

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_calibration import ensure_scene  # noqa: E402
+from _scene import ensure_seeded_scene  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting.knn import LiftParams  # noqa: E402
@@ -81,7 +81,7 @@ def list_score(agree: list, cov: list, floor: float) -> np.ndarray:
 
 
 def run(cache: Path, preset: str, k: int, floor: float) -> dict:
-    syn, ws = ensure_scene(cache, preset, 0)
+    syn, ws = ensure_seeded_scene(cache, preset, 0)
     scene = Scene.load(ws)
     tax = scene.taxonomy
     sel = [int(f) for f in select_frames(scene, mode="stratified").frames]

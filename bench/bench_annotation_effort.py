@@ -59,7 +59,6 @@ from occufly.selection import select_frames  # noqa: E402
 TARGET_AGREEMENT = 0.98
 
 
-
 def truth_regions(truth: np.ndarray, labelled: np.ndarray) -> tuple[np.ndarray, int]:
     """Connected (4-neighbour) regions of one truth class each: (region id per pixel, count);
     0 = not labelled. These are the ideal "superpixels" of the region-fill policy."""

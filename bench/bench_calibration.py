@@ -55,7 +55,6 @@ PREFILL_AFTER = (1, 3, 10)
 LOW_CONFIDENCE = 0.6  # frontend/js/pages/annotator.js: prefill pixels below it are hatched
 
 
-
 class Case:
     """One synthetic scene with its truth, masks and frame selections."""
 

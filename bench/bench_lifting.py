@@ -49,7 +49,6 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-
 def shifted(mask: np.ndarray, px: int) -> np.ndarray:
     """The mask moved by ``px`` pixels right and down (edge rows/cols repeated)."""
     out = np.empty_like(mask)

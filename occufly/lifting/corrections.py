@@ -240,15 +240,20 @@ def read_edit_points(ws: str | Path | Workspace, edit_id: int) -> np.ndarray:
     return np.cumsum(deltas, dtype=np.int64)
 
 
+def _locate(net: NetLayer, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(positions (M,) int64 of ``ids`` in the layer's sorted point ids, found (M,) bool)."""
+    pos = np.searchsorted(net.point_ids, ids)
+    found = np.zeros(len(ids), bool)
+    inb = pos < len(net.point_ids)
+    found[inb] = net.point_ids[pos[inb]] == ids[inb]
+    return pos, found
+
+
 def activate_edit(net: NetLayer, edit_id: int, point_ids: np.ndarray, to_class: int) -> NetLayer:
     """``net`` with edit ``edit_id`` applied: its points take ``to_class`` unless a later
     (higher id) active edit set them. ``point_ids``: (M,) int64 sorted unique. O(M log K + K)."""
     ids = np.asarray(point_ids, np.int64)
-    K = len(net.point_ids)
-    pos = np.searchsorted(net.point_ids, ids)
-    found = np.zeros(len(ids), bool)
-    inb = pos < K
-    found[inb] = net.point_ids[pos[inb]] == ids[inb]
+    pos, found = _locate(net, ids)
     labels = net.labels.copy()
     eids = net.edit_ids.copy()
     hit = pos[found]
@@ -272,11 +277,7 @@ def deactivate_edit(net: NetLayer, edit_id: int, point_ids: np.ndarray,
     of the other active edits with lower ids, newest first; loaded only while points remain
     unresolved) or leave the layer. ``point_ids``: (M,) int64 sorted unique."""
     ids = np.asarray(point_ids, np.int64)
-    K = len(net.point_ids)
-    pos = np.searchsorted(net.point_ids, ids)
-    found = np.zeros(len(ids), bool)
-    inb = pos < K
-    found[inb] = net.point_ids[pos[inb]] == ids[inb]
+    pos, found = _locate(net, ids)
     mine = pos[found][net.edit_ids[pos[found]] == edit_id]  # positions this edit decides
     labels = net.labels.copy()
     eids = net.edit_ids.copy()
@@ -293,7 +294,7 @@ def deactivate_edit(net: NetLayer, edit_id: int, point_ids: np.ndarray,
         labels[todo[ok]] = cls
         eids[todo[ok]] = eid
         todo = todo[~ok]
-    keep = np.ones(K, bool)
+    keep = np.ones(len(net.point_ids), bool)
     keep[todo] = False
     applied = net.applied if net.applied is not None else np.zeros(0, np.int64)
     applied = applied[applied != edit_id]

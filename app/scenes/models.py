@@ -47,7 +47,7 @@ class Frame(Base):
     last_annotator_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     agreement: Mapped[float | None] = mapped_column(Float, nullable=True)
-    # issue 23 (migration 0011): agreement is the leave-one-out one; the old self-agreement,
+    # issue 23 (migration 0007): agreement is the leave-one-out one; the old self-agreement,
     # the share of painted pixels with independent evidence and the painted share beside it
     self_agreement: Mapped[float | None] = mapped_column(Float, nullable=True)
     independent_coverage: Mapped[float | None] = mapped_column(Float, nullable=True)

@@ -1,7 +1,7 @@
 """review: leave-one-out agreement, suspects
 
-Revision ID: 0011
-Revises: 0010
+Revision ID: 0007
+Revises: 0006
 Create Date: 2026-12-03 07:30:00
 
 frames: self_agreement, independent_coverage, painted_share (issue 23).
@@ -11,8 +11,8 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-revision = '0011'
-down_revision = '0010'
+revision = '0007'
+down_revision = '0006'
 branch_labels = None
 depends_on = None
 

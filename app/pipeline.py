@@ -7,11 +7,14 @@ library's own function; the app never re-implements one.
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 
 import numpy as np
 
 from occufly import lifting, render, selection
+from occufly.errors import UnsafePathError, check_name
+from occufly.fsutil import PathNotConfined, confined, image_content_type
 from occufly.io import importer, masks
 from occufly.progress import ProgressFn
 from occufly.scene import Frame as SceneFrame
@@ -50,25 +53,67 @@ def encode_png(arr: np.ndarray) -> bytes:
 def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
                  depth_maps: Path | None = None, progress: ProgressFn | None = None,
                  fmt: str | None = None, images: Path | None = None,
-                 crs: str | None = None) -> Scene:
+                 crs: str | None = None, roots: list[Path] | None = None) -> Scene:
     """Import a reconstruction into ``workspace``.
 
     ``source`` may be an existing OccuFly workspace (copied); otherwise it is handed to
-    ``occufly.io.importer.import_scene``.
+    ``occufly.io.importer.import_scene``. With ``roots`` (the import roots and the data dir)
+    every path read from a file must resolve inside them (:func:`check_workspace_source`,
+    :func:`occufly.io.importer.confine_inputs`).
     """
     source = Path(source)
     from occufly.workspace import Workspace
 
     if Workspace(source).exists():
         scene = Scene.load(source, mmap=False)
-        for f in scene.frames:  # images stay where they are: make their paths absolute
-            if f.image_path and not Path(f.image_path).is_absolute():
-                f.image_path = str((source / f.image_path).resolve())
+        workspace_image_paths(scene, source, roots)
         scene.save(workspace, overwrite=True)
         return Scene.load(workspace)
     # the workspace belongs to this scene: a resumed import replaces a partial earlier one
     return importer.import_scene(source, workspace, cloud=cloud, depth_maps=depth_maps, taxonomy=None,
-              overwrite=True, progress=progress, fmt=fmt, images=images, crs=crs)
+              overwrite=True, progress=progress, fmt=fmt, images=images, crs=crs, roots=roots)
+
+
+def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) -> None:
+    """The frames of a workspace being imported: names checked (no markup, no control
+    characters), image paths made absolute (images stay where they are) and, with ``roots``,
+    resolved (symlinks followed) and confined to them. Raises UnsafePathError naming
+    ``source``'s scene.json and the frame's path -- ``/etc/passwd``, ``../../occufly.db`` or
+    the app's own database file never become a frame image."""
+    header = Path(source) / "scene.json"
+    for f in scene.frames:
+        check_name(f.name, f"{header}: frame")
+        if not f.image_path:
+            continue
+        p = Path(f.image_path)
+        if not p.is_absolute():
+            p = Path(source) / p
+        if roots is not None:
+            try:
+                real = confined(p, roots)
+            except PathNotConfined:
+                raise UnsafePathError(
+                    f"{header}: frame {f.name!r} image_path {f.image_path!r} resolves to "
+                    f"{os.path.realpath(p)}, outside the import roots and the data dir") from None
+            # inside the roots is not enough (the data dir holds the SQLite database): what
+            # is there must be an image by its content
+            if real.is_file() and image_content_type(real) is None:
+                raise UnsafePathError(
+                    f"{header}: frame {f.name!r} image_path {f.image_path!r} is not a PNG, "
+                    "JPEG, TIFF or WebP image")
+            f.image_path = str(real)
+        else:
+            f.image_path = str(p.resolve())
+
+
+def check_workspace_source(source: Path, roots: list[Path]) -> None:
+    """Before an import job is created: a workspace source's scene.json is read (it is small)
+    and its frames checked as :func:`workspace_image_paths` does (a 4xx from the route, not a
+    failed job). A source that is not a workspace is checked by the import itself."""
+    from occufly.workspace import Workspace
+
+    if Workspace(source).exists():
+        workspace_image_paths(Scene.load(source, mmap=True), source, roots)
 
 
 def select_frames(scene: Scene, **params) -> dict:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occufly.errors import TaxonomyError
+from occufly.errors import InputFormatError, TaxonomyError, check_name
 
 EMPTY = 0
 INVALID = 255
@@ -232,6 +232,10 @@ def _validate(classes: tuple[SemanticClass, ...], *, source: str) -> None:
             raise TaxonomyError(f"{source}: duplicate class id {c.id}")
         if c.name in seen_names:
             raise TaxonomyError(f"{source}: duplicate class name {c.name!r}")
+        try:  # class names reach pages and the 3D viewer: no markup, no control characters
+            check_name(c.name, f"{source}: class {c.id}")
+        except InputFormatError as e:
+            raise TaxonomyError(str(e)) from None
         if c.group not in GROUPS:
             raise TaxonomyError(
                 f"{source}: class {c.name!r} has unknown group {c.group!r}; expected one of "

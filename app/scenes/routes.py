@@ -69,6 +69,7 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
         parse_crs(body.crs, "crs")
     if body.members:  # check the ids before anything is created
         service.check_member_ids(session=session, user_ids=body.members)
+    service.check_source_paths(s, source)  # a workspace's image paths, before a job exists
     scene = service.create_scene(session=session, settings=s, name=body.name, source=source)
     if body.members:
         service.set_members(session=session, scene=scene, user_ids=body.members, replace=True)

@@ -12,10 +12,12 @@ from sqlalchemy import case, delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, aliased
 
+from app import pipeline
 from app.config import Settings
 from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.scenes.models import Frame, Scene
 from app.users.models import User
+from occufly.errors import OccuflyError, UnsafePathError
 from occufly.scene import Scene as WsScene
 
 
@@ -238,6 +240,18 @@ def image_file(ws_scene: WsScene, workspace: str, index: int, *, roots) -> Path:
     if not p.is_file():
         raise NotFound(f"image of frame {f.name} is missing ({p.name})")
     return p
+
+
+def check_source_paths(settings: Settings, source: Path) -> None:
+    """A workspace source whose scene.json names an image outside the import roots and the
+    data dir (``/etc/passwd``, ``../../occufly.db``, a symlink out), a non-image, or a frame
+    name with markup or control characters: 403/422 naming scene.json and the path."""
+    try:
+        pipeline.check_workspace_source(source, image_roots(settings))
+    except UnsafePathError as e:
+        raise Forbidden(str(e)) from None
+    except OccuflyError as e:
+        raise Invalid(str(e)) from None
 
 
 def image_roots(settings: Settings) -> list[Path]:

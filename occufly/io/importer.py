@@ -36,14 +36,15 @@ all.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from occufly.camera import make_pose
-from occufly.errors import InputFormatError, WorkspaceError
-from occufly.fsutil import atomic_directory, require_memory
+from occufly.errors import InputFormatError, UnsafePathError, WorkspaceError, check_name
+from occufly.fsutil import PathNotConfined, atomic_directory, confined, require_memory
 from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
 from occufly.io.pointcloud import read_point_cloud
@@ -77,6 +78,7 @@ def import_scene(
     overwrite: bool = False,
     progress: ProgressFn | None = None,
     workers: int = 1,
+    roots: list[str | Path] | None = None,
 ) -> Scene:
     """Read the reconstruction at ``source`` and write the workspace ``workspace``.
 
@@ -84,6 +86,11 @@ def import_scene(
     ``vis`` (lists only) or ``depth`` (depth test only), see :mod:`occufly.visibility`.
     workers: processes computing the visibility's frames (1: in this process); the output
     is the same for any number.
+    roots: when given (the web app: its import roots and data dir), every file the import
+    reads -- the images (symlinks followed), the image folder a project file names (e.g. a
+    Metashape ``.psx``'s absolute photo paths), the cloud, its ``.vis``, the depth maps --
+    must resolve inside one of them (:func:`confine_inputs`); else UnsafePathError naming
+    the project file and the path, before any image is opened.
     """
     if int(workers) < 1:
         raise InputFormatError(f"--workers {workers}: expected a number >= 1")
@@ -109,10 +116,16 @@ def import_scene(
         log.warning("import %s: %s", source, note)
     image_dir = _find_image_dir(source, images, model.default_images)
     resolve_image_names(image_dir, model)
+    for im in model.images:  # frame names reach pages and the 3D viewer
+        check_name(im.name, f"{model.path}: image")
+    cloud_path = _find_cloud(source, cloud, model.default_cloud)
+    if roots is not None:
+        depth_dir = _find_depth_dir(source, depth_maps)
+        confine_inputs(roots, model.path, image_dir, [im.name for im in model.images],
+                       cloud_path, depth_dir)
     _check_images(image_dir, [im.name for im in model.images], model)
 
     report(0.05, "reading point cloud")
-    cloud_path = _find_cloud(source, cloud, model.default_cloud)
     scene_crs, crs_info = into_cloud_crs(model, cloud_path, crs)
     if cloud_path is not None:
         xyz_w, rgb = read_point_cloud(cloud_path)
@@ -261,6 +274,34 @@ def import_scene(
         del scene, visibility_data
     report(1.0, "done")
     return Scene.load(workspace)
+
+
+def confine_inputs(roots, project: Path, image_dir: Path, names: list[str],  # noqa: ANN001
+                   cloud_path: Path | None = None, depth_dir: Path | None = None) -> None:
+    """Every file an import would read lies inside ``roots`` once resolved (symlinks
+    followed): the image folder and each image, the cloud and its ``.vis``, the depth-map
+    folder and the files in it. Raises UnsafePathError naming ``project`` (the file the path
+    came from) and the first path that resolves outside, before anything is opened."""
+    def check(p: Path, what: str) -> None:
+        try:
+            confined(p, roots)
+        except PathNotConfined:
+            raise UnsafePathError(
+                f"{project}: {what} {p} resolves to {os.path.realpath(p)}, outside the import "
+                "roots and the data dir; imports read only files inside them") from None
+
+    check(image_dir, "image folder")
+    for n in names:
+        check(image_dir / n, "image")
+    if cloud_path is not None:
+        check(cloud_path, "point cloud")
+        vis = Path(str(cloud_path) + ".vis")
+        if vis.exists() or vis.is_symlink():
+            check(vis, "visibility file")
+    if depth_dir is not None:
+        check(depth_dir, "depth-map folder")
+        for p in sorted(depth_dir.iterdir()):
+            check(p, "depth map")
 
 
 class DepthMaps:

@@ -107,16 +107,24 @@ def get_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUse
     return _png(ctx, v.sha256, v.id, service.version_number(session, v))
 
 
+PREFILL_ID_DOC = ("on a submit: the X-Prefill-Id of the prefill this mask was painted over, "
+                  "while the editor still holds it ('none' or absent: painted without one, or "
+                  "the prefill was undone); only a named prefill counts in the effort figures")
+
+
 @router.put("/frames/{fid}/mask", response_model=VersionOut, openapi_extra=PNG_BODY,
             responses={409: {"description": "stale If-Match; upload kept as a conflict version"},
                        413: {"description": "too large"}, 428: {"description": "no If-Match"}})
 def put_mask(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: AnnotatorUser,
              body: BodyDep, ip: ClientIp, kind: Literal["draft", "submitted"] = "draft",
-             if_match: Annotated[str | None, Header(max_length=100)] = None):
+             if_match: Annotated[str | None, Header(max_length=100)] = None,
+             x_prefill_id: Annotated[str | None, Header(max_length=12, pattern=r"^(\d{1,10}|none)$",
+                                                      description=PREFILL_ID_DOC)] = None):
     """Save a mask version: the annotator holding the frame's lease, or an admin."""
     expected = service.parse_if_match(if_match)
+    prefill_id = int(x_prefill_id) if x_prefill_id and x_prefill_id != "none" else None
     v = service.store_version(session=session, ctx=ctx, frame=frame, user=user, data=body,
-                              kind=kind, expected=expected)
+                              kind=kind, expected=expected, prefill_id=prefill_id)
     _audit_version(session, user, frame, v, ip, "mask_submit" if kind == "submitted" else "mask_save")
     return service.version_out(v, user.username, number=service.version_number(session, v))
 
@@ -166,8 +174,11 @@ def prefill(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser
     img, _filled = service.prefill_image(ctx, scene, frame, downscale=downscale)
     data = pipeline.encode_png(img)
     headers = {"Cache-Control": "private, no-cache"}
-    if user.role in ("annotator", "admin"):  # who may submit: their submit counts the changes
-        masks = ctx.lifting.included_versions(scene.id, scene.workspace)
+    masks = ctx.lifting.included_versions(scene.id, scene.workspace)
+    own = service.prefill_holds_own_mask(scene, frame, masks)
+    if own:  # the labels repeat this frame's own mask: starting from it saves no painting
+        headers["X-Prefill-Own-Mask"] = "1"
+    elif user.role in ("annotator", "admin"):  # who may submit: their submit counts changes
         p = service.record_prefill(session, ctx, frame, user, img, data,
                                    masks=None if masks is None else len(masks))
         headers["X-Prefill-Id"] = str(p.id)

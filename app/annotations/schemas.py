@@ -50,11 +50,13 @@ class EffortRow(BaseModel):
     painted_share: float | None
     changed_share: float | None
     changed_of_painted: float | None
+    resubmissions: int = 0  # later submissions of this frame, not counted again
 
 
 class EffortTotals(BaseModel):
     submissions: int
     prefilled: int
+    resubmissions: int = 0
     painted_px: int
     changed_px: int
     reduction_x: float | None

@@ -140,7 +140,7 @@ def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: byt
 def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
                   kind: str, expected: int | None, restored_from: int | None = None,
                   sha256: str | None = None, size: tuple[int, int] | None = None,
-                  source: str | None = None) -> MaskVersion:
+                  source: str | None = None, prefill_id: int | None = None) -> MaskVersion:
     """Validate, store and (if ``expected`` is still current) make current a new version.
 
     kind: ``draft`` (an autosave: never lifted), ``submitted`` (handed in for review) or
@@ -148,6 +148,9 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     A submitted or imported version becomes the frame's voting version and is queued for
     lifting; a draft leaves the voting version (and so every other consumer) unchanged.
     source: where the mask came from (None = painted in the editor), at most 64 characters.
+    prefill_id: the prefill (``X-Prefill-Id`` of GET /frames/{fid}/prefill) this submitted
+    mask was painted over, as the editor still holds it (None: none, or it was undone); only
+    a named prefill counts in the effort figures (:func:`_record_effort`).
 
     Raises StaleVersion (409) after keeping the upload as a ``conflict`` version.
     """
@@ -182,7 +185,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
                           base_version_id=expected, restored_from_id=restored_from,
                           source=source, created_at=utcnow())
     if kind == "submitted" and not lost_lease:
-        _record_effort(session, ctx, frame, user, version, mask)
+        _record_effort(session, ctx, frame, user, version, mask, prefill_id)
     session.add(version)
     session.flush()
     if lost_lease:
@@ -259,6 +262,18 @@ def record_prefill(session: Session, ctx: AppContext, frame: Frame, user: User, 
     return p
 
 
+def prefill_holds_own_mask(scene: Scene, frame: Frame, included: dict | None) -> bool:
+    """Whether the lifted labels a prefill of ``frame`` renders hold the frame's own mask:
+    its votes are among the lifting state's versions (``included``, frame index -> tag) or
+    the kNN fill's. Such a prefill gives the frame back its own work (a reopened or rejected
+    frame); it is not recorded, so it never counts as painting saved by the 3D labels."""
+    if included and frame.index in included:
+        return True
+    res = pipeline.load_labels(scene.workspace)
+    versions = (res.stats.get("versions") or {}) if res is not None else {}
+    return str(frame.index) in {str(k) for k in versions}
+
+
 def _decode_ids_png(data: bytes) -> np.ndarray:
     """(h, w) uint8 of a single-channel PNG this module wrote (a prefill)."""
     import io
@@ -270,18 +285,26 @@ def _decode_ids_png(data: bytes) -> np.ndarray:
 
 
 def _record_effort(session: Session, ctx: AppContext, frame: Frame, user: User,
-                   version: MaskVersion, mask: np.ndarray | None) -> None:
-    """Fill ``version``'s effort columns: the author's latest prefill of this frame (if any),
-    the mask's painted pixels (a class or 255: what painting from an empty mask costs) and the
-    pixels where the mask differs from that prefill (everything painted when there is none).
-    A prefill of another resolution is compared after nearest-neighbour resampling."""
+                   version: MaskVersion, mask: np.ndarray | None,
+                   prefill_id: int | None = None) -> None:
+    """Fill ``version``'s effort columns: the prefill the submit names (``prefill_id``: one
+    handed to this author for this frame, else 422; None = painted without one -- a prefill
+    the editor undid is not named), the mask's painted pixels (a class or 255: what painting
+    from an empty mask costs) and the pixels where the mask differs from that prefill
+    (everything painted when there is none). A prefill of another resolution is compared
+    after nearest-neighbour resampling. Prefills rendered from labels that held this frame's
+    own mask are never recorded (app.annotations.routes.prefill), so they cannot be named."""
+    pre = None
+    if prefill_id is not None:
+        pre = session.get(Prefill, prefill_id)
+        if pre is None or pre.frame_id != frame.id or pre.user_id != user.id:
+            raise Invalid(f"X-Prefill-Id {prefill_id} is not a prefill of frame {frame.name} "
+                          f"handed to {user.username}; send the id GET /api/frames/{frame.id}"
+                          f"/prefill answered, or none")
     if mask is None:
         mask = _decode_for_frame(ctx, session, frame, ctx.store.get(version.sha256))
     mask = np.asarray(mask)
     version.painted_px = int(np.count_nonzero(mask))
-    pre = session.scalars(select(Prefill).where(Prefill.frame_id == frame.id,
-                                                Prefill.user_id == user.id)
-                          .order_by(Prefill.id.desc()).limit(1)).first()
     img = None
     if pre is not None and ctx.store.exists(pre.sha256):
         img = _decode_ids_png(ctx.store.get(pre.sha256))
@@ -296,8 +319,12 @@ def _record_effort(session: Session, ctx: AppContext, frame: Frame, user: User,
 
 
 def effort(*, session: Session, scene: Scene) -> dict:
-    """The scene's submissions in submission order, each with the share of its pixels painted
-    (from scratch) and changed versus the prefill its author started from; plus totals."""
+    """The scene's frames in the order of their first submission, each with the share of its
+    pixels painted (from scratch) and changed versus the prefill its author started from; plus
+    totals. A frame counts once: its later submissions (after a reopen or a rejection, or a
+    restore submitted again) start from the frame's own mask, so counting their painted
+    pixels again would count the frame twice; each row says how many it left out
+    (``resubmissions``)."""
     rows = session.execute(
         select(MaskVersion, Frame.name, Frame.index, User.username)
         .join(Frame, Frame.id == MaskVersion.frame_id)
@@ -307,19 +334,26 @@ def effort(*, session: Session, scene: Scene) -> dict:
                MaskVersion.painted_px.is_not(None))
         .order_by(MaskVersion.id)).all()
     out = []
-    for n, (v, name, index, author) in enumerate(rows, 1):
+    first: dict[int, dict] = {}
+    for v, name, index, author in rows:
+        if v.frame_id in first:
+            first[v.frame_id]["resubmissions"] += 1
+            continue
         px = v.width * v.height
-        out.append(dict(n=n, version=v.id, frame_id=v.frame_id, frame=name, frame_index=index,
+        n = len(out) + 1
+        out.append(dict(n=n, version=v.id, resubmissions=0, frame_id=v.frame_id, frame=name, frame_index=index,
                         author=author, created_at=v.created_at, pixels=px,
                         painted_px=v.painted_px, changed_px=v.changed_px,
                         prefilled=v.prefill_id is not None,
                         painted_share=v.painted_px / px if px else None,
                         changed_share=v.changed_px / px if px else None,
                         changed_of_painted=(v.changed_px / v.painted_px if v.painted_px else None)))
+        first[v.frame_id] = out[-1]
     painted = sum(r["painted_px"] for r in out)
     changed = sum(r["changed_px"] for r in out)
     later = [r["changed_of_painted"] for r in out[5:] if r["changed_of_painted"] is not None]
     totals = dict(submissions=len(out), prefilled=sum(r["prefilled"] for r in out),
+                  resubmissions=sum(r["resubmissions"] for r in out),
                   painted_px=painted, changed_px=changed,
                   reduction_x=painted / changed if changed else None,
                   median_changed_of_painted_from_6th=float(np.median(later)) if later else None)

@@ -26,9 +26,10 @@ def _lease(env, hdr, scene, who="annotator") -> int:  # noqa: ANN001
     return r.json()["id"]
 
 
-def _submit(env, hdr, fid, mask, who="annotator"):  # noqa: ANN001
+def _submit(env, hdr, fid, mask, who="annotator", prefill=None, if_match="none"):  # noqa: ANN001
+    extra = {"X-Prefill-Id": str(prefill)} if prefill is not None else {}
     r = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(mask),
-                       headers={**hdr[who], "If-Match": "none"})
+                       headers={**hdr[who], "If-Match": if_match, **extra})
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -58,7 +59,7 @@ def test_submit_records_pixels_changed_versus_the_authors_prefill(world):
     m2[2:12, 3:23] = 1  # and corrects a 10 x 20 block to road
     expected = int((m2 != pre).sum())
     assert 0 < expected < int((m2 > 0).sum())
-    _submit(env, hdr, f2, m2)
+    _submit(env, hdr, f2, m2, prefill=r.headers["X-Prefill-Id"])
 
     e = env.client.get(f"/api/scenes/{sid}/effort", headers=hdr["admin"]).json()
     a, b = e["submissions"]
@@ -98,9 +99,82 @@ def test_a_prefill_at_another_resolution_is_compared_on_the_masks_grid(world):
     m = full.copy()
     m[m == 0] = 6
     m[:4, :4] = 1
-    _submit(env, hdr, f2, m)
+    _submit(env, hdr, f2, m, prefill=r.headers["X-Prefill-Id"])
     b = env.client.get(f"/api/scenes/{sid}/effort", headers=hdr["admin"]).json()["submissions"][-1]
     assert b["prefilled"] and b["changed_px"] == int((m != full).sum())
+
+
+def _lifted_first_frame(env, hdr, scene) -> int:  # noqa: ANN001
+    f1 = _lease(env, hdr, scene)
+    _submit(env, hdr, f1, np.full((H, W), 6, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20)
+    return f1
+
+
+def test_an_undone_prefill_does_not_count(world):
+    """Issue 28 item 5: the editor asked for a prefill, undid it and painted from scratch:
+    the submit names no prefill, so the mask is not "started from the 3D prefill"."""
+    env, hdr, scene, _frames = world
+    _lifted_first_frame(env, hdr, scene)
+    f2 = _lease(env, hdr, scene)
+    r = env.client.get(f"/api/frames/{f2}/prefill", headers=hdr["annotator"])
+    assert r.status_code == 200 and r.headers.get("X-Prefill-Id")
+    m = np.full((H, W), 6, np.uint8)  # identical to the prefill: painted by hand after undo
+    _submit(env, hdr, f2, m)  # no X-Prefill-Id: the editor dropped it with the undo
+    e = env.client.get(f"/api/scenes/{scene['id']}/effort", headers=hdr["admin"]).json()
+    b = e["submissions"][-1]
+    assert b["frame_id"] == f2 and not b["prefilled"]
+    assert b["changed_px"] == b["painted_px"] == H * W
+    assert e["totals"]["prefilled"] == 0 and e["totals"]["reduction_x"] == pytest.approx(1.0)
+
+
+def test_a_named_prefill_must_be_the_authors_of_this_frame(world):
+    env, hdr, scene, _frames = world
+    _lifted_first_frame(env, hdr, scene)
+    f2 = _lease(env, hdr, scene)
+    other = env.client.get(f"/api/frames/{f2}/prefill", headers=hdr["admin"]).headers["X-Prefill-Id"]
+    r = env.client.put(f"/api/frames/{f2}/mask?kind=submitted", content=png(np.full((H, W), 6, np.uint8)),
+                       headers={**hdr["annotator"], "If-Match": "none", "X-Prefill-Id": other})
+    assert r.status_code == 422 and f"X-Prefill-Id {other}" in r.json()["detail"]
+    assert env.client.get(f"/api/frames/{f2}", headers=hdr["admin"]).json()["current_version"] is None
+
+
+def test_a_prefill_of_the_frames_own_mask_is_not_recorded(world):
+    """A reopened frame's prefill renders the labels its own submitted mask voted for: it
+    gives the annotator's work back and saves nothing, so it is not handed out as a prefill
+    the submit could name."""
+    env, hdr, scene, _frames = world
+    f1 = _lifted_first_frame(env, hdr, scene)
+    r = env.client.post(f"/api/frames/{f1}/reopen", headers=hdr["annotator"])
+    assert r.status_code == 200, r.text
+    r = env.client.get(f"/api/frames/{f1}/prefill", headers=hdr["annotator"])
+    assert r.status_code == 200 and (_ids(r.content) == 6).mean() > 0.5
+    assert r.headers.get("X-Prefill-Own-Mask") == "1" and "X-Prefill-Id" not in r.headers
+    with env.app.state.ctx.sessions() as s:
+        from sqlalchemy import func, select
+
+        from app.annotations.models import Prefill
+
+        assert s.scalar(select(func.count(Prefill.id)).where(Prefill.frame_id == f1)) == 0
+
+
+def test_a_resubmission_counts_once(world):
+    """Submitted, reopened, submitted again: one frame, one row (its first submission)."""
+    env, hdr, scene, _frames = world
+    f1 = _lease(env, hdr, scene)
+    m = np.zeros((H, W), np.uint8)
+    m[:, : W // 2] = 6
+    v1 = _submit(env, hdr, f1, m)
+    assert env.client.post(f"/api/frames/{f1}/reopen", headers=hdr["annotator"]).status_code == 200
+    m2 = m.copy()
+    m2[:4] = 1
+    _submit(env, hdr, f1, m2, if_match=str(v1["version"]))
+    e = env.client.get(f"/api/scenes/{scene['id']}/effort", headers=hdr["admin"]).json()
+    assert [r["frame_id"] for r in e["submissions"]] == [f1]
+    row = e["submissions"][0]
+    assert row["version"] == v1["version"] and row["resubmissions"] == 1
+    t = e["totals"]
+    assert (t["submissions"], t["resubmissions"], t["painted_px"]) == (1, 1, int((m > 0).sum()))
 
 
 def test_next_hands_frames_out_in_the_selections_handout_order(world):

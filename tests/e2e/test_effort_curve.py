@@ -95,3 +95,27 @@ def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, n
     adm.locator("#sec-effort").scroll_into_view_if_needed()
     shot(adm, "17_effort_curve")
     adm.locator("#sec-effort").screenshot(path=str(ARTIFACTS / "17_effort_curve_section.png"))
+
+
+def test_a_prefill_undone_in_the_editor_does_not_count(live, sid, new_page):
+    """Issue 28 item 5: Prefill from 3D, Undo, paint by hand, Submit: the editor no longer
+    names the prefill, so the submission is not counted as started from it."""
+    admin = live.client("admin")
+    page = new_page("annotator")
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}")
+    page.click("#next-frame")
+    fid = wait_opened(page)
+    page.click("#prefill")
+    page.wait_for_selector("#prefill-warning, #prefill-info")
+    assert (editor_ids(page) > 0).any()
+    page.click("#undo")
+    assert not (editor_ids(page) > 0).any()
+    page.evaluate("() => window.__occufly.page.editor.setSize(16)")
+    drag(page, [(0.2, 0.5), (0.7, 0.5)])
+    submitted = editor_ids(page).copy()
+    page.click("#submit")
+    page.wait_for_selector("#save-state:has-text('Submitted')")
+    row = next(r for r in admin.get(f"/api/scenes/{sid}/effort").json()["submissions"]
+               if r["frame_id"] == fid)
+    assert not row["prefilled"]
+    assert row["changed_px"] == row["painted_px"] == int((submitted > 0).sum())

@@ -115,13 +115,13 @@ export const api = {
   async put(path, json) {
     return asJson(await send("PUT", path, { json }));
   },
-  /** GET a binary resource; returns {blob, etag, number} or null on 404 / 204. */
+  /** GET a binary resource; returns {blob, etag, number, prefillId} or null on 404 / 204. */
   async blob(path, { allow404 = true } = {}) {
     try {
       const res = await send("GET", path);
       if (res.status === 204) return null;
       const n = res.headers.get("X-Mask-Number");
-      return { blob: await res.blob(), etag: parseEtag(res.headers.get("ETag")), number: n ? Number(n) : null };
+      return { blob: await res.blob(), etag: parseEtag(res.headers.get("ETag")), number: n ? Number(n) : null, prefillId: res.headers.get("X-Prefill-Id") };
     } catch (e) {
       if (allow404 && e instanceof ApiError && e.status === 404) return null;
       throw e;

@@ -313,6 +313,7 @@ class AnnotatorPage {
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = true;
     this.opening = fid;
     this.prefillWarning = this.prefillInfo = null;
+    this.prefillCmd = this.prefillId = null; // a prefill belongs to the frame it was asked for
     this.lowConf = null;
     this._confPainter = null;
     const frame = await api.get(`/frames/${fid}`);
@@ -812,7 +813,12 @@ class AnnotatorPage {
     try {
       const res = await api.send("PUT", `/frames/${frame.id}/mask?kind=${kind}`, {
         body: blob,
-        headers: { "Content-Type": "image/png", "If-Match": String(this.version ?? "none") },
+        headers: {
+          "Content-Type": "image/png",
+          "If-Match": String(this.version ?? "none"),
+          // the effort figures count a prefill only while the mask is still painted over it
+          ...(kind === "submitted" && this.prefillId && this.prefillCmd && ed.history.undos.includes(this.prefillCmd) ? { "X-Prefill-Id": String(this.prefillId) } : {}),
+        },
         keepalive: keepalive && blob.size < 60000, // browsers cap keepalive bodies at 64 KiB
       });
       const body = await res.json();
@@ -1005,6 +1011,7 @@ class AnnotatorPage {
       }
       ed.replaceIds("prefill from 3D", ids, { onlyUnpainted });
       this.prefillCmd = ed.history.undos[ed.history.undos.length - 1] || null;
+      this.prefillId = r.prefillId || null; // named on submit while the prefill is not undone
       this.status(`Prefilled ${(100 * (n / ids.length)).toFixed(1)} % of the frame from the 3D labels. Correct it with the tools.`);
       // how much to trust it: from how many submitted masks the 3D labels were lifted
       const st = await api.get(`/scenes/${frame.scene_id ?? this.sceneSel.value}/labels/status`).catch(() => null);

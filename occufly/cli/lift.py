@@ -76,6 +76,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", type=Path, required=True,
                    help="(N,) uint8 .npy labels in the source cloud's point order")
 
+    p = command(sub, "report", _report,
+                help="quality report of the lifted labels: leave-one-out agreement, independent "
+                     "coverage, multi-view and contested shares, calibration, per class "
+                     "(--json: the quality.json object)")
+    p.add_argument("workspace", type=Path)
+    p.add_argument("--truth", type=Path,
+                   help="(N,) uint8 .npy point truth in the source cloud's order (e.g. a synthetic "
+                        "scene's truth/point_labels.npy): measures the calibration (ECE)")
+    p.add_argument("--no-loo", action="store_true",
+                   help="skip the per-frame leave-one-out agreement (one local k-NN per frame)")
+    p.add_argument("--out", type=Path, help="also write the report as JSON to this file")
+
     p = command(sub, "export-points", _export_points,
                 help="export the semantic cloud (.ply/.las/.laz, georeferenced)")
     p.add_argument("workspace", type=Path)
@@ -308,6 +320,26 @@ def _eval_points(args: argparse.Namespace) -> dict:
     out["direct_votes"] = {"points": int(has.sum()),
                            "accuracy": float((direct[has] == truth[has]).mean()) if has.any() else None}
     return out
+
+
+# ---- report ------------------------------------------------------------------------------
+def _report(args: argparse.Namespace) -> dict | int:
+    from occufly.fsutil import atomic_write_text
+    from occufly.lifting.quality import quality_report, summary_text
+    from occufly.scene import Scene
+    from occufly.workspace import Workspace
+
+    Workspace(args.workspace).require()
+    scene = Scene.load(args.workspace)
+    truth = (load_truth_labels(args.workspace, args.truth, scene.n_points)
+             if args.truth else None)
+    q = quality_report(args.workspace, scene, truth=truth, loo=not args.no_loo)
+    if args.out:
+        atomic_write_text(args.out, json.dumps(q, indent=1))
+    if args.json:
+        return q
+    print(summary_text(q))
+    return 0
 
 
 # ---- export-points -----------------------------------------------------------------------

@@ -31,6 +31,16 @@
                                address is the client)
 ``OCCUFLY_ALLOWED_ORIGINS``    comma-separated extra origins (``https://host:port``) allowed to
                                send cookie-authenticated writes besides the app's own host
+``OCCUFLY_MAX_JSON_MB``        largest JSON request body (default 1; 413 beyond, checked
+                               before the body is read: app/bodylimit.py)
+``OCCUFLY_MAX_SELECTION_MB``   largest point-id list body (corrections, review items;
+                               default 64)
+``OCCUFLY_USER_QUOTA_MB``      mask storage one user's versions may take, conflicts included
+                               (default 2048; 507 beyond)
+``OCCUFLY_SCENE_QUOTA_MB``     mask storage one scene's versions may take (default 10240)
+``OCCUFLY_ACTIVE_JOBS_PER_USER``  queued + running jobs one user may have (default 4; 429)
+``OCCUFLY_EXPORT_QUOTA_MB``    disk the exports folder may take before new exports are
+                               refused (default 51200; 507)
 =============================  ===========================================================
 """
 
@@ -81,6 +91,13 @@ class Settings:
     login_user_free_factor: int = 10  # an account's failures from all addresses before a lock
     login_user_max_lock_s: int = 60  # ... which is short: an attacker cannot keep it locked
     session_check_s: float = 2.0  # how often an open viewer socket re-checks its session
+    # issue 24: request body caps (app/bodylimit.py), storage and job quotas
+    max_json_bytes: int = 1 << 20
+    max_selection_bytes: int = 64 << 20
+    user_quota_bytes: int = 2048 << 20
+    scene_quota_bytes: int = 10240 << 20
+    active_jobs_per_user: int = 4
+    export_quota_bytes: int = 51200 << 20
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).absolute()
@@ -154,6 +171,12 @@ class Settings:
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
             lifting=env.get("OCCUFLY_LIFTING") or "embedded",
             auto_upgrade=bool(num("OCCUFLY_AUTO_UPGRADE", 1)),
+            max_json_bytes=int(num("OCCUFLY_MAX_JSON_MB", 1, float) * 2**20),
+            max_selection_bytes=int(num("OCCUFLY_MAX_SELECTION_MB", 64, float) * 2**20),
+            user_quota_bytes=int(num("OCCUFLY_USER_QUOTA_MB", 2048, float) * 2**20),
+            scene_quota_bytes=int(num("OCCUFLY_SCENE_QUOTA_MB", 10240, float) * 2**20),
+            active_jobs_per_user=num("OCCUFLY_ACTIVE_JOBS_PER_USER", 4),
+            export_quota_bytes=int(num("OCCUFLY_EXPORT_QUOTA_MB", 51200, float) * 2**20),
         )
         kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
                                   .split(",") if p.strip()]

@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app import db, errors
+from app.bodylimit import BodyLimitMiddleware
 from app.bootstrap import build_context
 from app.config import Settings
 from app.context import AppContext
@@ -69,6 +70,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               "`Authorization: Bearer <token>` from POST /api/auth/login.")
     app.state.ctx = ctx
     errors.install(app)  # domain errors and the (NaN-safe) 422 handler
+    # body caps by route before a byte is read (413); inside the security headers' middleware
+    app.add_middleware(BodyLimitMiddleware, get_ctx=lambda: ctx)
     app.add_middleware(security.SecurityMiddleware, get_ctx=lambda: ctx)  # CSRF, headers
 
     from app.annotations.confidence import router as confidence_router

@@ -8,7 +8,7 @@ literals of the default table.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,9 @@ class SemanticClass:
     freq: float = 0.0
     dbscan_eps: float | None = None
     dbscan_min_points: int | None = None
+    # ASPRS LAS 1.4 classification code (2 ground, 5 high vegetation, 6 building, ...) where
+    # the class has one; None = no standard code (the LAS export gives it a user code 64+)
+    asprs: int | None = None
 
 
 # id, name, RGB, group, freq %, (eps, minPts) -- FORMATS.md section 1.
@@ -57,6 +60,23 @@ _DEFAULT_ROWS: list[tuple] = [
     (35, "crane", (255, 255, 128), "instance", 0.0059, (1.0, 500)),
     (36, "truck", (128, 128, 64), "instance", 0.1105, (1.0, 500)),
 ]
+
+# ASPRS LAS 1.4 (R15) standard classification codes the default classes map to. Only classes
+# with a true standard equivalent have one: walkway, parking lot, rock, obstacles, people and
+# vehicles have none and get user-definable codes (64+) in the LAS export.
+ASPRS_NAMES = {
+    0: "Never classified", 1: "Unclassified", 2: "Ground", 3: "Low Vegetation",
+    4: "Medium Vegetation", 5: "High Vegetation", 6: "Building", 7: "Low Point (noise)",
+    9: "Water", 10: "Rail", 11: "Road Surface", 13: "Wire - Guard", 14: "Wire - Conductor",
+    15: "Transmission Tower", 16: "Wire Connector", 17: "Bridge Deck", 18: "High Noise",
+    19: "Overhead Structure", 20: "Ignored Ground", 21: "Snow", 22: "Temporal Exclusion",
+}
+_DEFAULT_ASPRS = {
+    "road": 11, "dirt": 2, "gravel": 2, "grass": 3, "vegetation": 4, "tree": 5,
+    "water": 9, "building": 6, "roof": 6, "cable": 14, "cable_tower": 15,
+}
+ASPRS_UNCLASSIFIED = 1   # what an unlabelled point (id 0) becomes
+ASPRS_USER_FIRST = 64    # first user-definable code
 
 
 @dataclass(frozen=True)
@@ -131,6 +151,21 @@ class Taxonomy:
             lut[c.id] = c.rgb
         return lut
 
+    def asprs_lut(self) -> np.ndarray:
+        """(256,) uint8 ASPRS LAS classification code per raw id.
+
+        A class's own ``asprs`` code where it has one; classes without get user-definable
+        codes 64, 65, ... in table order; empty (0) and unknown ids are 1 (unclassified)."""
+        lut = np.full(256, ASPRS_UNCLASSIFIED, dtype=np.uint8)
+        user = ASPRS_USER_FIRST
+        for c in self.classes:
+            if c.asprs is not None:
+                lut[c.id] = c.asprs
+            else:
+                lut[c.id] = min(user, 255)
+                user += 1
+        return lut
+
     def learning_map(self) -> dict[int, int]:
         """Raw id -> contiguous training id: 0 = empty, 1..C in table order, 255 stays ignore."""
         m = {EMPTY: 0, INVALID: 255}
@@ -154,6 +189,10 @@ class Taxonomy:
         rows = []
         for i, row in enumerate(data["classes"]):
             rows.append(_parse_row(row, where=f"{source}: classes[{i}]"))
+        if data.get("name") == "occufly" and not any(
+                isinstance(r, dict) and "asprs" in r for r in data["classes"]):
+            # the default table saved before it had ASPRS codes: same classes, same codes
+            rows = [replace(r, asprs=_DEFAULT_ASPRS.get(r.name)) for r in rows]
         _validate(tuple(rows), source=source)
         return cls(classes=tuple(rows), name=str(data.get("name", Path(source).stem)))
 
@@ -210,6 +249,7 @@ def _parse_row(row: object, *, where: str) -> SemanticClass:
             freq=float(row.get("freq", 0.0) or 0.0),
             dbscan_eps=None if eps is None else float(eps),
             dbscan_min_points=None if minpts is None else int(minpts),
+            asprs=None if row.get("asprs") is None else int(row["asprs"]),
         )
     except (TypeError, ValueError) as e:
         raise TaxonomyError(f"{where}: {e}") from None
@@ -245,6 +285,11 @@ def _validate(classes: tuple[SemanticClass, ...], *, source: str) -> None:
             raise TaxonomyError(
                 f"{source}: instance class {c.name!r} needs dbscan_eps and dbscan_min_points"
             )
+        if c.asprs is not None and not (c.asprs in ASPRS_NAMES and c.asprs >= 2 or 64 <= c.asprs <= 255):
+            raise TaxonomyError(
+                f"{source}: class {c.name!r} asprs code {c.asprs} is not a class code of "
+                f"ASPRS LAS 1.4 (standard 2-7, 9-11, 13-22; user-definable 64-255)"
+            )
         if c.dbscan_eps is not None and c.dbscan_eps <= 0:
             raise TaxonomyError(f"{source}: class {c.name!r} dbscan_eps must be > 0")
         seen_ids.add(c.id)
@@ -264,6 +309,7 @@ def default_taxonomy() -> Taxonomy:
                 freq=freq,
                 dbscan_eps=None if db is None else db[0],
                 dbscan_min_points=None if db is None else db[1],
+                asprs=_DEFAULT_ASPRS.get(name),
             )
         )
     return Taxonomy(classes=tuple(rows), name="occufly")

@@ -150,6 +150,68 @@ def test_export_points_carry_the_crs(imported, tmp_path):
             assert f"comment origin {float(sc.origin[0])!r}" in out.read_bytes()[:2000].decode("latin-1")
 
 
+def test_las_export_carries_asprs_codes_class_ids_and_the_class_table(imported, tmp_path):
+    """classification = ASPRS codes (ground 2, trees 5, buildings 6, ...), the full id in
+    ``class_id``, confidence in ``confidence``, and the class table in the VLRs."""
+    import laspy
+
+    from occufly.io.pointcloud_export import export_scene_points, read_class_table
+
+    _, scenes = imported
+    sc = scenes["odm"]
+    tax = sc.taxonomy
+    ids = np.concatenate([[0], tax.ids])
+    labels = ids[np.arange(sc.n_points) % len(ids)].astype(np.uint8)
+    conf = np.linspace(0, 1, sc.n_points).astype(np.float32)
+    out = tmp_path / "sem.laz"
+    info = export_scene_points(sc, labels, out, confidence=conf)
+    assert info["asprs"]["building"] == info["asprs"]["roof"] == 6
+    assert info["asprs"]["tree"] == 5 and info["asprs"]["water"] == 9
+    las = laspy.read(out)
+    cls = np.asarray(las.classification)
+    cid = np.asarray(las.class_id)
+    assert np.array_equal(cid, labels)  # no class is lost where two share an ASPRS code
+    expect = {0: 1, tax.by_name("road").id: 11, tax.by_name("grass").id: 3,
+              tax.by_name("building").id: 6, tax.by_name("roof").id: 6,
+              tax.by_name("cable_tower").id: 15, tax.by_name("walkway").id: 64}
+    for raw, code in expect.items():
+        assert set(np.unique(cls[cid == raw]).tolist()) == {code}, (raw, code)
+    assert np.abs(np.asarray(las.confidence) - conf).max() <= 0.5 / 255 + 1e-6
+    vlrs = {(v.user_id, v.record_id): v for v in las.header.vlrs}
+    table = vlrs[("LASF_Spec", 0)].lookups  # laspy parses the LAS 1.4 Classification Lookup
+    assert table[1] == "Unclassified" and table[2] == "Ground" and table[6] == "Building"
+    assert table[64] == "walkway" and table[5] == "High Vegetation"
+    ct = read_class_table(out)
+    assert {c["name"]: c["asprs"] for c in ct["classes"]}["tree"] == 5
+    assert {c["id"] for c in ct["classes"]} == set(tax.ids.tolist())
+
+
+def test_copc_export_reads_back_with_laspys_copc_reader(imported, tmp_path):
+    import laspy
+
+    from occufly.io.pointcloud_export import export_scene_points, read_class_table
+
+    _, scenes = imported
+    sc = scenes["odm"]
+    ids = np.concatenate([[0], sc.taxonomy.ids])
+    labels = ids[np.arange(sc.n_points) % len(ids)].astype(np.uint8)
+    out = tmp_path / "sem.copc.laz"
+    info = export_scene_points(sc, labels, out, confidence=np.full(sc.n_points, 0.5, np.float32))
+    assert info["format"] == "copc.laz" and info["copc"]["points"] == sc.n_points
+    # copc-lib writes the WKT as an EVLR, which laspy's full reader parses
+    assert laspy.read(out).header.parse_crs().to_epsg() == 32632
+    with laspy.CopcReader.open(out) as rd:
+        pts = rd.query()
+        assert len(pts) == sc.n_points
+        coarse = rd.query(level=0)
+        assert 0 < len(coarse) <= len(pts)
+        got = np.column_stack([pts.X, pts.Y, pts.Z, np.asarray(pts.class_id)])
+    ref = laspy.read(export_scene_points(sc, labels, tmp_path / "ref.laz")["path"])
+    want = np.column_stack([ref.X, ref.Y, ref.Z, np.asarray(ref.class_id)])
+    assert np.array_equal(got[np.lexsort(got.T)], want[np.lexsort(want.T)])
+    assert read_class_table(out)["taxonomy"] == sc.taxonomy.name
+
+
 def _umask() -> int:
     m = os.umask(0o022)
     os.umask(m)

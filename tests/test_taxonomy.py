@@ -79,3 +79,26 @@ def test_custom_taxonomy_drives_luts(tmp_path):
     ]})
     assert tax.tie_order.tolist() == [200, 7]
     assert np.flatnonzero(tax.valid_lut()).tolist() == [7, 200]
+
+
+def test_asprs_codes_default_custom_and_invalid():
+    from occufly.taxonomy import Taxonomy, default_taxonomy
+
+    t = default_taxonomy()
+    lut = t.asprs_lut()
+    assert lut[0] == 1 and lut[t.by_name("building").id] == 6 and lut[t.by_name("tree").id] == 5
+    assert lut[t.by_name("walkway").id] == 64  # no standard code: first user-definable one
+    # a default table saved before the asprs column existed reads with the same codes
+    d = t.to_dict()
+    for row in d["classes"]:
+        del row["asprs"]
+    assert np.array_equal(Taxonomy.from_dict(d).asprs_lut(), lut)
+    # a custom table: its own codes; an unknown code is refused, naming the class
+    d = {"name": "mine", "classes": [{"id": 1, "name": "pavement", "rgb": [1, 2, 3],
+                                      "group": "ground", "asprs": 11},
+                                     {"id": 2, "name": "hedge", "rgb": [1, 2, 4], "group": "other"}]}
+    c = Taxonomy.from_dict(d)
+    assert c.asprs_lut()[1] == 11 and c.asprs_lut()[2] == 64
+    d["classes"][0]["asprs"] = 8
+    with pytest.raises(TaxonomyError, match="pavement.*asprs code 8"):
+        Taxonomy.from_dict(d)

@@ -89,7 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, help="also write the report as JSON to this file")
 
     p = command(sub, "export-points", _export_points,
-                help="export the semantic cloud (.ply/.las/.laz, georeferenced)")
+                help="export the semantic cloud (.ply/.las/.laz/.copc.laz, georeferenced; LAS/COPC with "
+                     "ASPRS codes, the class id and the class table)")
     p.add_argument("workspace", type=Path)
     p.add_argument("out", type=Path)
 

@@ -12,8 +12,12 @@ Events published here (payload fields):
 ``labels_updated``  scene_id, stamp (``Workspace.stamp()`` after the write), versions
                     (frame index -> version tag counted), fills (count for the scene)
 
-Only one process (the lifting worker) publishes ``labels_updated``, so ids grow in commit
-order and "every id above the last one seen" never skips an event.
+``votes_applied``   scene_id, seq (the scene's last ``lift_queue.applied_seq``), versions
+                    (frame index -> version tag applied), applied_by: once per applied batch
+
+Several processes publish (every lifting worker, API processes for corrections), so on
+PostgreSQL an id can commit after a higher one: :meth:`EventBus.poll` re-reads the last
+``LOOKBACK`` ids and delivers each id once.
 """
 
 from __future__ import annotations
@@ -82,6 +86,8 @@ def listen(engine: Engine, channels: tuple[str, ...], *, stop: threading.Event,
 
 
 class EventBus:
+    LOOKBACK = 256  # ids re-read behind the highest seen (commits out of id order)
+
     def __init__(self, engine: Engine, sessions: sessionmaker[Session], *, poll_s: float = 0.25,
                  keep_s: float = 3600.0) -> None:
         self.engine = engine
@@ -96,6 +102,8 @@ class EventBus:
         self._thread: threading.Thread | None = None
         self._listener: threading.Thread | None = None
         self._last_id: int | None = None
+        self._seen: set[int] = set()  # delivered ids within LOOKBACK of _last_id
+        self._start_id = 0
         self._last_prune = 0.0
 
     @property
@@ -136,6 +144,7 @@ class EventBus:
             if self._thread is None:
                 with self.sessions() as s:
                     self._last_id = s.scalar(select(func.max(Event.id))) or 0
+                self._start_id = self._last_id  # nothing before subscribing is delivered
                 self._thread = threading.Thread(target=self._loop, name="occufly-events",
                                                 daemon=True)
                 self._thread.start()
@@ -159,15 +168,23 @@ class EventBus:
 
     def poll(self) -> int:
         """Deliver events newer than the last one seen; returns how many."""
+        last = self._last_id or 0
         with self.sessions() as s:
             rows = s.execute(select(Event.id, Event.kind, Event.scene_id, Event.payload)
-                             .where(Event.id > (self._last_id or 0)).order_by(Event.id)
-                             .limit(1000)).all()
+                             .where(Event.id > last - self.LOOKBACK).order_by(Event.id)
+                             .limit(1000 + self.LOOKBACK)).all()
+        n = 0
         for r in rows:
-            self._last_id = r.id
+            if r.id in self._seen or r.id <= self._start_id:
+                continue
+            self._seen.add(r.id)
+            self._last_id = max(self._last_id or 0, r.id)
+            n += 1
             self._deliver(Message(r.id, r.kind, r.scene_id, dict(r.payload or {})),
                           remote_only=True)
-        return len(rows)
+        floor = (self._last_id or 0) - self.LOOKBACK
+        self._seen = {i for i in self._seen if i > floor}
+        return n
 
     def _loop(self) -> None:
         # PostgreSQL: woken by NOTIFY (and the listener's 1 s heartbeat); SQLite: polled

@@ -29,8 +29,10 @@ class LiftQueueEntry(Base):
     status: Mapped[str] = mapped_column(String(16), default="pending")
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
     applied_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
-    # order in which the worker processed entries (1, 2, ...; one counter per database)
+    # order in which the scene's owning worker processed its entries (1, 2, ... per scene)
     applied_seq: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # the worker (EventBus.origin: host:pid:id) that processed the entry
+    applied_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
     error: Mapped[str | None] = mapped_column(String(512), nullable=True)
 
 

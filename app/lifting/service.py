@@ -2,23 +2,40 @@
 
 It consumes the ``lift_queue`` table (:mod:`app.lifting.queue`), in id order, which for one
 frame is version order (a version can only become current after the one it replaces
-committed). Per scene it owns the workspace's :class:`occufly.lifting.LiftState` (one writer:
-a lock file in the data directory admits a single worker per data directory). For each batch
-it keeps, per frame, the newest entry; older entries of the same frame in the batch are
-``superseded`` (their votes would be replaced at once). An entry is applied exactly once:
+committed). Per scene one worker owns the workspace's :class:`occufly.lifting.LiftState`
+(one writer per scene):
+
+- PostgreSQL: a session-level advisory lock ``(PG_SCENE_LOCK, scene id)`` held on the worker's
+  own connection. Any number of workers, on any hosts sharing the data volume, split the
+  scenes: each live worker holds a slot lock ``(PG_SLOT_LOCK, n)``, a scene belongs to the
+  live slot that wins its rendezvous hash, and a worker hands back an idle scene that hashes
+  to another (new) worker. A worker that dies (``kill -9``, host lost) drops its connection;
+  PostgreSQL releases its locks and the survivors take its scenes over (the vote state repairs
+  itself on open, an interrupted fill reruns).
+- SQLite: one worker per data directory (a lock file in it, single host) owns every scene.
+
+For each batch it keeps, per frame, the newest entry; older entries of the same frame (in the
+batch or still pending after it) are ``superseded`` without decoding them. The masks of a
+batch are decoded and projected in a thread pool (PNG decoding and the numpy projection
+release the GIL) and applied to the votes one at a time, in queue order. An entry is applied
+exactly once:
 
 - ``LiftState.apply_frame`` replaces the frame's votes and records the version tag on disk
   (crash-safe, repaired by ``LiftState.open``);
-- the entry is marked ``applied`` afterwards; a worker killed in between finds the entry still
-  pending on restart, sees the state already counts that version and only marks it.
+- the entry is marked ``applied`` (with a per-scene ``applied_seq`` and ``applied_by``, the
+  worker) afterwards; a worker killed in between leaves the entry pending, and whichever
+  worker owns the scene next sees the state already counts that version and only marks it.
 
-After votes change, kNN fill + denoise runs in a per-scene thread once the scene has been
-quiet for ``debounce_s`` (on a snapshot of the vote majority, so votes go on meanwhile). The
+Each applied batch publishes one ``votes_applied(scene, seq, versions)`` event. After votes
+change, kNN fill + denoise runs in a per-scene thread once the scene has been quiet for
+``debounce_s`` (at the latest ``MAX_WAIT_DEBOUNCES`` debounces after the first change, so a
+busy scene is not starved) on a snapshot of the vote majority, so votes go on meanwhile. The
 scene's ``lift_status.fill_state`` is ``due``/``running`` until the labels are written, so a
-worker killed in the middle of a fill reruns it on restart; the fill is deterministic, so the
-labels end identical to an uninterrupted run. Each fill publishes
-``labels_updated(scene, stamp)`` (:mod:`app.lifting.events`); the review agreement of
-submitted/reviewed frames is refreshed by a subscriber of that event in this process.
+worker killed in the middle of a fill reruns it on restart (or on the worker that takes the
+scene over); the fill is deterministic, so the labels end identical to an uninterrupted run.
+Each fill publishes ``labels_updated(scene, stamp, seq)`` once (:mod:`app.lifting.events`);
+the review agreement of submitted/reviewed frames is refreshed by a subscriber of that event
+in the worker owning the scene.
 
 Wake-ups: PostgreSQL ``NOTIFY occufly_lift`` (sent in the save's transaction), an in-process
 :meth:`LiftingService.wake` (embedded mode), and a poll every ``poll_s`` (SQLite, and a
@@ -31,6 +48,8 @@ import logging
 import os
 import threading
 import time
+import hashlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,7 +57,7 @@ from typing import TYPE_CHECKING
 from sqlalchemy import func, select, update
 
 from app.db import utcnow
-from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen
+from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
 from occufly.errors import OccuflyError
 
@@ -48,10 +67,97 @@ if TYPE_CHECKING:
 log = logging.getLogger("occufly.lifting")
 
 LOCK_NAME = "lifting.lock"
+# PostgreSQL advisory lock keys (two-int form): (PG_SCENE_LOCK, scene id) = the worker that
+# owns the scene's vote state; (PG_SLOT_LOCK, n) = a live worker's slot
+PG_SCENE_LOCK = 0x4F43
+PG_SLOT_LOCK = 0x4F44
+MAX_SLOTS = 4096
 
 
 class LiftingBusy(OccuflyError):
-    """Another lifting worker already owns this data directory."""
+    """Another lifting worker already owns this data directory (SQLite: one per host)."""
+
+
+def preferred_slot(scene_id: int, slots: list[int]) -> int | None:
+    """The live worker slot a scene belongs to: rendezvous (highest random weight) hashing, so
+    a worker joining or leaving moves only the scenes that hash to it."""
+    if not slots:
+        return None
+    def weight(n: int) -> bytes:
+        return hashlib.blake2b(f"{scene_id}:{n}".encode(), digest_size=8).digest()
+
+    return max(slots, key=lambda n: (weight(n), n))
+
+
+class PgLocks:
+    """The session-level advisory locks of one worker, on one dedicated autocommit connection
+    (the locks live as long as it does: a killed worker's are released by the server)."""
+
+    def __init__(self, engine, name: str = "") -> None:  # noqa: ANN001
+        self.dsn = psycopg_dsn(engine)
+        self.name = name  # the connection's application_name (pg_stat_activity)
+        self.conn = None
+        self.slot: int | None = None
+        self._mu = threading.Lock()
+
+    def connect(self) -> int:
+        import psycopg
+
+        with self._mu:
+            self.conn = psycopg.connect(self.dsn, autocommit=True,
+                                        application_name=f"occufly-lifting {self.name}"[:63])
+            for n in range(MAX_SLOTS):
+                if self.conn.execute("SELECT pg_try_advisory_lock(%s, %s)",
+                                     (PG_SLOT_LOCK, n)).fetchone()[0]:
+                    self.slot = n
+                    return n
+        raise LiftingBusy(f"{MAX_SLOTS} lifting workers already run on this database")
+
+    def alive(self) -> bool:
+        with self._mu:
+            if self.conn is None:
+                return False
+            try:
+                self.conn.execute("SELECT 1")
+                return True
+            except Exception:  # noqa: BLE001 - connection lost: every lock with it
+                return False
+
+    def try_scene(self, scene_id: int) -> bool:
+        with self._mu:
+            return bool(self.conn.execute("SELECT pg_try_advisory_lock(%s, %s)",
+                                          (PG_SCENE_LOCK, int(scene_id))).fetchone()[0])
+
+    def release_scene(self, scene_id: int) -> None:
+        with self._mu:
+            self.conn.execute("SELECT pg_advisory_unlock(%s, %s)", (PG_SCENE_LOCK, int(scene_id)))
+
+    def live_slots(self) -> list[int]:
+        with self._mu:
+            rows = self.conn.execute(
+                "SELECT objid FROM pg_locks WHERE locktype = 'advisory' AND classid = %s "
+                "AND objsubid = 2 AND granted AND database = (SELECT oid FROM pg_database "
+                "WHERE datname = current_database())", (PG_SLOT_LOCK,)).fetchall()
+        return sorted(int(r[0]) for r in rows)
+
+    def scene_owners(self) -> set[int]:
+        """Scene ids whose lock some worker holds."""
+        with self._mu:
+            rows = self.conn.execute(
+                "SELECT objid FROM pg_locks WHERE locktype = 'advisory' AND classid = %s "
+                "AND objsubid = 2 AND granted AND database = (SELECT oid FROM pg_database "
+                "WHERE datname = current_database())", (PG_SCENE_LOCK,)).fetchall()
+        return {int(r[0]) for r in rows}
+
+    def close(self) -> None:
+        with self._mu:
+            if self.conn is not None:
+                try:
+                    self.conn.close()
+                except Exception:  # noqa: BLE001
+                    pass
+            self.conn = None
+            self.slot = None
 
 
 @dataclass
@@ -61,7 +167,10 @@ class _Scene:
     state: object  # occufly.lifting.LiftState
     lock: threading.Lock = field(default_factory=threading.Lock)  # updates vs snapshot
     fill_due: float | None = None
+    first_due: float | None = None  # when the pending fill was first asked for
     filling: bool = False
+    seq: int = 0  # applied_seq of the last entry this worker processed for the scene
+    closed: bool = False  # handed back to another worker: the fill thread ends
     applying: bool = False
     fills: int = 0
     thread: threading.Thread | None = None
@@ -69,9 +178,12 @@ class _Scene:
 
 class LiftingService:
     RETRY_S = 5.0  # a scene whose entries cannot be applied is retried after this long
+    TAKEOVER_S = 5.0  # a scene waiting this long is taken by any worker, not only its own
+    MAX_WAIT_DEBOUNCES = 3  # a fill waits at most this many debounces after the first change
 
     def __init__(self, ctx: AppContext, bus: EventBus, *, debounce_s: float | None = None,
-                 poll_s: float = 0.5, batch: int = 256) -> None:
+                 poll_s: float = 0.5, batch: int = 256,
+                 decode_threads: int | None = None) -> None:
         self.ctx = ctx
         self.bus = bus
         self.debounce_s = ctx.settings.fill_debounce_s if debounce_s is None else debounce_s
@@ -84,14 +196,31 @@ class LiftingService:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._hints: dict[tuple[int, int], object] = {}  # (frame id, version id) -> mask
-        self._seq = 0
         self._backoff: dict[int, float] = {}  # scene id -> monotonic time to retry it
         self._lock_fd: int | None = None
+        self._pg: PgLocks | None = None  # PostgreSQL: advisory locks (scenes, worker slot)
+        self._locked: set[int] = set()  # PostgreSQL: the scenes whose lock this worker holds
+        self.decode_threads = decode_threads or max(1, min(4, os.cpu_count() or 1))
+        self._pool: ThreadPoolExecutor | None = None
         self.applied = 0  # entries applied by this process (tests, benchmarks)
+        self.name = bus.origin  # lift_queue.applied_by
 
     # ---- lifecycle --------------------------------------------------------------------------
+    @property
+    def distributed(self) -> bool:
+        """PostgreSQL: scenes are shared between workers by advisory locks."""
+        return self.bus.is_postgres
+
     def acquire(self) -> None:
-        """Take the data directory's worker lock or raise :class:`LiftingBusy`."""
+        """PostgreSQL: open the advisory-lock connection and take a worker slot (any number of
+        workers, on any host). SQLite: take the data directory's worker lock or raise
+        :class:`LiftingBusy` (one worker per data directory, on one host)."""
+        if self.distributed:
+            if self._pg is None:
+                self._pg = PgLocks(self.ctx.engine, self.name)
+                slot = self._pg.connect()
+                log.info("lifting worker %s: PostgreSQL advisory locks, slot %s", self.name, slot)
+            return
         import fcntl
 
         path = Path(self.ctx.settings.data_dir) / LOCK_NAME
@@ -102,18 +231,21 @@ class LiftingService:
         except OSError:
             os.close(fd)
             raise LiftingBusy(f"{path}: another lifting worker is running for this data "
-                              "directory") from None
+                              "directory (SQLite: one lifting worker per data directory, on "
+                              "one host; use PostgreSQL to run several)") from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._lock_fd = fd
+        log.info("lifting worker %s: SQLite, single-host file lock %s (one worker owns every "
+                 "scene)", self.name, path)
 
     def start(self) -> None:
-        if self._lock_fd is None:
+        if self._lock_fd is None and self._pg is None:
             self.acquire()
-        with self.ctx.sessions() as s:
-            self._seq = s.scalar(select(func.max(LiftQueueEntry.applied_seq))) or 0
+        self._pool = ThreadPoolExecutor(self.decode_threads, thread_name_prefix="occufly-decode")
         self.bus.subscribe("labels_updated", self._refresh_agreement)
-        self._recover()
+        if not self.distributed:
+            self._recover()
         t = threading.Thread(target=self._vote_loop, name="occufly-lift-votes", daemon=True)
         t.start()
         self._threads.append(t)
@@ -136,9 +268,17 @@ class LiftingService:
             close = getattr(sc.state, "close", None)
             if close is not None:
                 close()
+        self._scenes.clear()
+        self._locked.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         if self._lock_fd is not None:
             os.close(self._lock_fd)
             self._lock_fd = None
+        if self._pg is not None:
+            self._pg.close()  # releases the slot and every scene lock
+            self._pg = None
 
     def run_forever(self) -> None:
         """Standalone worker: run until SIGTERM/SIGINT."""
@@ -177,25 +317,107 @@ class LiftingService:
 
     # ---- recovery ---------------------------------------------------------------------------
     def _recover(self) -> None:
-        """Scenes whose fill was due or running when the last worker stopped fill again; so do
-        scenes whose stored labels count other versions than the votes."""
+        """SQLite (this worker owns every scene): recover each scene with a status row."""
+        with self.ctx.sessions() as s:
+            sids = list(s.scalars(select(LiftStatus.scene_id)))
+        for sid in sids:
+            self._recover_scene(sid)
+
+    def _recover_scene(self, sid: int) -> None:
+        """A scene whose fill was due or running when its last owner stopped fills again; so
+        does a scene whose stored labels count other versions than the votes."""
         from app.scenes.models import Scene
         from occufly.workspace import Workspace
 
         with self.ctx.sessions() as s:
-            rows = s.execute(select(LiftStatus.scene_id, LiftStatus.fill_state, Scene.workspace)
-                             .join(Scene, Scene.id == LiftStatus.scene_id)).all()
-        for sid, fill_state, ws in rows:
-            try:
-                sc = self._scene(sid, ws)
-            except Exception:  # noqa: BLE001 - a broken workspace must not stop the others
-                log.exception("lifting: cannot open the state of scene %s", sid)
+            row = s.execute(select(LiftStatus.fill_state, Scene.workspace)
+                            .join(Scene, Scene.id == LiftStatus.scene_id)
+                            .where(LiftStatus.scene_id == sid)).first()
+        if row is None:
+            return
+        fill_state, ws = row
+        try:
+            sc = self._scene(sid, ws)
+        except Exception:  # noqa: BLE001 - a broken workspace must not stop the others
+            log.exception("lifting: cannot open the state of scene %s", sid)
+            return
+        counted = {str(k): v for k, v in sc.state.included_versions().items()}
+        stale = Workspace(ws).lift_stats().get("versions") != counted and bool(counted)
+        if fill_state in ("due", "running") or stale:
+            log.info("lifting: scene %s resumes an unfinished fill", sid)
+            self._schedule_fill(sc, delay=0.0)
+
+    # ---- scene ownership (PostgreSQL) --------------------------------------------------------
+    def owned(self) -> set[int] | None:
+        """PostgreSQL: the scene ids whose lock this worker holds; SQLite: None (all)."""
+        if not self.distributed:
+            return None
+        with self._scenes_lock:
+            return set(self._locked)
+
+    def _claim(self) -> None:
+        """Take the scenes with work that belong to this worker (or that waited too long for
+        theirs), hand back idle ones that belong to another live worker."""
+        pg = self._pg
+        if pg is None:
+            return
+        if not pg.alive():  # every lock went with the connection: another worker may own them
+            log.warning("lifting: the advisory-lock connection was lost; dropping %d scenes",
+                        len(self._scenes))
+            for sid in self.owned() or ():
+                self._drop_scene(sid, unlock=False)
+            pg.close()
+            pg.connect()
+        slots = pg.live_slots()
+        now = utcnow()
+        with self.ctx.sessions() as s:
+            waiting = dict(s.execute(select(LiftQueueEntry.scene_id,
+                                            func.min(LiftQueueEntry.created_at))
+                                     .where(LiftQueueEntry.status == "pending")
+                                     .group_by(LiftQueueEntry.scene_id)).all())
+            for sid in s.scalars(select(LiftStatus.scene_id).where(
+                    LiftStatus.fill_state.in_(("due", "running")))):
+                waiting.setdefault(sid, None)
+        mine = self.owned()
+        for sid, oldest in waiting.items():
+            if sid in mine or self._stop.is_set():
                 continue
-            counted = {str(k): v for k, v in sc.state.included_versions().items()}
-            stale = Workspace(ws).lift_stats().get("versions") != counted and bool(counted)
-            if fill_state in ("due", "running") or stale:
-                log.info("lifting: scene %s resumes an unfinished fill", sid)
-                self._schedule_fill(sc, delay=0.0)
+            overdue = oldest is not None and (now - oldest).total_seconds() > self.TAKEOVER_S
+            if preferred_slot(sid, slots) != pg.slot and not overdue:
+                continue
+            if not pg.try_scene(sid):
+                continue  # another worker owns it
+            log.info("lifting worker %s (slot %s) takes scene %s", self.name, pg.slot, sid)
+            with self._scenes_lock:
+                self._locked.add(sid)
+            self._recover_scene(sid)
+        for sid in mine:
+            if preferred_slot(sid, slots) == pg.slot or sid in waiting:
+                continue
+            sc = self._scenes.get(sid)
+            if sc is None or not (sc.applying or sc.filling or sc.fill_due is not None):
+                log.info("lifting worker %s hands scene %s to slot %s", self.name, sid,
+                         preferred_slot(sid, slots))
+                self._drop_scene(sid)
+
+    def _drop_scene(self, sid: int, *, unlock: bool = True) -> None:
+        with self._scenes_lock:
+            sc = self._scenes.pop(sid, None)
+            self._locked.discard(sid)
+        if sc is not None:
+            with self._cv:
+                sc.closed = True
+                self._cv.notify_all()
+            if sc.thread is not None and sc.thread is not threading.current_thread():
+                sc.thread.join(timeout=60)
+            close = getattr(sc.state, "close", None)
+            if close is not None:
+                close()
+        if unlock and self._pg is not None:
+            try:
+                self._pg.release_scene(sid)
+            except Exception:  # noqa: BLE001 - connection lost: released with it
+                log.warning("lifting: releasing scene %s", sid, exc_info=True)
 
     # ---- votes ------------------------------------------------------------------------------
     def _vote_loop(self) -> None:
@@ -211,10 +433,15 @@ class LiftingService:
                 self._wake.clear()
 
     def process_pending(self) -> int:
-        """Apply up to ``batch`` pending entries; returns how many were processed."""
+        """Apply up to ``batch`` pending entries of the scenes this worker owns; returns how
+        many were processed."""
         from app.annotations.models import MaskVersion
         from app.scenes.models import Scene
 
+        self._claim()
+        owned = self.owned()
+        if owned is not None and not owned:
+            return 0
         now = time.monotonic()
         waiting = [sid for sid, t in self._backoff.items() if t > now]
         q = (select(LiftQueueEntry.id, LiftQueueEntry.scene_id, LiftQueueEntry.frame_id,
@@ -223,10 +450,20 @@ class LiftingService:
              .outerjoin(MaskVersion, MaskVersion.id == LiftQueueEntry.version_id)
              .join(Scene, Scene.id == LiftQueueEntry.scene_id)
              .where(LiftQueueEntry.status == "pending"))
+        if owned is not None:
+            q = q.where(LiftQueueEntry.scene_id.in_(sorted(owned)))
         if waiting:  # a scene that just failed must not hold up the others
             q = q.where(LiftQueueEntry.scene_id.not_in(waiting))
         with self.ctx.sessions() as s:
             rows = s.execute(q.order_by(LiftQueueEntry.id).limit(self.batch)).all()
+            newest_pending = {}
+            if len(rows) == self.batch:  # entries beyond the batch may supersede some in it
+                frames = sorted({r.frame_id for r in rows})
+                newest_pending = dict(s.execute(
+                    select(LiftQueueEntry.frame_id, func.max(LiftQueueEntry.id))
+                    .where(LiftQueueEntry.status == "pending",
+                           LiftQueueEntry.frame_id.in_(frames))
+                    .group_by(LiftQueueEntry.frame_id)).all())
         by_scene: dict[int, list] = {}
         for r in rows:
             by_scene.setdefault(r.scene_id, []).append(r)
@@ -234,7 +471,7 @@ class LiftingService:
             if self._stop.is_set():
                 break
             try:
-                self._apply_scene(sid, entries)
+                self._apply_scene(sid, entries, newest_pending)
                 self._backoff.pop(sid, None)
             except Exception as e:  # noqa: BLE001 - e.g. a workspace being re-imported
                 log.exception("lifting: scene %s; retrying in %.0f s", sid, self.RETRY_S)
@@ -247,46 +484,90 @@ class LiftingService:
                     log.warning("lifting: cannot record the error of scene %s", sid)
         return len(rows)
 
-    def _apply_scene(self, scene_id: int, entries: list) -> None:
+    def _apply_scene(self, scene_id: int, entries: list, newest_pending: dict | None = None
+                     ) -> None:
         sc = self._scene(scene_id, entries[0].workspace)
         newest: dict[int, object] = {}
         for r in entries:  # id order = version order per frame
             newest[r.frame_index] = r
         outcome: dict[int, tuple[str, str | None]] = {}
         for r in entries:
-            if newest[r.frame_index] is not r:
-                outcome[r.id] = ("superseded", None)
+            later = (newest_pending or {}).get(r.frame_id)
+            if newest[r.frame_index] is not r or (later is not None and later > r.id):
+                outcome[r.id] = ("superseded", None)  # never decoded
+        todo = sorted((r for r in newest.values() if r.id not in outcome), key=lambda r: r.id)
         changed = False
         with self._cv:
             sc.applying = True
         try:
-            for fi, r in newest.items():
+            # decode + project in the pool (a window of a few masks ahead), apply in order
+            window = self.decode_threads + 1
+            futs: dict[int, object] = {}
+
+            def submit(i: int) -> None:
+                if i < len(todo) and self._pool is not None:
+                    futs[i] = self._pool.submit(self._votes_of, sc, todo[i])
+
+            for i in range(window):
+                submit(i)
+            for i, r in enumerate(todo):
+                fut = futs.pop(i, None)
                 try:
-                    changed |= self._apply_entry(sc, r)
+                    votes = fut.result() if fut is not None else self._votes_of(sc, r)
+                    changed |= self._apply_entry(sc, r, votes)
                     outcome[r.id] = ("applied", None)
                 except OccuflyError as e:  # a mask the scene cannot take: report, go on
-                    log.warning("lifting: entry %s (frame %s v%s): %s", r.id, fi, r.version_id, e)
+                    log.warning("lifting: entry %s (frame %s v%s): %s", r.id, r.frame_index,
+                                r.version_id, e)
                     outcome[r.id] = ("failed", str(e)[:500])
+                finally:
+                    submit(i + window)
             with self.ctx.sessions() as s:
                 now = utcnow()
+                seq = s.scalar(select(func.max(LiftQueueEntry.applied_seq)).where(
+                    LiftQueueEntry.scene_id == scene_id)) or 0
                 for r in entries:
-                    self._seq += 1
+                    seq += 1
                     st, err = outcome[r.id]
                     s.execute(update(LiftQueueEntry).where(LiftQueueEntry.id == r.id).values(
-                        status=st, error=err, applied_at=now, applied_seq=self._seq))
+                        status=st, error=err, applied_at=now, applied_seq=seq,
+                        applied_by=self.name[:64]))
                 errors = [e for st, e in outcome.values() if e]
                 self._set_status(s, scene_id, fill_state="due" if changed else None,
                                  last_error=errors[-1] if errors else None, clear_error=not errors)
                 s.commit()
+            sc.seq = seq
             self.applied += sum(1 for st, _ in outcome.values() if st == "applied")
         finally:
             with self._cv:
                 sc.applying = False
                 self._cv.notify_all()
+        self.bus.publish("votes_applied", scene_id, seq=seq, applied_by=self.name,
+                         versions={str(r.frame_index): (None if r.version_id is None
+                                                        else str(r.version_id))
+                                   for r in todo if outcome[r.id][0] == "applied"})
         if changed:
             self._schedule_fill(sc)
 
-    def _apply_entry(self, sc: _Scene, r) -> bool:  # noqa: ANN001
+    def _votes_of(self, sc: _Scene, r):  # noqa: ANN001
+        """The votes of entry ``r``'s mask (pool thread: decode + projection, reads only), or
+        None when there is nothing to decode (no mask any more, or already counted)."""
+        state = sc.state
+        fi = int(r.frame_index)
+        if r.version_id is None:
+            return None
+        tag = str(r.version_id)
+        if state.version_of(fi) == tag and fi in state.included_versions():
+            return None
+        with self._cv:
+            mask = self._hints.pop((r.frame_id, r.version_id), None)
+        if mask is None:
+            from app.pipeline import stored_mask_ids
+
+            mask = stored_mask_ids(self.ctx.store.get(r.sha256), state.scene.taxonomy)
+        return state.frame_votes(fi, mask, name=f"mask version {r.version_id}")
+
+    def _apply_entry(self, sc: _Scene, r, votes=None) -> bool:  # noqa: ANN001
         """Make the state count exactly entry ``r``'s version; False if it already did."""
         state = sc.state
         fi = int(r.frame_index)
@@ -299,14 +580,11 @@ class LiftingService:
             return True
         if state.version_of(fi) == tag and fi in state.included_versions():
             return False  # counted before a restart: exactly once
-        with self._cv:
-            mask = self._hints.pop((r.frame_id, r.version_id), None)
-        if mask is None:
-            from app.pipeline import stored_mask_ids
-
-            mask = stored_mask_ids(self.ctx.store.get(r.sha256), state.scene.taxonomy)
+        if votes is None:
+            votes = self._votes_of(sc, r)
         with sc.lock:
-            state.apply_frame(fi, mask, version=tag, name=f"mask version {r.version_id}")
+            state.apply_frame(fi, None, votes=votes, version=tag,
+                              name=f"mask version {r.version_id}")
         return True
 
     def _scene(self, scene_id: int, workspace: str) -> _Scene:
@@ -314,6 +592,8 @@ class LiftingService:
             sc = self._scenes.get(scene_id)
             if sc is not None and sc.workspace == str(workspace):
                 return sc
+            if sc is not None:  # re-imported elsewhere: the old state's fill thread ends
+                sc.closed = True
             from occufly.lifting import LiftState
 
             state = LiftState.open(Path(workspace), self.ctx.load_scene(str(workspace)))
@@ -345,20 +625,27 @@ class LiftingService:
 
     # ---- fill -------------------------------------------------------------------------------
     def _schedule_fill(self, sc: _Scene, delay: float | None = None) -> None:
+        """Fill once the scene has been quiet for ``debounce_s`` (``delay``), but no later than
+        ``MAX_WAIT_DEBOUNCES`` debounces after the first change it covers."""
+        now = time.monotonic()
         with self._cv:
-            sc.fill_due = time.monotonic() + (self.debounce_s if delay is None else delay)
+            if sc.first_due is None:
+                sc.first_due = now
+            due = now + (self.debounce_s if delay is None else delay)
+            sc.fill_due = min(due, sc.first_due + self.MAX_WAIT_DEBOUNCES * self.debounce_s)
             self._cv.notify_all()
 
     def _fill_loop(self, sc: _Scene) -> None:
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not sc.closed:
             with self._cv:
-                while not self._stop.is_set() and (
+                while not self._stop.is_set() and not sc.closed and (
                         sc.fill_due is None or sc.applying or time.monotonic() < sc.fill_due):
                     wait = 1.0 if sc.fill_due is None else max(0.01, sc.fill_due - time.monotonic())
                     self._cv.wait(min(wait, 1.0))
-                if self._stop.is_set():
+                if self._stop.is_set() or sc.closed:
                     return
                 sc.fill_due = None
+                sc.first_due = None
                 sc.filling = True
             error = None
             try:
@@ -389,6 +676,7 @@ class LiftingService:
 
         with sc.lock:
             snap = sc.state.snapshot()
+            seq = sc.seq
         sc.state.fill_and_denoise(snapshot=snap)
         sc.fills += 1
         stamp = Workspace(sc.workspace).stamp()
@@ -397,7 +685,7 @@ class LiftingService:
             s.commit()
         self.bus.publish("labels_updated", sc.scene_id, stamp=stamp,
                          versions={str(k): v for k, v in sorted(snap.versions.items())},
-                         fills=sc.fills)
+                         fills=sc.fills, seq=seq, applied_by=self.name)
 
     # ---- subscribers ------------------------------------------------------------------------
     MAX_AGREEMENT_FRAMES = 200
@@ -408,6 +696,9 @@ class LiftingService:
         from app.review.service import frame_agreement
         from app.scenes.models import Frame, Scene
 
+        owned = self.owned()
+        if owned is not None and msg.scene_id not in owned:
+            return  # the worker owning the scene refreshes it
         with self.ctx.sessions() as s:
             scene = s.get(Scene, msg.scene_id)
             if scene is None:

@@ -1,4 +1,5 @@
-"""lifting scale-out (issue 29): reserved revision (empty until that work needs a schema change)
+"""lifting scale-out (issue 29): lift_queue.applied_by (the worker that applied an entry;
+applied_seq becomes a per-scene sequence)
 
 Revision ID: 0010
 Revises: 0009
@@ -6,8 +7,8 @@ Create Date: 2026-12-03 13:20:00
 """
 from __future__ import annotations
 
-import sqlalchemy as sa  # noqa: F401
-from alembic import op  # noqa: F401
+import sqlalchemy as sa
+from alembic import op
 
 revision = '0010'
 down_revision = '0009'
@@ -16,8 +17,10 @@ depends_on = None
 
 
 def upgrade() -> None:
-    pass
+    with op.batch_alter_table('lift_queue', schema=None) as batch_op:
+        batch_op.add_column(sa.Column('applied_by', sa.String(length=64), nullable=True))
 
 
 def downgrade() -> None:
-    pass
+    with op.batch_alter_table('lift_queue', schema=None) as batch_op:
+        batch_op.drop_column('applied_by')

@@ -452,18 +452,26 @@ class LiftState:
             code[pids[w == 0]] = 0
         return code
 
-    def apply_frame(self, frame_index: int, mask: np.ndarray, *, version: str | None = None,
-                    name: str | None = None) -> dict:
+    def apply_frame(self, frame_index: int, mask: np.ndarray | None, *,
+                    version: str | None = None, name: str | None = None,
+                    votes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> dict:
         """Replace frame ``frame_index``'s votes with those of ``mask`` ((h, w) uint8 raw ids).
 
         Validates the mask first (MaskError naming ``name``; the state is then unchanged).
+        ``votes``: the mask's :meth:`frame_votes`, computed beforehand (a worker decodes and
+        projects several masks in parallel threads -- :meth:`frame_votes` only reads the
+        scene -- then applies them here one at a time, in order); ``mask`` is then unused.
         Returns {points_touched, points_changed (direct label changed), votes_removed,
         votes_added, seconds}.
         """
         self._writable()
         t0 = time.perf_counter()
         name = name or f"mask of frame {frame_index}"
-        pids, cols, weights = self.frame_votes(frame_index, mask, name=name)
+        if votes is None:
+            votes = self.frame_votes(frame_index, mask, name=name)
+        else:
+            self._check_frame(frame_index, name)
+        pids, cols, weights = votes
         fi = int(frame_index)
         old = self._old_votes(fi)
         self._write_state(dirty=True)

@@ -142,13 +142,26 @@ def test_a_broken_scene_does_not_hold_up_the_others(env):
     assert v
 
 
-def test_a_second_worker_on_the_same_data_dir_is_refused(env):
+def test_sqlite_refuses_a_second_worker_postgresql_gives_it_a_slot(env):
+    """SQLite keeps the single-host rule (a lock file in the data directory); on PostgreSQL
+    a second worker takes another advisory-lock slot and shares the scenes."""
     from app.lifting.service import LiftingBusy, LiftingService
 
     ctx = env.app.state.ctx
     assert ctx.lifting.service is not None  # the embedded worker holds the lock
-    with pytest.raises(LiftingBusy, match="another lifting worker"):
-        LiftingService(ctx, ctx.events).acquire()
+    other = LiftingService(ctx, ctx.events)
+    if env.backend == "sqlite":
+        with pytest.raises(LiftingBusy, match="one lifting worker per data directory"):
+            other.acquire()
+        return
+    other.acquire()
+    try:
+        mine = ctx.lifting.service._pg  # noqa: SLF001
+        assert other._pg.slot != mine.slot  # noqa: SLF001
+        assert {mine.slot, other._pg.slot} <= set(mine.live_slots())  # noqa: SLF001
+    finally:
+        other.stop()
+    assert other._pg is None and mine.slot in mine.live_slots()  # noqa: SLF001
 
 
 def test_events_reach_other_processes_once(env):

@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from sqlalchemy import select, update
+from sqlalchemy import select, text, update
 
 from tests.app.conftest import PASSWORD, H, W, png, scratch_postgres, write_tiny_workspace
 
@@ -299,3 +299,258 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
         topo.stop()
         cluster.close()
         engine.dispose()
+
+
+# ---- issue 29: two lifting workers share the scenes ------------------------------------------
+def _slots(sessions) -> int:  # noqa: ANN001
+    from app.lifting.service import PG_SLOT_LOCK
+
+    with sessions() as s:
+        return s.scalar(text("SELECT count(*) FROM pg_locks WHERE locktype = 'advisory' AND "
+                             "classid = :c AND objsubid = 2 AND granted AND database = (SELECT "
+                             "oid FROM pg_database WHERE datname = current_database())"),
+                        {"c": PG_SLOT_LOCK})
+
+
+def test_two_lifting_workers_share_the_scenes_and_take_over_after_kill_9(tmp_path, scratch_pg):  # noqa: PLR0915
+    """Two ``python -m app.lifting`` processes on one PostgreSQL database: every scene is
+    lifted by exactly one of them, in order (per-scene applied_seq, one votes_applied event per
+    batch, one labels_updated per fill); ``kill -9`` of either in the middle of a fill moves
+    its scenes to the other, whose labels equal a clean run's."""
+    from fastapi.testclient import TestClient
+
+    from app import db, security
+    from app.annotations.models import MaskVersion
+    from app.config import Settings
+    from app.lifting.models import Event, LiftQueueEntry, LiftStatus
+    from app.lifting.service import PG_SCENE_LOCK, preferred_slot
+    from app.main import close, create_app
+    from app.pipeline import stored_mask_ids
+    from app.scenes.models import Frame, Scene
+    from app.storage import BlobStore
+    from app.users import service as users
+    from occufly.lifting import LiftState
+    from occufly.scene import Scene as WsScene
+    from occufly.workspace import Workspace
+
+    db.upgrade(scratch_pg)
+    security.configure(time_cost=1, memory_kib=1024)
+    (tmp_path / "imports").mkdir()
+    settings = Settings(data_dir=tmp_path / "data", database_url=scratch_pg,
+                        import_roots=[tmp_path / "imports"], env="development",
+                        lifting="external", job_workers=2, argon2_memory_kib=1024,
+                        argon2_time_cost=1, auto_upgrade=False)
+    app = create_app(settings)  # the API in this process; lifting only in the two workers
+    ctx = app.state.ctx
+    names = ["ann0", "ann1", "ann2", "ann3"]
+    with ctx.sessions() as s:
+        users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
+        for n in names:
+            users.create_user(session=s, username=n, password=PASSWORD, role="annotator")
+    client = TestClient(app)
+
+    def bearer(user: str) -> dict:
+        r = client.post("/api/auth/login", json={"username": user, "password": PASSWORD})
+        assert r.status_code == 200, r.text
+        client.cookies.clear()
+        return {"Authorization": f"Bearer {r.json()['token']}"}
+
+    adm = bearer("admin")
+    hdr = {n: bearer(n) for n in names}
+    sids = []
+    for k in range(4):
+        src = tmp_path / "imports" / f"s{k}"
+        _dense_workspace(src)
+        r = client.post("/api/scenes/import", json={"name": f"s{k}", "source": str(src)},
+                        headers=adm)
+        assert r.status_code == 202, r.text
+        ctx.jobs.wait(r.json()["id"], timeout=120)
+        sid = client.get("/api/scenes", headers=adm).json()[-1]["id"]
+        with ctx.sessions() as s:
+            s.execute(update(Frame).where(Frame.scene_id == sid).values(selected=True))
+            s.commit()
+        sids.append(sid)
+    with ctx.sessions() as s:
+        from app.users.models import User
+
+        uids = list(s.scalars(select(User.id).where(User.role == "annotator")))
+    for sid in sids:
+        r = client.post(f"/api/scenes/{sid}/members", json={"user_ids": uids}, headers=adm)
+        assert r.status_code == 200, r.text
+    assert {preferred_slot(sid, [0, 1]) for sid in sids} == {0, 1}  # both get scenes
+
+    topo = Topology(tmp_path, scratch_pg, "")
+    topo.env.pop("OCCUFLY_DASK_ADDRESS")
+    workers: dict[str, subprocess.Popen] = {}
+
+    def start(name: str) -> None:
+        n = _slots(ctx.sessions)
+        workers[name] = topo._spawn(["-m", "app.lifting"], name)  # noqa: SLF001
+        end = time.monotonic() + 60
+        while _slots(ctx.sessions) < n + 1:  # its slot lock taken: it is running
+            assert workers[name].poll() is None, (tmp_path / f"{name}.log").read_text()[-3000:]
+            assert time.monotonic() < end, "worker did not take a slot"
+            time.sleep(0.05)
+
+    acked: dict[int, list[int]] = {}  # frame id -> versions
+    frame_of: dict[tuple[int, str], int] = {}
+
+    def save(sid: int, user: str) -> int:
+        h = hdr[user]
+        fid = frame_of.get((sid, user))
+        if fid is None:
+            fid = frame_of[(sid, user)] = client.post(f"/api/scenes/{sid}/next",
+                                                      headers=h).json()["id"]
+            acked[fid] = []
+        else:
+            r = client.post(f"/api/frames/{fid}/reopen", headers=h)
+            assert r.status_code == 200, r.text
+        base = acked[fid][-1] if acked[fid] else "none"
+        r = client.put(f"/api/frames/{fid}/mask", content=_mask(len(acked[fid]) + fid),
+                       params={"kind": "submitted"}, headers={**h, "If-Match": str(base)})
+        assert r.status_code == 200, r.text
+        acked[fid].append(r.json()["version"])
+        return fid
+
+    with ctx.sessions() as s:
+        index = dict(s.execute(select(Frame.id, Frame.index)).all())
+        scene_of_frame = dict(s.execute(select(Frame.id, Frame.scene_id)).all())
+        ws_of = {sid: Workspace(s.get(Scene, sid).workspace) for sid in sids}
+
+    def wait_lifted(timeout: float = 90) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            done = True
+            for sid in sids:
+                want = {str(index[f]): str(v[-1]) for f, v in acked.items()
+                        if scene_of_frame[f] == sid}
+                with ctx.sessions() as s:
+                    pending = s.scalar(select(LiftQueueEntry.id).where(
+                        LiftQueueEntry.scene_id == sid,
+                        LiftQueueEntry.status == "pending").limit(1))
+                    st = s.get(LiftStatus, sid)
+                if pending is not None or st is None or st.fill_state != "idle" or \
+                        ws_of[sid].lift_stats().get("versions") != want:
+                    done = False
+                    break
+            if done:
+                return
+            time.sleep(0.1)
+        logs = "".join((tmp_path / f"{n}.log").read_text()[-1500:] for n in workers)
+        raise AssertionError(f"scene {sid} not lifted: {logs}")
+
+    def owner_rows(sid: int) -> list:
+        with ctx.sessions() as s:
+            return s.execute(select(LiftQueueEntry.id, LiftQueueEntry.applied_by,
+                                    LiftQueueEntry.applied_seq, LiftQueueEntry.status)
+                             .where(LiftQueueEntry.scene_id == sid)
+                             .order_by(LiftQueueEntry.id)).all()
+
+    def check_order(sid: int) -> None:
+        rows = owner_rows(sid)
+        seqs = [r.applied_seq for r in rows]
+        assert seqs == list(range(1, len(rows) + 1)), seqs  # per scene, in queue order, once
+        with ctx.sessions() as s:
+            ev = s.execute(select(Event.kind, Event.payload).where(Event.scene_id == sid)
+                           .order_by(Event.id)).all()
+            fills = s.get(LiftStatus, sid).fills
+        batches = [e.payload["seq"] for e in ev if e.kind == "votes_applied"]
+        assert batches == sorted(set(batches)) and batches[-1] == len(rows)  # once per batch
+        labels = [e.payload for e in ev if e.kind == "labels_updated"]
+        assert len(labels) == fills  # one event per completed fill, by one worker
+
+    def clean_labels(sid: int) -> tuple[np.ndarray, np.ndarray]:
+        ws = ws_of[sid]
+        ref = tmp_path / f"ref{sid}"
+        shutil.rmtree(ref, ignore_errors=True)
+        shutil.copytree(ws.root, ref, ignore=shutil.ignore_patterns("lifting"))
+        ref_scene = WsScene.load(ref)
+        clean = LiftState.open(ref, ref_scene)
+        store = BlobStore(tmp_path / "data" / "masks")
+        with ctx.sessions() as s:
+            for fid, versions in acked.items():
+                if scene_of_frame[fid] == sid:
+                    sha = s.get(MaskVersion, versions[-1]).sha256
+                    clean.apply_frame(index[fid], stored_mask_ids(store.get(sha),
+                                                                  ref_scene.taxonomy),
+                                      version=str(versions[-1]))
+        want = clean.fill_and_denoise(write=False)
+        return np.asarray(clean.votes).copy(), want.labels
+
+    def kill_mid_fill(victim: str, survivor: str) -> None:
+        # a scene whose advisory lock the victim holds (its lock connection is named)
+        pids = {n: p.pid for n, p in workers.items()}
+        with ctx.sessions() as s:
+            held = s.execute(text(
+                "SELECT l.objid, a.application_name FROM pg_locks l JOIN pg_stat_activity a "
+                "ON a.pid = l.pid WHERE l.locktype = 'advisory' AND l.classid = :c AND "
+                "l.objsubid = 2 AND l.granted"), {"c": PG_SCENE_LOCK}).all()
+        mine = sorted(int(o) for o, app_name in held if f":{pids[victim]}:" in app_name)
+        assert mine, (held, pids)
+        sid = mine[0]
+        name_of = {sid: owner_rows(sid)[-1].applied_by}
+        users_of = [u for (s_, u) in frame_of if s_ == sid]
+        for u in users_of:
+            save(sid, u)
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            with ctx.sessions() as s:
+                st = s.get(LiftStatus, sid)
+                if st.fill_state == "running":
+                    break
+            time.sleep(0.005)
+        fills_before = st.fills
+        workers[victim].send_signal(signal.SIGKILL)
+        workers[victim].wait(10)
+        with ctx.sessions() as s:
+            st = s.get(LiftStatus, sid)
+            assert st.fill_state == "running" and st.fills == fills_before  # died mid-fill
+        wait_lifted()  # the survivor took the scene over
+        # the victim had applied the entries before it died (its name stays on them)
+        assert owner_rows(sid)[-1].applied_by == name_of[sid]
+        with ctx.sessions() as s:
+            last = s.execute(select(Event.payload).where(
+                Event.scene_id == sid, Event.kind == "labels_updated")
+                .order_by(Event.id.desc()).limit(1)).scalar_one()
+        assert last["applied_by"].split(":")[1] == str(pids[survivor])  # the fill reran there
+        votes, labels = clean_labels(sid)
+        np.testing.assert_array_equal(np.load(ws_of[sid].votes), votes)
+        np.testing.assert_array_equal(ws_of[sid].labels(), labels)
+        assert {1, 6} <= set(np.unique(labels).tolist())
+        check_order(sid)
+
+    try:
+        start("lift_a")
+        start("lift_b")
+        for sid in sids:
+            for u in names[:2]:
+                save(sid, u)
+        for sid in sids:
+            for u in names[:2]:
+                save(sid, u)
+        wait_lifted()
+        by = {}
+        for sid in sids:
+            rows = owner_rows(sid)
+            assert {r.status for r in rows} <= {"applied", "superseded"}
+            who = {r.applied_by for r in rows}
+            assert len(who) == 1, who  # exactly one worker lifted the scene
+            by[sid] = who.pop()
+            check_order(sid)
+        assert len(set(by.values())) == 2  # both workers had scenes
+        kill_mid_fill("lift_a", "lift_b")
+        start("lift_c")  # a fresh worker joins: idle scenes that hash to it move to it
+        kill_mid_fill("lift_b", "lift_c")
+    finally:
+        for p in workers.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in workers.values():
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for log in topo.logs:
+            log.close()
+        client.close()
+        close(app)

@@ -13,6 +13,8 @@ const IDLE_SAVE_MS = 2500;
 const PREFS_KEY = "occufly.annotator.prefs";
 const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this gets a warning
 const LOW_CONFIDENCE = 0.6; // prefill pixels whose lifted label is less sure than this are marked
+const LAG_SHOW_S = 2; // the lifting lag is shown from this many seconds (the target p95)
+const LAG_POLL_MS = 5000;
 const KEYS = [
   ["B / E / P / F / R / G / I / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / intelligent scissors / pan"],
   ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
@@ -93,6 +95,8 @@ class AnnotatorPage {
     this.helpBtn = el("button", { type: "button", id: "help", title: "Keyboard shortcuts (?)", onclick: () => this.showHelp() }, "?");
     this.frameInfo = el("span", { class: "frame-info", id: "frame-info" }, "No frame open");
     this.saveState = el("span", { class: "save-state", id: "save-state", role: "status" }, "");
+    // how far the lifted 3D labels (the prefill's source) trail the submitted masks
+    this.lagEl = el("span", { class: "lift-lag", id: "lift-lag", role: "status", hidden: true, title: "Submitted masks the lifting worker has not applied to the 3D labels yet; a prefill does not show them" }, "");
     this.paintedEl = el("span", { class: "painted", id: "painted" }, "");
     this.prefillBtn = el("button", { type: "button", id: "prefill", disabled: true, onclick: () => this.prefill(), title: "Start from the lifted 3D labels rendered into this frame" }, "Prefill from 3D");
     this.draftBtn = el("button", { type: "button", id: "save-draft", disabled: true, onclick: () => this.save("draft"), title: "Save a draft (Ctrl+S)" }, "Save draft");
@@ -109,7 +113,7 @@ class AnnotatorPage {
       el(
         "section",
         { class: "annotator", "aria-label": "Annotator" },
-        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.skipBtn, this.frameInfo, this.queueEl, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.prefillBtn, this.draftBtn, this.submitBtn, this.helpBtn),
+        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.skipBtn, this.frameInfo, this.queueEl, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.lagEl, this.prefillBtn, this.draftBtn, this.submitBtn, this.helpBtn),
         el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right", "aria-label": "Classes and review comments" }, this.sideEl, el("h2", {}, "Classes"), this.paletteEl, this.versionsEl, this.progressEl)),
         this.statusEl,
       ),
@@ -155,6 +159,7 @@ class AnnotatorPage {
 
   async unmount() {
     clearTimeout(this.idleTimer);
+    clearInterval(this.lagTimer);
     if (this.unsaved && this.frame) {
       try {
         await this.save("draft");
@@ -169,6 +174,26 @@ class AnnotatorPage {
 
   status(msg) {
     this.statusEl.textContent = msg;
+  }
+
+  /** "3D labels N s behind": the scene's lifting lag (labels/status lag_s), polled every
+   * LAG_POLL_MS while a frame of the scene is open; hidden below LAG_SHOW_S. */
+  async refreshLag() {
+    const sid = this.frame?.scene_id ?? this.scene?.id;
+    if (sid == null || document.visibilityState === "hidden") return;
+    const st = await api.get(`/scenes/${sid}/labels/status`).catch(() => null);
+    if (!st || (this.frame?.scene_id ?? this.scene?.id) !== sid) return;
+    const lag = Number(st.lag_s) || 0;
+    this.lagEl.hidden = lag < LAG_SHOW_S;
+    this.lagEl.dataset.lag = String(lag);
+    this.lagEl.dataset.pending = String(st.pending_frames ?? 0);
+    this.lagEl.textContent = lag < LAG_SHOW_S ? "" : `3D labels ${Math.round(lag)} s behind`;
+  }
+
+  watchLag() {
+    clearInterval(this.lagTimer);
+    this.lagTimer = setInterval(() => this.refreshLag(), LAG_POLL_MS);
+    this.refreshLag();
   }
 
   async sceneDetail(sid) {
@@ -343,6 +368,7 @@ class AnnotatorPage {
     this.frame = frame;
     const ed = new Editor(this.host, { width: W, height: H, classes });
     this.editor = ed;
+    this.watchLag();
     ed.setPhoto(bitmap);
     ph.editor = performance.now() - t0;
     if (decoded) ed.mask.adopt(decoded.ids, decoded.rgba, decoded.painted);
@@ -829,6 +855,7 @@ class AnnotatorPage {
       else this.savedSeq = Math.min(this.savedSeq, seq);
       this.stats.saves.push({ kind, bytes: blob.size, rawBytes: ed.mask.ids.length, encodeMs: tEnc - t0, totalMs: performance.now() - t0, version: this.version });
       if (kind === "submitted") this.frame.state = body.frame_state ?? "submitted";
+      if (kind === "submitted") setTimeout(() => this.refreshLag(), 1000);
       this.refreshVersions();
       return body;
     } catch (e) {

@@ -53,7 +53,8 @@ def encode_png(arr: np.ndarray) -> bytes:
 def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
                  depth_maps: Path | None = None, progress: ProgressFn | None = None,
                  fmt: str | None = None, images: Path | None = None,
-                 crs: str | None = None, roots: list[Path] | None = None) -> Scene:
+                 crs: str | None = None, roots: list[Path] | None = None,
+                 scale: float | None = None) -> Scene:
     """Import a reconstruction into ``workspace``.
 
     ``source`` may be an existing OccuFly workspace (copied); otherwise it is handed to
@@ -71,7 +72,8 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
         return Scene.load(workspace)
     # the workspace belongs to this scene: a resumed import replaces a partial earlier one
     return importer.import_scene(source, workspace, cloud=cloud, depth_maps=depth_maps, taxonomy=None,
-              overwrite=True, progress=progress, fmt=fmt, images=images, crs=crs, roots=roots)
+              overwrite=True, progress=progress, fmt=fmt, images=images, crs=crs, roots=roots,
+              scale=scale)
 
 
 def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) -> None:

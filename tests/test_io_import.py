@@ -18,7 +18,13 @@ CUP = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap-dense-cu
 
 def test_import_colmap_dense_cup(tmp_path, capsys):
     ws = tmp_path / "ws"
-    assert main(["import", str(CUP), "--workspace", str(ws), "--json"]) == 0
+    # a COLMAP model in SfM units with no GPS and no georeferencing is refused, saying how to
+    # fix it, and leaves nothing behind (it was imported in arbitrary units before)
+    assert main(["import", str(CUP), "--workspace", str(ws), "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "units are unknown" in err and "--scale" in err and "0 of 2 geotagged" in err
+    assert not ws.exists()
+    assert main(["import", str(CUP), "--workspace", str(ws), "--json", "--scale", "1"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == 2 and out["points"] == 58
     assert out["meta"]["visibility_source"] == "fused.ply.vis"
@@ -113,7 +119,9 @@ def test_non_georeferenced_model_is_levelled(tmp_path):
     import shutil
 
     shutil.rmtree(rec / "dense" / "stereo")
-    scene = import_scene(rec, tmp_path / "ws")
+    with pytest.raises(InputFormatError, match="units are unknown"):
+        import_scene(rec, tmp_path / "ws")  # no GPS, no georeferencing, no --scale
+    scene = import_scene(rec, tmp_path / "ws", scale=1.0)
     assert not scene.meta["georeferenced"]
     # after levelling the ground is horizontal again: z spread of ground points ~ 0
     z = np.asarray(scene.xyz[:, 2])

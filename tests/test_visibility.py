@@ -215,7 +215,7 @@ def test_union_on_the_colmap_cup_adds_nothing_wrong(tmp_path):
     from pathlib import Path
 
     cup = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap-dense-cup"
-    scene = import_scene(cup, tmp_path / "ws")
+    scene = import_scene(cup, tmp_path / "ws", scale=1.0)  # SfM units, no GPS: scale declared
     offsets, idx = read_fused_vis(cup / "fused.ply.vis", 58)
     assert scene.visibility.offsets[-1] == len(idx)
     assert scene.meta["visibility_depth_test"] == "depth test against MVS depth maps"

@@ -35,7 +35,7 @@ def run_import(jc: JobContext) -> dict:
         Path(p["source"]), ws, cloud=Path(p["cloud"]) if p.get("cloud") else None,
         depth_maps=Path(p["depth_maps"]) if p.get("depth_maps") else None,
         fmt=p.get("format"), images=Path(p["images"]) if p.get("images") else None,
-        crs=p.get("crs"), progress=lambda f, m="": jc.progress(0.95 * f, m),
+        crs=p.get("crs"), scale=p.get("scale"), progress=lambda f, m="": jc.progress(0.95 * f, m),
         # every path read from a project file stays inside these (issue 24, finding 1)
         roots=scenes.image_roots(jc.ctx.settings))
     jc.ctx.scene_cache.pop(str(ws), None)
@@ -119,20 +119,37 @@ def run_export(jc: JobContext) -> dict:
 
     from occufly.export import export_dataset as fn
 
-    ws, _scene_obj = _scene(jc)
+    ws, ws_scene = _scene(jc)
     out = jc.ctx.settings.exports_dir / f"job_{jc.job_id}"
-    from app.review import service as review
+    import shutil
 
-    # which mask version of each frame the exported labels come from, and whether a reviewer
-    # accepted exactly that version (taken before the export reads the labels)
-    review_record = review.export_record(jc.ctx, jc.scene_id, Path(ws))
-    # written under an attempt-private name, moved to ``out`` when this attempt is recorded
-    # done (a stale attempt of the same job can never touch it; app.jobs.runner)
-    summary = fn(Path(ws), jc.output_dir(out), scene_id=f"scene_{jc.scene_id:02d}",
-                 layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
-                 executor=jc.executor(), progress=jc.progress)
+    from app.review import provenance
+
+    # issue 23: which version of each frame the export takes (accepted only unless the request
+    # includes submitted / imported ones), decided before the labels are read; a narrower set
+    # than the live labels count is lifted again in a scratch folder (app.review.provenance)
+    with jc.ctx.sessions() as s:
+        plan = provenance.export_plan(s, jc.scene_id, jc.params.get("include"))
+    scratch = jc.ctx.settings.data_dir / "scratch" / f"export_{jc.job_id}_{jc.attempt}"
+    shutil.rmtree(scratch, ignore_errors=True)
+    try:
+        lab = provenance.export_labels(jc.ctx, Path(ws), ws_scene, plan, scratch,
+                                       progress=lambda f, m="": jc.progress(0.3 * f, m))
+        # written under an attempt-private name, moved to ``out`` when this attempt is
+        # recorded done (a stale attempt of the same job can never touch it; app.jobs.runner)
+        summary = fn(Path(ws), jc.output_dir(out), scene_id=f"scene_{jc.scene_id:02d}",
+                     layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
+                     executor=jc.executor(), grid=lab["grid"], provenance=lab["provenance"],
+                     quality=lab["quality"], progress=lambda f, m="": jc.progress(0.3 + 0.7 * f, m))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    q = lab["quality"]
     return {"output": str(out), "summary": summary if isinstance(summary, dict) else {},
-            "review": review_record}
+            "review": provenance.export_result(plan),
+            "labels": {k: lab["provenance"]["labels"][k] for k in ("relifted", "sha256")},
+            "quality": {"loo_agreement": (q.get("loo") or {}).get("agreement"),
+                        "multi_view_share": q["votes"]["multi_view_share"],
+                        "contested_share": q["contested"]["share"]}}
 
 
 run_export.remote = True

@@ -77,7 +77,7 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
                       params={"source": str(source), "cloud": str(cloud) if cloud else None,
                               "depth_maps": str(depth) if depth else None,
                               "format": body.format, "images": str(images) if images else None,
-                              "crs": body.crs})
+                              "crs": body.crs, "scale": body.scale})
     ctx.jobs.submit(job.id)
     audit.record(session, "import", actor=user, scene_id=scene.id, target=scene.name,
                  client_ip=ip, detail={"source": str(source), "job_id": job.id,

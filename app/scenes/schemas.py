@@ -53,6 +53,10 @@ class ImportIn(BaseModel):
                                       "project's images/)")
     crs: line(4096) | None = Field(default=None, description="CRS of the cloud when its file "
                                    "declares none: EPSG:n, WKT or PROJ")
+    scale: float | None = Field(default=None, gt=0, le=1e6, allow_inf_nan=False,
+                                description="metres per model unit of a COLMAP model that is "
+                                "neither georeferenced nor geotagged (1 if it is metric "
+                                "already); without it such a model is refused")
     members: list[Id] | None = Field(default=None, max_length=1000,
                                      description="user ids assigned to the scene at import")
 

@@ -409,10 +409,13 @@ def _make_metric(model, image_dir: Path, xyz_w: np.ndarray, cloud_path: Path | N
         return xyz_w, scene_crs, {"method": "--scale", "scale": s,
                                   "crs": crsmod.crs_label(scene_crs) if scene_crs else None}
     if scene_crs is None:
-        warnings.append(
-            f"{model.path}: not georeferenced and its images carry no GPS ({n_gps} of "
-            f"{len(model.images)} geotagged): the scene is in the model's arbitrary units; "
-            "pass --scale (metres per model unit, 1 if it is metric) or georeference the model")
+        raise InputFormatError(
+            f"{model.path}: the model's units are unknown: it is not georeferenced (no CRS, "
+            f"no UTM-scale coordinates, no LAS cloud) and its images carry no GPS ({n_gps} of "
+            f"{len(model.images)} geotagged, {MIN_GPS_CAMERAS} needed), so voxel grids cut from "
+            "it would be in arbitrary units. Pass --scale S (metres per model unit; --scale 1 "
+            "if it is metric already, e.g. after colmap model_aligner), or --crs with a "
+            "georeferenced cloud, or the geotagged photos")
     return xyz_w, scene_crs, None
 
 

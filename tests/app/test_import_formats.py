@@ -36,3 +36,26 @@ def test_import_metashape_xml_reaches_the_reader(env):
     j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=adm).json()
     assert j["status"] == "failed"
     assert "94 of 94 images are missing: 001, 002" in j["message"]
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not beside the clone")
+def test_import_of_a_model_in_unknown_units_is_refused_unless_scaled(env):
+    """COLMAP's cup model (SfM units, no GPS, no CRS) fails naming the cause and the fix;
+    with scale=1 (metric already) it imports; a non-positive scale is a 422."""
+    adm = env.bearer("admin")
+    shutil.copytree(DATA / "colmap-dense-cup", env.import_root / "cup")
+    r = env.client.post("/api/scenes/import", json={"name": "cup", "source": "cup"}, headers=adm)
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=adm).json()
+    assert j["status"] == "failed"
+    assert "units are unknown" in j["message"] and "--scale" in j["message"]
+    r = env.client.post("/api/scenes/import", json={"name": "cup2", "source": "cup", "scale": 0},
+                        headers=adm)
+    assert r.status_code == 422 and "scale" in r.text
+    r = env.client.post("/api/scenes/import", json={"name": "cup2", "source": "cup", "scale": 1},
+                        headers=adm)
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"])
+    j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=adm).json()
+    assert j["status"] == "done", j

@@ -163,6 +163,8 @@ class AdminPage {
     );
     const images = el("input", { id: "imp-images", placeholder: "optional: image folder (default: images/)" });
     const crs = el("input", { id: "imp-crs", placeholder: "optional: cloud CRS if its file has none, e.g. EPSG:32632" });
+    const scale = el("input", { id: "imp-scale", type: "number", min: "0", step: "any",
+                                placeholder: "COLMAP without GPS: metres per model unit (1 if metric)" });
     const f = el(
       "form",
       { class: "inline-form", "aria-label": "Import a scene" },
@@ -173,6 +175,7 @@ class AdminPage {
       field("Images", images),
       field("Depth maps", depth),
       field("CRS", crs),
+      field("Scale", scale, "only for a COLMAP model that is neither georeferenced nor geotagged"),
       el("button", { type: "submit" }, "Import"),
     );
     f.addEventListener("submit", async (e) => {
@@ -183,6 +186,7 @@ class AdminPage {
       if (kind.value) body.format = kind.value;
       if (images.value.trim()) body.images = images.value.trim();
       if (crs.value.trim()) body.crs = crs.value.trim();
+      if (scale.value.trim()) body.scale = Number(scale.value);
       const job = await this.guard(() => api.post("/scenes/import", body));
       if (job) {
         toast(`Import job ${job.id} started.`);
@@ -419,7 +423,6 @@ class AdminPage {
               ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
               ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
               j.kind === "export" && j.status === "done" ? this.archiveControls(j) : null,
-              j.kind === "export" && j.status === "done" ? el("a", { href: `/api/jobs/${j.id}/download`, class: "button", download: "", title: "the export folder as an uncompressed tar stream" }, "Download (tar)") : null,
             ),
             j.log_tail && j.log_tail.length ? el("details", { open: ACTIVE.has(j.status) || j.status === "failed" }, el("summary", {}, "log"), el("pre", { class: "log" }, j.log_tail.join("\n"))) : null,
           ),

@@ -6,11 +6,13 @@ escapes is a bug and gives a 500.
 
 from __future__ import annotations
 
+import errno
 import math
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 
 from occufly.errors import InputFormatError, MaskError, OccuflyError, TaxonomyError, WorkspaceError
 
@@ -52,12 +54,30 @@ class Invalid(DomainError):
     status_code = 422
 
 
+class InsufficientStorage(DomainError):
+    """A storage quota would be passed, or the server's disk is full (nothing was written)."""
+    status_code = 507
+
+
 class TooManyAttempts(DomainError):
     status_code = 429
 
 
 class PreconditionRequired(DomainError):
     status_code = 428
+
+
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+DISK_FULL = ("the server's disk is full: nothing was written (every write is atomic); an "
+             "admin must free space, then try again")
+
+
+def db_disk_full(exc: BaseException) -> bool:
+    """A database error that says the disk is full (SQLite SQLITE_FULL, PostgreSQL 53100)."""
+    orig = getattr(exc, "orig", exc)
+    return (getattr(orig, "sqlstate", None) == "53100"
+            or "database or disk is full" in str(orig)
+            or getattr(orig, "sqlite_errorcode", None) == 13)
 
 
 def _status_for_occufly(exc: OccuflyError) -> int:
@@ -82,6 +102,20 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(OccuflyError)
     async def _occufly(_request: Request, exc: OccuflyError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=_status_for_occufly(exc))
+
+    @app.exception_handler(OSError)
+    async def _os_error(_request: Request, exc: OSError) -> JSONResponse:
+        if exc.errno in DISK_FULL_ERRNOS:
+            return JSONResponse({"detail": DISK_FULL}, status_code=507)
+        raise exc  # anything else is a bug: a 500 with its traceback in the log
+
+    @app.exception_handler(OperationalError)
+    async def _db_error(_request: Request, exc: OperationalError) -> JSONResponse:
+        if db_disk_full(exc):
+            return JSONResponse({"detail": DISK_FULL}, status_code=507)
+        return JSONResponse({"detail": "the database is unavailable right now; nothing was "
+                                       "written, try again"}, status_code=503,
+                            headers={"Retry-After": "5"})
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:

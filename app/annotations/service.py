@@ -17,6 +17,7 @@ draft save never reaches the queue: it informs its own frame's editor only.
 
 from __future__ import annotations
 
+import hashlib
 import threading
 from datetime import timedelta
 
@@ -28,7 +29,15 @@ from app import pipeline
 from app.annotations.models import STORED_KINDS, VOTING_KINDS, MaskVersion, Prefill
 from app.context import AppContext
 from app.db import utcnow
-from app.errors import Conflict, Forbidden, Invalid, NotFound, PreconditionRequired, StaleVersion
+from app.errors import (
+    Conflict,
+    Forbidden,
+    InsufficientStorage,
+    Invalid,
+    NotFound,
+    PreconditionRequired,
+    StaleVersion,
+)
 from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
 from app.users.models import User
@@ -137,6 +146,40 @@ def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: byt
         return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=name)
 
 
+def storage_used(session: Session, *, user_id: int | None = None,
+                 scene_id: int | None = None) -> int:
+    """Bytes of mask versions (every kind, conflicts included) authored by ``user_id`` or
+    belonging to ``scene_id``, as the quotas count them."""
+    q = select(func.coalesce(func.sum(MaskVersion.size_bytes), 0))
+    if user_id is not None:
+        q = q.where(MaskVersion.author_id == user_id)
+    if scene_id is not None:
+        q = q.join(Frame, Frame.id == MaskVersion.frame_id).where(Frame.scene_id == scene_id)
+    return int(session.scalar(q) or 0)
+
+
+def check_storage_quota(session: Session, ctx: AppContext, frame: Frame, user: User,
+                        nbytes: int) -> None:
+    """507 before a byte is stored when this version would take the author's mask storage
+    past ``user_quota_bytes`` or the scene's past ``scene_quota_bytes`` (conflict versions of
+    a user who lost the lease count too)."""
+    s = ctx.settings
+    used = storage_used(session, user_id=user.id)
+    if used + nbytes > s.user_quota_bytes:
+        raise InsufficientStorage(
+            f"storage quota: {user.username}'s mask versions take {used} bytes; this one "
+            f"({nbytes} bytes) would pass the per-user quota of {s.user_quota_bytes} bytes "
+            "(OCCUFLY_USER_QUOTA_MB); nothing was stored -- ask an admin",
+            quota="user", used_bytes=used, quota_bytes=s.user_quota_bytes)
+    used = storage_used(session, scene_id=frame.scene_id)
+    if used + nbytes > s.scene_quota_bytes:
+        raise InsufficientStorage(
+            f"storage quota: scene {frame.scene_id}'s mask versions take {used} bytes; this one "
+            f"({nbytes} bytes) would pass the per-scene quota of {s.scene_quota_bytes} bytes "
+            "(OCCUFLY_SCENE_QUOTA_MB); nothing was stored -- ask an admin",
+            quota="scene", used_bytes=used, quota_bytes=s.scene_quota_bytes)
+
+
 def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
                   kind: str, expected: int | None, restored_from: int | None = None,
                   sha256: str | None = None, size: tuple[int, int] | None = None,
@@ -175,11 +218,17 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     if sha256 is None:
         mask = _decode_for_frame(ctx, session, frame, data)  # MaskError -> 422, nothing stored
         h, w = mask.shape
+        # stored canonically (issue 24): the decoded class ids re-encoded as an 8-bit PNG
+        # without ancillary chunks -- bytes after IEND, text chunks, palettes, 16-bit or
+        # colour encodings of the upload are never kept
+        data = masks.encode_mask_png(mask)
+        check_storage_quota(session, ctx, frame, user, len(data))
         sha256 = ctx.store.put(data)
         nbytes = len(data)
     else:
         w, h = size
         nbytes = len(data)
+        check_storage_quota(session, ctx, frame, user, nbytes)
     version = MaskVersion(frame_id=frame.id, kind="conflict" if lost_lease else kind,
                           author_id=user.id, sha256=sha256, size_bytes=nbytes, width=w, height=h,
                           base_version_id=expected, restored_from_id=restored_from,
@@ -253,7 +302,16 @@ def voting_versions(session: Session, scene_id: int) -> dict[int, MaskVersion]:
 def record_prefill(session: Session, ctx: AppContext, frame: Frame, user: User, img: np.ndarray,
                    png: bytes, *, masks: int | None = None) -> Prefill:
     """Keep the prefill handed to ``user`` (its PNG in the content store) so that the submit
-    of this frame can count how much the person changed."""
+    of this frame can count how much the person changed. The same prefill handed again (same
+    frame, user and image) is the row already kept: a GET writes nothing then (issue 24 --
+    every call used to add a row, so a loop of GETs grew the table without bound)."""
+    digest = hashlib.sha256(png).hexdigest()
+    same = session.scalar(select(Prefill).where(
+        Prefill.frame_id == frame.id, Prefill.user_id == user.id, Prefill.sha256 == digest,
+        Prefill.masks.is_(None) if masks is None else Prefill.masks == masks)
+        .order_by(Prefill.id.desc()).limit(1))
+    if same is not None and ctx.store.exists(digest):
+        return same
     p = Prefill(frame_id=frame.id, user_id=user.id, sha256=ctx.store.put(png),
                 width=int(img.shape[1]), height=int(img.shape[0]),
                 labelled_px=int(np.count_nonzero(img)), masks=masks, created_at=utcnow())

@@ -15,7 +15,7 @@ COPY app ./app
 COPY migrations ./migrations
 COPY alembic.ini ./
 COPY frontend ./frontend
-RUN pip install . && useradd --create-home --uid 1000 occufly && mkdir -p /data \
+RUN pip install ".[masks]" && useradd --create-home --uid 1000 occufly && mkdir -p /data \
  && chown occufly /data
 USER occufly
 # the compiled kernels (denoise k-NN, label splats, free-space depth rasters) into the user's numba cache

@@ -39,8 +39,9 @@ fi
 
 # Reinstall only when the package definition changed (stamp = hash of pyproject.toml + extras).
 # --test adds the `torch` extra (CPU torch==2.13.0) so the occufly.datasets.torch tests run.
-extras="dev"
-[ "$want_test" = 1 ] && extras="dev,torch"
+# `masks` (Datumaro, pycocotools, the Label Studio codec) is for the app's mask import/export.
+extras="dev,masks"
+[ "$want_test" = 1 ] && extras="dev,masks,torch"
 stamp=.venv/.occufly-installed
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)-$extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || [ ! -x .venv/bin/occufly ]; then

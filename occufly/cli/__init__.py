@@ -31,6 +31,7 @@ COMMAND_MODULES: list[str] = [
     "occufly.cli.lift",
     "occufly.cli.export",
     "occufly.cli.synth",
+    "occufly.cli.masks",
 ]
 #: entry-point group through which other packages (the web app) add command groups
 ENTRY_POINT_GROUP = "occufly.commands"

@@ -1,0 +1,750 @@
+"""Masks in and out of the field's 2D annotation tools: CVAT, COCO, Label Studio, plain PNGs.
+
+Formats (``FORMATS``):
+
+- ``cvat``: a CVAT export, either *CVAT for images 1.1* (``annotations.xml``: polygons and RLE
+  masks) or *Segmentation mask 1.1* (``labelmap.txt`` + ``SegmentationClass/*.png``); which one
+  is told by the files. ``cvat_images`` / ``cvat_mask`` name one of them (export writes
+  ``cvat_images`` for ``cvat``).
+- ``coco``: COCO instances (``annotations/instances_*.json``: polygons or RLE).
+- ``coco_panoptic``: COCO panoptic (``annotations/panoptic_*.json`` + segment PNGs).
+- ``labelstudio``: a Label Studio JSON export (brush RLE and polygon results).
+- ``png``: plain single-channel (indexed) or colour PNGs named after the frames, with a class
+  map beside them (``labelmap.txt`` as CVAT/VOC write it, Datumaro's ``dataset_meta.json``, or
+  ``classes.json`` {pixel value or "#rrggbb": class name}); without one the values are the
+  taxonomy's raw ids (or its colours), as the annotator stores them.
+
+The parsing is the format libraries': Datumaro (the format framework CVAT itself uses) reads
+and writes CVAT, VOC-style segmentation masks and COCO (its COCO masks go through
+pycocotools); polygons are rasterised by pycocotools; Label Studio's brush RLE is decoded and
+encoded by HumanSignal's ``label_studio_converter.brush``. They are heavy optional imports,
+made inside the functions that need them (the ``masks`` extra of pyproject.toml).
+
+Class names are mapped to the scene taxonomy by name (case, spaces and hyphens do not matter),
+through an optional mapping {external name: taxonomy name | id | "ignore" | "unpainted"}; the
+names ``background`` / ``_background_`` map to unpainted (0) and ``ignore`` / ``void`` to ignore
+(255) unless the mapping says otherwise. Everything is checked before anything is returned:
+unknown classes, images that name no frame and masks of the wrong size are one
+:class:`MaskImportError` listing them all, so a caller stores nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import tempfile
+import zipfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from occufly.errors import MaskError
+from occufly.io.masks import decode_mask_png, encode_mask_png, mask_scale
+from occufly.scene import Frame
+from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+
+FORMATS = ("cvat", "cvat_images", "cvat_mask", "coco", "coco_panoptic", "labelstudio", "png")
+#: the tool a format comes from, for a version's ``source`` ("imported from CVAT")
+TOOL_NAMES = {"cvat": "CVAT", "cvat_images": "CVAT", "cvat_mask": "CVAT", "coco": "COCO",
+              "coco_panoptic": "COCO panoptic", "labelstudio": "Label Studio", "png": "PNG"}
+#: Datumaro's format name for the formats it reads and writes
+_DATUMARO = {"cvat_images": "cvat", "cvat_mask": "voc_segmentation", "coco": "coco_instances",
+             "coco_panoptic": "coco_panoptic"}
+#: class names that mean "no class" without a mapping entry
+_DEFAULT_SPECIAL = {"background": EMPTY, "_background_": EMPTY, "unpainted": EMPTY, "ignore": INVALID,
+                    "void": INVALID}
+_SPECIAL_TARGETS = {"ignore": INVALID, "unpainted": EMPTY, "background": EMPTY}
+MAX_ARCHIVE_BYTES = 8 << 30  # uncompressed; a zip claiming more is refused before extracting
+MAX_ARCHIVE_MEMBERS = 200_000
+#: Label Studio brush strokes are RGBA; a pixel belongs to the stroke from this alpha on
+BRUSH_ALPHA = 128
+LS_FROM_NAME, LS_TO_NAME = "tag", "image"  # the names in the labeling config we write
+
+
+class MaskImportError(MaskError):
+    """An archive that cannot be imported; ``problems`` lists every reason."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.problems = problems
+        shown = problems[:30]
+        more = f"; ... and {len(problems) - 30} more" if len(problems) > 30 else ""
+        super().__init__(f"{source}: nothing imported: " + "; ".join(shown) + more)
+
+
+@dataclass
+class _Shape:
+    label: str
+    z: int = 0
+    mask: Callable[[], np.ndarray] | np.ndarray | None = None  # (h, w) bool, or a loader
+    polygon: list[float] | None = None  # x0, y0, x1, y1, ... in pixels
+
+
+@dataclass
+class _Item:
+    name: str
+    size: tuple[int, int] | None  # (h, w)
+    shapes: list[_Shape] = field(default_factory=list)
+    raw: Callable[[], np.ndarray] | None = None  # png without a class map: raw ids loader
+
+
+@dataclass
+class ImportedMasks:
+    """What :func:`read_masks` found: raw-id masks by frame index, all checked."""
+
+    fmt: str
+    masks: dict[int, np.ndarray]
+    item_names: dict[int, str]
+    classes: dict[str, int]  # external class name -> raw id used
+    skipped_empty: list[str]  # items with no annotation (not imported)
+
+    @property
+    def tool(self) -> str:
+        return TOOL_NAMES[self.fmt]
+
+
+# ---- archives -------------------------------------------------------------------------------
+def _extract(src: Path, dest: Path) -> Path:
+    """``src`` (a folder, a zip, or one annotation file) laid out under ``dest``; the folder."""
+    if src.is_dir():  # linked into ``dest``, so that missing folders can be added there
+        for p in src.iterdir():
+            (dest / p.name).symlink_to(p.resolve(), target_is_directory=p.is_dir())
+        return dest
+    if not src.is_file():
+        raise MaskError(f"{src}: no such archive, folder or file")
+    if not zipfile.is_zipfile(src):
+        shutil.copy(src, dest / src.name)
+        return dest
+    try:
+        zf = zipfile.ZipFile(src)
+    except (zipfile.BadZipFile, OSError) as e:
+        raise MaskError(f"{src}: damaged zip archive ({e})") from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > MAX_ARCHIVE_MEMBERS:
+            raise MaskError(f"{src}: {len(infos)} files in the archive, more than the "
+                            f"{MAX_ARCHIVE_MEMBERS} accepted")
+        total = sum(i.file_size for i in infos)
+        if total > MAX_ARCHIVE_BYTES:
+            raise MaskError(f"{src}: the archive unpacks to {total} bytes, more than the "
+                            f"{MAX_ARCHIVE_BYTES} accepted")
+        for info in infos:
+            p = PurePosixPath(info.filename.replace("\\", "/"))
+            if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]):
+                raise MaskError(f"{src}: archive member {info.filename!r} points outside the "
+                                f"archive; expected relative paths")
+            if (info.external_attr >> 16) & 0o170000 == 0o120000:
+                raise MaskError(f"{src}: archive member {info.filename!r} is a symbolic link")
+        try:
+            zf.extractall(dest)
+        except (zipfile.BadZipFile, OSError, RuntimeError) as e:
+            raise MaskError(f"{src}: damaged zip archive ({e})") from None
+    # a zip of one folder (CVAT's task_x_dataset.zip is flat; a zipped folder is not)
+    entries = [p for p in dest.iterdir() if not p.name.startswith((".", "__MACOSX"))]
+    if len(entries) == 1 and entries[0].is_dir() and entries[0].name not in _LAYOUT_DIRS:
+        return entries[0]
+    return dest
+
+
+#: folder names of the formats' own layouts (a zip holding only one of them is not a zipped
+#: folder of an export)
+_LAYOUT_DIRS = {"annotations", "images", "SegmentationClass", "SegmentationObject", "ImageSets",
+                "JPEGImages", "masks"}
+
+
+def _files(root: Path, pattern: str) -> list[Path]:
+    return sorted(p for p in root.rglob(pattern) if p.is_file() and "__MACOSX" not in p.parts)
+
+
+# ---- class names ----------------------------------------------------------------------------
+def _norm(name: str) -> str:
+    return re.sub(r"[\s\-]+", "_", str(name).strip().lower())
+
+
+def load_class_map(path: str | Path) -> dict[str, int]:
+    """A mapping file {external class name: taxonomy name | id | "ignore" | "unpainted" |
+    null} (JSON or YAML) as {external name: target}; targets are checked by
+    :func:`resolve_classes`."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise MaskError(f"{path}: cannot read class mapping ({e.strerror})") from None
+    try:
+        if path.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+
+            data = yaml.safe_load(text)
+        else:
+            data = json.loads(text)
+    except Exception as e:  # noqa: BLE001 - parser errors differ per format
+        raise MaskError(f"{path}: class mapping is not valid "
+                        f"{'YAML' if path.suffix.lower() in ('.yaml', '.yml') else 'JSON'}: {e}"
+                        ) from None
+    if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+        raise MaskError(f"{path}: expected a mapping {{external class name: taxonomy class name, "
+                        f"id, \"ignore\" or \"unpainted\"}}")
+    return data
+
+
+def resolve_classes(names: Sequence[str], taxonomy: Taxonomy, class_map: dict | None = None,
+                    *, source: str = "<mapping>") -> tuple[dict[str, int], list[str]]:
+    """{external name: raw id} for ``names`` and the list of problems (unknown classes, bad
+    mapping targets), each naming what was expected."""
+    by_norm = {_norm(c.name): c.id for c in taxonomy.classes}
+    cmap = {_norm(k): v for k, v in (class_map or {}).items()}
+    out: dict[str, int] = {}
+    problems: list[str] = []
+    unknown: list[str] = []
+    for name in names:
+        key = _norm(name)
+        if key in cmap:
+            target = cmap[key]
+            if target is None:
+                out[name] = EMPTY
+            elif isinstance(target, bool):
+                problems.append(f"mapping {name!r} -> {target!r} is not a class")
+            elif isinstance(target, int):
+                if target in taxonomy or target in (EMPTY, INVALID):
+                    out[name] = int(target)
+                else:
+                    problems.append(f"mapping {name!r} -> id {target} is not a class id of "
+                                    f"taxonomy {taxonomy.name!r}")
+            elif isinstance(target, str) and _norm(target) in by_norm:
+                out[name] = by_norm[_norm(target)]
+            elif isinstance(target, str) and _norm(target) in _SPECIAL_TARGETS:
+                out[name] = _SPECIAL_TARGETS[_norm(target)]
+            else:
+                problems.append(f"mapping {name!r} -> {target!r} names no class of taxonomy "
+                                f"{taxonomy.name!r}")
+        elif key in by_norm:
+            out[name] = by_norm[key]
+        elif key in _DEFAULT_SPECIAL:
+            out[name] = _DEFAULT_SPECIAL[key]
+        else:
+            unknown.append(name)
+    if unknown:
+        problems.insert(0, f"unknown class(es) {', '.join(repr(u) for u in sorted(unknown))}: "
+                           f"not in taxonomy {taxonomy.name!r} and not in the class mapping "
+                           f"(taxonomy classes: {', '.join(c.name for c in taxonomy.classes)})")
+    return out, problems
+
+
+# ---- frame names ----------------------------------------------------------------------------
+_LS_UPLOAD_PREFIX = re.compile(r"^[0-9a-f]{8}-")  # Label Studio prefixes uploaded files
+
+
+def _frame_lookup(frames: Sequence[Frame]) -> dict[str, int]:
+    look: dict[str, int] = {}
+    for i, f in enumerate(frames):
+        for key in (f.name, Path(f.name).name, f.stem):
+            look.setdefault(key.lower(), i)
+    return look
+
+
+def match_frame(name: str, look: dict[str, int]) -> int | None:
+    """The frame index an archive's image name denotes (its path, file name or stem), or None."""
+    s = str(name).replace("\\", "/")
+    s = s.split("?d=")[-1]  # Label Studio local-files URLs
+    base = PurePosixPath(s).name
+    cands = [s, base, PurePosixPath(base).stem]
+    stripped = _LS_UPLOAD_PREFIX.sub("", base)
+    if stripped != base:
+        cands += [stripped, PurePosixPath(stripped).stem]
+    for c in cands:
+        if c.lower() in look:
+            return look[c.lower()]
+    return None
+
+
+# ---- readers --------------------------------------------------------------------------------
+def _datumaro_items(dataset) -> tuple[list[_Item], list[str]]:  # noqa: ANN001
+    from datumaro.components.annotation import AnnotationType
+
+    labels = dataset.categories().get(AnnotationType.label)
+    names = [c.name for c in labels] if labels is not None else []
+    items: list[_Item] = []
+    for it in dataset:
+        size = None
+        if it.media is not None:
+            try:
+                size = it.media.size
+            except Exception:  # noqa: BLE001 - an image file that is not there has no size
+                size = None
+        shapes: list[_Shape] = []
+        for ann in it.annotations:
+            if ann.type not in (AnnotationType.mask, AnnotationType.polygon):
+                continue  # boxes, points, tags: not masks
+            if ann.label is None or not 0 <= ann.label < len(names):
+                label = f"<label {ann.label}>"
+            else:
+                label = names[ann.label]
+            z = int(getattr(ann, "z_order", 0) or 0)
+            if ann.type == AnnotationType.mask:
+                shapes.append(_Shape(label, z, mask=(lambda a=ann: np.asarray(a.image, bool))))
+            else:
+                shapes.append(_Shape(label, z, polygon=[float(v) for v in ann.points]))
+        items.append(_Item(it.id, tuple(int(v) for v in size) if size else None, shapes))
+    return items, names
+
+
+def _read_cvat_images(root: Path) -> list[_Item]:
+    """CVAT for images 1.1 XML through Datumaro's CVAT parser; CVAT's annotation-only export
+    has no images, which Datumaro's item loader insists on, so the images' sizes come from
+    the XML (``<image width height>``) instead."""
+    from datumaro.components.dataset_base import DatasetItem  # heavy optional dependency
+    from datumaro.components.media import Image
+    from datumaro.plugins.data_formats.cvat.base import CvatBase, CvatImporter
+
+    class _AnnotationsOnly(CvatBase):
+        def _load_items(self, parsed):  # noqa: ANN001, ANN202 - Datumaro's hook
+            out = {}
+            for frame_id, desc in parsed.items():
+                name = desc.get("name", f"frame_{int(frame_id):06d}.png")
+                size = (desc.get("height"), desc.get("width"))
+                media = Image.from_file(path=str(Path(self._images_dir or ".") / name),
+                                        size=tuple(map(int, size)) if all(size) else None)
+                out[frame_id] = DatasetItem(id=str(PurePosixPath(name).with_suffix("")),
+                                            subset=self._subset, media=media,
+                                            annotations=desc.get("annotations"))
+            return out
+
+    from datumaro.components.dataset import Dataset
+
+    try:
+        sources = CvatImporter.find_sources(str(root))
+    except Exception as e:  # noqa: BLE001 - Datumaro's errors are its own classes
+        raise MaskError(f"{root}: not a CVAT for images 1.1 export ({e})") from None
+    if not sources:
+        raise MaskError(f"{root}: no CVAT XML (annotations.xml) found; expected a CVAT for "
+                        f"images 1.1 export")
+    items: list[_Item] = []
+    for src in sources:
+        try:
+            base = _AnnotationsOnly(src["url"], **(src.get("options") or {}))
+        except Exception as e:  # noqa: BLE001
+            raise MaskError(f"{src['url']}: not a CVAT for images 1.1 XML ({e})") from None
+        got, _ = _datumaro_items(Dataset.from_extractors(base))
+        items += got
+    return items
+
+
+def _read_datumaro(root: Path, fmt: str) -> list[_Item]:
+    from datumaro.components.dataset import Dataset  # heavy optional dependency
+
+    if fmt in ("coco", "coco_panoptic") and not (root / "images").exists():
+        (root / "images").mkdir()  # Datumaro's COCO reader wants it; exports carry no images
+    try:
+        ds = Dataset.import_from(str(root), _DATUMARO[fmt])
+    except Exception as e:  # noqa: BLE001 - Datumaro's errors are its own classes
+        cause = e.__cause__ or e
+        raise MaskError(f"{root}: not a {TOOL_NAMES[fmt]} {_FORMAT_TITLES[fmt]} export "
+                        f"({cause})") from None
+    items, _ = _datumaro_items(ds)
+    return items
+
+
+_FORMAT_TITLES = {"cvat_mask": "Segmentation mask 1.1", "coco": "instances",
+                  "coco_panoptic": "panoptic", "cvat_images": "for images 1.1"}
+
+
+def _read_labelstudio(root: Path) -> list[_Item]:
+    files = [p for p in _files(root, "*.json") if p.name != "dataset_meta.json"]
+    if not files:
+        raise MaskError(f"{root}: no Label Studio JSON export (*.json) found")
+    items: list[_Item] = []
+    for path in files:
+        try:
+            tasks = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise MaskError(f"{path}: not a Label Studio JSON export ({e})") from None
+        if isinstance(tasks, dict):
+            tasks = [tasks]
+        if not isinstance(tasks, list) or not all(isinstance(t, dict) for t in tasks):
+            raise MaskError(f"{path}: expected a Label Studio JSON export (a list of tasks)")
+        for ti, task in enumerate(tasks):
+            items.append(_ls_task(task, f"{path.name}: task {task.get('id', ti)}"))
+    return items
+
+
+def _ls_task(task: dict, where: str) -> _Item:
+    data = task.get("data") or {}
+    image = data.get("image") or next((v for v in data.values() if isinstance(v, str)), None)
+    if not image:
+        raise MaskError(f"{where}: no image in the task's data")
+    anns = [a for a in task.get("annotations") or [] if not a.get("was_cancelled")]
+    if not anns:
+        return _Item(str(image), None, [])
+    ann = max(anns, key=lambda a: (str(a.get("updated_at") or a.get("created_at") or ""),
+                                   a.get("id") or 0))
+    shapes: list[_Shape] = []
+    size = None
+    for r in ann.get("result") or []:
+        kind = r.get("type")
+        v = r.get("value") or {}
+        if kind not in ("brushlabels", "polygonlabels"):
+            continue
+        try:
+            w, h = int(r["original_width"]), int(r["original_height"])
+        except (KeyError, TypeError, ValueError):
+            raise MaskError(f"{where}: a {kind} result without original_width/height") from None
+        size = (h, w)
+        names = v.get(kind) or []
+        if not names:
+            raise MaskError(f"{where}: a {kind} result without a label")
+        if kind == "brushlabels":
+            if v.get("format", "rle") != "rle" or not isinstance(v.get("rle"), list):
+                raise MaskError(f"{where}: brush result not in Label Studio's RLE format")
+            shapes.append(_Shape(names[0], mask=lambda rle=v["rle"], h=h, w=w: _ls_brush(rle, h, w,
+                                                                                     where)))
+        else:
+            pts = np.asarray(v.get("points") or [], float).reshape(-1, 2)
+            pts = pts * np.array([w / 100.0, h / 100.0])  # Label Studio: percent of the image
+            shapes.append(_Shape(names[0], polygon=pts.ravel().tolist()))
+    return _Item(str(image), size, shapes)
+
+
+def _ls_brush(rle: list[int], h: int, w: int, where: str) -> np.ndarray:
+    from label_studio_converter.brush import decode_rle  # heavy optional dependency
+
+    flat = np.asarray(decode_rle(rle), np.uint8)
+    if flat.size != h * w * 4:
+        raise MaskError(f"{where}: brush RLE holds {flat.size} values, expected {h}x{w}x4 "
+                        f"(original_width x original_height RGBA)")
+    return flat.reshape(h, w, 4)[..., 3] >= BRUSH_ALPHA
+
+
+def _read_class_map_png(root: Path) -> tuple[dict, str] | None:
+    """{pixel value (int) or (r, g, b): class name} from the class map beside the PNGs."""
+    lm = _files(root, "labelmap.txt")
+    if lm:
+        from datumaro.plugins.data_formats.voc.format import parse_label_map  # heavy optional
+
+        try:
+            labels = parse_label_map(str(lm[0]))
+        except Exception as e:  # noqa: BLE001
+            raise MaskError(f"{lm[0]}: not a labelmap.txt (name:r,g,b:: per line) ({e})") from None
+        return {tuple(int(c) for c in v[0]): k for k, v in labels.items() if v[0]}, str(lm[0])
+    meta = _files(root, "dataset_meta.json")
+    if meta:
+        from datumaro.util.meta_file_util import parse_meta_file  # heavy optional dependency
+
+        try:
+            labels = parse_meta_file(str(meta[0].parent))
+        except Exception as e:  # noqa: BLE001
+            raise MaskError(f"{meta[0]}: not a Datumaro dataset_meta.json ({e})") from None
+        out: dict = {}
+        for i, (k, v) in enumerate(labels.items()):
+            out[tuple(int(c) for c in v[0]) if v and v[0] else i] = k
+        return out, str(meta[0])
+    for name in ("classes.json", "classmap.json", "classes.yaml", "classmap.yaml"):
+        found = _files(root, name)
+        if found:
+            raw = load_class_map(found[0])
+            out = {}
+            for k, v in raw.items():
+                ks = k.strip()
+                if re.fullmatch(r"\d+", ks):
+                    out[int(ks)] = v
+                elif re.fullmatch(r"#[0-9a-fA-F]{6}", ks):
+                    out[tuple(int(ks[i:i + 2], 16) for i in (1, 3, 5))] = v
+                elif re.fullmatch(r"\d+\s*,\s*\d+\s*,\s*\d+", ks):
+                    out[tuple(int(c) for c in ks.split(","))] = v
+                else:
+                    raise MaskError(f"{found[0]}: key {k!r} is neither a pixel value (0..255) "
+                                    f"nor a colour (#rrggbb or r,g,b)")
+            return out, str(found[0])
+    return None
+
+
+def _read_png(root: Path, taxonomy: Taxonomy) -> list[_Item]:
+    from PIL import Image
+
+    pngs = [p for p in _files(root, "*.png")]
+    if not pngs:
+        raise MaskError(f"{root}: no PNG masks found; expected <image stem>.png files")
+    cmap = _read_class_map_png(root)
+    items: list[_Item] = []
+    for p in pngs:
+        if cmap is None:
+            items.append(_Item(p.stem, None, [],
+                               raw=lambda p=p: decode_mask_png(p, taxonomy, name=str(p))))
+            continue
+        table, src = cmap
+
+        def shapes_of(p: Path = p, table: dict = table, src: str = src) -> list[_Shape]:
+            img = Image.open(p)
+            colour = any(isinstance(k, tuple) for k in table)
+            if colour:
+                arr = np.asarray(img.convert("RGB"))
+                code = ((arr[..., 0].astype(np.uint32) << 16) | (arr[..., 1].astype(np.uint32) << 8)
+                        | arr[..., 2])
+                keys = {((k[0] << 16) | (k[1] << 8) | k[2]): v for k, v in table.items()
+                        if isinstance(k, tuple)}
+            else:
+                if img.mode not in ("L", "P", "I;16", "I"):
+                    raise MaskError(f"{p}: the class map {src} gives pixel values; expected a "
+                                    f"single-channel (indexed) PNG, got mode {img.mode}")
+                code = np.asarray(img).astype(np.int64)
+                keys = {k: v for k, v in table.items() if isinstance(k, int)}
+            values = np.unique(code)
+            missing = [int(v) for v in values if int(v) not in keys]
+            if missing:
+                shown = ", ".join(f"#{m:06x}" if colour else str(m) for m in missing[:8])
+                raise MaskError(f"{p}: pixel value(s) {shown} are not in the class map {src}")
+            return [_Shape(keys[int(v)], mask=code == v) for v in values]
+
+        with Image.open(p) as im:
+            size = (im.size[1], im.size[0])
+        items.append(_Item(p.stem, size, [], raw=None))
+        items[-1].shapes = shapes_of  # type: ignore[assignment] - decoded after the name check
+    return items
+
+
+def _detect_cvat(root: Path) -> str:
+    if _files(root, "*.xml") and not _files(root, "labelmap.txt"):
+        return "cvat_images"
+    if _files(root, "labelmap.txt") or (root / "SegmentationClass").is_dir():
+        return "cvat_mask"
+    if _files(root, "*.xml"):
+        return "cvat_images"
+    raise MaskError(f"{root}: neither a CVAT for images 1.1 export (annotations.xml) nor a "
+                    f"Segmentation mask 1.1 export (labelmap.txt, SegmentationClass/)")
+
+
+def _polygon_mask(points: list[float], h: int, w: int) -> np.ndarray:
+    from pycocotools import mask as mask_utils  # heavy optional dependency
+
+    if len(points) < 6:
+        return np.zeros((h, w), bool)
+    rle = mask_utils.frPyObjects([list(points)], h, w)
+    return mask_utils.decode(mask_utils.merge(rle)).astype(bool)
+
+
+def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy: Taxonomy, *,
+               class_map: dict | None = None) -> ImportedMasks:
+    """Read an export of another tool into raw-id masks of ``frames`` (checked; nothing is
+    written). ``archive``: a zip, a folder or one annotation file. Raises MaskImportError
+    listing every unknown class, unmatched image name and wrong-sized mask."""
+    if fmt not in FORMATS:
+        raise MaskError(f"format {fmt!r} is not supported; expected one of {', '.join(FORMATS)}")
+    archive = Path(archive)
+    with tempfile.TemporaryDirectory(prefix="occufly-masks-") as tmp:
+        root = _extract(archive, Path(tmp))
+        if fmt == "cvat":
+            fmt = _detect_cvat(root)
+        if fmt == "cvat_images":
+            items = _read_cvat_images(root)
+        elif fmt in _DATUMARO:
+            items = _read_datumaro(root, fmt)
+        elif fmt == "labelstudio":
+            items = _read_labelstudio(root)
+        else:
+            items = _read_png(root, taxonomy)
+        return _resolve(items, fmt, frames, taxonomy, class_map, str(archive))
+
+
+def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Taxonomy,
+             class_map: dict | None, source: str) -> ImportedMasks:
+    look = _frame_lookup(frames)
+    for it in items:  # png with a class map: decode now (the shapes name the classes)
+        if callable(it.shapes):
+            it.shapes = it.shapes()
+    problems: list[str] = []
+    unmatched = [it.name for it in items if (it.shapes or it.raw) and match_frame(it.name, look)
+                 is None]
+    if unmatched:
+        problems.append(f"{len(unmatched)} image(s) name no frame of the scene: "
+                        + ", ".join(repr(u) for u in unmatched[:50])
+                        + (" ..." if len(unmatched) > 50 else ""))
+    names = sorted({s.label for it in items for s in it.shapes})
+    ids, class_problems = resolve_classes(names, taxonomy, class_map, source=source)
+    problems += class_problems
+    seen: dict[int, str] = {}
+    for it in items:
+        fi = match_frame(it.name, look)
+        if fi is None or not (it.shapes or it.raw):
+            continue
+        if fi in seen:
+            problems.append(f"frame {frames[fi].name!r} has masks in two items, {seen[fi]!r} and "
+                            f"{it.name!r}")
+        seen[fi] = it.name
+    if problems:
+        raise MaskImportError(source, problems)
+    masks: dict[int, np.ndarray] = {}
+    names_of: dict[int, str] = {}
+    skipped: list[str] = []
+    for it in items:
+        if not (it.shapes or it.raw):
+            skipped.append(it.name)
+            continue
+        fi = match_frame(it.name, look)
+        frame = frames[fi]
+        try:
+            out = it.raw() if it.raw is not None else _paint(it, frame, ids)
+            mask_scale(out.shape, frame, name=f"{it.name}")
+        except MaskError as e:
+            problems.append(str(e))
+            continue
+        if not out.any():  # nothing painted casts no vote: not a version worth storing
+            skipped.append(it.name)
+            continue
+        masks[fi] = out
+        names_of[fi] = it.name
+    if problems:
+        raise MaskImportError(source, problems)
+    used = {n: i for n, i in ids.items()}
+    return ImportedMasks(fmt, masks, names_of, used, skipped)
+
+
+def _paint(it: _Item, frame: Frame, ids: dict[str, int]) -> np.ndarray:
+    """The item's shapes painted into one raw-id mask, lowest z first, later shapes on top."""
+    h, w = it.size or (frame.camera.height, frame.camera.width)
+    out = np.zeros((h, w), np.uint8)
+    for s in sorted(it.shapes, key=lambda s: s.z):  # stable: file order within a z level
+        if s.polygon is not None:
+            m = _polygon_mask(s.polygon, h, w)
+        else:
+            m = s.mask() if callable(s.mask) else s.mask
+            if m.shape != (h, w):
+                raise MaskError(f"{it.name}: a {s.label!r} mask is {m.shape[1]}x{m.shape[0]} "
+                                f"pixels in a {w}x{h} image")
+        out[m] = ids[s.label]
+    return out
+
+
+# ---- writers --------------------------------------------------------------------------------
+def _full_size(mask: np.ndarray, frame: Frame) -> np.ndarray:
+    s = mask_scale(mask.shape, frame, name=frame.name)
+    return mask if s == 1 else np.repeat(np.repeat(mask, s, axis=0), s, axis=1)
+
+
+def _class_list(taxonomy: Taxonomy, masks: dict[int, np.ndarray]) -> list[tuple[int, str, tuple]]:
+    """(raw id, name, rgb) of every class, plus ``ignore`` when a mask holds 255."""
+    rows = [(c.id, c.name, tuple(c.rgb)) for c in taxonomy.classes]
+    if any(bool((m == INVALID).any()) for m in masks.values()):
+        rows.append((INVALID, "ignore", (255, 255, 255)))
+    return rows
+
+
+def write_masks(out: str | Path, fmt: str, masks: dict[int, np.ndarray],
+                frames: Sequence[Frame], taxonomy: Taxonomy, *,
+                prediction: bool = False) -> dict:
+    """Write raw-id masks (frame index -> (h, w) uint8, the frame's size or an integer
+    downscale) in ``fmt``: a zip when ``out`` ends in .zip, a folder otherwise. Frames with a
+    mask of only 0 are listed with no annotation. ``prediction``: Label Studio gets them as
+    pre-annotations (``predictions``) instead of annotations. Returns a summary."""
+    if fmt not in FORMATS:
+        raise MaskError(f"format {fmt!r} is not supported; expected one of {', '.join(FORMATS)}")
+    if fmt == "cvat":
+        fmt = "cvat_images"
+    out = Path(out)
+    as_zip = out.suffix.lower() == ".zip"
+    if out.exists() and (as_zip or not out.is_dir() or any(out.iterdir())):
+        raise MaskError(f"{out}: already exists; expected a new file or an empty folder")
+    full = {fi: _full_size(np.asarray(m, np.uint8), frames[fi]) for fi, m in masks.items()}
+    rows = _class_list(taxonomy, full)
+    with tempfile.TemporaryDirectory(prefix="occufly-masks-out-") as tmp:
+        stage = Path(tmp) / "out"
+        stage.mkdir()
+        if fmt in _DATUMARO:
+            _write_datumaro(stage, fmt, full, frames, rows)
+        elif fmt == "labelstudio":
+            _write_labelstudio(stage, full, frames, rows, prediction)
+        else:
+            _write_png(stage, full, frames, rows)
+        if as_zip:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            part = out.with_name(out.name + ".part")
+            with zipfile.ZipFile(part, "w", zipfile.ZIP_DEFLATED) as zf:
+                for p in sorted(stage.rglob("*")):
+                    if p.is_file():
+                        zf.write(p, p.relative_to(stage).as_posix())
+            part.replace(out)
+        else:
+            out.mkdir(parents=True, exist_ok=True)
+            for p in stage.iterdir():
+                shutil.move(str(p), out / p.name)
+    return {"format": fmt, "tool": TOOL_NAMES[fmt], "out": str(out), "frames": len(full),
+            "annotated_frames": sum(1 for m in full.values() if m.any()),
+            "classes": [name for cid, name, _ in rows
+                        if any(bool((m == cid).any()) for m in full.values())]}
+
+
+def _write_datumaro(stage: Path, fmt: str, masks: dict[int, np.ndarray],
+                    frames: Sequence[Frame], rows: list) -> None:
+    from datumaro.components.annotation import (  # heavy optional dependency
+        AnnotationType,
+        LabelCategories,
+        Mask,
+        MaskCategories,
+    )
+    from datumaro.components.dataset import Dataset
+    from datumaro.components.dataset_base import DatasetItem
+    from datumaro.components.media import Image
+
+    index = {cid: k for k, (cid, _n, _c) in enumerate(rows)}
+    items = []
+    for fi in sorted(masks):
+        m, f = masks[fi], frames[fi]
+        present = np.flatnonzero(np.bincount(m.ravel(), minlength=256))
+        anns = [Mask(image=(m == cid), label=index[int(cid)], id=k + 1, group=k + 1)
+                for k, cid in enumerate(present) if cid != EMPTY]
+        items.append(DatasetItem(id=Path(f.name).stem, subset="default",
+                                 media=Image.from_file(path=Path(f.name).name,
+                                                       size=(f.camera.height, f.camera.width)),
+                                 annotations=anns))
+    cats = {AnnotationType.label: LabelCategories.from_iterable([n for _i, n, _c in rows]),
+            AnnotationType.mask: MaskCategories(colormap={k: c for k, (_i, _n, c)
+                                                          in enumerate(rows)})}
+    ds = Dataset.from_iterable(items, categories=cats)
+    kw = {"voc_segmentation": {"label_map": "source"},
+          "coco_instances": {"segmentation_mode": "mask", "reindex": True},
+          "coco_panoptic": {"reindex": True}}.get(_DATUMARO[fmt], {})
+    ds.export(str(stage), _DATUMARO[fmt], save_media=False, **kw)
+    if fmt == "cvat_images":  # CVAT's own export and import name it annotations.xml
+        for x in stage.glob("*.xml"):
+            x.rename(stage / "annotations.xml")
+            break
+
+
+def _write_labelstudio(stage: Path, masks: dict[int, np.ndarray], frames: Sequence[Frame],
+                       rows: list, prediction: bool) -> None:
+    from label_studio_converter.brush import mask2rle  # heavy optional dependency
+
+    names = {cid: n for cid, n, _c in rows}
+    tasks = []
+    for fi in sorted(masks):
+        m, f = masks[fi], frames[fi]
+        h, w = m.shape
+        result = []
+        for cid in np.flatnonzero(np.bincount(m.ravel(), minlength=256)):
+            if cid == EMPTY:
+                continue
+            rle = mask2rle(((m == cid) * 255).astype(np.uint8))
+            result.append({"id": f"{Path(f.name).stem}_{int(cid)}", "type": "brushlabels",
+                           "from_name": LS_FROM_NAME, "to_name": LS_TO_NAME,
+                           "original_width": w, "original_height": h, "image_rotation": 0,
+                           "value": {"format": "rle", "rle": [int(v) for v in rle],
+                                     "brushlabels": [names[int(cid)]]}})
+        entry = ({"model_version": "occufly-prefill", "score": 1.0, "result": result}
+                 if prediction else {"result": result, "was_cancelled": False})
+        tasks.append({"data": {"image": Path(f.name).name},
+                      ("predictions" if prediction else "annotations"): [entry] if result else []})
+    (stage / "tasks.json").write_text(json.dumps(tasks))
+    labels = "\n".join(f'    <Label value="{n}" background="#{c[0]:02x}{c[1]:02x}{c[2]:02x}"/>'
+                       for _i, n, c in rows)
+    (stage / "labeling_config.xml").write_text(
+        f'<View>\n  <Image name="{LS_TO_NAME}" value="$image" zoom="true"/>\n'
+        f'  <BrushLabels name="{LS_FROM_NAME}" toName="{LS_TO_NAME}">\n{labels}\n'
+        f'  </BrushLabels>\n</View>\n')
+
+
+def _write_png(stage: Path, masks: dict[int, np.ndarray], frames: Sequence[Frame],
+               rows: list) -> None:
+    for fi, m in masks.items():
+        (stage / f"{frames[fi].stem}.png").write_bytes(encode_mask_png(m))
+    table = {str(cid): n for cid, n, _c in rows}
+    (stage / "classes.json").write_text(json.dumps({"0": "unpainted", **table}, indent=1))

@@ -50,6 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=("train", "val", "test"),
                    help="the scene's split in the splits files (default: scenes 1-5 train, 6-7 val, "
                         "8-9 test by the scene number, else train)")
+    p.add_argument("--split-by", choices=("altitude", "region", "ratio"),
+                   help="split this scene's frames into train/val/test: altitude = lowest "
+                        "altitude test, next val, the rest train; region = per altitude, "
+                        "contiguous strips along the flight; ratio = per altitude, interleaved "
+                        "(see --split-ratios)")
+    p.add_argument("--split-ratios", help="train,val,test shares for --split-by region|ratio "
+                                          "(default 0.8,0.1,0.1)")
     p.add_argument("--downsample-rule", choices=("occufly", "lmscnet"), default="occufly",
                    help="coarser grids: occufly = most common non-empty class; lmscnet = empty "
                         "when > 95%% of the block is empty or invalid (LMSCNet / MonoScene)")
@@ -101,6 +108,12 @@ def _parse_frames(text: str | None) -> list[int] | None:
     return out
 
 
+def _split_ratios(text: str | None):
+    from occufly.export.splits import parse_ratios
+
+    return None if text is None else parse_ratios(text)
+
+
 def _export(args: argparse.Namespace) -> dict:
     from occufly.export import export_dataset
     from occufly.grid import SceneGrid
@@ -114,7 +127,9 @@ def _export(args: argparse.Namespace) -> dict:
         res = export_dataset(args.workspace, args.out, scene_id=args.scene_id, layout=args.layout,
                              grid=grid, frames=_parse_frames(args.frames), executor=ex,
                              progress=bar, spec=spec, grid_for_altitude=args.grid_for_altitude,
-                             split=args.split, downsample_rule=args.downsample_rule,
+                             split=args.split, split_by=args.split_by,
+                             split_ratios=_split_ratios(args.split_ratios),
+                             downsample_rule=args.downsample_rule,
                              velodyne=args.velodyne)
     if not args.json:
         res = {k: v for k, v in res.items() if k != "results"}

@@ -176,7 +176,10 @@ class ExportReader:
         self.frames: list[FrameKey] = self._list_frames()
         if split is not None:
             keep = set(self.split_members(split))
-            self.frames = [k for k in self.frames if self._split_key(k) in keep]
+            # frames split within a scene (``export --split-by``) carry their own split
+            self.frames = [k for k in self.frames
+                           if (self.frame_record(k).get("split") == split
+                               if self.frame_record(k).get("split") else self._split_key(k) in keep)]
 
     # layout-specific
     def _manifest_paths(self):  # pragma: no cover - abstract

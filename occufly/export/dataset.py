@@ -35,7 +35,9 @@ import numpy as np
 
 from occufly.errors import InputFormatError
 from occufly.export import occufly as occufly_layout
+from occufly.export import splits as split_rules
 from occufly.export import sscbench as sscbench_layout
+from occufly.export.axes import frame_axes
 from occufly.export.common import (
     DOWNSAMPLE_RULES,
     EXPORT_FORMAT_VERSION,
@@ -272,7 +274,11 @@ def _dataset_files(out: Path, layout: str, taxonomy, spec) -> dict[Path, bytes]:
         except ValueError:
             continue
         if m.get("layout") == "occufly":
-            splits.setdefault(m.get("split") or default_split(m["scene_id"]), []).append(m["scene_id"])
+            scene_split = m.get("split") or default_split(m["scene_id"])
+            # --split-by: the scene is in every split one of its frames is in
+            for s in sorted({fr.get("split") or scene_split for fr in m.get("frames", {}).values()}
+                            or {scene_split}):
+                splits.setdefault(s, []).append(m["scene_id"])
     return occufly_layout.split_files(out, splits)
 
 
@@ -359,6 +365,8 @@ def export_dataset(
     split: str | None = None,
     downsample_rule: str = "occufly",
     velodyne: bool = False,
+    split_by: str | None = None,
+    split_ratios: tuple[float, float, float] | None = None,
 ) -> dict:
     """Export per-frame ground truth of workspace ``ws`` into ``out``; returns a summary.
 
@@ -366,7 +374,9 @@ def export_dataset(
     (default: a local pool with ``workers`` processes, closed afterwards); split: ``train`` /
     ``val`` / ``test`` for the splits files (default: the release's rule on the scene number,
     see :mod:`occufly.export.occufly`); downsample_rule: ``occufly`` or ``lmscnet`` for the
-    coarser grids; velodyne: also write ``velodyne_points`` (SSCBench layout).
+    coarser grids; split_by: ``altitude`` / ``region`` / ``ratio`` split this scene's frames
+    into train / val / test (:mod:`occufly.export.splits`; ``split_ratios`` for the last two);
+    velodyne: also write ``velodyne_points`` (SSCBench layout).
 
     Frames that use different cameras are exported as one scene per camera (the camera with
     the most frames keeps ``scene_id``, the others get ``_cam2``, ``_cam3``, ...): both layouts
@@ -383,6 +393,10 @@ def export_dataset(
         raise ExportError(f"scene id {scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
     if split is not None and split not in SPLITS:
         raise ExportError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
+    if split_by is not None and split_by not in split_rules.RULES:
+        raise ExportError(f"split_by {split_by!r}: expected one of {', '.join(split_rules.RULES)}")
+    if split_by is not None and split is not None:
+        raise ExportError("--split names the whole scene's split and --split-by splits its frames: give one")
     if velodyne and layout != "sscbench":
         raise ExportError("--velodyne writes velodyne_points/ of the SSCBench layout; use --layout sscbench")
     if downsample_rule not in DOWNSAMPLE_RULES:
@@ -409,6 +423,7 @@ def export_dataset(
         kw = {"layout": layout, "grid": grid, "executor": executor, "progress": progress,
               "spec": spec, "grid_for_altitude": grid_for_altitude, "workers": workers,
               "split": split, "downsample_rule": downsample_rule, "velodyne": velodyne}
+        kw.update({"split_by": split_by, "split_ratios": split_ratios})
         parts = [export_dataset(ws, out, scene_id=sid, frames=g, **kw)
                  for sid, g in zip(group_scene_ids(scene_id, len(groups)), groups, strict=True)]
         return {
@@ -472,6 +487,9 @@ def export_dataset(
     by_alt_cam: dict[int, object] = {}
     for i in idx:
         by_alt_cam.setdefault(alts[i], scene.frames[i].camera)
+    split_rule = None if split is not None else (
+        {"rule": split_by, "ratios": list(split_rules.check_ratios(split_ratios or split_rules.DEFAULT_RATIOS))}
+        if split_by is not None else (old or {}).get("split_by"))
     split = split or (old or {}).get("split") or default_split(scene_id)
     manifest = {
         "format": "occufly-export", "version": EXPORT_FORMAT_VERSION, "layout": layout,
@@ -498,6 +516,9 @@ def export_dataset(
                            "image (COLMAP convention); '# depth_maps: h w' comment line",
         },
         "split": split,
+        "split_by": split_rule,
+        # which grid axis is what in the image: adapters mirror axis 0 for a left-right flip
+        "axes": frame_axes(),
         "downsample_rule": downsample_rule,
         "camera": camera.to_dict(),
         "image_shape": [camera.height, camera.width],
@@ -526,6 +547,12 @@ def export_dataset(
                                         "depth_shape": list(quarter_shape(fr.camera)),
                                         "pose": np.linalg.inv(fr.T_cam_world).round(9).tolist()}
     manifest["frames"] = dict(sorted(frames_index.items()))
+    for rec in manifest["frames"].values():
+        rec.pop("split", None)
+    if split_rule is not None:
+        for fid, s in split_rules.assign_splits(manifest["frames"], split_rule["rule"],
+                                                split_rule["ratios"]).items():
+            manifest["frames"][fid]["split"] = s
     mpath = lay.manifest_path(out, scene_id)
     clean_stray_temporaries(out)
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())

@@ -1,6 +1,6 @@
 """SSCBench-style layout (FORMATS.md section 4) that MonoScene / SSCBench's MonoScene,
-Symphonies and CGFormer loaders read with a configuration change (README: "Training on an
-export").
+Symphonies and CGFormer read through the adapters of :mod:`occufly.datasets.compat`
+(docs/ssc-porting.md).
 
 ::
 
@@ -8,6 +8,8 @@ export").
                                                           learning_map_inv, learning_ignore,
                                                           labels, color_map, geometry
     <root>/splits/{train,val,test}.txt                    sequence names, one per line
+    <root>/splits/{train,val,test}_frames.txt             ``<seq> <frame>`` lines (--split-by
+                                                          region / ratio only)
     <root>/data_2d_raw/<seq>/calib.txt                    KITTI-style P0..P3 and Tr (see below)
     <root>/data_2d_raw/<seq>/image_00/data_rect/<frame>.png
     <root>/data_2d_raw/<seq>/voxels/<frame>.bin           packbits(occupied & valid & ~occluded)
@@ -272,6 +274,7 @@ def marker(root: Path, scene_id: str, altitude: int, frame_id: str) -> Path:
 def dataset_files(root: Path, taxonomy, spec) -> dict[Path, bytes]:
     """occufly.yaml (with the geometry block) and splits/*.txt from all manifests in ``root``."""
     splits: dict[str, set[str]] = {s: set() for s in SPLITS}
+    frame_splits: dict[str, set[str]] = {}
     seq_images: dict[str, tuple[int, int]] = {}
     n = len(taxonomy) + 1
     counts = {"train": np.zeros(n, np.int64), "all": np.zeros(n, np.int64)}
@@ -283,10 +286,13 @@ def dataset_files(root: Path, taxonomy, spec) -> dict[Path, bytes]:
         if m.get("layout") != NAME:
             continue
         sid = m["scene_id"]
-        split = m.get("split", "train")
+        scene_split = m.get("split", "train")
         for fid, fr in m.get("frames", {}).items():
             seq = seq_name(sid, fr["altitude"])
+            split = fr.get("split") or scene_split  # --split-by: per frame
             splits.setdefault(split, set()).add(seq)
+            if fr.get("split"):
+                frame_splits.setdefault(split, set()).add(f"{seq} {fid}")
             cam = fr.get("camera", {})
             seq_images[seq] = (int(cam.get("width", 0)), int(cam.get("height", 0)))
             mk = marker(root, sid, fr["altitude"], fid)
@@ -303,4 +309,7 @@ def dataset_files(root: Path, taxonomy, spec) -> dict[Path, bytes]:
     out = {yaml_path(root): learning_map_yaml(taxonomy, geom).encode()}
     for s in SPLITS:
         out[root / "splits" / f"{s}.txt"] = "".join(f"{q}\n" for q in sorted(splits.get(s, ()))).encode()
+        if frame_splits:  # a sequence split between train / val / test: which frames where
+            out[root / "splits" / f"{s}_frames.txt"] = "".join(
+                f"{q}\n" for q in sorted(frame_splits.get(s, ()))).encode()
     return out

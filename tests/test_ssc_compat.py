@@ -1,0 +1,336 @@
+"""The SSC codebase adapters (occufly.datasets.compat) against the sample contracts written
+down from each codebase at its named commit (docs/ssc-porting.md), without the codebases:
+keys, dtypes, shapes, per-sequence calibration, the flip, the splits of one scene."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from occufly.datasets import open_dataset
+from occufly.datasets.compat import cgformer
+from occufly.datasets.compat.common import (
+    FlipRefused,
+    cp_mega_matrix,
+    depth_consistency,
+    flip_K,
+    load_geometry,
+    local_frustums,
+    vox2pix,
+)
+from occufly.export import export_dataset
+from occufly.export.common import ExportError
+from occufly.export.splits import assign_splits
+from tests.export_fixtures import SPEC, make_grid, make_workspace
+
+REPO = Path(__file__).resolve().parents[1]
+COMMITS = {"Symphonies": "4ca4ff2", "MonoScene": "f52bbb1", "SSCBench": "9e767e1",
+           "CGFormer": "0331e11"}
+
+
+@pytest.fixture(scope="module")
+def ws(tmp_path_factory) -> Path:
+    return make_workspace(tmp_path_factory.mktemp("compat"), n_frames=6)
+
+
+@pytest.fixture(scope="module")
+def ssc(ws, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("compat_ssc") / "exp"
+    export_dataset(ws, out, spec=SPEC, workers=1, layout="sscbench", velodyne=True,
+                   split_by="ratio")
+    return out
+
+
+# ---- the 3D-2D mapping, frustums and context prior, against direct definitions ----------------
+def _loop_vox2pix(T, K, origin, r, W, H, scene_size):
+    dims = [int(np.ceil(s / r)) for s in scene_size]
+    pix, fov, zs = [], [], []
+    for i in range(dims[0]):
+        for j in range(dims[1]):
+            for k in range(dims[2]):
+                c = np.float32(origin) + np.array([i, j, k]) * r + r / 2
+                p = T[:3, :3] @ np.float32(c) + T[:3, 3]
+                u = int(np.round(p[0] * np.float32(K[0, 0]) / p[2] + np.float32(K[0, 2])))
+                v = int(np.round(p[1] * np.float32(K[1, 1]) / p[2] + np.float32(K[1, 2])))
+                pix.append((u, v))
+                fov.append(0 <= u < W and 0 <= v < H and p[2] > 0)
+                zs.append(p[2])
+    return np.array(pix), np.array(fov), np.array(zs)
+
+
+def test_vox2pix_matches_the_voxel_by_voxel_definition():
+    K = np.array([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, 3] = [0.3, -0.2, 0.0]
+    origin, r, size = np.array([-4.0, -3.0, 0.0]), 1.0, (8.0, 6.0, 5.0)
+    pix, fov, z = vox2pix(T, K, origin, r, 64, 48, size)
+    p2, f2, z2 = _loop_vox2pix(T, K, origin, r, 64, 48, size)
+    assert pix.dtype == np.int64 and pix.shape == (8 * 6 * 5, 2) and fov.dtype == bool
+    np.testing.assert_array_equal(pix, p2)
+    np.testing.assert_array_equal(fov, f2)
+    np.testing.assert_allclose(z, z2, rtol=1e-6)
+
+
+def test_local_frustums_and_cp_matrix_match_their_definitions():
+    rng = np.random.default_rng(3)
+    target = rng.choice([0, 1, 2, 255], size=(4, 4, 4), p=[0.5, 0.2, 0.2, 0.1]).astype(np.uint8)
+    pix = rng.integers(-5, 40, size=(64, 2))
+    z = rng.uniform(-1, 5, size=64)
+    masks, dists = local_frustums(pix, z, target, 32, 24, n_classes=3, size=2)
+    assert masks.shape == (4, 4, 4, 4) and masks.dtype == bool and dists.shape == (4, 3)
+    flat = target.reshape(-1)
+    for f, (row, col) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        want = ((pix[:, 0] >= col * 16) & (pix[:, 0] < (col + 1) * 16) & (pix[:, 1] >= row * 12)
+                & (pix[:, 1] < (row + 1) * 12) & (z > 0) & (flat != 255))
+        np.testing.assert_array_equal(masks[f].reshape(-1), want)
+        np.testing.assert_array_equal(dists[f], np.bincount(flat[want], minlength=3)[:3])
+    # context prior: (4, N, M) relations voxel n vs the 8 children of super voxel m
+    m = cp_mega_matrix(target)
+    assert m.shape == (4, 64, 8) and m.dtype == np.uint8
+    kids = [target[2 * a:2 * a + 2, 2 * b:2 * b + 2, 2 * c:2 * c + 2].reshape(-1)
+            for a in range(2) for b in range(2) for c in range(2)]
+    for n in range(64):
+        ln = flat[n]
+        for col, ch in enumerate(kids):
+            ch = ch[ch != 255]
+            want = np.zeros(4, np.uint8)
+            if ln != 255:
+                want[0] = any((c == ln) and c != 0 for c in ch)
+                want[1] = any((c != ln) and c != 0 and ln != 0 for c in ch)
+                want[2] = any((c == ln) and c == 0 for c in ch)
+                want[3] = any((c != ln) and (c == 0 or ln == 0) for c in ch)
+            np.testing.assert_array_equal(m[:, n, col], want, err_msg=f"voxel {n} super {col}")
+
+
+# ---- manifest axes, splits of one scene ---------------------------------------------------------
+def test_manifest_records_axes_and_frame_splits(ssc):
+    m = json.loads((ssc / "manifests" / "scene_01.json").read_text())
+    assert m["axes"]["image_left_right"] == 0 and m["axes"]["image_top_bottom"] == 1
+    assert m["split_by"]["rule"] == "ratio"
+    splits = {s: (ssc / "splits" / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
+    assert all(splits.values()), splits  # a single scene: every split has sequences
+    for s in ("train", "val", "test"):
+        ds = open_dataset(ssc, split=s)
+        assert len(ds) > 0
+        assert {m["frames"][k.frame_id]["split"] for k in ds.frames} == {s}
+    assert sum(len(open_dataset(ssc, split=s)) for s in ("train", "val", "test")) == 6
+    frames = (ssc / "splits" / "val_frames.txt").read_text().split("\n")
+    assert all(len(x.split()) == 2 for x in frames if x)
+
+
+def test_split_rules():
+    frames = {f"{i:06d}": {"altitude": a, "pose": np.eye(4).tolist()}
+              for i, a in enumerate([50] * 4 + [40] * 3 + [30] * 3)}
+    s = assign_splits(frames, "altitude")
+    assert {s[f] for f in frames if frames[f]["altitude"] == 50} == {"train"}
+    assert {s[f] for f in frames if frames[f]["altitude"] == 40} == {"val"}
+    assert {s[f] for f in frames if frames[f]["altitude"] == 30} == {"test"}
+    with pytest.raises(ExportError, match="three altitudes"):
+        assign_splits({k: v for k, v in frames.items() if v["altitude"] != 40}, "altitude")
+    # region: contiguous strips along the flight direction, per altitude
+    line = {f"{i:06d}": {"altitude": 50, "pose": [[1, 0, 0, 10.0 * (9 - i)], [0, 1, 0, 0],
+                                                    [0, 0, 1, 0], [0, 0, 0, 1]]} for i in range(10)}
+    r = assign_splits(line, "region")
+    by_x = [r[f"{i:06d}"] for i in reversed(range(10))]  # increasing x
+    assert by_x == ["train"] * 8 + ["val", "test"]
+    q = assign_splits(line, "ratio")
+    assert [v for _k, v in sorted(q.items())].count("train") == 8
+    with pytest.raises(ExportError):
+        assign_splits({"000000": {"altitude": 50}}, "ratio")
+
+
+def test_export_split_by_altitude_end_to_end(tmp_path):
+    from occufly.scene import Scene
+
+    ws = make_workspace(tmp_path / "w", n_frames=6)
+    sc = Scene.load(ws)
+    for i, fr in enumerate(sc.frames):
+        fr.nominal_altitude = [50, 40, 30][i % 3]
+    sc.save(ws, overwrite=True)
+    out = tmp_path / "exp"
+    export_dataset(ws, out, spec=SPEC, workers=1, layout="sscbench", split_by="altitude",
+                   grid=make_grid())
+    got = {s: (out / "splits" / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
+    assert got == {"train": ["scene_01_50"], "val": ["scene_01_40"], "test": ["scene_01_30"]}
+    # CGFormer validates on split='test' (its config's val = testset_config): not empty
+    ds = cgformer.OccuFlyKITTI360Dataset(
+        data_root=out, stereo_depth_root=out / "depth_full", ann_file=out / "preprocess" / "labels",
+        pipeline=None, split="test", camera_used=["left"], occ_size=list(SPEC.shape),
+        pc_range=cgformer.point_cloud_range(out))
+    assert len(ds) == 2
+    with pytest.raises(ExportError, match="give one"):
+        export_dataset(ws, out, spec=SPEC, workers=1, layout="sscbench", split_by="ratio", split="val",
+                       grid=make_grid())
+
+
+# ---- the adapters' sample contracts ----------------------------------------------------------------
+def test_cgformer_input_dict_contract(ssc):
+    root = ssc
+    ds = cgformer.OccuFlyKITTI360Dataset(
+        data_root=root, stereo_depth_root=root / "depth_full", ann_file=root / "preprocess" / "labels",
+        pipeline=None, split="train", camera_used=["left"], occ_size=list(SPEC.shape),
+        pc_range=cgformer.point_cloud_range(root))
+    d = ds[0]
+    assert set(d) == {"occ_size", "pc_range", "sequence", "frame_id", "img_filename", "lidar2img",
+                      "cam_intrinsic", "lidar2cam", "focal_length", "baseline",
+                      "stereo_depth_path", "gt_occ"}
+    assert d["lidar2img"][0].shape == (4, 4) and d["cam_intrinsic"][0].shape == (4, 4)
+    assert d["gt_occ"].shape == tuple(SPEC.shape) and d["gt_occ"].dtype == np.uint8
+    assert Path(d["img_filename"][0]).is_file() and Path(d["stereo_depth_path"]).is_file()
+    # CreateDepthFromLiDAR finds velodyne_points from the image path's last four parts
+    seq, _, _, fname = d["img_filename"][0].split("/")[-4:]
+    assert (root / "data_2d_raw" / seq / "velodyne_points" / "data" / fname.replace(".png", ".bin")).is_file()
+    assert d["baseline"] == 0.0 and d["focal_length"] == 40.0
+    with pytest.raises(ValueError, match="occ_size"):
+        cgformer.OccuFlyKITTI360Dataset(root, root / "depth_full", root / "preprocess" / "labels",
+                                        None, "train", ["left"], [256, 256, 32], [0, -25.6, -2, 51.2, 25.6, 4.4])
+    # a 3-D flip along the vertical axis is refused; along image left-right it is accepted
+    bda = {"type": "LoadAnnotationOcc", "apply_bda": True,
+           "bda_aug_conf": {"flip_dx_ratio": 0.5, "flip_dy_ratio": 0.5, "flip_dz_ratio": 0}}
+    args = (root, root / "depth_full", root / "preprocess" / "labels")
+    kw = {"split": "train", "camera_used": ["left"], "occ_size": list(SPEC.shape),
+          "pc_range": cgformer.point_cloud_range(root)}
+    with pytest.raises(FlipRefused, match="flip_dy_ratio"):
+        cgformer._check_pipeline([bda], ds.geometry, "x")
+    ok = dict(bda, bda_aug_conf={"flip_dx_ratio": 0.5, "flip_dy_ratio": 0, "flip_dz_ratio": 0})
+    cgformer._check_pipeline([ok], ds.geometry, "x")
+    assert len(cgformer.OccuFlyKITTI360Dataset(*args, pipeline=None, **kw)) == len(ds)
+
+
+def test_symphonies_sample_contract_and_safe_flip(ssc):
+    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    import torch
+
+    from occufly.datasets.compat.symphonies import OccuFlyKITTI360, Register
+
+    ds = OccuFlyKITTI360("train", ssc, label_root=ssc / "preprocess" / "labels",
+                         depth_root=ssc / "depth_full", frustum_size=2, context_prior=True)
+    X, Y, Z = SPEC.shape
+    g = load_geometry(ssc)
+    data, label = ds.sample(0)
+    assert set(data) == {"frame_id", "sequence", "P", "cam_pose", "proj_matrix", "voxel_origin",
+                         "scale_3ds", "cam_K", "projected_pix_1", "pix_z_1", "fov_mask_1",
+                         "projected_pix_2", "pix_z_2", "fov_mask_2", "depth", "img"}
+    assert set(label) == {"target", "CP_mega_matrix", "frustums_masks", "frustums_class_dists"}
+    assert data["scale_3ds"] == (1, 2)
+    assert data["img"].shape == (3, 48, 64) and data["img"].dtype == torch.float32
+    assert data["depth"].shape == (48, 64) and data["depth"].dtype == torch.float32
+    assert data["P"].shape == (3, 4) and data["P"].dtype == torch.float32
+    assert data["projected_pix_1"].shape == (X * Y * Z, 2) and data["projected_pix_1"].dtype == torch.int64
+    assert data["projected_pix_2"].shape == (X * Y * Z // 8, 2)
+    assert data["pix_z_1"].dtype == torch.float32 and data["fov_mask_1"].dtype == torch.bool
+    assert label["target"].shape == (X, Y, Z) and label["target"].dtype == torch.uint8
+    assert label["CP_mega_matrix"].shape == (4, X * Y * Z // 512, X * Y * Z // 4096)
+    assert label["frustums_masks"].shape == (4, X, Y, Z) and label["frustums_masks"].dtype == torch.float32
+    assert label["frustums_class_dists"].shape == (4, g.n_classes)
+    assert OccuFlyKITTI360.META_INFO["class_names"] == g.class_names
+    assert OccuFlyKITTI360.META_INFO["class_weights"].shape == (g.n_classes,)
+    # every occupied voxel of the target projects into the image
+    occ = ((label["target"] != 0) & (label["target"] != 255)).reshape(-1).numpy()
+    assert data["fov_mask_1"].numpy()[occ].mean() > 0.99
+
+    W, H = 64, 48
+
+    def consistency(d, lab):
+        return depth_consistency(lab["target"].numpy(), d["depth"].numpy(), d["cam_K"].numpy(),
+                                 (W, H), g.voxel_origin, g.voxel_size, step=1)
+
+    fd, fl = ds.sample(0, flip=True)
+    before, after = consistency(data, label), consistency(fd, fl)
+    assert before["pixels"] > 100 and before["share"] > 0.5, before
+    assert abs(after["share"] - before["share"]) < 0.01, (before, after)
+    np.testing.assert_allclose(fd["cam_K"].numpy(), flip_K(data["cam_K"].numpy(), W), atol=1e-4)
+    assert torch.equal(fl["target"], torch.flip(label["target"], dims=[0]))
+    assert torch.equal(fd["img"], torch.flip(data["img"], dims=[2]))
+    # Symphonies' own flip (target along axis 1, K unchanged) breaks the agreement
+    wrong = dict(label, target=torch.flip(label["target"], dims=[1]))
+    theirs = consistency(dict(data, depth=torch.flip(data["depth"], dims=[1])), wrong)
+    assert theirs["share"] < before["share"] - 0.2, (before, theirs)
+    # the Hydra callback registers the class in the module Symphonies looks types up in
+    import sys
+    import types
+
+    mod = types.ModuleType("fake_ssc_datasets")
+    sys.modules["fake_ssc_datasets"] = mod
+    try:
+        Register(data_root=str(ssc), module="fake_ssc_datasets").on_job_start(config=None)
+        assert mod.OccuFlyKITTI360 is OccuFlyKITTI360
+    finally:
+        del sys.modules["fake_ssc_datasets"]
+
+
+def test_flip_refused_without_an_axis_record(ssc, tmp_path):
+    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    from occufly.datasets.compat.symphonies import OccuFlyKITTI360
+
+    root = tmp_path / "old"
+    shutil.copytree(ssc, root, symlinks=True)
+    mp = root / "manifests" / "scene_01.json"
+    m = json.loads(mp.read_text())
+    m.pop("axes")
+    m["conventions"]["frame_grid"] = "something else"
+    mp.write_text(json.dumps(m))
+    with pytest.raises(FlipRefused, match="axis convention"):
+        OccuFlyKITTI360("train", root, flip=True)
+    assert len(OccuFlyKITTI360("train", root, flip=False)) > 0
+    # an export before the record, with the camera-centric convention text: axis 0 inferred
+    m["conventions"]["frame_grid"] = "camera-centric, x right, y down, z forward; voxel ..."
+    mp.write_text(json.dumps(m))
+    assert OccuFlyKITTI360("train", root, flip=True).lr_axis == 0
+
+
+def test_monoscene_sample_contract_and_per_sequence_calibration(ssc, tmp_path):
+    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    import torch
+
+    from occufly.datasets.compat.monoscene import Kitti360Dataset, KittiDataset, training_constants
+
+    root = tmp_path / "two_calibs"
+    shutil.copytree(ssc, root, symlinks=True)
+    seqs = sorted(p.name for p in (root / "data_2d_raw").iterdir())
+    assert len(seqs) == 2
+    cal = root / "data_2d_raw" / seqs[1] / "calib.txt"
+    text = cal.read_text().replace("4.000000000000e+01", "4.400000000000e+01")
+    cal.write_text(text)
+    X, Y, Z = SPEC.shape
+    for cls in (Kitti360Dataset, KittiDataset):
+        ds = cls("train", root, root / "preprocess", frustum_size=2)
+        d = ds.sample(0)
+        assert set(d) == {"frame_id", "sequence", "P", "T_velo_2_cam", "proj_matrix", "scale_3ds",
+                          "cam_k", "projected_pix_1", "fov_mask_1", "pix_z_1", "projected_pix_2",
+                          "fov_mask_2", "pix_z_2", "target", "CP_mega_matrix", "frustums_masks",
+                          "frustums_class_dists", "img"}
+        assert d["scale_3ds"] == [1, 2] and d["cam_k"].dtype == np.float64
+        assert d["projected_pix_1"].dtype == np.int64 and d["pix_z_1"].dtype == np.float64
+        assert d["frustums_masks"].dtype == bool and d["frustums_masks"].shape == (4, X, Y, Z)
+        assert d["frustums_class_dists"].dtype == np.float64
+        assert isinstance(d["img"], torch.Tensor) and d["img"].shape == (3, 48, 64)
+        fx = {s.sequence: s.P2[0, 0] for s in ds.scans}
+        assert fx == {seqs[0]: 40.0, seqs[1]: 44.0}  # each sequence's own calib.txt
+        # their flip: image and u mirrored, the target untouched
+        f = ds.sample(0, flip=True)
+        np.testing.assert_array_equal(f["projected_pix_1"][:, 0], 63 - d["projected_pix_1"][:, 0])
+        np.testing.assert_array_equal(f["target"], d["target"])
+    test = Kitti360Dataset("test", root, root / "preprocess").sample(0)
+    assert test["frustums_masks"] is None and test["frustums_class_dists"] is None
+    c = training_constants(root)
+    assert c["full_scene_size"] == tuple(SPEC.shape) and c["n_classes"] == len(c["class_names"])
+
+
+# ---- the porting guide and its benchmark run -----------------------------------------------------
+def test_porting_guide_names_the_commits_and_matches_the_bench_run():
+    doc = (REPO / "docs" / "ssc-porting.md").read_text()
+    for name, commit in COMMITS.items():
+        assert name in doc and commit in doc, name
+    run = json.loads((REPO / "docs" / "bench" / "ssc_loaders.json").read_text())
+    assert set(run["codebases"]) == {"symphonies", "monoscene", "sscbench_monoscene", "cgformer"}
+    for key, cb in run["codebases"].items():
+        assert cb["commit"].startswith(COMMITS[cb["name"]]), key
+        assert f"| {cb['name']}" in doc or cb["name"] in doc
+    assert "ssc-porting.md" in (REPO / "mkdocs.yml").read_text()
+    guide = (REPO / "docs" / "guide" / "researcher.md").read_text()
+    assert "ssc-porting.md" in guide and "core/" not in guide

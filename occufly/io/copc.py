@@ -7,7 +7,7 @@ this module decides the octree and hands it each node's raw point records, which
 (the same records a LAS/LAZ export holds: ASPRS classification, class id, confidence).
 
 Octree: the root is the cube around the points; a node at depth d keeps one point per cell of a
-``GRID``^3 grid over its cube (the first point, in input order), the rest go to its children.
+``GRID``^3 grid over its cube (the first in Morton order), the rest go to its children.
 Every point lands in exactly one node. Depth stops where a node holds no more than
 ``MAX_NODE_POINTS`` or at ``MAX_DEPTH``, which takes all that are left.
 
@@ -38,42 +38,67 @@ _EVLR_HEADER = 60     # as a VLR header with a uint64 length
 _EB_DESCRIPTOR = 192  # LAS 1.4 extra-bytes descriptor
 
 
+_CELL_BITS = 7  # GRID = 2**7 cells per node side
+_BITS = MAX_DEPTH + _CELL_BITS  # finest cell index bits per axis (19 <= 21: fits a uint64 key)
+
+
+def _spread(v: np.ndarray) -> np.ndarray:
+    """Spread the low 21 bits of v so they occupy every third bit (Morton interleave)."""
+    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def _compact(v: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_spread`."""
+    v = v.astype(np.uint64) & np.uint64(0x1249249249249249)
+    for shift, mask in ((2, 0x10C30C30C30C30C3), (4, 0x100F00F00F00F00F), (8, 0x1F0000FF0000FF),
+                        (16, 0x1F00000000FFFF), (32, 0x1FFFFF)):
+        v = (v ^ (v >> np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
 def _octree(xyz: np.ndarray, center: np.ndarray, halfsize: float) -> list[tuple[tuple, np.ndarray]]:
-    """[((d, x, y, z), point indices)] covering every point once, parents before children."""
+    """[((d, x, y, z), point indices)] covering every point once, parents before children.
+
+    One sort: points in Morton order of their finest cell, so the points of any node or cell
+    at any depth are contiguous (a key prefix); each depth is then a linear pass over the
+    points still unplaced: the first of each occupied cell of the node's GRID^3 grid stays,
+    a node with at most MAX_NODE_POINTS unplaced points keeps them all."""
     lo = center - halfsize
-    size = 2.0 * halfsize
+    cells = 1 << _BITS
+    q = np.clip(((xyz - lo) / (2.0 * halfsize) * cells).astype(np.int64), 0, cells - 1)
+    key = (_spread(q[:, 0]) << np.uint64(2)) | (_spread(q[:, 1]) << np.uint64(1)) | _spread(q[:, 2])
+    order = np.argsort(key, kind="stable")
+    key = key[order]
     out: list[tuple[tuple, np.ndarray]] = []
-    remaining = np.arange(len(xyz), dtype=np.int64)
+    remaining = np.arange(len(key), dtype=np.int64)  # positions in Morton order
     for d in range(MAX_DEPTH + 1):
         if not len(remaining):
             break
-        n_nodes = 1 << d
-        rel = (xyz[remaining] - lo) / size  # 0..1 in the root cube
-        node = np.clip((rel * n_nodes).astype(np.int64), 0, n_nodes - 1)
-        node_id = (node[:, 0] * n_nodes + node[:, 1]) * n_nodes + node[:, 2]
+        k = key[remaining]
+        node = k >> np.uint64(3 * (_BITS - d))
+        node_start = np.r_[True, node[1:] != node[:-1]]
         if d == MAX_DEPTH:
-            keep = np.ones(len(remaining), bool)
+            keep = np.ones(len(k), bool)
         else:
-            cell = np.clip((rel * n_nodes * GRID).astype(np.int64), 0, n_nodes * GRID - 1)
-            g = n_nodes * GRID
-            cell_id = (cell[:, 0] * g + cell[:, 1]) * g + cell[:, 2]
-            _, first = np.unique(cell_id, return_index=True)
-            keep = np.zeros(len(remaining), bool)
-            keep[first] = True
-            # a node small enough keeps all its points (a leaf)
-            _, inv, counts = np.unique(node_id, return_inverse=True, return_counts=True)
-            small = counts[inv] <= MAX_NODE_POINTS
-            keep |= small
-        kept_nodes = node_id[keep]
-        order = np.argsort(kept_nodes, kind="stable")
-        idx_sorted = remaining[keep][order]
-        nodes_sorted = kept_nodes[order]
-        uniq, starts = np.unique(nodes_sorted, return_index=True)
-        ends = np.append(starts[1:], len(nodes_sorted))
-        for nid, a, b in zip(uniq.tolist(), starts.tolist(), ends.tolist(), strict=True):
-            x, rem = divmod(nid, n_nodes * n_nodes)
-            y, z = divmod(rem, n_nodes)
-            out.append(((d, x, y, z), idx_sorted[a:b]))
+            cell = k >> np.uint64(3 * (_BITS - d - _CELL_BITS))
+            keep = np.r_[True, cell[1:] != cell[:-1]]
+            starts = np.flatnonzero(node_start)
+            counts = np.diff(np.append(starts, len(k)))
+            keep |= np.repeat(counts <= MAX_NODE_POINTS, counts)
+        kept = remaining[keep]
+        kn = node[keep]
+        run = np.flatnonzero(np.r_[True, kn[1:] != kn[:-1]])
+        ends = np.append(run[1:], len(kn))
+        ids = kn[run]
+        xs = _compact(ids >> np.uint64(2)).tolist()
+        ys = _compact(ids >> np.uint64(1)).tolist()
+        zs = _compact(ids).tolist()
+        for x, y, z, a, b in zip(xs, ys, zs, run.tolist(), ends.tolist(), strict=True):
+            out.append(((d, x, y, z), order[kept[a:b]]))
         remaining = remaining[~keep]
     return out
 

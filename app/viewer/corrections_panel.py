@@ -307,7 +307,7 @@ def relabel(svc: Any, st: Any, choice: str, comment: str) -> dict | None:
         return None
     name = "unlabelled" if to_class == 0 else sb.class_name(st.data.taxonomy, to_class)
     st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} points "
-                                   f"-> {name}.")
+                                   f"-> {md_text(name)}.")
     st.client.add_notification("Correction saved", f"{edit['n_points']:,} points -> {name}",
                                color="green", auto_close_seconds=4.0)
     set_selection(svc, st, np.zeros(0, np.int64))

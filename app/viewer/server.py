@@ -283,7 +283,7 @@ class ViewerService:
             if ticket is not None and ticket.frame and st.data is not None:
                 idx = self.resolve_frame(scene_id, ticket.frame, st.data)
                 if idx is None:
-                    st.gui["cam_info"].content = f"Frame {ticket.frame} is not in this scene."
+                    st.gui["cam_info"].content = f"Frame {md_text(ticket.frame)} is not in this scene."
                 else:
                     self.focus_frame(st, idx)
         else:
@@ -458,17 +458,17 @@ class ViewerService:
     def open_scene(self, st: ClientState, scene_id: str) -> None:
         st.ready.clear()
         if scene_id not in self.scenes_for(st.user):  # the dropdown lists only these; a
-            st.gui["status"].content = f"You cannot open scene {scene_id}."  # stale list
+            st.gui["status"].content = f"You cannot open scene {md_text(scene_id)}."  # stale list
             st.ready.set()
             return
         with st.lock:
             st.scene_id = scene_id
-            st.gui["status"].content = f"Loading scene **{scene_id}**..."
+            st.gui["status"].content = f"Loading scene **{md_text(scene_id)}**..."
             try:
                 st.data = self.scene_data(scene_id)
             except Exception as e:  # noqa: BLE001 - show the reason to the reviewer
                 log.exception("viewer: cannot open scene %s", scene_id)
-                st.gui["status"].content = f"Cannot open scene {scene_id}: {e}"
+                st.gui["status"].content = f"Cannot open scene {md_text(scene_id)}: {md_text(e)}"
                 st.ready.set()
                 return
             st.client.scene.reset()
@@ -513,7 +513,7 @@ class ViewerService:
             d = st.data
             lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
             st.gui["status"].content = (
-                f"**{scene_id}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
+                f"**{md_text(scene_id)}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
                 f"{lifted}; showing {st.sent_points:,} points."
             )
         st.ready.set()
@@ -618,7 +618,7 @@ class ViewerService:
         st.frame_index = frame_index
         states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
         state = states.get(frame_index, "not_selected")
-        st.gui["cam_info"].content = f"**{md_text(fr.stem)}** - {state.replace('_', ' ')}"
+        st.gui["cam_info"].content = f"**{md_text(fr.stem)}** - {md_text(state.replace('_', ' '))}"
         st.gui["goto"].disabled = False
         img = _frame_image(d, frame_index)
         mask = self.frame_mask(st.scene_id, frame_index) if self.frame_mask else None

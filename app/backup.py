@@ -8,6 +8,15 @@ Layout of a backup folder::
                              a SQLite backup restores into PostgreSQL and back
     masks/<ab>/<cd>/<sha256>.png   every mask version's PNG (content-addressed)
     scenes/<name>/...        every scene workspace
+    images/<ab>/<sha256><ext>  every frame image that lives outside its workspace (typically
+                             in the import folder), content-addressed; the manifest's
+                             ``scenes[].external_images`` maps frame index -> sha256 and the
+                             original path. A restore puts them under the workspace's
+                             ``images_restored/`` and points scene.json at them, so a restore
+                             needs neither the import folder nor its path (issue 24, finding 8).
+                             ``--no-images``: recorded (path, size, sha256) but not copied; the
+                             manifest says ``complete: false`` and a restore checks every one
+                             is still there, unchanged, before writing anything.
 
 Consistency while the app runs: the rows are read from one snapshot (PostgreSQL: a REPEATABLE
 READ transaction; SQLite: the online backup API copies the database file first). A mask PNG
@@ -38,7 +47,8 @@ from occufly.errors import OccuflyError
 from occufly.fsutil import atomic_directory, atomic_write_text
 
 FORMAT = "occufly-backup"
-VERSION = 1
+VERSION = 2  # 2: external frame images (version-1 backups restore as before)
+RESTORED_IMAGES = "images_restored"
 
 
 class BackupError(OccuflyError):
@@ -144,8 +154,65 @@ def _copy_tree(src: Path, dst: Path) -> int:
     return n
 
 
-def backup(settings: Settings, dest: Path) -> dict:
-    """Write a complete backup of the app's state to the new folder ``dest``."""
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _external_images(ws: Path) -> list[tuple[int, Path, str]]:
+    """(frame index, resolved path, path as scene.json has it) of every frame image that is
+    not inside the workspace folder ``ws`` (symlinks followed)."""
+    try:
+        header = json.loads((ws / "scene.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise BackupError(f"{ws}/scene.json: cannot be read ({e}); the workspace is damaged") \
+            from None
+    root = Path(os.path.realpath(ws))
+    out = []
+    for i, f in enumerate(header.get("frames", [])):
+        raw = f.get("image_path")
+        if not raw:
+            continue
+        p = Path(raw)
+        real = Path(os.path.realpath(p if p.is_absolute() else ws / p))
+        if real != root and root not in real.parents:
+            out.append((i, real, raw))
+    return out
+
+
+def _backup_images(ws: Path, dest: Path, *, copy: bool, seen: dict[Path, str]) -> tuple[list, list]:
+    """Copy (or, ``copy=False``, record) the workspace's external images; returns the
+    manifest entries and the frames whose image is missing."""
+    entries, missing = [], []
+    for i, real, raw in _external_images(ws):
+        if not real.is_file():
+            missing.append(f"frame {i}: {raw}")
+            continue
+        sha = seen.get(real)
+        if sha is None:
+            sha = _sha256(real)
+            seen[real] = sha
+            if copy:
+                out = dest / "images" / sha[:2] / (sha + real.suffix.lower())
+                if not out.exists():
+                    out.parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(real, out)
+                    if not _sha_ok(out, sha):  # changed while copying: not a usable copy
+                        raise BackupError(f"{real}: changed while it was copied; back up again")
+        entries.append({"frame": i, "sha256": sha, "ext": real.suffix.lower(), "path": raw,
+                        "resolved": str(real), "size": real.stat().st_size})
+    return entries, missing
+
+
+def backup(settings: Settings, dest: Path, *, images: bool = True) -> dict:
+    """Write a complete backup of the app's state to the new folder ``dest``.
+
+    Frame images outside the workspaces (the import folder) are copied too; with
+    ``images=False`` they are only recorded and checked, and the backup says it is not
+    complete (``complete: false``). An image that is already missing fails the backup."""
     from app.storage import BlobStore
 
     dest = Path(dest).absolute()
@@ -177,16 +244,32 @@ def backup(settings: Settings, dest: Path) -> dict:
         if missing:
             raise BackupError(f"mask store: {len(missing)} mask PNG(s) named by the database are "
                               f"missing from {store.root}, e.g. {missing[0]}")
-        scenes = []
+        scenes, seen, lost = [], {}, []
         for row in _rows(tmp, "scenes"):
             ws = Path(row["workspace"])
             if ws.is_dir() and not ws.is_symlink():
                 files = _copy_tree(ws, tmp / "scenes" / row["name"])
-                scenes.append({"id": row["id"], "name": row["name"], "files": files})
+                ext, missing_img = ([], []) if not (ws / "scene.json").is_file() else \
+                    _backup_images(ws, tmp, copy=images, seen=seen)
+                lost += [f"scene {row['name']!r} {m}" for m in missing_img]
+                scenes.append({"id": row["id"], "name": row["name"], "files": files,
+                               "external_images": ext})
+        if lost:
+            raise BackupError(f"{len(lost)} frame image(s) named by the workspaces are missing, "
+                              f"e.g. {lost[0]}; a restore could not serve or export them "
+                              "(put the import folder back, or remove those scenes)")
+        n_ext = sum(len(sc["external_images"]) for sc in scenes)
         manifest = {"format": FORMAT, "version": VERSION, "revision": revision,
                     "created_at": datetime.now().astimezone().isoformat(),
                     "database": settings.database_url.split(":", 1)[0], "tables": counts,
-                    "masks": n_masks, "scenes": scenes}
+                    "masks": n_masks, "scenes": scenes,
+                    "external_images": {"frames": n_ext, "files": len(set(seen.values())),
+                                        "copied": images},
+                    "complete": images or n_ext == 0}
+        if not manifest["complete"]:
+            manifest["incomplete_because"] = (
+                f"{n_ext} frame image(s) outside the workspaces were recorded but not copied "
+                "(--no-images); a restore needs them at their recorded paths, unchanged")
         atomic_write_text(tmp / "manifest.json", json.dumps(manifest, indent=1))
     return {"backup": str(dest), **manifest}
 
@@ -201,6 +284,23 @@ def _convert(table, row: dict) -> dict:  # noqa: ANN001
             v = datetime.fromisoformat(v)
         out[k] = v
     return out
+
+
+def _restore_images(src: Path, ws: Path, entries: list[dict]) -> None:
+    """Copy the backup's external images into ``ws/images_restored/`` and point scene.json's
+    frames at them (relative paths: the workspace is self-contained from now on)."""
+    if not entries:
+        return
+    header_path = ws / "scene.json"
+    header = json.loads(header_path.read_text())
+    (ws / RESTORED_IMAGES).mkdir(exist_ok=True)
+    for e in entries:
+        name = e["sha256"] + e["ext"]
+        out = ws / RESTORED_IMAGES / name
+        if not out.exists():
+            shutil.copy2(src / "images" / e["sha256"][:2] / name, out)
+        header["frames"][e["frame"]]["image_path"] = f"{RESTORED_IMAGES}/{name}"
+    atomic_write_text(header_path, json.dumps(header, indent=1))
 
 
 def _is_empty(engine: Engine) -> bool:
@@ -235,6 +335,25 @@ def restore(settings: Settings, src: Path) -> dict:
         if existing:
             raise BackupError(f"{ws_root}: workspaces {existing[:5]} already exist; restore into "
                               "a fresh data directory")
+        # external frame images checked before anything is written: copied ones against their
+        # names, recorded-only ones (--no-images) at their paths against size and sha256
+        problems = []
+        for sc in manifest.get("scenes", []):
+            for e in sc.get("external_images", []):
+                if manifest.get("external_images", {}).get("copied", True):
+                    p = src / "images" / e["sha256"][:2] / (e["sha256"] + e["ext"])
+                    if not p.is_file() or not _sha_ok(p, e["sha256"]):
+                        problems.append(f"{p}: missing or damaged (frame {e['frame']} of "
+                                        f"{sc['name']!r})")
+                else:
+                    p = Path(e["resolved"])
+                    if not p.is_file() or p.stat().st_size != e["size"] or \
+                            not _sha_ok(p, e["sha256"]):
+                        problems.append(f"{p}: missing or changed since the backup (frame "
+                                        f"{e['frame']} of {sc['name']!r})")
+        if problems:
+            raise BackupError(f"{src}: {len(problems)} frame image(s) cannot be restored, e.g. "
+                              f"{problems[0]}")
         # masks first, each checked against its name: a damaged backup fails before the database
         from app.storage import BlobStore
 
@@ -277,6 +396,8 @@ def restore(settings: Settings, src: Path) -> dict:
             if folder.is_dir():
                 with atomic_directory(ws_root / s["name"]) as tmp:
                     _copy_tree(folder, tmp)
+                    if manifest.get("external_images", {}).get("copied", True):
+                        _restore_images(src, tmp, s.get("external_images", []))
         with engine.connect() as conn:
             missing = [sha for (sha,) in conn.execute(text("SELECT DISTINCT sha256 FROM mask_versions"))
                        if not store.exists(sha)]

@@ -15,6 +15,7 @@ import secrets
 import sys
 from pathlib import Path
 
+from app.serving import uvicorn_options
 from occufly.cli import command
 
 
@@ -26,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="API processes on one port (default 1). With N > 1 the processes are "
                         "stateless uvicorn workers over the same database and the lifting "
                         "worker runs as its own child process")
+    p.add_argument("--proxy-headers", action="store_true",
+                   help="behind a TLS-terminating reverse proxy: believe X-Forwarded-Proto/-For "
+                        "from OCCUFLY_TRUSTED_PROXIES (required), so cookies are sent Secure")
     p.add_argument("--no-lifting-worker", action="store_true",
                    help="with --workers N > 1: do not start the lifting worker here (run "
                         "'occufly lifting-worker' elsewhere, e.g. its own container)")
@@ -47,6 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = command(sub, "backup", _backup, help="back up the database, mask store and scene "
                                               "workspaces into a new folder (safe while serving)")
     p.add_argument("dir", help="the backup folder to create (must not exist or be empty)")
+    p.add_argument("--no-images", action="store_true",
+                   help="do not copy frame images that live outside the workspaces (the "
+                        "import folders); they are recorded with their sha256 and the backup "
+                        "is marked incomplete: a restore needs them at the same paths")
     p = command(sub, "restore", _restore, help="restore a backup folder into this fresh data "
                                                 "directory and database")
     p.add_argument("dir", help="a folder written by 'occufly backup'")
@@ -66,7 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _backup(args: argparse.Namespace) -> dict:
     from app.backup import backup
 
-    return backup(_settings(), Path(args.dir))
+    return backup(_settings(), Path(args.dir), images=not args.no_images)
 
 
 def _restore(args: argparse.Namespace) -> dict:
@@ -97,13 +105,12 @@ def _serve(args: argparse.Namespace) -> int:
         raise InputFormatError(f"--workers must be between 1 and {MAX_WORKERS}, got {args.workers}")
     if args.workers > 1:
         return _serve_workers(args)
-    app = create_app(_settings())
-    # no permessage-deflate: the /viewer/ socket carries ~15 B/point of float data, which
-    # barely compresses and costs ~5 s per 2 M points (bench/bench_viewer.py)
-    # proxy_headers off: uvicorn would otherwise believe X-Forwarded-For from loopback; the app
-    # honours it only from OCCUFLY_TRUSTED_PROXIES (app.security.client_ip)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info", ws_per_message_deflate=False,
-                proxy_headers=False)
+    settings = _settings()
+    # header-read/keep-alive timeouts, head size cap, no permessage-deflate, proxy headers
+    # only with --proxy-headers from OCCUFLY_TRUSTED_PROXIES (app.serving)
+    opts = uvicorn_options(settings, proxy_headers=args.proxy_headers)
+    app = create_app(settings)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info", **opts)
     return 0
 
 
@@ -117,6 +124,7 @@ def _serve_workers(args: argparse.Namespace) -> int:
     from app import db
 
     settings = _settings()  # configuration errors surface once, here
+    opts = uvicorn_options(settings, proxy_headers=args.proxy_headers)
     db.upgrade(settings.database_url)  # once, before N processes start
     env = os.environ  # inherited by the uvicorn workers (spawned) and the lifting worker
     env["OCCUFLY_AUTO_UPGRADE"] = "0"
@@ -128,8 +136,7 @@ def _serve_workers(args: argparse.Namespace) -> int:
         worker = subprocess.Popen([sys.executable, "-m", "app.lifting"], env=dict(env))
     try:
         uvicorn.run("app.main:app_from_env", factory=True, workers=args.workers,
-                    host=args.host, port=args.port, log_level="info",
-                    ws_per_message_deflate=False, proxy_headers=False)
+                    host=args.host, port=args.port, log_level="info", **opts)
     finally:
         if worker is not None:
             worker.terminate()
@@ -240,8 +247,7 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
         import uvicorn
 
         print(f"  open http://{host}:{port}/", file=sys.stderr)
-        uvicorn.run(app, host=host, port=port, log_level="info", ws_per_message_deflate=False,
-                    proxy_headers=False)
+        uvicorn.run(app, host=host, port=port, log_level="info", **uvicorn_options(settings))
     else:
         from app.main import close
 

@@ -140,9 +140,33 @@ def csrf_refusal(*, method: str, path: str, headers, cookies, allowed: list[str]
 
 
 # ---- response headers ------------------------------------------------------------------------
+# Content-Security-Policy (issue 24, finding 9). The app's pages load only same-origin
+# scripts (no inline script, no eval) and styles; images may be canvases' data:/blob: URLs.
+APP_CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; "
+           "img-src 'self' data: blob:; font-src 'self'; connect-src 'self'; "
+           "worker-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; "
+           "frame-ancestors 'self'")
+# Swagger UI (/docs): same scripts rule; its React components set inline styles
+DOCS_CSP = APP_CSP.replace("style-src 'self'", "style-src 'self' 'unsafe-inline'")
+# The 3D viewer (viser's client, unpacked by app.viewer.client_page so no inline script
+# runs): WebAssembly (zstd and mesh decoders), workers from blob: URLs (inlined worker
+# sources), <style> elements its UI library injects, and data: icons/fonts/WebAssembly.
+VIEWER_CSP = ("default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; "
+              "worker-src 'self' blob:; style-src 'self' 'unsafe-inline'; "
+              "img-src 'self' data: blob:; font-src 'self' data:; connect-src 'self' data:; "
+              "object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'self'")
+
+
+def csp_for(path: str) -> bytes:
+    if path == "/viewer" or path.startswith("/viewer/"):
+        return VIEWER_CSP.encode()
+    if path == "/docs" or path.startswith("/docs-assets"):
+        return DOCS_CSP.encode()
+    return APP_CSP.encode()
+
+
 SECURITY_HEADERS = (
     (b"x-frame-options", b"SAMEORIGIN"),
-    (b"content-security-policy", b"frame-ancestors 'self'"),
     (b"x-content-type-options", b"nosniff"),
     (b"referrer-policy", b"same-origin"),
 )
@@ -180,6 +204,9 @@ class SecurityMiddleware:
                 message = dict(message)
                 message["headers"] = list(message.get("headers", [])) + [
                     (k, v) for k, v in SECURITY_HEADERS if k not in present]
+                if b"content-security-policy" not in present:
+                    message["headers"].append((b"content-security-policy",
+                                               csp_for(scope["path"])))
             await send(message)
 
         if why is not None:

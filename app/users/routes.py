@@ -61,7 +61,8 @@ def login(body: LoginIn, request: Request, response: Response, session: SessionD
         raise
     audit.record(session, "login", actor=user, client_ip=ip)
     response.set_cookie(SESSION_COOKIE, token, httponly=True, samesite="lax",
-                        secure=not ctx.settings.is_dev and request.url.scheme == "https",
+                        secure=request.url.scheme == "https",  # TLS, or a trusted proxy's
+                        # X-Forwarded-Proto with `occufly serve --proxy-headers` (app.serving)
                         max_age=ctx.settings.session_seconds, path="/")
     return LoginOut(user=UserOut.model_validate(user), token=token)
 

@@ -110,6 +110,7 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         can_open=can_open,
         corrections=corrections,  # relabel / undo / redo from 3D (app.corrections)
         prefs_path=Path(getattr(settings, "data_dir", "data")) / "viewer_prefs.json",
+        max_sockets_per_user=getattr(settings, "viewer_sockets_per_user", None),
     )
     if subscribe is not None:
         def _on_event(msg: Any) -> None:

@@ -28,6 +28,7 @@ from fastapi.responses import JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 
+from app.viewer.client_page import ASSET_DIR, ClientLayoutError, client_assets
 from app.viewer.server import TICKET_HEADER, ViewerService
 
 log = logging.getLogger(__name__)
@@ -68,8 +69,27 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         status = await check_access(authorize, request)
         if status != 200:
             return refusal(status)
-        if not service.running:
+        if not service.running:  # the page's socket follows at once
             await run_in_threadpool(service.start)
+        if path in ("", "index.html") or path.startswith(f"{ASSET_DIR}/"):
+            # viser's client unpacked so no inline script runs (app/viewer/client_page.py)
+            try:
+                assets = await run_in_threadpool(client_assets)
+            except ClientLayoutError as e:
+                return JSONResponse({"detail": f"3D viewer client unavailable: {e}"},
+                                    status_code=502)
+            if path.startswith(f"{ASSET_DIR}/"):
+                name = path[len(ASSET_DIR) + 1:]
+                if name not in assets.files:
+                    return JSONResponse({"detail": f"no viewer asset {name!r}"}, status_code=404)
+                body, ctype = assets.files[name]
+                return Response(body, media_type=ctype, headers={
+                    "Cache-Control": "private, max-age=86400", "X-Content-Type-Options": "nosniff"})
+            resp = Response(assets.page, media_type="text/html; charset=utf-8",
+                            headers={"Cache-Control": "no-cache",
+                                     "X-Content-Type-Options": "nosniff"})
+            _remember_scene(resp, request, prefix)
+            return resp
         url = f"http://127.0.0.1:{service.port}/{path}"
         headers = {}
         if "accept-encoding" in request.headers:
@@ -88,18 +108,7 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         keep = {k: v for k, v in up.headers.items()
                 if k.lower() in ("content-type", "content-encoding", "cache-control", "etag")}
         keep["X-Content-Type-Options"] = "nosniff"
-        resp = Response(body, status_code=up.status_code, headers=keep)
-        scene = request.query_params.get("scene")
-        if scene is not None and path in ("", "index.html"):
-            resp.set_cookie(SCENE_COOKIE, scene, path=prefix, httponly=True, samesite="lax")
-            frame = request.query_params.get("frame")
-            if frame and len(frame) <= 200 and frame.replace("_", "").replace("-", "")\
-                    .replace(".", "").isalnum():
-                resp.set_cookie(FRAME_COOKIE, frame, path=prefix, httponly=True,
-                                samesite="lax")
-            else:  # a page without ?frame= must not fly to the last one
-                resp.delete_cookie(FRAME_COOKIE, path=prefix)
-        return resp
+        return Response(body, status_code=up.status_code, headers=keep)
 
     async def redirect(request: Request) -> Response:
         q = request.url.query
@@ -121,18 +130,58 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                 user = await user
         else:
             user = getattr(websocket.state, "user", None)
+        key = _user_name(user)
+        cap = service.max_sockets_per_user
+        if key is not None and cap is not None and service.open_sockets.get(key, 0) >= cap:
+            # each viewer socket holds its own copy of the scene in viser (tens of MB)
+            await websocket.accept()
+            await websocket.close(code=POLICY_VIOLATION,
+                                  reason=f"too many 3D viewer windows open (at most {cap} per "
+                                         "user); close one")
+            return
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
         ticket = service.issue_ticket(user, scene_id, websocket.cookies.get(FRAME_COOKIE))
         stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
                  "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)
-        await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket, stats)
+        if key is not None:
+            service.open_sockets[key] = service.open_sockets.get(key, 0) + 1
+        try:
+            await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket, stats)
+        finally:
+            if key is not None:
+                service.open_sockets[key] -= 1
+                if service.open_sockets[key] <= 0:
+                    del service.open_sockets[key]
 
     app.add_api_route(f"{prefix}/", page, methods=["GET"], include_in_schema=False)
     app.add_api_route(f"{prefix}/{{path:path}}", page, methods=["GET"], include_in_schema=False)
     app.add_api_route(prefix, redirect, methods=["GET"], include_in_schema=False)
     app.add_api_websocket_route(prefix, socket)
     app.add_api_websocket_route(f"{prefix}/", socket)
+
+
+def _remember_scene(resp: Response, request: Request, prefix: str) -> None:
+    """?scene= (and ?frame=) of the page in cookies: viser's client opens its websocket at the
+    page URL without the query string. ``Secure`` when the request came over TLS."""
+    secure = request.url.scheme == "https"
+    scene = request.query_params.get("scene")
+    if scene is None:
+        return
+    resp.set_cookie(SCENE_COOKIE, scene, path=prefix, httponly=True, samesite="lax",
+                    secure=secure)
+    frame = request.query_params.get("frame")
+    if frame and len(frame) <= 200 and frame.replace("_", "").replace("-", "")\
+            .replace(".", "").isalnum():
+        resp.set_cookie(FRAME_COOKIE, frame, path=prefix, httponly=True, samesite="lax",
+                        secure=secure)
+    else:  # a page without ?frame= must not fly to the last one
+        resp.delete_cookie(FRAME_COOKIE, path=prefix)
+
+
+def _user_name(user: Any) -> str | None:
+    name = user.get("username") if isinstance(user, dict) else getattr(user, "username", None)
+    return str(name) if name else None
 
 
 async def pump(websocket: WebSocket, upstream_url: str, ticket: str,

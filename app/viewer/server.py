@@ -115,13 +115,23 @@ class ViewerService:
                  watch_interval_s: float | None = None, require_ticket: bool = True,
                  can_open: Callable[[Any, str], bool] | None = None,
                  corrections: dict[str, Callable[..., Any]] | None = None,
-                 prefs_path: Path | None = None) -> None:
+                 prefs_path: Path | None = None, access_check_s: float = 0.5,
+                 max_sockets_per_user: int | None = None) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")
         self.scenes = scenes
         # can_open(user, scene_id) -> bool: which of the scenes a ticket's user may open (the
         # app: admins every scene, reviewers their member scenes); None: every scene
         self.can_open = can_open
+        # every access_check_s the open clients are checked against can_open(user, scene)
+        # again: a reviewer removed from the scene, demoted or deactivated is disconnected
+        # (1008) within that time, on whichever replica the socket is (issue 24, finding 7)
+        self.access_check_s = float(access_check_s)
+        # at most this many open viewer sockets per user and process (the proxy refuses more,
+        # 1008); None: no cap. open_sockets: the proxy's count per user name
+        self.max_sockets_per_user = max_sockets_per_user
+        self.open_sockets: dict[str, int] = {}
+        self.revoked: list[tuple[str | None, str | None]] = []  # (user, scene) closed for access
         self.frame_states = frame_states
         self.frame_mask = frame_mask
         # frame_index(scene_id, frame) -> frame index or None: resolves the page's ?frame=
@@ -154,6 +164,7 @@ class ViewerService:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        self._access_worker: threading.Thread | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------
     @property
@@ -183,6 +194,10 @@ class ViewerService:
             self._worker = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
                                             daemon=True)
             self._worker.start()
+            if self.can_open is not None and self.access_check_s > 0:
+                self._access_worker = threading.Thread(target=self._access_loop,
+                                                       name="viewer-access", daemon=True)
+                self._access_worker.start()
 
     def stop(self) -> None:
         with self._start_lock:
@@ -192,6 +207,8 @@ class ViewerService:
             self._wake.set()
             if self._worker is not None:
                 self._worker.join(timeout=5)
+            if self._access_worker is not None:
+                self._access_worker.join(timeout=5)
             self.server.stop()
             self.server = None
             self._clients.clear()
@@ -803,6 +820,44 @@ class ViewerService:
                     self._rebuild_class_boxes(st)
                     self.send_points(st, None if affected is None else affected)
         return set() if affected is None else affected
+
+    def check_access(self) -> list[int]:
+        """Disconnect every client whose user may no longer see its scene (``can_open``
+        re-reads the user); returns the client ids closed. The client leaves ``_clients``
+        at once, so no label update reaches it while its close is under way."""
+        if self.can_open is None:
+            return []
+        closed = []
+        for st in self.client_states():
+            if st.user is None:
+                continue
+            try:
+                ok = self.can_open(st.user, st.scene_id)
+            except Exception:  # noqa: BLE001 - a database hiccup is retried next round
+                log.warning("viewer: access check failed", exc_info=True)
+                continue
+            if ok:
+                continue
+            cid = st.client.client_id
+            with self._lock:
+                self._clients.pop(cid, None)
+                if st.scene_id is not None and not any(
+                        c.scene_id == st.scene_id for c in self._clients.values()):
+                    self._data.pop(st.scene_id, None)
+                    self._stamps.pop(st.scene_id, None)
+            self.revoked.append((_user_key(st.user), st.scene_id))
+            log.info("viewer: access of %s to scene %s withdrawn; socket closed",
+                     _user_key(st.user), st.scene_id)
+            self._close_client(cid, "access to this scene was withdrawn")
+            closed.append(cid)
+        return closed
+
+    def _access_loop(self) -> None:
+        while not self._stop.wait(self.access_check_s):
+            try:
+                self.check_access()
+            except Exception:  # noqa: BLE001 - keep the thread alive
+                log.exception("viewer: access check failed")
 
     def _refresh_loop(self) -> None:
         while not self._stop.is_set():

@@ -1,0 +1,116 @@
+"""How uvicorn serves the app: header-read and idle timeouts, header size cap, proxy headers.
+
+uvicorn (0.55) has a keep-alive timeout that starts only *after* a response; a connection that
+sends an incomplete request head (a "slowloris" client dribbling one header byte at a time, or
+one that connects and sends nothing) has no timer at all and stays open for ever. 50 such
+connections stayed open 60 s (issue 24). :class:`TimedH11Protocol` adds the missing timer: from
+the moment a connection opens, and again after each response, a complete request head must
+arrive within ``OCCUFLY_HEADER_TIMEOUT_S`` (default 10 s) or the connection is closed. Once
+the head is in, the request's own handling is not timed here; a websocket upgrade cancels the
+timer (the viewer socket lives for hours and has its own ping/pong).
+
+The head is parsed by h11, whose incomplete-event cap (``h11_max_incomplete_event_size``,
+64 KiB here) bounds what one connection can make the server buffer before the head is
+complete: a longer head gets 400 at once.
+
+``--proxy-headers`` (``occufly serve``): uvicorn believes ``X-Forwarded-Proto`` and
+``X-Forwarded-For`` from ``OCCUFLY_TRUSTED_PROXIES`` only, so behind a TLS-terminating proxy
+the request scheme is ``https`` and the session cookie is sent ``Secure``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from occufly.errors import InputFormatError
+
+log = logging.getLogger("occufly.serving")
+
+HEADER_TIMEOUT_S = 10.0
+KEEP_ALIVE_S = 5
+MAX_HEAD_BYTES = 64 * 1024
+
+
+def header_timeout_s() -> float:
+    raw = os.environ.get("OCCUFLY_HEADER_TIMEOUT_S", "")
+    try:
+        value = float(raw) if raw else HEADER_TIMEOUT_S
+    except ValueError:
+        raise InputFormatError(f"OCCUFLY_HEADER_TIMEOUT_S must be a number of seconds, got "
+                               f"{raw!r}") from None
+    if not value > 0:
+        raise InputFormatError(f"OCCUFLY_HEADER_TIMEOUT_S must be > 0, got {raw!r}")
+    return value
+
+
+class TimedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with a deadline for each request head (see the module doc)."""
+
+    closed_for_slow_head = 0  # per process; the tests and the log read it
+
+    def connection_made(self, transport: Any) -> None:  # noqa: ANN401
+        super().connection_made(transport)
+        self._head_timer = None
+        self._arm_head_timer()
+
+    def _arm_head_timer(self) -> None:
+        self._cancel_head_timer()
+        self._head_timer = self.loop.call_later(header_timeout_s(), self._head_deadline)
+
+    def _cancel_head_timer(self) -> None:
+        timer = getattr(self, "_head_timer", None)
+        if timer is not None:
+            timer.cancel()
+            self._head_timer = None
+
+    def _head_deadline(self) -> None:
+        self._head_timer = None
+        if self.transport.is_closing():
+            return
+        if self.cycle is not None and not self.cycle.response_complete:
+            return  # a complete head arrived; the request is being handled
+        TimedH11Protocol.closed_for_slow_head += 1
+        log.info("closing connection from %s: no complete request head within %.1f s",
+                 self.client, header_timeout_s())
+        self.transport.close()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing():
+            self._arm_head_timer()  # the next request head of a kept-alive connection
+
+    def handle_websocket_upgrade(self, event: Any) -> None:  # noqa: ANN401
+        self._cancel_head_timer()
+        super().handle_websocket_upgrade(event)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel_head_timer()
+        super().connection_lost(exc)
+
+
+def uvicorn_options(settings: Any, *, proxy_headers: bool = False) -> dict:  # noqa: ANN401
+    """Keyword arguments for ``uvicorn.run`` / ``uvicorn.Config`` (every way the app is
+    served uses them)."""
+    header_timeout_s()  # a bad OCCUFLY_HEADER_TIMEOUT_S fails here, before serving
+    opts: dict = dict(
+        http=TimedH11Protocol, timeout_keep_alive=KEEP_ALIVE_S,
+        h11_max_incomplete_event_size=MAX_HEAD_BYTES,
+        # no permessage-deflate: the /viewer/ socket carries ~15 B/point of float data,
+        # which barely compresses and costs ~5 s per 2 M points (bench/bench_viewer.py)
+        ws_per_message_deflate=False,
+        # off by default: uvicorn would otherwise believe X-Forwarded-For from loopback; the
+        # app honours it only from OCCUFLY_TRUSTED_PROXIES (app.security.client_ip)
+        proxy_headers=False,
+    )
+    if proxy_headers:
+        proxies = list(getattr(settings, "trusted_proxies", []) or [])
+        if not proxies:
+            raise InputFormatError(
+                "--proxy-headers needs OCCUFLY_TRUSTED_PROXIES (the reverse proxy's address): "
+                "X-Forwarded-Proto/-For are believed from those addresses only")
+        opts.update(proxy_headers=True, forwarded_allow_ips=",".join(proxies))
+    return opts

@@ -1,0 +1,202 @@
+"""Issue 24, finding 9: header-read and idle timeouts, the request-head size cap and
+``--proxy-headers``, against a real ``occufly serve`` process on a loopback port.
+
+Before the fix 50 connections that dribble a request head one header line at a time stayed
+open for 60 s (uvicorn has no header-read timeout; its keep-alive timer starts only after a
+response).
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+HEADER_TIMEOUT_S = 2.0
+N_SLOW = 50
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServeProcess:
+    def __init__(self, tmp: Path, *extra: str, env: dict | None = None) -> None:
+        self.port = _free_port()
+        self.env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
+                    "OCCUFLY_ENV": "development", "OCCUFLY_LIFTING": "off",
+                    "OCCUFLY_JOB_PROCESSES": "0", "OCCUFLY_ARGON2_MEMORY_KIB": "1024",
+                    "OCCUFLY_ARGON2_TIME_COST": "1",
+                    "OCCUFLY_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S), **(env or {})}
+        self.cmd = [str(REPO / ".venv" / "bin" / "occufly"), "serve", "--port",
+                    str(self.port), *extra]
+        self.proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> ServeProcess:
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, cwd=REPO)
+        t_end = time.monotonic() + 90
+        while time.monotonic() < t_end:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"occufly serve exited: {self.proc.stdout.read().decode()}")
+            try:
+                if httpx.get(f"{self.url}/api/health", timeout=2).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError("occufly serve did not answer /api/health in 90 s")
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __exit__(self, *exc) -> None:  # noqa: ANN002
+        self.proc.terminate()
+        try:
+            self.proc.wait(20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+def _closed_after(sockets: list[socket.socket], *, dribble: bool, limit_s: float) -> list:
+    """Seconds until the server closed each socket (None: still open at limit_s). With
+    ``dribble`` every open socket sends one more header line every 0.5 s."""
+    sel = selectors.DefaultSelector()
+    t0 = time.perf_counter()
+    closed: dict[int, float] = {}
+    for i, s in enumerate(sockets):
+        s.setblocking(False)
+        sel.register(s, selectors.EVENT_READ, i)
+    next_drip = t0 + 0.5
+    while len(closed) < len(sockets) and time.perf_counter() - t0 < limit_s:
+        for key, _ev in sel.select(timeout=0.1):
+            i = key.data
+            try:
+                data = key.fileobj.recv(4096)
+            except (ConnectionResetError, BlockingIOError) as e:
+                data = b"" if isinstance(e, ConnectionResetError) else None
+            if data == b"":
+                closed[i] = time.perf_counter() - t0
+                sel.unregister(key.fileobj)
+        if dribble and time.perf_counter() >= next_drip:
+            next_drip += 0.5
+            for i, s in enumerate(sockets):
+                if i not in closed:
+                    try:
+                        s.send(b"X-Slow: 1\r\n")
+                    except OSError:
+                        closed[i] = time.perf_counter() - t0
+                        sel.unregister(s)
+    sel.close()
+    return [closed.get(i) for i in range(len(sockets))]
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    with ServeProcess(tmp_path_factory.mktemp("serve")) as srv:
+        yield srv
+
+
+def test_slow_and_silent_request_heads_are_closed(served):
+    """50 slow-header ("slowloris") connections and 50 silent ones are closed ~2 s
+    (OCCUFLY_HEADER_TIMEOUT_S) after they opened, while requests keep being answered."""
+    slow = [socket.create_connection(("127.0.0.1", served.port)) for _ in range(N_SLOW)]
+    for s in slow:
+        s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+    silent = [socket.create_connection(("127.0.0.1", served.port)) for _ in range(N_SLOW)]
+    t = _closed_after(slow + silent, dribble=True, limit_s=20.0)
+    # meanwhile the server still answers (measured after: they were open in parallel)
+    assert httpx.get(f"{served.url}/api/health", timeout=5).status_code == 200
+    for s in slow + silent:
+        s.close()
+    still_open = [i for i, x in enumerate(t) if x is None]
+    assert not still_open, f"{len(still_open)} connections still open after 20 s"
+    worst = max(t)
+    assert HEADER_TIMEOUT_S - 0.5 <= min(t) and worst <= HEADER_TIMEOUT_S + 3.0, t
+    print(f"\n{2 * N_SLOW} slow/silent connections closed after {min(t):.2f}-{worst:.2f} s "
+          f"(header timeout {HEADER_TIMEOUT_S} s)")
+
+
+def test_keep_alive_idle_and_second_slow_head_are_closed(served):
+    """After a response the connection may idle for the keep-alive time (5 s) only, and a
+    second request head on it has the same header-read deadline."""
+    s = socket.create_connection(("127.0.0.1", served.port))
+    s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    s.settimeout(10)
+    assert b"200 OK" in s.recv(65536)
+    s.sendall(b"GET /api/health HTTP/1.1\r\n")  # a second head that never completes
+    t = _closed_after([s], dribble=True, limit_s=15.0)
+    s.close()
+    assert t[0] is not None and t[0] <= HEADER_TIMEOUT_S + 3.0, t
+    idle = socket.create_connection(("127.0.0.1", served.port))
+    idle.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    idle.settimeout(10)
+    assert b"200 OK" in idle.recv(65536)
+    t = _closed_after([idle], dribble=False, limit_s=15.0)
+    idle.close()
+    assert t[0] is not None and t[0] <= 5 + 2.0, t
+
+
+def test_oversized_request_head_is_refused_at_once(served):
+    s = socket.create_connection(("127.0.0.1", served.port))
+    s.settimeout(10)
+    s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: " + b"a" * (200 << 10))
+    got = b""
+    try:
+        while True:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            got += chunk
+    except (ConnectionResetError, TimeoutError):
+        pass
+    s.close()
+    assert got.startswith(b"HTTP/1.1 400"), got[:200]
+
+
+def test_proxy_headers_only_from_trusted_proxies(tmp_path):
+    """``--proxy-headers`` believes X-Forwarded-Proto from OCCUFLY_TRUSTED_PROXIES: the session
+    cookie is Secure behind a TLS proxy; without --proxy-headers the header is ignored; with it
+    but no trusted proxy configured, serve refuses to start."""
+    from app.config import Settings
+    from app.users import service as users
+
+    def seed(data: Path) -> None:
+        from app.main import close, create_app
+
+        app = create_app(Settings(data_dir=data, env="development", job_processes=False,
+                                  live_lifting=False, argon2_memory_kib=1024,
+                                  argon2_time_cost=1))
+        with app.state.ctx.sessions() as s:
+            users.create_user(session=s, username="rev", password="correct-horse-battery",
+                              role="reviewer")
+        close(app)
+
+    seed(tmp_path / "data")
+    body = {"username": "rev", "password": "correct-horse-battery"}
+    fwd = {"X-Forwarded-Proto": "https", "X-Forwarded-For": "203.0.113.7"}
+    with ServeProcess(tmp_path, "--proxy-headers",
+                      env={"OCCUFLY_TRUSTED_PROXIES": "127.0.0.1"}) as srv:
+        r = httpx.post(f"{srv.url}/api/auth/login", json=body, headers=fwd)
+        assert r.status_code == 200, r.text
+        assert "secure" in r.headers["set-cookie"].lower(), r.headers["set-cookie"]
+    with ServeProcess(tmp_path) as srv:
+        r = httpx.post(f"{srv.url}/api/auth/login", json=body, headers=fwd)
+        assert r.status_code == 200 and "secure" not in r.headers["set-cookie"].lower()
+    p = subprocess.run([str(REPO / ".venv/bin/occufly"), "serve", "--proxy-headers", "--port",
+                        str(_free_port())], env={**os.environ, "OCCUFLY_ENV": "development",
+                                                 "OCCUFLY_DATA_DIR": str(tmp_path / "data"),
+                                                 "OCCUFLY_TRUSTED_PROXIES": ""},
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode != 0 and "OCCUFLY_TRUSTED_PROXIES" in p.stderr + p.stdout, p

@@ -16,11 +16,15 @@ Caps (``app.config.Settings``):
                                                    list naming every point) plus 64 KiB, at
                                                    most ``max_selection_bytes``
 ``POST /api/scenes/{sid}/review-items``            ``max_selection_bytes`` (point id lists)
+``POST /api/scenes/{sid}/masks/import``            ``max_import_upload_bytes`` (a zip of masks
+                                                   painted in another tool, issue 26)
+``POST /api/imports/upload``                       ``max_import_upload_bytes`` (the zip of a
+                                                   project folder, streamed to disk)
 anything else                                      ``max_json_bytes`` (1 MiB)
 =================================================  ==========================================
 
-Imports read their input from folders on the server (``OCCUFLY_IMPORT_ROOTS``), never from
-the request body, so no route takes a streamed upload larger than a mask.
+Imports otherwise read their input from folders on the server (``OCCUFLY_IMPORT_ROOTS``);
+the one upload of a project (``POST /api/imports/upload``) is written to disk as it arrives.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ BYTES_PER_POINT_ID = 12
 _MASK = re.compile(r"^/api/frames/(\d{1,10})/(?:mask|reviewer-correction)/?$")
 _CORRECTIONS = re.compile(r"^/api/scenes/(\d{1,10})/corrections/?$")
 _REVIEW_ITEMS = re.compile(r"^/api/scenes/\d{1,10}/review-items/?$")
+_MASK_IMPORT = re.compile(r"^/api/scenes/\d{1,10}/masks/import/?$")  # issue 26: a zip of masks
 
 
 def _too_large(limit: int, what: str) -> bytes:
@@ -74,6 +79,11 @@ class BodyLimitMiddleware:
                         "a correction of this scene")
             if _REVIEW_ITEMS.match(path):
                 return s.max_selection_bytes, "a review item"
+            if _MASK_IMPORT.match(path):
+                return (s.max_import_upload_bytes,
+                        "a mask archive upload (OCCUFLY_MAX_IMPORT_UPLOAD_MB)")
+            if path.rstrip("/") == "/api/imports/upload":  # issue 28: app/scenes/imports.py
+                return s.max_import_upload_bytes, "an import upload (OCCUFLY_MAX_IMPORT_UPLOAD_MB)"
         return s.max_json_bytes, "this request"
 
     async def __call__(self, scope, receive, send) -> None:  # noqa: ANN001

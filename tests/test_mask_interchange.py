@@ -20,6 +20,7 @@ from occufly.errors import MaskError
 from occufly.io import mask_interchange as mi
 from occufly.scene import Frame
 from occufly.taxonomy import default_taxonomy
+from tests.mask_archives import datumaro_cvat_archive
 
 pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
 
@@ -143,31 +144,7 @@ def test_downscaled_masks_are_written_at_the_image_size(tmp_path):
 
 
 def _datumaro_cvat_archive(tmp_path: Path, labels: list[str], image_names: list[str]) -> Path:
-    """A CVAT for images 1.1 archive written by Datumaro's own CVAT writer: a polygon and an
-    RLE mask per image (z-ordered), as CVAT exports them."""
-    import datumaro as dm
-    from datumaro.components.annotation import AnnotationType, LabelCategories, Mask, Polygon
-    from datumaro.components.media import Image
-
-    items = []
-    for name in image_names:
-        m = np.zeros((H, W), bool)
-        m[4:12, 20:40] = True
-        items.append(dm.DatasetItem(
-            id=Path(name).stem, subset="default",
-            media=Image.from_file(path=name, size=(H, W)),
-            annotations=[Polygon([0, 0, 24, 0, 24, 16, 0, 16], label=0, z_order=0),
-                         Mask(image=m, label=1, z_order=1)]))
-    ds = dm.Dataset.from_iterable(items, categories={
-        AnnotationType.label: LabelCategories.from_iterable(labels)})
-    out = tmp_path / "dm_cvat"
-    ds.export(str(out), "cvat", save_media=False)
-    archive = tmp_path / "datumaro_cvat.zip"
-    with zipfile.ZipFile(archive, "w") as zf:
-        for p in out.rglob("*"):
-            if p.is_file():
-                zf.write(p, p.relative_to(out).as_posix())
-    return archive
+    return datumaro_cvat_archive(tmp_path / "datumaro_cvat.zip", labels, image_names, (H, W))
 
 
 def test_archive_written_by_datumaros_cvat_writer_imports(tmp_path):

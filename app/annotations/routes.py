@@ -2,10 +2,10 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Form, Header, Path, Query, Request, Response, UploadFile
 
 from app import pipeline
-from app.annotations import service
+from app.annotations import interchange, service
 from app.annotations.schemas import PNG, EffortOut, LabelsStatus, VersionOut
 from app.audit import service as audit
 from app.deps import (
@@ -40,6 +40,7 @@ ACCESS = {
     "GET /api/frames/{fid}/prefill": "member",
     "GET /api/scenes/{sid}/labels/status": "member",
     "GET /api/scenes/{sid}/effort": "admin",
+    "POST /api/scenes/{sid}/masks/import": "admin",
 }
 
 PNG_BODY = {"requestBody": {"required": True, **PNG}}
@@ -94,7 +95,9 @@ def reopen_frame(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: Annota
 
 def _png(ctx, sha256: str, version_id: int, number: int | None = None) -> Response:  # noqa: ANN001
     headers = {"ETag": f'"{version_id}"', "Cache-Control": "private, no-cache",
-               "X-Mask-Version": str(version_id)}
+               "X-Mask-Version": str(version_id),
+               # stored bytes: never a document (nosniff, sandboxing CSP), issue 24
+               **scenes.data_headers(f"mask_version_{version_id}.png")}
     if number is not None:
         headers["X-Mask-Number"] = str(number)  # the per-frame version number
     return Response(ctx.store.get(sha256), media_type="image/png", headers=headers)
@@ -195,3 +198,54 @@ def effort(scene: SceneDep, session: SessionDep, _user: AdminUser):
 @router.get("/scenes/{sid}/labels/status", response_model=LabelsStatus)
 def labels_status(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: CurrentUser):
     return service.labels_status(session=session, ctx=ctx, scene=scene)
+
+
+MAX_MAPPING_BYTES = 1 << 20
+
+
+@router.post("/scenes/{sid}/masks/import", response_model=interchange.MaskImportOut,
+             responses={422: {"description": "the archive cannot be imported: every unknown "
+                                             "class, unmatched image and wrong size is listed; "
+                                             "nothing was stored"}})
+def import_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
+                 ip: ClientIp, archive: UploadFile,
+                 format: Annotated[Literal["cvat", "cvat_images", "cvat_mask", "coco",  # noqa: A002
+                                           "coco_panoptic", "labelstudio", "png"], Form()],
+                 mapping: UploadFile | None = None,
+                 author: Annotated[str | None, Form(max_length=64)] = None):
+    """Masks painted in another tool (a CVAT, COCO, Label Studio or PNG export, zipped) as
+    ``imported`` versions of the frames they paint, authored by the caller (``author``: an
+    external author recorded in the versions' source); they vote and wait for review.
+    ``mapping``: a JSON/YAML file {archive class name: taxonomy class name | id | "ignore" |
+    "unpainted"} where the names differ."""
+    import shutil
+    import tempfile
+    from pathlib import Path as FsPath
+
+    from occufly.io.mask_interchange import load_class_map
+
+    with tempfile.TemporaryDirectory(prefix="occufly-mask-import-") as tmp:
+        name = FsPath(archive.filename or "archive.zip").name or "archive.zip"
+        path = FsPath(tmp) / name
+        with open(path, "wb") as f:
+            shutil.copyfileobj(archive.file, f)
+        if path.stat().st_size == 0:
+            raise Invalid(f"archive {name!r} is empty; expected a zip of the tool's export")
+        class_map = None
+        if mapping is not None and mapping.filename:
+            mname = FsPath(mapping.filename).name
+            data = mapping.file.read(MAX_MAPPING_BYTES + 1)
+            if len(data) > MAX_MAPPING_BYTES:
+                raise PayloadTooLarge(f"mapping {mname!r} is larger than {MAX_MAPPING_BYTES} bytes")
+            mpath = FsPath(tmp) / ("mapping" + (FsPath(mname).suffix or ".json"))
+            mpath.write_bytes(data)
+            class_map = load_class_map(mpath)
+        out = interchange.import_archive(session=session, ctx=ctx, scene=scene, user=user,
+                                         archive=path, fmt=format, class_map=class_map,
+                                         author=author)
+    audit.record(session, "mask_import", actor=user, scene_id=scene.id, target=name,
+                 client_ip=ip, detail={"format": out.format, "source": out.source,
+                                       "frames": out.frames_imported,
+                                       "versions": [f.version for f in out.frames]})
+    session.commit()
+    return out

@@ -1,0 +1,87 @@
+"""An admin brings masks painted in another tool (CVAT, COCO, Label Studio, PNG) into a scene.
+
+The archive is read and checked as a whole first (occufly.io.mask_interchange: unknown
+classes, images that name no frame, wrong sizes are one 422 listing them all, and nothing is
+stored); then each frame gets a version of kind ``imported`` through ``store_version`` --
+authored by the uploading admin, with ``source`` "imported from CVAT" (and "by <name>" when
+an external author is recorded) -- which votes and waits for review like a submitted one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.annotations import service
+from app.annotations.models import MaskVersion
+from app.context import AppContext
+from app.errors import Invalid
+from app.scenes.models import Frame, Scene
+from app.users.models import User
+from occufly.errors import check_name
+from occufly.io import mask_interchange
+from occufly.io.masks import encode_mask_png
+
+SOURCE_MAX = 64  # MaskVersion.source
+
+
+class ImportedFrame(BaseModel):
+    frame_id: int
+    frame: str  # the frame's image name
+    item: str  # the image name in the archive
+    version: int
+    kind: str
+
+
+class MaskImportOut(BaseModel):
+    format: str  # the format read (cvat resolved to cvat_images / cvat_mask)
+    source: str  # what the versions' source says, e.g. "imported from CVAT"
+    frames_imported: int
+    frames: list[ImportedFrame]
+    skipped_without_annotations: list[str]  # archive images with nothing painted
+    classes: dict[str, int]  # archive class name -> raw id it was mapped to
+
+
+def source_label(tool: str, author: str | None) -> str:
+    base = f"imported from {tool}"
+    if not author:
+        return base
+    author = check_name(author.strip(), "author")
+    room = SOURCE_MAX - len(base) - len(" by ")
+    if len(author) > room:
+        raise Invalid(f"author: at most {room} characters (the version's source holds "
+                      f"{SOURCE_MAX}: {base!r} + ' by ' + the author)")
+    return f"{base} by {author}"
+
+
+def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: User,
+                   archive: Path, fmt: str, class_map: dict | None = None,
+                   author: str | None = None) -> MaskImportOut:
+    """Read ``archive`` (a zip, or a folder) in ``fmt`` and store one ``imported`` version per
+    frame it paints. Raises MaskImportError (422) listing every problem, storing nothing."""
+    if fmt not in mask_interchange.FORMATS:
+        raise Invalid(f"format must be one of {', '.join(mask_interchange.FORMATS)}, got "
+                      f"{fmt!r}")
+    tool = mask_interchange.TOOL_NAMES[fmt]
+    source = source_label(tool, author)  # checked before the archive is read
+    ws_scene = ctx.load_scene(scene.workspace)
+    res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
+                                      class_map=class_map)
+    if not res.masks:
+        raise Invalid(f"the {res.tool} archive paints no frame ({len(res.skipped_empty)} "
+                      f"image(s) without annotations): nothing to import")
+    rows = {f.index: f for f in session.scalars(select(Frame).where(Frame.scene_id == scene.id))}
+    out: list[ImportedFrame] = []
+    for fi, mask in sorted(res.masks.items()):
+        frame = rows[fi]
+        session.refresh(frame)
+        v: MaskVersion = service.store_version(
+            session=session, ctx=ctx, frame=frame, user=user, data=encode_mask_png(mask),
+            kind="imported", expected=frame.current_version_id, source=source)
+        out.append(ImportedFrame(frame_id=frame.id, frame=frame.name, item=res.item_names[fi],
+                                 version=v.id, kind=v.kind))
+    return MaskImportOut(format=res.fmt, source=source, frames_imported=len(out), frames=out,
+                         skipped_without_annotations=res.skipped_empty, classes=res.classes)

@@ -1,0 +1,90 @@
+"""An admin uploads masks painted in another tool (issue 26): POST /api/scenes/{sid}/masks/import
+stores ``imported`` versions (source "imported from CVAT", the admin as author, an external
+author recorded) that vote and go through review; a bad archive is one 422 listing every
+unknown class and unmatched image, with nothing stored. On SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from sqlalchemy import func, select
+
+from tests.app.conftest import H, W
+from tests.mask_archives import datumaro_cvat_archive
+
+pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
+
+
+def _post(env, sid, path, hdr, fmt="cvat", mapping=None, author=None):  # noqa: ANN001, ANN202
+    files = {"archive": (path.name, path.read_bytes(), "application/zip")}
+    if mapping is not None:
+        files["mapping"] = ("map.json", json.dumps(mapping).encode(), "application/json")
+    data = {"format": fmt, **({"author": author} if author else {})}
+    return env.client.post(f"/api/scenes/{sid}/masks/import", files=files, data=data,
+                           headers=hdr)
+
+
+def test_admin_imports_a_datumaro_cvat_archive_which_then_is_reviewed(world, tmp_path):
+    from app.annotations.models import MaskVersion
+    from app.audit.models import AuditEvent
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    archive = datumaro_cvat_archive(tmp_path / "task.zip", ["Road", "car"],
+                                    [frames[0]["name"], frames[2]["name"]], (H, W))
+    assert _post(env, sid, archive, hdr["annotator"]).status_code == 403
+    r = _post(env, sid, archive, hdr["admin"], mapping={"car": "vehicle"}, author="Jane Doe")
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["format"] == "cvat_images" and out["frames_imported"] == 2
+    assert out["source"] == "imported from CVAT by Jane Doe"
+    assert out["classes"] == {"Road": 1, "car": 13}
+    assert [f["frame_id"] for f in out["frames"]] == [frames[0]["id"], frames[2]["id"]]
+    ctx = env.app.state.ctx
+    with ctx.sessions() as s:
+        v = s.get(MaskVersion, out["frames"][0]["version"])
+        assert v.kind == "imported" and v.source == "imported from CVAT by Jane Doe"
+        admin_id = s.scalar(select(AuditEvent.actor_id).where(AuditEvent.action == "mask_import"))
+        assert v.author_id == admin_id
+    got = env.client.get(f"/api/frames/{frames[0]['id']}/mask", headers=hdr["admin"])
+    m = np.asarray(Image.open(io.BytesIO(got.content)))
+    assert m[1, 1] == 1 and m[H // 4, W * 2 // 3] == 13 and m[H - 1, W - 1] == 0
+    # the imported versions vote and wait for review like submitted ones
+    assert ctx.lifting.wait_idle(sid, timeout=30, include_fill=True)
+    st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
+    assert set(st["included_versions"]) == {str(frames[0]["id"]), str(frames[2]["id"])}
+    f0 = env.client.get(f"/api/frames/{frames[0]['id']}", headers=hdr["admin"]).json()
+    assert f0["state"] == "submitted"
+    r = env.client.post(f"/api/frames/{frames[0]['id']}/review",
+                        json={"decision": "reject", "version": out["frames"][0]["version"]},
+                        headers=hdr["reviewer"])
+    assert r.status_code == 200 and r.json()["state"] == "rejected"
+    assert ctx.lifting.wait_idle(sid, timeout=30)
+    st = env.client.get(f"/api/scenes/{sid}/labels/status", headers=hdr["admin"]).json()
+    assert set(st["included_versions"]) == {str(frames[2]["id"])}
+
+
+def test_unknown_classes_and_unmatched_images_store_nothing(world, tmp_path):
+    from app.annotations.models import MaskVersion
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    archive = datumaro_cvat_archive(tmp_path / "bad.zip", ["Road", "hedge"],
+                                    [frames[0]["name"], "IMG_9999.JPG", "IMG_9998.JPG"], (H, W))
+    r = _post(env, sid, archive, hdr["admin"])
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert "nothing imported" in detail and "'hedge'" in detail
+    assert "'IMG_9998'" in detail and "'IMG_9999'" in detail
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(MaskVersion)) == 0
+    # a wrong format and a bad author name are refused before anything is read
+    assert _post(env, sid, archive, hdr["admin"], fmt="nosuch").status_code == 422
+    r = _post(env, sid, archive, hdr["admin"], mapping={"hedge": "vegetation"}, author="a<b")
+    assert r.status_code == 422 and "author" in r.json()["detail"]
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(MaskVersion)) == 0

@@ -31,12 +31,13 @@ def table() -> dict[str, str]:
     from app.jobs import archive
     from app.jobs import routes as jobs
     from app.review import routes as review
+    from app.scenes import console, imports
     from app.scenes import routes as scenes
     from app.users import routes as users
 
     merged: dict[str, str] = dict(ACCESS)
     for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
-                corrections):
+                corrections, imports, console):
         for key, level in getattr(mod, "ACCESS", {}).items():
             if level not in LEVELS:
                 raise ValueError(f"{mod.__name__}.ACCESS[{key!r}]: unknown level {level!r}")

@@ -31,6 +31,14 @@
                                address is the client)
 ``OCCUFLY_ALLOWED_ORIGINS``    comma-separated extra origins (``https://host:port``) allowed to
                                send cookie-authenticated writes besides the app's own host
+``OCCUFLY_MAX_IMPORT_UPLOAD_MB``  largest zip of a project folder uploaded from the import
+                               form (default 8192; extracted at most 4x that:
+                               app/scenes/imports.py)
+``OCCUFLY_EXPORT_KEEP_LAST``   export retention: keep only the newest N finished exports of
+                               each scene (default 0 = keep all)
+``OCCUFLY_EXPORT_MAX_AGE_DAYS``  export retention: delete finished exports older than this
+                               (default 0 = never); both applied at start-up and after each
+                               export (app/scenes/storage.py)
 ``OCCUFLY_MAX_JSON_MB``        largest JSON request body (default 1; 413 beyond, checked
                                before the body is read: app/bodylimit.py)
 ``OCCUFLY_MAX_SELECTION_MB``   largest point-id list body (corrections, review items;
@@ -91,6 +99,10 @@ class Settings:
     login_user_free_factor: int = 10  # an account's failures from all addresses before a lock
     login_user_max_lock_s: int = 60  # ... which is short: an attacker cannot keep it locked
     session_check_s: float = 2.0  # how often an open viewer socket re-checks its session
+    # issue 28: the import form's zip upload, export retention (0 = off)
+    max_import_upload_bytes: int = 8192 << 20
+    export_keep_last: int = 0
+    export_max_age_days: float = 0.0
     # issue 24: request body caps (app/bodylimit.py), storage and job quotas
     max_json_bytes: int = 1 << 20
     max_selection_bytes: int = 64 << 20
@@ -171,6 +183,9 @@ class Settings:
             argon2_time_cost=num("OCCUFLY_ARGON2_TIME_COST", 3),
             lifting=env.get("OCCUFLY_LIFTING") or "embedded",
             auto_upgrade=bool(num("OCCUFLY_AUTO_UPGRADE", 1)),
+            max_import_upload_bytes=int(num("OCCUFLY_MAX_IMPORT_UPLOAD_MB", 8192, float) * 2**20),
+            export_keep_last=num("OCCUFLY_EXPORT_KEEP_LAST", 0),
+            export_max_age_days=num("OCCUFLY_EXPORT_MAX_AGE_DAYS", 0.0, float),
             max_json_bytes=int(num("OCCUFLY_MAX_JSON_MB", 1, float) * 2**20),
             max_selection_bytes=int(num("OCCUFLY_MAX_SELECTION_MB", 64, float) * 2**20),
             user_quota_bytes=int(num("OCCUFLY_USER_QUOTA_MB", 2048, float) * 2**20),

@@ -19,6 +19,7 @@ from app.bootstrap import build_context
 from app.config import Settings
 from app.context import AppContext
 from app.jobs import service as jobs_service
+from app.scenes.storage import apply_export_retention
 
 log = logging.getLogger("occufly.app")
 
@@ -55,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from app.corrections.service import repair_all
 
     repair_all(ctx)  # a correction a kill -9 left half-written is applied entirely or not at all
+    apply_export_retention(ctx)  # OCCUFLY_EXPORT_KEEP_LAST / _MAX_AGE_DAYS (0 = keep all)
     ctx.jobs.start()
     ctx.lifting.start()
 
@@ -82,11 +84,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from app.jobs.archive import router as archive_router
     from app.jobs.routes import router as jobs_router
     from app.review.routes import router as review_router
+    from app.scenes.console import router as console_router
+    from app.scenes.imports import router as imports_router
     from app.scenes.routes import router as scenes_router
     from app.users.routes import router as users_router
 
     for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
-              review_router, jobs_router, archive_router, audit_router, corrections_router):
+              review_router, jobs_router, archive_router, audit_router, corrections_router,
+              imports_router, console_router):  # the last two: issue 28's admin console
         app.include_router(r)
 
     @app.get("/api/health", tags=["meta"])

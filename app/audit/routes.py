@@ -26,6 +26,10 @@ class AuditOut(BaseModel):
     target: str | None
     client_ip: str | None
     detail: dict | None
+    # issue 28: what the ids name, as every other page shows them (None: deleted since)
+    scene_name: str | None = None
+    frame_name: str | None = None
+    users: dict[str, str] = {}  # user ids in ``detail`` (user_id, added, removed) -> name
 
 
 OptId = Annotated[int | None, Query(ge=1, le=INT32_MAX)]
@@ -38,10 +42,11 @@ def list_events(session: SessionDep, _admin: AdminUser,
                 since: datetime | None = None, until: datetime | None = None,
                 before_id: OptId = None,
                 limit: Annotated[int, Query(ge=1, le=1000)] = 100):
-    """Audit events, newest first (filters combine; page with ``before_id``)."""
-    return [service.out(e) for e in service.query(
+    """Audit events, newest first (filters combine; page with ``before_id``), with the names
+    of the scene, frame and users their ids refer to."""
+    return service.with_names(session, [service.out(e) for e in service.query(
         session=session, action=action, actor_id=actor_id, scene_id=scene_id,
-        since=_naive(since), until=_naive(until), before_id=before_id, limit=limit)]
+        since=_naive(since), until=_naive(until), before_id=before_id, limit=limit)])
 
 
 def _naive(t: datetime | None) -> datetime | None:

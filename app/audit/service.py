@@ -14,6 +14,8 @@ from sqlalchemy.orm import Session
 
 from app.audit.models import AuditEvent
 from app.db import utcnow
+from app.scenes.models import Frame, Scene
+from app.users.models import User
 
 log = logging.getLogger("occufly.audit")
 
@@ -63,3 +65,36 @@ def out(ev: AuditEvent) -> dict:
     return dict(id=ev.id, at=ev.at, actor_id=ev.actor_id, actor=ev.actor, action=ev.action,
                 scene_id=ev.scene_id, frame_id=ev.frame_id, target=ev.target,
                 client_ip=ev.client_ip, detail=ev.detail)
+
+
+USER_KEYS = ("user_id", "added", "removed", "user_ids")
+
+
+def with_names(session: Session, rows: list[dict]) -> list[dict]:
+    """Add ``scene_name``, ``frame_name`` and ``users`` (id -> name of the user ids in
+    ``detail``) to event rows: one query per kind of name for the whole page."""
+    sids = {r["scene_id"] for r in rows if r["scene_id"] is not None}
+    fids = {r["frame_id"] for r in rows if r["frame_id"] is not None}
+    uids: set[int] = set()
+    for r in rows:
+        d = r["detail"] or {}
+        for k in USER_KEYS:
+            v = d.get(k)
+            for u in (v if isinstance(v, list) else [v]):
+                if isinstance(u, int):
+                    uids.add(u)
+    scenes = dict(session.execute(select(Scene.id, Scene.name).where(Scene.id.in_(sids))).all()) if sids else {}
+    frames = dict(session.execute(select(Frame.id, Frame.name).where(Frame.id.in_(fids))).all()) if fids else {}
+    users = dict(session.execute(select(User.id, User.username).where(User.id.in_(uids))).all()) if uids else {}
+    for r in rows:
+        r["scene_name"] = scenes.get(r["scene_id"])
+        r["frame_name"] = frames.get(r["frame_id"])
+        d = r["detail"] or {}
+        found = {}
+        for k in USER_KEYS:
+            v = d.get(k)
+            for u in (v if isinstance(v, list) else [v]):
+                if isinstance(u, int) and u in users:
+                    found[str(u)] = users[u]
+        r["users"] = found
+    return rows

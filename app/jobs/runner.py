@@ -48,6 +48,7 @@ from app.db import utcnow
 from app.jobs import service
 from app.jobs.models import Job
 from app.pipeline import PipelineMissing
+from app.scenes import storage
 from occufly.errors import OccuflyError
 
 if TYPE_CHECKING:
@@ -363,6 +364,11 @@ def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> Non
         if _finish(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
                    message="done", result=_jsonable(result or {}), log_line="done"):
             _publish_done(ctx, jc)
+            if jc.kind == "export":  # retention counts the export that just finished
+                try:
+                    storage.apply_export_retention(ctx, jc.scene_id)
+                except Exception:  # noqa: BLE001 - the export is done; retention runs again
+                    log.exception("export retention after job %s", job_id)
 
 
 # job kinds whose success changes what subscribers show (the viewer's scene grid)

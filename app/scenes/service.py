@@ -34,17 +34,30 @@ def resolve_import_path(settings: Settings, raw: str, *, field: str = "source") 
         raise Forbidden(f"{field}: '..' is not allowed in import paths ({raw!r})")
     if not p.is_absolute():
         p = settings.import_roots[0] / p
-    roots = [r.resolve() for r in settings.import_roots]
+    allowed = import_roots(settings)
+    roots = [r.resolve() for r in allowed]
+    named = ", ".join(str(r) for r in allowed)  # the admin learns where imports may come from
     try:
         real = p.resolve(strict=True)
     except (FileNotFoundError, OSError):
         # do not reveal whether something exists outside the roots
         if not any(_inside(p.absolute(), r) for r in roots):
-            raise Forbidden(f"{field}: {raw!r} is outside the allowed import roots") from None
+            raise Forbidden(f"{field}: {raw!r} is outside the allowed import roots ({named})") from None
         raise Invalid(f"{field}: {raw!r} does not exist") from None
     if not any(_inside(real, r) for r in roots):
-        raise Forbidden(f"{field}: {raw!r} is outside the allowed import roots")
+        raise Forbidden(f"{field}: {raw!r} is outside the allowed import roots ({named})")
     return real
+
+
+def upload_dir(settings: Settings) -> Path:
+    """Where zips uploaded from the import form are extracted (app/scenes/imports.py)."""
+    return settings.data_dir / "uploads"
+
+
+def import_roots(settings: Settings) -> list[Path]:
+    """Where an import may read from: ``OCCUFLY_IMPORT_ROOTS`` and the uploads folder."""
+    up = upload_dir(settings)
+    return [*settings.import_roots, *([] if up in settings.import_roots else [up])]
 
 
 def _inside(path: Path, root: Path) -> bool:

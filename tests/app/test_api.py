@@ -594,7 +594,7 @@ def test_voxelize_without_labels_fails_with_a_clear_message(world):
     env.app.state.ctx.jobs.wait(r.json()["id"])
     j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=hdr["admin"]).json()
     assert j["status"] == "failed" and "no lifted labels" in j["message"]
-    assert env.client.get(f"/api/jobs/{j['id']}/download", headers=hdr["admin"]).status_code == 409
+    assert env.client.get(f"/api/jobs/{j['id']}/archive", headers=hdr["admin"]).status_code == 409
 
 
 def test_eval_job_metrics_and_viewer_hooks(world):
@@ -673,7 +673,10 @@ def test_eval_job_metrics_and_viewer_hooks(world):
     assert v > 0
 
 
-def test_export_download_streams_the_output(world):
+def test_export_download_is_the_archive_and_the_legacy_tar_stream_is_gone(world):
+    """Issue 28 item 7: an export is downloaded as a compressed archive with its length and
+    without the exporter's bookkeeping; GET /api/jobs/{jid}/download (an uncompressed tar
+    stream with .occufly_export entries and no length) no longer exists."""
     import io
     import tarfile
 
@@ -683,23 +686,29 @@ def test_export_download_streams_the_output(world):
     out = env.settings.exports_dir / "job_x"
     (out / "OccuFly_Dataset" / "scene_01").mkdir(parents=True)
     (out / "OccuFly_Dataset" / "scene_01" / "a.bin").write_bytes(b"\x01\x02" * 1000)
+    (out / ".occufly_export").mkdir()
+    (out / ".occufly_export" / "state.json").write_text("{}")
     with env.app.state.ctx.sessions() as s:
         job = Job(kind="export", scene_id=scene["id"], status="done", params={},
                   result={"output": str(out)}, progress=1.0, message="done", log="")
         s.add(job)
         s.commit()
         jid = job.id
-    r = env.client.get(f"/api/jobs/{jid}/download", headers=hdr["admin"])
-    assert r.status_code == 200
-    with tarfile.open(fileobj=io.BytesIO(r.content)) as tar:
+    assert env.client.get(f"/api/jobs/{jid}/download", headers=hdr["admin"]).status_code == 404
+    assert "/api/jobs/{jid}/download" not in env.client.get("/openapi.json").json()["paths"]
+    r = env.client.get(f"/api/jobs/{jid}/archive?format=tar.gz", headers=hdr["admin"])
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content)
+    with tarfile.open(fileobj=io.BytesIO(r.content), mode="r:gz") as tar:
+        names = tar.getnames()
         member = tar.extractfile("job_x/OccuFly_Dataset/scene_01/a.bin").read()
     assert member == b"\x01\x02" * 1000
-    assert env.client.get(f"/api/jobs/{jid}/download", headers=hdr["reviewer"]).status_code == 403
+    assert not [n for n in names if ".occufly" in n]
+    assert env.client.get(f"/api/jobs/{jid}/archive", headers=hdr["reviewer"]).status_code == 403
     # a job whose recorded output points outside the exports folder is never served
     with env.app.state.ctx.sessions() as s:
         s.get(Job, jid).result = {"output": str(env.import_root)}
         s.commit()
-    assert env.client.get(f"/api/jobs/{jid}/download", headers=hdr["admin"]).status_code == 404
+    assert env.client.get(f"/api/jobs/{jid}/archive", headers=hdr["admin"]).status_code == 404
 
 
 def test_frontend_and_viewer_are_mounted(env):

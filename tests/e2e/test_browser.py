@@ -331,10 +331,16 @@ def test_admin_export_job_completes(live, new_page):
     page.locator(f"li.job[data-job='{jid}']").scroll_into_view_if_needed()
     shot(page, "09_admin_export_finished", full_page=True)
     assert page.locator(f"li.job[data-job='{jid}'] progress").get_attribute("value") == "1"
-    link = page.locator(f"li.job[data-job='{jid}'] a:has-text('Download')")
-    assert link.get_attribute("href") == f"/api/jobs/{jid}/download"
-    r = live.client("admin").get(f"/api/jobs/{jid}/download")
-    assert r.status_code == 200 and len(r.content) > 1000
+    # issue 28 item 7: the only download is the compressed archive (the legacy tar is gone)
+    row = page.locator(f"li.job[data-job='{jid}']")
+    assert row.locator(f"a[href='/api/jobs/{jid}/download']").count() == 0
+    row.locator("button.archive-build").click()
+    link = row.locator("a.archive-link")
+    link.wait_for(timeout=120_000)
+    assert link.get_attribute("href") == f"/api/jobs/{jid}/archive?format=tar.gz"
+    r = live.client("admin").get(f"/api/jobs/{jid}/archive?format=tar.gz")
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content) > 1000
+    assert live.client("admin").get(f"/api/jobs/{jid}/download").status_code == 404
     # evaluation job -> metric tables on the page
     run_job("#start-eval", "eval")
     metrics = page.locator("#metrics")

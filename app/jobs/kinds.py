@@ -147,9 +147,10 @@ def run_export(jc: JobContext) -> dict:
     return {"output": str(out), "summary": summary if isinstance(summary, dict) else {},
             "review": provenance.export_result(plan),
             "labels": {k: lab["provenance"]["labels"][k] for k in ("relifted", "sha256")},
-            "quality": {"loo_agreement": (q.get("loo") or {}).get("agreement"),
-                        "multi_view_share": q["votes"]["multi_view_share"],
-                        "contested_share": q["contested"]["share"]}}
+            "quality": None if q is None else {
+                "loo_agreement": (q.get("loo") or {}).get("agreement"),
+                "multi_view_share": q["votes"]["multi_view_share"],
+                "contested_share": q["contested"]["share"]}}
 
 
 run_export.remote = True

@@ -1,13 +1,16 @@
 from __future__ import annotations
 
+from pathlib import Path as FsPath
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response
+from fastapi.responses import StreamingResponse
 
 from app.audit import service as audit
 from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
 from app.errors import Conflict, Forbidden, NotFound
 from app.jobs import service
+from app.jobs.archive import export_root
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
 
@@ -22,11 +25,11 @@ ACCESS = {
     "POST /api/scenes/{sid}/voxelize": "admin",
     "POST /api/scenes/{sid}/export": "admin",
     "POST /api/scenes/{sid}/eval": "admin",
+    "GET /api/scenes/{sid}/export/plan": "admin",
+    "GET /api/scenes/{sid}/quality": "reviewer",
     "GET /api/scenes/{sid}/metrics": "reviewer",
+    "GET /api/jobs/{jid}/download": "admin",
 }
-# an export's output is downloaded as a compressed archive with its exact length
-# (app/jobs/archive.py); the uncompressed tar stream of GET /api/jobs/{jid}/download, which
-# shipped the exporter's .occufly_export bookkeeping and no length, was removed (issue 28)
 
 
 @router.get("/jobs", response_model=list[JobOut])
@@ -107,6 +110,35 @@ def export(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
                   response)
 
 
+@router.get("/scenes/{sid}/export/plan")
+def export_plan(scene: SceneDep, session: SessionDep, _user: AdminUser,
+                include: Annotated[str, Query(max_length=64)] = "accepted") -> dict:
+    """What an export with ``include`` (comma-separated version states) would take: per frame
+    the version, and the frames it leaves out (drafts, unreviewed, rejected) -- what the admin
+    page lists before asking to confirm (issue 23)."""
+    from app.errors import Invalid
+    from app.review import provenance
+
+    try:
+        plan = provenance.export_plan(session, scene.id, [v for v in include.split(",") if v])
+    except ValueError as e:
+        raise Invalid(str(e)) from None
+    return {**plan, "took": provenance.plan_text(plan)}
+
+
+@router.get("/scenes/{sid}/quality")
+def scene_quality(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser) -> dict:
+    """The quality report of the scene's live labels (docs/quality-json.md), cached per labels
+    stamp; 404 before the first fill."""
+    from app.review import provenance
+    from occufly.workspace import Workspace
+
+    w = Workspace(scene.workspace)
+    if not (w.has_labels() and w.lifting_state.is_file()):
+        raise NotFound(f"scene {scene.id} has no lifted labels yet: nothing to report")
+    return provenance.scene_quality(ctx, scene)
+
+
 @router.post("/scenes/{sid}/eval", response_model=JobOut, status_code=202)
 def evaluate(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
              response: Response, key: IdemKey = None, body: EvalIn | None = None):
@@ -121,3 +153,36 @@ def metrics(scene: SceneDep, session: SessionDep, _user: ReviewerUser) -> dict:
     if not jobs:
         raise NotFound(f"scene {scene.id} has no evaluation yet; run POST /api/scenes/{scene.id}/eval")
     return {"job_id": jobs[0].id, "finished_at": jobs[0].finished_at, **(jobs[0].result or {})}
+
+
+@router.get("/jobs/{jid}/download", response_class=StreamingResponse,
+            responses={200: {"content": {"application/x-tar": {}}}})
+def download(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser):
+    root = export_root(ctx, session, jid)
+    return StreamingResponse(_tar_stream(root), media_type="application/x-tar", headers={
+        "Content-Disposition": f'attachment; filename="export_job_{jid}.tar"'})
+
+
+def _tar_stream(root: FsPath, chunk: int = 1 << 20):
+    """Stream an uncompressed tar of ``root`` without building it on disk."""
+    import queue
+    import tarfile
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=8)
+
+    class _Writer:
+        def write(self, b: bytes) -> int:
+            q.put(bytes(b))
+            return len(b)
+
+    def produce() -> None:
+        try:
+            with tarfile.open(fileobj=_Writer(), mode="w|", bufsize=chunk) as tar:
+                tar.add(root, arcname=root.name)
+        finally:
+            q.put(None)
+
+    threading.Thread(target=produce, daemon=True).start()
+    while (b := q.get()) is not None:
+        yield b

@@ -28,6 +28,10 @@ class JobOut(BaseModel):
 class ExportIn(BaseModel):
     layout: Literal["occufly", "sscbench"] = "occufly"
     frames: list[Count] | None = Field(default=None, max_length=100000)  # frame indices
+    # issue 23: the mask version states whose votes the exported labels count (accepted only
+    # by default; submitted and imported versions are unreviewed and count only when named)
+    include: list[Literal["accepted", "submitted", "imported"]] = Field(
+        default=["accepted"], min_length=1, max_length=3)
 
 
 class VoxelizeIn(BaseModel):

@@ -263,6 +263,13 @@ def _check_target(out: Path, layout, scene_id: str, fingerprint: str, layout_nam
         "(no matching manifest); choose an empty or new folder")
 
 
+def quality_path(out: Path, layout: str, scene_id: str) -> Path:
+    """Where an export keeps its scene's quality report: ``quality.json`` beside the manifest
+    (OccuFly layout), ``manifests/<scene_id>.quality.json`` (SSCBench layout)."""
+    mpath = LAYOUTS[layout].manifest_path(out, scene_id)
+    return mpath.with_name("quality.json" if layout == "occufly" else f"{scene_id}.quality.json")
+
+
 def _dataset_files(out: Path, layout: str, taxonomy, spec) -> dict[Path, bytes]:
     """Root-level files rebuilt from every manifest: splits (both layouts), the YAML (SSCBench)."""
     if layout == "sscbench":
@@ -365,6 +372,8 @@ def export_dataset(
     split: str | None = None,
     downsample_rule: str = "occufly",
     velodyne: bool = False,
+    provenance: dict | None = None,
+    quality: dict | None = None,
     split_by: str | None = None,
     split_ratios: tuple[float, float, float] | None = None,
 ) -> dict:
@@ -376,7 +385,11 @@ def export_dataset(
     see :mod:`occufly.export.occufly`); downsample_rule: ``occufly`` or ``lmscnet`` for the
     coarser grids; split_by: ``altitude`` / ``region`` / ``ratio`` split this scene's frames
     into train / val / test (:mod:`occufly.export.splits`; ``split_ratios`` for the last two);
-    velodyne: also write ``velodyne_points`` (SSCBench layout).
+    velodyne: also write ``velodyne_points`` (SSCBench layout); provenance: more
+    entries of the manifest's ``provenance`` (the web app's ``policy``, ``labels`` and the
+    per-frame ``masks`` whose votes made the labels); quality: the quality report
+    (:func:`occufly.lifting.quality.quality_report`) written as ``quality.json`` beside the
+    manifest (:func:`quality_path`).
 
     Frames that use different cameras are exported as one scene per camera (the camera with
     the most frames keeps ``scene_id``, the others get ``_cam2``, ``_cam3``, ...): both layouts
@@ -422,7 +435,8 @@ def export_dataset(
                 f"{MAX_CAMERAS}). Re-import with a shared camera model, or export subsets with --frames")
         kw = {"layout": layout, "grid": grid, "executor": executor, "progress": progress,
               "spec": spec, "grid_for_altitude": grid_for_altitude, "workers": workers,
-              "split": split, "downsample_rule": downsample_rule, "velodyne": velodyne}
+              "split": split, "downsample_rule": downsample_rule, "velodyne": velodyne,
+              "provenance": provenance, "quality": quality}
         kw.update({"split_by": split_by, "split_ratios": split_ratios})
         parts = [export_dataset(ws, out, scene_id=sid, frames=g, **kw)
                  for sid, g in zip(group_scene_ids(scene_id, len(groups)), groups, strict=True)]
@@ -536,6 +550,7 @@ def export_dataset(
                 for k in digests},
             "grid_for_altitude": {str(a): ("all" if k < 0 else k) for a, k in sorted(mapping.items())},
             "config_hash": config,
+            **(provenance or {}),
         },
         "cameras": {str(a): c.to_dict() for a, c in sorted(by_alt_cam.items())},
     }
@@ -556,6 +571,8 @@ def export_dataset(
     mpath = lay.manifest_path(out, scene_id)
     clean_stray_temporaries(out)
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
+    if quality is not None:
+        _atomic_write(quality_path(out, layout, scene_id), json.dumps(quality, indent=1).encode())
     seq_alts = sorted({int(a["altitude"]) for a in manifest["frames"].values()})
     for p, data in lay.static_files(out, scene_id, camera, depth_shape, altitudes=seq_alts).items():
         _atomic_write(p, data)

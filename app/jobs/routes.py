@@ -1,16 +1,13 @@
 from __future__ import annotations
 
-from pathlib import Path as FsPath
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response
-from fastapi.responses import StreamingResponse
 
 from app.audit import service as audit
 from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
 from app.errors import Conflict, Forbidden, NotFound
 from app.jobs import service
-from app.jobs.archive import export_root
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
 
@@ -28,8 +25,10 @@ ACCESS = {
     "GET /api/scenes/{sid}/export/plan": "admin",
     "GET /api/scenes/{sid}/quality": "reviewer",
     "GET /api/scenes/{sid}/metrics": "reviewer",
-    "GET /api/jobs/{jid}/download": "admin",
 }
+# an export's output is downloaded as a compressed archive with its exact length
+# (app/jobs/archive.py); the uncompressed tar stream of GET /api/jobs/{jid}/download, which
+# shipped the exporter's .occufly_export bookkeeping and no length, was removed (issue 28)
 
 
 @router.get("/jobs", response_model=list[JobOut])
@@ -153,36 +152,3 @@ def metrics(scene: SceneDep, session: SessionDep, _user: ReviewerUser) -> dict:
     if not jobs:
         raise NotFound(f"scene {scene.id} has no evaluation yet; run POST /api/scenes/{scene.id}/eval")
     return {"job_id": jobs[0].id, "finished_at": jobs[0].finished_at, **(jobs[0].result or {})}
-
-
-@router.get("/jobs/{jid}/download", response_class=StreamingResponse,
-            responses={200: {"content": {"application/x-tar": {}}}})
-def download(jid: JidPath, session: SessionDep, ctx: CtxDep, _user: AdminUser):
-    root = export_root(ctx, session, jid)
-    return StreamingResponse(_tar_stream(root), media_type="application/x-tar", headers={
-        "Content-Disposition": f'attachment; filename="export_job_{jid}.tar"'})
-
-
-def _tar_stream(root: FsPath, chunk: int = 1 << 20):
-    """Stream an uncompressed tar of ``root`` without building it on disk."""
-    import queue
-    import tarfile
-    import threading
-
-    q: queue.Queue = queue.Queue(maxsize=8)
-
-    class _Writer:
-        def write(self, b: bytes) -> int:
-            q.put(bytes(b))
-            return len(b)
-
-    def produce() -> None:
-        try:
-            with tarfile.open(fileobj=_Writer(), mode="w|", bufsize=chunk) as tar:
-                tar.add(root, arcname=root.name)
-        finally:
-            q.put(None)
-
-    threading.Thread(target=produce, daemon=True).start()
-    while (b := q.get()) is not None:
-        yield b

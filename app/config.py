@@ -29,6 +29,10 @@
 ``OCCUFLY_TRUSTED_PROXIES``    comma-separated addresses of reverse proxies whose
                                ``X-Forwarded-For`` is believed (default: none, the peer
                                address is the client)
+``OCCUFLY_VIEWER_SOCKETS_PER_USER``  open 3D viewer sockets per user and API process
+                               (default 4; each holds its own copy of the scene in viser)
+``OCCUFLY_HEADER_TIMEOUT_S``   a connection's request head must be complete within this
+                               (default 10 s; see app/serving.py)
 ``OCCUFLY_ALLOWED_ORIGINS``    comma-separated extra origins (``https://host:port``) allowed to
                                send cookie-authenticated writes besides the app's own host
 ``OCCUFLY_MAX_IMPORT_UPLOAD_MB``  largest zip of a project folder uploaded from the import
@@ -110,6 +114,7 @@ class Settings:
     scene_quota_bytes: int = 10240 << 20
     active_jobs_per_user: int = 4
     export_quota_bytes: int = 51200 << 20
+    viewer_sockets_per_user: int = 4  # open 3D viewer sockets per user and API process
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).absolute()
@@ -192,6 +197,7 @@ class Settings:
             scene_quota_bytes=int(num("OCCUFLY_SCENE_QUOTA_MB", 10240, float) * 2**20),
             active_jobs_per_user=num("OCCUFLY_ACTIVE_JOBS_PER_USER", 4),
             export_quota_bytes=int(num("OCCUFLY_EXPORT_QUOTA_MB", 51200, float) * 2**20),
+            viewer_sockets_per_user=num("OCCUFLY_VIEWER_SOCKETS_PER_USER", 4),
         )
         kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
                                   .split(",") if p.strip()]

@@ -196,14 +196,23 @@ def viewer_callbacks(ctx: AppContext) -> dict:
                                                       Frame.id == int(frame_id)))
 
     def can_open(user, scene_id) -> bool:  # noqa: ANN001 - the dropdown of a reviewer
+        """Whether ``user`` may see ``scene_id`` now: the user is read again (the ticket's
+        copy is as old as the socket), so a demotion, deactivation or removal from the scene
+        ends an open viewer's access (ViewerService re-checks every client twice a second)."""
         from app.deps import is_member
+        from app.users.models import User
 
-        if getattr(user, "role", None) == "admin":
-            return True
-        if getattr(user, "role", None) != "reviewer" or not str(scene_id).isdigit():
+        uid = getattr(user, "id", None)
+        if uid is None:
             return False
         with ctx.sessions() as s:
-            return is_member(s, user, int(scene_id))
+            fresh = s.get(User, uid)
+            if fresh is None or not fresh.active or fresh.role not in ("reviewer", "admin"):
+                return False
+            if fresh.role == "admin" or scene_id is None:  # None: no scene open yet
+                return True
+            return str(scene_id).isdigit() and len(str(scene_id)) < 10 and \
+                is_member(s, fresh, int(scene_id))
 
     from app.corrections.service import viewer_hooks
 

@@ -137,14 +137,18 @@ def run_export(jc: JobContext) -> dict:
                                        progress=lambda f, m="": jc.progress(0.3 * f, m))
         # written under an attempt-private name, moved to ``out`` when this attempt is
         # recorded done (a stale attempt of the same job can never touch it; app.jobs.runner)
-        summary = fn(Path(ws), jc.output_dir(out), scene_id=f"scene_{jc.scene_id:02d}",
+        staging = jc.output_dir(out)
+        summary = fn(Path(ws), staging, scene_id=f"scene_{jc.scene_id:02d}",
                      layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
                      executor=jc.executor(), grid=lab["grid"], provenance=lab["provenance"],
                      quality=lab["quality"], progress=lambda f, m="": jc.progress(0.3 + 0.7 * f, m))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     q = lab["quality"]
+    # the files a user downloads (the exporter's .occufly_export bookkeeping not counted)
+    n_files = sum(1 for p in staging.rglob("*") if p.is_file() and ".occufly_export" not in p.parts)
     return {"output": str(out), "summary": summary if isinstance(summary, dict) else {},
+            "files": n_files,
             "review": provenance.export_result(plan),
             "labels": {k: lab["provenance"]["labels"][k] for k in ("relifted", "sha256")},
             "quality": None if q is None else {

@@ -167,7 +167,9 @@ def test_lasso_relabel_undo_redo_and_what_follows(live, setup, new_page):
 
     assert (np.asarray(Workspace(ws).grid().labels) == TREE).sum() > 0
     j = live.wait_job(admin.post(f"/api/scenes/{sid}/export",
-                                 json={"layout": "occufly", "frames": [other]}).json(),
+                                 json={"layout": "occufly", "frames": [other],
+                                       # its masks are submitted, not accepted (issue 23)
+                                       "include": ["accepted", "submitted", "imported"]}).json(),
                       timeout=300)
     assert j["status"] == "done", j
     out = Path(j["result"]["output"])

@@ -44,11 +44,11 @@ safety net everywhere).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import threading
 import time
-import hashlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +60,7 @@ from app.db import utcnow
 from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
 from occufly.errors import OccuflyError
+from occufly.lifting.incremental import IncrementalFill
 
 if TYPE_CHECKING:
     from app.context import AppContext
@@ -170,6 +171,7 @@ class _Scene:
     first_due: float | None = None  # when the pending fill was first asked for
     filling: bool = False
     seq: int = 0  # applied_seq of the last entry this worker processed for the scene
+    incremental: object | None = None  # occufly.lifting.incremental.IncrementalFill
     closed: bool = False  # handed back to another worker: the fill thread ends
     applying: bool = False
     fills: int = 0
@@ -677,7 +679,14 @@ class LiftingService:
         with sc.lock:
             snap = sc.state.snapshot()
             seq = sc.seq
-        sc.state.fill_and_denoise(snapshot=snap)
+        if sc.incremental is None:  # the first fill of this worker is a full one
+            sc.incremental = IncrementalFill(sc.state.scene.xyz, sc.state.scene.taxonomy)
+        res = sc.state.fill_and_denoise(snapshot=snap, incremental=sc.incremental)
+        inc = res.stats.get("incremental") or {}
+        log.info("lifting: scene %s filled in %.2f s (%s)", sc.scene_id,
+                 res.stats.get("seconds", 0.0) or 0.0,
+                 f"incremental: {inc.get('updated_points')} points updated of "
+                 f"{inc.get('region_points')} in context" if inc.get("incremental") else "full")
         sc.fills += 1
         stamp = Workspace(sc.workspace).stamp()
         with self.ctx.sessions() as s:

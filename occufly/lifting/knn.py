@@ -397,10 +397,13 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
 class _VoxelGrid:
     """Sparse voxel hash of a point set: sorted unique keys, per-point voxel index."""
 
-    def __init__(self, xyz: np.ndarray, edge: float, pad: int) -> None:
+    def __init__(self, xyz: np.ndarray, edge: float, pad: int,
+                 origin: np.ndarray | None = None) -> None:
         self.edge = float(edge)
         self.pad = int(pad)
-        mn = xyz.min(axis=0).astype(np.float64)
+        # origin: the lattice's corner (default the cloud's minimum); a subset of a cloud
+        # given the whole cloud's origin gets the same voxels (occufly.lifting.incremental)
+        mn = (xyz.min(axis=0) if origin is None else np.asarray(origin)).astype(np.float64)
         q = np.floor((xyz - mn) / edge).astype(np.int64) + pad
         self.dims = q.max(axis=0) + pad + 1
         if float(np.prod(self.dims.astype(np.float64))) > 2**62:
@@ -544,13 +547,20 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
 def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                      params: LiftParams | None = None, vote_margin: np.ndarray | None = None,
                      vote_top: np.ndarray | None = None,
-                     progress: ProgressFn | None = None) -> LiftResult:
+                     progress: ProgressFn | None = None, grid_origin: np.ndarray | None = None,
+                     keep: dict | None = None) -> LiftResult:
     """kNN fill (k=100, IDW, bounded radius) then kNN denoise (k=200) of per-point labels.
 
     xyz: (N, 3) float32 scene-local metres; direct: (N,) uint8 raw ids of the vote majority
     (0 = no votes); vote_margin: (N,) float32 optional, enters the confidence of direct points.
     See the module docstring for the certified-voxel method; ``params.method == "exact"``
     runs :func:`fill_and_denoise_exact`.
+
+    grid_origin: the voxel lattice's corner (default ``xyz.min(0)``; with ``params.voxel``
+    set too, a subset of a cloud gets the voxels of the whole cloud). keep: a dict that
+    receives the per-point intermediates before the confidence step (``direct`` untied,
+    ``filled``, ``final`` columns, ``agree``, ``fill_share``, ``fill_distance``) and the
+    lattice (``edge``, ``origin``) -- what :mod:`occufly.lifting.incremental` updates.
     """
     from scipy.spatial import cKDTree
 
@@ -574,6 +584,10 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     if n == 0 or not (dcols >= 0).any():
         res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin, p=p)
         res.stats = {**stats, "note": "no labelled points"}
+        if keep is not None:
+            keep.update(direct=direct, filled=dcols, final=dcols.copy(),
+                        agree=np.zeros(n, np.float32), fill_share=np.zeros(n, np.float32),
+                        fill_distance=np.full(n, np.inf, np.float32), edge=None, origin=None)
         return res
 
     # voxel edge: about the typical k-NN radius of the denoise pass
@@ -583,7 +597,8 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     stats["voxel"] = edge
     report(0.05, "voxel hash")
     fill_r = int(math.ceil(p.fill_radius / edge))
-    grid = _VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1)
+    grid = _VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1, origin=grid_origin)
+    stats["grid_origin"] = [float(v) for v in grid.mn]
     vox = grid.inverse
     V = grid.n_voxels
     stats["voxels"] = int(V)
@@ -659,7 +674,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                 continue
             if level == 0 and coarse_edge >= p.denoise_radius:
                 continue
-            coarse = _VoxelGrid(xyz, coarse_edge, pad=2)
+            coarse = _VoxelGrid(xyz, coarse_edge, pad=2, origin=grid.mn)
             todo2 = np.unique(coarse.inverse[unsafe])
             c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
                                          p.denoise_radius, cls, keep_share=p.denoise_keep_share,
@@ -682,6 +697,9 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
                                keep_share=p.denoise_keep_share)
             final[tree_q], agree[tree_q] = c2, s2
     stats["denoise_seconds"] = time.perf_counter() - t_den
+    if keep is not None:
+        keep.update(direct=direct, filled=filled, final=final, agree=agree.copy(),
+                    fill_share=fill_share, fill_distance=fill_dist, edge=edge, origin=grid.mn)
     res = _finish(cls, direct, filled, final, agree, vote_margin,
                   _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
                   fill_distance=fill_dist)

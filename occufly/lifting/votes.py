@@ -512,13 +512,17 @@ class LiftState:
     # -- fill and denoise
     def fill_and_denoise(self, progress: ProgressFn | None = None,
                          params: LiftParams | None = None, *,
-                         snapshot: VoteSnapshot | None = None, write: bool = True) -> LiftResult:
+                         snapshot: VoteSnapshot | None = None, write: bool = True,
+                         incremental=None) -> LiftResult:  # noqa: ANN001
         """kNN fill + denoise of the votes; writes labels/confidence/origin (``write=False``:
         only returns them).
 
         Without ``snapshot`` the current counts are read first (hold the update lock for the
         whole call then); with one taken by :meth:`snapshot`, nothing here reads the shared
-        counts, so updates may go on meanwhile.
+        counts, so updates may go on meanwhile. ``incremental``: an
+        :class:`occufly.lifting.incremental.IncrementalFill` of this scene (a live worker keeps
+        one per scene): the k-NN passes rerun only around the points whose decided label
+        changed since its last fill (same result).
         """
         report = progress or noop
         if write:
@@ -528,7 +532,8 @@ class LiftState:
             snapshot = self.snapshot()
         result = fill_snapshot(self.scene, snapshot, params=params, ws=self.ws,
                                read_only=self.read_only or not write,
-                               progress=lambda f, m: report(0.05 + 0.9 * f, m))
+                               progress=lambda f, m: report(0.05 + 0.9 * f, m),
+                               incremental=incremental)
         if write:
             report(0.96, "writing labels")
             save_result(self.ws, result)
@@ -571,7 +576,7 @@ def read_direct_labels(ws: str | Path) -> np.ndarray | None:
 
 def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | None = None,
                   progress: ProgressFn | None = None, ws: str | Path | None = None,
-                  read_only: bool = True) -> LiftResult:
+                  read_only: bool = True, incremental=None) -> LiftResult:  # noqa: ANN001
     """Robust decision (``params.robust``, :mod:`occufly.lifting.robust`) then kNN fill +
     denoise of a :class:`VoteSnapshot` (does not write anything but, with ``ws`` and not
     ``read_only``, the feature cache ``ws/lifting/features.npy``).
@@ -612,9 +617,13 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
             p = replace(p, confirm_views=rp.confirm_views)
         robust_stats["robust_features_seconds"] = round(t_feat, 3)
         fill_progress = lambda f, m: report(0.3 + 0.7 * f, m)  # noqa: E731
-    result = pkg.fill_and_denoise(
-        np.asarray(scene.xyz), direct, scene.taxonomy, params=p,
-        vote_margin=margin, vote_top=top, progress=fill_progress)
+    if incremental is not None:  # same result, k-NN only where the decided labels changed
+        result = incremental.fill(direct, params=p, vote_margin=margin, vote_top=top,
+                                  progress=fill_progress)
+    else:
+        result = pkg.fill_and_denoise(
+            np.asarray(scene.xyz), direct, scene.taxonomy, params=p,
+            vote_margin=margin, vote_top=top, progress=fill_progress)
     result.stats.update(robust_stats)
     result.stats["robust"] = bool(robust_stats)
     result.stats["annotated_frames"] = snapshot.annotated_frames

@@ -1,21 +1,36 @@
-"""Load benchmark: 20 concurrent annotators saving full-resolution masks against a live server.
+"""Load benchmark: annotators saving full-resolution masks against a live server, two load models.
 
-For each database (SQLite file, PostgreSQL) and each ``--workers`` count it starts
-``occufly serve --workers N`` on loopback in a subprocess (N = 1: one process with the
-lifting worker in its threads, the default deployment; N > 1: N stateless API processes plus
-the lifting worker as its own process), lets the annotators each lease a frame (``POST
-/next``) and save masks in a loop (bounded by ``--saves`` per annotator, 0 = unbounded, and
-``--seconds``), waits for the lifting queue to drain, then reads back every acknowledged
-version and compares it byte for byte with what was sent.
+``--models b2b``: the saturation figure. Every annotator leases a frame and submits masks back
+to back (taking the frame back with ``/reopen`` between submits): only submitted, accepted or
+imported versions vote, drafts are never lifted, so this is the heaviest lifting load the
+API can produce.
 
-Prints one JSON object: per backend and worker count p50/p95/max save latency, saves/s,
-lifting lag (save acknowledged -> its votes applied, from the ``lift_queue`` rows: p50/p95/
-max), acknowledged, lost (acknowledged but unreadable, or missing from the lifting queue) and
-corrupted (read back different) counts, the latency of a trivial authenticated GET measured
-in the same run as a baseline, and ``workers_<N>_vs_1`` throughput ratios.
+``--models realistic``: annotators at a working cadence. Each one leases a frame, asks for the
+prefill (``GET /frames/{fid}/prefill``), saves a draft every 10-30 s of painting and submits
+after 2-4 minutes on the frame, then takes the next frame. ``--factor F`` divides every think
+time by F (F = 1: real time); the lifting side then sees the submit rate of ``F x N``
+annotators, and the report says so (``equivalent_annotators``). Annotators start at random
+points of their first frame, so submits are spread from the start.
 
-    .venv/bin/python bench/bench_api_load.py [--annotators 20] [--saves 0] [--seconds 60]
-        [--width 4000] [--height 3000] [--backends postgresql] [--workers 1,4]
+Lifting "lag" is measured on submits (the versions that vote): ``votes lag`` = the queue
+entry's ``applied_at - created_at`` (its votes counted; the entry is created in the save's
+transaction), ``labels lag`` = the first ``labels_updated`` event that counts the version
+minus ``created_at`` (includes the fill debounce, ``OCCUFLY_FILL_DEBOUNCE_S``). ``lag_slope``
+is the least-squares slope of votes lag against submit time: about 0 while lifting keeps up,
+about ``1 - capacity / submit rate`` when the lag grows without bound; the knee is the
+smallest load with a slope above 0.2 and submits still pending when saving stops.
+
+For each configuration it starts ``occufly serve --workers A`` (A API processes plus one
+lifting worker) and ``L - 1`` more ``python -m app.lifting`` processes (PostgreSQL only),
+with ``--scenes`` scenes (annotator i works on scene i mod S: lifting workers share scenes,
+not frames), waits for the queue to drain, reads every acknowledged version back byte for
+byte. It reports save p50/p95/max, prefill latency, CPU seconds per save of the server
+processes (API and lifting separately, psutil), lags p50/p95/max, ``lost`` and ``corrupted``.
+
+    .venv/bin/python bench/bench_api_load.py --models realistic,b2b --mp 12,20 \
+        --lifting-workers 1,2 [--annotators 20] [--factor 1] [--seconds 240]
+        [--b2b-seconds 60] [--scenes 2] [--api-workers 2] [--out docs/bench/x.json]
+    .venv/bin/python bench/bench_api_load.py --knee 4,8,16 --seconds 90  # factor sweep
 """
 
 from __future__ import annotations
@@ -25,6 +40,7 @@ import hashlib
 import io
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -48,15 +64,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _workspace(path: Path, n_frames: int, width: int, height: int) -> None:
+def _workspace(path: Path, n_frames: int, width: int, height: int, n_points: int = 20000
+               ) -> None:
     from PIL import Image
 
     from occufly.camera import Camera, look_at
     from occufly.scene import Frame, Scene, Visibility
 
     rng = np.random.default_rng(0)
-    xyz = np.column_stack([rng.uniform(-50, 50, 20000), rng.uniform(-50, 50, 20000),
-                           np.zeros(20000)]).astype(np.float32)
+    xyz = np.column_stack([rng.uniform(-50, 50, n_points), rng.uniform(-50, 50, n_points),
+                           np.zeros(n_points)]).astype(np.float32)
     f = 0.8 * width
     cam = Camera("PINHOLE", width, height, np.array([f, f, width / 2, height / 2]))
     frames, parts = [], []
@@ -91,7 +108,17 @@ def _mask(width: int, height: int, seed: int) -> bytes:
     return buf.getvalue()
 
 
-def _seed(env: dict, n_annotators: int, src: Path) -> int:
+MP = {12: (4000, 3000), 20: (5472, 3648)}
+
+
+def _ids_digest(png: bytes) -> str:
+    """sha256 of a mask's decoded class ids (the server stores masks re-encoded)."""
+    from PIL import Image
+
+    return hashlib.sha256(np.asarray(Image.open(io.BytesIO(png))).tobytes()).hexdigest()
+
+
+def _seed(env: dict, n_annotators: int, src: Path, n_scenes: int) -> list[int]:
     from sqlalchemy import update
 
     from app.config import Settings
@@ -104,25 +131,31 @@ def _seed(env: dict, n_annotators: int, src: Path) -> int:
     settings = Settings.from_env(env)
     app = create_app(settings)
     ctx = app.state.ctx
+    sids = []
     with ctx.sessions() as s:
         users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
         for i in range(n_annotators):
             users.create_user(session=s, username=f"ann{i:02d}", password=PASSWORD,
                               role="annotator")
-        scene = scenes.create_scene(session=s, settings=settings, name="bench", source=src)
-        job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
-                          params={"source": str(src)})
-        sid = scene.id
-    ctx.jobs.submit(job.id)
-    ctx.jobs.wait(job.id, timeout=600)
+    for k in range(n_scenes):
+        with ctx.sessions() as s:
+            scene = scenes.create_scene(session=s, settings=settings, name=f"bench{k}", source=src)
+            job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
+                              params={"source": str(src)})
+            sids.append(scene.id)
+        ctx.jobs.submit(job.id)
+        ctx.jobs.wait(job.id, timeout=600)
     with ctx.sessions() as s:
-        s.execute(update(Frame).where(Frame.scene_id == sid).values(selected=True))
-        s.commit()
-        # annotators see only the scenes they are members of
-        ids = [users.get_by_name(session=s, username=f"ann{i:02d}").id for i in range(n_annotators)]
-        scenes.set_members(session=s, scene=s.get(scenes.Scene, sid), user_ids=ids, replace=True)
+        for k, sid in enumerate(sids):
+            s.execute(update(Frame).where(Frame.scene_id == sid).values(selected=True))
+            s.commit()
+            # annotators see only the scenes they are members of: annotator i -> scene i mod S
+            ids = [users.get_by_name(session=s, username=f"ann{i:02d}").id
+                   for i in range(n_annotators) if i % n_scenes == k]
+            scenes.set_members(session=s, scene=s.get(scenes.Scene, sid), user_ids=ids,
+                               replace=True)
     close(app)
-    return sid
+    return sids
 
 
 def _login(c, username: str) -> None:  # noqa: ANN001
@@ -133,14 +166,21 @@ def _login(c, username: str) -> None:  # noqa: ANN001
     c.headers["Authorization"] = f"Bearer {r.json()['token']}"
 
 
-def _lift_lag(url: str, acked: list[tuple[int, int, str]], timeout: float) -> dict:
-    """Wait for the lifting queue to drain; lag = applied_at - created_at of each acked
-    version's queue entry (created in the save's transaction, so <= the acknowledgement)."""
+def _pct(xs, q: float) -> float | None:
+    return round(float(np.percentile(np.asarray(xs), q)), 3) if len(xs) else None
+
+
+def _lift_lag(url: str, submits: list[dict], t_stop: float, timeout: float) -> dict:
+    """Wait for the lifting queue to drain; per acknowledged submit: votes lag (queue entry
+    created -> applied) and labels lag (-> first labels_updated event counting it)."""
     from sqlalchemy import create_engine, func, select
 
-    from app.lifting.models import LiftQueueEntry
+    from app.lifting.models import Event, LiftQueueEntry
 
     eng = create_engine(url)
+    with eng.connect() as c:  # submits still waiting when the annotators stopped
+        pending_at_stop = c.scalar(select(func.count()).select_from(LiftQueueEntry)
+                                   .where(LiftQueueEntry.status == "pending"))
     t0 = time.monotonic()
     try:
         while True:
@@ -150,216 +190,391 @@ def _lift_lag(url: str, acked: list[tuple[int, int, str]], timeout: float) -> di
             if pending == 0 or time.monotonic() - t0 > timeout:
                 break
             time.sleep(0.5)
+        drain_s = time.monotonic() - t0
+        from app.lifting.models import LiftStatus
+
+        while time.monotonic() - t0 < timeout:  # the last fills (debounced) publish labels
+            with eng.connect() as c:
+                busy = c.scalar(select(func.count()).select_from(LiftStatus).where(
+                    LiftStatus.fill_state != "idle"))
+            if not busy:
+                break
+            time.sleep(0.5)
+        time.sleep(1.0)
         with eng.connect() as c:
             rows = {r.version_id: r for r in c.execute(select(
                 LiftQueueEntry.version_id, LiftQueueEntry.status, LiftQueueEntry.created_at,
-                LiftQueueEntry.applied_at))}
+                LiftQueueEntry.applied_at, LiftQueueEntry.applied_by, LiftQueueEntry.scene_id,
+                LiftQueueEntry.frame_index))}
+            events = c.execute(select(Event.scene_id, Event.created_at, Event.payload)
+                               .where(Event.kind == "labels_updated").order_by(Event.id)).all()
     finally:
         eng.dispose()
-    lags, missing, statuses = [], 0, {}
-    for _fid, v, _sha in acked:
-        r = rows.get(v)
+    votes, labels, t_sub, missing, statuses, by = [], [], [], 0, {}, {}
+    for sub in submits:
+        r = rows.get(sub["version"])
         if r is None:
             missing += 1
             continue
         statuses[r.status] = statuses.get(r.status, 0) + 1
-        if r.applied_at is not None:
-            lags.append((r.applied_at - r.created_at).total_seconds())
-    lag_ms = np.array(lags) * 1000
-    return {"lift_lag_p50_ms": round(float(np.percentile(lag_ms, 50)), 1) if lags else None,
-            "lift_lag_p95_ms": round(float(np.percentile(lag_ms, 95)), 1) if lags else None,
-            "lift_lag_max_ms": round(float(lag_ms.max()), 1) if lags else None,
-            "lift_pending_after_drain": int(pending), "lift_drain_s": round(time.monotonic() - t0, 1),
-            "lift_entries": statuses, "missing_from_lift_queue": missing}
+        by.setdefault(r.scene_id, set()).add(r.applied_by)
+        if r.applied_at is None:
+            continue
+        votes.append((r.applied_at - r.created_at).total_seconds())
+        t_sub.append(sub["t"])
+        for ev in events:
+            if ev.scene_id != r.scene_id or ev.created_at < r.created_at:
+                continue
+            tag = (ev.payload.get("versions") or {}).get(str(r.frame_index))
+            if tag is not None and str(tag).isdigit() and int(tag) >= r.version_id:
+                labels.append((ev.created_at - r.created_at).total_seconds())
+                break
+    slope = None
+    if len(votes) >= 3 and np.ptp(t_sub) > 0:
+        slope = round(float(np.polyfit(np.asarray(t_sub), np.asarray(votes), 1)[0]), 3)
+    return {"votes_lag_p50_s": _pct(votes, 50), "votes_lag_p95_s": _pct(votes, 95),
+            "votes_lag_max_s": round(max(votes), 3) if votes else None,
+            "labels_lag_p50_s": _pct(labels, 50), "labels_lag_p95_s": _pct(labels, 95),
+            "labels_lag_max_s": round(max(labels), 3) if labels else None,
+            "labels_lag_counted": len(labels), "lag_slope": slope,
+            "pending_at_stop": int(pending_at_stop), "pending_after_drain": int(pending),
+            "drain_s": round(drain_s, 1), "lift_entries": statuses,
+            "missing_from_lift_queue": missing,
+            "lifting_workers_per_scene": {str(k): len(v) for k, v in by.items()}}
 
 
-def run_backend(name: str, url: str, args: argparse.Namespace, tmp: Path,
-                workers: int = 1) -> dict:
+class _Cpu:
+    """CPU seconds of the server's process tree (API processes, lifting workers)."""
+
+    def __init__(self, roots: list[int]) -> None:
+        import psutil
+
+        self.procs: dict[int, object] = {}
+        for pid in roots:
+            try:
+                p = psutil.Process(pid)
+            except psutil.NoSuchProcess:
+                continue
+            for q in [p, *p.children(recursive=True)]:
+                self.procs[q.pid] = q
+        self.start = self._read()
+
+    def _read(self) -> dict[str, float]:
+        out = {"api": 0.0, "lifting": 0.0}
+        for p in self.procs.values():
+            try:
+                t = p.cpu_times()
+                role = "lifting" if "app.lifting" in " ".join(p.cmdline()) else "api"
+            except Exception:  # noqa: BLE001 - exited
+                continue
+            out[role] += t.user + t.system
+        return out
+
+    def used(self) -> dict[str, float]:
+        now = self._read()
+        return {k: now[k] - self.start[k] for k in now}
+
+
+def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, model: str,
+               mp: int, lifting_workers: int, factor: float, seconds: float) -> dict:
     import httpx
 
-    data = tmp / f"{name}_w{workers}"
+    width, height = MP[mp]
+    tag = f"{backend}_{model}_{mp}mp_l{lifting_workers}_f{factor:g}_{uuid.uuid4().hex[:4]}"
+    data = tmp / tag
     env = dict(os.environ, OCCUFLY_DATA_DIR=str(data), OCCUFLY_DATABASE_URL=url,
                OCCUFLY_IMPORT_ROOTS=str(tmp / "src"), OCCUFLY_SECRET_KEY=uuid.uuid4().hex * 2,
                OCCUFLY_ARGON2_MEMORY_KIB="8192", OCCUFLY_ARGON2_TIME_COST="1",
-               OCCUFLY_MAX_UPLOAD_MB="256", OCCUFLY_FILL_DEBOUNCE_S="30")
-    sid = _seed(env, args.annotators, tmp / "src" / "ws")
+               OCCUFLY_MAX_UPLOAD_MB="256", OCCUFLY_FILL_DEBOUNCE_S=str(args.debounce),
+               OCCUFLY_LIFTING="external" if args.api_workers > 1 else "embedded")
+    src = tmp / "src" / f"ws_{mp}"
+    sids = _seed(env, args.annotators, src, args.scenes)
     port = _free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "occufly.cli", "serve", "--workers", str(workers), "--host",
-         "127.0.0.1", "--port", str(port)],
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "occufly.cli", "serve", "--workers", str(args.api_workers),
+         "--host", "127.0.0.1", "--port", str(port)],
         cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        start_new_session=True)
+        start_new_session=True)]
+    for _ in range(lifting_workers - 1):
+        procs.append(subprocess.Popen([sys.executable, "-m", "app.lifting"], cwd=REPO, env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      start_new_session=True))
     base = f"http://127.0.0.1:{port}"
     try:
-        for _ in range(300):
+        for _ in range(600):
             try:
                 if httpx.get(f"{base}/api/health", timeout=1).status_code == 200:
                     break
             except httpx.HTTPError:
                 time.sleep(0.1)
         else:
-            raise RuntimeError("server did not come up: " + proc.stderr.read(2000).decode())
-        masks = [_mask(args.width, args.height, s) for s in range(args.distinct)]
-        lat: list[float] = []
-        acked: list[tuple[int, int, str]] = []  # (frame, version, sha256)
+            raise RuntimeError("server did not come up: " + procs[0].stderr.read(2000).decode())
+        time.sleep(2.0)  # the lifting workers take their slots
+        masks = [_mask(width, height, s) for s in range(args.distinct)]
+        digest = {id(m): _ids_digest(m) for m in masks}  # stored canonically: compare ids
+        saves: list[dict] = []  # {kind, s, version, fid, sha}
+        prefill: list[tuple[float, int]] = []
         errors: list[str] = []
         lock = threading.Lock()
-        barrier = threading.Barrier(args.annotators)
+        barrier = threading.Barrier(args.annotators + 1)
+        rng_all = random.Random(1)
+        seeds = [rng_all.random() for _ in range(args.annotators)]
 
-        def annotator(i: int) -> None:
-            with httpx.Client(base_url=base, timeout=120) as c:
-                _login(c, f"ann{i:02d}")
-                r = c.post(f"/api/scenes/{sid}/next")
-                if r.status_code != 200:
-                    errors.append(f"ann{i}: next {r.status_code}")
-                    return
-                fid = r.json()["id"]
-                current = "none"
-                barrier.wait()
-                k = -1
-                while args.saves <= 0 or k + 1 < args.saves:
-                    k += 1
-                    if time.monotonic() > deadline:
-                        break
-                    body = masks[(i * 7 + k) % len(masks)]
-                    kind = "submitted" if k == args.saves - 1 else "draft"
-                    t0 = time.perf_counter()
-                    r = c.put(f"/api/frames/{fid}/mask?kind={kind}", content=body,
-                              headers={"If-Match": current, "Content-Type": "image/png"})
-                    dt = time.perf_counter() - t0
-                    with lock:
-                        if r.status_code == 200:
-                            lat.append(dt)
-                            v = r.json()["version"]
-                            acked.append((fid, v, hashlib.sha256(body).hexdigest()))
-                            current = str(v)
-                        else:
-                            errors.append(f"ann{i}: PUT {r.status_code} {r.text[:100]}")
-                            return
-
-        # baseline in the same run: one writer alone (admin, on a frame nobody leases)
-        single: list[float] = []
-        with httpx.Client(base_url=base, timeout=120) as c:
-            _login(c, "admin")
-            frames = c.get(f"/api/scenes/{sid}/frames").json()
-            fid_single = frames[-1]["id"]
-            current = "none"
-            for k in range(5):
-                t1 = time.perf_counter()
-                r = c.put(f"/api/frames/{fid_single}/mask", content=masks[k % len(masks)],
+        def put(c, fid: int, current: str, body: bytes, kind: str):  # noqa: ANN001, ANN202
+            t0 = time.perf_counter()
+            try:
+                r = c.put(f"/api/frames/{fid}/mask?kind={kind}", content=body,
                           headers={"If-Match": current, "Content-Type": "image/png"})
-                single.append(time.perf_counter() - t1)
-                r.raise_for_status()
-                current = str(r.json()["version"])
-                acked.append((fid_single, r.json()["version"],
-                              hashlib.sha256(masks[k % len(masks)]).hexdigest()))
-        deadline = time.monotonic() + args.seconds
-        t0 = time.perf_counter()
-        threads = [threading.Thread(target=annotator, args=(i,)) for i in range(args.annotators)]
+            except httpx.HTTPError as e:
+                with lock:
+                    errors.append(f"PUT {kind}: {type(e).__name__} {e}")
+                return None
+            dt = time.perf_counter() - t0
+            if r.status_code != 200:
+                with lock:
+                    errors.append(f"PUT {kind} {r.status_code} {r.text[:100]}")
+                return None
+            v = r.json()["version"]
+            with lock:
+                saves.append({"kind": kind, "s": dt, "version": v, "fid": fid,
+                              "sha": digest[id(body)],
+                              "t": time.monotonic() - t_start[0]})
+            return str(v)
+
+        def lease(c, i: int):  # noqa: ANN001, ANN202
+            try:
+                r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
+                if r.status_code != 200:
+                    with lock:
+                        errors.append(f"ann{i}: next {r.status_code} {r.text[:80]}")
+                    return None, "none"
+                fr = r.json()
+                t0 = time.perf_counter()
+                p = c.get(f"/api/frames/{fr['id']}/prefill")
+            except httpx.HTTPError as e:
+                with lock:
+                    errors.append(f"ann{i}: lease/prefill {type(e).__name__} {e}")
+                return None, "none"
+            with lock:
+                prefill.append((time.perf_counter() - t0, p.status_code))
+            return fr["id"], "none" if fr.get("current_version") is None else str(fr["current_version"])
+
+        def b2b(i: int) -> None:
+            with httpx.Client(base_url=base, timeout=300) as c:
+                _login(c, f"ann{i:02d}")
+                fid, current = lease(c, i)
+                barrier.wait()
+                if fid is None:
+                    return
+                k = 0
+                while time.monotonic() < deadline[0]:
+                    if k:
+                        try:
+                            c.post(f"/api/frames/{fid}/reopen")
+                        except httpx.HTTPError as e:
+                            with lock:
+                                errors.append(f"reopen: {type(e).__name__} {e}")
+                            return
+                    current = put(c, fid, current, masks[(i * 7 + k) % len(masks)], "submitted")
+                    if current is None:
+                        return
+                    k += 1
+
+        def realistic(i: int) -> None:
+            rng = random.Random(seeds[i])
+            with httpx.Client(base_url=base, timeout=300) as c:
+                _login(c, f"ann{i:02d}")
+                barrier.wait()
+                first = True
+                k = 0
+                while time.monotonic() < deadline[0]:
+                    fid, current = lease(c, i)
+                    if fid is None:
+                        return
+                    on_frame = rng.uniform(120, 240) / factor  # minutes on a frame
+                    if first:  # start somewhere inside the first frame: submits spread out
+                        on_frame *= rng.random()
+                        first = False
+                    submit_at = time.monotonic() + on_frame
+                    while True:
+                        pause = rng.uniform(10, 30) / factor
+                        if time.monotonic() + pause >= submit_at:
+                            time.sleep(max(0.0, submit_at - time.monotonic()))
+                            if time.monotonic() >= deadline[0]:
+                                return
+                            put(c, fid, current, masks[(i * 7 + k) % len(masks)], "submitted")
+                            k += 1
+                            break
+                        time.sleep(pause)
+                        if time.monotonic() >= deadline[0]:
+                            return
+                        nxt = put(c, fid, current, masks[(i * 7 + k) % len(masks)], "draft")
+                        k += 1
+                        if nxt is None:
+                            return
+                        current = nxt
+
+        target = b2b if model == "b2b" else realistic
+        threads = [threading.Thread(target=target, args=(i,)) for i in range(args.annotators)]
         for t in threads:
             t.start()
+        t_start = [0.0]
+        deadline = [float("inf")]
+        barrier.wait()
+        cpu = _Cpu([p.pid for p in procs])
+        t_start[0] = time.monotonic()
+        deadline[0] = t_start[0] + seconds
         for t in threads:
             t.join()
-        wall = time.perf_counter() - t0
-        lift = _lift_lag(url, acked, timeout=max(120.0, args.seconds * 2))
-        # read every acknowledged version back
+        wall = time.monotonic() - t_start[0]
+        cpu_used = cpu.used()
+        submits = [x for x in saves if x["kind"] == "submitted"]
+        lift = _lift_lag(url, submits, wall, timeout=max(300.0, seconds * 3))
+        cpu_total = cpu.used()  # including the drain
         lost = corrupted = 0
-        with httpx.Client(base_url=base, timeout=120) as c:
+        with httpx.Client(base_url=base, timeout=300) as c:
             _login(c, "admin")
-            for fid, v, sha in acked:
-                r = c.get(f"/api/frames/{fid}/mask/versions/{v}")
+            for x in saves:
+                r = c.get(f"/api/frames/{x['fid']}/mask/versions/{x['version']}")
                 if r.status_code != 200:
                     lost += 1
-                elif hashlib.sha256(r.content).hexdigest() != sha:
+                elif _ids_digest(r.content) != x["sha"]:
                     corrupted += 1
             base_lat = []
-            for _ in range(50):
+            for _ in range(30):
                 t1 = time.perf_counter()
                 c.get("/api/auth/me")
                 base_lat.append(time.perf_counter() - t1)
-        lat_ms = np.array(lat) * 1000
+        lat = [x["s"] for x in saves]
+        lat_sub = [x["s"] for x in submits]
+        pre_ok = [t for t, code in prefill if code == 200]
+        n = max(1, len(saves))
+        eq = args.annotators * (factor if model == "realistic" else float("nan"))
         return {
-            "annotators": args.annotators, "mask": f"{args.width}x{args.height}",
+            "model": model, "mask": f"{width}x{height}", "mp": mp, "annotators": args.annotators,
+            "factor": factor if model == "realistic" else None,
+            "equivalent_annotators": None if model == "b2b" else eq,
+            "lifting_workers": lifting_workers, "api_workers": args.api_workers,
+            "scenes": args.scenes, "seconds": seconds, "wall_s": round(wall, 1),
+            "saves": len(saves), "submits": len(submits),
+            "saves_per_s": round(len(saves) / wall, 3),
+            "submits_per_s": round(len(submits) / wall, 3),
+            "save_p50_s": _pct(lat, 50), "save_p95_s": _pct(lat, 95),
+            "save_max_s": round(max(lat), 3) if lat else None,
+            "submit_p95_s": _pct(lat_sub, 95),
+            "prefill_p50_s": _pct(pre_ok, 50), "prefill_p95_s": _pct(pre_ok, 95),
+            "prefills": len(prefill), "prefill_status": sorted({c for _, c in prefill}),
+            "cpu_s_per_save_api": round(cpu_used["api"] / n, 3),
+            "cpu_s_per_submit_lifting": round(cpu_total["lifting"] / max(1, len(submits)), 3),
+            "cpu_util_during_load": round((cpu_used["api"] + cpu_used["lifting"]) / wall, 2),
+            "baseline_get_me_p50_s": _pct(base_lat, 50),
             "mask_bytes_mean": int(np.mean([len(m) for m in masks])),
-            "saves": len(lat), "load_avg_1min": round(os.getloadavg()[0], 1), "wall_s": round(wall, 2), "saves_per_s": round(len(lat) / wall, 2),
-            "p50_ms": round(float(np.percentile(lat_ms, 50)), 1) if len(lat) else None,
-            "p95_ms": round(float(np.percentile(lat_ms, 95)), 1) if len(lat) else None,
-            "max_ms": round(float(lat_ms.max()), 1) if len(lat) else None,
-            "single_writer_p50_ms": round(float(np.median(single) * 1000), 1),
-            "p50_vs_single_writer": round(float(np.percentile(lat_ms, 50)) / (np.median(single) * 1000), 2)
-            if len(lat) else None,
-            "single_writer_saves_per_s": round(1.0 / float(np.median(single)), 2),
-            "throughput_vs_single_writer": round((len(lat) / wall) * float(np.median(single)), 2),
-            "baseline_get_me_p50_ms": round(float(np.median(base_lat) * 1000), 2),
-            "acknowledged": len(acked), "readback_checked": len(acked),
-            "lost": lost + lift["missing_from_lift_queue"], "corrupted": corrupted,
-            "workers": workers, **lift,
-            "errors": errors[:5], "n_errors": len(errors),
+            "acknowledged": len(saves), "lost": lost + lift["missing_from_lift_queue"],
+            "corrupted": corrupted, "load_avg_1min": round(os.getloadavg()[0], 1),
+            **lift, "errors": errors[:5], "n_errors": len(errors),
         }
     finally:
         import signal
 
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGTERM)  # serve, its API workers, the lifting worker
+            except ProcessLookupError:
+                pass
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
+def _pg_database(base_url: str):  # noqa: ANN202
+    from contextlib import contextmanager
+
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+
+    @contextmanager
+    def cm():  # noqa: ANN202
+        base = make_url(base_url)
+        name = f"occufly_bench_{uuid.uuid4().hex[:8]}"
+        admin = create_engine(base, isolation_level="AUTOCOMMIT")
+        with admin.connect() as c:
+            c.execute(text(f'CREATE DATABASE "{name}"'))
         try:
-            os.killpg(proc.pid, signal.SIGTERM)  # serve, its API workers, the lifting worker
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+            yield base.set(database=name).render_as_string(hide_password=False)
+        finally:
+            with admin.connect() as c:
+                c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+            admin.dispose()
+
+    return cm()
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--annotators", type=int, default=20)
-    ap.add_argument("--saves", type=int, default=0, help="saves per annotator (0: unbounded)")
-    ap.add_argument("--seconds", type=float, default=60, help="stop saving after this long")
-    ap.add_argument("--workers", default="1,4", help="API process counts to compare")
-    ap.add_argument("--width", type=int, default=4000)
-    ap.add_argument("--height", type=int, default=3000)
+    ap.add_argument("--models", default="realistic,b2b", help="realistic and/or b2b")
+    ap.add_argument("--mp", default="12", help="mask sizes: 12 (4000x3000), 20 (5472x3648)")
+    ap.add_argument("--lifting-workers", default="1,2")
+    ap.add_argument("--api-workers", type=int, default=2)
+    ap.add_argument("--scenes", type=int, default=2)
+    ap.add_argument("--factor", type=float, default=1.0,
+                    help="realistic model: think times divided by this (1 = real time)")
+    ap.add_argument("--seconds", type=float, default=240, help="realistic model: run length")
+    ap.add_argument("--b2b-seconds", type=float, default=60, help="b2b model: run length")
+    ap.add_argument("--knee", default="", help="realistic factors to sweep (e.g. 4,8,16)")
+    ap.add_argument("--debounce", type=float, default=5.0, help="OCCUFLY_FILL_DEBOUNCE_S")
+    ap.add_argument("--points", type=int, default=20000)
+    ap.add_argument("--frames", type=int, default=120, help="frames per scene")
     ap.add_argument("--distinct", type=int, default=6, help="distinct mask payloads")
-    ap.add_argument("--backends", default="postgresql")
+    ap.add_argument("--backend", default="postgresql", choices=("postgresql", "sqlite"))
+    ap.add_argument("--out", default="", help="also write the JSON here")
     ap.add_argument("--postgres-url", default=os.environ.get(
         "OCCUFLY_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"))
     args = ap.parse_args()
-    from sqlalchemy import create_engine, text
-    from sqlalchemy.engine import make_url
 
-    out: dict = {"benchmark": "api_load"}
+    out: dict = {"benchmark": "api_load", "cpu_count": os.cpu_count(),
+                 "argv": sys.argv[1:], "runs": []}
+    mps = [int(x) for x in args.mp.split(",") if x]
+    lws = [int(x) for x in args.lifting_workers.split(",") if x]
+    plan = []
+    if args.knee:
+        plan = [("realistic", mps[0], lw, float(f), args.seconds)
+                for lw in lws for f in args.knee.split(",")]
+    else:
+        for model in args.models.split(","):
+            for mp in mps:
+                for lw in lws:
+                    plan.append((model, mp, lw, args.factor if model == "realistic" else 1.0,
+                                 args.seconds if model == "realistic" else args.b2b_seconds))
     with tempfile.TemporaryDirectory(prefix="occufly-bench-") as d:
         tmp = Path(d)
-        _workspace(tmp / "src", args.annotators + 2, args.width, args.height)
-        counts = [int(w) for w in args.workers.split(",") if w.strip()]
-        for backend in args.backends.split(","):
-            res: dict = {}
-            for workers in counts:
-                key = f"workers_{workers}"
-                if backend == "sqlite":
-                    db = tmp / f"sqlite_w{workers}.db"
-                    res[key] = run_backend("sqlite", f"sqlite:///{db}", args, tmp, workers)
-                    continue
-                base = make_url(args.postgres_url)
-                name = f"occufly_bench_{uuid.uuid4().hex[:8]}"
-                admin = create_engine(base, isolation_level="AUTOCOMMIT")
-                with admin.connect() as c:
-                    c.execute(text(f'CREATE DATABASE "{name}"'))
-                try:
-                    url = base.set(database=name).render_as_string(hide_password=False)
-                    res[key] = run_backend("postgresql", url, args, tmp, workers)
-                finally:
-                    with admin.connect() as c:
-                        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-                    admin.dispose()
-            one = res.get("workers_1", {}).get("saves_per_s")
-            for workers in counts:
-                r = res[f"workers_{workers}"]
-                if workers != 1 and one:
-                    res[f"workers_{workers}_vs_1"] = {
-                        "saves_per_s": round(r["saves_per_s"] / one, 2),
-                        "p95_ms": round(r["p95_ms"] / res["workers_1"]["p95_ms"], 2)
-                        if r.get("p95_ms") and res["workers_1"].get("p95_ms") else None}
-            out[backend] = res
-    out["cpu_count"] = os.cpu_count()
+        for mp in sorted({p[1] for p in plan}):
+            _workspace(tmp / "src" / f"ws_{mp}_raw", args.frames, *MP[mp], args.points)
+            (tmp / "src" / f"ws_{mp}_raw" / "ws").rename(tmp / "src" / f"ws_{mp}")
+        for model, mp, lw, factor, seconds in plan:
+            if args.backend == "sqlite":
+                if lw > 1:
+                    continue  # SQLite: one lifting worker per data directory
+                url = f"sqlite:///{tmp / uuid.uuid4().hex}.db"
+                r = run_config("sqlite", url, args, tmp, model=model, mp=mp,
+                               lifting_workers=lw, factor=factor, seconds=seconds)
+            else:
+                with _pg_database(args.postgres_url) as url:
+                    r = run_config("postgresql", url, args, tmp, model=model, mp=mp,
+                                   lifting_workers=lw, factor=factor, seconds=seconds)
+            print(json.dumps(r), file=sys.stderr, flush=True)
+            out["runs"].append(r)
+            if args.out:
+                Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+    if args.knee:
+        knee = [r for r in out["runs"] if (r["lag_slope"] or 0) > 0.2 and r["pending_at_stop"]]
+        out["knee_equivalent_annotators"] = min(
+            (r["equivalent_annotators"] for r in knee), default=None)
     print(json.dumps(out))
+    if args.out:
+        Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

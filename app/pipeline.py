@@ -66,6 +66,8 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
     from occufly.workspace import Workspace
 
     if Workspace(source).exists():
+        if roots is not None:  # scene.json, taxonomy.json, the arrays: no link out
+            importer.confine_tree(source, roots)
         scene = Scene.load(source, mmap=False)
         workspace_image_paths(scene, source, roots)
         scene.save(workspace, overwrite=True)
@@ -115,6 +117,7 @@ def check_workspace_source(source: Path, roots: list[Path]) -> None:
     from occufly.workspace import Workspace
 
     if Workspace(source).exists():
+        importer.confine_tree(source, roots)
         workspace_image_paths(Scene.load(source, mmap=True), source, roots)
 
 

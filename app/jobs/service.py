@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
+import time
 from datetime import timedelta
+from pathlib import Path
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.db import utcnow
-from app.errors import Conflict, Invalid, NotFound
+from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, TooManyAttempts
 from app.jobs.models import Job, JobRequestKey
 
 LOG_LINES = 200
@@ -42,6 +46,67 @@ def find_by_key(*, session: Session, user_id: int, key: str, kind: str, scene_id
         raise Invalid(f"Idempotency-Key {key[:40]!r} was used for another request (job "
                       f"{row.job_id}); send a new key for a new request")
     return session.get(Job, row.job_id)
+
+
+# ---- quotas (issue 24: 40 export requests in 5 s wrote 11 GB) --------------------------------
+#: one process's job creations are serialised through the quota check, so concurrent requests
+#: cannot all see room for one more (N server processes: at most N x the quota in a race)
+QUOTA_LOCK = threading.Lock()
+_EXPORTS_SIZE: dict[str, tuple[float, int]] = {}
+EXPORTS_SIZE_TTL_S = 10.0
+
+
+def folder_bytes(root: Path) -> int:
+    """Bytes of the files under ``root`` (symlinks not followed), 0 when it does not exist."""
+    total = 0
+    stack = [Path(root)]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except OSError:
+            continue
+        for e in entries:
+            try:
+                if e.is_dir(follow_symlinks=False):
+                    stack.append(Path(e.path))
+                elif e.is_file(follow_symlinks=False):
+                    total += e.stat(follow_symlinks=False).st_size
+            except OSError:
+                continue
+    return total
+
+
+def exports_bytes(exports_dir: Path, *, fresh: bool = False) -> int:
+    """:func:`folder_bytes` of the exports folder, cached for EXPORTS_SIZE_TTL_S."""
+    key = str(exports_dir)
+    now = time.monotonic()
+    hit = _EXPORTS_SIZE.get(key)
+    if hit is not None and not fresh and now - hit[0] < EXPORTS_SIZE_TTL_S:
+        return hit[1]
+    n = folder_bytes(exports_dir)
+    _EXPORTS_SIZE[key] = (now, n)
+    return n
+
+
+def check_quota(*, session: Session, settings, user_id: int, kind: str) -> None:  # noqa: ANN001
+    """Before a job is created: 429 when the user already has ``active_jobs_per_user`` jobs
+    queued or running (Retry-After 10 s); for an export, 507 when the exports folder already
+    takes ``export_quota_bytes``. Call under :data:`QUOTA_LOCK` together with the create."""
+    active = session.scalar(select(func.count()).select_from(Job).where(
+        Job.created_by_id == user_id, Job.status.in_(("queued", "running")))) or 0
+    if active >= settings.active_jobs_per_user:
+        raise TooManyAttempts(
+            f"job quota: you have {active} jobs queued or running; at most "
+            f"{settings.active_jobs_per_user} at a time (OCCUFLY_ACTIVE_JOBS_PER_USER) -- wait for "
+            "one to finish or cancel one", retry_after=10, active_jobs=int(active),
+            quota=settings.active_jobs_per_user)
+    if kind == "export":
+        used = exports_bytes(settings.exports_dir)
+        if used >= settings.export_quota_bytes:
+            raise InsufficientStorage(
+                f"export quota: the exports folder takes {used} bytes, the quota is "
+                f"{settings.export_quota_bytes} bytes (OCCUFLY_EXPORT_QUOTA_MB); delete old "
+                "exports first", used_bytes=used, quota_bytes=settings.export_quota_bytes)
 
 
 def create(*, session: Session, kind: str, scene_id: int | None, params: dict,

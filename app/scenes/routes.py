@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
@@ -70,6 +71,7 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
     if body.members:  # check the ids before anything is created
         service.check_member_ids(session=session, user_ids=body.members)
     service.check_source_paths(s, source)  # a workspace's image paths, before a job exists
+    jobs.check_quota(session=session, settings=s, user_id=user.id, kind="import")  # issue 24
     scene = service.create_scene(session=session, settings=s, name=body.name, source=source)
     if body.members:
         service.set_members(session=session, scene=scene, user_ids=body.members, replace=True)
@@ -174,7 +176,9 @@ def get_frame(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUs
             responses={200: {"content": {"image/jpeg": {}, "image/png": {}}},
                        304: {"description": "not modified"}})
 def frame_image(frame: FrameDep, session: SessionDep, ctx: CtxDep, request: Request,
-                size: Literal["full", "preview", "thumb"] = "full"):
+                size: Literal["full", "preview", "thumb"] = "full", download: bool = False):
+    """The frame's photo (``?download=1``: as an attachment), its type decided from its bytes,
+    with nosniff and a sandboxing CSP."""
     scene = session.get(Scene, frame.scene_id)
     src = service.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index,
                              roots=service.image_roots(ctx.settings))
@@ -187,8 +191,10 @@ def frame_image(frame: FrameDep, session: SessionDep, ctx: CtxDep, request: Requ
     etag = service.file_etag(path)
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers={"ETag": etag, "Cache-Control": CACHE})
+    name = frame.name if size == "full" else f"{Path(frame.name).stem}_{size}.jpg"
     return FileResponse(path, media_type=image_content_type(path), headers={
-        "ETag": etag, "Cache-Control": CACHE, "X-Content-Type-Options": "nosniff"})
+        "ETag": etag, "Cache-Control": CACHE,
+        **service.data_headers(name, download=download)})
 
 
 def _ready(scene: Scene) -> None:

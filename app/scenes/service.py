@@ -6,6 +6,7 @@ import math
 import os
 import re
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 from sqlalchemy import case, delete, func, select, update
@@ -211,9 +212,11 @@ def list_frames(*, session: Session, scene_id: int, sort: str = "index",
     if sort == "name":
         q = q.order_by(Frame.name)
     elif sort == "disagreement":
-        # LOO agreement, worst first; then the frames without enough independent views
-        # (a coverage but no agreement, least covered first); then frames never scored
-        q = q.order_by(Frame.agreement.is_(None), Frame.agreement,
+        # the ranking score (occufly.lifting.loo.review_score), highest first -- frames
+        # without enough independent views for an agreement figure are ranked by it too;
+        # then frames without a score by LOO agreement, worst first; then never scored
+        q = q.order_by(Frame.review_score.is_(None), Frame.review_score.desc(),
+                       Frame.agreement.is_(None), Frame.agreement,
                        Frame.independent_coverage.is_(None), Frame.independent_coverage,
                        Frame.index)
     else:
@@ -228,7 +231,8 @@ def frame_dict(f: Frame, assignee: str | None, last_annotator: str | None = None
                 lease_expires_at=f.lease_expires_at, current_version=f.current_version_id,
                 agreement=f.agreement, last_annotator=last_annotator,
                 handout_rank=f.handout_rank, self_agreement=f.self_agreement,
-                independent_coverage=f.independent_coverage, painted_share=f.painted_share)
+                independent_coverage=f.independent_coverage, painted_share=f.painted_share,
+                review_score=f.review_score)
 
 
 def frame_out(*, session: Session, frame: Frame) -> dict:
@@ -274,6 +278,24 @@ def image_roots(settings: Settings) -> list[Path]:
 
 SIZES = {"preview": 1600, "thumb": 256}
 
+#: served with every file whose bytes came from outside the app (frame images, stored masks):
+#: even opened as a document, such a response runs nothing and loads nothing (issue 24)
+DATA_CSP = "default-src 'none'; sandbox"
+
+
+def content_disposition(name: str, *, download: bool = False) -> str:
+    """``inline`` (or ``attachment``) with the file name reduced to safe ASCII for the
+    quoted form and given exactly (RFC 5987 ``filename*``) for browsers that read it."""
+    plain = re.sub(r"[^A-Za-z0-9._-]", "_", name)[:120] or "file"
+    return (f"{'attachment' if download else 'inline'}; filename=\"{plain}\"; "
+            f"filename*=UTF-8''{quote(name[:200], safe='')}")
+
+
+def data_headers(name: str, *, download: bool = False) -> dict[str, str]:
+    """Headers of a response carrying bytes that came from a file or an upload."""
+    return {"Content-Disposition": content_disposition(name, download=download),
+            "X-Content-Type-Options": "nosniff", "Content-Security-Policy": DATA_CSP}
+
 
 def resized_image(settings: Settings, src: Path, scene_id: int, frame_id: int, size: str) -> Path:
     """A cached JPEG no larger than SIZES[size] on its long side (rebuilt if the source changes)."""
@@ -288,11 +310,18 @@ def resized_image(settings: Settings, src: Path, scene_id: int, frame_id: int, s
         return out
     import io
 
-    with Image.open(src) as im:
-        im = im.convert("RGB")
-        im.thumbnail((SIZES[size], SIZES[size]))
-        buf = io.BytesIO()
-        im.save(buf, format="JPEG", quality=85)
+    try:
+        with Image.open(src) as im:
+            im.draft("RGB", (SIZES[size], SIZES[size]))  # JPEG: decode at the reduced size
+            im = im.convert("RGB")
+            im.thumbnail((SIZES[size], SIZES[size]))
+            buf = io.BytesIO()
+            im.save(buf, format="JPEG", quality=85)
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
+        # a truncated or corrupt file with an image's magic bytes, or one too large to
+        # decode: 422 naming the frame, not a 500 (issue 24)
+        raise Invalid(f"image of frame {frame_id} ({src.name}) cannot be decoded for a "
+                      f"{size}: {type(e).__name__}: {str(e)[:200]}") from None
     atomic_write_bytes(out, buf.getvalue())
     return out
 

@@ -11,7 +11,10 @@ account (every key naming it) with ``POST /api/users/{id}/unlock``.
 
 from __future__ import annotations
 
+import functools
+import gzip
 from datetime import timedelta
+from pathlib import Path
 
 from sqlalchemy import delete, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
@@ -24,17 +27,41 @@ from app.errors import Conflict, Forbidden, Invalid, NotAuthenticated, NotFound,
 from app.users.models import ROLES, AuthToken, LoginThrottle, User
 
 MIN_PASSWORD = 8
+#: 19,640 passwords most often found in breaches (the list Django ships in
+#: django/contrib/auth/common-passwords.txt.gz, BSD licence: docs/security.md), bundled so the
+#: check needs no network; compared lower-cased
+COMMON_PASSWORDS_FILE = Path(__file__).with_name("common-passwords.txt.gz")
 
 
-def _check_password(password: str) -> None:
+@functools.lru_cache(maxsize=1)
+def common_passwords() -> frozenset[str]:
+    with gzip.open(COMMON_PASSWORDS_FILE, "rt", encoding="utf-8") as f:
+        return frozenset(line.strip().lower() for line in f if line.strip())
+
+
+def _check_password(password: str, username: str | None = None) -> None:
+    """The password policy (issue 24): at least MIN_PASSWORD characters, not one character
+    repeated, not in the common-password list, and not the user name (nor the user name with
+    fewer than four other characters, e.g. ``admin123``). 422 saying which rule failed."""
     if len(password) < MIN_PASSWORD:
         raise Invalid(f"password must have at least {MIN_PASSWORD} characters")
+    low = password.lower()
+    if len(set(low)) < 3:
+        raise Invalid("password is too simple: it uses fewer than three different characters")
+    if low in common_passwords():
+        raise Invalid("password is one of the most common passwords (it appears in breach "
+                      "lists); choose another")
+    if username:
+        name = username.lower()
+        if low == name or (name in low and len(low) - len(name) < 4) or low in name:
+            raise Invalid("password must not be the user name or the user name with a few "
+                          "characters added")
 
 
 def create_user(*, session: Session, username: str, password: str, role: str) -> User:
     if role not in ROLES:
         raise Invalid(f"role must be one of {', '.join(ROLES)}, got {role!r}")
-    _check_password(password)
+    _check_password(password, username)
     if get_by_name(session=session, username=username) is not None:
         raise Conflict(f"user {username!r} already exists (user names are case-insensitive)")
     user = User(username=username, password_hash=security.hash_password(password), role=role)
@@ -217,7 +244,7 @@ def change_password(*, session: Session, user: User, current: str, new: str,
     """The user's own change: needs the current password; ends every other session."""
     if not security.verify_password(user.password_hash, current):
         raise Forbidden("the current password is wrong")
-    _check_password(new)
+    _check_password(new, user.username)
     user.password_hash = security.hash_password(new)
     session.commit()
     return revoke_all(session=session, user_id=user.id, keep_id=keep_session_id)
@@ -225,7 +252,7 @@ def change_password(*, session: Session, user: User, current: str, new: str,
 
 def reset_password(*, session: Session, user: User, new: str) -> int:
     """An admin's reset: ends every session of the user (they log in with the new one)."""
-    _check_password(new)
+    _check_password(new, user.username)
     user.password_hash = security.hash_password(new)
     session.commit()
     return revoke_all(session=session, user_id=user.id)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -37,6 +38,7 @@ SCENE_COOKIE = "occufly_viewer_scene"
 FRAME_COOKIE = "occufly_viewer_frame"  # ?frame= of the page: the viewer flies to that camera
 SESSION_COOKIE = "occufly_session"
 POLICY_VIOLATION = 1008
+_CTRL = re.compile(r"[\x00-\x1f\x7f]")  # never in a file name viser serves
 
 
 async def check_access(authorize: Callable[[Any], Any], conn: Request | WebSocket) -> int:
@@ -90,6 +92,10 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                                      "X-Content-Type-Options": "nosniff"})
             _remember_scene(resp, request, prefix)
             return resp
+        if _CTRL.search(path) or ".." in path.split("/"):
+            # a NUL or other control character (``main.js%00.png``), or a dot-dot segment, names
+            # nothing viser serves: 404 here instead of a 500 from the URL parser (issue 24)
+            return JSONResponse({"detail": "no such viewer file"}, status_code=404)
         url = f"http://127.0.0.1:{service.port}/{path}"
         headers = {}
         if "accept-encoding" in request.headers:
@@ -103,6 +109,8 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                     body = b"".join([chunk async for chunk in up.aiter_raw()])
                 finally:
                     await up.aclose()
+        except httpx.InvalidURL:
+            return JSONResponse({"detail": "no such viewer file"}, status_code=404)
         except httpx.HTTPError as e:
             return JSONResponse({"detail": f"3D viewer is not reachable: {e}"}, status_code=502)
         keep = {k: v for k, v in up.headers.items()

@@ -110,6 +110,8 @@ def import_scene(
     else:
         tax = Taxonomy.load(taxonomy)
 
+    if roots is not None:  # no project file may be a symlink out (it would be read below)
+        confine_tree(source, roots)
     report(0.0, "reading the reconstruction")
     model = read_source(source, fmt, images=Path(images) if images is not None else None)
     for note in model.notes:
@@ -274,6 +276,35 @@ def import_scene(
         del scene, visibility_data
     report(1.0, "done")
     return Scene.load(workspace)
+
+
+def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
+    """``source`` (a project file or folder) and every symlink under it resolve inside
+    ``roots``: a reader never opens a file elsewhere through a link in the project (a
+    ``cameras.txt`` linked to ``/etc/shadow`` would show its first line in the error message).
+    Walks without following links; returns the number of entries checked. UnsafePathError
+    naming the link and where it leads."""
+    source = Path(source)
+    try:
+        confined(source, roots)
+    except PathNotConfined:
+        raise UnsafePathError(f"{source} resolves to {os.path.realpath(source)}, outside the "
+                              "import roots and the data dir") from None
+    if not source.is_dir():
+        return 1
+    n = 0
+    for dirpath, dirnames, filenames in os.walk(source, followlinks=False):
+        for name in dirnames + filenames:
+            n += 1
+            p = Path(dirpath) / name
+            if p.is_symlink():
+                try:
+                    confined(p, roots)
+                except PathNotConfined:
+                    raise UnsafePathError(
+                        f"{p} is a symbolic link to {os.path.realpath(p)}, outside the import "
+                        "roots and the data dir; imports read only files inside them") from None
+    return n
 
 
 def confine_inputs(roots, project: Path, image_dir: Path, names: list[str],  # noqa: ANN001

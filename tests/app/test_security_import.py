@@ -14,7 +14,6 @@ import pytest
 from PIL import Image
 
 from occufly.errors import InputFormatError, UnsafePathError
-
 from tests.app.conftest import write_tiny_workspace
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,9 +92,8 @@ def test_workspace_custom_taxonomy_with_markup_is_refused(env):
 
 # ---- reconstructions (the library's confinement, what the import job runs) -----------------
 def test_colmap_image_symlinked_out_is_refused(tmp_path):
-    from tests.recon_builder import make_reconstruction
-
     from occufly.io.importer import import_scene
+    from tests.recon_builder import make_reconstruction
 
     roots = [tmp_path / "imports"]
     src = roots[0] / "recon"
@@ -104,7 +102,7 @@ def test_colmap_image_symlinked_out_is_refused(tmp_path):
     shutil.copy(src / "images" / "img_001.png", secret)
     (src / "images" / "img_001.png").unlink()
     os.symlink(secret, src / "images" / "img_001.png")
-    with pytest.raises(UnsafePathError, match=r"image .*img_001.png resolves to .*secret.png"):
+    with pytest.raises(UnsafePathError, match=r"img_001.png is a symbolic link to .*secret.png"):
         import_scene(src, tmp_path / "ws", roots=roots)
     assert not (tmp_path / "ws").exists()
     # a cloud symlinked out is refused the same way
@@ -112,16 +110,15 @@ def test_colmap_image_symlinked_out_is_refused(tmp_path):
     shutil.copy(secret, src / "images" / "img_001.png")
     shutil.move(src / "dense" / "fused.ply", tmp_path / "fused.ply")
     os.symlink(tmp_path / "fused.ply", src / "dense" / "fused.ply")
-    with pytest.raises(UnsafePathError, match=r"point cloud .*fused.ply resolves to"):
+    with pytest.raises(UnsafePathError, match=r"fused.ply is a symbolic link to .*fused.ply"):
         import_scene(src, tmp_path / "ws", roots=roots)
     # without roots (the command line) the same project imports
     import_scene(src, tmp_path / "ws", roots=None)
 
 
 def test_colmap_image_name_with_markup_is_refused(tmp_path):
-    from tests.recon_builder import make_reconstruction
-
     from occufly.io.importer import import_scene
+    from tests.recon_builder import make_reconstruction
 
     src = tmp_path / "recon"
     make_reconstruction(src, depth_maps=False)
@@ -138,9 +135,8 @@ def test_metashape_psx_absolute_photo_paths_are_refused(tmp_path):
     exist there): refused naming the project, before any photo is opened."""
     import zipfile
 
-    from tests.test_io_photogrammetry import _make_psx
-
     from occufly.io.importer import import_scene
+    from tests.test_io_photogrammetry import _make_psx
 
     roots = [tmp_path / "imports"]
     photos = tmp_path / "elsewhere" / "photos"
@@ -158,3 +154,32 @@ def test_metashape_psx_absolute_photo_paths_are_refused(tmp_path):
         Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(photos / f"DJI_{i + 1:04d}.JPG", "JPEG")
     with pytest.raises(UnsafePathError, match=r"wheat.psx: image folder .*elsewhere/photos"):
         import_scene(psx, tmp_path / "ws", roots=roots)
+
+
+def test_project_file_symlinked_out_is_refused(tmp_path):
+    """A COLMAP cameras.txt that is a link to a file elsewhere is refused before any reader
+    opens it (an error message would otherwise quote its first line)."""
+    from occufly.io.importer import import_scene
+    from tests.recon_builder import make_reconstruction
+
+    roots = [tmp_path / "imports"]
+    src = roots[0] / "recon"
+    make_reconstruction(src, depth_maps=False)
+    secret = tmp_path / "shadow"
+    secret.write_text("root:$6$secret-hash:19000:0:99999:7:::\n")
+    (src / "sparse" / "cameras.txt").unlink()
+    os.symlink(secret, src / "sparse" / "cameras.txt")
+    with pytest.raises(UnsafePathError, match=r"cameras.txt is a symbolic link to .*shadow") as e:
+        import_scene(src, tmp_path / "ws", roots=roots)
+    assert "secret-hash" not in str(e.value)
+
+
+def test_workspace_array_symlinked_out_is_refused(env, tmp_path):
+    adm = env.bearer("admin")
+    src = env.import_root / "arr_src"
+    write_tiny_workspace(src)
+    rgb = src / "points" / "rgb.npy"
+    shutil.move(rgb, tmp_path / "other_rgb.npy")
+    os.symlink(tmp_path / "other_rgb.npy", rgb)
+    r = _import(env, adm, src, "arr")
+    assert r.status_code == 403 and "rgb.npy is a symbolic link" in r.text, r.text

@@ -25,6 +25,7 @@ Counting is ``np.bincount(row * n + col)`` in chunks (bounded memory on large gr
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 _CHUNK = 1 << 24  # items per bincount pass: ~16 M (int64 temporaries ~ 400 MB at most)
@@ -67,6 +68,25 @@ class Confusion:
                 ts, ps = ts[ks], ps[ks]
             idx = self.lut[ts] * n + self.lut[ps]
             self.matrix += np.bincount(idx, minlength=n * n).reshape(n, n)
+        return self
+
+    def add_all_pairs(self, truth: np.ndarray, pred: np.ndarray) -> np.ndarray:
+        """Count every item of ``truth`` / ``pred`` (same shape, uint8 raw ids) in one compiled
+        pass (a 20 MP mask pair in ~0.05 s instead of the ~0.8 s of lookup + bincount), and
+        return that (n, n) count of all pairs without adding it: the caller keeps the part
+        it evaluates (the 2-D agreement keeps class x class, see ``occufly.render.agreement``)
+        and :meth:`merge_counts` it."""
+        t = np.ascontiguousarray(truth, dtype=np.uint8).reshape(-1)
+        p = np.ascontiguousarray(pred, dtype=np.uint8).reshape(-1)
+        if t.shape != p.shape:
+            raise ValueError(f"truth has {t.size} items, prediction {p.size}")
+        out = np.zeros((self.n, self.n), np.int64)
+        _count_pairs(t, p, self.lut, out)
+        return out
+
+    def merge_counts(self, counts: np.ndarray) -> Confusion:
+        """Add an (n, n) count over compact columns (as :meth:`add_all_pairs` returns it)."""
+        self.matrix += np.asarray(counts, dtype=np.int64).reshape(self.n, self.n)
         return self
 
     def merge(self, other: Confusion) -> Confusion:
@@ -146,3 +166,9 @@ class Confusion:
 
 def _div(a: float, b: float) -> float | None:
     return float(a / b) if b > 0 else None
+
+
+@numba.njit(nogil=True, cache=True)
+def _count_pairs(t: np.ndarray, p: np.ndarray, lut: np.ndarray, out: np.ndarray) -> None:
+    for i in range(t.shape[0]):
+        out[lut[t[i]], lut[p[i]]] += 1

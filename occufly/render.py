@@ -256,7 +256,7 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
             # the s x s pixels whose centres lie within s/2 of the projected point
             col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
             row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
-            yield uv, z, size, col0, row0, labels[sub][idx]
+            yield uv, z, size, col0, row0, labels[sub][idx]  # (n,) or (n, L)
 
     # the projections are kept for the second pass when they are small (culled frames)
     kept = list(projected()) if n_cand <= 4_000_000 else None
@@ -264,19 +264,30 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
     # pass 1: nearest depth per pixel; pass 2: among the fragments of the front surface
     # (depth within a tolerance of the nearest), the point projecting closest to the pixel
     # centre gives the label (compiled loops over each point's splat, occufly.splat)
-    from occufly.splat import splat_pass
+    from occufly.splat import splat_label_pass_multi, splat_pass
 
+    multi = labels.ndim == 2  # (N, L): L label sets over one geometry (render_many)
     depth = np.full(h * w, np.inf, dtype=np.float32)
-    best = np.full(h * w, np.iinfo(np.uint64).max, dtype=np.uint64)
+    best = np.full((labels.shape[1], h * w) if multi else h * w, np.iinfo(np.uint64).max,
+                   dtype=np.uint64)
     tol = np.float32(surface_tol * spacing)
     for label_pass in (False, True):
         for uv, z, size, col0, row0, lab in (kept if kept is not None else projected()):
-            splat_pass(depth, best, np.ascontiguousarray(uv), z, size, col0, row0,
-                       np.ascontiguousarray(lab, dtype=np.uint8), tol, h, w, label_pass)
+            if multi and label_pass:
+                splat_label_pass_multi(depth, best, np.ascontiguousarray(uv), z, size, col0, row0,
+                                       np.ascontiguousarray(lab, dtype=np.uint8), tol, h, w)
+                continue
+            splat_pass(depth, best if not multi else best[0], np.ascontiguousarray(uv), z, size,
+                       col0, row0, np.ascontiguousarray(lab if not multi else lab[:, 0],
+                                                        dtype=np.uint8), tol, h, w, label_pass)
+    depth[~np.isfinite(depth)] = 0.0
+    if multi:  # no match is key max, whose low byte is 255: those pixels are 0
+        cls = (best & np.uint64(255)).astype(np.uint8)
+        cls[best == np.iinfo(np.uint64).max] = 0
+        return cls.reshape(-1, h, w), depth.reshape(h, w)
     hit = best != np.iinfo(np.uint64).max
     cls = np.zeros(h * w, dtype=np.uint8)
     cls[hit] = (best[hit] & np.uint64(255)).astype(np.uint8)
-    depth[~np.isfinite(depth)] = 0.0
     return cls.reshape(h, w), depth.reshape(h, w)
 
 
@@ -289,6 +300,38 @@ def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int, mask_sha
     if cls.shape != tuple(mask_shape):
         raise ValueError(f"rendered {cls.shape} does not match mask {tuple(mask_shape)}")
     return cls, depth
+
+
+def render_many_for_mask(scene: Scene, labels: list[np.ndarray], frame_index: int,
+                         mask_shape: tuple[int, int], *, point_spacing: float | None = None,
+                         splat_factor: float = SPLAT_FACTOR, surface_tol: float = 3.0,
+                         chunk: int = 500_000) -> list[np.ndarray]:
+    """:func:`render_for_mask` of several (N,) uint8 label arrays over the same points, as
+    (h, w) class images (no depth): the projection, the cull and the depth pass are shared
+    and one label pass keeps a key per label set, so each image equals that label array's own
+    :func:`render_for_mask` image (tests/test_render.py) at little more than one render's
+    cost. The review renders a frame's leave-one-out and self labels this way."""
+    arrs = [np.asarray(a) for a in labels]
+    for a in arrs:
+        if a.shape != (scene.n_points,):
+            raise ValueError(f"labels must be ({scene.n_points},), got {a.shape}")
+    if not arrs:
+        return []
+    frame = scene.frames[frame_index]
+    scale = 1.0 / (frame.camera.width // int(mask_shape[1]))
+    cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
+    h, w = cam.height, cam.width
+    if (h, w) != tuple(mask_shape):
+        raise ValueError(f"rendered {(h, w)} does not match mask {tuple(mask_shape)}")
+    spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    big = cam.width * cam.height > COARSE_MIN_PIXELS
+    cand = frustum_candidates(scene, cam, frame.T_cam_world,
+                              margin=MAX_SPLAT * (MAX_COARSE if big else 1))
+    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    stack = np.stack(arrs, axis=1).astype(np.uint8, copy=False)  # (N, L)
+    cls, _ = _render(scene, stack, frame, cam.scaled(1.0 / k) if k > 1 else cam, spacing,
+                     splat_factor, surface_tol, chunk, cand)
+    return [_upsample(c, k, h, w) if k > 1 else c for c in cls]
 
 
 def prefill_for_mask(scene: Scene, labels: np.ndarray, frame_index: int,
@@ -323,14 +366,16 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
     """
     mask, rendered = _check_pair(mask, rendered)
     conf = Confusion(taxonomy.ids)
-    cls_col = (conf.lut > 0) & (conf.lut <= conf.C)  # raw id -> is a taxonomy class
-    m_lab = cls_col[mask]
-    both = m_lab & cls_col[rendered]
-    conf.add(mask, rendered, both)
+    # every pixel pair counted once (compiled); rows / columns 1..C are the taxonomy classes,
+    # 0 empty and C + 1 "other" (255 included): only class x class pixels are evaluated
+    full = conf.add_all_pairs(mask, rendered)
+    mask_px = int(full[1:conf.C + 1, :].sum())
+    both = np.zeros_like(full)
+    both[1:conf.C + 1, 1:conf.C + 1] = full[1:conf.C + 1, 1:conf.C + 1]
+    conf.merge_counts(both)
     cm = conf.class_matrix()
     agree = conf.correct()
     pixels = conf.total()
-    mask_px = int(m_lab.sum())
     per_class = {}
     rows, cols_ = conf.truth_counts(), conf.pred_counts()
     ious = conf.class_iou()

@@ -57,6 +57,44 @@ def splat_pass(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, z: np.ndarra
                     best[p] = key
 
 
+@numba.njit(nogil=True, cache=True)
+def splat_label_pass_multi(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, z: np.ndarray,
+                           size: np.ndarray, col0: np.ndarray, row0: np.ndarray,
+                           lab: np.ndarray, tol: np.float32, h: int, w: int) -> None:
+    """Pass 2 of :func:`splat_pass` for L label arrays at once (one geometry, several label
+    sets: the review's leave-one-out and self renderings of one frame). ``lab``: (n, L)
+    uint8; ``best``: (L, h * w) uint64, row j lowered exactly as :func:`splat_pass` lowers
+    ``best`` with ``lab[:, j]`` (the same key, the same smaller-label tie rule), so each row
+    is that label set's own rendering; ``depth`` from pass 1 is read only."""
+    k005 = np.float32(0.005)
+    k65536 = np.float32(65536.0)
+    cap = np.float32(2.0 ** 31)
+    n_lab = lab.shape[1]
+    for i in range(z.shape[0]):
+        s = size[i]
+        zi = z[i]
+        for dy in range(s):
+            r = row0[i] + dy
+            if r < 0 or r >= h:
+                continue
+            for dx in range(s):
+                c = col0[i] + dx
+                if c < 0 or c >= w:
+                    continue
+                p = r * w + c
+                zf = depth[p]
+                if not zi <= zf + (tol + k005 * zf):
+                    continue
+                ex = c + 0.5 - uv[i, 0]
+                ey = r + 0.5 - uv[i, 1]
+                d2 = np.float32(ex * ex + ey * ey)
+                base = np.uint64(min(d2 * k65536, cap)) << np.uint64(8)
+                for j in range(n_lab):
+                    key = base | np.uint64(lab[i, j])
+                    if key < best[j, p]:
+                        best[j, p] = key
+
+
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the pass on a one-point input."""
     depth = np.full(4, np.inf, np.float32)
@@ -66,3 +104,6 @@ def compile_kernels() -> None:
     for label_pass in (False, True):
         splat_pass(depth, best, np.full((1, 2), 0.5), z, one, one - 1, one - 1,
                    np.ones(1, np.uint8), np.float32(0.1), 2, 2, label_pass)
+    splat_label_pass_multi(depth, np.full((2, 4), np.iinfo(np.uint64).max, np.uint64),
+                           np.full((1, 2), 0.5), z, one, one - 1, one - 1,
+                           np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)

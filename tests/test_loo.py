@@ -90,3 +90,30 @@ def test_loo_labels_exclude_the_frames_own_votes(lifted):
     only_mine = [r for r, pid in enumerate(loo.point_ids.tolist())
                  if pid in vis and counts[r].sum() == 0]
     assert not loo.voted[only_mine].any()
+
+
+def test_loo_winner_matches_the_numpy_majority():
+    """The compiled winner of votes minus a frame's own votes against ClassColumns.winner of
+    the subtracted copy: ties (taxonomy order), own entries outside the ids, unsorted own
+    entries, several own columns on one point, counts clipped at 0."""
+    from occufly.lifting.classes import ClassColumns
+    from occufly.lifting.loo import loo_winner
+    from occufly.taxonomy import default_taxonomy
+
+    cls = ClassColumns(default_taxonomy())
+    rng = np.random.default_rng(3)
+    n = 5000
+    votes = rng.integers(0, 3, (n, cls.C)).astype(np.uint16)
+    votes[rng.random(n) < 0.3] = 0
+    ids = np.sort(rng.choice(n, 3000, replace=False)).astype(np.int64)
+    own_p = rng.integers(0, n, 4000).astype(np.int64)  # unsorted, repeats, some not in ids
+    own_c = rng.integers(0, cls.C, 4000).astype(np.int64)
+    own_w = rng.integers(1, 3, 4000).astype(np.int64)
+    got = loo_winner(votes, ids, own_p, own_c, own_w, cls)
+    counts = votes[ids].astype(np.int64)
+    pos = np.searchsorted(ids, own_p)
+    ok = (pos < len(ids)) & (ids[np.minimum(pos, len(ids) - 1)] == own_p)
+    np.add.at(counts, (pos[ok], own_c[ok]), -own_w[ok])
+    want = cls.winner(np.maximum(counts, 0).astype(np.uint16))
+    assert np.array_equal(got, want)
+    assert (got == -1).any() and (got >= 0).any()

@@ -63,6 +63,13 @@ class AgreementOut(BaseModel):
     independent_pixels: int = 0
     painted_pixels: int = 0
     min_independent_coverage: float = 0.5
+    # the review list's ranking score (higher = look first; occufly.lifting.loo.review_score)
+    # and its parts: agreement over the confidently, independently labelled area (painted
+    # or not), that area's share of the frame, the shift test's gain
+    review_score: float | None = None
+    area_agreement: float | None = None
+    area_share: float = 0.0
+    shift_gain: float = 0.0
     pixels: int  # = independent_pixels
     per_class: dict[str, object]  # from the LOO rendering
     version: int

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import threading
+from collections import OrderedDict
 from datetime import timedelta
+from pathlib import Path
 
 import numpy as np
 from sqlalchemy import or_, select, update
@@ -17,6 +21,7 @@ from app.review.models import ReviewComment, ReviewItem
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.lifting import loo as lifting_loo
+from occufly.workspace import Workspace
 
 
 # ---- render-back and agreement --------------------------------------------------------------
@@ -27,16 +32,90 @@ def _mask_array(ctx: AppContext, scene: Scene, sha256: str) -> np.ndarray:
 rendered = annotations.rendered  # the prefill render lives with the annotations
 
 
+class _ReviewCache:
+    """The last few frames' review renderings (mask, LOO, confident LOO, self), keyed by the
+    frame, its mask and the stamps (mtime, size) of every file they are computed from: the
+    votes, the frame's own votes, the labels and the corrections. The reviewer page asks for
+    the agreement and the disagreement image of a frame at once: they share one computation
+    (a second request for a key being computed waits for it)."""
+
+    def __init__(self, size: int = 3) -> None:
+        self.size = size
+        self._lock = threading.Lock()
+        self._items: OrderedDict = OrderedDict()
+        self._busy: dict = {}
+
+    def get(self, key, compute):  # noqa: ANN001
+        while True:
+            with self._lock:
+                if key in self._items:
+                    self._items.move_to_end(key)
+                    return self._items[key]
+                ev = self._busy.get(key)
+                if ev is None:
+                    ev = self._busy[key] = threading.Event()
+                    break
+            ev.wait()
+        try:
+            val = compute()
+            with self._lock:
+                self._items[key] = val
+                while len(self._items) > self.size:
+                    self._items.popitem(last=False)
+            return val
+        finally:
+            with self._lock:
+                self._busy.pop(key, None)
+            ev.set()
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+
+
+_CACHE = _ReviewCache()
+
+
+def _stamp(*paths: Path) -> tuple:
+    out = []
+    for p in paths:
+        try:
+            st = os.stat(p)
+            out.append((st.st_mtime_ns, st.st_size))
+        except OSError:
+            out.append(None)
+    return tuple(out)
+
+
+def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
+    """The frame's current mask and what it is compared with, at the mask's size: ``mask``,
+    ``loo`` (the labels decided without the frame's own votes, :mod:`occufly.lifting.loo`),
+    ``confident`` (those holding >= ``CONFIDENT_SHARE`` of their votes), ``self`` (the scene's
+    labels: the old, circular comparison), ``version`` -- rendered in one pass, cached."""
+    v = annotations.current_version(session=session, frame=frame)
+    w = Workspace(scene.workspace)
+    key = (str(scene.workspace), frame.index, v.id, v.sha256,
+           _stamp(w.votes, w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
+                  w.corrections_dir / "overrides.npz"))
+
+    def compute() -> dict:
+        mask = _mask_array(ctx, scene, v.sha256)
+        ws_scene = ctx.load_scene(scene.workspace)
+        labels = annotations.current_labels(ctx, scene)
+        if labels is None:
+            raise NotFound(f"scene {scene.id} has no lifted labels yet")
+        loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
+        imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels)
+        return {"mask": mask, "version": v.id, **imgs}
+
+    return _CACHE.get(key, compute)
+
+
 def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
     """(mask, leave-one-out rendering at the mask's size, version id) of the frame's current
     mask: the labels decided without the frame's own votes (:mod:`occufly.lifting.loo`)."""
-    v = annotations.current_version(session=session, frame=frame)
-    mask = _mask_array(ctx, scene, v.sha256)
-    ws_scene = ctx.load_scene(scene.workspace)
-    if annotations.current_labels(ctx, scene) is None:
-        raise NotFound(f"scene {scene.id} has no lifted labels yet")
-    loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
-    return mask, lifting_loo.render_loo(ws_scene, loo, mask.shape), v.id
+    r = review_images(ctx, session, scene, frame)
+    return r["mask"], r["loo"], r["version"]
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
@@ -44,12 +123,11 @@ def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Fram
     ``status="not_enough_independent_views"`` when the independent coverage is below
     ``settings.min_independent_coverage``), the old self-agreement apart, the independent
     coverage and painted share; stored on the frame (the review list sorts by it)."""
-    mask, ren, vid = compare(ctx, session, scene, frame)
+    r = review_images(ctx, session, scene, frame)
+    mask, vid = r["mask"], r["version"]
     ws_scene = ctx.load_scene(scene.workspace)
-    labels = annotations.current_labels(ctx, scene)
-    self_ren = np.asarray(pipeline.render_for_mask(ws_scene, labels, frame.index, mask.shape)[0],
-                          dtype=np.uint8)
-    res = lifting_loo.loo_agreement(mask, ren, ws_scene, self_rendered=self_ren)
+    res = lifting_loo.loo_agreement(mask, r["loo"], ws_scene, self_rendered=r["self"],
+                                    confident_rendered=r["confident"])
     value = res["agreement"]
     enough = res["independent_coverage"] >= ctx.settings.min_independent_coverage
     status = "ok" if enough and value is not None else "not_enough_independent_views"
@@ -59,6 +137,7 @@ def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Fram
     frame.self_agreement = res.get("self_agreement")
     frame.independent_coverage = float(res["independent_coverage"])
     frame.painted_share = float(res["painted_share"])
+    frame.review_score = res["review_score"]
     session.commit()
     per_class = {str(k): v for k, v in (res.get("per_class") or {}).items()}
     return {"agreement": value, "status": status, "loo_agreement": res["agreement"],
@@ -68,6 +147,8 @@ def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Fram
             "independent_pixels": int(res["independent_pixels"]),
             "painted_pixels": int(res["painted_pixels"]),
             "min_independent_coverage": float(ctx.settings.min_independent_coverage),
+            "review_score": res["review_score"], "area_agreement": res["area_agreement"],
+            "area_share": float(res["area_share"]), "shift_gain": float(res["shift_gain"]),
             "pixels": int(res["independent_pixels"]), "per_class": per_class, "version": vid}
 
 
@@ -100,7 +181,8 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
                               "agreement": r["agreement"], "pixels": r["pixels"],
                               "status": r["status"], "self_agreement": r["self_agreement"],
                               "independent_coverage": r["independent_coverage"],
-                              "painted_share": r["painted_share"]})
+                              "painted_share": r["painted_share"],
+                              "review_score": r["review_score"]})
             if r["agreement"] is not None:
                 total_px += r["pixels"]
                 agree_px += r["agreement"] * r["pixels"]

@@ -52,6 +52,9 @@ class Frame(Base):
     self_agreement: Mapped[float | None] = mapped_column(Float, nullable=True)
     independent_coverage: Mapped[float | None] = mapped_column(Float, nullable=True)
     painted_share: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # migration 0011: the review list's ranking score (occufly.lifting.loo.review_score;
+    # higher = look first; None = not scored yet or no independent labels in the frame)
+    review_score: Mapped[float | None] = mapped_column(Float, nullable=True)
     reviewed_by_id: Mapped[int | None] = mapped_column(
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     reviewed_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)

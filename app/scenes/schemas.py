@@ -107,6 +107,7 @@ class FrameOut(BaseModel):
     self_agreement: float | None = None
     independent_coverage: float | None = None
     painted_share: float | None = None
+    review_score: float | None = None  # the review list's ranking score (higher = look first)
 
 
 class FrameDetail(FrameOut):

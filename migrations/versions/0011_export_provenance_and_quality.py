@@ -1,13 +1,17 @@
-"""export provenance and quality (issue 23): reserved revision (empty until that work needs a schema change)
+"""export provenance and quality (issue 23): the review list's ranking score
 
 Revision ID: 0011
 Revises: 0010
 Create Date: 2026-12-03 13:20:00
+
+frames.review_score: the ranking score of the frame's mask (occufly.lifting.loo.review_score:
+the share of the confidently, independently labelled area the mask does not reproduce, plus
+the shift test's gain); the review list sorts by it, highest first.
 """
 from __future__ import annotations
 
-import sqlalchemy as sa  # noqa: F401
-from alembic import op  # noqa: F401
+import sqlalchemy as sa
+from alembic import op
 
 revision = '0011'
 down_revision = '0010'
@@ -16,8 +20,11 @@ depends_on = None
 
 
 def upgrade() -> None:
-    pass
+    # NULL until the next labels_updated recomputes the frame's agreement
+    with op.batch_alter_table("frames") as b:
+        b.add_column(sa.Column("review_score", sa.Float(), nullable=True))
 
 
 def downgrade() -> None:
-    pass
+    with op.batch_alter_table("frames") as b:
+        b.drop_column("review_score")

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -25,9 +26,8 @@ from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
 from occufly.lifting.knn import LiftParams, _knn_vote
 from occufly.render import agreement as _agreement
-from occufly.render import disagreement_image, frustum_candidates, render_for_mask
+from occufly.render import disagreement_image, frustum_candidates, render_many_for_mask
 from occufly.scene import Scene
-from occufly.taxonomy import INVALID
 from occufly.workspace import Workspace
 
 
@@ -37,13 +37,17 @@ class LooLabels:
 
     point_ids: (K,) int64 sorted scene point ids (f's visible points and its frustum cull);
     labels: (K,) uint8 raw ids decided without f (0 = no independent evidence);
-    voted: (K,) bool, the label comes from other frames' votes (else filled or none).
+    voted: (K,) bool, the label comes from other frames' votes (else filled or none);
+    share: (K,) float32 the label's share of the other frames' votes (of the weighted k-NN
+    vote where filled; 1 where a reviewer's correction decided; 0 without a label) -- how
+    unanimous the independent evidence is.
     """
 
     frame_index: int
     point_ids: np.ndarray
     labels: np.ndarray
     voted: np.ndarray
+    share: np.ndarray | None = None
 
 
 def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,6 +59,69 @@ def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cols = z["cols"].astype(np.int64)
         w = z["weights"].astype(np.int64) if "weights" in z.files else np.ones(len(pids), np.int64)
     return pids, cols, w
+
+
+@numba.njit(nogil=True, cache=True)
+def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c: np.ndarray,
+                      own_w: np.ndarray, tie_key: np.ndarray, out: np.ndarray,
+                      share: np.ndarray) -> None:
+    """out[k] = the tie-order winner column of votes[ids[k]] minus the frame's own votes
+    (entries ``pos`` sorted, -1 = not in ids), -1 where no vote is left; share[k] = the
+    winner's share of the votes left (0 where none)."""
+    n_cls = votes.shape[1]
+    sub = np.zeros(n_cls, np.int64)
+    j = 0
+    n_own = pos.shape[0]
+    while j < n_own and pos[j] < 0:
+        j += 1
+    for k in range(ids.shape[0]):
+        touched = False
+        while j < n_own and pos[j] == k:
+            sub[own_c[j]] += own_w[j]
+            touched = True
+            j += 1
+        row = ids[k]
+        best = -1
+        best_key = -1
+        total = 0
+        for c in range(n_cls):
+            v = np.int64(votes[row, c]) - sub[c]
+            if v > 0:
+                total += v
+                key = v * n_cls + tie_key[c]
+                if key > best_key:
+                    best_key = key
+                    best = c
+        out[k] = best
+        share[k] = (best_key // n_cls) / total if total > 0 else 0.0
+        if touched:
+            for c in range(n_cls):
+                sub[c] = 0
+
+
+def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.ndarray,
+               own_w: np.ndarray, cls: ClassColumns, share: np.ndarray | None = None
+               ) -> np.ndarray:
+    """(K,) int64 winner column (:meth:`ClassColumns.winner`'s tie order; -1 = no vote) of the
+    vote counts ``votes[ids]`` ((N, C) uint16, a memmap is read in place) minus a frame's
+    own votes (``own_p`` point ids, ``own_c`` columns, ``own_w`` weights; a count never goes
+    below 0). One compiled pass over the rows: no (K, C) copy, no packed key array.
+    ``share``: an optional (K,) float32 output, the winner's share of the votes left."""
+    ids = np.ascontiguousarray(ids, dtype=np.int64)
+    out = np.empty(len(ids), np.int64)
+    share = np.empty(len(ids), np.float32) if share is None else share
+    if not len(ids):
+        return out
+    pos = np.searchsorted(ids, own_p).astype(np.int64)
+    pos = np.minimum(pos, len(ids) - 1)
+    pos[ids[pos] != own_p] = -1
+    order = np.argsort(pos, kind="stable") if len(pos) > 1 and (np.diff(pos) < 0).any() else None
+    if order is not None:
+        pos, own_c, own_w = pos[order], own_c[order], own_w[order]
+    tie = np.asarray(cls._tie_key, np.int64)  # C - 1 - rank: larger = preferred on a tie
+    _winner_minus_own(votes, ids, pos, np.ascontiguousarray(own_c, np.int64),
+                      np.ascontiguousarray(own_w, np.int64), tie, out, share)
+    return out
 
 
 def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
@@ -75,15 +142,9 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         missing = vis[ids[pos] != vis] if len(ids) else vis
         if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
             ids = np.sort(np.concatenate([ids, missing]))
-    counts = np.array(votes[ids])  # (K, C) uint16 copy
     own_p, own_c, own_w = _frame_votes(ws, frame_index)
-    if len(own_p):
-        pos = np.searchsorted(ids, own_p)
-        pos = np.minimum(pos, len(ids) - 1)
-        ok = ids[pos] == own_p
-        r, c = pos[ok], own_c[ok]
-        counts[r, c] = np.maximum(counts[r, c].astype(np.int64) - own_w[ok], 0).astype(np.uint16)
-    col = cls.winner(counts)
+    share = np.empty(len(ids), np.float32)
+    col = loo_winner(votes, ids, own_p, own_c, own_w, cls, share)
     voted = col >= 0
     # fill: the points f sees without an independent vote, from the other frames' voted points
     is_vis = np.zeros(len(ids), bool)
@@ -98,9 +159,10 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         src = src[np.all((sx >= lo) & (sx <= hi), axis=1)]  # only voted points in reach
     if len(todo) and len(src):
         tree = cKDTree(np.asarray(xyz[ids[src]], dtype=np.float64))
-        c, _share = _knn_vote(tree, col[src], q,
+        c, fshare = _knn_vote(tree, col[src], q,
                               p.fill_k, p.fill_radius, cls, weighted=True, workers=p.workers)
         col[todo] = c
+        share[todo] = np.where(c >= 0, fshare, 0.0)
     labels = cls.labels_of(col)
     if corrections:
         ov = read_overrides(ws, scene.n_points)
@@ -109,31 +171,137 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
             pos = np.minimum(np.searchsorted(ids, op), len(ids) - 1)
             hit = ids[pos] == op
             labels[pos[hit]] = np.asarray(ov.labels)[hit]
-    return LooLabels(frame_index, ids, labels, voted)
+            share[pos[hit]] = 1.0
+    return LooLabels(frame_index, ids, labels, voted, share)
 
 
 def render_loo(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int]) -> np.ndarray:
     """(h, w) uint8 rendering of the leave-one-out labels into their frame at the mask's size."""
+    return render_review(scene, loo, mask_shape)["loo"]
+
+
+# the ranking score compares a mask with the *confident* independent labels only: a label
+# holding at least this share of the other frames' votes (of the k-NN vote where filled).
+# Where the other frames disagree among themselves (a wrong neighbour's votes against a right
+# one's) the LOO label says little about this frame, and a right mask next to a wrong one
+# would otherwise rank among the wrong ones (bench_review)
+CONFIDENT_SHARE = 0.6
+
+
+def render_review(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int],
+                  self_labels: np.ndarray | None = None) -> dict:
+    """The renderings a review compares a mask with, in one pass over the frame's geometry
+    (:func:`occufly.render.render_many_for_mask`; each image equals its own
+    :func:`~occufly.render.render_for_mask`): ``"loo"`` the leave-one-out labels,
+    ``"confident"`` those of them holding >= ``CONFIDENT_SHARE`` of their votes (others 0),
+    and with ``self_labels`` ((N,) uint8, the lifted labels) ``"self"``."""
     full = np.zeros(scene.n_points, np.uint8)  # calloc'd: only the cull's pages are touched
     full[loo.point_ids] = loo.labels
-    ren, _depth = render_for_mask(scene, full, loo.frame_index, mask_shape)
-    return np.asarray(ren, np.uint8)
+    sets = [full]
+    if loo.share is not None:
+        conf = np.zeros(scene.n_points, np.uint8)
+        keep = loo.share >= CONFIDENT_SHARE
+        conf[loo.point_ids[keep]] = loo.labels[keep]
+        sets.append(conf)
+    if self_labels is not None:
+        sets.append(np.asarray(self_labels, np.uint8))
+    imgs = render_many_for_mask(scene, sets, loo.frame_index, mask_shape)
+    out = {"loo": imgs[0], "confident": imgs[1] if loo.share is not None else imgs[0]}
+    if self_labels is not None:
+        out["self"] = imgs[-1]
+    return out
+
+
+# the shift test: a mask that agrees better with the independent labels shifted by 1.5-6 % of
+# the frame width (in x, y or both) than in place is misregistered (drawn on a shifted image,
+# or pasted from a neighbouring frame); right masks agree best in place (bench_review: gain
+# exactly 0 for every right frame of small and bench)
+SHIFT_STEPS = (0.01, 0.02, 0.03, 0.04, 0.05, 0.06)
+SHIFT_SIDE = 240  # the test runs on the images subsampled to about this width
+
+
+def shift_gain(mask: np.ndarray, rendered: np.ndarray, valid: np.ndarray) -> float:
+    """max over shifts s of agreement(mask, rendered moved by s) - agreement in place, >= 0.
+
+    Both images are subsampled to ~``SHIFT_SIDE`` px wide (a stride, no filtering); shifts
+    are the 9 x 9 grid of 0, +-``SHIFT_STEPS`` x width in x and y, compared over their overlap,
+    pixels where both have a class. Cost: ~80 comparisons of ~40 k pixels."""
+    h, w = mask.shape
+    st = max(1, w // SHIFT_SIDE)
+    m, r = np.asarray(mask)[::st, ::st], np.asarray(rendered)[::st, ::st]
+    hm, wm = m.shape
+    mv, rv = valid[m], valid[r]
+    steps = sorted({0, *(int(round(f * wm)) for f in SHIFT_STEPS)} - {0})
+    offs = [0, *steps, *(-x for x in steps)]
+
+    def agree(dy: int, dx: int) -> float | None:
+        ys, yd = (slice(dy, hm), slice(0, hm - dy)) if dy >= 0 else (slice(0, hm + dy), slice(-dy, hm))
+        xs, xd = (slice(dx, wm), slice(0, wm - dx)) if dx >= 0 else (slice(0, wm + dx), slice(-dx, wm))
+        both = mv[ys, xs] & rv[yd, xd]  # mask pixel (y, x) against rendered (y - dy, x - dx)
+        n = int(both.sum())
+        return float((both & (m[ys, xs] == r[yd, xd])).sum()) / n if n else None
+
+    base = agree(0, 0)
+    if base is None:
+        return 0.0
+    best = base
+    for dy in offs:
+        for dx in offs:
+            if dy or dx:
+                v = agree(dy, dx)
+                if v is not None and v > best:
+                    best = v
+    return best - base
+
+
+def score_figures(mask: np.ndarray, confident: np.ndarray, valid: np.ndarray) -> dict:
+    """The ranking score's figures of a mask against the *confident* LOO rendering:
+    ``area_pixels`` (its class pixels where the mask has a class or nothing; "ignore" 255 and
+    unknown ids left out), ``area_agree`` (of them, the mask's class equals it),
+    ``area_agreement`` = agree / area (None without any), ``shift_gain`` (:func:`shift_gain`)
+    and ``review_score`` (:func:`review_score`)."""
+    mask = np.asarray(mask)
+    rv = valid[confident]
+    mv = valid[mask]
+    area = int((rv & (mv | (mask == 0))).sum())
+    agree = int((rv & mv & (mask == confident)).sum())
+    out = {"area_pixels": area, "area_agree": agree,
+           "area_agreement": agree / area if area else None,
+           "shift_gain": shift_gain(mask, confident, valid) if area else 0.0}
+    out["review_score"] = review_score(out)
+    return out
+
+
+def review_score(fig: dict) -> float | None:
+    """The review list's ranking score of a frame (higher = look first), from
+    :func:`score_figures`: the share of the frame's *confidently, independently labelled*
+    area (pixels the other frames' confident labels render into, painted or not) that the mask
+    does not reproduce -- a wrong class, or nothing painted where the other frames see
+    something -- plus the shift test's gain. None without any such pixel. Unlike the LOO
+    agreement, which counts painted pixels only, it sees a half-painted frame (its unpainted
+    half is disagreement) and a shifted one."""
+    if not fig.get("area_pixels"):
+        return None
+    return float(1.0 - fig["area_agreement"] + (fig.get("shift_gain") or 0.0))
 
 
 def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
-                  self_rendered: np.ndarray | None = None) -> dict:
+                  self_rendered: np.ndarray | None = None,
+                  confident_rendered: np.ndarray | None = None) -> dict:
     """Agreement of ``mask`` (h, w uint8 raw ids) with the leave-one-out ``rendered`` labels.
 
     Returns ``agreement`` (share of the painted pixels with an independent label that agree;
     None without any), ``independent_pixels``, ``independent_coverage`` (share of the painted
     pixels with an independent label), ``painted_pixels``, ``painted_share`` (painted / all
-    pixels), ``per_class`` and ``confusion`` (of the LOO rendering), and, with
-    ``self_rendered``, ``self_agreement`` (the old circular figure, kept apart).
+    pixels), ``per_class`` and ``confusion`` (of the LOO rendering), the ranking score's
+    figures (:func:`score_figures` against ``confident_rendered``, default ``rendered``:
+    ``review_score``, ``area_agreement``, ``shift_gain``...), and, with ``self_rendered``,
+    ``self_agreement`` (the old circular figure, kept apart).
     """
     mask = np.asarray(mask)
     res = _agreement(mask, rendered, scene.taxonomy)
     valid = scene.taxonomy.valid_lut()
-    painted = int((valid[mask] & (mask != INVALID)).sum())
+    painted = int(res.get("mask_pixels", 0))  # pixels of a taxonomy class (not 0 / 255)
     ind = int(res.get("pixels", 0))
     val = res.get("agreement")
     val = None if val is None or not np.isfinite(val) or ind == 0 else float(val)
@@ -142,6 +310,10 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
            "painted_share": painted / mask.size if mask.size else 0.0,
            "per_class": res.get("per_class") or {}, "confusion": res.get("confusion"),
            "agree": int(res.get("agree", 0))}
+    fig = score_figures(mask, rendered if confident_rendered is None else confident_rendered,
+                        valid)
+    out.update(fig)
+    out["area_share"] = fig["area_pixels"] / mask.size if mask.size else 0.0
     if self_rendered is not None:
         s = _agreement(mask, self_rendered, scene.taxonomy)
         sv = s.get("agreement")
@@ -157,12 +329,10 @@ def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, 
     with ``self_labels`` ((N,) uint8, the lifted labels) also the self-agreement; with
     ``image`` the disagreement RGBA under ``"image"``."""
     loo = loo_labels(ws, scene, frame_index, params=params)
-    ren = render_loo(scene, loo, mask.shape)
-    self_ren = None
-    if self_labels is not None:
-        self_ren = np.asarray(render_for_mask(scene, self_labels, frame_index, mask.shape)[0],
-                              np.uint8)
-    out = loo_agreement(mask, ren, scene, self_rendered=self_ren)
+    imgs = render_review(scene, loo, mask.shape, self_labels)
+    ren = imgs["loo"]
+    out = loo_agreement(mask, ren, scene, self_rendered=imgs.get("self"),
+                        confident_rendered=imgs["confident"])
     if image:
         out["image"] = disagreement_image(mask, ren, scene.taxonomy)
     out["rendered"] = ren

@@ -1,0 +1,79 @@
+"""render_many_for_mask: several label sets over one geometry, each equal to its own render."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from occufly.camera import Camera, look_at
+from occufly.render import render_for_mask, render_many_for_mask
+from occufly.scene import Frame, Scene
+from occufly.taxonomy import default_taxonomy
+from tests.lift_scene import make_scene
+
+TAX = default_taxonomy()
+
+
+def _labels(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    ids = np.array([int(i) for i in TAX.ids], np.uint8)
+    out = ids[rng.integers(0, len(ids), n)]
+    out[rng.random(n) < 0.2] = 0  # unlabelled points still occlude
+    return out
+
+
+def test_many_equal_their_own_renders_small_scene():
+    scene, truth = make_scene()
+    other = _labels(scene.n_points, 1)
+    for fi in (3, 9):
+        h, w = scene.frames[fi].camera.height, scene.frames[fi].camera.width
+        for shape in ((h, w), (h // 2, w // 2)):
+            a, b = render_many_for_mask(scene, [truth, other], fi, shape)
+            assert np.array_equal(a, render_for_mask(scene, truth, fi, shape)[0])
+            assert np.array_equal(b, render_for_mask(scene, other, fi, shape)[0])
+
+
+def test_many_equal_their_own_renders_culled_and_coarse():
+    """A cloud above the cull threshold and a > 4 MP frame (rendered coarser, upsampled)."""
+    rng = np.random.default_rng(0)
+    sp = 0.08
+    g = np.arange(-24, 24, sp)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel() + rng.uniform(-0.02, 0.02, gx.size),
+                           gy.ravel(), np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)])
+    xyz = xyz.astype(np.float32)
+    cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1824.0, 1368.0, 912.0]))
+    T = look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    scene = Scene(frames=[Frame("f.jpg", cam, T)], xyz=xyz, rgb=np.zeros_like(xyz, np.uint8),
+                  taxonomy=TAX)
+    scene.meta["point_spacing"] = sp
+    assert scene.n_points > 200_000
+    la, lb = _labels(scene.n_points, 2), _labels(scene.n_points, 3)
+    for shape in ((1824, 2736), (912, 1368)):
+        a, b = render_many_for_mask(scene, [la, lb], 0, shape)
+        assert a.shape == shape
+        assert np.array_equal(a, render_for_mask(scene, la, 0, shape)[0])
+        assert np.array_equal(b, render_for_mask(scene, lb, 0, shape)[0])
+
+
+def test_agreement_counts_match_a_plain_reference():
+    """The compiled pair count behind ``agreement``: class x class pixels only (0, 255 and
+    ids outside the taxonomy left out of the score, 255 in the mask not counted as painted)."""
+    from occufly.render import agreement
+
+    rng = np.random.default_rng(4)
+    ids = np.array([int(i) for i in TAX.ids], np.uint8)
+    pool = np.concatenate([ids, np.uint8([0, 0, 255, 250])])
+    mask = pool[rng.integers(0, len(pool), (123, 77))]
+    ren = np.where(rng.random(mask.shape) < 0.6, mask, pool[rng.integers(0, len(pool), mask.shape)])
+    res = agreement(mask, ren.astype(np.uint8), TAX)
+    is_cls = np.isin(mask, ids)
+    both = is_cls & np.isin(ren, ids)
+    assert res["pixels"] == int(both.sum())
+    assert res["agree"] == int((both & (mask == ren)).sum())
+    assert res["mask_pixels"] == int(is_cls.sum())
+    for c in TAX.classes:
+        pc = res["per_class"].get(c.name)
+        if pc is None:
+            continue
+        assert pc["mask_pixels"] == int((both & (mask == c.id)).sum())
+        assert pc["agree"] == int((both & (mask == c.id) & (ren == c.id)).sum())

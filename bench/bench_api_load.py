@@ -316,7 +316,7 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         prefill: list[tuple[float, int]] = []
         errors: list[str] = []
         lock = threading.Lock()
-        barrier = threading.Barrier(args.annotators + 1)
+        barrier = threading.Barrier(args.annotators + 2)
         rng_all = random.Random(1)
         seeds = [rng_all.random() for _ in range(args.annotators)]
 
@@ -414,8 +414,26 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                             return
                         current = nxt
 
+        probe: list[tuple[float, float]] = []  # (GET /auth/me s, labels/status lag_s) 1/s
+
+        def prober() -> None:  # what a client sees during the load: latency, the lag it is told
+            with httpx.Client(base_url=base, timeout=300) as c:
+                _login(c, "admin")
+                barrier.wait()
+                while time.monotonic() < deadline[0]:
+                    try:
+                        t1 = time.perf_counter()
+                        c.get("/api/auth/me")
+                        dt = time.perf_counter() - t1
+                        st = c.get(f"/api/scenes/{sids[0]}/labels/status").json()
+                        probe.append((dt, float(st.get("lag_s", 0.0))))
+                    except (httpx.HTTPError, ValueError):
+                        probe.append((float("nan"), float("nan")))
+                    time.sleep(1.0)
+
         target = b2b if model == "b2b" else realistic
         threads = [threading.Thread(target=target, args=(i,)) for i in range(args.annotators)]
+        threads.append(threading.Thread(target=prober))
         for t in threads:
             t.start()
         t_start = [0.0]
@@ -468,6 +486,10 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
             "cpu_s_per_submit_lifting": round(cpu_total["lifting"] / max(1, len(submits)), 3),
             "cpu_util_during_load": round((cpu_used["api"] + cpu_used["lifting"]) / wall, 2),
             "baseline_get_me_p50_s": _pct(base_lat, 50),
+            "during_get_me_p50_s": _pct([a for a, _ in probe if a == a], 50),
+            "during_get_me_p95_s": _pct([a for a, _ in probe if a == a], 95),
+            "told_lag_max_s": max((b for _, b in probe if b == b), default=None),
+            "probe_failures": sum(1 for a, _ in probe if a != a),
             "mask_bytes_mean": int(np.mean([len(m) for m in masks])),
             "acknowledged": len(saves), "lost": lost + lift["missing_from_lift_queue"],
             "corrupted": corrupted, "load_avg_1min": round(os.getloadavg()[0], 1),

@@ -4,7 +4,8 @@
   written in the save's transaction), ``lift_status`` (per scene: fill state, last error,
   labels stamp), ``events``.
 - :mod:`app.lifting.service` -- :class:`LiftingService`, the worker: applies the queue in
-  version order, exactly once per version, fills, publishes; resumes after a crash.
+  version order, exactly once per version, fills (incrementally), publishes; resumes after a
+  crash. Several workers share the scenes on PostgreSQL (advisory locks, one owner per scene).
 - :mod:`app.lifting.client` -- :class:`LiftingClient` (``ctx.lifting`` in every API process):
   enqueue, wake, status from the database, read-only views of the votes.
 - :mod:`app.lifting.events` -- :class:`EventBus`: PostgreSQL ``LISTEN/NOTIFY`` + the ``events``

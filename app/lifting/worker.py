@@ -1,7 +1,9 @@
 """The lifting worker as its own process: ``occufly lifting-worker`` or ``python -m app.lifting``.
 
 Settings come from the same ``OCCUFLY_*`` environment as the API processes (database, data
-directory). Exits 2 with a message when another worker already owns the data directory.
+directory). PostgreSQL: start as many as you like, on any host mounting the data volume; they
+share the scenes through advisory locks (:mod:`app.lifting.service`). SQLite: one per data
+directory on one host -- a second one exits 2 with a message.
 """
 
 from __future__ import annotations

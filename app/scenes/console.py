@@ -52,6 +52,7 @@ ACCESS = {
 #: two mask saves of one person further apart than this are two sittings: the gap is not
 #: counted as time spent (the editor autosaves a draft while someone paints)
 IDLE_GAP = timedelta(minutes=5)
+MIN_RATE_S = 60.0  # less recorded work than this: no throughput figure
 WORK_ACTIONS = ("mask_save", "mask_submit", "mask_restore")
 STATES = ("todo", "in_progress", "submitted", "accepted", "rejected")
 
@@ -160,7 +161,7 @@ def overview(session: SessionDep, ctx: CtxDep, _admin: AdminUser) -> dict:
     """Per scene and per annotator: frames to do (selected, nobody started them), in
     progress, submitted, accepted, rejected; submissions (``resubmissions`` of a frame
     apart), time spent (mask saves of one person less than 5 minutes apart, summed) and
-    frames submitted per hour of it; per scene the lifting lag (seconds the oldest waiting
+    frames submitted per hour of it (from a minute of it on); per scene the lifting lag (seconds the oldest waiting
     mask has waited) and the frames still waiting to be lifted."""
     scenes = list(session.scalars(select(Scene).where(Scene.status != "deleting")
                                   .order_by(Scene.id)))
@@ -200,10 +201,13 @@ def overview(session: SessionDep, ctx: CtxDep, _admin: AdminUser) -> dict:
     for k in spent:
         urow(*k)
 
+    def per_hour(frames: int, sec: float) -> float | None:
+        # under a minute of recorded work says nothing about a rate (None, not 12000/h)
+        return round(frames / (sec / 3600), 2) if sec >= MIN_RATE_S else None
+
     def finish(r: dict, sec: float) -> dict:
-        hours = sec / 3600
         return {**r, "time_spent_s": round(sec, 1),
-                "frames_per_hour": round(r["frames_submitted"] / hours, 2) if hours > 0 else None}
+                "frames_per_hour": per_hour(r["frames_submitted"], sec)}
 
     scene_rows = []
     for s in scenes:
@@ -225,7 +229,7 @@ def overview(session: SessionDep, ctx: CtxDep, _admin: AdminUser) -> dict:
             "selected": s.n_selected, **counts[s.id],
             "submissions": sum(p["submissions"] for p in people),
             "time_spent_s": round(total_s, 1),
-            "frames_per_hour": round(submitted / (total_s / 3600), 2) if total_s > 0 else None,
+            "frames_per_hour": per_hour(submitted, total_s),
             "lift_lag_s": lift.get("lag_s", 0.0), "lift_pending_frames": lift.get("pending_frames", 0),
             "lift_error": lift.get("last_error"), "annotators": people})
     # per annotator over every scene

@@ -2,7 +2,8 @@
 // with live progress and log tails, exports with downloads, metric tables, class histograms.
 
 import { api } from "../core/api.js";
-import { el, showError, toast, pct, fmtDate, table, dialog } from "../core/ui.js";
+import { el, showError, clearError, toast, pct, fmtDate, table } from "../core/ui.js";
+import { bytes, pathField, uploadControls, memberPicker, usersTable, confirmDeleteScene, exportsTable, overviewView } from "./console.js";
 import { linePlot, barPlot, mapPlot, cellRect } from "./plots.js";
 
 const ACTIVE = new Set(["queued", "running"]);
@@ -37,12 +38,12 @@ class AdminPage {
     this.selectionEl = el("div", { class: "plots" });
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
-    this.qualityEl = el("div", { id: "quality" }); // issue 23: how the scene's labels were made
-    this.exportPlanEl = el("div", { id: "export-plan", "aria-live": "polite" });
     this.histEl = el("div");
     this.effortEl = el("div", { id: "effort" });
     this.membersEl = el("div", { id: "members" });
     this.auditEl = el("div", { id: "audit" });
+    this.overviewEl = el("div", { id: "overview" }); // issue 28: across scenes and annotators
+    this.exportListEl = el("div", { id: "export-list" });
     this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
     this.sceneSel.addEventListener("change", () => {
       this.ctx.setParams({ scene: this.sceneSel.value });
@@ -56,21 +57,21 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["users", "scenes", "members", "selection", "jobs", "exports", "labels", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["overview", "users", "scenes", "members", "selection", "jobs", "exports", "labels", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
+        section("sec-overview", "Overview", el("p", { class: "hint" }, "Every scene and annotator at a glance: frames to do (selected, not started), in progress, waiting for review, accepted and rejected; time spent, throughput and how far the 3D labels lag behind."), this.overviewEl),
         section("sec-users", "Users", this.usersEl, this.userForm()),
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
         section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
         section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
         section("sec-jobs", "Jobs", this.jobsEl),
-        section("sec-exports", "Exports and metrics", this.exportForm(), this.exportsEl),
+        section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
-        section("sec-quality", "Quality", el("p", { class: "hint" }, "How the scene's live labels were made: each annotated frame's votes against the labels the other frames give without it (leave-one-out agreement), how much of it other frames see, points seen by two or more frames, points whose votes disagree, and the calibrated confidence. An export writes the same report as quality.json beside its data."), this.qualityEl),
         section("sec-effort", "Annotation effort", el("p", { class: "hint" }, "Per submitted mask, in submission order: the share of the frame's pixels painted (what painting from an empty mask costs) and the share that differs from the 3D prefill its annotator started from."), this.effortEl),
         section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
       ),
     );
-    await Promise.all([this.loadUsers(), this.loadScenes()]);
+    await Promise.all([this.loadUsers(), this.loadScenes(), this.loadOverview(), this.loadExportList()]);
     await this.loadScene();
     this.loadAudit();
     this.poll();
@@ -98,13 +99,9 @@ class AdminPage {
   async loadUsers() {
     await this.guard(async () => {
       const users = (await api.get("/users")) || [];
-      this.usersEl.replaceChildren(
-        table(users, [
-          { key: "username", label: "User" },
-          { key: "role", label: "Role" },
-          { key: "created_at", label: "Created", fmt: fmtDate },
-        ]),
-      );
+      this.users = users;
+      this.usersEl.replaceChildren(usersTable(users, this.ctx.session && this.ctx.session.user, () => this.loadUsers()));
+      this.memberPickerEl?.replaceWith((this.memberPickerEl = memberPicker(users)));
     });
   }
 
@@ -128,8 +125,9 @@ class AdminPage {
   // ---- scenes ----------------------------------------------------------------------------
   async loadScenes() {
     await this.guard(async () => {
-      const scenes = (await api.get("/scenes")) || [];
-      this.scenes = scenes;
+      const [scenes, st] = await Promise.all([api.get("/scenes"), api.get("/storage").catch(() => null)]);
+      this.scenes = scenes || [];
+      const used = new Map(((st && st.scenes) || []).map((s) => [s.scene_id, s]));
       const keep = this.sceneSel.value || this.ctx.params.scene;
       this.sceneSel.replaceChildren(...scenes.map((s) => el("option", { value: s.id }, s.name)));
       if (keep && scenes.some((s) => String(s.id) === String(keep))) this.sceneSel.value = keep;
@@ -143,8 +141,11 @@ class AdminPage {
               { key: "n_selected", label: "Selected" },
               { key: "coverage", label: "Coverage", fmt: (v) => pct(v) },
               { key: "created_at", label: "Imported", fmt: fmtDate },
-            ])
+              { key: "id", label: "Storage", fmt: (v) => (used.has(v) ? el("span", { class: "storage", title: `workspace ${bytes(used.get(v).workspace_bytes)}, exports ${bytes(used.get(v).export_bytes)}, masks ${bytes(used.get(v).mask_bytes)}, cached images ${bytes(used.get(v).cache_bytes)}` }, bytes(used.get(v).total_bytes)) : "–") },
+              { key: "id", label: "", fmt: (_v, s) => el("button", { type: "button", class: "small danger scene-delete", "aria-label": `Delete scene ${s.name}`, onclick: async () => { if (await confirmDeleteScene(s)) { this.loadScenes().then(() => this.loadScene()); this.loadOverview(); this.loadExportList(); } } }, "Delete") },
+            ], { rowAttrs: (s) => ({ "data-scene": s.name }) })
           : el("p", {}, "No scenes yet: import one below."),
+        st ? el("p", { class: "muted", id: "storage-summary" }, `Scenes take ${bytes(st.total_bytes)}; the data disk has ${bytes(st.disk.free_bytes)} free of ${bytes(st.disk.total_bytes)}. Export retention: ${st.retention.keep_last ? `newest ${st.retention.keep_last} per scene` : "keep all"}${st.retention.max_age_days ? `, at most ${st.retention.max_age_days} days` : ""}.`) : null,
       );
     });
   }
@@ -172,11 +173,16 @@ class AdminPage {
       "form",
       { class: "inline-form", "aria-label": "Import a scene" },
       field("Name", name),
-      field("Reconstruction folder", source, "must be inside an allowed import root on the server"),
+      pathField("Reconstruction folder", source, "inside an allowed import root on the server: Browse… lists them"),
+      uploadControls(name, (r) => {
+        source.value = r.source;
+        if (!name.value.trim()) name.value = r.source.split("/").pop().replace(/[^A-Za-z0-9_.-]/g, "_");
+      }),
       field("Kind", kind, "Metashape: the exported cameras .xml; ODM/Pix4D: the project folder"),
-      field("Cloud", cloud),
-      field("Images", images),
-      field("Depth maps", depth),
+      pathField("Cloud", cloud, null, { pick: "file", title: "Choose the dense cloud" }),
+      pathField("Images", images),
+      pathField("Depth maps", depth),
+      (this.memberPickerEl = memberPicker(this.users || [])),
       field("CRS", crs),
       field("Scale", scale, "only for a COLMAP model that is neither georeferenced nor geotagged"),
       el("button", { type: "submit" }, "Import"),
@@ -190,8 +196,11 @@ class AdminPage {
       if (images.value.trim()) body.images = images.value.trim();
       if (crs.value.trim()) body.crs = crs.value.trim();
       if (scale.value.trim()) body.scale = Number(scale.value);
+      const members = this.memberPickerEl ? this.memberPickerEl.selected() : [];
+      if (members.length) body.members = members;
       const job = await this.guard(() => api.post("/scenes/import", body));
       if (job) {
+        clearError(); // an earlier refusal no longer applies
         toast(`Import job ${job.id} started.`);
         this.track(job);
       }
@@ -202,7 +211,21 @@ class AdminPage {
   async loadScene() {
     if (!this.sid) return;
     // metrics only once the jobs say an evaluation finished (else the API answers 404)
-    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers(), this.loadQuality(), this.loadExportPlan()]);
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers()]);
+  }
+
+  // ---- overview, exports on disk (issue 28) --------------------------------------------------
+  async loadOverview() {
+    await this.guard(async () => {
+      this.overviewEl.replaceChildren(overviewView(await api.get("/overview")));
+    });
+  }
+
+  async loadExportList() {
+    await this.guard(async () => {
+      const rows = (await api.get("/exports")) || [];
+      this.exportListEl.replaceChildren(el("h3", {}, "Exports on disk"), exportsTable(rows, () => { this.loadExportList(); this.loadScenes(); }));
+    });
   }
 
   // ---- scene members -------------------------------------------------------------------------
@@ -279,9 +302,10 @@ class AdminPage {
               { key: "at", label: "When", fmt: fmtDate },
               { key: "actor", label: "Who", fmt: (v) => v ?? "–" },
               { key: "action", label: "Action" },
-              { key: "scene_id", label: "Scene", fmt: (v) => v ?? "" },
-              { key: "frame_id", label: "Frame", fmt: (v) => v ?? "" },
+              { key: "scene_name", label: "Scene", fmt: (v, r) => v ?? (r.scene_id != null ? `#${r.scene_id} (deleted)` : "") },
+              { key: "frame_name", label: "Frame", fmt: (v, r) => v ?? (r.frame_id != null ? `#${r.frame_id} (deleted)` : "") },
               { key: "target", label: "Target", fmt: (v) => v ?? "" },
+              { key: "users", label: "Users", fmt: (v) => Object.values(v || {}).join(", ") },
               { key: "client_ip", label: "Address", fmt: (v) => v ?? "" },
             ], { caption: `${rows.length} event(s), newest first` })
           : el("p", { class: "hint" }, "No events match."),
@@ -422,7 +446,6 @@ class AdminPage {
               el("progress", { max: 1, value: j.progress ?? 0, "aria-label": `job ${j.id} progress` }),
               el("span", {}, `${Math.round(100 * (j.progress ?? 0))} %`),
               el("span", { class: "muted" }, j.message || ""),
-              exportTook(j),
               el("span", { class: "spacer" }),
               ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
               ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
@@ -515,7 +538,11 @@ class AdminPage {
           if (f.status === "failed") showError(`Job ${f.id} (${f.kind}) failed: ${f.message || "see its log"}`);
           else toast(`Job ${f.id} (${f.kind}) ${f.status}.`);
           if (cb) cb(f);
-          if (f.kind === "import") this.loadScenes();
+          if (f.kind === "import") {
+            this.loadScenes();
+            this.loadOverview();
+          }
+          if (f.kind === "export") this.loadExportList();
           if (f.kind === "export" || f.kind === "eval") this.loadMetrics();
         }
       }
@@ -538,72 +565,16 @@ class AdminPage {
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/eval`));
       if (job) this.track(job);
     });
-    // issue 23: accepted versions only by default; unreviewed ones (submitted, imported) by choice
-    this.exportUnreviewed = el("input", { type: "checkbox", id: "export-include-unreviewed" });
-    this.exportUnreviewed.addEventListener("change", () => this.loadExportPlan());
-    const incl = el("label", { class: "check", for: "export-include-unreviewed", title: "Accepted masks only unless ticked: submitted and imported masks have not been reviewed" }, this.exportUnreviewed, " also take in unreviewed masks (submitted, imported)");
-    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), incl, go, vox, ev);
+    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), go, vox, ev);
     f.addEventListener("submit", async (e) => {
       e.preventDefault();
-      const include = this.exportInclude();
-      const plan = await this.guard(() => api.get(`/scenes/${this.sid}/export/plan?include=${include.join(",")}`));
-      if (!plan) return;
-      this.showExportPlan(plan);
-      if (!(await confirmExport(plan))) return;
-      const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value, include }));
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value }));
       if (job) {
         toast(`Export job ${job.id} started.`);
         this.track(job);
       }
     });
-    return el("div", {}, f, this.exportPlanEl);
-  }
-
-  exportInclude() {
-    return this.exportUnreviewed && this.exportUnreviewed.checked ? ["accepted", "submitted", "imported"] : ["accepted"];
-  }
-
-  /** Before an export: the draft and unreviewed frames, and what the export would take. */
-  async loadExportPlan() {
-    if (!this.sid) return;
-    const plan = await api.get(`/scenes/${this.sid}/export/plan?include=${this.exportInclude().join(",")}`).catch(() => null);
-    this.showExportPlan(plan);
-  }
-
-  showExportPlan(plan) {
-    if (!plan) {
-      this.exportPlanEl.replaceChildren();
-      return;
-    }
-    const lo = plan.left_out || {};
-    const drafts = lo.draft || [];
-    const unrev = [...(lo.submitted || []), ...(lo.imported || [])].concat(plan.unreviewed_frames || []).sort((a, b) => a - b);
-    const taken = plan.unreviewed_frames || [];
-    this.exportPlanEl.replaceChildren(
-      el("p", { class: "export-plan-took" }, `An export now takes ${plan.took}.`),
-      el(
-        "ul",
-        { class: "export-plan-list" },
-        el("li", { "data-kind": "draft" }, drafts.length ? `${drafts.length} frame${drafts.length === 1 ? "" : "s"} only in draft (never submitted): ${frameList(drafts)} — never exported.` : "No frame only in draft."),
-        el("li", { "data-kind": "unreviewed" }, unrev.length ? `${unrev.length} frame${unrev.length === 1 ? "" : "s"} submitted or imported, not accepted: ${frameList(unrev)} — ${taken.length ? "taken in without review" : "left out"}.` : "Every voting mask is accepted."),
-        (lo.rejected || []).length ? el("li", { "data-kind": "rejected" }, `${lo.rejected.length} rejected: ${frameList(lo.rejected)} — left out.`) : null,
-      ),
-    );
-  }
-
-  // ---- quality (issue 23) ----------------------------------------------------------------
-  async loadQuality() {
-    const sid = this.sid;
-    if (!sid) return;
-    let q = null;
-    try {
-      q = await api.get(`/scenes/${sid}/quality`);
-    } catch (e) {
-      if (e.status !== 404) showError(e);
-      if (sid === this.sid) this.qualityEl.replaceChildren(el("p", {}, "No lifted labels yet: nothing to report."));
-      return;
-    }
-    if (sid === this.sid) this.qualityEl.replaceChildren(qualityView(q));
+    return f;
   }
 
   async loadMetrics() {
@@ -778,80 +749,4 @@ export function metricsView(m, id = "metrics") {
   };
   walk(m, "");
   return out;
-}
-
-// ---- issue 23: export gating and the quality report ------------------------------------------
-function frameList(ids, max = 12) {
-  const shown = ids.slice(0, max).join(", ");
-  return `frame${ids.length === 1 ? "" : "s"} ${shown}${ids.length > max ? `, … (${ids.length - max} more)` : ""}`;
-}
-
-/** Ask before an export that leaves frames out or takes unreviewed ones in; true = go. */
-export async function confirmExport(plan) {
-  const lo = plan.left_out || {};
-  const left = Object.entries(lo).filter(([, v]) => v.length);
-  const unrev = plan.unreviewed_frames || [];
-  if (!left.length && !unrev.length) return true;
-  const body = el(
-    "div",
-    { id: "export-confirm" },
-    el("p", {}, `This export takes ${plan.took}.`),
-    left.length
-      ? el("p", {}, "Left out (their votes are not in the exported labels):", el("ul", {}, left.map(([k, v]) => el("li", { "data-left": k }, `${v.length} ${k === "draft" ? (v.length === 1 ? "draft" : "drafts") : k}: ${frameList(v)}`))))
-      : null,
-    unrev.length ? el("p", { class: "warn" }, `Taken in without review: ${frameList(unrev)}.`) : null,
-    el("p", { class: "hint" }, "The manifest records every mask taken (version, state, author, reviewer); quality.json beside the data says how the labels were made."),
-  );
-  return dialog({ title: "Export these labels?", body, buttons: [{ label: "Cancel", value: false }, { label: "Export", value: true, primary: true }], cancelValue: false });
-}
-
-/** What a finished export took, on its job card: "done · 1685 files · 12 accepted frames; left out: 2 drafts". */
-export function exportTook(j) {
-  const r = j.result || {};
-  if (j.kind !== "export" || j.status !== "done" || !r.review || !r.review.took) return null;
-  const files = r.files ?? (r.summary && r.summary.frames);
-  return el("span", { class: "export-took", "data-job": j.id }, `done · ${files ?? "?"} ${r.files !== undefined ? "files" : "frames"} · ${r.review.took}`);
-}
-
-export function qualityView(q) {
-  const lo = q.loo || {};
-  const d = lo.agreement_distribution || {};
-  const qs = d.quantiles || {};
-  const cf = q.confidence || {};
-  const t = cf.truth;
-  const rows = [
-    { k: "Leave-one-out agreement", v: `${pct(lo.agreement)} of ${(lo.frames ?? 0).toLocaleString()} annotated frames' votes with independent labels`, id: "loo" },
-    { k: "… per frame", v: d.n ? `min ${pct(qs.p0)} · p10 ${pct(qs.p10)} · median ${pct(qs.p50)} · max ${pct(qs.p100)}` : "–", id: "loo-frames" },
-    { k: "Independent coverage", v: `${pct(lo.independent_coverage)} of the votes have labels from other frames`, id: "coverage" },
-    { k: "Points with ≥ 2 views", v: `${pct(q.votes.multi_view_share)} of the labelled points`, id: "multi-view" },
-    { k: "Contested points", v: `${pct(q.contested.share)} of the labelled points (votes disagree); ${pct(q.contested.overridden_share)} overridden by fill / denoise`, id: "contested" },
-    { k: "Mean confidence", v: `${pct(cf.mean_confidence)} (the calibrated confidence's prediction of the share of right labels)`, id: "confidence" },
-    { k: "Calibration", v: t ? `ECE ${t.ece.toFixed(4)} against point truth (${t.points.toLocaleString()} points, accuracy ${pct(t.accuracy)})` : "ECE not measured: no point truth for this scene", id: "ece" },
-    { k: "Labelled points", v: `${q.labelled_points.toLocaleString()} of ${q.points.toLocaleString()} (${pct(q.labelled_share)})`, id: "labelled" },
-    { k: "Version policy", v: (q.policy && q.policy.note) || ((q.policy && q.policy.include) || []).join(", "), id: "policy" },
-  ];
-  const hist = (d.histogram && d.histogram.counts) || [];
-  const canvas = el("canvas", { id: "quality-loo-hist" });
-  const bars = hist.map((c, i) => ({ label: `${i * 10}–${(i + 1) * 10} %`, value: c })).reverse();
-  if (bars.length) barPlot(canvas, bars, { title: "annotated frames by leave-one-out agreement", valueFmt: (v) => `${v} frame${v === 1 ? "" : "s"}` });
-  const worst = [...(lo.per_frame || [])].filter((r) => r.agreement !== null).sort((a, b) => a.agreement - b.agreement).slice(0, 5);
-  const classes = Object.values(q.classes || {}).sort((a, b) => b.points - a.points);
-  return el(
-    "div",
-    { class: "quality", "data-stamp": q.labels_stamp || "" },
-    table(rows, [{ key: "k", label: "Figure" }, { key: "v", label: "Value" }], { caption: "Quality of the live labels", rowAttrs: (r) => ({ "data-figure": r.id }) }),
-    el("div", { class: "plots" },
-      el("figure", {}, canvas, el("figcaption", {}, "Annotated frames by leave-one-out agreement (a wrong mask scores low)")),
-      worst.length ? el("figure", {}, table(worst, [{ key: "name", label: "Lowest frames" }, { key: "agreement", label: "LOO agreement", fmt: (v) => pct(v) }, { key: "independent_coverage", label: "Independent coverage", fmt: (v) => pct(v) }]), el("figcaption", {}, "Review these first")) : null,
-    ),
-    table(classes, [
-      { key: "name", label: "Class" },
-      { key: "points", label: "Points", fmt: (v) => v.toLocaleString() },
-      { key: "mean_confidence", label: "Mean confidence", fmt: (v) => pct(v) },
-      { key: "multi_view", label: "≥ 2 views", fmt: (v) => pct(v) },
-      { key: "contested", label: "Contested", fmt: (v) => pct(v) },
-      { key: "loo_agreement", label: "LOO agreement", fmt: (v) => pct(v) },
-      ...(t ? [{ key: "accuracy", label: "Accuracy (truth)", fmt: (v) => pct(v) }] : []),
-    ], { caption: "Per class", rowAttrs: (r) => ({ "data-class": r.name }) }),
-  );
 }

@@ -2,7 +2,7 @@
 // with live progress and log tails, exports with downloads, metric tables, class histograms.
 
 import { api } from "../core/api.js";
-import { el, showError, clearError, toast, pct, fmtDate, table } from "../core/ui.js";
+import { el, showError, clearError, toast, pct, fmtDate, table, dialog } from "../core/ui.js";
 import { bytes, pathField, uploadControls, memberPicker, usersTable, confirmDeleteScene, exportsTable, overviewView } from "./console.js";
 import { linePlot, barPlot, mapPlot, cellRect } from "./plots.js";
 
@@ -38,6 +38,8 @@ class AdminPage {
     this.selectionEl = el("div", { class: "plots" });
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
+    this.qualityEl = el("div", { id: "quality" }); // issue 23: how the scene's labels were made
+    this.exportPlanEl = el("div", { id: "export-plan", "aria-live": "polite" });
     this.histEl = el("div");
     this.effortEl = el("div", { id: "effort" });
     this.membersEl = el("div", { id: "members" });
@@ -57,7 +59,7 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["overview", "users", "scenes", "members", "selection", "jobs", "exports", "labels", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["overview", "users", "scenes", "members", "selection", "jobs", "exports", "labels", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
         section("sec-overview", "Overview", el("p", { class: "hint" }, "Every scene and annotator at a glance: frames to do (selected, not started), in progress, waiting for review, accepted and rejected; time spent, throughput and how far the 3D labels lag behind."), this.overviewEl),
         section("sec-users", "Users", this.usersEl, this.userForm()),
@@ -67,6 +69,7 @@ class AdminPage {
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
+        section("sec-quality", "Quality", el("p", { class: "hint" }, "How the scene's live labels were made: each annotated frame's votes against the labels the other frames give without it (leave-one-out agreement), how much of it other frames see, points seen by two or more frames, points whose votes disagree, and the calibrated confidence. An export writes the same report as quality.json beside its data."), this.qualityEl),
         section("sec-effort", "Annotation effort", el("p", { class: "hint" }, "Per submitted mask, in submission order: the share of the frame's pixels painted (what painting from an empty mask costs) and the share that differs from the 3D prefill its annotator started from."), this.effortEl),
         section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
       ),
@@ -211,7 +214,7 @@ class AdminPage {
   async loadScene() {
     if (!this.sid) return;
     // metrics only once the jobs say an evaluation finished (else the API answers 404)
-    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers()]);
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers(), this.loadQuality(), this.loadExportPlan()]);
   }
 
   // ---- overview, exports on disk (issue 28) --------------------------------------------------
@@ -446,6 +449,7 @@ class AdminPage {
               el("progress", { max: 1, value: j.progress ?? 0, "aria-label": `job ${j.id} progress` }),
               el("span", {}, `${Math.round(100 * (j.progress ?? 0))} %`),
               el("span", { class: "muted" }, j.message || ""),
+              exportTook(j),
               el("span", { class: "spacer" }),
               ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
               ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
@@ -565,16 +569,72 @@ class AdminPage {
       const job = await this.guard(() => api.post(`/scenes/${this.sid}/eval`));
       if (job) this.track(job);
     });
-    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), go, vox, ev);
+    // issue 23: accepted versions only by default; unreviewed ones (submitted, imported) by choice
+    this.exportUnreviewed = el("input", { type: "checkbox", id: "export-include-unreviewed" });
+    this.exportUnreviewed.addEventListener("change", () => this.loadExportPlan());
+    const incl = el("label", { class: "check", for: "export-include-unreviewed", title: "Accepted masks only unless ticked: submitted and imported masks have not been reviewed" }, this.exportUnreviewed, " also take in unreviewed masks (submitted, imported)");
+    const f = el("form", { class: "inline-form", "aria-label": "Export" }, field("Layout", layout), incl, go, vox, ev);
     f.addEventListener("submit", async (e) => {
       e.preventDefault();
-      const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value }));
+      const include = this.exportInclude();
+      const plan = await this.guard(() => api.get(`/scenes/${this.sid}/export/plan?include=${include.join(",")}`));
+      if (!plan) return;
+      this.showExportPlan(plan);
+      if (!(await confirmExport(plan))) return;
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/export`, { layout: layout.value, include }));
       if (job) {
         toast(`Export job ${job.id} started.`);
         this.track(job);
       }
     });
-    return f;
+    return el("div", {}, f, this.exportPlanEl);
+  }
+
+  exportInclude() {
+    return this.exportUnreviewed && this.exportUnreviewed.checked ? ["accepted", "submitted", "imported"] : ["accepted"];
+  }
+
+  /** Before an export: the draft and unreviewed frames, and what the export would take. */
+  async loadExportPlan() {
+    if (!this.sid) return;
+    const plan = await api.get(`/scenes/${this.sid}/export/plan?include=${this.exportInclude().join(",")}`).catch(() => null);
+    this.showExportPlan(plan);
+  }
+
+  showExportPlan(plan) {
+    if (!plan) {
+      this.exportPlanEl.replaceChildren();
+      return;
+    }
+    const lo = plan.left_out || {};
+    const drafts = lo.draft || [];
+    const unrev = [...(lo.submitted || []), ...(lo.imported || [])].concat(plan.unreviewed_frames || []).sort((a, b) => a - b);
+    const taken = plan.unreviewed_frames || [];
+    this.exportPlanEl.replaceChildren(
+      el("p", { class: "export-plan-took" }, `An export now takes ${plan.took}.`),
+      el(
+        "ul",
+        { class: "export-plan-list" },
+        el("li", { "data-kind": "draft" }, drafts.length ? `${drafts.length} frame${drafts.length === 1 ? "" : "s"} only in draft (never submitted): ${frameList(drafts)} — never exported.` : "No frame only in draft."),
+        el("li", { "data-kind": "unreviewed" }, unrev.length ? `${unrev.length} frame${unrev.length === 1 ? "" : "s"} submitted or imported, not accepted: ${frameList(unrev)} — ${taken.length ? "taken in without review" : "left out"}.` : "Every voting mask is accepted."),
+        (lo.rejected || []).length ? el("li", { "data-kind": "rejected" }, `${lo.rejected.length} rejected: ${frameList(lo.rejected)} — left out.`) : null,
+      ),
+    );
+  }
+
+  // ---- quality (issue 23) ----------------------------------------------------------------
+  async loadQuality() {
+    const sid = this.sid;
+    if (!sid) return;
+    let q = null;
+    try {
+      q = await api.get(`/scenes/${sid}/quality`);
+    } catch (e) {
+      if (e.status !== 404) showError(e);
+      if (sid === this.sid) this.qualityEl.replaceChildren(el("p", {}, "No lifted labels yet: nothing to report."));
+      return;
+    }
+    if (sid === this.sid) this.qualityEl.replaceChildren(qualityView(q));
   }
 
   async loadMetrics() {
@@ -749,4 +809,80 @@ export function metricsView(m, id = "metrics") {
   };
   walk(m, "");
   return out;
+}
+
+// ---- issue 23: export gating and the quality report ------------------------------------------
+function frameList(ids, max = 12) {
+  const shown = ids.slice(0, max).join(", ");
+  return `frame${ids.length === 1 ? "" : "s"} ${shown}${ids.length > max ? `, … (${ids.length - max} more)` : ""}`;
+}
+
+/** Ask before an export that leaves frames out or takes unreviewed ones in; true = go. */
+export async function confirmExport(plan) {
+  const lo = plan.left_out || {};
+  const left = Object.entries(lo).filter(([, v]) => v.length);
+  const unrev = plan.unreviewed_frames || [];
+  if (!left.length && !unrev.length) return true;
+  const body = el(
+    "div",
+    { id: "export-confirm" },
+    el("p", {}, `This export takes ${plan.took}.`),
+    left.length
+      ? el("p", {}, "Left out (their votes are not in the exported labels):", el("ul", {}, left.map(([k, v]) => el("li", { "data-left": k }, `${v.length} ${k === "draft" ? (v.length === 1 ? "draft" : "drafts") : k}: ${frameList(v)}`))))
+      : null,
+    unrev.length ? el("p", { class: "warn" }, `Taken in without review: ${frameList(unrev)}.`) : null,
+    el("p", { class: "hint" }, "The manifest records every mask taken (version, state, author, reviewer); quality.json beside the data says how the labels were made."),
+  );
+  return dialog({ title: "Export these labels?", body, buttons: [{ label: "Cancel", value: false }, { label: "Export", value: true, primary: true }], cancelValue: false });
+}
+
+/** What a finished export took, on its job card: "done · 1685 files · 12 accepted frames; left out: 2 drafts". */
+export function exportTook(j) {
+  const r = j.result || {};
+  if (j.kind !== "export" || j.status !== "done" || !r.review || !r.review.took) return null;
+  const files = r.files ?? (r.summary && r.summary.frames);
+  return el("span", { class: "export-took", "data-job": j.id }, `done · ${files ?? "?"} ${r.files !== undefined ? "files" : "frames"} · ${r.review.took}`);
+}
+
+export function qualityView(q) {
+  const lo = q.loo || {};
+  const d = lo.agreement_distribution || {};
+  const qs = d.quantiles || {};
+  const cf = q.confidence || {};
+  const t = cf.truth;
+  const rows = [
+    { k: "Leave-one-out agreement", v: `${pct(lo.agreement)} of ${(lo.frames ?? 0).toLocaleString()} annotated frames' votes with independent labels`, id: "loo" },
+    { k: "… per frame", v: d.n ? `min ${pct(qs.p0)} · p10 ${pct(qs.p10)} · median ${pct(qs.p50)} · max ${pct(qs.p100)}` : "–", id: "loo-frames" },
+    { k: "Independent coverage", v: `${pct(lo.independent_coverage)} of the votes have labels from other frames`, id: "coverage" },
+    { k: "Points with ≥ 2 views", v: `${pct(q.votes.multi_view_share)} of the labelled points`, id: "multi-view" },
+    { k: "Contested points", v: `${pct(q.contested.share)} of the labelled points (votes disagree); ${pct(q.contested.overridden_share)} overridden by fill / denoise`, id: "contested" },
+    { k: "Mean confidence", v: `${pct(cf.mean_confidence)} (the calibrated confidence's prediction of the share of right labels)`, id: "confidence" },
+    { k: "Calibration", v: t ? `ECE ${t.ece.toFixed(4)} against point truth (${t.points.toLocaleString()} points, accuracy ${pct(t.accuracy)})` : "ECE not measured: no point truth for this scene", id: "ece" },
+    { k: "Labelled points", v: `${q.labelled_points.toLocaleString()} of ${q.points.toLocaleString()} (${pct(q.labelled_share)})`, id: "labelled" },
+    { k: "Version policy", v: (q.policy && q.policy.note) || ((q.policy && q.policy.include) || []).join(", "), id: "policy" },
+  ];
+  const hist = (d.histogram && d.histogram.counts) || [];
+  const canvas = el("canvas", { id: "quality-loo-hist" });
+  const bars = hist.map((c, i) => ({ label: `${i * 10}–${(i + 1) * 10} %`, value: c })).reverse();
+  if (bars.length) barPlot(canvas, bars, { title: "annotated frames by leave-one-out agreement", valueFmt: (v) => `${v} frame${v === 1 ? "" : "s"}` });
+  const worst = [...(lo.per_frame || [])].filter((r) => r.agreement !== null).sort((a, b) => a.agreement - b.agreement).slice(0, 5);
+  const classes = Object.values(q.classes || {}).sort((a, b) => b.points - a.points);
+  return el(
+    "div",
+    { class: "quality", "data-stamp": q.labels_stamp || "" },
+    table(rows, [{ key: "k", label: "Figure" }, { key: "v", label: "Value" }], { caption: "Quality of the live labels", rowAttrs: (r) => ({ "data-figure": r.id }) }),
+    el("div", { class: "plots" },
+      el("figure", {}, canvas, el("figcaption", {}, "Annotated frames by leave-one-out agreement (a wrong mask scores low)")),
+      worst.length ? el("figure", {}, table(worst, [{ key: "name", label: "Lowest frames" }, { key: "agreement", label: "LOO agreement", fmt: (v) => pct(v) }, { key: "independent_coverage", label: "Independent coverage", fmt: (v) => pct(v) }]), el("figcaption", {}, "Review these first")) : null,
+    ),
+    table(classes, [
+      { key: "name", label: "Class" },
+      { key: "points", label: "Points", fmt: (v) => v.toLocaleString() },
+      { key: "mean_confidence", label: "Mean confidence", fmt: (v) => pct(v) },
+      { key: "multi_view", label: "≥ 2 views", fmt: (v) => pct(v) },
+      { key: "contested", label: "Contested", fmt: (v) => pct(v) },
+      { key: "loo_agreement", label: "LOO agreement", fmt: (v) => pct(v) },
+      ...(t ? [{ key: "accuracy", label: "Accuracy (truth)", fmt: (v) => pct(v) }] : []),
+    ], { caption: "Per class", rowAttrs: (r) => ({ "data-class": r.name }) }),
+  );
 }

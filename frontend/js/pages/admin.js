@@ -670,6 +670,7 @@ class AdminPage {
     const pre = rows.filter((r) => r.prefilled).length;
     const summary = [
       `${t.submissions} submitted mask(s), ${pre} started from the 3D prefill. `,
+      t.resubmissions ? `(${t.resubmissions} resubmission(s) of the same frames not counted again.) ` : "",
       `Painted from scratch: ${t.painted_px.toLocaleString()} px; changed versus the prefill: ${t.changed_px.toLocaleString()} px`,
       t.reduction_x != null ? ` (${t.reduction_x.toFixed(2)}\u00d7 less).` : ".",
       t.median_changed_of_painted_from_6th != null ? ` From the 6th submission on, the median mask changed ${pct(t.median_changed_of_painted_from_6th, 1)} of what painting it from scratch takes.` : "",

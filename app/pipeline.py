@@ -58,7 +58,7 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
     """Import a reconstruction into ``workspace``.
 
     ``source`` may be an existing OccuFly workspace (copied); otherwise it is handed to
-    ``occufly.io.importer.import_scene``. With ``roots`` (the import roots and the data dir)
+    ``occufly.io.importer.import_scene``. With ``roots`` (the import roots)
     every path read from a file must resolve inside them (:func:`check_workspace_source`,
     :func:`occufly.io.importer.confine_inputs`).
     """
@@ -98,8 +98,8 @@ def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) 
             except PathNotConfined:
                 raise UnsafePathError(
                     f"{header}: frame {f.name!r} image_path {f.image_path!r} resolves to "
-                    f"{os.path.realpath(p)}, outside the import roots and the data dir") from None
-            # inside the roots is not enough (the data dir holds the SQLite database): what
+                    f"{os.path.realpath(p)}, outside the import roots") from None
+            # inside the roots is not enough (a database or key file may sit there too): what
             # is there must be an image by its content
             if real.is_file() and image_content_type(real) is None:
                 raise UnsafePathError(

@@ -36,8 +36,9 @@ def run_import(jc: JobContext) -> dict:
         depth_maps=Path(p["depth_maps"]) if p.get("depth_maps") else None,
         fmt=p.get("format"), images=Path(p["images"]) if p.get("images") else None,
         crs=p.get("crs"), scale=p.get("scale"), progress=lambda f, m="": jc.progress(0.95 * f, m),
-        # every path read from a project file stays inside these (issue 24, finding 1)
-        roots=scenes.image_roots(jc.ctx.settings))
+        # every path read from a project file stays inside the import roots (issue 24,
+        # finding 1); not the data dir, which holds the database, the masks and the exports
+        roots=scenes.import_roots(jc.ctx.settings))
     jc.ctx.scene_cache.pop(str(ws), None)
     with jc.ctx.sessions() as s:
         scene = s.get(Scene, jc.scene_id)

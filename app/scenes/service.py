@@ -260,11 +260,11 @@ def image_file(ws_scene: WsScene, workspace: str, index: int, *, roots) -> Path:
 
 
 def check_source_paths(settings: Settings, source: Path) -> None:
-    """A workspace source whose scene.json names an image outside the import roots and the
-    data dir (``/etc/passwd``, ``../../occufly.db``, a symlink out), a non-image, or a frame
-    name with markup or control characters: 403/422 naming scene.json and the path."""
+    """A workspace source whose scene.json names an image outside the import roots
+    (``/etc/passwd``, ``../../occufly.db``, the data dir, a symlink out), a non-image, or a
+    frame name with markup or control characters: 403/422 naming scene.json and the path."""
     try:
-        pipeline.check_workspace_source(source, image_roots(settings))
+        pipeline.check_workspace_source(source, import_roots(settings))
     except UnsafePathError as e:
         raise Forbidden(str(e)) from None
     except OccuflyError as e:

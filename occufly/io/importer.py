@@ -86,7 +86,7 @@ def import_scene(
     ``vis`` (lists only) or ``depth`` (depth test only), see :mod:`occufly.visibility`.
     workers: processes computing the visibility's frames (1: in this process); the output
     is the same for any number.
-    roots: when given (the web app: its import roots and data dir), every file the import
+    roots: when given (the web app: its import roots), every file the import
     reads -- the images (symlinks followed), the image folder a project file names (e.g. a
     Metashape ``.psx``'s absolute photo paths), the cloud, its ``.vis``, the depth maps --
     must resolve inside one of them (:func:`confine_inputs`); else UnsafePathError naming
@@ -289,7 +289,7 @@ def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
         confined(source, roots)
     except PathNotConfined:
         raise UnsafePathError(f"{source} resolves to {os.path.realpath(source)}, outside the "
-                              "import roots and the data dir") from None
+                              "import roots") from None
     if not source.is_dir():
         return 1
     n = 0
@@ -303,7 +303,7 @@ def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
                 except PathNotConfined:
                     raise UnsafePathError(
                         f"{p} is a symbolic link to {os.path.realpath(p)}, outside the import "
-                        "roots and the data dir; imports read only files inside them") from None
+                        "roots; imports read only files inside them") from None
     return n
 
 
@@ -319,7 +319,7 @@ def confine_inputs(roots, project: Path, image_dir: Path, names: list[str],  # n
         except PathNotConfined:
             raise UnsafePathError(
                 f"{project}: {what} {p} resolves to {os.path.realpath(p)}, outside the import "
-                "roots and the data dir; imports read only files inside them") from None
+                "roots; imports read only files inside them") from None
 
     check(image_dir, "image folder")
     for n in names:

@@ -1,7 +1,7 @@
 """Issue 24, finding 1 at import time (and finding 2's name refusal): every path read from a
 file -- a workspace's scene.json ``image_path``, an image that is a symlink, a Metashape
 ``.psx``'s absolute photo paths, a cloud or depth map that is a symlink -- resolves inside
-the import roots or the data dir, or the import is refused naming the file and the path."""
+the import roots, or the import is refused naming the file and the path."""
 from __future__ import annotations
 
 import json
@@ -33,17 +33,24 @@ def _set_image_path(src: Path, value: str, frame: int = 0, name: str | None = No
 
 
 def test_workspace_image_paths_outside_the_roots_are_refused(env, tmp_path):
-    """/etc/passwd, ../../occufly.db, the app's SQLite file (inside the data dir: refused for
-    not being an image), a symlink out of the roots: 403 naming scene.json and the path; no
-    scene row, no job. A clean workspace still imports."""
+    """/etc/passwd, ../../occufly.db, the app's SQLite file, a PNG in the data dir (another
+    scene's stored mask), a database file inside the import roots (refused for not being an
+    image), a symlink out of the roots: 403 naming scene.json and the path; no scene row, no
+    job. A clean workspace still imports."""
     adm = env.bearer("admin")
     outside = tmp_path / "outside.png"
     Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(outside)
     db_file = env.settings.data_dir / "occufly.db"
     if not db_file.exists():  # PostgreSQL run: a stand-in SQLite file in the data dir
         db_file.write_bytes(b"SQLite format 3\x00" + bytes(4096))
+    in_data = env.settings.data_dir / "masks" / "ab" / "cd" / ("ab" * 32 + ".png")
+    in_data.parent.mkdir(parents=True)
+    shutil.copy(outside, in_data)
+    db_in_root = env.import_root / "copy.db"
+    db_in_root.write_bytes(b"SQLite format 3\x00" + bytes(4096))
     vectors = {"etc_passwd": "/etc/passwd", "dotdot_db": "../../occufly.db",
-               "app_db": str(db_file), "dotdot_out": "../../outside.png"}
+               "app_db": str(db_file), "dotdot_out": "../../outside.png",
+               "data_mask": str(in_data), "db_in_root": str(db_in_root)}
     tried = 0
     for name, value in vectors.items():
         src = env.import_root / f"{name}_src"
@@ -64,7 +71,7 @@ def test_workspace_image_paths_outside_the_roots_are_refused(env, tmp_path):
     assert r.status_code == 403 and "outside the import roots" in r.text, r.text
     scenes = env.client.get("/api/scenes", headers=adm).json()
     assert scenes == [], scenes  # nothing was created for any refused import
-    assert tried == 5
+    assert tried == 7
     env.import_tiny(adm, name="clean")
 
 

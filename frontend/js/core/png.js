@@ -10,9 +10,11 @@
 // the browser's native CompressionStream('deflate'). Rows use PNG filter 2 ("Up"), which turns
 // the large constant areas of a mask into zero runs that deflate very well.
 //
-// For reading, greyscale PNGs from the API (mask versions, prefill, render) are decoded with
-// createImageBitmap(colorSpaceConversion: 'none') and the red channel is taken as the id; any
-// RGB-coloured mask would instead need a colour -> id lookup (see idsFromRgba).
+// For reading, the server stores and serves masks canonically (8-bit greyscale, no ancillary
+// chunks); checkGreyPng refuses anything else before inflating a byte, then the browser's own
+// decoder (createImageBitmap, colorSpaceConversion 'none') decodes it and the red channel is
+// the id. There is no hand-written PNG decoder here (issue 24, finding 6: it read 16-bit and
+// palette masks as empty, a short palette as 255, and inflated a 1 MB zlib bomb to 1 GB).
 
 const CRC_TABLE = (() => {
   const t = new Uint32Array(256);
@@ -73,89 +75,97 @@ export async function encodeGreyPng(ids, width, height) {
   });
 }
 
-/** Decode an image Blob to RGBA pixels at its natural size. */
-export async function decodeRgba(blob) {
-  const bmp = await createImageBitmap(blob, { colorSpaceConversion: "none", premultiplyAlpha: "none" });
-  const c = new OffscreenCanvas(bmp.width, bmp.height);
-  const ctx = c.getContext("2d", { willReadFrequently: true });
-  ctx.drawImage(bmp, 0, 0);
-  const data = ctx.getImageData(0, 0, bmp.width, bmp.height).data;
-  const out = { width: bmp.width, height: bmp.height, data };
-  bmp.close();
-  return out;
+/** A mask PNG the page cannot read as stored (the message names what was found). */
+export class MaskFormatError extends Error {
+  constructor(msg) {
+    super(msg);
+    this.name = "MaskFormatError";
+  }
 }
 
+export const MAX_MASK_PIXELS = 150e6; // a 150-megapixel mask: far above any survey photo
+
 /**
- * Decode an 8-bit greyscale, non-interlaced PNG directly (native inflate via
- * DecompressionStream + the five PNG row filters); returns null for any other PNG flavour.
- * Much cheaper than drawing to a canvas and reading back 4 bytes per pixel.
+ * Check the container of a mask PNG before anything is inflated (issue 24, finding 6): the
+ * server stores masks canonically -- 8-bit greyscale, non-interlaced, no ancillary chunks --
+ * so that is the one format read here; anything else (16-bit, palette, colour, truncated,
+ * damaged, a zlib bomb) is refused with a MaskFormatError instead of being shown differently
+ * from what the server lifts. Checks: signature, each chunk's CRC, IHDR first, IDAT present,
+ * IEND last with nothing after it, the declared size within maxPixels (and equal to
+ * expect {width, height} when given), and the compressed data no larger than deflate could
+ * ever make the declared image (a 1 MB stream that inflates to 1 GB is refused unread).
  */
-export async function decodeGreyPngFast(buf) {
-  const b = new Uint8Array(buf);
+export function checkGreyPng(buf, { maxPixels = MAX_MASK_PIXELS, expect = null } = {}) {
+  const b = buf instanceof Uint8Array ? buf : new Uint8Array(buf);
   const dv = new DataView(b.buffer, b.byteOffset, b.byteLength);
-  if (b.length < 33 || dv.getUint32(0) !== 0x89504e47) return null;
-  let off = 8;
-  let width = 0, height = 0;
-  const idat = [];
-  while (off + 8 <= b.length) {
+  const SIG = [137, 80, 78, 71, 13, 10, 26, 10];
+  if (b.length < 8 || SIG.some((v, i) => b[i] !== v)) throw new MaskFormatError("mask is not a PNG file");
+  let off = 8, width = 0, height = 0, idatBytes = 0, sawEnd = false;
+  while (off < b.length) {
+    if (off + 12 > b.length) throw new MaskFormatError(`mask PNG is truncated (chunk at byte ${off})`);
     const len = dv.getUint32(off);
+    if (off + 12 + len > b.length) throw new MaskFormatError(`mask PNG is truncated (chunk at byte ${off} needs ${len} bytes)`);
     const type = String.fromCharCode(b[off + 4], b[off + 5], b[off + 6], b[off + 7]);
-    const data = b.subarray(off + 8, off + 8 + len);
+    const crc = (crc32(b.subarray(off + 4, off + 8 + len)) ^ 0xffffffff) >>> 0;
+    if (crc !== dv.getUint32(off + 8 + len)) throw new MaskFormatError(`mask PNG is damaged (bad CRC of chunk ${type})`);
+    if (off === 8 && type !== "IHDR") throw new MaskFormatError("mask PNG does not start with IHDR");
     if (type === "IHDR") {
       width = dv.getUint32(off + 8);
       height = dv.getUint32(off + 12);
-      const depth = data[8], ctype = data[9], interlace = data[12];
-      if (depth !== 8 || ctype !== 0 || interlace !== 0) return null;
-    } else if (type === "IDAT") idat.push(data);
-    else if (type === "IEND") break;
+      const depth = b[off + 16], ctype = b[off + 17], interlace = b[off + 20];
+      if (depth !== 8 || ctype !== 0 || interlace !== 0) {
+        const kind = { 0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale+alpha", 6: "RGBA" }[ctype] || `colour type ${ctype}`;
+        throw new MaskFormatError(`mask PNG is ${depth}-bit ${kind}${interlace ? ", interlaced" : ""}; this page reads only the server's canonical 8-bit greyscale masks`);
+      }
+    } else if (type === "IDAT") idatBytes += len;
+    else if (type === "IEND") {
+      sawEnd = true;
+      off += 12 + len;
+      break;
+    }
     off += 12 + len;
   }
-  if (!width || !idat.length) return null;
-  const raw = new Uint8Array(await new Response(new Blob(idat).stream().pipeThrough(new DecompressionStream("deflate"))).arrayBuffer());
-  const stride = width + 1;
-  if (raw.length < stride * height) throw new Error(`PNG data too short: ${raw.length} < ${stride * height}`);
-  const ids = new Uint8Array(width * height);
-  for (let y = 0; y < height; y++) {
-    const f = raw[y * stride];
-    const src = y * stride + 1;
-    const o = y * width;
-    const p = o - width; // previous output row
-    switch (f) {
-      case 0:
-        ids.set(raw.subarray(src, src + width), o);
-        break;
-      case 1:
-        for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + (x ? ids[o + x - 1] : 0)) & 255;
-        break;
-      case 2:
-        if (y === 0) ids.set(raw.subarray(src, src + width), o);
-        else for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + ids[p + x]) & 255;
-        break;
-      case 3:
-        for (let x = 0; x < width; x++) ids[o + x] = (raw[src + x] + (((x ? ids[o + x - 1] : 0) + (y ? ids[p + x] : 0)) >> 1)) & 255;
-        break;
-      case 4:
-        for (let x = 0; x < width; x++) {
-          const a = x ? ids[o + x - 1] : 0, bb = y ? ids[p + x] : 0, c = x && y ? ids[p + x - 1] : 0;
-          const pa = Math.abs(bb - c), pb = Math.abs(a - c), pc = Math.abs(a + bb - 2 * c);
-          ids[o + x] = (raw[src + x] + (pa <= pb && pa <= pc ? a : pb <= pc ? bb : c)) & 255;
-        }
-        break;
-      default:
-        throw new Error(`PNG row ${y} has unknown filter type ${f}`);
-    }
+  if (!sawEnd) throw new MaskFormatError("mask PNG is truncated (no IEND)");
+  if (off !== b.length) throw new MaskFormatError(`mask PNG has ${b.length - off} bytes after IEND`);
+  if (!width || !height || !idatBytes) throw new MaskFormatError("mask PNG has no image data");
+  if (width * height > maxPixels) throw new MaskFormatError(`mask PNG declares ${width}x${height} pixels, more than ${maxPixels}`);
+  if (expect && (expect.width !== width || expect.height !== height)) {
+    throw new MaskFormatError(`mask PNG is ${width}x${height}, expected ${expect.width}x${expect.height}`);
   }
-  return { width, height, ids };
+  const raw = (width + 1) * height; // filter byte + one byte per pixel and row
+  if (idatBytes > raw + 5 * Math.ceil(raw / 16383) + 64) {
+    throw new MaskFormatError(`mask PNG holds ${idatBytes} compressed bytes for a ${width}x${height} image (at most ${raw} could be needed): refused unread`);
+  }
+  return { width, height };
 }
 
-/** Decode a greyscale id PNG to {width, height, ids: Uint8Array}. */
-export async function decodeIdPng(blob) {
-  const fast = await decodeGreyPngFast(await blob.arrayBuffer());
-  if (fast) return fast;
-  const { width, height, data } = await decodeRgba(blob);
-  const ids = new Uint8Array(width * height);
-  for (let i = 0, j = 0; i < ids.length; i++, j += 4) ids[i] = data[j];
-  return { width, height, ids };
+/**
+ * Decode a canonical mask PNG (Blob or ArrayBuffer) to {width, height, ids: Uint8Array} with
+ * the browser's own PNG decoder (createImageBitmap, no colour management, no premultiplied
+ * alpha; the grey value is the red channel), after checkGreyPng. Throws MaskFormatError for
+ * anything else, so a reviewer never accepts a mask the page shows differently.
+ */
+export async function decodeIdPng(src, opts = {}) {
+  const buf = src instanceof Blob ? await src.arrayBuffer() : src;
+  const { width, height } = checkGreyPng(buf, opts);
+  let bmp;
+  try {
+    bmp = await createImageBitmap(new Blob([buf], { type: "image/png" }), { colorSpaceConversion: "none", premultiplyAlpha: "none" });
+  } catch (e) {
+    throw new MaskFormatError(`mask PNG cannot be decoded (${e && e.message ? e.message : e})`);
+  }
+  try {
+    if (bmp.width !== width || bmp.height !== height) throw new MaskFormatError(`mask PNG decoded as ${bmp.width}x${bmp.height}, header says ${width}x${height}`);
+    const c = new OffscreenCanvas(width, height);
+    const ctx = c.getContext("2d", { willReadFrequently: true });
+    ctx.drawImage(bmp, 0, 0);
+    const data = ctx.getImageData(0, 0, width, height).data;
+    const ids = new Uint8Array(width * height);
+    for (let i = 0, j = 0; i < ids.length; i++, j += 4) ids[i] = data[j];
+    return { width, height, ids };
+  } finally {
+    bmp.close();
+  }
 }
 
 /**

@@ -189,13 +189,20 @@ class ReviewerPage {
       this.H = frame.height;
       this.layers = {};
       this.layerErrors = {};
+      this.unreadableMask = null;
       this.layers.image = imgR ? await createImageBitmap(imgR.blob) : null;
       for (const [key, r] of [["mask", maskR], ["render", renderR]]) {
         if (!r) this.layerErrors[key] = key === "mask" ? "no mask saved yet" : "nothing rendered";
         else if (r.error) this.layerErrors[key] = r.error;
         else {
-          const d = await decodeIdPng(r.blob);
-          this.layers[key] = idsToCanvas(d.ids, d.width, d.height, lut);
+          try {
+            const d = await decodeIdPng(r.blob);
+            this.layers[key] = idsToCanvas(d.ids, d.width, d.height, lut);
+          } catch (e) {
+            // a mask the page cannot read as stored is flagged, never shown as something else
+            this.layerErrors[key] = `cannot show: ${e.message}`;
+            if (key === "mask") this.unreadableMask = e.message;
+          }
         }
       }
       if (!disR) this.layerErrors.disagreement = "not available";
@@ -500,6 +507,10 @@ class ReviewerPage {
 
   async decide(decision) {
     try {
+      if (decision === "accept" && this.unreadableMask) {
+        showError(`This mask cannot be shown as stored (${this.unreadableMask}); it cannot be accepted from this page. Reject it, or ask an admin.`);
+        return;
+      }
       const text = this.comment.value.trim();
       if (decision === "reject" && !text) {
         showError("A rejection needs a comment so the annotator knows what to fix.");

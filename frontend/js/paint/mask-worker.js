@@ -2,12 +2,12 @@
 // 20-megapixel frame leaves the page's thread free for the image and the first paint.
 // In:  {id, png: ArrayBuffer, width, height, lut: Int32Array(256)}
 // Out: {id, ids: Uint8Array, rgba: Uint8ClampedArray, painted} (buffers transferred) or {id, error}
-import { decodeGreyPngFast, decodeIdPng, resizeIds } from "../core/png.js";
+import { decodeIdPng, resizeIds } from "../core/png.js";
 
 self.onmessage = async (e) => {
   const { id, png, width, height, lut } = e.data;
   try {
-    const d = (await decodeGreyPngFast(png)) || (await decodeIdPng(new Blob([png])));
+    const d = await decodeIdPng(png);
     const ids = resizeIds(d.ids, d.width, d.height, width, height);
     const rgba = new Uint8ClampedArray(width * height * 4);
     const out = new Int32Array(rgba.buffer);

@@ -115,7 +115,7 @@ class ViewerService:
                  watch_interval_s: float | None = None, require_ticket: bool = True,
                  can_open: Callable[[Any, str], bool] | None = None,
                  corrections: dict[str, Callable[..., Any]] | None = None,
-                 prefs_path: Path | None = None, access_check_s: float = 0.5,
+                 prefs_path: Path | None = None, access_check_s: float = 0.25,
                  max_sockets_per_user: int | None = None) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")

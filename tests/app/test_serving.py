@@ -200,3 +200,84 @@ def test_proxy_headers_only_from_trusted_proxies(tmp_path):
                                                  "OCCUFLY_TRUSTED_PROXIES": ""},
                        capture_output=True, text=True, timeout=60)
     assert p.returncode != 0 and "OCCUFLY_TRUSTED_PROXIES" in p.stderr + p.stdout, p
+
+
+def test_nginx_tls_example_gives_secure_cookies(tmp_path):
+    """deploy/nginx.conf as shipped (upstream and ports moved to loopback, a self-signed
+    certificate) in front of ``occufly serve --proxy-headers``: http redirects to https, the
+    login over TLS sets a Secure session cookie, the app sees the client's address."""
+    import re
+    import shutil
+
+    nginx = shutil.which("nginx") or "/usr/sbin/nginx"
+    assert Path(nginx).is_file(), "nginx is needed (scripts/setup.sh --test installs it)"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+                    "-subj", "/CN=127.0.0.1", "-keyout", str(tmp_path / "privkey.pem"),
+                    "-out", str(tmp_path / "fullchain.pem")], check=True, capture_output=True)
+    seed_dir = tmp_path / "srv"
+    p80, p443 = _free_port(), _free_port()
+    with ServeProcess(seed_dir, "--proxy-headers",
+                      env={"OCCUFLY_TRUSTED_PROXIES": "127.0.0.1"}) as srv:
+        conf = (REPO / "deploy" / "nginx.conf").read_text()
+        subs = [(r"server api:8000;", f"server 127.0.0.1:{srv.port};"),
+                (r"listen 80;", f"listen 127.0.0.1:{p80};"),
+                (r"listen 443 ssl;", f"listen 127.0.0.1:{p443} ssl;"),
+                (r"/etc/nginx/tls/", f"{tmp_path}/"),
+                (r"return 301 https://\$host\$request_uri;",
+                 f"return 301 https://$host:{p443}$request_uri;")]
+        for pat, rep in subs:
+            conf, n = re.subn(pat, rep, conf)
+            assert n >= 1, f"deploy/nginx.conf no longer has {pat!r}"
+        version = subprocess.run([nginx, "-v"], capture_output=True, text=True).stderr
+        m = re.search(r"nginx/(\d+)\.(\d+)", version)
+        if m and (int(m.group(1)), int(m.group(2))) < (1, 25):
+            conf = conf.replace("    http2 on;\n", "")  # the compose image is nginx 1.27
+        (tmp_path / "site.conf").write_text(conf)
+        (tmp_path / "main.conf").write_text(
+            f"pid {tmp_path}/nginx.pid;\nerror_log {tmp_path}/error.log;\nevents {{}}\n"
+            f"http {{\n access_log off;\n client_body_temp_path {tmp_path}/cb;\n"
+            f" proxy_temp_path {tmp_path}/px;\n include {tmp_path}/site.conf;\n}}\n")
+        proc = subprocess.Popen([nginx, "-p", str(tmp_path), "-c", str(tmp_path / "main.conf"),
+                                 "-g", "daemon off;"], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT)
+        try:
+            base = f"https://127.0.0.1:{p443}"
+            t_end = time.monotonic() + 20
+            while True:
+                try:
+                    if httpx.get(f"{base}/api/health", verify=False, timeout=2).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                assert proc.poll() is None, proc.stdout.read().decode()
+                assert time.monotonic() < t_end, "nginx did not answer"
+                time.sleep(0.2)
+            r = httpx.get(f"http://127.0.0.1:{p80}/api/health")
+            assert r.status_code == 301 and r.headers["location"].startswith("https://")
+            r = httpx.post(f"{base}/api/auth/login", verify=False,
+                           json={"username": "nobody", "password": "x" * 12})
+            assert r.status_code == 401  # the app answered through TLS (no such user)
+            r = httpx.get(f"{base}/", verify=False)
+            assert r.status_code == 200 and "script-src 'self'" in r.headers[
+                "content-security-policy"]
+            assert r.headers.get("strict-transport-security")
+            # a real login: the cookie is Secure because the app saw https from its proxy
+            from app.config import Settings
+            from app.main import close, create_app
+            from app.users import service as users
+
+            app = create_app(Settings(data_dir=seed_dir / "data", env="development",
+                                      job_processes=False, live_lifting=False,
+                                      argon2_memory_kib=1024, argon2_time_cost=1))
+            with app.state.ctx.sessions() as s:
+                users.create_user(session=s, username="rev", password="correct-horse-battery",
+                                  role="reviewer")
+            close(app)
+            r = httpx.post(f"{base}/api/auth/login", verify=False,
+                           json={"username": "rev", "password": "correct-horse-battery"})
+            assert r.status_code == 200, r.text
+            cookie = r.headers["set-cookie"].lower()
+            assert "secure" in cookie and "httponly" in cookie, cookie
+        finally:
+            proc.terminate()
+            proc.wait(10)

@@ -59,6 +59,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                 "directory and database")
     p.add_argument("dir", help="a folder written by 'occufly backup'")
 
+    p = command(sub, "scene-export", _scene_export,
+                help="export a scene of the app's database (an export job, run here): its "
+                     "accepted mask versions only, unless --include-unreviewed")
+    p.add_argument("scene", help="scene id or name")
+    p.add_argument("--layout", choices=("occufly", "sscbench"), default="occufly")
+    p.add_argument("--include-unreviewed", action="store_true",
+                   help="also take in submitted and imported mask versions (not reviewed); "
+                        "default: accepted versions only (issue 23, docs/provenance.md)")
+
     p = command(sub, "demo", _demo, help="synthesize a scene, import it, select frames, create "
                                         "one user per role, and serve")
     p.add_argument("--preset", default="small", help="synthetic preset (tiny|small|bench)")
@@ -84,6 +93,49 @@ def _restore(args: argparse.Namespace) -> dict:
     s = _settings()
     security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
     return restore(s, Path(args.dir))
+
+
+def _scene_export(args: argparse.Namespace) -> dict:
+    """The admin page's export as a command: an export job with the same policy field."""
+    from sqlalchemy import select
+
+    from app.bootstrap import build_context
+    from app.jobs import service as jobs
+    from app.jobs.schemas import ExportIn
+    from app.scenes.models import Scene
+    from occufly.errors import OccuflyError
+
+    settings = _settings()
+    ctx = build_context(settings, lifting="off")
+    try:
+        with ctx.sessions() as s:
+            key = str(args.scene)
+            scene = s.get(Scene, int(key)) if key.isdigit() else None
+            scene = scene or s.scalar(select(Scene).where(Scene.name == key))
+            if scene is None:
+                raise OccuflyError(f"scene {key!r}: no scene with that id or name")
+            if scene.status != "ready":
+                raise OccuflyError(f"scene {key!r} is {scene.status}, not ready")
+            include = ["accepted", "submitted", "imported"] if args.include_unreviewed else ["accepted"]
+            params = ExportIn(layout=args.layout, include=include).model_dump()
+            job = jobs.create(session=s, kind="export", scene_id=scene.id, params=params, user_id=None)
+            jid = job.id
+        ctx.jobs.start()  # heartbeats: a server sharing the database must not sweep the job
+        ctx.jobs.submit(jid)
+        ctx.jobs.wait(jid, timeout=24 * 3600)
+        with ctx.sessions() as s:
+            job = jobs.get(session=s, job_id=jid)
+            status, message, result = job.status, job.message, job.result or {}
+        if status != "done":
+            raise OccuflyError(f"export job {jid} {status}: {message}")
+        review = result.get("review") or {}
+        return {"job_id": jid, "output": result.get("output"), "files": result.get("files"),
+                "include": include, "took": review.get("took"),
+                "unreviewed_frames": review.get("unreviewed_frames"),
+                "left_out": review.get("left_out"), "quality": result.get("quality")}
+    finally:
+        ctx.jobs.shutdown()
+        ctx.engine.dispose()
 
 
 def _settings():

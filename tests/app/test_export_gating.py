@@ -159,3 +159,30 @@ def test_export_with_nothing_accepted_fails_naming_the_policy(world):
     assert env.client.post(f"/api/scenes/{sid}/export", json={"include": ["draft"]},
                            headers=adm).status_code == 422
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=adm).status_code == 200
+
+
+def test_app_cli_scene_export_takes_accepted_versions_unless_told(world, monkeypatch, capsys):
+    from occufly.cli import main
+
+    env, hdr, scene, _frames = world
+    sid, ann, rev = scene["id"], hdr["annotator"], hdr["reviewer"]
+    fa = env.client.post(f"/api/scenes/{sid}/next", headers=ann).json()["id"]
+    va = env.client.put(f"/api/frames/{fa}/mask?kind=submitted", content=_mask(GRASS),
+                        headers={**ann, "If-Match": "none"}).json()["version"]
+    fb = env.client.post(f"/api/scenes/{sid}/next", headers=ann).json()["id"]
+    env.client.put(f"/api/frames/{fb}/mask?kind=submitted", content=_mask(ROAD),
+                   headers={**ann, "If-Match": "none"})
+    env.client.post(f"/api/frames/{fa}/review", json={"decision": "accept", "version": va}, headers=rev)
+    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    s = env.settings
+    for k, v in {"OCCUFLY_DATA_DIR": str(s.data_dir), "OCCUFLY_DATABASE_URL": s.database_url,
+                 "OCCUFLY_IMPORT_ROOTS": str(env.import_root), "OCCUFLY_ENV": "development",
+                 "OCCUFLY_LIFTING": "off"}.items():
+        monkeypatch.setenv(k, v)
+    assert main(["scene-export", "tiny", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["include"] == ["accepted"] and out["took"] == "1 accepted frame; left out: 1 submitted"
+    m = json.loads((Path(out["output"]) / "OccuFly_Dataset" / f"scene_{sid:02d}" / "manifest.json").read_text())
+    assert [(e["version"], e["state"]) for e in m["provenance"]["masks"]] == [(va, "accepted")]
+    assert main(["scene-export", "nosuchscene"]) == 2
+    assert "no scene with that id or name" in capsys.readouterr().err

@@ -96,9 +96,10 @@ def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) 
             try:
                 real = confined(p, roots)
             except PathNotConfined:
+                where = ("contains a NUL byte" if "\x00" in str(p) else
+                         f"resolves to {os.path.realpath(p)}, outside the import roots")
                 raise UnsafePathError(
-                    f"{header}: frame {f.name!r} image_path {f.image_path!r} resolves to "
-                    f"{os.path.realpath(p)}, outside the import roots") from None
+                    f"{header}: frame {f.name!r} image_path {f.image_path!r} {where}") from None
             # inside the roots is not enough (a database or key file may sit there too): what
             # is there must be an image by its content
             if real.is_file() and image_content_type(real) is None:

@@ -227,7 +227,10 @@ def confined(path: str | Path, roots) -> Path:  # noqa: ANN001
     ``roots`` (each resolved the same way); raises PathNotConfined naming the path otherwise.
 
     The one confinement check for paths that come from files (scene.json image paths,
-    reconstruction photo paths): used at import and again when an image is served."""
+    reconstruction photo paths): used at import and again when an image is served. A path
+    with a NUL byte (no file has one) is refused the same way, never a ValueError."""
+    if "\x00" in os.fspath(path):
+        raise PathNotConfined(f"{str(path)!r} contains a NUL byte")
     real = Path(os.path.realpath(path))
     for root in roots:
         r = Path(os.path.realpath(root))

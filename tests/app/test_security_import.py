@@ -190,3 +190,12 @@ def test_workspace_array_symlinked_out_is_refused(env, tmp_path):
     os.symlink(tmp_path / "other_rgb.npy", rgb)
     r = _import(env, adm, src, "arr")
     assert r.status_code == 403 and "rgb.npy is a symbolic link" in r.text, r.text
+
+
+def test_workspace_image_path_with_a_nul_is_403_not_500(env):
+    adm = env.bearer("admin")
+    src = env.import_root / "nul_src"
+    write_tiny_workspace(src)
+    _set_image_path(src, "images/img_000.png\x00/etc/passwd")
+    r = _import(env, adm, src, "nul")
+    assert r.status_code == 403 and "NUL byte" in r.text, (r.status_code, r.text)

@@ -68,8 +68,11 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
     tool = mask_interchange.TOOL_NAMES[fmt]
     source = source_label(tool, author)  # checked before the archive is read
     ws_scene = ctx.load_scene(scene.workspace)
-    res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
-                                      class_map=class_map)
+    try:
+        res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
+                                          class_map=class_map)
+    except mask_interchange.MaskImportError as e:  # the page lists them one per line
+        raise Invalid(str(e), problems=e.problems) from None
     if not res.masks:
         raise Invalid(f"the {res.tool} archive paints no frame ({len(res.skipped_empty)} "
                       f"image(s) without annotations): nothing to import")

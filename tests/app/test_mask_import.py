@@ -80,6 +80,7 @@ def test_unknown_classes_and_unmatched_images_store_nothing(world, tmp_path):
     detail = r.json()["detail"]
     assert "nothing imported" in detail and "'hedge'" in detail
     assert "'IMG_9998'" in detail and "'IMG_9999'" in detail
+    assert len(r.json()["problems"]) == 2  # one line per kind of problem, for the page
     with env.app.state.ctx.sessions() as s:
         assert s.scalar(select(func.count()).select_from(MaskVersion)) == 0
     # a wrong format and a bad author name are refused before anything is read

@@ -46,6 +46,7 @@ class AdminPage {
     this.auditEl = el("div", { id: "audit" });
     this.overviewEl = el("div", { id: "overview" }); // issue 28: across scenes and annotators
     this.exportListEl = el("div", { id: "export-list" });
+    this.maskImportEl = el("div", { id: "mask-import-result", "aria-live": "polite" });
     this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
     this.sceneSel.addEventListener("change", () => {
       this.ctx.setParams({ scene: this.sceneSel.value });
@@ -59,13 +60,14 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["overview", "users", "scenes", "members", "selection", "jobs", "exports", "labels", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["overview", "users", "scenes", "members", "selection", "masks", "jobs", "exports", "labels", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
         section("sec-overview", "Overview", el("p", { class: "hint" }, "Every scene and annotator at a glance: frames to do (selected, not started), in progress, waiting for review, accepted and rejected; time spent, throughput and how far the 3D labels lag behind."), this.overviewEl),
         section("sec-users", "Users", this.usersEl, this.userForm()),
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
         section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
         section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
+        section("sec-masks", "Masks from other tools", el("p", { class: "hint" }, "Upload masks painted in CVAT, COCO, Label Studio or as PNGs (a zip of the tool's export). Every frame they paint gets an imported version that votes and waits for review; if a class or an image name does not match the scene, nothing is stored and every problem is listed."), this.maskImportForm(), this.maskImportEl),
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
@@ -209,6 +211,70 @@ class AdminPage {
       }
     });
     return f;
+  }
+
+  // ---- masks from other tools (issue 26) -----------------------------------------------------
+  maskImportForm() {
+    const file = el("input", { id: "mi-archive", type: "file", required: true, accept: ".zip,.json,.xml" });
+    // the formats occufly.io.mask_interchange reads (server side: Datumaro, pycocotools, Label Studio's codec)
+    const format = el(
+      "select",
+      { id: "mi-format" },
+      el("option", { value: "cvat" }, "CVAT (for images 1.1 or Segmentation mask 1.1)"),
+      el("option", { value: "coco" }, "COCO instances (polygons / RLE)"),
+      el("option", { value: "coco_panoptic" }, "COCO panoptic"),
+      el("option", { value: "labelstudio" }, "Label Studio JSON (brush / polygons)"),
+      el("option", { value: "png" }, "PNG masks + class map"),
+    );
+    const mapping = el("input", { id: "mi-mapping", type: "file", accept: ".json,.yaml,.yml" });
+    const author = el("input", { id: "mi-author", maxlength: "40", placeholder: "optional: who painted them (recorded in the source)" });
+    const f = el(
+      "form",
+      { class: "inline-form", "aria-label": "Import masks from another tool" },
+      field("Archive", file, "the tool's export, zipped"),
+      field("Format", format),
+      field("Class mapping", mapping, "optional JSON/YAML {their class: our class} where names differ"),
+      field("Author", author),
+      el("button", { type: "submit" }, "Import masks"),
+    );
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      if (!this.sid || !file.files.length) return;
+      const body = new FormData();
+      body.append("archive", file.files[0]);
+      body.append("format", format.value);
+      if (mapping.files.length) body.append("mapping", mapping.files[0]);
+      if (author.value.trim()) body.append("author", author.value.trim());
+      this.maskImportEl.replaceChildren(el("p", { class: "hint" }, "Reading the archive…"));
+      try {
+        const res = await api.send("POST", `/scenes/${this.sid}/masks/import`, { body });
+        this.showMaskImport(await res.json(), file.files[0].name);
+        toast("Masks imported.");
+        this.loadScene();
+      } catch (err) {
+        const problems = (err && err.body && err.body.problems) || [err.message || String(err)];
+        this.maskImportEl.replaceChildren(
+          el("div", { class: "alert", role: "alert", style: { display: "block" } },
+            el("strong", {}, `Nothing imported from ${file.files[0].name}:`),
+            el("ul", {}, problems.map((p) => el("li", {}, p)))),
+        );
+      }
+    });
+    return f;
+  }
+
+  showMaskImport(r, name) {
+    const classes = Object.entries(r.classes).map(([k, v]) => `${k} → ${v}`).join(", ");
+    this.maskImportEl.replaceChildren(
+      el("p", {}, el("strong", {}, `${r.frames_imported} frame(s) imported`), ` from ${name} (${r.format}); source “${r.source}”.`),
+      el("p", { class: "hint" }, `Classes: ${classes}.`, r.skipped_without_annotations.length ? ` Skipped (nothing painted): ${r.skipped_without_annotations.join(", ")}.` : ""),
+      table(r.frames, [
+        { key: "frame", label: "Frame" },
+        { key: "item", label: "Image in the archive" },
+        { key: "version", label: "Version" },
+        { key: "kind", label: "State" },
+      ], { caption: "Imported versions (they wait for review)" }),
+    );
   }
 
   async loadScene() {

@@ -8,7 +8,12 @@ its centre is ``((i - X/2 + .5) r, (j - Y/2 + .5) r, (k + .5) r)``.
 
 Sampling. Every voxel centre is moved to world coordinates with the frame pose
 (``xyz_world = scene.origin + T_world_cam @ centre``; frame poses are scene-local) and takes
-the label of the scene-grid voxel that contains it (nearest-neighbour resampling).
+the label of the scene-grid voxel that contains it (nearest-neighbour resampling). When the
+scene grid is finer than the frame grid (``s = round(r / scene voxel) >= 2``), a voxel whose
+centre sample is empty or unknown also looks at ``s^3`` sub-voxel centres and takes their most
+common occupied label (ties: the first in x-major order): a surface thinner than a frame
+voxel is otherwise missed whenever no centre falls inside it (a 0.25 m grid sampled into
+0.5 m voxels lost most of the thin ground layer, docs/ssc-porting.md).
 
 Masks (all (X, Y, Z) bool):
 
@@ -172,18 +177,41 @@ def sample_labels(
     flat_labels = grid.labels.reshape(-1)
     labels = np.zeros(spec.shape, dtype=np.uint8)
     inside = np.zeros(spec.shape, dtype=bool)
-    for k, i0, i1, j0, j1 in rects:
+    sub = int(round(spec.voxel_size / grid.voxel_size))
+    # sub-voxel centre offsets (frame-voxel units) -> scene-grid units, per world axis d
+    offs = [(a + 0.5) / sub - 0.5 for a in range(sub)] if sub >= 2 else []
+    deltas = [np.array([sum(R[d, e] * o[e] * spec.voxel_size / grid.voxel_size for e in range(3))
+                        for d in range(3)], np.float32)
+              for o in ((ox, oy, oz) for ox in offs for oy in offs for oz in offs)]
+
+    def lookup(i0, i1, j0, j1, k, delta):
         flat = np.zeros((i1 - i0, j1 - j0), dtype=itype)
         ins = np.ones((i1 - i0, j1 - j0), dtype=bool)
         for d, (n, stride) in enumerate(zip(grid.shape, strides, strict=True)):
             f = A[d][i0:i1, None] + B[d][None, j0:j1]
-            f += C[d][k]
+            f += C[d][k] + delta[d]
             ins &= f >= 0
             ins &= f < n
             np.clip(f, 0, n - 1, out=f)  # after clipping, truncation == floor
             flat += f.astype(itype) * itype(stride)
         lab = np.take(flat_labels, flat)
         lab[~ins] = 0
+        return lab, ins
+
+    zero = np.zeros(3, np.float32)
+    for k, i0, i1, j0, j1 in rects:
+        lab, ins = lookup(i0, i1, j0, j1, k, zero)
+        if deltas:
+            todo = (lab == 0) | (lab == INVALID)
+            if todo.any():
+                subs = np.stack([lookup(i0, i1, j0, j1, k, dl)[0][todo] for dl in deltas], axis=1)
+                occ = (subs != 0) & (subs != INVALID)
+                counts = (subs[:, :, None] == subs[:, None, :]).sum(axis=2) * occ
+                best = counts.argmax(axis=1)
+                hit = occ.any(axis=1)
+                vals = lab[todo]
+                vals[hit] = subs[np.flatnonzero(hit), best[hit]]
+                lab[todo] = vals
         labels[i0:i1, j0:j1, k] = lab
         inside[i0:i1, j0:j1, k] = ins
     return labels, inside

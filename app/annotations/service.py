@@ -42,6 +42,7 @@ from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.io import masks
+from occufly.workspace import Workspace
 
 CLAIMABLE = ("unassigned", "in_progress", "rejected")
 
@@ -327,8 +328,7 @@ def prefill_holds_own_mask(scene: Scene, frame: Frame, included: dict | None) ->
     frame); it is not recorded, so it never counts as painting saved by the 3D labels."""
     if included and frame.index in included:
         return True
-    res = pipeline.load_labels(scene.workspace)
-    versions = (res.stats.get("versions") or {}) if res is not None else {}
+    versions = Workspace(scene.workspace).lift_stats().get("versions") or {}  # labels.json only
     return str(frame.index) in {str(k) for k in versions}
 
 

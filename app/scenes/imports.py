@@ -185,8 +185,9 @@ def extract_zip(zpath: Path, dest: Path, *, max_bytes: int) -> dict:
 
 
 @router.post("/imports/upload", status_code=201,
+             # the zip's bytes as the body (sent as application/zip; any type is read as bytes)
              openapi_extra={"requestBody": {"required": True, "content": {
-                 "application/zip": {"schema": {"type": "string", "format": "binary"}}}}},
+                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}},
              responses={409: {"description": "an upload of that name exists"},
                         413: {"description": "over OCCUFLY_MAX_IMPORT_UPLOAD_MB"}})
 async def upload_route(request: Request, ctx: CtxDep, session: SessionDep, admin: AdminUser,

@@ -253,6 +253,12 @@ def test_damaged_and_unsafe_archives_are_refused(tmp_path):
         mi.read_masks(bad, "labelstudio", frames, TAX)
     with pytest.raises(MaskError, match="not a COCO instances export"):
         mi.read_masks(_empty_dir(tmp_path), "coco", frames, TAX)
+    plain = tmp_path / "plain.zip"
+    with zipfile.ZipFile(plain, "w") as zf:
+        zf.writestr("readme.txt", "no annotations here")
+    with pytest.raises(MaskError) as e:
+        mi.read_masks(plain, "cvat", frames, TAX)
+    assert str(e.value).startswith("plain.zip: neither a CVAT")  # not the unpacked temp folder
     with pytest.raises(MaskError, match="already exists"):
         mi.write_masks(bad, "coco", _masks(), frames, TAX)
 

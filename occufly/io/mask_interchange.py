@@ -533,17 +533,22 @@ def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy:
     archive = Path(archive)
     with tempfile.TemporaryDirectory(prefix="occufly-masks-") as tmp:
         root = _extract(archive, Path(tmp))
-        if fmt == "cvat":
-            fmt = _detect_cvat(root)
-        if fmt == "cvat_images":
-            items = _read_cvat_images(root)
-        elif fmt in _DATUMARO:
-            items = _read_datumaro(root, fmt)
-        elif fmt == "labelstudio":
-            items = _read_labelstudio(root)
-        else:
-            items = _read_png(root, taxonomy)
-        return _resolve(items, fmt, frames, taxonomy, class_map, str(archive))
+        try:
+            if fmt == "cvat":
+                fmt = _detect_cvat(root)
+            if fmt == "cvat_images":
+                items = _read_cvat_images(root)
+            elif fmt in _DATUMARO:
+                items = _read_datumaro(root, fmt)
+            elif fmt == "labelstudio":
+                items = _read_labelstudio(root)
+            else:
+                items = _read_png(root, taxonomy)
+            return _resolve(items, fmt, frames, taxonomy, class_map, str(archive))
+        except MaskError as e:  # name the archive, not the temporary folder it was unpacked in
+            if isinstance(e, MaskImportError) or str(root) not in str(e):
+                raise
+            raise MaskError(str(e).replace(str(root), archive.name)) from None
 
 
 def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Taxonomy,

@@ -9,13 +9,16 @@ RUN apt-get update \
  && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /opt/occufly
-COPY pyproject.toml README.md* ./
+COPY pyproject.toml README.md* requirements.lock ./
+# dependencies only from the hash-pinned lock (scripts/lock.sh: core, dev and masks extras),
+# then the package itself without resolving anything
+RUN pip install --require-hashes -r requirements.lock
 COPY occufly ./occufly
 COPY app ./app
 COPY migrations ./migrations
 COPY alembic.ini ./
 COPY frontend ./frontend
-RUN pip install ".[masks]" && useradd --create-home --uid 1000 occufly && mkdir -p /data \
+RUN pip install --no-deps . && useradd --create-home --uid 1000 occufly && mkdir -p /data \
  && chown occufly /data
 USER occufly
 # the compiled kernels (denoise k-NN, label splats, free-space depth rasters) into the user's numba cache

@@ -11,7 +11,8 @@ want_test=0
 
 # --- system packages ----------------------------------------------------------------------
 pkgs=(libusb-1.0-0 libgl1 libgomp1)               # Open3D's shared-library needs
-[ "$want_test" = 1 ] && pkgs+=(chromium fonts-dejavu-core)
+# nginx: tests/app/test_serving.py runs deploy/nginx.conf (TLS) in front of the app
+[ "$want_test" = 1 ] && pkgs+=(chromium fonts-dejavu-core nginx)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -37,16 +38,27 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 
-# Reinstall only when the package definition changed (stamp = hash of pyproject.toml + extras).
+# Reinstall only when the package definition or the locks changed (stamp = their hash + extras).
 # --test adds the `torch` extra (CPU torch==2.13.0) so the occufly.datasets.torch tests run.
 # `masks` (Datumaro, pycocotools, the Label Studio codec) is for the app's mask import/export.
 extras="dev,masks"
 [ "$want_test" = 1 ] && extras="dev,masks,torch"
+# The dependencies come from the hash-pinned locks (scripts/lock.sh writes them): pip refuses
+# any file whose sha256 the lock does not list. The package itself is then installed on top;
+# a requirement of pyproject.toml the lock does not pin yet (someone added one without running
+# scripts/lock.sh) is installed unpinned with a warning, and tests/test_lock.py fails on it.
+locks=(-r requirements.lock)
+[ "$want_test" = 1 ] && locks+=(-r requirements-torch.lock)
 stamp=.venv/.occufly-installed
-want="$(sha256sum pyproject.toml | cut -d' ' -f1)-$extras"
+want="$(cat pyproject.toml requirements.lock requirements-torch.lock | sha256sum | cut -d' ' -f1)-$extras"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || [ ! -x .venv/bin/occufly ]; then
-  echo "setup: installing Python packages into .venv (first run takes a minute)" >&2
-  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q -e ".[$extras]"
+  echo "setup: installing Python packages into .venv from requirements.lock (first run takes a minute)" >&2
+  .venv/bin/python -m pip install -q --require-hashes "${locks[@]}"
+  .venv/bin/python -m pip install -q --no-deps -e .
+  if ! .venv/bin/python scripts/lock_check.py "$extras"; then
+    echo "setup: WARNING requirements.lock is stale (pyproject.toml needs packages it does not" \
+         "pin); installing them unpinned -- run scripts/lock.sh and commit the locks" >&2
+    .venv/bin/python -m pip install -q -e ".[$extras]"
+  fi
   echo "$want" > "$stamp"
 fi

@@ -5,7 +5,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh --test || exit 1
-.venv/bin/python -m pytest "$@"
+.venv/bin/python -m pytest -rs "$@"  # -rs: skipped tests say why (e.g. no vulnerability database)
 rc=$?
 if [ "$rc" = 5 ]; then
   echo "test: pytest collected no tests -- treating as failure" >&2

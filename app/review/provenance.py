@@ -243,14 +243,33 @@ _CACHE_LOCK = threading.Lock()
 _CACHE_MAX = 8
 
 
+def _cache_file(ctx: AppContext, scene_id: int) -> Path:
+    return Path(ctx.settings.data_dir) / "cache" / "quality" / f"scene_{scene_id}.json"
+
+
 def scene_quality(ctx: AppContext, scene: Scene) -> dict:
     """The quality report of the scene's live labels (every voting version), cached per
-    labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections)."""
+    labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections) in this process
+    and in ``<data dir>/cache/quality/scene_<id>.json`` (shared by the API processes, kept
+    over restarts): computing it takes one local k-NN per annotated frame."""
+    import json
+
+    from occufly.fsutil import atomic_write_text
+
     ws = Path(scene.workspace)
     stamp = Workspace(ws).stamp()
     key = (scene.id, stamp)
     with _CACHE_LOCK:
         hit = _CACHE.get(key)
+    if hit is None:
+        try:
+            stored = json.loads(_cache_file(ctx, scene.id).read_text())
+            hit = stored if stored.get("labels_stamp") == stamp else None
+        except (OSError, ValueError):
+            hit = None
+        if hit is not None:
+            with _CACHE_LOCK:
+                _CACHE[key] = hit
     if hit is not None:
         return {**hit, "cached": True}
     ws_scene = ctx.load_scene(str(ws))
@@ -258,6 +277,12 @@ def scene_quality(ctx: AppContext, scene: Scene) -> dict:
         "include": ["accepted", "submitted", "imported"],
         "note": "the live labels: every voting version (submitted, accepted, imported)"})
     q["labels_stamp"] = stamp
+    try:
+        f = _cache_file(ctx, scene.id)
+        f.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(f, json.dumps(q))
+    except OSError:  # a read-only data dir: the in-process cache still holds it
+        pass
     with _CACHE_LOCK:
         for k in [k for k in _CACHE if k[0] == scene.id]:
             del _CACHE[k]

@@ -143,6 +143,11 @@ def test_export_takes_accepted_versions_by_default_and_records_their_provenance(
     assert q1.status_code == 200, q1.text
     assert q1.json()["annotated_frames"] == 2 and q1.json()["cached"] is False
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=adm).json()["cached"] is True
+    from app.review import provenance
+
+    provenance._CACHE.clear()  # another API process (or a restart) reads the shared file
+    q2 = env.client.get(f"/api/scenes/{sid}/quality", headers=adm).json()
+    assert q2["cached"] is True and q2["labels_stamp"] == q1.json()["labels_stamp"]
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=ann).status_code == 403
 
 

@@ -225,6 +225,28 @@ def test_labelstudio_brush_and_polygon_export_imports(tmp_path):
     assert (m[0:8, 0:8] == 8).all() and (m[17:31, 25:47] == 14).all() and m[12, 12] == 0
 
 
+def test_labelstudio_brush_decoders_agree_and_a_lying_header_is_refused(tmp_path):
+    from label_studio_converter.brush import decode_rle, mask2rle
+
+    frames = _frames()
+    m = _masks()[0]
+    rle = [int(v) for v in mask2rle(((m == 16) * 255).astype(np.uint8))]
+    ours = mi._brush_decoder()(rle)  # the Rust port when installed
+    np.testing.assert_array_equal(ours, np.asarray(decode_rle(rle), np.uint8))
+    big = W * 1000
+    lying = list((big * H * 4).to_bytes(4, "big")) + rle[4:]  # claims a 48000 x 32 stroke
+    task = {"data": {"image": "DJI_0000.JPG"}, "annotations": [{"result": [
+        {"type": "brushlabels", "original_width": W, "original_height": H,
+         "value": {"format": "rle", "rle": lying, "brushlabels": ["road"]}}]}]}
+    (tmp_path / "t.json").write_text(json.dumps([task]))
+    with pytest.raises(mi.MaskImportError, match="brush RLE declares"):
+        mi.read_masks(tmp_path / "t.json", "labelstudio", frames, TAX)
+    task["annotations"][0]["result"][0].update(original_width=W * 3, original_height=H * 2)
+    (tmp_path / "t.json").write_text(json.dumps([task]))
+    with pytest.raises(mi.MaskImportError, match="expected 48x32"):
+        mi.read_masks(tmp_path / "t.json", "labelstudio", frames, TAX)
+
+
 def test_png_with_a_colour_class_map(tmp_path):
     from PIL import Image
 

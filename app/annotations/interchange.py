@@ -9,6 +9,7 @@ an external author is recorded) -- which votes and waits for review like a submi
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -41,6 +42,7 @@ class MaskImportOut(BaseModel):
     source: str  # what the versions' source says, e.g. "imported from CVAT"
     frames_imported: int
     frames: list[ImportedFrame]
+    unchanged: list[str] = []  # frames whose current mask is already this one (not stored again)
     skipped_without_annotations: list[str]  # archive images with nothing painted
     classes: dict[str, int]  # archive class name -> raw id it was mapped to
 
@@ -78,13 +80,21 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
                       f"image(s) without annotations): nothing to import")
     rows = {f.index: f for f in session.scalars(select(Frame).where(Frame.scene_id == scene.id))}
     out: list[ImportedFrame] = []
+    unchanged: list[str] = []
     for fi, mask in sorted(res.masks.items()):
         frame = rows[fi]
         session.refresh(frame)
+        data = encode_mask_png(mask)
+        current = (session.get(MaskVersion, frame.current_version_id)
+                   if frame.current_version_id else None)
+        if current is not None and current.sha256 == hashlib.sha256(data).hexdigest():
+            unchanged.append(frame.name)  # the same archive again: no second version
+            continue
         v: MaskVersion = service.store_version(
-            session=session, ctx=ctx, frame=frame, user=user, data=encode_mask_png(mask),
+            session=session, ctx=ctx, frame=frame, user=user, data=data,
             kind="imported", expected=frame.current_version_id, source=source)
         out.append(ImportedFrame(frame_id=frame.id, frame=frame.name, item=res.item_names[fi],
                                  version=v.id, kind=v.kind))
     return MaskImportOut(format=res.fmt, source=source, frames_imported=len(out), frames=out,
+                         unchanged=unchanged,
                          skipped_without_annotations=res.skipped_empty, classes=res.classes)

@@ -44,8 +44,12 @@ def test_admin_imports_a_datumaro_cvat_archive_which_then_is_reviewed(world, tmp
     assert out["source"] == "imported from CVAT by Jane Doe"
     assert out["classes"] == {"Road": 1, "car": 13}
     assert [f["frame_id"] for f in out["frames"]] == [frames[0]["id"], frames[2]["id"]]
+    again = _post(env, sid, archive, hdr["admin"], mapping={"car": "vehicle"}, author="Jane Doe")
+    assert again.status_code == 200 and again.json()["frames_imported"] == 0
+    assert again.json()["unchanged"] == [frames[0]["name"], frames[2]["name"]]
     ctx = env.app.state.ctx
     with ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(MaskVersion)) == 2
         v = s.get(MaskVersion, out["frames"][0]["version"])
         assert v.kind == "imported" and v.source == "imported from CVAT by Jane Doe"
         admin_id = s.scalar(select(AuditEvent.actor_id).where(AuditEvent.action == "mask_import"))

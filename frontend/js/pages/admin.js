@@ -267,7 +267,8 @@ class AdminPage {
     const classes = Object.entries(r.classes).map(([k, v]) => `${k} → ${v}`).join(", ");
     this.maskImportEl.replaceChildren(
       el("p", {}, el("strong", {}, `${r.frames_imported} frame(s) imported`), ` from ${name} (${r.format}); source “${r.source}”.`),
-      el("p", { class: "hint" }, `Classes: ${classes}.`, r.skipped_without_annotations.length ? ` Skipped (nothing painted): ${r.skipped_without_annotations.join(", ")}.` : ""),
+      el("p", { class: "hint" }, `Classes: ${classes}.`, r.skipped_without_annotations.length ? ` Skipped (nothing painted): ${r.skipped_without_annotations.join(", ")}.` : "",
+        r.unchanged && r.unchanged.length ? ` Unchanged (already their current mask): ${r.unchanged.join(", ")}.` : ""),
       table(r.frames, [
         { key: "frame", label: "Frame" },
         { key: "item", label: "Image in the archive" },
@@ -889,6 +890,15 @@ export async function confirmExport(plan) {
   const lo = plan.left_out || {};
   const left = Object.entries(lo).filter(([, v]) => v.length);
   const unrev = plan.unreviewed_frames || [];
+  if (!(plan.taken || []).length && plan.labels_from_masks) {
+    await dialog({
+      title: "Nothing to export",
+      body: el("div", { id: "export-nothing" }, el("p", {}, `No mask this export would take: ${plan.took}.`), el("p", {}, "Accept frames first, or tick \u201calso take in unreviewed masks\u201d.")),
+      buttons: [{ label: "OK", value: false, primary: true }],
+      cancelValue: false,
+    });
+    return false;
+  }
   if (!left.length && !unrev.length) return true;
   const body = el(
     "div",

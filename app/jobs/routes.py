@@ -124,7 +124,12 @@ def export_plan(scene: SceneDep, session: SessionDep, _user: AdminUser,
         plan = provenance.export_plan(session, scene.id, [v for v in include.split(",") if v])
     except ValueError as e:
         raise Invalid(str(e)) from None
-    return {**plan, "took": provenance.plan_text(plan)}
+    from occufly.workspace import Workspace
+
+    # labels lifted from this app's masks (an export that takes none of them has nothing to
+    # export); False for labels written into the workspace otherwise (exported as they are)
+    from_masks = bool(Workspace(scene.workspace).lift_stats().get("versions"))
+    return {**plan, "took": provenance.plan_text(plan), "labels_from_masks": from_masks}
 
 
 @router.get("/scenes/{sid}/quality")

@@ -90,6 +90,7 @@ def test_export_takes_accepted_versions_by_default_and_records_their_provenance(
     assert [t["frame"] for t in plan["taken"]] == [ia]
     assert plan["left_out"]["draft"] == [ic] and plan["left_out"]["submitted"] == [ib]
     assert plan["took"] == "1 accepted frame; left out: 1 draft, 1 submitted"
+    assert plan["labels_from_masks"] is True
     assert env.client.get(f"/api/scenes/{sid}/export/plan?include=accepted,bogus",
                           headers=adm).status_code == 422
     assert env.client.get(f"/api/scenes/{sid}/export/plan", headers=rev).status_code == 403
@@ -158,6 +159,8 @@ def test_export_with_nothing_accepted_fails_naming_the_policy(world):
     env.client.put(f"/api/frames/{fa}/mask?kind=submitted", content=_mask(GRASS),
                    headers={**ann, "If-Match": "none"})
     assert env.app.state.ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    plan = env.client.get(f"/api/scenes/{sid}/export/plan", headers=adm).json()
+    assert plan["taken"] == [] and plan["labels_from_masks"] is True  # the page says so first
     j = _job(env, adm, sid, {})
     assert j["status"] == "failed"
     assert "nothing to export" in j["message"] and "accepted" in j["message"]

@@ -183,11 +183,21 @@ def _external_images(ws: Path) -> list[tuple[int, Path, str]]:
     return out
 
 
-def _backup_images(ws: Path, dest: Path, *, copy: bool, seen: dict[Path, str]) -> tuple[list, list]:
+def _backup_images(ws: Path, dest: Path, *, copy: bool, seen: dict[Path, str],
+                   roots: list[Path]) -> tuple[list, list, list]:
     """Copy (or, ``copy=False``, record) the workspace's external images; returns the
-    manifest entries and the frames whose image is missing."""
-    entries, missing = [], []
+    manifest entries, the frames whose image is missing, and those left out because they lie
+    outside ``roots`` (the import roots and the data dir: the app never serves them, and a
+    backup must not carry e.g. /etc/shadow that a legacy scene.json names)."""
+    from occufly.fsutil import PathNotConfined, confined
+
+    entries, missing, outside = [], [], []
     for i, real, raw in _external_images(ws):
+        try:
+            confined(real, roots)
+        except PathNotConfined:
+            outside.append({"frame": i, "path": raw})
+            continue
         if not real.is_file():
             missing.append(f"frame {i}: {raw}")
             continue
@@ -204,7 +214,7 @@ def _backup_images(ws: Path, dest: Path, *, copy: bool, seen: dict[Path, str]) -
                         raise BackupError(f"{real}: changed while it was copied; back up again")
         entries.append({"frame": i, "sha256": sha, "ext": real.suffix.lower(), "path": raw,
                         "resolved": str(real), "size": real.stat().st_size})
-    return entries, missing
+    return entries, missing, outside
 
 
 def backup(settings: Settings, dest: Path, *, images: bool = True) -> dict:
@@ -249,11 +259,14 @@ def backup(settings: Settings, dest: Path, *, images: bool = True) -> dict:
             ws = Path(row["workspace"])
             if ws.is_dir() and not ws.is_symlink():
                 files = _copy_tree(ws, tmp / "scenes" / row["name"])
-                ext, missing_img = ([], []) if not (ws / "scene.json").is_file() else \
-                    _backup_images(ws, tmp, copy=images, seen=seen)
+                ext, missing_img, outside = ([], [], []) if not (ws / "scene.json").is_file() \
+                    else _backup_images(ws, tmp, copy=images, seen=seen,
+                                        roots=[*settings.import_roots, settings.data_dir])
                 lost += [f"scene {row['name']!r} {m}" for m in missing_img]
                 scenes.append({"id": row["id"], "name": row["name"], "files": files,
-                               "external_images": ext})
+                               "external_images": ext,
+                               # never served (outside the import roots): not carried
+                               "images_outside_roots": outside})
         if lost:
             raise BackupError(f"{len(lost)} frame image(s) named by the workspaces are missing, "
                               f"e.g. {lost[0]}; a restore could not serve or export them "

@@ -9,6 +9,10 @@ arrive within ``OCCUFLY_HEADER_TIMEOUT_S`` (default 10 s) or the connection is c
 the head is in, the request's own handling is not timed here; a websocket upgrade cancels the
 timer (the viewer socket lives for hours and has its own ping/pong).
 
+A request *body* must keep moving: once the head is in, a body that sends nothing for
+``OCCUFLY_BODY_IDLE_TIMEOUT_S`` (default 30 s) closes the connection (not while the app itself
+has paused reading, i.e. is slower than the client).
+
 The head is parsed by h11, whose incomplete-event cap (``h11_max_incomplete_event_size``,
 64 KiB here) bounds what one connection can make the server buffer before the head is
 complete: a longer head gets 400 at once.
@@ -24,6 +28,7 @@ import logging
 import os
 from typing import Any
 
+import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from occufly.errors import InputFormatError
@@ -31,31 +36,64 @@ from occufly.errors import InputFormatError
 log = logging.getLogger("occufly.serving")
 
 HEADER_TIMEOUT_S = 10.0
+BODY_IDLE_TIMEOUT_S = 30.0
 KEEP_ALIVE_S = 5
 MAX_HEAD_BYTES = 64 * 1024
 
 
-def header_timeout_s() -> float:
-    raw = os.environ.get("OCCUFLY_HEADER_TIMEOUT_S", "")
+def _seconds(name: str, default: float) -> float:
+    raw = os.environ.get(name, "")
     try:
-        value = float(raw) if raw else HEADER_TIMEOUT_S
+        value = float(raw) if raw else default
     except ValueError:
-        raise InputFormatError(f"OCCUFLY_HEADER_TIMEOUT_S must be a number of seconds, got "
-                               f"{raw!r}") from None
+        raise InputFormatError(f"{name} must be a number of seconds, got {raw!r}") from None
     if not value > 0:
-        raise InputFormatError(f"OCCUFLY_HEADER_TIMEOUT_S must be > 0, got {raw!r}")
+        raise InputFormatError(f"{name} must be > 0, got {raw!r}")
     return value
+
+
+def header_timeout_s() -> float:
+    return _seconds("OCCUFLY_HEADER_TIMEOUT_S", HEADER_TIMEOUT_S)
+
+
+def body_idle_timeout_s() -> float:
+    return _seconds("OCCUFLY_BODY_IDLE_TIMEOUT_S", BODY_IDLE_TIMEOUT_S)
 
 
 class TimedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol with a deadline for each request head (see the module doc)."""
 
     closed_for_slow_head = 0  # per process; the tests and the log read it
+    closed_for_idle_body = 0
 
     def connection_made(self, transport: Any) -> None:  # noqa: ANN401
         super().connection_made(transport)
         self._head_timer = None
+        self._body_timer = None
         self._arm_head_timer()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        self._arm_body_timer()
+
+    def _arm_body_timer(self) -> None:
+        if self._body_timer is not None:
+            self._body_timer.cancel()
+            self._body_timer = None
+        if self.conn.their_state is h11.SEND_BODY and not self.transport.is_closing():
+            self._body_timer = self.loop.call_later(body_idle_timeout_s(), self._body_deadline)
+
+    def _body_deadline(self) -> None:
+        self._body_timer = None
+        if self.transport.is_closing() or self.conn.their_state is not h11.SEND_BODY:
+            return
+        if self.flow is not None and self.flow.read_paused:  # the app is the slow one
+            self._arm_body_timer()
+            return
+        TimedH11Protocol.closed_for_idle_body += 1
+        log.info("closing connection from %s: request body idle for %.1f s", self.client,
+                 body_idle_timeout_s())
+        self.transport.close()
 
     def _arm_head_timer(self) -> None:
         self._cancel_head_timer()
@@ -89,6 +127,9 @@ class TimedH11Protocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_head_timer()
+        if self._body_timer is not None:
+            self._body_timer.cancel()
+            self._body_timer = None
         super().connection_lost(exc)
 
 
@@ -96,6 +137,7 @@ def uvicorn_options(settings: Any, *, proxy_headers: bool = False) -> dict:  # n
     """Keyword arguments for ``uvicorn.run`` / ``uvicorn.Config`` (every way the app is
     served uses them)."""
     header_timeout_s()  # a bad OCCUFLY_HEADER_TIMEOUT_S fails here, before serving
+    body_idle_timeout_s()
     opts: dict = dict(
         http=TimedH11Protocol, timeout_keep_alive=KEEP_ALIVE_S,
         h11_max_incomplete_event_size=MAX_HEAD_BYTES,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -90,3 +91,26 @@ def test_no_images_backup_is_incomplete_and_restore_checks_the_folder(env, fresh
         restore(fresh_target, tmp_path / "bk")
     assert not fresh_target.workspaces_dir.exists() or not any(
         fresh_target.workspaces_dir.iterdir())
+
+
+def test_an_image_outside_the_roots_is_not_carried(env, tmp_path):
+    """A legacy scene.json naming a file outside the import roots and the data dir (the app
+    never serves it): the backup does not copy it, and the manifest lists it."""
+    from app.backup import backup
+    from app.scenes.models import Scene
+
+    scene, _frames, _images = _scene_with_a_mask(env)
+    secret = tmp_path / "elsewhere" / "secret.png"
+    secret.parent.mkdir()
+    secret.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not for backups" * 10)
+    with env.app.state.ctx.sessions() as s:
+        ws = Path(s.get(Scene, scene["id"]).workspace)
+    header = json.loads((ws / "scene.json").read_text())
+    header["frames"][1]["image_path"] = str(secret)
+    (ws / "scene.json").write_text(json.dumps(header))
+    out = backup(env.settings, tmp_path / "bk")
+    sc = next(x for x in out["scenes"] if x["name"] == scene["name"])
+    assert sc["images_outside_roots"] == [{"frame": 1, "path": str(secret)}]
+    assert all(e["frame"] != 1 for e in sc["external_images"])
+    blob = secret.read_bytes()
+    assert not any(p.read_bytes() == blob for p in (tmp_path / "bk").rglob("*") if p.is_file())

@@ -36,7 +36,8 @@ class ServeProcess:
                     "OCCUFLY_ENV": "development", "OCCUFLY_LIFTING": "off",
                     "OCCUFLY_JOB_PROCESSES": "0", "OCCUFLY_ARGON2_MEMORY_KIB": "1024",
                     "OCCUFLY_ARGON2_TIME_COST": "1",
-                    "OCCUFLY_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S), **(env or {})}
+                    "OCCUFLY_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S),
+                    "OCCUFLY_BODY_IDLE_TIMEOUT_S": str(HEADER_TIMEOUT_S), **(env or {})}
         self.cmd = [str(REPO / ".venv" / "bin" / "occufly"), "serve", "--port",
                     str(self.port), *extra]
         self.proc: subprocess.Popen | None = None
@@ -146,6 +147,21 @@ def test_keep_alive_idle_and_second_slow_head_are_closed(served):
     t = _closed_after([idle], dribble=False, limit_s=15.0)
     idle.close()
     assert t[0] is not None and t[0] <= 5 + 2.0, t
+
+
+def test_stalled_request_bodies_are_closed(served):
+    """50 connections that send a complete head announcing a body, part of it, then nothing:
+    closed ~2 s (OCCUFLY_BODY_IDLE_TIMEOUT_S) after the last byte."""
+    socks = [socket.create_connection(("127.0.0.1", served.port)) for _ in range(N_SLOW)]
+    for s in socks:
+        s.sendall(b"POST /api/auth/login HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                  b"Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n{\"user")
+    t = _closed_after(socks, dribble=False, limit_s=20.0)
+    for s in socks:
+        s.close()
+    assert all(x is not None for x in t), f"{sum(x is None for x in t)} still open after 20 s"
+    assert HEADER_TIMEOUT_S - 0.5 <= min(t) and max(t) <= HEADER_TIMEOUT_S + 3.0, t
+    print(f"\n{N_SLOW} stalled bodies closed after {min(t):.2f}-{max(t):.2f} s")
 
 
 def test_oversized_request_head_is_refused_at_once(served):

@@ -26,6 +26,11 @@ def _copy_truth_grid(source: Path, ws: Path) -> None:
     if src.is_file() and ws.is_dir() and not dst.is_file():
         dst.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(dst, src.read_bytes())
+    # and its point truth, so the quality report measures the calibration (ECE; issue 23)
+    src, dst = source / "truth" / "point_labels.npy", Workspace(ws).truth_dir / "point_labels.npy"
+    if src.is_file() and ws.is_dir() and not dst.is_file():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(dst, src.read_bytes())
 
 
 class DemoSteps:

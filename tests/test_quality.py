@@ -128,3 +128,24 @@ def test_relift_of_the_counted_versions_reproduces_the_live_labels_byte_for_byte
     assert labels_digest(res2)["labels"] != labels_digest(live)["labels"]
     with pytest.raises(FileExistsError):
         relift(scene, items, tmp_path / "scratch")
+
+
+def test_truth_kept_with_the_workspace_measures_the_calibration(lifted, capsys):
+    from occufly.lifting.quality import workspace_truth
+
+    path, scene, _masks = lifted
+    tdir = path / "truth"
+    tdir.mkdir(exist_ok=True)
+    try:
+        np.save(tdir / "point_labels.npy", np.zeros(scene.n_points + 1, np.uint8))
+        assert workspace_truth(path, scene.n_points) is None  # does not fit the cloud
+        truth = _truth_points(scene)
+        np.save(tdir / "point_labels.npy", truth)
+        assert np.array_equal(workspace_truth(path, scene.n_points), truth)
+        assert cli_main(["report", str(path), "--json", "--no-loo"]) == 0
+        q = json.loads(capsys.readouterr().out)
+        assert q["confidence"]["truth"]["points"] > 0
+        assert q["confidence"]["truth"]["ece"] == quality_report(
+            path, scene, truth=truth, loo=False)["confidence"]["truth"]["ece"]
+    finally:
+        (tdir / "point_labels.npy").unlink()

@@ -161,6 +161,7 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
             "submitted (and imported) versions in the export")
     policy = {"include": plan["include"], "frames": len(plan["taken"]), "counts": plan["counts"],
               "left_out": plan["left_out"], "drafts_after_taken": plan["drafts_after_taken"]}
+    truth = lifting_quality.workspace_truth(ws, ws_scene.n_points)  # a synthetic scene's
     masks = [{k: t[k] for k in ("frame", "name", "version", "state", "author", "reviewer",
                                 "decided_at", "source", "sha256", "created_at")}
              for t in plan["taken"]]
@@ -170,7 +171,7 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
         from occufly.errors import WorkspaceError
 
         try:
-            q = lifting_quality.quality_report(ws, ws_scene, policy=policy)
+            q = lifting_quality.quality_report(ws, ws_scene, policy=policy, truth=truth)
         except WorkspaceError:
             q = None
         return {"grid": None, "quality": q, "provenance": {
@@ -182,7 +183,7 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
                        "corrections": Workspace(ws).overrides_path.is_file()}}}
     if live is not None and live_versions == chosen:
         digest = labels_digest(live)
-        q = lifting_quality.quality_report(ws, ws_scene, policy=policy)
+        q = lifting_quality.quality_report(ws, ws_scene, policy=policy, truth=truth)
         grid = None
         relifted = False
     else:
@@ -214,7 +215,7 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
                            options=DensifyOptions(voxel_size=float(voxel_size)),
                            progress=lambda f, m="": report(0.65 + 0.3 * f, m))
         grid = SceneGrid.load(gp)
-        q = lifting_quality.quality_report(lift_dir, ws_scene, policy=policy)
+        q = lifting_quality.quality_report(lift_dir, ws_scene, policy=policy, truth=truth)
         relifted = True
     report(1.0, "labels ready")
     return {"grid": grid, "quality": q, "provenance": {
@@ -273,7 +274,8 @@ def scene_quality(ctx: AppContext, scene: Scene) -> dict:
     if hit is not None:
         return {**hit, "cached": True}
     ws_scene = ctx.load_scene(str(ws))
-    q = lifting_quality.quality_report(ws, ws_scene, policy={
+    q = lifting_quality.quality_report(
+        ws, ws_scene, truth=lifting_quality.workspace_truth(ws, ws_scene.n_points), policy={
         "include": ["accepted", "submitted", "imported"],
         "note": "the live labels: every voting version (submitted, accepted, imported)"})
     q["labels_stamp"] = stamp

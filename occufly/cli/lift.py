@@ -83,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("workspace", type=Path)
     p.add_argument("--truth", type=Path,
                    help="(N,) uint8 .npy point truth in the source cloud's order (e.g. a synthetic "
-                        "scene's truth/point_labels.npy): measures the calibration (ECE)")
+                        "scene's truth/point_labels.npy): measures the calibration (ECE); default "
+                        "WS/truth/point_labels.npy when the workspace keeps one (the demo's)")
     p.add_argument("--no-loo", action="store_true",
                    help="skip the per-frame leave-one-out agreement (one local k-NN per frame)")
     p.add_argument("--out", type=Path, help="also write the report as JSON to this file")
@@ -332,8 +333,10 @@ def _report(args: argparse.Namespace) -> dict | int:
 
     Workspace(args.workspace).require()
     scene = Scene.load(args.workspace)
+    from occufly.lifting.quality import workspace_truth
+
     truth = (load_truth_labels(args.workspace, args.truth, scene.n_points)
-             if args.truth else None)
+             if args.truth else workspace_truth(args.workspace, scene.n_points))
     q = quality_report(args.workspace, scene, truth=truth, loo=not args.no_loo)
     if args.out:
         atomic_write_text(args.out, json.dumps(q, indent=1))

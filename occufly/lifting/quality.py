@@ -59,6 +59,7 @@ FORMAT_VERSION = 1
 QUANTILES = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
 HIST_BINS = 10
 _CHUNK = 1_000_000
+TRUTH_POINTS = "point_labels.npy"  # WS/truth/<this>: point truth kept with a workspace
 
 
 def _share(a: int | float, b: int | float) -> float | None:
@@ -77,6 +78,30 @@ def distribution(values: list[float] | np.ndarray, bins: int = HIST_BINS) -> dic
                           for q in QUANTILES},
             "histogram": {"edges": [round(i / bins, 6) for i in range(bins + 1)],
                           "counts": np.bincount(b, minlength=bins).astype(int).tolist()}}
+
+
+def workspace_truth(ws: str | Path, n_points: int) -> np.ndarray | None:
+    """(N,) uint8 point truth kept with a workspace (``WS/truth/point_labels.npy``, a synthetic
+    scene's, in the source cloud's order; ``points/source_index.npy`` reorders it), or None
+    when there is none or it does not fit the cloud."""
+    w = Workspace(ws)
+    p = w.truth_dir / TRUTH_POINTS
+    if not p.is_file():
+        return None
+    try:
+        t = np.asarray(np.load(p, mmap_mode="r", allow_pickle=False)).reshape(-1)
+        src = w.root / "points" / "source_index.npy"
+        if src.is_file():
+            idx = np.load(src, mmap_mode="r")
+            if len(idx) != n_points or (len(idx) and int(np.max(idx)) >= len(t)):
+                return None
+            t = t[np.asarray(idx, np.int64)]
+    except (OSError, ValueError):
+        return None
+    if t.shape != (n_points,) or not np.issubdtype(t.dtype, np.integer) or (
+            t.size and (t.min() < 0 or t.max() > 255)):
+        return None
+    return t.astype(np.uint8)
 
 
 def _frame_votes(w: Workspace, f: int) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +133,8 @@ def quality_report(ws: str | Path, scene: Scene | None = None, *, truth: np.ndar
                    loo: bool = True, labels=None, bins: int = 10) -> dict:  # noqa: ANN001
     """The quality report of workspace ``ws`` (see the module docstring).
 
-    truth: (N,) uint8 raw ids per point (0 / 255 = no truth) for the measured calibration;
+    truth: (N,) uint8 raw ids per point (0 / 255 = no truth) for the measured calibration
+    (:func:`workspace_truth` reads the one kept with a workspace);
     policy: the version policy the labels were lifted under (recorded as given; default: the
     versions the workspace's lifting state counts); loo: False skips the per-frame
     leave-one-out part; labels: a :class:`LiftResult` to report on instead of

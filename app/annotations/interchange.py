@@ -98,3 +98,44 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
     return MaskImportOut(format=res.fmt, source=source, frames_imported=len(out), frames=out,
                          unchanged=unchanged,
                          skipped_without_annotations=res.skipped_empty, classes=res.classes)
+
+
+EXPORT_KINDS = ("masks", "prefill")
+
+
+def export_archive(*, session: Session, ctx: AppContext, scene: Scene, fmt: str, what: str,
+                   out: Path) -> dict:
+    """Write the scene's voting masks (``what="masks"``: each frame's mask that counts) or the
+    3D prefill of its selected frames (``"prefill"``: the lifted labels rendered into them, as
+    the annotator's "Prefill from 3D" shows; Label Studio gets them as predictions) as a zip
+    in ``fmt`` at ``out``. Returns write_masks' summary."""
+    from app.errors import NotFound
+    from occufly.io.masks import decode_mask_png
+
+    if fmt not in mask_interchange.FORMATS:
+        raise Invalid(f"format must be one of {', '.join(mask_interchange.FORMATS)}, got "
+                      f"{fmt!r}")
+    ws_scene = ctx.load_scene(scene.workspace)
+    masks = {}
+    if what == "masks":
+        for fi, v in sorted(service.voting_versions(session, scene.id).items()):
+            masks[fi] = decode_mask_png(ctx.store.get(v.sha256), ws_scene.taxonomy,
+                                        name=f"version {v.id}")
+        if not masks:
+            raise NotFound(f"scene {scene.id} has no submitted, accepted or imported mask yet")
+    elif what == "prefill":
+        frames = list(session.scalars(select(Frame).where(Frame.scene_id == scene.id,
+                                                          Frame.selected.is_(True))
+                                      .order_by(Frame.index)))
+        if not frames:
+            raise NotFound(f"scene {scene.id} has no selected frames to prefill")
+        labels = service.current_labels(ctx, scene)
+        if labels is None:
+            raise NotFound(f"scene {scene.id} has no lifted labels yet, so no prefill")
+        for f in frames:
+            masks[f.index], _filled = service.prefill_image(ctx, scene, f, labels=labels)
+    else:
+        raise Invalid(f"what must be one of {', '.join(EXPORT_KINDS)}, got {what!r}")
+    return mask_interchange.write_masks(out, fmt, masks, ws_scene.frames, ws_scene.taxonomy,
+                                        prediction=what == "prefill")
+

@@ -41,6 +41,7 @@ ACCESS = {
     "GET /api/scenes/{sid}/labels/status": "member",
     "GET /api/scenes/{sid}/effort": "admin",
     "POST /api/scenes/{sid}/masks/import": "admin",
+    "GET /api/scenes/{sid}/masks/export": "admin",
 }
 
 PNG_BODY = {"requestBody": {"required": True, **PNG}}
@@ -249,3 +250,30 @@ def import_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminU
                                        "versions": [f.version for f in out.frames]})
     session.commit()
     return out
+
+
+@router.get("/scenes/{sid}/masks/export", response_class=Response,
+            responses={200: {"content": {"application/zip": {}},
+                             "description": "a zip in the tool's format"}})
+def export_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: AdminUser,
+                 format: Literal["cvat", "cvat_images", "cvat_mask", "coco",  # noqa: A002
+                                 "coco_panoptic", "labelstudio", "png"] = "cvat",
+                 what: Literal["masks", "prefill"] = "masks"):
+    """The scene's masks that count (``what=masks``: each frame's voting version) or the 3D
+    prefill of its selected frames (``what=prefill``; Label Studio: as predictions) as a zip
+    for CVAT, COCO, Label Studio or plain PNGs, one item per frame."""
+    import tempfile
+    from pathlib import Path as FsPath
+
+    with tempfile.TemporaryDirectory(prefix="occufly-mask-export-") as tmp:
+        import re
+
+        safe = re.sub(r"[^A-Za-z0-9._-]+", "_", scene.name).strip("._") or f"scene{scene.id}"
+        name = f"{safe}_{what}_{format}.zip"
+        path = FsPath(tmp) / "out.zip"
+        interchange.export_archive(session=session, ctx=ctx, scene=scene, fmt=format,
+                                   what=what, out=path)
+        data = path.read_bytes()
+    return Response(data, media_type="application/zip",
+                    headers={"Content-Disposition": f'attachment; filename="{name}"'})
+

@@ -93,3 +93,46 @@ def test_unknown_classes_and_unmatched_images_store_nothing(world, tmp_path):
     assert r.status_code == 422 and "author" in r.json()["detail"]
     with env.app.state.ctx.sessions() as s:
         assert s.scalar(select(func.count()).select_from(MaskVersion)) == 0
+
+
+def test_masks_and_prefill_go_out_for_another_tool(world, tmp_path):
+    import zipfile
+
+    from pycocotools.coco import COCO
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    assert env.client.get(f"/api/scenes/{sid}/masks/export?format=coco",
+                          headers=hdr["admin"]).status_code == 404  # no mask counts yet
+    archive = datumaro_cvat_archive(tmp_path / "task.zip", ["road", "vehicle"],
+                                    [frames[1]["name"]], (H, W))
+    assert _post(env, sid, archive, hdr["admin"]).status_code == 200
+    assert env.client.get(f"/api/scenes/{sid}/masks/export?format=coco",
+                          headers=hdr["reviewer"]).status_code == 403
+    r = env.client.get(f"/api/scenes/{sid}/masks/export?format=coco", headers=hdr["admin"])
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+    (tmp_path / "out.zip").write_bytes(r.content)
+    with zipfile.ZipFile(tmp_path / "out.zip") as zf:
+        zf.extractall(tmp_path / "out")
+    coco = COCO(str(tmp_path / "out" / "annotations" / "instances_default.json"))
+    names = {c["id"]: c["name"] for c in coco.cats.values()}
+    ids = {"road": 1, "vehicle": 13}
+    img = next(i for i in coco.imgs.values() if i["file_name"] == frames[1]["name"])
+    got = np.zeros((H, W), np.uint8)
+    for ann in coco.loadAnns(coco.getAnnIds(imgIds=img["id"])):
+        got[coco.annToMask(ann).astype(bool)] = ids[names[ann["category_id"]]]
+    stored = np.asarray(Image.open(io.BytesIO(env.client.get(
+        f"/api/frames/{frames[1]['id']}/mask", headers=hdr["admin"]).content)))
+    np.testing.assert_array_equal(got, stored)
+    # the prefill of the selected frames, as Label Studio predictions
+    ctx = env.app.state.ctx
+    assert ctx.lifting.wait_idle(sid, timeout=30, include_fill=True)
+    r = env.client.get(f"/api/scenes/{sid}/masks/export?format=labelstudio&what=prefill",
+                       headers=hdr["admin"])
+    assert r.status_code == 200, r.text
+    (tmp_path / "pre.zip").write_bytes(r.content)
+    with zipfile.ZipFile(tmp_path / "pre.zip") as zf:
+        tasks = json.loads(zf.read("tasks.json"))
+    assert len(tasks) == len(frames)
+    assert all("predictions" in t and "annotations" not in t for t in tasks)
+    assert any(t["predictions"] and t["predictions"][0]["result"] for t in tasks)

@@ -9,6 +9,7 @@ Screenshot (looked at): docs/screenshots/admin_mask_import.png."""
 from __future__ import annotations
 
 import json
+import zipfile
 
 import pytest
 
@@ -68,6 +69,15 @@ def test_admin_imports_a_datumaro_written_cvat_archive(live, sid, new_page, tmp_
         assert vs[-1]["kind"] == "imported"
         assert vs[-1]["source"] == "imported from CVAT by J. Doe (field team)"
         assert admin.get(f"/api/frames/{f['id']}").json()["state"] == "submitted"
+    # and back out for the tool: the masks that count, as COCO
+    page.select_option("#mx-what", "masks")
+    page.select_option("#mx-format", "coco")
+    with page.expect_download() as dl:
+        page.click("#sec-masks form[aria-label='Download masks for another tool'] button")
+    with zipfile.ZipFile(dl.value.path()) as zf:
+        doc = json.loads(zf.read("annotations/instances_default.json"))
+    assert sorted(i["file_name"] for i in doc["images"]) == sorted(f["name"] for f in frames)
+    assert {c["name"] for c in doc["categories"]} >= {"road", "vehicle"}
     page.locator("#sec-masks").scroll_into_view_if_needed()
     DOCS.mkdir(parents=True, exist_ok=True)
     page.locator("#sec-masks").screenshot(path=str(DOCS / "admin_mask_import.png"))

@@ -2,7 +2,7 @@
 // with live progress and log tails, exports with downloads, metric tables, class histograms.
 
 import { api } from "../core/api.js";
-import { el, showError, clearError, toast, pct, fmtDate, table, dialog } from "../core/ui.js";
+import { el, showError, clearError, toast, pct, fmtDate, table, dialog, downloadBlob } from "../core/ui.js";
 import { bytes, pathField, uploadControls, memberPicker, usersTable, confirmDeleteScene, exportsTable, overviewView } from "./console.js";
 import { linePlot, barPlot, mapPlot, cellRect } from "./plots.js";
 
@@ -67,7 +67,7 @@ class AdminPage {
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
         section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
         section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
-        section("sec-masks", "Masks from other tools", el("p", { class: "hint" }, "Upload masks painted in CVAT, COCO, Label Studio or as PNGs (a zip of the tool's export). Every frame they paint gets an imported version that votes and waits for review; if a class or an image name does not match the scene, nothing is stored and every problem is listed."), this.maskImportForm(), this.maskImportEl),
+        section("sec-masks", "Masks from other tools", el("p", { class: "hint" }, "Upload masks painted in CVAT, COCO, Label Studio or as PNGs (a zip of the tool's export). Every frame they paint gets an imported version that votes and waits for review; if a class or an image name does not match the scene, nothing is stored and every problem is listed."), this.maskImportForm(), this.maskImportEl, this.maskExportForm()),
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
@@ -259,6 +259,39 @@ class AdminPage {
             el("ul", {}, problems.map((p) => el("li", {}, p)))),
         );
       }
+    });
+    return f;
+  }
+
+  maskExportForm() {
+    const format = el(
+      "select",
+      { id: "mx-format" },
+      el("option", { value: "cvat" }, "CVAT for images 1.1"),
+      el("option", { value: "cvat_mask" }, "CVAT Segmentation mask 1.1"),
+      el("option", { value: "coco" }, "COCO instances"),
+      el("option", { value: "coco_panoptic" }, "COCO panoptic"),
+      el("option", { value: "labelstudio" }, "Label Studio JSON"),
+      el("option", { value: "png" }, "PNG masks"),
+    );
+    const what = el(
+      "select",
+      { id: "mx-what" },
+      el("option", { value: "prefill" }, "3D prefill of the selected frames (pre-annotations)"),
+      el("option", { value: "masks" }, "the masks that count (one per frame)"),
+    );
+    const f = el(
+      "form",
+      { class: "inline-form", "aria-label": "Download masks for another tool" },
+      field("Download", what),
+      field("as", format),
+      el("button", { type: "submit" }, "Download zip"),
+    );
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      if (!this.sid) return;
+      const res = await this.guard(() => api.send("GET", `/scenes/${this.sid}/masks/export?format=${format.value}&what=${what.value}`));
+      if (res) downloadBlob(await res.blob(), `scene${this.sid}_${what.value}_${format.value}.zip`);
     });
     return f;
   }

@@ -21,16 +21,22 @@ pytestmark = pytest.mark.e2e
 DOCS = REPO / "docs" / "screenshots"
 
 
-def _doc_shot(locator, name: str) -> None:
+def _doc_shot(locator, name: str, ready: str | None = None) -> None:
+    """Screenshot into docs/screenshots once ``ready`` (a selector) shows: the admin page is
+    mounted again when its hash changes, and a fresh mount is empty until it has loaded."""
     DOCS.mkdir(parents=True, exist_ok=True)
-    for attempt in range(3):  # the page may be mounted again (hash change) while it is taken
+    page = locator.page
+    for attempt in range(3):
         try:
+            if ready:
+                page.wait_for_timeout(600)
+                page.wait_for_selector(ready)
             locator.screenshot(path=str(DOCS / f"{name}.png"))
             return
         except Exception:  # noqa: BLE001 - "not attached to the DOM": take the new one
             if attempt == 2:
                 raise
-            locator.page.wait_for_timeout(500)
+            page.wait_for_timeout(500)
 
 
 def _source(live):  # noqa: ANN001, ANN202
@@ -121,7 +127,7 @@ def test_users_table_changes_role_deactivates_and_resets(live, new_page):
     assert next(u for u in admin.get("/api/users").json() if u["id"] == uid)["active"] is False
     assert httpx.post(f"{live.base_url}/api/auth/login", json={"username": "dayuser", "password": "another-password-9"}).status_code != 200
     page.locator("#sec-users").scroll_into_view_if_needed()
-    _doc_shot(page.locator("#sec-users"), "admin_users")
+    _doc_shot(page.locator("#sec-users"), "admin_users", ready="#sec-users tr[data-user='dayuser'][data-active='false']")
 
 
 def _fake_export(live, sid: int, name: str, nbytes: int) -> int:  # noqa: ANN001
@@ -144,6 +150,7 @@ def test_delete_an_export_and_a_scene_after_seeing_what_it_frees(live, new_page)
     jid = _fake_export(live, sid, "console_export", 1_500_000)
     page = new_page("admin")
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.reload()  # one mount: the hash change after the login's landing page mounts it twice
     row = page.locator(f"#export-list tr[data-export='{jid}']")
     row.wait_for()
     row.locator("button.export-delete").click()
@@ -183,12 +190,17 @@ def test_overview_and_audit_names(live, new_page):
     row = next(s for s in o["scenes"] if s["scene_id"] == sid)
     page = new_page("admin")
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.reload()  # one mount: the hash change after the login's landing page mounts it twice
     srow = page.locator("#overview tr[data-scene='console_overview']").first
     srow.wait_for()
     cells = srow.locator("td").all_inner_texts()
     assert cells[0] == "console_overview" and cells[1] == str(row["todo"]) and cells[3] == str(row["submitted"])
     assert page.locator("#overview tr[data-annotator='annotator'][data-scene='console_overview']").count() == 1
-    _doc_shot(page.locator("#sec-overview"), "admin_overview")
+    tot = next(a for a in o["annotators"] if a["username"] == "annotator")
+    cells = page.locator("#overview tr[data-annotator-total='annotator'] td").all_inner_texts()
+    assert cells[2] == str(tot["scenes"]) and cells[4] == str(tot["submitted"])
+    _doc_shot(page.locator("#sec-overview"), "admin_overview",
+              ready="#overview tr[data-annotator-total='annotator']")
     # the audit log names the frame and the scene
     page.fill("#audit-action", "mask_submit")
     page.click("form[aria-label='Filter audit log'] button[type=submit]")

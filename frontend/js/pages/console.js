@@ -274,7 +274,20 @@ export function overviewView(o) {
         { key: "last_active_at", label: "Last active", fmt: fmtDate },
       ], { caption: "Per annotator and scene", rowAttrs: (a) => ({ "data-annotator": a.username, "data-scene": a.scene }) })
     : el("p", { class: "hint" }, "Nobody has worked on a frame yet.");
-  return el("div", { class: "overview" }, scenes, perPerson,
+  const total = o.annotators.length
+    ? table(o.annotators, [
+        { key: "username", label: "Annotator" },
+        { key: "role", label: "Role" },
+        { key: "scenes", label: "Scenes", fmt: n },
+        { key: "in_progress", label: "In progress", fmt: n },
+        { key: "submitted", label: "Submitted", fmt: n },
+        { key: "accepted", label: "Accepted", fmt: n },
+        { key: "rejected", label: "Rejected", fmt: n },
+        { key: "time_spent_s", label: "Time spent", fmt: duration },
+        { key: "frames_per_hour", label: "Throughput", fmt: perHour },
+      ], { caption: "Per annotator, all scenes", rowAttrs: (a) => ({ "data-annotator-total": a.username }) })
+    : null;
+  return el("div", { class: "overview" }, scenes, perPerson, total,
     el("p", { class: "muted" }, `Time spent: mask saves of one person less than ${Math.round(o.idle_gap_s / 60)} minutes apart, summed; throughput: frames submitted per hour of it (from a minute of recorded work on).`));
 }
 

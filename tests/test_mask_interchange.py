@@ -285,6 +285,21 @@ def test_damaged_and_unsafe_archives_are_refused(tmp_path):
         mi.write_masks(bad, "coco", _masks(), frames, TAX)
 
 
+def test_a_damaged_mask_inside_an_archive_is_a_user_error(tmp_path):
+    frames = _frames()
+    good = tmp_path / "seg.zip"
+    mi.write_masks(good, "cvat_mask", _masks(), frames, TAX)
+    bad = tmp_path / "seg_bad.zip"
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(bad, "w") as dst:
+        for info in src.infolist():
+            data = src.read(info)
+            if info.filename == "SegmentationClass/DJI_0001.png":
+                data = data[:40]  # cut off inside the image data
+            dst.writestr(info, data)
+    with pytest.raises(MaskError, match="DJI_0001"):
+        mi.read_masks(bad, "cvat", frames, TAX)
+
+
 def _empty_dir(tmp_path: Path) -> Path:
     d = tmp_path / "empty"
     d.mkdir()

@@ -266,7 +266,11 @@ def _datumaro_items(dataset) -> tuple[list[_Item], list[str]]:  # noqa: ANN001
     labels = dataset.categories().get(AnnotationType.label)
     names = [c.name for c in labels] if labels is not None else []
     items: list[_Item] = []
-    for it in dataset:
+    try:
+        loaded = list(dataset)
+    except Exception as e:  # noqa: BLE001 - Datumaro's item errors are its own classes
+        raise MaskError(f"cannot read the archive: {e}") from None
+    for it in loaded:
         size = None
         if it.media is not None:
             try:
@@ -634,7 +638,13 @@ def _paint(it: _Item, frame: Frame, ids: dict[str, int]) -> np.ndarray:
         if s.polygon is not None:
             m = _polygon_mask(s.polygon, h, w)
         else:
-            m = s.mask() if callable(s.mask) else s.mask
+            try:
+                m = s.mask() if callable(s.mask) else s.mask
+            except MaskError:
+                raise
+            except Exception as e:  # noqa: BLE001 - the format library's decode failed
+                raise MaskError(f"{it.name}: cannot decode its {s.label!r} mask "
+                                f"({type(e).__name__}: {e})") from None
             if m.shape != (h, w):
                 raise MaskError(f"{it.name}: a {s.label!r} mask is {m.shape[1]}x{m.shape[0]} "
                                 f"pixels in a {w}x{h} image")

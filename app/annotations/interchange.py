@@ -10,6 +10,7 @@ an external author is recorded) -- which votes and waits for review like a submi
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -59,6 +60,21 @@ def source_label(tool: str, author: str | None) -> str:
     return f"{base} by {author}"
 
 
+def _check_ready(scene: Scene) -> None:
+    from app.errors import Conflict
+
+    if scene.status != "ready" or not scene.workspace:
+        raise Conflict(f"scene {scene.id} is {scene.status}; masks move in and out of ready "
+                       f"scenes only")
+
+
+def upload_name(filename: str | None, default: str) -> str:
+    """A safe file name for an upload (what the client called it, for the messages and to
+    keep its suffix): letters, digits, ``._-``, no leading dot."""
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", Path(filename or "").name).lstrip(".")[:120]
+    return name or default
+
+
 def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: User,
                    archive: Path, fmt: str, class_map: dict | None = None,
                    author: str | None = None) -> MaskImportOut:
@@ -67,6 +83,7 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
     if fmt not in mask_interchange.FORMATS:
         raise Invalid(f"format must be one of {', '.join(mask_interchange.FORMATS)}, got "
                       f"{fmt!r}")
+    _check_ready(scene)
     tool = mask_interchange.TOOL_NAMES[fmt]
     source = source_label(tool, author)  # checked before the archive is read
     ws_scene = ctx.load_scene(scene.workspace)
@@ -115,6 +132,7 @@ def export_archive(*, session: Session, ctx: AppContext, scene: Scene, fmt: str,
     if fmt not in mask_interchange.FORMATS:
         raise Invalid(f"format must be one of {', '.join(mask_interchange.FORMATS)}, got "
                       f"{fmt!r}")
+    _check_ready(scene)
     ws_scene = ctx.load_scene(scene.workspace)
     masks = {}
     if what == "masks":

@@ -226,7 +226,7 @@ def import_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminU
     from occufly.io.mask_interchange import load_class_map
 
     with tempfile.TemporaryDirectory(prefix="occufly-mask-import-") as tmp:
-        name = FsPath(archive.filename or "archive.zip").name or "archive.zip"
+        name = interchange.upload_name(archive.filename, "archive.zip")
         path = FsPath(tmp) / name
         with open(path, "wb") as f:
             shutil.copyfileobj(archive.file, f)
@@ -234,11 +234,12 @@ def import_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminU
             raise Invalid(f"archive {name!r} is empty; expected a zip of the tool's export")
         class_map = None
         if mapping is not None and mapping.filename:
-            mname = FsPath(mapping.filename).name
+            mname = interchange.upload_name(mapping.filename, "mapping.json")
             data = mapping.file.read(MAX_MAPPING_BYTES + 1)
             if len(data) > MAX_MAPPING_BYTES:
                 raise PayloadTooLarge(f"mapping {mname!r} is larger than {MAX_MAPPING_BYTES} bytes")
-            mpath = FsPath(tmp) / ("mapping" + (FsPath(mname).suffix or ".json"))
+            suffix = FsPath(mname).suffix.lower()
+            mpath = FsPath(tmp) / ("mapping" + (suffix if suffix in (".yaml", ".yml") else ".json"))
             mpath.write_bytes(data)
             class_map = load_class_map(mpath)
         out = interchange.import_archive(session=session, ctx=ctx, scene=scene, user=user,

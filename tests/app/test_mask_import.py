@@ -136,3 +136,21 @@ def test_masks_and_prefill_go_out_for_another_tool(world, tmp_path):
     assert len(tasks) == len(frames)
     assert all("predictions" in t and "annotations" not in t for t in tasks)
     assert any(t["predictions"] and t["predictions"][0]["result"] for t in tasks)
+
+
+def test_hostile_upload_names_are_only_names(world, tmp_path):
+    from app.annotations.models import MaskVersion
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    archive = datumaro_cvat_archive(tmp_path / "bad.zip", ["Road", "hedge"], [frames[0]["name"]],
+                                    (H, W))
+    for bad in ("..", ".", "a\x00b.zip", "../../etc/passwd"):
+        files = {"archive": (bad, archive.read_bytes(), "application/zip"),
+                 "mapping": (bad, b"{}", "application/json")}
+        r = env.client.post(f"/api/scenes/{sid}/masks/import", files=files,
+                            data={"format": "cvat"}, headers=hdr["admin"])
+        assert r.status_code == 422, (bad, r.status_code, r.text)
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(MaskVersion)) == 0
+

@@ -178,7 +178,7 @@ class AdminPage {
       "form",
       { class: "inline-form", "aria-label": "Import a scene" },
       field("Name", name),
-      pathField("Reconstruction folder", source, "inside an allowed import root on the server: Browse… lists them"),
+      pathField("Reconstruction folder", source, "inside an allowed import root on the server: Browse… lists them", { pick: "any" }),
       uploadControls(name, (r) => {
         source.value = r.source;
         if (!name.value.trim()) name.value = r.source.split("/").pop().replace(/[^A-Za-z0-9_.-]/g, "_");

@@ -38,7 +38,8 @@ async function guard(fn) {
 // ---- folder browser ------------------------------------------------------------------------
 /**
  * A modal listing the folders (and files) under the server's import roots; resolves with the
- * chosen path or null. `pick`: "dir" (choose the open folder) or "file" (click a file).
+ * chosen path or null. `pick`: "dir" (choose the open folder), "file" (click a file) or
+ * "any" (either: a Metashape project is its cameras .xml, other projects a folder).
  */
 export async function browseFolder({ start = "", pick = "dir", title = "Choose a folder on the server" } = {}) {
   return new Promise((resolve) => {
@@ -64,7 +65,7 @@ export async function browseFolder({ start = "", pick = "dir", title = "Choose a
         return;
       }
       current = r.path;
-      choose.disabled = !current || pick !== "dir";
+      choose.disabled = !current || pick === "file";
       where.replaceChildren(current ? el("code", {}, current) : el("span", {}, `Import roots: ${r.roots.join(", ")}`));
       const rows = [];
       if (current) rows.push(el("li", {}, el("button", { type: "button", class: "link fb-up", onclick: () => open(r.parent || "") }, r.parent ? "\u2191 parent folder" : "\u2191 import roots")));
@@ -72,7 +73,7 @@ export async function browseFolder({ start = "", pick = "dir", title = "Choose a
         if (e.kind === "dir") {
           rows.push(el("li", { "data-kind": "dir" }, el("button", { type: "button", class: "link fb-dir", "data-path": e.path, onclick: () => open(e.path) }, `${e.name}/`), e.exists === false ? el("span", { class: "muted" }, " (not created yet)") : null));
         } else {
-          rows.push(el("li", { "data-kind": "file" }, pick === "file"
+          rows.push(el("li", { "data-kind": "file" }, pick !== "dir"
             ? el("button", { type: "button", class: "link fb-file", "data-path": e.path, onclick: () => done(e.path) }, e.name)
             : el("span", { class: "muted" }, e.name), el("span", { class: "muted" }, ` ${bytes(e.bytes)}`)));
         }

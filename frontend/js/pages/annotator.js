@@ -213,6 +213,14 @@ class AnnotatorPage {
         this.host.replaceChildren(el("p", { class: "empty-hint" }, "The annotation queue is empty. Thank you!"));
         return;
       }
+      if (this.frame && this.editor && f.id === this.frame.id) {
+        // the queue hands back the frame that is open (it is still leased to this annotator
+        // and not submitted): keep it, its painting and its undo history, and say why
+        this.nextNotice = `${this.frame.name} is still yours and not submitted: Submit it when it is done, or Skip to give it back and take another frame.`;
+        this.buildSide();
+        toast("This frame is not submitted yet: Submit it, or Skip to take another.");
+        return;
+      }
       this.ctx.setParams({ scene: this.sceneSel.value, frame: f.id });
       await this.openOrExplain(f.id);
     } catch (e) {
@@ -309,8 +317,13 @@ class AnnotatorPage {
     const people = [...new Set(frames.map(who).filter(Boolean))].sort();
     const left = all.unassigned + all.in_progress + all.rejected;
     if (this.frame) {
-      const i = frames.findIndex((f) => f.id === this.frame.id);
-      this.queueEl.textContent = i >= 0 ? `frame ${i + 1} of ${frames.length} · ${left} left to do` : `not a selected frame · ${left} of ${frames.length} left`;
+      // the position counts frames handed out (done + this one), not the frame's place in the
+      // scene's list: the first frame anyone gets is "frame 1 of N"
+      const mine = frames.find((f) => f.id === this.frame.id);
+      const done = all.submitted + all.accepted;
+      if (!mine) this.queueEl.textContent = `not a selected frame · ${left} of ${frames.length} left`;
+      else if (mine.state === "submitted" || mine.state === "accepted") this.queueEl.textContent = `${done} of ${frames.length} done · ${left} left to do`;
+      else this.queueEl.textContent = `frame ${done + 1} of ${frames.length} · ${left} left to do`;
     } else this.queueEl.textContent = `${left} of ${frames.length} frames left`;
     this.queueEl.dataset.left = String(left);
     this.queueEl.dataset.total = String(frames.length);
@@ -337,8 +350,9 @@ class AnnotatorPage {
     // nothing may act on the previous frame while this one loads (prefill, save, submit)
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = true;
     this.opening = fid;
-    this.prefillWarning = this.prefillInfo = null;
+    this.prefillWarning = this.prefillInfo = this.nextNotice = null;
     this.prefillCmd = this.prefillId = null; // a prefill belongs to the frame it was asked for
+    this._prefillShown = false;
     this.lowConf = null;
     this._confPainter = null;
     const frame = await api.get(`/frames/${fid}`);
@@ -399,7 +413,7 @@ class AnnotatorPage {
     ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
     attachCorrections(this, ed, frame).catch(() => {}); // reviewers' proposals, 3D items (issue 25)
     ed.view.overlay.focus({ preventScroll: true });
-    this.frameInfo.textContent = `${frame.name} · ${frame.state.replace("_", " ")}`;
+    this.frameInfo.replaceChildren(el("span", { class: "frame-name" }, frame.name), ` · ${frame.state.replace("_", " ")}`);
     this.frameInfo.title = `${frame.name}: ${W}×${H} px, ${frame.state.replace("_", " ")}`;
     this.opening = null;
     this.applyPrefs();
@@ -431,9 +445,10 @@ class AnnotatorPage {
     this.readOnlyWhy = reason;
     this.editor?.setReadOnly(this.readOnly);
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = this.readOnly;
-    this.toolsEl.querySelectorAll("button.tool, #undo, #redo").forEach((b) => {
+    this.toolsEl.querySelectorAll("button.tool").forEach((b) => {
       if (b.dataset.tool !== "pan") b.disabled = this.readOnly;
     });
+    this.refreshUndo?.(); // undo/redo: enabled only with something to undo/redo
     this.paletteEl.querySelectorAll("button").forEach((b) => (b.disabled = this.readOnly));
     if (this.readOnly && this.editor) this.editor.setTool("pan");
     if (this.frame) this.buildSide();
@@ -516,9 +531,16 @@ class AnnotatorPage {
     const redo = el("button", { type: "button", id: "redo", title: "Redo (Ctrl+Shift+Z)", onclick: () => ed.redo() }, "Redo");
     const fit = el("button", { type: "button", title: "Fit to window (Home)", onclick: () => ed.view.fit() }, "Fit");
     const refreshUndo = () => {
-      undo.disabled = !ed.history.undos.length;
-      redo.disabled = !ed.history.redos.length;
+      undo.disabled = this.readOnly || !ed.history.undos.length;
+      redo.disabled = this.readOnly || !ed.history.redos.length;
+      // the prefill's warning and marks go when it is undone, come back on redo
+      const live = this.prefillLive();
+      if (live !== this._prefillShown) {
+        this._prefillShown = live;
+        if (this.frame && this.editor === ed) this.buildSide();
+      }
     };
+    this.refreshUndo = refreshUndo;
     ed.history.changed.add(refreshUndo);
     refreshUndo();
     ed.signals.toolChanged.add((name) => {
@@ -631,13 +653,22 @@ class AnnotatorPage {
     this.paletteEl.replaceChildren(...rows);
   }
 
+  /** A prefill was applied to this frame and is not undone (its warning and marks apply). */
+  prefillLive() {
+    return !!(this.prefillCmd && this.editor && this.editor.history.undos.includes(this.prefillCmd));
+  }
+
   buildSide() {
     const f = this.frame;
     const parts = [];
     const banner = this.readOnlyBanner();
     if (banner) parts.push(banner);
-    if (this.prefillWarning) parts.push(el("p", { class: "notice", id: "prefill-warning", role: "status" }, this.prefillWarning));
-    else if (this.prefillInfo) parts.push(el("p", { class: "muted", id: "prefill-info" }, this.prefillInfo));
+    if (this.nextNotice) parts.push(el("p", { class: "notice", id: "next-notice", role: "status" }, this.nextNotice));
+    this._prefillShown = this.prefillLive(); // what the panel shows; refreshUndo follows it
+    if (this._prefillShown) {
+      if (this.prefillWarning) parts.push(el("p", { class: "notice", id: "prefill-warning", role: "status" }, this.prefillWarning));
+      else if (this.prefillInfo) parts.push(el("p", { class: "muted", id: "prefill-info" }, this.prefillInfo));
+    }
     if (this.lowConf) {
       const box = el("input", { type: "checkbox", id: "show-low-confidence" });
       box.checked = this.lowConf.show;
@@ -983,7 +1014,7 @@ class AnnotatorPage {
       if (r) {
         const n = r.number ?? r.version;
         toast(`Submitted version ${n}. Press "Next frame" for the next one.`);
-        this.frameInfo.textContent = `${this.frame.name} · submitted (version ${n})`;
+        this.frameInfo.replaceChildren(el("span", { class: "frame-name" }, this.frame.name), ` · submitted (version ${n})`);
         this.frame.assignee = null;
         this.setReadOnly(this.readOnlyReason(this.frame));
         this.updateSaveState(`Submitted (version ${n})`);

@@ -155,7 +155,7 @@ async function askReply() {
 export function notificationBadge() {
   const count = el("span", { class: "badge", id: "notif-count", hidden: true }, "");
   const list = el("div", { class: "notif-list", id: "notif-list", hidden: true });
-  const btn = el("button", { type: "button", class: "notif-btn", id: "notif-btn", title: "Notifications", onclick: () => toggle() }, "🔔", count);
+  const btn = el("button", { type: "button", class: "notif-btn", id: "notif-btn", title: "Notifications", onclick: () => toggle() }, el("span", { class: "notif-icon", "aria-hidden": "true" }, "✉"), el("span", { class: "sr-only" }, "Notifications"), count);
   const box = el("span", { class: "notifications" }, btn, list);
   async function refresh() {
     try {

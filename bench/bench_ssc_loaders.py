@@ -205,8 +205,12 @@ def consistency(target, depth, K, W, H, geom, T=None, step=2) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
 
 
-def per_altitude(make_ds, sample_fn, geom, n=3) -> dict:
+N_PER_ALTITUDE = 3
+
+
+def per_altitude(make_ds, sample_fn, geom, n=None) -> dict:
     """Depth consistency over up to n frames of each split (= altitude with --split-by altitude)."""
+    n = n or N_PER_ALTITUDE
     out = {}
     for split in ("train", "val", "test"):
         ds = make_ds(split)
@@ -491,11 +495,15 @@ def main() -> None:
     ap.add_argument("--frustum-size", type=int, default=2,
                     help="frustum_size for the loaded batch (their configs use 8: 64 masks of the "
                          "full grid, ~0.8 GB per sample at 192x128x128)")
-    ap.add_argument("--table", action="store_true", help="print the Markdown table of a JSON on stdin")
+    ap.add_argument("--frames-per-altitude", type=int, default=3,
+                    help="frames per altitude for the depth-consistency means (default 3)")
     a = ap.parse_args()
+    global N_PER_ALTITUDE
+    N_PER_ALTITUDE = a.frames_per_altitude
     export = a.export.absolute()
     commits = dict(zip(COMMITS, (a.commits or ",,,").split(","), strict=True))
-    run = {"export": str(export), "geometry": {}, "codebases": {}}
+    run = {"export": str(export), "frames_per_altitude": a.frames_per_altitude, "geometry": {},
+           "codebases": {}}
     g = load_geometry(export)
     run["geometry"] = {"grid_shape": list(g.grid_shape), "voxel_size": g.voxel_size,
                        "n_classes": g.n_classes, "axes": g.axes,

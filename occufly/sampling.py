@@ -149,9 +149,11 @@ def check_pose(T_cam_world: np.ndarray, where: str) -> np.ndarray:
 # ---- sampling -------------------------------------------------------------------------------
 def sample_labels(
     grid: SceneGrid, T_cam_world: np.ndarray, scene_origin: np.ndarray, spec: FrameGridSpec,
-    rects: list[tuple[int, int, int, int, int]] | None = None,
+    rects: list[tuple[int, int, int, int, int]] | None = None, *, subvoxel: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sample the scene grid at frame-grid voxel centres.
+    """Sample the scene grid at frame-grid voxel centres (``subvoxel``: and, for a finer scene
+    grid, at sub-voxel centres where the centre is empty -- see the module docstring;
+    ``subvoxel=False`` is the plain nearest-centre rule, kept for comparisons).
 
     T_cam_world: (4, 4) float64 world-to-camera, scene-local; scene_origin: (3,) float64;
     rects: optional [(k, i0, i1, j0, j1)] per-slice index rectangles to sample (default:
@@ -177,7 +179,7 @@ def sample_labels(
     flat_labels = grid.labels.reshape(-1)
     labels = np.zeros(spec.shape, dtype=np.uint8)
     inside = np.zeros(spec.shape, dtype=bool)
-    sub = int(round(spec.voxel_size / grid.voxel_size))
+    sub = int(round(spec.voxel_size / grid.voxel_size)) if subvoxel else 1
     # sub-voxel centre offsets (frame-voxel units) -> scene-grid units, per world axis d
     offs = [(a + 0.5) / sub - 0.5 for a in range(sub)] if sub >= 2 else []
     deltas = [np.array([sum(R[d, e] * o[e] * spec.voxel_size / grid.voxel_size for e in range(3))
@@ -525,6 +527,8 @@ def sample_frame(
     T_cam_world: np.ndarray,
     scene_origin: np.ndarray,
     spec: FrameGridSpec | None = None,
+    *,
+    subvoxel: bool = True,
 ) -> FrameGT:
     """Labels and masks of one frame (no depth map; see :func:`frame_depth_map`).
 
@@ -532,7 +536,7 @@ def sample_frame(
     """
     spec = spec or FrameGridSpec()
     rects = region_rects(camera, spec)
-    labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec, rects)
+    labels_all, inside = sample_labels(grid, T_cam_world, scene_origin, spec, rects, subvoxel=subvoxel)
     nodata = labels_all == INVALID
     if nodata.any():
         labels_all[nodata] = 0

@@ -333,6 +333,17 @@ def test_porting_guide_names_the_commits_and_matches_the_bench_run():
         assert cb["loads"], (key, cb.get("error"))
     # the guide's table is the run's table (bench_ssc_loaders.render_table), not a copy by hand
     assert "<!-- ssc-bench-table -->\n\n" + run["table"] + "\n" in doc
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_ssc_sampling", REPO / "bench" / "bench_ssc_sampling.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    filled = json.loads((REPO / "docs" / "bench" / "ssc_sampling.json").read_text())
+    shell = json.loads((REPO / "docs" / "bench" / "ssc_sampling_shell.json").read_text())
+    assert "<!-- ssc-sampling-table -->\n\n" + bench.render_table(filled, shell) + "\n" in doc
+    for res in filled["frames"].values():  # the fix: no fewer occupied voxels than the old rule
+        assert (res["fine grid, sub-voxel (after)"]["occupied_voxels"]
+                > res["fine grid, nearest centre (before)"]["occupied_voxels"])
     assert "ssc-porting.md" in (REPO / "mkdocs.yml").read_text()
     guide = (REPO / "docs" / "guide" / "researcher.md").read_text()
     assert "ssc-porting.md" in guide and "core/" not in guide
@@ -352,6 +363,7 @@ def test_a_finer_scene_grid_keeps_thin_surfaces():
     labels, inside = sample_labels(g, np.eye(4), np.zeros(3), spec)
     assert inside.all()
     assert (labels[:, :, 1] == 6).all() and (labels[:, :, [0, 2, 3]] == 0).all()
+    assert not sample_labels(g, np.eye(4), np.zeros(3), spec, subvoxel=False)[0].any()  # the old rule
     # same voxel size: the plain nearest-centre rule, unchanged
     g2 = SceneGrid(np.repeat(np.repeat(np.repeat(lab[::2, ::2, ::2], 2, 0), 2, 1), 2, 2)[::2, ::2, ::2],
                    np.array([-1.0, -1.0, 0.0]), 0.5)

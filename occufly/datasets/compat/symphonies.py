@@ -2,7 +2,7 @@
 SSCBench-layout export, and the Hydra callback that makes it selectable from the config.
 
 Symphonies builds its dataset with ``getattr(ssc_pl.data.datasets, cfg.data.datasets.type)``
-(ssc_pl/data/build.py:20, ssc_pl/utils/build.py:50-57), so a class from another package
+(ssc_pl/data/build.py:18-21, ssc_pl/utils/build.py:46-53), so a class from another package
 cannot be named in the config directly. The config-only way in: Hydra instantiates
 ``hydra.callbacks.*._target_`` before the task runs, and :class:`Register` adds
 :class:`OccuFlyKITTI360` to ``ssc_pl.data.datasets`` when it is built::
@@ -33,7 +33,7 @@ bool per scale, ``depth`` (H, W) float32 when ``depth_root``, ``img`` (3, H, W) 
 ImageNet-normalised; ``label``: ``target`` (X, Y, Z) uint8, ``CP_mega_matrix`` (4, N_8, N_8/8)
 uint8 when ``context_prior``, ``frustums_masks`` (size^2, X, Y, Z) float32,
 ``frustums_class_dists`` (size^2, C + 1) float32. Class attribute ``META_INFO`` =
-``{"class_weights": 1/log(freq) tensor, "class_names": tuple}`` (build.py:21).
+``{"class_weights": 1/log(freq) tensor, "class_names": tuple}`` (ssc_pl/data/build.py:21).
 
 Differences from Symphonies' own KITTI360 class, all on purpose: each sequence's calib.txt
 (theirs: one hard-coded KITTI-360 calibration), the export's splits (theirs: KITTI-360
@@ -78,7 +78,7 @@ def _meta_info(root) -> dict:
 
 
 class _MetaInfo:
-    """``OccuFlyKITTI360.META_INFO`` is read from the class (build.py:21) before any
+    """``OccuFlyKITTI360.META_INFO`` is read from the class (ssc_pl/data/build.py:21) before any
     instance exists, so it comes from the export named by the last instance built (or by
     ``OCCUFLY_EXPORT`` / :func:`Register` ``data_root``)."""
 

@@ -6,8 +6,12 @@ lifted with ``k`` of them replaced by wrong masks, one per kind: classes permute
 are computed (:mod:`occufly.lifting.loo`: LOO agreement, self-agreement, independent coverage,
 painted share), and the ranking of wrong against right frames is scored by the AUC (wrong =
 positive; frames without enough independent views sort after the scored ones, as in the
-list) for the LOO agreement, the old self-agreement, and LOO agreement x painted share; and by
-how many frames a reviewer opens in list order before every wrong one is found.
+list) for the LOO agreement, the old self-agreement, LOO agreement x painted share, and the
+review list's ranking score (:func:`occufly.lifting.loo.review_score`: the share of the
+confidently, independently labelled area the mask does not reproduce, plus the shift test's
+gain; every frame with any such pixel is ranked by it, the coverage threshold only decides what
+the page says); and by how many frames a reviewer opens in list order before every wrong one is
+found. ``--seed`` picks other wrong frames, ``--k 8`` puts two of each kind in.
 
 The votes are counted in a private folder (``--cache``), the synthetic scenes are shared
 with bench_calibration's cache layout. Prints one JSON object.
@@ -80,12 +84,12 @@ def list_score(agree: list, cov: list, floor: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def run(cache: Path, preset: str, k: int, floor: float) -> dict:
+def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0) -> dict:
     syn, ws = ensure_seeded_scene(cache, preset, 0)
     scene = Scene.load(ws)
     tax = scene.taxonomy
     sel = [int(f) for f in select_frames(scene, mode="stratified").frames]
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     wrong_idx = [int(x) for x in rng.choice(sel, size=min(k, len(sel)), replace=False)]
     kinds = {fi: KINDS[i % len(KINDS)] for i, fi in enumerate(wrong_idx)}
     masks = {}
@@ -93,7 +97,7 @@ def run(cache: Path, preset: str, k: int, floor: float) -> dict:
         fr = scene.frames[fi]
         m = read_mask(syn / "truth" / "masks" / f"{fr.stem}.png", fr, tax)
         masks[fi] = wrong_mask(m, kinds[fi], tax.ids, rng) if fi in kinds else m
-    votes_ws = cache / f"review-{preset}-votes"
+    votes_ws = cache / f"review-{preset}-votes-k{k}-s{seed}"
     w = Workspace(votes_ws)
     w.lifting_frames_dir.mkdir(parents=True, exist_ok=True)
     C = len(tax.ids)
@@ -114,7 +118,11 @@ def run(cache: Path, preset: str, k: int, floor: float) -> dict:
         rows.append({"frame": fi, "wrong": kinds.get(fi), "agreement": o["agreement"],
                      "self_agreement": o["self_agreement"],
                      "independent_coverage": round(o["independent_coverage"], 4),
-                     "painted_share": round(o["painted_share"], 4)})
+                     "painted_share": round(o["painted_share"], 4),
+                     "review_score": o["review_score"],
+                     "area_agreement": o["area_agreement"],
+                     "area_share": round(o["area_share"], 4),
+                     "shift_gain": round(o["shift_gain"], 4)})
     t_loo = (time.perf_counter() - t1) / max(len(rows), 1)
     wrong = np.array([r["wrong"] is not None for r in rows])
     cov = [r["independent_coverage"] for r in rows]
@@ -122,6 +130,7 @@ def run(cache: Path, preset: str, k: int, floor: float) -> dict:
     s_self = np.array([1.0 - (r["self_agreement"] or 0.0) for r in rows])
     s_both = list_score([None if r["agreement"] is None else r["agreement"] * r["painted_share"]
                          for r in rows], cov, floor)
+    s_rank = np.array([-1.0 if r["review_score"] is None else r["review_score"] for r in rows])
 
     def opened(score: np.ndarray) -> int:
         order = np.argsort(-score, kind="stable")
@@ -132,10 +141,15 @@ def run(cache: Path, preset: str, k: int, floor: float) -> dict:
             "wrong": {str(fi): kd for fi, kd in kinds.items()},
             "auc_loo": round(auc(s_loo, wrong), 4), "auc_self": round(auc(s_self, wrong), 4),
             "auc_loo_x_painted_share": round(auc(s_both, wrong), 4),
+            "auc_review_score": round(auc(s_rank, wrong), 4),
             "opened_before_all_wrong_found": {"loo": opened(s_loo), "self": opened(s_self),
-                                              "loo_x_painted_share": opened(s_both)},
+                                              "loo_x_painted_share": opened(s_both),
+                                              "review_score": opened(s_rank)},
             "lift_s": round(t_lift, 2), "loo_per_frame_s": round(t_loo, 3),
             "wrong_frames": [r for r in rows if r["wrong"]],
+            "right_frames_review_score_max": max((r["review_score"] for r in rows
+                                                  if not r["wrong"] and r["review_score"] is not None),
+                                                 default=None),
             "right_frames_loo": {"min": min((r["agreement"] for r in rows
                                              if not r["wrong"] and r["agreement"] is not None),
                                             default=None),
@@ -150,11 +164,14 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=4, help="wrong masks (one kind each, cycled)")
     ap.add_argument("--min-coverage", type=float, default=0.5)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-review"))
+    ap.add_argument("--seed", type=int, default=0, help="which frames get the wrong masks")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    out = {"bench": "review", "k": args.k, "min_independent_coverage": args.min_coverage,
-           "scenes": [run(args.cache, p, args.k, args.min_coverage) for p in args.presets.split(",")]}
+    out = {"bench": "review", "k": args.k, "seed": args.seed,
+           "min_independent_coverage": args.min_coverage,
+           "scenes": [run(args.cache, p, args.k, args.min_coverage, args.seed)
+                      for p in args.presets.split(",")]}
     out["seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out, indent=1, default=float))
 

@@ -117,3 +117,6 @@ def test_loo_winner_matches_the_numpy_majority():
     want = cls.winner(np.maximum(counts, 0).astype(np.uint16))
     assert np.array_equal(got, want)
     assert (got == -1).any() and (got >= 0).any()
+    rows = np.full(n, -1, np.int32)  # the same through a point -> row map
+    rows[ids] = np.arange(len(ids))
+    assert np.array_equal(loo_winner(votes, ids, own_p, own_c, own_w, cls, rows=rows), want)

@@ -204,25 +204,72 @@ def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
     from occufly.lifting.suspects import SuspectParams, find_suspects
     from occufly.render import scene_point_spacing
 
-    labels = annotations.current_labels(ctx, scene)
-    if labels is None:
-        raise NotFound(f"scene {scene.id} has no lifted labels yet")
-    ws_scene = ctx.load_scene(scene.workspace)
-    st = LiftState.open(scene.workspace, ws_scene, read_only=True)
-    # voxels at least 1.5 point spacings wide, so neighbouring points connect
-    params = SuspectParams(voxel=max(1.0, 1.5 * scene_point_spacing(ws_scene)))
-    rows = find_suspects(ws_scene, st.votes, labels, params)[:limit]
+    w = Workspace(scene.workspace)
+    key = ("suspects", str(scene.workspace),
+           _stamp(w.votes, w.labels_path, w.labels_stats_path, w.corrections_dir / "overrides.npz"))
+
+    def compute() -> list[dict]:
+        labels = annotations.current_labels(ctx, scene)
+        if labels is None:
+            raise NotFound(f"scene {scene.id} has no lifted labels yet")
+        ws_scene = ctx.load_scene(scene.workspace)
+        st = LiftState.open(scene.workspace, ws_scene, read_only=True)
+        # voxels at least 1.5 point spacings wide, so neighbouring points connect
+        params = SuspectParams(voxel=max(1.0, 1.5 * scene_point_spacing(ws_scene)))
+        rows = find_suspects(ws_scene, st.votes, labels, params)
+        names = {int(c.id): c.name for c in ws_scene.taxonomy.classes}
+        views: dict = {}
+        out = []
+        for r in rows:
+            r = dict(r)
+            pts = r.pop("point_ids")
+            # a key that survives a re-ranking: the region's smallest point id (a reviewer's
+            # done / dismissed marks are stored against it)
+            r["key"] = f"p{int(pts.min())}" if len(pts) else f"r{r['id']}"
+            r["class_names"] = {k: names.get(int(k), k) for k in r["classes"]}
+            r["n_frames"] = len(r["frames"])
+            r["frames"] = r["frames"][:50]
+            r["outline"] = _outline(ws_scene, views, r["best_frame"], pts)
+            out.append(r)
+        return out
+
+    rows = _CACHE.get(key, compute)[:limit]
     with ctx.sessions() as s:
         fid = dict(s.execute(select(Frame.index, Frame.id).where(Frame.scene_id == scene.id)).all())
     out = []
     for r in rows:
         r = dict(r)
-        r.pop("point_ids")
-        r["frames"] = r["frames"][:50]
         r["frame_ids"] = [fid.get(i) for i in r["frames"]]
         r["best_frame_id"] = fid.get(r["best_frame"]) if r["best_frame"] is not None else None
         out.append(r)
     return {"scene_id": scene.id, "n": len(out), "suspects": out}
+
+
+def _outline(ws_scene, views: dict, frame_index: int | None, pts: np.ndarray) -> list:  # noqa: ANN001
+    """Convex hull, in the pixels of frame ``frame_index``, of the points of ``pts`` that frame
+    sees (the visibility's projections; [] when it sees fewer than 3). ``views`` caches each
+    frame's sorted visibility."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if frame_index is None:
+        return []
+    if frame_index not in views:
+        ids, uv, _d = ws_scene.visibility.frame(frame_index)
+        ids = np.asarray(ids, np.int64)
+        order = np.argsort(ids, kind="stable")
+        views[frame_index] = (ids[order], np.asarray(uv, np.float64)[order])
+    ids, uv = views[frame_index]
+    if not len(ids):
+        return []
+    pos = np.minimum(np.searchsorted(ids, pts), len(ids) - 1)
+    xy = uv[pos[ids[pos] == pts]]
+    if len(xy) < 3:
+        return []
+    try:
+        hull = ConvexHull(xy)
+    except QhullError:  # all on a line
+        return []
+    return [[round(float(x), 1), round(float(y), 1)] for x, y in xy[hull.vertices]]
 
 
 # ---- decisions ------------------------------------------------------------------------------

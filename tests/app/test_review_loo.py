@@ -81,3 +81,33 @@ def test_suspects_route(world):
     sus = r.json()["suspects"]
     assert sus and sus[0]["contested"] > 0 and sus[0]["best_frame_id"] in ids
     assert set(sus[0]["frame_ids"]) <= set(ids)
+    # what the reviewer page draws and stores marks against
+    top = sus[0]
+    assert top["key"].startswith("p") and top["n_frames"] >= len(top["frame_ids"]) >= 1
+    assert set(top["class_names"].values()) <= {"road", "grass"}
+    assert len(top["outline"]) >= 3
+    assert all(0 <= x <= W and 0 <= y <= H for x, y in top["outline"])
+
+
+def test_half_painted_frame_ranks_first(world):
+    """A half-painted frame agrees where it painted (LOO agreement 1.0, like every right frame
+    here): the ranking score counts its unpainted half, which the other frames see, as
+    disagreement, so the list opens it first (the LOO sort put it after the right frames)."""
+    env, hdr, scene, frames = world
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    grass = np.full((H, W), 6, np.uint8)
+    for fid in ids[:3]:
+        _submit(env, hdr, fid, grass)
+    half = np.zeros((H, W), np.uint8)
+    half[:, : W // 2] = 6
+    _submit(env, hdr, ids[3], half)
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    r = env.client.get(f"/api/frames/{ids[3]}/agreement", headers=hdr["reviewer"]).json()
+    assert r["agreement"] == pytest.approx(1.0) and r["painted_share"] == pytest.approx(0.5)
+    # about the unpainted half of what the other frames see of it
+    assert 0.3 < r["review_score"] <= 0.55
+    ok = env.client.get(f"/api/frames/{ids[0]}/agreement", headers=hdr["reviewer"]).json()
+    assert ok["review_score"] == pytest.approx(0.0, abs=0.02) and ok["shift_gain"] == 0.0
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
+                        headers=hdr["reviewer"]).json()
+    assert fl[0]["id"] == ids[3] and fl[0]["review_score"] == pytest.approx(r["review_score"])

@@ -1,6 +1,9 @@
-// Reviewer page: frames sorted by disagreement; image, painted mask, rendered 3D labels and
-// the disagreement overlay side by side or blended; agreement %; pin a comment to a pixel;
-// accept / reject; link to the 3D viewer on this frame.
+// Reviewer page: frames sorted by the ranking score (issue 23: what the other frames
+// confidently see that the mask does not reproduce, plus a shift test); image, painted mask,
+// rendered 3D labels and the disagreement overlay side by side or blended; leave-one-out
+// agreement with independent coverage and painted share; pin a comment to a pixel; accept /
+// reject; link to the 3D viewer on this frame. A Suspects tab lists the scene's contested
+// regions: each opens the frame that sees it best with the region outlined, or the viewer.
 
 import { api } from "../core/api.js";
 import { el, showError, toast, pct, table } from "../core/ui.js";
@@ -43,6 +46,8 @@ class ReviewerPage {
     this.loadSeq = 0;
     this.view = { z: 1, px: 0, py: 0 }; // linked zoom / pan of every panel (image fractions)
     this.autoAdvance = true;
+    this.tab = ctx.params.tab === "suspects" ? "suspects" : "frames";
+    this.suspect = null; // the suspect whose region is outlined on the open frame
     window.__occufly_review = this; // for the e2e tests
   }
 
@@ -57,10 +62,15 @@ class ReviewerPage {
     );
     this.stateSel.value = this.ctx.params.state ?? "";
     this.listEl = el("div", { class: "frame-list", id: "frame-list" });
-    this.detailEl = el("div", { class: "review-detail", id: "review-detail" }, el("p", { class: "empty-hint" }, "Choose a frame on the left. Frames are sorted by disagreement between the painted mask and the 3D labels (worst first)."));
+    this.suspectsEl = el("div", { class: "frame-list suspects-list", id: "suspects-list", hidden: true });
+    this.tabBtns = ["frames", "suspects"].map((t) =>
+      el("button", { type: "button", id: `tab-${t}`, role: "tab", "aria-selected": String(this.tab === t), onclick: () => this.setTab(t) }, t === "frames" ? "Frames" : "Suspects"),
+    );
+    this.detailEl = el("div", { class: "review-detail", id: "review-detail" }, el("p", { class: "empty-hint" }, "Choose a frame on the left. Frames are sorted by their ranking score: the share of what other frames confidently see in the frame that its mask does not reproduce (wrong class or left unpainted), plus a shift test — highest first."));
     this.sceneSel.addEventListener("change", () => {
       this.ctx.setParams({ scene: this.sceneSel.value, frame: null });
       this.loadList();
+      if (this.tab === "suspects") this.loadSuspects();
     });
     this.stateSel.addEventListener("change", () => {
       this.ctx.setParams({ state: this.stateSel.value });
@@ -70,7 +80,7 @@ class ReviewerPage {
       el(
         "section",
         { class: "reviewer" },
-        el("aside", { class: "list-pane" }, el("h1", {}, "Review"), el("div", { class: "row" }, this.sceneSel, this.stateSel), this.listEl),
+        el("aside", { class: "list-pane" }, el("h1", {}, "Review"), el("div", { class: "row" }, this.sceneSel, this.stateSel), el("div", { class: "row tabs", role: "tablist" }, this.tabBtns), this.listEl, this.suspectsEl),
         this.detailEl,
       ),
     );
@@ -81,7 +91,129 @@ class ReviewerPage {
       return;
     }
     await this.loadList();
+    if (this.tab === "suspects") this.setTab("suspects");
     if (this.ctx.params.frame) await this.openFrame(Number(this.ctx.params.frame));
+  }
+
+  setTab(t) {
+    this.tab = t;
+    this.ctx.setParams({ tab: t === "suspects" ? "suspects" : null });
+    for (const b of this.tabBtns) b.setAttribute("aria-selected", String(b.id === `tab-${t}`));
+    this.listEl.hidden = t !== "frames";
+    this.stateSel.hidden = t !== "frames";
+    this.suspectsEl.hidden = t !== "suspects";
+    if (t === "suspects") this.loadSuspects();
+  }
+
+  // ---- suspects (issue 23): contested regions, worked through like the frame list ----------
+  marksKey() {
+    const se = this.ctx.session;
+    const u = (se && se.user && se.user.username) || "anonymous";
+    return `occufly.suspects.${u}.${this.sceneSel.value}`;
+  }
+
+  /** This reviewer's done / dismissed marks of the scene's suspects (kept in this browser). */
+  marks() {
+    try {
+      return JSON.parse(localStorage.getItem(this.marksKey()) || "{}") || {};
+    } catch {
+      return {};
+    }
+  }
+
+  mark(s, status) {
+    const m = this.marks();
+    if (status) m[s.key] = status;
+    else delete m[s.key];
+    localStorage.setItem(this.marksKey(), JSON.stringify(m));
+    this.renderSuspects();
+  }
+
+  async loadSuspects() {
+    const sid = this.sceneSel.value;
+    this.suspectsEl.replaceChildren(el("p", { class: "loading" }, "Finding contested regions…"));
+    try {
+      const r = await api.get(`/scenes/${sid}/suspects`);
+      if (String(sid) !== String(this.sceneSel.value)) return;
+      const sc = await api.get(`/scenes/${sid}`).catch(() => null);
+      this.suspectClasses = (sc && sc.taxonomy && sc.taxonomy.classes) || this.classes || [];
+      this.suspects = (r && r.suspects) || [];
+      this.renderSuspects();
+    } catch (e) {
+      this.suspects = [];
+      this.suspectsEl.replaceChildren(el("p", { class: "error" }, `No suspects: ${e.message}`));
+    }
+  }
+
+  /** Open suspects first (by rank), then the ones marked done or dismissed. */
+  orderedSuspects() {
+    const m = this.marks();
+    const list = (this.suspects || []).map((s) => ({ ...s, mark: m[s.key] || null }));
+    return [...list.filter((s) => !s.mark), ...list.filter((s) => s.mark)];
+  }
+
+  renderSuspects() {
+    const list = this.orderedSuspects();
+    if (!list.length) {
+      this.suspectsEl.replaceChildren(el("p", {}, "No contested regions: the frames' votes agree and nothing overrode them."));
+      return;
+    }
+    const cls = (id) => (this.suspectClasses || []).find((c) => String(c.id) === String(id));
+    const open = list.filter((s) => !s.mark).length;
+    this.suspectsEl.replaceChildren(
+      table(
+        list,
+        [
+          { key: "id", label: "#", fmt: (v) => `${v}` },
+          { key: "points", label: "Points", fmt: (v, r) => el("span", { title: `${r.contested} points with contested votes, ${r.overridden} where the fill or denoise overrode the votes` }, Number(v).toLocaleString()) },
+          {
+            key: "classes",
+            label: "Classes",
+            fmt: (v) => el("span", { class: "class-cell" }, Object.entries(v || {}).sort((a, b) => b[1] - a[1]).slice(0, 2).map(([id, n]) => {
+              const c = cls(id);
+              return el("span", { class: "legend-item", title: `${n} points` }, c ? el("span", { class: "swatch", style: { background: `rgb(${c.rgb.join(",")})` } }) : null, c ? c.name : id);
+            })),
+          },
+          { key: "n_frames", label: "Frames", fmt: (v, r) => el("span", { title: `seen by ${v} frames; best: frame index ${r.best_frame}` }, `${v}`) },
+          {
+            key: "key",
+            label: "",
+            fmt: (k, r) => el(
+              "span",
+              { class: "suspect-actions" },
+              el("button", { type: "button", class: "link suspect-2d", disabled: r.best_frame_id == null, title: "Open the frame that sees it best, region outlined", onclick: () => this.openSuspect(r) }, "2D"),
+              r.best_frame_id != null ? el("a", { class: "suspect-3d", href: `/viewer/?scene=${this.sceneSel.value}&frame=${r.best_frame_id}`, target: "_blank", rel: "noopener", title: "Open the 3D viewer at the camera that sees it best" }, "3D") : null,
+              r.mark
+                ? el("button", { type: "button", class: "link", onclick: () => this.mark(r, null) }, `${r.mark} · undo`)
+                : [el("button", { type: "button", class: "link suspect-done", title: "Mark done (you looked at it and fixed what was wrong)", onclick: () => this.mark(r, "done") }, "✓ done"), el("button", { type: "button", class: "link suspect-dismiss", title: "Dismiss (nothing wrong there)", onclick: () => this.mark(r, "dismissed") }, "✗")],
+            ),
+          },
+        ],
+        {
+          caption: `${list.length} contested regions, largest first; ${open} open. Done / dismissed marks are yours, kept in this browser.`,
+          rowAttrs: (r) => ({ "data-suspect": r.key, class: [r.mark ? `marked ${r.mark}` : "", this.suspect && this.suspect.key === r.key ? "current" : ""].join(" ").trim() }),
+        },
+      ),
+    );
+  }
+
+  /** Open the frame that sees suspect `s` best, its region outlined and zoomed to. */
+  async openSuspect(s) {
+    this.suspectsEl.querySelectorAll("tr[data-suspect]").forEach((tr) => tr.classList.toggle("current", tr.dataset.suspect === s.key));
+    await this.openFrame(s.best_frame_id, { suspect: s });
+  }
+
+  /** The next open suspect after the current one (N on the suspects tab). */
+  stepSuspect(d) {
+    const list = this.orderedSuspects().filter((s) => !s.mark || (this.suspect && s.key === this.suspect.key));
+    const i = this.suspect ? list.findIndex((s) => s.key === this.suspect.key) : -1;
+    const j = i + d;
+    if (j < 0 || j >= list.length) {
+      toast(d > 0 ? "That was the last open suspect." : "This is the first suspect.");
+      return false;
+    }
+    this.openSuspect(list[j]);
+    return true;
   }
 
   unmount() {
@@ -101,8 +233,8 @@ class ReviewerPage {
     const k = e.key.toLowerCase();
     if (k === "a") this.decide("accept");
     else if (k === "r") this.decide("reject");
-    else if (k === "n" || k === "j") this.step(1);
-    else if (k === "p" || k === "k") this.step(-1);
+    else if (k === "n" || k === "j") (this.tab === "suspects" ? this.stepSuspect(1) : this.step(1));
+    else if (k === "p" || k === "k") (this.tab === "suspects" ? this.stepSuspect(-1) : this.step(-1));
     else if (k === "0") this.resetView();
     else return;
     e.preventDefault();
@@ -144,15 +276,16 @@ class ReviewerPage {
             { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
             // the assignee is cleared on submit: who painted it is last_annotator
             { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
-            // leave-one-out agreement (issue 23); frames without enough independent views are
-            // grouped after the scored ones and say so instead of a score
-            { key: "agreement", label: "Agreement (independent)", fmt: (v, r) => (v == null && r.independent_coverage != null ? el("span", { class: "not-enough", title: "fewer than the required share of painted pixels have evidence from other frames" }, "not enough independent views") : pct(v)) },
+            // the ranking score the list is sorted by (issue 23), then the leave-one-out
+            // agreement; frames without enough independent views say so instead of it
+            { key: "review_score", label: "Score", fmt: (v) => el("span", { class: "review-score", title: "ranking score: the share of what other frames confidently see in this frame that the mask does not reproduce (wrong class or left unpainted), plus the shift test's gain; highest first" }, v == null ? "–" : Number(v).toFixed(2)) },
+            { key: "agreement", label: "LOO agr.", fmt: (v, r) => (v == null && r.independent_coverage != null ? el("span", { class: "not-enough", title: "fewer than the required share of painted pixels have evidence from other frames" }, "not enough independent views") : pct(v)) },
             { key: "state", label: "State" },
             // independent coverage, painted share and the old self-agreement, compact (last:
             // the name, who painted it and the score stay in view in a narrow list)
             { key: "independent_coverage", label: "Coverage · painted · self", fmt: (v, r) => el("span", { class: "loo-figures", title: "independent coverage: share of the painted pixels other frames give evidence for; painted: share of the frame painted; self: agreement with labels that include this mask's own votes" }, `${v == null ? "–" : pct(v)} · ${r.painted_share == null ? "–" : pct(r.painted_share)} · ${r.self_agreement == null ? "–" : pct(r.self_agreement)}`) },
           ],
-          { caption: `${frames.length} frames, lowest independent agreement first; then frames without enough independent views`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
+          { caption: `${frames.length} frames, highest ranking score first (what other frames see that the mask does not reproduce); then frames not scored yet`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
         ),
       );
     } catch (e) {
@@ -160,10 +293,11 @@ class ReviewerPage {
     }
   }
 
-  async openFrame(fid) {
+  async openFrame(fid, { suspect = null } = {}) {
     const seq = ++this.loadSeq;
     this.frameId = fid;
     this.pin = null;
+    this.suspect = suspect;
     this.ctx.setParams({ scene: this.sceneSel.value, frame: fid });
     this.listEl.querySelectorAll("tr[data-frame]").forEach((tr) => tr.classList.toggle("current", tr.dataset.frame === String(fid)));
     this.detailEl.replaceChildren(el("p", { class: "loading" }, "Loading frame…"));
@@ -213,6 +347,14 @@ class ReviewerPage {
       api.get(`/frames/${fid}/projected-items`).then((p) => seq === this.loadSeq && ((this.projected = p || []), this.paint())).catch(() => {});
       this.agreement = agreement;
       if (seq !== this.loadSeq) return;
+      this.view = { z: 1, px: 0, py: 0 };
+      if (suspect && suspect.outline && suspect.outline.length >= 3) {
+        // zoom to the region: its outline's box fills ~60 % of the panels
+        const xs = suspect.outline.map((p) => p[0]), ys = suspect.outline.map((p) => p[1]);
+        const x0 = Math.min(...xs), x1 = Math.max(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
+        const z = Math.min(8, Math.max(1, 0.6 / Math.max((x1 - x0) / this.W, (y1 - y0) / this.H, 1e-3)));
+        this.view = z > 1 ? { z, px: (x0 + x1) / 2 / this.W - 0.5, py: (y0 + y1) / 2 / this.H - 0.5 } : this.view;
+      }
       this.renderDetail();
     } catch (e) {
       this.detailEl.replaceChildren(el("p", { class: "error" }, `Could not open frame ${fid}: ${e.message}`));
@@ -246,6 +388,8 @@ class ReviewerPage {
         a.independent_coverage != null ? el("span", { id: "independent-coverage", "data-value": a.independent_coverage }, `independent coverage ${pct(a.independent_coverage)}${lonely ? ` (needs ${pct(a.min_independent_coverage)})` : ""}`) : null,
         a.painted_share != null ? el("span", { id: "painted-share", "data-value": a.painted_share }, `painted ${pct(a.painted_share)} of the frame`) : null,
         a.self_agreement != null ? el("span", { id: "self-agreement", title: "against labels lifted from this mask too (circular)" }, `self ${pct(a.self_agreement)}`) : null,
+        a.review_score != null ? el("span", { id: "review-score", "data-value": a.review_score, title: "ranking score: share of what other frames confidently see here that the mask does not reproduce, plus the shift test's gain" }, `score ${Number(a.review_score).toFixed(2)}${a.shift_gain > 0 ? ` (shifted ${Number(a.shift_gain).toFixed(2)})` : ""}`) : null,
+        this.suspect ? el("span", { class: "badge suspect-badge", id: "suspect-badge", title: "the region is outlined on the panels" }, `suspect #${this.suspect.id}: ${Number(this.suspect.points).toLocaleString()} points`) : null,
         // the viewer picks its scene from ?scene=; ?frame= names the frame (contract link)
         el("a", { href: `/viewer/?scene=${f.scene_id ?? this.sceneSel.value}&frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
         el("span", { class: "spacer" }),
@@ -462,6 +606,7 @@ class ReviewerPage {
         g.stroke();
       }
       drawOutlines(g, this.projected, (x, y) => [ox + x * s, oy + y * s]);
+      if (this.suspect && this.suspect.outline) drawOutlines(g, [{ outline: this.suspect.outline, comments: [{ text: `suspect #${this.suspect.id}` }] }], (x, y) => [ox + x * s, oy + y * s]);
     }
   }
 

@@ -30,11 +30,14 @@ the one upload of a project (``POST /api/imports/upload``) is written to disk as
 from __future__ import annotations
 
 import json
+import logging
 import re
 
 from starlette.concurrency import run_in_threadpool
 
 from app.scenes.models import Frame, Scene
+
+log = logging.getLogger("occufly.bodylimit")
 
 MASK_SLACK = 64 * 1024
 BYTES_PER_MASK_PIXEL = 4
@@ -154,12 +157,22 @@ async def _respond(send, status: int, body: bytes) -> None:  # noqa: ANN001
 
 
 def _frame_pixels(ctx, frame_id: int) -> int | None:  # noqa: ANN001
-    with ctx.sessions() as s:
-        f = s.get(Frame, frame_id)
-        return None if f is None else int(f.width) * int(f.height)
+    """The frame's pixel count; None when it does not exist or the database cannot say (the
+    route answers then; the general upload cap still holds -- never a 500 from here)."""
+    try:
+        with ctx.sessions() as s:
+            f = s.get(Frame, frame_id)
+            return None if f is None else int(f.width) * int(f.height)
+    except Exception:  # noqa: BLE001 - middleware runs outside the app's error handlers
+        log.warning("body limit: frame %s not read", frame_id, exc_info=True)
+        return None
 
 
 def _scene_points(ctx, scene_id: int) -> int | None:  # noqa: ANN001
-    with ctx.sessions() as s:
-        sc = s.get(Scene, scene_id)
-        return None if sc is None or sc.n_points is None else int(sc.n_points)
+    try:
+        with ctx.sessions() as s:
+            sc = s.get(Scene, scene_id)
+            return None if sc is None or sc.n_points is None else int(sc.n_points)
+    except Exception:  # noqa: BLE001 - as above
+        log.warning("body limit: scene %s not read", scene_id, exc_info=True)
+        return None

@@ -143,3 +143,19 @@ def test_200mb_login_body_does_not_raise_server_memory(live_server):
     print(f"server RSS {base / 2**20:.0f} MB -> peak {peak['rss'] / 2**20:.0f} MB "
           f"(+{grew / 2**20:.1f} MB) over 200 MB + 200 MB chunked + 4 x 80 MB chunked")
     assert grew < 40 << 20, grew
+
+
+def test_mask_route_with_an_id_beyond_int32_is_422_not_500(world):
+    """The cap's frame lookup must not fail on ids the database cannot hold (PostgreSQL
+    raises for > 2**31-1): the route answers 422 as for any bad id."""
+    env, hdr, _scene, _frames = world
+    from fastapi.testclient import TestClient
+
+    c = TestClient(env.app, raise_server_exceptions=False)
+    for fid in ("9999999999", "2147483648"):
+        r = c.put(f"/api/frames/{fid}/mask", content=mask_png(),
+                  headers={**hdr["annotator"], "content-type": "image/png", "If-Match": '"none"'})
+        assert r.status_code == 422, (fid, r.status_code, r.text[:200])
+        r = c.post(f"/api/scenes/{fid}/corrections", json={"point_ids": [1]},
+                   headers=hdr["reviewer"])
+        assert r.status_code == 422, (fid, r.status_code, r.text[:200])

@@ -14,6 +14,12 @@ file (nothing downloaded): the page becomes plain HTML referencing same-origin f
   ``globalThis.__viserZstdWasm`` (what viser's loader does) and imports ``client.js``,
 - ``client.js`` -- the app itself, unchanged.
 
+Not allowed, deliberately: ``'unsafe-eval'``. viser builds two things from strings with
+``Function()``: its Gaussian-splat sorter (emscripten embind glue, compiled at load; its
+refusal is reported as a console warning by ``loader.js``) and the server's
+``RunJavascriptMessage`` (arbitrary script sent by the Python side, which OccuFly never uses).
+Both stay refused: splats are unavailable in OccuFly's viewer, nothing else is affected.
+
 What the viewer still needs beyond the app pages' policy (:data:`app.security.VIEWER_CSP`),
 and why: ``'wasm-unsafe-eval'`` (compiling the zstd decoder and the mesh decoders it inlines;
 it allows WebAssembly, not JavaScript ``eval``), ``worker-src blob:`` (viser builds its
@@ -42,6 +48,15 @@ _MAX_CLIENT_BYTES = 64 << 20  # the decompressed client (2.7 MB for viser 1.1.1)
 
 _LOADER = """// OccuFly: viser's zstd decoder is compiled here (not by an inline script) so the
 // viewer runs under script-src 'self' 'wasm-unsafe-eval' (app/viewer/client_page.py)
+// viser compiles its Gaussian-splat sorter at load with emscripten's embind, which builds
+// functions from strings (eval); the policy refuses that, so splats (never sent by OccuFly)
+// cannot be shown. That one refusal is reported as a warning, not an uncaught error.
+addEventListener("unhandledrejection", (e) => {
+  if (e.reason instanceof EvalError) {
+    e.preventDefault();
+    console.warn("3D viewer: viser's splat sorter needs eval, refused by the CSP (splats unavailable)");
+  }
+});
 const wasm = await WebAssembly.compileStreaming(fetch(new URL("./zstd.wasm?v=%(tag)s", import.meta.url)));
 globalThis.__viserZstdWasm = wasm;
 await import("./client.js?v=%(tag)s");  // relative to this module, not the page

@@ -20,6 +20,7 @@ from occufly.progress import ProgressFn
 from occufly.scene import Frame as SceneFrame
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
+from occufly.workspace import Workspace
 
 
 class PipelineMissing(RuntimeError):
@@ -63,8 +64,6 @@ def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
     :func:`occufly.io.importer.confine_inputs`).
     """
     source = Path(source)
-    from occufly.workspace import Workspace
-
     if Workspace(source).exists():
         if roots is not None:  # scene.json, taxonomy.json, the arrays: no link out
             importer.confine_tree(source, roots)
@@ -84,7 +83,7 @@ def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) 
     resolved (symlinks followed) and confined to them. Raises UnsafePathError naming
     ``source``'s scene.json and the frame's path -- ``/etc/passwd``, ``../../occufly.db`` or
     the app's own database file never become a frame image."""
-    header = Path(source) / "scene.json"
+    header = Workspace(source).scene_json
     for f in scene.frames:
         check_name(f.name, f"{header}: frame")
         if not f.image_path:
@@ -115,8 +114,6 @@ def check_workspace_source(source: Path, roots: list[Path]) -> None:
     """Before an import job is created: a workspace source's scene.json is read (it is small)
     and its frames checked as :func:`workspace_image_paths` does (a 4xx from the route, not a
     failed job). A source that is not a workspace is checked by the import itself."""
-    from occufly.workspace import Workspace
-
     if Workspace(source).exists():
         importer.confine_tree(source, roots)
         workspace_image_paths(Scene.load(source, mmap=True), source, roots)

@@ -172,3 +172,26 @@ def _div(a: float, b: float) -> float | None:
 def _count_pairs(t: np.ndarray, p: np.ndarray, lut: np.ndarray, out: np.ndarray) -> None:
     for i in range(t.shape[0]):
         out[lut[t[i]], lut[p[i]]] += 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _count_pairs_many(t: np.ndarray, preds: tuple, lut: np.ndarray, out: np.ndarray) -> None:
+    for i in range(t.shape[0]):
+        a = lut[t[i]]
+        for j in range(len(preds)):
+            out[j, a, lut[preds[j][i]]] += 1
+
+
+def count_pairs_many(class_ids, truth: np.ndarray, preds: list[np.ndarray]) -> list[np.ndarray]:
+    """:meth:`Confusion.add_all_pairs` of one ``truth`` against each of ``preds`` (uint8 raw
+    ids, all the same shape), in one compiled pass that reads ``truth`` once."""
+    c = Confusion(class_ids)
+    t = np.ascontiguousarray(truth, dtype=np.uint8).reshape(-1)
+    ps = tuple(np.ascontiguousarray(p, dtype=np.uint8).reshape(-1) for p in preds)
+    for p in ps:
+        if p.shape != t.shape:
+            raise ValueError(f"truth has {t.size} items, prediction {p.size}")
+    out = np.zeros((len(ps), c.n, c.n), np.int64)
+    if ps:
+        _count_pairs_many(t, ps, c.lut, out)
+    return list(out)

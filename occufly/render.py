@@ -368,7 +368,15 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
     conf = Confusion(taxonomy.ids)
     # every pixel pair counted once (compiled); rows / columns 1..C are the taxonomy classes,
     # 0 empty and C + 1 "other" (255 included): only class x class pixels are evaluated
-    full = conf.add_all_pairs(mask, rendered)
+    return agreement_from_counts(conf.add_all_pairs(mask, rendered), taxonomy)
+
+
+def agreement_from_counts(full: np.ndarray, taxonomy: Taxonomy) -> dict:
+    """:func:`agreement` from the (C + 2) x (C + 2) count of every (mask, rendering) pixel
+    pair over compact columns (:meth:`occufly.confusion.Confusion.add_all_pairs`; several
+    renderings of one mask are counted in one pass by
+    :func:`occufly.confusion.count_pairs_many`)."""
+    conf = Confusion(taxonomy.ids)
     mask_px = int(full[1:conf.C + 1, :].sum())
     both = np.zeros_like(full)
     both[1:conf.C + 1, 1:conf.C + 1] = full[1:conf.C + 1, 1:conf.C + 1]

@@ -77,3 +77,32 @@ def test_agreement_counts_match_a_plain_reference():
             continue
         assert pc["mask_pixels"] == int((both & (mask == c.id)).sum())
         assert pc["agree"] == int((both & (mask == c.id) & (ren == c.id)).sum())
+
+
+def test_one_pass_counts_equal_separate_agreements():
+    """loo_agreement counts the mask against its LOO, confident and self renderings in one
+    compiled pass: the same figures as one ``agreement`` call per rendering."""
+    from occufly.confusion import Confusion, count_pairs_many
+    from occufly.lifting.loo import loo_agreement
+    from occufly.render import agreement
+
+    rng = np.random.default_rng(7)
+    ids = np.array([int(i) for i in TAX.ids], np.uint8)
+    pool = np.concatenate([ids, np.uint8([0, 0, 255])])
+    mask = pool[rng.integers(0, len(pool), (60, 90))]
+    ren, conf, own = (np.where(rng.random(mask.shape) < 0.7, mask, pool[rng.integers(0, len(pool), mask.shape)])
+                      .astype(np.uint8) for _ in range(3))
+    c = Confusion(TAX.ids)
+    for got, p in zip(count_pairs_many(TAX.ids, mask, [ren, conf, own]), (ren, conf, own), strict=True):
+        assert np.array_equal(got, c.add_all_pairs(mask, p))
+
+    class _S:
+        taxonomy = TAX
+
+    out = loo_agreement(mask, ren, _S, self_rendered=own, confident_rendered=conf)
+    a, s = agreement(mask, ren, TAX), agreement(mask, own, TAX)
+    assert out["agreement"] == a["agreement"] and out["per_class"] == a["per_class"]
+    assert out["self_agreement"] == s["agreement"] and out["painted_pixels"] == a["mask_pixels"]
+    both = np.isin(conf, ids) & (np.isin(mask, ids) | (mask == 0))
+    assert out["area_pixels"] == int(both.sum())
+    assert out["area_agree"] == int((both & (mask == conf)).sum())

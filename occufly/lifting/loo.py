@@ -22,12 +22,16 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from occufly.confusion import Confusion
+from occufly.confusion import Confusion, count_pairs_many
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
 from occufly.lifting.knn import LiftParams, _knn_vote
-from occufly.render import agreement as _agreement
-from occufly.render import disagreement_image, frustum_candidates, render_many_for_mask
+from occufly.render import (
+    agreement_from_counts,
+    disagreement_image,
+    frustum_candidates,
+    render_many_for_mask,
+)
 from occufly.scene import Scene
 from occufly.workspace import Workspace
 
@@ -264,17 +268,20 @@ def shift_gain(mask: np.ndarray, rendered: np.ndarray, valid: np.ndarray) -> flo
     return best - base
 
 
-def score_figures(mask: np.ndarray, confident: np.ndarray, valid: np.ndarray) -> dict:
+def score_figures(mask: np.ndarray, confident: np.ndarray, valid: np.ndarray,
+                  counts: np.ndarray | None = None) -> dict:
     """The ranking score's figures of a mask against the *confident* LOO rendering:
     ``area_pixels`` (its class pixels where the mask has a class or nothing; "ignore" 255 and
     unknown ids left out), ``area_agree`` (of them, the mask's class equals it),
     ``area_agreement`` = agree / area (None without any), ``shift_gain`` (:func:`shift_gain`)
-    and ``review_score`` (:func:`review_score`)."""
+    and ``review_score`` (:func:`review_score`). ``counts``: the pair count of (mask,
+    confident) over compact columns when the caller has it (:func:`count_pairs_many`)."""
     mask = np.asarray(mask)
-    ids = np.flatnonzero(valid).astype(np.uint8)
-    conf = Confusion(ids)
-    full = conf.add_all_pairs(mask, confident)  # one compiled pass; rows mask, columns LOO
-    cls_ = slice(1, conf.C + 1)  # compact columns of the classes; 0 = empty (unpainted)
+    n_cls = int(valid.sum())
+    if counts is None:
+        counts = Confusion(np.flatnonzero(valid).astype(np.uint8)).add_all_pairs(mask, confident)
+    full = counts  # rows mask, columns LOO
+    cls_ = slice(1, n_cls + 1)  # compact columns of the classes; 0 = empty (unpainted)
     area = int(full[0, cls_].sum() + full[cls_, cls_].sum())
     agree = int(np.trace(full[cls_, cls_]))
     out = {"area_pixels": area, "area_agree": agree,
@@ -311,8 +318,16 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
     ``self_agreement`` (the old circular figure, kept apart).
     """
     mask = np.asarray(mask)
-    res = _agreement(mask, rendered, scene.taxonomy)
-    valid = scene.taxonomy.valid_lut()
+    tax = scene.taxonomy
+    conf_ren = rendered if confident_rendered is None else confident_rendered
+    imgs = [rendered, conf_ren] + ([self_rendered] if self_rendered is not None else [])
+    for im in imgs:
+        if np.shape(im) != mask.shape:
+            raise ValueError(f"mask {mask.shape} and rendering {np.shape(im)} must be the same (h, w)")
+    # every rendering's pixel pairs with the mask counted in one compiled pass
+    counts = count_pairs_many(tax.ids, mask, imgs)
+    res = agreement_from_counts(counts[0], tax)
+    valid = tax.valid_lut()
     painted = int(res.get("mask_pixels", 0))  # pixels of a taxonomy class (not 0 / 255)
     ind = int(res.get("pixels", 0))
     val = res.get("agreement")
@@ -322,12 +337,11 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
            "painted_share": painted / mask.size if mask.size else 0.0,
            "per_class": res.get("per_class") or {}, "confusion": res.get("confusion"),
            "agree": int(res.get("agree", 0))}
-    fig = score_figures(mask, rendered if confident_rendered is None else confident_rendered,
-                        valid)
+    fig = score_figures(mask, conf_ren, valid, counts[1])
     out.update(fig)
     out["area_share"] = fig["area_pixels"] / mask.size if mask.size else 0.0
     if self_rendered is not None:
-        s = _agreement(mask, self_rendered, scene.taxonomy)
+        s = agreement_from_counts(counts[2], tax)
         sv = s.get("agreement")
         out["self_agreement"] = None if sv is None or not np.isfinite(sv) else float(sv)
         out["self_pixels"] = int(s.get("pixels", 0))

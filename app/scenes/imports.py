@@ -169,9 +169,10 @@ def extract_zip(zpath: Path, dest: Path, *, max_bytes: int) -> dict:
                             raise PayloadTooLarge(f"zip entry {info.filename!r} is larger than it "
                                                   "declares; refused")
                         out.write(chunk)
-        except FileExistsError:
+        except (FileExistsError, IsADirectoryError, NotADirectoryError):
             shutil.rmtree(dest, ignore_errors=True)
-            raise Invalid("the zip names the same file twice") from None
+            raise Invalid(f"zip entry {info.filename!r} clashes with another entry (the same "
+                          "name twice, or one name for a file and a folder)") from None
         except zipfile.BadZipFile as e:
             shutil.rmtree(dest, ignore_errors=True)
             raise Invalid(f"the zip is damaged: {e}") from None

@@ -112,6 +112,9 @@ def test_upload_a_zip_of_a_project_and_import_it(env, tmp_path):
     ({"/abs/evil.txt": b"x"}, None, "absolute"),
     ({"ok/a.txt": b"x"}, "ok/link", "symbolic link"),
     ({"C:/evil.txt": b"x"}, None, "absolute"),
+    ({"p/a": b"x", "p/a/b.txt": b"y"}, None, "clashes"),
+    ({"p/a/b.txt": b"y", "p/a": b"x"}, None, "clashes"),
+    ({"p/a.txt": b"x", "p//a.txt": b"y"}, None, "clashes"),
 ])
 def test_upload_refuses_unsafe_zips_and_leaves_nothing(env, entries, symlink, needle):
     adm = env.bearer("admin")

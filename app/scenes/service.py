@@ -272,8 +272,10 @@ def check_source_paths(settings: Settings, source: Path) -> None:
 
 
 def image_roots(settings: Settings) -> list[Path]:
-    """Where a served frame image may live: the import roots and the data dir."""
-    return [*settings.import_roots, settings.data_dir]
+    """Where a served frame image may live: the import roots (with the uploads folder) and the
+    scene workspaces (images a restore put there). Not the rest of the data dir: it holds the
+    database, the mask store, the caches and the exports (issue 24)."""
+    return [*import_roots(settings), settings.workspaces_dir]
 
 
 SIZES = {"preview": 1600, "thumb": 256}

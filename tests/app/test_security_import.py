@@ -201,3 +201,22 @@ def test_workspace_image_path_with_a_nul_is_403_not_500(env):
     _set_image_path(src, "images/img_000.png\x00/etc/passwd")
     r = _import(env, adm, src, "nul")
     assert r.status_code == 403 and "NUL byte" in r.text, (r.status_code, r.text)
+
+
+def test_served_image_in_the_mask_store_is_404(world):
+    """An image path into the data dir outside the workspaces (another scene's stored mask, a
+    PNG) is not served: the data dir is no longer a root for frame images."""
+    env, hdr, scene, frames = world
+    from app.scenes.models import Scene
+
+    blob = env.settings.mask_store_dir / "ab" / "cd" / ("ab" * 32 + ".png")
+    blob.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.zeros((48, 64), np.uint8)).save(blob)
+    with env.app.state.ctx.sessions() as s:
+        ws = Path(s.get(Scene, scene["id"]).workspace)
+    img = env.app.state.ctx.load_scene(str(ws)).frames[0].image_path
+    p = Path(img) if Path(img).is_absolute() else ws / img
+    p.unlink()
+    os.symlink(blob, p)
+    r = env.client.get(f"/api/frames/{frames[0]['id']}/image", headers=hdr["annotator"])
+    assert r.status_code == 404 and "outside the import roots" in r.text, r.text

@@ -1,8 +1,9 @@
 """Dataset classes that plug an SSCBench-layout export into SSC codebases with configuration
-changes (or, where a codebase cannot take a dataset from its configuration, a one-line
-documented patch). One module per codebase, each written against that codebase's sample
-contract at a named commit (docs/ssc-porting.md; tests/test_ssc_compat.py checks the
-contracts without the codebases):
+changes (or, where a codebase cannot take a dataset from its configuration, a documented
+two-edit patch: the DataModule's dataset import and the training script's literals). One
+module per codebase, each written against that codebase's sample contract at a named
+commit (docs/ssc-porting.md; tests/test_ssc_compat.py checks the contracts without the
+codebases):
 
 - :mod:`occufly.datasets.compat.symphonies` -- hustvl/Symphonies 4ca4ff2 (``OccuFlyKITTI360``
   + the Hydra callback ``Register``);

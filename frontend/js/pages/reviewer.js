@@ -366,7 +366,7 @@ class ReviewerPage {
     const f = this.frame;
     const a = this.agreement || {};
     const lonely = a.status === "not_enough_independent_views";
-    const agreeText = a.error ? `agreement unavailable: ${a.error}` : lonely ? "— not enough independent views" : pct(a.agreement);
+    const agreeText = a.error ? `unavailable: ${a.error}` : lonely ? "— not enough independent views" : pct(a.agreement);
     const modeBtns = [
       el("button", { type: "button", "aria-pressed": String(this.mode === "side"), onclick: () => this.setMode("side") }, "Side by side"),
       el("button", { type: "button", "aria-pressed": String(this.mode === "blend"), onclick: () => this.setMode("blend") }, "Blended"),

@@ -5,12 +5,15 @@ the section go to docs/screenshots/ (the admin guide shows them)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from tests.e2e.conftest import REPO, grey_png, import_own_scene
 
-pytestmark = pytest.mark.e2e
+# the export lifts, voxelizes and exports the tiny scene again: minutes on a loaded machine
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(900)]
 DOCS_SHOTS = REPO / "docs" / "screenshots"
 
 
@@ -19,7 +22,13 @@ def sid(live):
     return import_own_scene(live, "quality_scene")
 
 
-def _mask(f: dict, top: int) -> bytes:
+def _mask(live, f: dict, top: int) -> bytes:  # noqa: ANN001
+    """The synthetic scene's exact mask of frame ``f`` when there is one, else grass with a
+    band of ``top``."""
+    root = live.app.state.ctx.settings.import_roots[0]
+    exact = next(root.glob(f"*/truth/masks/{Path(f['name']).stem}.png"), None)
+    if exact is not None:
+        return exact.read_bytes()
     ids = np.full((f["height"], f["width"]), 6, np.uint8)  # grass
     ids[: f["height"] // 3] = top
     return grey_png(ids)
@@ -28,15 +37,15 @@ def _mask(f: dict, top: int) -> bytes:
 def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
     ann, rev, admin = live.client("annotator"), live.client("reviewer"), live.client("admin")
     f1 = ann.post(f"/api/scenes/{sid}/next").json()
-    v1 = ann.put(f"/api/frames/{f1['id']}/mask?kind=submitted", content=_mask(f1, 1),
+    v1 = ann.put(f"/api/frames/{f1['id']}/mask?kind=submitted", content=_mask(live, f1, 1),
                  headers={"If-Match": "none"})
     assert v1.status_code == 200, v1.text
     f2 = ann.post(f"/api/scenes/{sid}/next").json()
-    assert ann.put(f"/api/frames/{f2['id']}/mask?kind=submitted", content=_mask(f2, 1),
+    assert ann.put(f"/api/frames/{f2['id']}/mask?kind=submitted", content=_mask(live, f2, 1),
                    headers={"If-Match": "none"}).status_code == 200
     f3 = ann.post(f"/api/scenes/{sid}/next").json()
     assert len({f1["id"], f2["id"], f3["id"]}) == 3
-    r = ann.put(f"/api/frames/{f3['id']}/mask", content=_mask(f3, 2), headers={"If-Match": "none"})
+    r = ann.put(f"/api/frames/{f3['id']}/mask", content=_mask(live, f3, 2), headers={"If-Match": "none"})
     assert r.status_code == 200 and r.json()["kind"] == "draft"
     r = rev.post(f"/api/frames/{f1['id']}/review",
                  json={"decision": "accept", "version": v1.json()["version"]})
@@ -48,6 +57,19 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
         return str(f1["id"]) in fv and str(f2["id"]) in fv and not st["pending_fill"]
 
     live.wait_until(filled, timeout=120, what="both submitted masks lifted and filled")
+    # the synthetic scene's point truth kept with the workspace, as the demo does: the
+    # section then measures the calibration
+    import shutil
+
+    from app.scenes.models import Scene
+
+    with live.app.state.ctx.sessions() as s:
+        ws = s.get(Scene, sid).workspace
+    src = live.app.state.ctx.settings.import_roots[0]
+    truth = next(src.glob("*/truth/point_labels.npy"), None)
+    if truth is not None:
+        (Path(ws) / "truth").mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(truth, Path(ws) / "truth" / "point_labels.npy")
 
     page = new_page("admin", viewport=(1366, 900))
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
@@ -62,6 +84,8 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
     assert f"{100 * q['votes']['multi_view_share']:.1f} %" in sec.locator("tr[data-figure='multi-view']").inner_text()
     assert sec.locator("tr[data-class]").count() == len(q["classes"])
     assert sec.locator("#quality-loo-hist").count() == 1
+    if truth is not None and q["confidence"]["truth"]:
+        assert f"ECE {q['confidence']['truth']['ece']:.4f}" in sec.locator("tr[data-figure='ece']").inner_text()
     sec.scroll_into_view_if_needed()
     sec.screenshot(path=str(DOCS_SHOTS / "admin_quality.png"))
 
@@ -102,5 +126,4 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
     assert j["result"]["review"]["unreviewed_frames"] == []
     # ticking the box takes the unreviewed mask in (the list says so)
     page.check("#export-include-unreviewed")
-    page.wait_for_function("document.querySelector(\"#export-plan li[data-kind='unreviewed']\")"
-                           "?.innerText.includes('taken in without review')")
+    page.locator("#export-plan li[data-kind='unreviewed']:has-text('taken in without review')").wait_for()

@@ -19,12 +19,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import ndimage
 
 from occufly.camera import Camera
 from occufly.confusion import Confusion
 from occufly.density import point_spacing as estimate_point_spacing  # noqa: F401 (re-export)
 from occufly.pointbins import PointBins
 from occufly.scene import Scene
+from occufly.splat import splat_label_pass_multi, splat_pass
 from occufly.taxonomy import Taxonomy
 
 MAX_SPLAT = 8  # largest splat side in pixels (radius 4)
@@ -140,8 +142,6 @@ def close_holes(cls: np.ndarray, depth: np.ndarray, radius: int
     pixels with a (2r+1)^2 square covers, from the nearest rendered pixel (Euclidean). Open
     borders (where the cloud ends, sky) stay empty: the closing does not grow outwards.
     Returns (cls, depth, filled) as new arrays."""
-    from scipy import ndimage
-
     has = depth > 0
     filled = np.zeros(has.shape, bool)
     if radius < 1 or has.all() or not has.any():
@@ -264,7 +264,6 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
     # pass 1: nearest depth per pixel; pass 2: among the fragments of the front surface
     # (depth within a tolerance of the nearest), the point projecting closest to the pixel
     # centre gives the label (compiled loops over each point's splat, occufly.splat)
-    from occufly.splat import splat_label_pass_multi, splat_pass
 
     multi = labels.ndim == 2  # (N, L): L label sets over one geometry (render_many)
     depth = np.full(h * w, np.inf, dtype=np.float32)
@@ -331,7 +330,9 @@ def render_many_for_mask(scene: Scene, labels: list[np.ndarray], frame_index: in
     stack = np.stack(arrs, axis=1).astype(np.uint8, copy=False)  # (N, L)
     cls, _ = _render(scene, stack, frame, cam.scaled(1.0 / k) if k > 1 else cam, spacing,
                      splat_factor, surface_tol, chunk, cand)
-    return [_upsample(c, k, h, w) if k > 1 else c for c in cls]
+    from occufly.splat import upsample_u8
+
+    return [upsample_u8(c, k, h, w) if k > 1 else c for c in cls]
 
 
 def prefill_for_mask(scene: Scene, labels: np.ndarray, frame_index: int,

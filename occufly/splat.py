@@ -95,6 +95,22 @@ def splat_label_pass_multi(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, 
                         best[j, p] = key
 
 
+@numba.njit(nogil=True, cache=True)
+def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
+    """(h, w) uint8: every pixel of ``img`` repeated k x k, rows / columns past the end
+    repeating the last one -- :func:`occufly.render._upsample` for uint8 images, in one pass
+    writing each output byte once (the broadcast copy reads it through a 4-D view)."""
+    h0, w0 = img.shape
+    out = np.empty((h, w), np.uint8)
+    for y in range(h):
+        sy = min(y // k, h0 - 1)
+        row = img[sy]
+        o = out[y]
+        for x in range(w):
+            o[x] = row[min(x // k, w0 - 1)]
+    return out
+
+
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the pass on a one-point input."""
     depth = np.full(4, np.inf, np.float32)
@@ -107,3 +123,4 @@ def compile_kernels() -> None:
     splat_label_pass_multi(depth, np.full((2, 4), np.iinfo(np.uint64).max, np.uint64),
                            np.full((1, 2), 0.5), z, one, one - 1, one - 1,
                            np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
+    upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)

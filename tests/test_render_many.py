@@ -106,3 +106,12 @@ def test_one_pass_counts_equal_separate_agreements():
     both = np.isin(conf, ids) & (np.isin(mask, ids) | (mask == 0))
     assert out["area_pixels"] == int(both.sum())
     assert out["area_agree"] == int((both & (mask == conf)).sum())
+
+
+def test_upsample_kernel_equals_the_broadcast_upsample():
+    from occufly.render import _upsample
+    from occufly.splat import upsample_u8
+
+    img = np.random.default_rng(1).integers(0, 255, (7, 11)).astype(np.uint8)
+    for k, h, w in ((3, 21, 33), (3, 23, 35), (3, 19, 31), (1, 7, 11), (4, 30, 45)):
+        assert np.array_equal(upsample_u8(img, k, h, w), _upsample(img, k, h, w)), (k, h, w)

@@ -17,6 +17,16 @@ Levels:
 
 from __future__ import annotations
 
+from app.annotations import confidence, smart
+from app.audit import routes as audit
+from app.corrections import routes as corrections
+from app.jobs import archive
+from app.jobs import routes as jobs
+from app.review import routes as review
+from app.scenes import console, imports
+from app.scenes import routes as scenes
+from app.users import routes as users
+
 LEVELS = ("public", "user", "member", "annotator", "reviewer", "staff", "admin")
 
 # the app's own routes (app/main.py)
@@ -24,17 +34,7 @@ ACCESS = {"GET /api/health": "public"}
 
 
 def table() -> dict[str, str]:
-    from app.annotations import confidence, smart
     from app.annotations import routes as annotations
-    from app.audit import routes as audit
-    from app.corrections import routes as corrections
-    from app.jobs import archive
-    from app.jobs import routes as jobs
-    from app.review import routes as review
-    from app.scenes import console, imports
-    from app.scenes import routes as scenes
-    from app.users import routes as users
-
     merged: dict[str, str] = dict(ACCESS)
     for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
                 corrections, imports, console):

@@ -42,9 +42,14 @@ from pathlib import Path
 from sqlalchemy import DateTime, insert, select, text
 from sqlalchemy.engine import Engine
 
+from app import db
 from app.config import Settings
+from app.models import metadata
+from app.scenes.models import Scene
+from app.storage import BlobStore
+from app.users.models import User
 from occufly.errors import OccuflyError
-from occufly.fsutil import atomic_directory, atomic_write_text
+from occufly.fsutil import PathNotConfined, atomic_directory, atomic_write_text, confined
 
 FORMAT = "occufly-backup"
 VERSION = 2  # 2: external frame images (version-1 backups restore as before)
@@ -56,8 +61,6 @@ class BackupError(OccuflyError):
 
 
 def _tables():
-    from app.models import metadata
-
     return list(metadata.sorted_tables)
 
 
@@ -88,8 +91,6 @@ def _revision(conn) -> str | None:  # noqa: ANN001
 
 
 def _snapshot_dump(settings: Settings, dest: Path) -> tuple[dict[str, int], str | None]:
-    from app import db
-
     url = settings.database_url
     if url.startswith("sqlite"):
         src_path = url.split("///", 1)[-1]
@@ -189,8 +190,6 @@ def _backup_images(ws: Path, dest: Path, *, copy: bool, seen: dict[Path, str],
     manifest entries, the frames whose image is missing, and those left out because they lie
     outside ``roots`` (the import roots and the data dir: the app never serves them, and a
     backup must not carry e.g. /etc/shadow that a legacy scene.json names)."""
-    from occufly.fsutil import PathNotConfined, confined
-
     entries, missing, outside = [], [], []
     for i, real, raw in _external_images(ws):
         try:
@@ -223,8 +222,6 @@ def backup(settings: Settings, dest: Path, *, images: bool = True) -> dict:
     Frame images outside the workspaces (the import folder) are copied too; with
     ``images=False`` they are only recorded and checked, and the backup says it is not
     complete (``complete: false``). An image that is already missing fails the backup."""
-    from app.storage import BlobStore
-
     dest = Path(dest).absolute()
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise BackupError(f"{dest}: already exists and is not empty; back up into a new folder")
@@ -317,9 +314,6 @@ def _restore_images(src: Path, ws: Path, entries: list[dict]) -> None:
 
 
 def _is_empty(engine: Engine) -> bool:
-    from app.scenes.models import Scene
-    from app.users.models import User
-
     with engine.connect() as conn:
         return (conn.execute(select(User.id).limit(1)).first() is None
                 and conn.execute(select(Scene.id).limit(1)).first() is None)
@@ -327,8 +321,6 @@ def _is_empty(engine: Engine) -> bool:
 
 def restore(settings: Settings, src: Path) -> dict:
     """Restore the backup folder ``src`` into this (fresh) data directory and database."""
-    from app import db
-
     src = Path(src).absolute()
     try:
         manifest = json.loads((src / "manifest.json").read_text())

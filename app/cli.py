@@ -12,11 +12,29 @@ from __future__ import annotations
 import argparse
 import os
 import secrets
+import subprocess
 import sys
 from pathlib import Path
 
+import uvicorn
+from sqlalchemy import select
+from sqlalchemy.engine import make_url
+
+from app import db, security
+from app.backup import backup, restore
+from app.bootstrap import build_context
+from app.config import Settings
+from app.demo import DemoSteps
+from app.demo import seed as seed_demo
+from app.jobs import service as jobs
+from app.jobs.schemas import ExportIn
+from app.lifting.worker import main
+from app.main import create_app
+from app.scenes.models import Scene
 from app.serving import uvicorn_options
+from app.users import service
 from occufly.cli import command
+from occufly.errors import InputFormatError, OccuflyError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -81,15 +99,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _backup(args: argparse.Namespace) -> dict:
-    from app.backup import backup
-
     return backup(_settings(), Path(args.dir), images=not args.no_images)
 
 
 def _restore(args: argparse.Namespace) -> dict:
-    from app import security
-    from app.backup import restore
-
     s = _settings()
     security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
     return restore(s, Path(args.dir))
@@ -97,14 +110,6 @@ def _restore(args: argparse.Namespace) -> dict:
 
 def _scene_export(args: argparse.Namespace) -> dict:
     """The admin page's export as a command: an export job with the same policy field."""
-    from sqlalchemy import select
-
-    from app.bootstrap import build_context
-    from app.jobs import service as jobs
-    from app.jobs.schemas import ExportIn
-    from app.scenes.models import Scene
-    from occufly.errors import OccuflyError
-
     settings = _settings()
     ctx = build_context(settings, lifting="off")
     try:
@@ -139,8 +144,6 @@ def _scene_export(args: argparse.Namespace) -> dict:
 
 
 def _settings():
-    from app.config import Settings
-
     return Settings.from_env()
 
 
@@ -148,11 +151,6 @@ MAX_WORKERS = 64
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from app.main import create_app
-    from occufly.errors import InputFormatError
-
     if not 1 <= args.workers <= MAX_WORKERS:
         raise InputFormatError(f"--workers must be between 1 and {MAX_WORKERS}, got {args.workers}")
     if args.workers > 1:
@@ -169,12 +167,6 @@ def _serve(args: argparse.Namespace) -> int:
 def _serve_workers(args: argparse.Namespace) -> int:
     """N stateless API processes (uvicorn workers, each ``app.main.app_from_env``) plus the
     lifting worker as a child that dies with this process."""
-    import subprocess
-
-    import uvicorn
-
-    from app import db
-
     settings = _settings()  # configuration errors surface once, here
     opts = uvicorn_options(settings, proxy_headers=args.proxy_headers)
     db.upgrade(settings.database_url)  # once, before N processes start
@@ -200,14 +192,10 @@ def _serve_workers(args: argparse.Namespace) -> int:
 
 
 def _lifting_worker(_args: argparse.Namespace) -> int:
-    from app.lifting.worker import main
-
     return main([])
 
 
 def _db(args: argparse.Namespace) -> dict:
-    from app import db
-
     s = _settings()
     if args.action == "upgrade":
         db.upgrade(s.database_url)
@@ -216,9 +204,6 @@ def _db(args: argparse.Namespace) -> dict:
 
 def _users(args: argparse.Namespace) -> dict | list:
     from app import db, security
-    from app.users import service
-    from occufly.errors import OccuflyError
-
     s = _settings()
     db.upgrade(s.database_url)
     security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
@@ -269,13 +254,6 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
 
     Without ``OCCUFLY_SECRET_KEY`` the demo runs in development mode with a random secret.
     """
-    from pathlib import Path
-
-    from app.config import Settings
-    from app.demo import DemoSteps
-    from app.demo import seed as seed_demo
-    from app.main import create_app
-
     env = dict(os.environ)
     if not env.get("OCCUFLY_SECRET_KEY"):
         env.setdefault("OCCUFLY_ENV", "development")
@@ -314,8 +292,6 @@ def _demo(args: argparse.Namespace) -> dict | int:
 
 
 def _redact(url: str) -> str:
-    from sqlalchemy.engine import make_url
-
     try:
         return make_url(url).render_as_string(hide_password=True)
     except Exception:  # noqa: BLE001

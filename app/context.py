@@ -7,6 +7,7 @@ can each hold an AppContext over the same database and data directory.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -14,6 +15,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.config import Settings
+from occufly.scene import Scene
+from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
     from app.jobs.runner import JobRunner
@@ -35,11 +38,6 @@ class AppContext:
 
     def load_scene(self, workspace: str):
         """Scene.load with a per-process cache keyed by workspace path and header mtime."""
-        import os
-
-        from occufly.scene import Scene
-        from occufly.workspace import Workspace
-
         header = Workspace(workspace).scene_json
         try:
             mtime = os.stat(header).st_mtime_ns

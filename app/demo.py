@@ -6,9 +6,21 @@ suite call it too (with a smaller preset or an existing source folder).
 
 from __future__ import annotations
 
+import contextlib
+import secrets
+import time
 from pathlib import Path
 
+from sqlalchemy import select as sql_select
+
 from app.config import Settings
+from app.jobs import service as jobs
+from app.main import close, create_app
+from app.scenes import service as scenes
+from app.scenes.models import Scene
+from app.users import service as users
+from occufly.fsutil import atomic_write_bytes
+from occufly.workspace import Workspace
 
 DEMO_USERS = ("admin", "reviewer", "annotator")
 
@@ -19,9 +31,6 @@ def demo_password(role: str) -> str:
 
 def _copy_truth_grid(source: Path, ws: Path) -> None:
     """A synthetic scene's exact grid goes with its workspace, for the eval job (grid metrics)."""
-    from occufly.fsutil import atomic_write_bytes
-    from occufly.workspace import Workspace
-
     src, dst = source / "truth" / "scene_grid.npz", Workspace(ws).truth_grid_path
     if src.is_file() and ws.is_dir() and not dst.is_file():
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -51,9 +60,6 @@ class DemoSteps:
             print(text, file=self.stream, flush=True)
 
     def step(self, label: str):  # noqa: ANN201 - a context manager yielding a ProgressFn
-        import contextlib
-        import time
-
         @contextlib.contextmanager
         def run():
             self.n += 1
@@ -93,8 +99,6 @@ class DemoSteps:
 
 def _run_job(ctx, session, job, progress) -> None:  # noqa: ANN001
     """Run a job to its end, feeding its stored progress to ``progress`` twice a second."""
-    import time
-
     ctx.jobs.submit(job.id)
     t_end = time.monotonic() + 3600
     while True:
@@ -122,16 +126,6 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
     New accounts get random passwords unless ``dev_passwords`` (default: the settings'
     development mode) asks for the well-known ``occufly-<role>`` ones.
     """
-    import secrets
-
-    from sqlalchemy import select as sql_select
-
-    from app.jobs import service as jobs
-    from app.main import close, create_app
-    from app.scenes import service as scenes
-    from app.scenes.models import Scene
-    from app.users import service as users
-
     own_app = app is None
     app = app or create_app(settings)
     ctx = app.state.ctx

@@ -13,14 +13,15 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Path, Request
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.context import AppContext
 from app.errors import Forbidden, NotAuthenticated, NotFound
-from app.scenes.models import Frame, Scene
+from app.scenes.models import Frame, Scene, SceneMember
+from app.security import SESSION_COOKIE, client_ip, token_from  # noqa: F401 - re-exported
+from app.users import service
 from app.users.models import User
-
-SESSION_COOKIE = "occufly_session"
 
 
 def get_ctx(request: Request) -> AppContext:
@@ -36,16 +37,7 @@ CtxDep = Annotated[AppContext, Depends(get_ctx)]
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
-def token_from(conn) -> str | None:  # noqa: ANN001 - Request or WebSocket
-    auth = conn.headers.get("authorization", "")
-    if auth.lower().startswith("bearer "):
-        return auth[7:].strip() or None
-    return conn.cookies.get(SESSION_COOKIE) or None
-
-
 def client_ip_of(conn: Request) -> str:
-    from app.security import client_ip
-
     peer = conn.client.host if conn.client else None
     return client_ip(peer, conn.headers.get("x-forwarded-for"),
                      conn.app.state.ctx.settings.trusted_proxies)
@@ -55,8 +47,6 @@ ClientIp = Annotated[str, Depends(client_ip_of)]
 
 
 def get_current_user(request: Request, session: SessionDep) -> User:
-    from app.users import service
-
     token = token_from(request)
     if not token:
         raise NotAuthenticated("not logged in: send the session cookie or a Bearer token")
@@ -76,9 +66,6 @@ def is_member(session: Session, user: User, scene_id: int) -> bool:
     """Admins see every scene; annotators and reviewers the scenes they are assigned to."""
     if user.role == "admin":
         return True
-    from sqlalchemy import select
-
-    from app.scenes.models import SceneMember
 
     return session.scalar(select(SceneMember.id).where(
         SceneMember.scene_id == scene_id, SceneMember.user_id == user.id)) is not None

@@ -5,6 +5,7 @@ allows it. Registered before the frontend's catch-all mount."""
 
 from __future__ import annotations
 
+import swagger_ui_bundle
 from fastapi import FastAPI
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -28,8 +29,6 @@ _INIT = """window.ui = SwaggerUIBundle({
 
 def mount_docs(app: FastAPI) -> None:
     """``GET /docs`` and ``/docs-assets/*`` (the app must be built with ``docs_url=None``)."""
-    import swagger_ui_bundle
-
     page = _PAGE.format(title=app.title)
     init = _INIT % (app.openapi_url or "/openapi.json")
 

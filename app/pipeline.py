@@ -11,11 +11,13 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from occufly import lifting, render, selection
 from occufly.errors import UnsafePathError, check_name
 from occufly.fsutil import PathNotConfined, confined, image_content_type
 from occufly.io import importer, masks
+from occufly.parallel import get_executor as _get_executor
 from occufly.progress import ProgressFn
 from occufly.scene import Frame as SceneFrame
 from occufly.scene import Scene
@@ -43,8 +45,6 @@ def stored_mask_ids(data: bytes, taxonomy: Taxonomy) -> np.ndarray:
 
 def encode_png(arr: np.ndarray) -> bytes:
     """(h, w) uint8 or (h, w, 3|4) uint8 to PNG bytes."""
-    from PIL import Image
-
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(arr)).save(buf, format="PNG", compress_level=3)
     return buf.getvalue()
@@ -148,6 +148,4 @@ disagreement_image = render.disagreement_image
 def get_executor(dask_address: str | None = None):
     """The library's executor (:func:`occufly.parallel.get_executor`): a local process pool,
     or the Dask cluster at ``dask_address``."""
-    from occufly.parallel import get_executor as _get_executor
-
     return _get_executor(dask_address)

@@ -1,62 +1,41 @@
-"""Password hashing (argon2id), opaque session tokens, and login brute-force throttling."""
+"""Request-level security: client addresses behind proxies, CSRF and same-origin checks, the
+security headers and CSP, the session token of a request and the viewer socket's session watch.
+Password hashing and tokens live in :mod:`app.credentials` (re-exported here)."""
 
 from __future__ import annotations
 
-import hashlib
-import hmac
+import asyncio
+import ipaddress
 import logging
-import secrets
-from datetime import timedelta
+from urllib.parse import urlsplit
 
-from argon2 import PasswordHasher
-from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
+from starlette.responses import JSONResponse
+
+from app.credentials import (  # noqa: F401 - re-exported: security.configure, hash_password, ...
+    configure,
+    hash_password,
+    lock_duration,
+    new_token,
+    token_digest,
+    verify_password,
+)
+from app.users import service
 
 log = logging.getLogger("occufly.security")
-_hasher = PasswordHasher()  # argon2id with the library's current recommended parameters
-# verifying against this keeps the time of "unknown user" equal to "wrong password"
-_DUMMY_HASH = _hasher.hash("not-a-real-password-0")
 
 
-def configure(*, time_cost: int, memory_kib: int) -> None:
-    """Set the argon2id cost for new hashes (existing hashes carry their own parameters)."""
-    global _hasher, _DUMMY_HASH
-    if (_hasher.time_cost, _hasher.memory_cost) == (time_cost, memory_kib):
-        return
-    _hasher = PasswordHasher(time_cost=time_cost, memory_cost=memory_kib)
-    _DUMMY_HASH = _hasher.hash("not-a-real-password-0")
-
-
-def hash_password(password: str) -> str:
-    return _hasher.hash(password)
-
-
-def verify_password(password_hash: str | None, password: str) -> bool:
-    try:
-        return _hasher.verify(password_hash or _DUMMY_HASH, password) and password_hash is not None
-    except (VerifyMismatchError, VerificationError, InvalidHashError):
-        return False
-
-
-def new_token() -> str:
-    return secrets.token_urlsafe(32)
-
-
-def token_digest(secret_key: str, token: str) -> str:
-    """Keyed hash of a token: the database never holds a usable token."""
-    return hmac.new(secret_key.encode(), token.encode(), hashlib.sha256).hexdigest()
-
-
-def lock_duration(failures: int, free: int, max_seconds: int) -> timedelta | None:
-    """Lock-out after the ``free``-th failure: 1 s, 2 s, 4 s, ... capped at ``max_seconds``."""
-    if failures < free:
-        return None
-    return timedelta(seconds=min(max_seconds, 2 ** (failures - free)))
+def token_from(conn) -> str | None:  # noqa: ANN001 - Request or WebSocket
+    """The session token of a request or socket: a bearer header, else the session cookie."""
+    auth = conn.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip() or None
+    return conn.cookies.get(SESSION_COOKIE) or None
 
 
 # ---- client address behind reverse proxies ---------------------------------------------------
 def _networks(entries: list[str]) -> list:
-    import ipaddress
-
     nets = []
     for e in entries:
         try:
@@ -67,8 +46,6 @@ def _networks(entries: list[str]) -> list:
 
 
 def _in(addr: str, nets: list) -> bool:
-    import ipaddress
-
     try:
         ip = ipaddress.ip_address(addr)
     except ValueError:
@@ -97,8 +74,6 @@ SESSION_COOKIE = "occufly_session"
 
 
 def _origin_of(url: str) -> str | None:
-    from urllib.parse import urlsplit
-
     try:
         parts = urlsplit(url)
     except ValueError:
@@ -190,9 +165,6 @@ class SecurityMiddleware:
             await self.app(scope, receive, send)
 
     async def _http(self, scope, receive, send) -> None:  # noqa: ANN001
-        from starlette.requests import HTTPConnection
-        from starlette.responses import JSONResponse
-
         conn = HTTPConnection(scope)
         settings = self.get_ctx().settings
         why = csrf_refusal(method=scope["method"], path=scope["path"], headers=conn.headers,
@@ -215,9 +187,6 @@ class SecurityMiddleware:
         await self.app(scope, receive, send_with_headers)
 
     async def _websocket(self, scope, receive, send) -> None:  # noqa: ANN001
-        import asyncio
-
-        from starlette.requests import HTTPConnection
 
         conn = HTTPConnection(scope)
         ctx = self.get_ctx()
@@ -227,7 +196,6 @@ class SecurityMiddleware:
             await send({"type": "websocket.close", "code": 1008,
                         "reason": "cross-site websocket refused"})
             return
-        from app.deps import token_from
 
         token = token_from(conn)
         if not token:
@@ -238,15 +206,11 @@ class SecurityMiddleware:
         state = {"accepted": False, "closed": False}
 
         def session_alive() -> bool:
-            from app.users import service
-
             with ctx.sessions() as s:
                 return service.user_for_token(session=s, settings=ctx.settings,
                                               token=token) is not None
 
         async def watch() -> None:
-            from starlette.concurrency import run_in_threadpool
-
             failures = 0
             while not state["closed"]:
                 await asyncio.sleep(ctx.settings.session_check_s)

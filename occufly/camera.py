@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from occufly.errors import InputFormatError
 
@@ -369,8 +370,6 @@ def frustum_corners(camera: Camera, T_cam_world: np.ndarray, depth: float) -> np
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation -> (4,) quaternion (w, x, y, z), w >= 0 (COLMAP text order)."""
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q
@@ -378,7 +377,5 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:
     """(4,) quaternion (w, x, y, z) -> (3, 3) rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
     w, x, y, z = np.asarray(q_wxyz, dtype=np.float64)
     return Rotation.from_quat([x, y, z, w]).as_matrix()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 def _subsample(xyz: np.ndarray, m: int, rng: np.random.Generator) -> np.ndarray:
@@ -36,8 +37,6 @@ def point_spacing(xyz: np.ndarray, *, sample: int = 200_000, queries: int = 5000
 
     xyz: (N, 3) float scene-local metres. 1.0 for fewer than 2 points or no positive distance.
     """
-    from scipy.spatial import cKDTree
-
     n = len(xyz)
     if n < 2:
         return 1.0
@@ -60,8 +59,6 @@ def surface_density(xyz: np.ndarray, *, radius: float = 0.5, samples: int = 2000
 
     xyz: (N, 3) float scene-local metres. 0.0 for fewer than 10 points.
     """
-    from scipy.spatial import cKDTree
-
     n = len(xyz)
     if n < 10:
         return 0.0
@@ -81,8 +78,6 @@ def knn_radius(xyz: np.ndarray, k: int, *, quantile: float = 0.75, sample: int =
     The k-th neighbour in the full cloud is about the (k f)-th in a subsample of fraction f.
     A cloud of at most ``k`` points returns its largest extent (at least 1 mm).
     """
-    from scipy.spatial import cKDTree
-
     n = len(xyz)
     if n <= k:
         ext = np.ptp(xyz, axis=0) if n else np.ones(3)

@@ -28,8 +28,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from occufly.confusion import Confusion
+from occufly.datasets.reader import open_dataset, read_label_file
 from occufly.errors import InputFormatError
 from occufly.taxonomy import INVALID, Taxonomy
 
@@ -193,8 +195,6 @@ def prediction_layout(root: Path) -> str:
 def _inverse_lut(pred_root: Path, gt_root: Path, taxonomy: Taxonomy) -> np.ndarray:
     """(256,) int16 training id -> raw id (-1 where the map has no entry), from the
     prediction's occufly.yaml, else the ground truth's, else the taxonomy."""
-    import yaml
-
     inv = None
     for y in (pred_root / "occufly.yaml", gt_root / "occufly.yaml"):
         if y.is_file():
@@ -218,8 +218,6 @@ def _inverse_lut(pred_root: Path, gt_root: Path, taxonomy: Taxonomy) -> np.ndarr
 def _read_prediction(pred_root: Path, layout: str, scene: str, alt: int, fid: str, seq: str,
                      n: int, shape: tuple[int, ...], inv_lut: np.ndarray) -> np.ndarray:
     """Raw-id prediction of one frame; training-id ``_1_1.npy`` files are mapped back."""
-    from occufly.datasets.reader import read_label_file
-
     if layout == "occufly":
         cands = [(pred_root / "OccuFly_Dataset" / scene / str(alt) / "ground_truth" / fid / f"{fid}.label", "u1")]
     elif layout == "sscbench":
@@ -257,8 +255,6 @@ def evaluate_ssc_dirs(pred_root: Path, gt_root: Path) -> dict:
     the same frames of the predictions, in any of :data:`PRED_LAYOUTS` (raw-id ``.label``
     files, or ``_1_1.npy`` training ids mapped back through the YAML's ``learning_map_inv``).
     Returns overall, per-altitude and per-scene results."""
-    from occufly.datasets.reader import open_dataset
-
     pred_root, gt_root = Path(pred_root), Path(gt_root)
     gt = open_dataset(gt_root)
     if not gt.frames:
@@ -311,8 +307,6 @@ def evaluate_depth_dirs(pred_root: Path, gt_root: Path, *, max_depth: float = 10
     export's (OccuFly layout ``depth_maps/<frame>.npy``, SSCBench layout ``depth/<seq>/<frame>.npy``;
     predictions in either, or ``<seq>/<frame>.npy`` under PRED), per image then averaged;
     overall and per altitude. Maps are compared by value count (flattened or 2-D)."""
-    from occufly.datasets.reader import open_dataset
-
     pred_root, gt_root = Path(pred_root), Path(gt_root)
     gt = open_dataset(gt_root)
     layout = prediction_layout(pred_root)

@@ -16,7 +16,13 @@ arguments and results pickle; workers on a cluster must see the same file paths.
 
 from __future__ import annotations
 
+import ctypes
+import multiprocessing as mp
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from typing import Any
@@ -66,8 +72,6 @@ class LocalExecutor(SerialExecutor):
 
     def __init__(self, workers: int | None = None, *, initializer: Callable | None = None,
                  initargs: tuple = ()) -> None:
-        import multiprocessing as mp
-
         self.workers = int(workers or os.cpu_count() or 1)
         # forkserver: workers start from a clean process, never a fork of a threaded caller
         # (web server, Dask client, progress bars); spawn where forkserver does not exist
@@ -149,11 +153,6 @@ def die_with_parent(parent_pid: int, interval_s: float = 0.5) -> None:
     and our parent has not changed (a forkserver between us and the caller exits when the
     caller dies), then ``os._exit(70)``. Use as a pool ``initializer``.
     """
-    import signal
-    import sys
-    import threading
-    import time
-
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -206,8 +205,6 @@ _blas_lock = None
 
 def _openblas_libs() -> list:
     """(get, set) ctypes functions of every OpenBLAS loaded in this process (numpy's, scipy's)."""
-    import ctypes
-
     out = []
     try:
         paths = sorted({ln.split()[-1] for ln in open("/proc/self/maps") if "openblas" in ln.lower()
@@ -239,8 +236,6 @@ class single_threaded_blas:  # noqa: N801 - used as a context manager
     be found (other BLAS, non-Linux)."""
 
     def __enter__(self):
-        import threading
-
         global _blas_lock
         if _blas_lock is None:
             _blas_lock = threading.RLock()

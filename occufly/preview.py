@@ -12,6 +12,7 @@ invalid voxels; nearness of the first surface voxel; number of occluded voxels).
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -19,6 +20,8 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from occufly.errors import InputFormatError
+from occufly.export.occufly import read_calibration
+from occufly.fsutil import atomic_write_bytes
 from occufly.taxonomy import Taxonomy, default_taxonomy
 
 PANELS = ("image", "depth", "grid", "masks")
@@ -60,8 +63,6 @@ def _fit(img: Image.Image, height: int) -> Image.Image:
 def _depth_shape(alt_dir: Path, fid: str) -> tuple[int, int] | None:
     """(h, w) of a frame's flattened depth map: the manifest's per-frame record, else the
     scene-level calibration.txt (or a per-altitude one of export format 1)."""
-    from occufly.export.occufly import read_calibration
-
     manifest = alt_dir.parent / "manifest.json"
     if manifest.is_file():
         fr = json.loads(manifest.read_text()).get("frames", {}).get(fid, {})
@@ -147,10 +148,6 @@ def render_preview(export_root: str | Path, frame: str, *, panels: tuple[str, ..
 
 
 def write_preview(export_root: str | Path, frame: str, out: str | Path, **kw) -> dict:
-    import io
-
-    from occufly.fsutil import atomic_write_bytes
-
     img = render_preview(export_root, frame, **kw)
     buf = io.BytesIO()
     img.save(buf, format="PNG")

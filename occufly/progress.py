@@ -10,6 +10,8 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
+from tqdm import tqdm
+
 ProgressFn = Callable[[float, str], None]
 T = TypeVar("T")
 
@@ -36,8 +38,6 @@ class tqdm_progress:
     """A ProgressFn that draws one tqdm bar on stderr (only on a terminal unless forced)."""
 
     def __init__(self, desc: str = "", *, enable: bool | None = None) -> None:
-        from tqdm import tqdm
-
         self.enable = sys.stderr.isatty() if enable is None else enable
         self.bar = tqdm(total=1000, desc=desc, disable=not self.enable, leave=False,
                         bar_format="{desc} {bar} {percentage:3.0f}% {elapsed}")

@@ -58,9 +58,10 @@ from pathlib import Path
 
 import numpy as np
 
-from occufly.camera import Camera
-from occufly.errors import WorkspaceError
+from occufly.camera import Camera, project_world
+from occufly.errors import InputFormatError, WorkspaceError
 from occufly.grid import SceneGrid
+from occufly.io.colmap_dense import depth_map_layout, no_depth_where_invalid
 from occufly.taxonomy import INVALID
 
 
@@ -578,9 +579,6 @@ def read_depth_map_resampled(path: str | Path, shape: tuple[int, int]) -> np.nda
     80 MB, 0.07 -> ~0.02 s). Same values (non-finite and negative depths are 0) and the same
     errors as :func:`occufly.io.colmap_dense.read_depth_map` for a file that is not a
     well-formed map."""
-    from occufly.errors import InputFormatError
-    from occufly.io.colmap_dense import depth_map_layout, no_depth_where_invalid
-
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -618,8 +616,6 @@ def render_depth(camera: Camera, uv: np.ndarray, z: np.ndarray, shape: tuple[int
 def frame_depth_map(scene, f: int, *, depth_dir: str | Path | None = None) -> tuple[np.ndarray, str]:
     """(h, w) float32 depth at 1/4 resolution for frame index ``f`` and its source
     ("mvs" or "rendered")."""
-    from occufly.camera import project_world
-
     frame = scene.frames[f]
     shape = quarter_shape(frame.camera)
     ddir = depth_dir if depth_dir is not None else scene.meta.get("depth_maps")

@@ -33,11 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from occufly.camera import Camera, camera_center, viewing_direction
 from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_directory, atomic_save_npy
 from occufly.taxonomy import Taxonomy, default_taxonomy
+from occufly.workspace import Workspace
 
 WORKSPACE_FORMAT = "occufly-workspace"
 WORKSPACE_VERSION = 2  # 2: visibility uv/depth optional (projected on demand)
@@ -323,8 +325,6 @@ class Scene:
         self._write_into(Path(root))
 
     def _write_into(self, root: Path) -> None:
-        from occufly.workspace import Workspace
-
         ws = Workspace(root)
         ws.points_dir.mkdir()
         ws.visibility_dir.mkdir(exist_ok=True)  # the import may have streamed its ids there
@@ -354,14 +354,10 @@ class Scene:
 
     def save_header(self, path: str | Path) -> None:
         """Rewrite scene.json only (frames, meta) after in-place edits such as altitudes."""
-        from occufly.workspace import Workspace
-
         Workspace(path).write_header(self._header())
 
     @classmethod
     def load(cls, path: str | Path, *, mmap: bool = True) -> Scene:
-        from occufly.workspace import Workspace
-
         path = Path(path)
         ws = Workspace(path)
         header_path = ws.scene_json
@@ -445,8 +441,6 @@ def ground_height_under(
     xyz: (N, 3) float32 scene-local, z up; centers_xy: (F, 2) float64.
     Cameras with no point nearby fall back to the global percentile. Returns (F,) float64.
     """
-    from scipy.spatial import cKDTree
-
     xyz = np.asarray(xyz)
     if len(xyz) == 0:
         return np.zeros(len(centers_xy))

@@ -23,13 +23,18 @@ frame) is warned about by name; non-finite points are never visible (callers rej
 from __future__ import annotations
 
 import logging
+import shutil
+import tempfile
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from occufly.camera import Camera
+from occufly.errors import OccuflyError
+from occufly.parallel import LocalExecutor
 from occufly.pointbins import PointBins  # noqa: F401 - re-exported (the binning lives below render)
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Frame, Visibility, project_points, views_summary  # noqa: F401 - re-exported
@@ -323,12 +328,6 @@ def _parallel_frames(frames, xyz, lists: FrameLists | None, depth_for, params: d
                      workers: int, scratch_dir: Path | None):
     """Yield each frame's result in frame order, computed by ``workers`` processes; at most
     2 x workers blocks are in flight (bounded memory)."""
-    import shutil
-    import tempfile
-    from collections import deque
-
-    from occufly.parallel import LocalExecutor
-
     tmp = Path(tempfile.mkdtemp(prefix=".visibility-", dir=scratch_dir))
     try:
         xyz_path = str(tmp / "xyz.npy")  # 12 bytes per point, memory-mapped by the workers
@@ -376,10 +375,6 @@ def check_output_disk(ids_out: Path, frames: Sequence[Frame], bins: PointBins | 
     ``ids_out`` (4 bytes per correspondence, upper estimate): an
     :class:`~occufly.errors.OccuflyError` naming the needed and the free space. Returns the
     estimated correspondences."""
-    import shutil
-
-    from occufly.errors import OccuflyError
-
     est = estimate_correspondences(frames, bins, list_entries)
     need = 4 * est + 8 * (len(frames) + 1) + (1 << 20)
     free = shutil.disk_usage(ids_out.parent).free

@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.lib import format as npy_format
 
 from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_save_npy, atomic_write_text
@@ -332,8 +333,6 @@ class NpyStreamWriter:
     """
 
     def __init__(self, path: str | Path, dtype: np.dtype | type) -> None:
-        from numpy.lib import format as npy_format
-
         self.path = Path(path)
         self.dtype = np.dtype(dtype)
         self.count = 0

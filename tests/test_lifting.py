@@ -326,7 +326,8 @@ def test_export_round_trips_georeferenced(built, tmp_path):
         else:
             las = laspy.read(out)
             xyz = np.column_stack([las.x, las.y, las.z])
-            labels = np.asarray(las.classification)
+            labels = np.asarray(las.class_id)  # the full id; classification holds ASPRS codes
+            assert np.array_equal(np.asarray(las.classification), scene.taxonomy.asprs_lut()[truth])
             assert np.abs(xyz - world).max() <= 0.0005 + 1e-9
             assert list(las.header.scales) == [0.001] * 3
             assert las.header.point_format.id == 7

@@ -20,12 +20,12 @@ from sqlalchemy.orm import Session
 from app.annotations import service
 from app.annotations.models import MaskVersion
 from app.context import AppContext
-from app.errors import Invalid
+from app.errors import Conflict, Invalid, NotFound
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.errors import check_name
 from occufly.io import mask_interchange
-from occufly.io.masks import encode_mask_png
+from occufly.io.masks import decode_mask_png, encode_mask_png
 
 SOURCE_MAX = 64  # MaskVersion.source
 
@@ -61,8 +61,6 @@ def source_label(tool: str, author: str | None) -> str:
 
 
 def _check_ready(scene: Scene) -> None:
-    from app.errors import Conflict
-
     if scene.status != "ready" or not scene.workspace:
         raise Conflict(f"scene {scene.id} is {scene.status}; masks move in and out of ready "
                        f"scenes only")
@@ -126,9 +124,6 @@ def export_archive(*, session: Session, ctx: AppContext, scene: Scene, fmt: str,
     3D prefill of its selected frames (``"prefill"``: the lifted labels rendered into them, as
     the annotator's "Prefill from 3D" shows; Label Studio gets them as predictions) as a zip
     in ``fmt`` at ``out``. Returns write_masks' summary."""
-    from app.errors import NotFound
-    from occufly.io.masks import decode_mask_png
-
     if fmt not in mask_interchange.FORMATS:
         raise Invalid(f"format must be one of {', '.join(mask_interchange.FORMATS)}, got "
                       f"{fmt!r}")

@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import shutil
+import tempfile
+from pathlib import Path as FsPath
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Form, Header, Path, Query, Request, Response, UploadFile
@@ -22,6 +25,7 @@ from app.errors import Invalid, PayloadTooLarge
 from app.scenes import service as scenes
 from app.scenes.models import Scene
 from app.scenes.schemas import FrameOut
+from occufly.io.mask_interchange import load_class_map
 
 router = APIRouter(prefix="/api", tags=["annotations"])
 
@@ -219,12 +223,6 @@ def import_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminU
     external author recorded in the versions' source); they vote and wait for review.
     ``mapping``: a JSON/YAML file {archive class name: taxonomy class name | id | "ignore" |
     "unpainted"} where the names differ."""
-    import shutil
-    import tempfile
-    from pathlib import Path as FsPath
-
-    from occufly.io.mask_interchange import load_class_map
-
     with tempfile.TemporaryDirectory(prefix="occufly-mask-import-") as tmp:
         name = interchange.upload_name(archive.filename, "archive.zip")
         path = FsPath(tmp) / name
@@ -263,9 +261,6 @@ def export_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: Admin
     """The scene's masks that count (``what=masks``: each frame's voting version) or the 3D
     prefill of its selected frames (``what=prefill``; Label Studio: as predictions) as a zip
     for CVAT, COCO, Label Studio or plain PNGs, one item per frame."""
-    import tempfile
-    from pathlib import Path as FsPath
-
     with tempfile.TemporaryDirectory(prefix="occufly-mask-export-") as tmp:
         import re
 

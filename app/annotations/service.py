@@ -18,10 +18,12 @@ draft save never reaches the queue: it informs its own frame's editor only.
 from __future__ import annotations
 
 import hashlib
+import io
 import threading
 from datetime import timedelta
 
 import numpy as np
+from PIL import Image
 from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
@@ -334,10 +336,6 @@ def prefill_holds_own_mask(scene: Scene, frame: Frame, included: dict | None) ->
 
 def _decode_ids_png(data: bytes) -> np.ndarray:
     """(h, w) uint8 of a single-channel PNG this module wrote (a prefill)."""
-    import io
-
-    from PIL import Image
-
     with Image.open(io.BytesIO(data)) as im:
         return np.asarray(im, dtype=np.uint8)
 
@@ -489,7 +487,6 @@ def version_out(v: MaskVersion, author: str | None, *, number: int | None = None
 
 # ---- lifted labels --------------------------------------------------------------------------
 def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
-
     available = True  # the lifting library is part of every installation
     st = ctx.lifting.status(scene.id)
     included_idx = ctx.lifting.included_versions(scene.id, scene.workspace)

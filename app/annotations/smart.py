@@ -31,6 +31,7 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Response
+from PIL import Image
 from pydantic import BaseModel, Field
 
 from app.annotations import service
@@ -86,8 +87,6 @@ _photos_lock = threading.Lock()
 
 def _photo(session, ctx, frame: Frame) -> np.ndarray:  # noqa: ANN001
     """The frame's photo as (height, width, 3) uint8 RGB at the frame's size (cached)."""
-    from PIL import Image
-
     scene = session.get(Scene, frame.scene_id)
     src = scenes.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index,
                             roots=scenes.image_roots(ctx.settings))
@@ -214,8 +213,6 @@ def _inside(name: str, p: list[int], frame: Frame) -> tuple[int, int]:
               responses={200: PNG, 422: {"description": "box outside the image"}})
 def grabcut_route(body: GrabCutIn, frame: FrameDep, session: SessionDep, ctx: CtxDep,
                   user: AnnotatorUser):
-    from PIL import Image
-
     service.check_read(session, frame, user)
     x0, y0, x1, y1 = (int(v) for v in body.rect)
     x0, x1 = sorted((x0, x1))

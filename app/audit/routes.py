@@ -1,6 +1,6 @@
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Query
@@ -51,8 +51,6 @@ def list_events(session: SessionDep, _admin: AdminUser,
 
 def _naive(t: datetime | None) -> datetime | None:
     """Timestamps are stored as naive UTC; an aware query time is converted."""
-    from datetime import UTC
-
     if t is None or t.tzinfo is None:
         return t
     return t.astimezone(UTC).replace(tzinfo=None)

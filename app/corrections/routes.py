@@ -3,10 +3,14 @@ from a frame, notifications, and the guarded re-import."""
 
 from __future__ import annotations
 
+import io
 from typing import Annotated, Literal
 
+import numpy as np
 from fastapi import APIRouter, Depends, Header, Response
+from PIL import Image
 from pydantic import BaseModel
+from sqlalchemy import select
 
 from app.annotations import service as annotations
 from app.annotations.routes import png_body
@@ -38,7 +42,11 @@ from app.deps import (
     SessionDep,
 )
 from app.errors import NotFound
+from app.jobs import service as jobs
+from app.jobs.models import Job
 from app.limits import IdPath
+from app.pipeline import encode_png, stored_mask_ids
+from app.scenes.models import Frame, Scene
 
 router = APIRouter(prefix="/api", tags=["corrections"])
 PNG = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}}
@@ -143,8 +151,6 @@ def disagreeing_frames(eid: IdPath, scene: SceneDep, session: SessionDep, ctx: C
              status_code=201)
 def propose(eid: IdPath, body: ProposalIn, scene: SceneDep, session: SessionDep, ctx: CtxDep,
             user: ReviewerUser):
-    from app.scenes.models import Frame
-
     edit = _edit_of(session, scene, eid)
     frame = session.get(Frame, body.frame_id)
     if frame is None or frame.scene_id != scene.id:
@@ -166,14 +172,6 @@ def proposal_overlay(pid: IdPath, frame: FrameDep, session: SessionDep, ctx: Ctx
                      user: CurrentUser):
     """RGBA at the mask's size: the proposed class colour where the proposal changes the mask,
     transparent elsewhere."""
-    import io
-
-    import numpy as np
-    from PIL import Image
-
-    from app.pipeline import encode_png, stored_mask_ids
-    from app.scenes.models import Scene
-
     p = _proposal_of(session, frame, pid, user)
     scene = session.get(Scene, frame.scene_id)
     tax = ctx.load_scene(scene.workspace).taxonomy
@@ -233,11 +231,6 @@ def reimport(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
     """Import the scene's source again into its workspace (same parameters as its first
     import). 409 naming their count while active corrections exist, unless
     ``drop_corrections`` is true (they are then kept in the history as ``dropped``)."""
-    from sqlalchemy import select
-
-    from app.jobs import service as jobs
-    from app.jobs.models import Job
-
     first = session.scalar(select(Job).where(Job.scene_id == scene.id, Job.kind == "import")
                            .order_by(Job.id).limit(1))
     if first is None:

@@ -29,19 +29,27 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import io
 import logging
 import os
 import signal
 from collections.abc import Iterator
 
 import numpy as np
+from PIL import Image
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from app.annotations.models import MaskVersion
+from app.annotations.service import check_read
 from app.context import AppContext
 from app.corrections.models import CorrectionEdit, MaskProposal, Notification
 from app.db import utcnow
+from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.pipeline import encode_png, stored_mask_ids
+from app.review.models import ReviewItem
+from app.review.service import item_out
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.lifting import corrections as lib
@@ -279,8 +287,6 @@ def revert(*, session: Session, ctx: AppContext, edit_id: int, user: User) -> Co
 
 
 def get_edit(*, session: Session, edit_id: int, user: User) -> CorrectionEdit:
-    from app.deps import check_member
-
     edit = session.get(CorrectionEdit, edit_id)
     if edit is None:
         raise NotFound(f"correction {edit_id} does not exist")
@@ -361,8 +367,6 @@ def guard_reimport(*, session: Session, scene: Scene, drop: bool, user: User | N
 def _voting_frames(session: Session, scene_id: int) -> list[tuple[Frame, object]]:
     """(frame, its voting mask version) of the frames that have one (``Frame.voting_version_id``:
     the newest submitted / accepted / imported version)."""
-    from app.annotations.models import MaskVersion
-
     rows = session.execute(select(Frame, MaskVersion).join(
         MaskVersion, MaskVersion.id == Frame.voting_version_id).where(
         Frame.scene_id == scene_id)).all()
@@ -393,8 +397,6 @@ def disagreeing_frames(*, session: Session, ctx: AppContext, edit: CorrectionEdi
     """Frames whose voting mask disagrees with the corrected points: per frame the pixels the
     edit's points fall on, and how many of those the mask gives another class than the
     correction (0 = unlabelled counts as "no opinion" in the mask)."""
-    from app.pipeline import stored_mask_ids
-
     scene = session.get(Scene, edit.scene_id)
     ws_scene = ctx.load_scene(scene.workspace)
     ids = lib.read_edit_points(scene.workspace, edit.id)
@@ -416,8 +418,6 @@ def disagreeing_frames(*, session: Session, ctx: AppContext, edit: CorrectionEdi
 
 
 def _png(arr: np.ndarray) -> bytes:
-    from app.pipeline import encode_png
-
     return encode_png(np.ascontiguousarray(arr, dtype=np.uint8))
 
 
@@ -426,8 +426,6 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     """Turn edit ``edit``'s projection into frame ``frame`` into a proposed mask change: the
     frame's voting mask with the pixels the edit's points fall on (grown by ``dilate``
     pixels, only where the mask disagrees) set to the correction's class."""
-    from app.pipeline import stored_mask_ids
-
     _check_editor(user)
     if frame.scene_id != edit.scene_id:
         raise NotFound(f"frame {frame.id} is not in the scene of correction {edit.id}")
@@ -470,8 +468,6 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
 
 
 def get_proposal(*, session: Session, proposal_id: int, user: User) -> MaskProposal:
-    from app.annotations.service import check_read
-
     p = session.get(MaskProposal, proposal_id)
     if p is None:
         raise NotFound(f"proposal {proposal_id} does not exist")
@@ -499,7 +495,6 @@ def take(*, session: Session, ctx: AppContext, proposal: MaskProposal, user: Use
     """The frame's annotator takes a proposal: a new draft = the current mask with the
     proposal's changed pixels set to the proposal (lease and If-Match rules of any save)."""
     from app.annotations import service as annotations
-    from app.pipeline import stored_mask_ids
 
     if proposal.status != "open":
         raise Conflict(f"proposal {proposal.id} is {proposal.status}")
@@ -507,9 +502,6 @@ def take(*, session: Session, ctx: AppContext, proposal: MaskProposal, user: Use
     scene = session.get(Scene, frame.scene_id)
     tax = ctx.load_scene(scene.workspace).taxonomy
     proposed = stored_mask_ids(ctx.store.get(proposal.sha256), tax)
-    import io
-
-    from PIL import Image
 
     change = np.asarray(Image.open(io.BytesIO(ctx.store.get(proposal.change_sha256)))) > 0
     if frame.current_version_id is not None:
@@ -552,9 +544,6 @@ def decline(*, session: Session, proposal: MaskProposal, user: User, reply: str)
 def projected_items(*, session: Session, ctx: AppContext, frame: Frame, user: User) -> list[dict]:
     """Open review items on 3D points that ``frame`` sees, each with the outline of its
     points in the frame (convex hull in pixels) -- what the annotator page draws."""
-    from app.review.models import ReviewItem
-    from app.review.service import item_out
-
     scene = session.get(Scene, frame.scene_id)
     ws_scene = ctx.load_scene(scene.workspace)
     fids, uv, _d = ws_scene.visibility.frame(frame.index)

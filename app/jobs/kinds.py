@@ -6,17 +6,24 @@ with a message naming it, never a fake result.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
-from app.jobs.runner import JobContext, kind
+from app import pipeline
+from app.jobs.runner import JobContext, _jsonable, kind
+from app.review import provenance
+from app.review import service as review
 from app.scenes import service as scenes
 from app.scenes.models import Scene
+from occufly.densify.evaluate import evaluate_grids
+from occufly.densify.pipeline import DensifyOptions as options_cls
+from occufly.densify.pipeline import voxelize_workspace as fn
+from occufly.errors import OccuflyError
+from occufly.workspace import Workspace
 
 
 @kind("import")
 def run_import(jc: JobContext) -> dict:
-    from app import pipeline
-
     p = jc.params
     with jc.ctx.sessions() as s:
         scene = s.get(Scene, jc.scene_id)
@@ -71,8 +78,6 @@ def _scene(jc: JobContext):
 
 @kind("selection")
 def run_selection(jc: JobContext) -> dict:
-    from app import pipeline
-
     _ws, ws_scene = _scene(jc)
     jc.progress(0.1, "selecting frames")
     params = {k: jc.params[k] for k in ("cell", "mode", "target_coverage", "altitude")
@@ -81,7 +86,6 @@ def run_selection(jc: JobContext) -> dict:
     if "cameras" not in result:
         result["cameras"] = ws_scene.centers()[:, :2].round(3).tolist()
     result["params"] = params
-    from app.jobs.runner import _jsonable
 
     result = _jsonable(result)
     with jc.ctx.sessions() as s:
@@ -96,12 +100,7 @@ run_selection.remote = True
 
 @kind("voxelize")
 def run_voxelize(jc: JobContext) -> dict:
-
-    from occufly.densify.pipeline import DensifyOptions as options_cls
-    from occufly.densify.pipeline import voxelize_workspace as fn
-
     ws, _scene_obj = _scene(jc)
-    from occufly.workspace import Workspace
 
     if not Workspace(ws).has_labels():
         from occufly.errors import WorkspaceError
@@ -117,14 +116,10 @@ run_voxelize.remote = True
 
 @kind("export")
 def run_export(jc: JobContext) -> dict:
-
     from occufly.export import export_dataset as fn
 
     ws, ws_scene = _scene(jc)
     out = jc.ctx.settings.exports_dir / f"job_{jc.job_id}"
-    import shutil
-
-    from app.review import provenance
 
     # issue 23: which version of each frame the export takes (accepted only unless the request
     # includes submitted / imported ones), decided before the labels are read; a narrower set
@@ -164,12 +159,9 @@ run_export.remote = True
 @kind("eval")
 def run_eval(jc: JobContext) -> dict:
     """2D agreement of the lifted labels rendered into every frame that has a current mask."""
-    from app.review import service as review
-
     result = review.evaluate_scene(ctx=jc.ctx, scene_id=jc.scene_id, frames=jc.params.get("frames"),
                                    progress=lambda f, m="": jc.progress(0.9 * f, m))
     ws, scene = _scene(jc)
-    from occufly.errors import OccuflyError
 
     try:
         grid_eval = _scene_grid_eval(Path(ws), scene.taxonomy)
@@ -184,9 +176,6 @@ def run_eval(jc: JobContext) -> dict:
 def _scene_grid_eval(ws: Path, taxonomy) -> dict | None:  # noqa: ANN001
     """Completion / per-class IoU of WS/grid/scene_grid.npz against WS/truth/scene_grid.npz, when
     both exist (e.g. the demo's synthetic scene after a voxelize job); None otherwise."""
-    from occufly.densify.evaluate import evaluate_grids
-    from occufly.workspace import Workspace
-
     w = Workspace(ws)
     if not (w.has_grid() and w.truth_grid_path.is_file()):
         return None

@@ -6,10 +6,13 @@ from fastapi import APIRouter, Header, Query, Response
 
 from app.audit import service as audit
 from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
-from app.errors import Conflict, Forbidden, NotFound
+from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.jobs import service
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
+from app.review import provenance
+from app.scenes.service import visible_scene_ids
+from occufly.workspace import Workspace
 
 router = APIRouter(prefix="/api", tags=["jobs"])
 
@@ -34,8 +37,6 @@ ACCESS = {
 @router.get("/jobs", response_model=list[JobOut])
 def list_jobs(session: SessionDep, user: ReviewerUser,
               scene_id: Annotated[int | None, Query(ge=1, le=INT32_MAX)] = None):
-    from app.scenes.service import visible_scene_ids
-
     rows = service.list_jobs(session=session, scene_id=scene_id)
     visible = visible_scene_ids(session, user)
     if visible is not None:
@@ -117,14 +118,10 @@ def export_plan(scene: SceneDep, session: SessionDep, _user: AdminUser,
     """What an export with ``include`` (comma-separated version states) would take: per frame
     the version, and the frames it leaves out (drafts, unreviewed, rejected) -- what the admin
     page lists before asking to confirm (issue 23)."""
-    from app.errors import Invalid
-    from app.review import provenance
-
     try:
         plan = provenance.export_plan(session, scene.id, [v for v in include.split(",") if v])
     except ValueError as e:
         raise Invalid(str(e)) from None
-    from occufly.workspace import Workspace
 
     # labels lifted from this app's masks (an export that takes none of them has nothing to
     # export); False for labels written into the workspace otherwise (exported as they are)
@@ -136,9 +133,6 @@ def export_plan(scene: SceneDep, session: SessionDep, _user: AdminUser,
 def scene_quality(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser) -> dict:
     """The quality report of the scene's live labels (docs/quality-json.md), cached per labels
     stamp; 404 before the first fill."""
-    from app.review import provenance
-    from occufly.workspace import Workspace
-
     w = Workspace(scene.workspace)
     if not (w.has_labels() and w.lifting_state.is_file()):
         raise NotFound(f"scene {scene.id} has no lifted labels yet: nothing to report")

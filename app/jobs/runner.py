@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from sqlalchemy import select, update
 
 from app.db import utcnow
@@ -50,6 +51,7 @@ from app.jobs.models import Job
 from app.pipeline import PipelineMissing
 from app.scenes import storage
 from occufly.errors import OccuflyError
+from occufly.parallel import get_executor
 
 if TYPE_CHECKING:
     from app.context import AppContext
@@ -140,8 +142,6 @@ class JobContext:
     def executor(self):
         """Fan-out executor inside a job: Dask when configured, else a local pool whose
         workers die with this job process."""
-        from occufly.parallel import get_executor
-
         return get_executor(self.ctx.settings.dask_address, die_with_caller=True)
 
 
@@ -248,6 +248,8 @@ class JobRunner:
             self._held.discard(job_id)
 
     def _run_attempt(self, job_id: int) -> None:
+        # kinds registers itself with this module's registry (it imports runner): a
+        # module-level import would be a cycle, so the side-effect import stays here
         from app.jobs import kinds  # noqa: F401 - registers the job kinds
 
         ctx = self.ctx
@@ -324,7 +326,7 @@ def _replace_dir(staging: Path, final: Path) -> None:
 def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> None:
     """Run attempt ``attempt`` of a job already marked ``running`` and record its outcome
     (any process). ``attempt`` None = the job's current attempt."""
-    from app.jobs import kinds  # noqa: F401 - registers the job kinds
+    from app.jobs import kinds  # noqa: F401 - registers the job kinds (a cycle at module level)
 
     with ctx.sessions() as s:
         job = s.get(Job, job_id)
@@ -406,8 +408,6 @@ def _on_failure(jc: JobContext, message: str) -> None:
 
 
 def _jsonable(obj: Any) -> Any:
-    import numpy as np
-
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):

@@ -10,7 +10,7 @@ import time
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -191,10 +191,6 @@ def mark_interrupted(*, session: Session, stale_s: float = 15.0,
     """Queued/running jobs whose runner is gone can no longer finish: those no runner holds
     (no heartbeat) or whose runner has not beaten for ``stale_s`` (another API process may
     still be running the rest). ``alive_owner``: the caller's own runner, never swept."""
-    from datetime import timedelta
-
-    from sqlalchemy import or_
-
     limit = utcnow() - timedelta(seconds=stale_s)
     lost = or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < limit)
     q = select(Job.id).where(Job.status.in_(("running", "queued")), lost)

@@ -15,8 +15,12 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select, text
 
+from app.db import utcnow
 from app.lifting.events import LIFT_CHANNEL
 from app.lifting.models import LiftQueueEntry, LiftStatus
+from app.lifting.service import LiftingBusy, LiftingService
+from occufly.errors import WorkspaceError
+from occufly.lifting import LiftState
 
 if TYPE_CHECKING:
     from app.context import AppContext
@@ -49,7 +53,6 @@ class LiftingClient:
         already owns the data directory (then this process only enqueues)."""
         if self.mode != "embedded" or self.service is not None:
             return
-        from app.lifting.service import LiftingBusy, LiftingService
 
         svc = LiftingService(self.ctx, self.ctx.events)
         try:
@@ -98,7 +101,6 @@ class LiftingClient:
             oldest = s.scalar(select(func.min(LiftQueueEntry.created_at)).where(
                 LiftQueueEntry.scene_id == scene_id, LiftQueueEntry.status == "pending"))
         # lag: seconds since the oldest entry of the scene still waiting to be lifted (0 = none)
-        from app.db import utcnow
 
         lag_s = max(0.0, (utcnow() - oldest).total_seconds()) if oldest is not None else 0.0
         fill_state = row.fill_state if row is not None else "idle"
@@ -127,9 +129,6 @@ class LiftingClient:
     # ---- read-only views of the votes -------------------------------------------------------
     def state_for(self, scene_id: int, workspace: str):  # noqa: ARG002
         """The scene's vote state opened read-only, or None (no state yet / mid-update)."""
-        from occufly.errors import WorkspaceError
-        from occufly.lifting import LiftState
-
         scene = self.ctx.load_scene(str(workspace))
         for _ in range(20):  # an update in progress marks the state dirty for milliseconds
             try:

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import timedelta
 
+import psycopg
 from sqlalchemy import delete, func, select, text
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
@@ -63,8 +64,6 @@ def listen(engine: Engine, channels: tuple[str, ...], *, stop: threading.Event,
     """Block until ``stop``: call ``on_wake()`` for every NOTIFY on ``channels`` and at least
     every ``timeout_s`` (so a lost connection costs at most one poll interval). PostgreSQL
     only; reconnects with back-off."""
-    import psycopg
-
     delay = 0.5
     while not stop.is_set():
         try:

@@ -44,9 +44,11 @@ safety net everywhere).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import os
+import signal
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -54,13 +56,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import psycopg
 from sqlalchemy import func, select, update
 
+from app.annotations.models import MaskVersion
 from app.db import utcnow
 from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
+from app.review.service import frame_agreement
+from app.scenes.models import Scene
 from occufly.errors import OccuflyError
 from occufly.lifting.incremental import IncrementalFill
+from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
     from app.context import AppContext
@@ -102,8 +109,6 @@ class PgLocks:
         self._mu = threading.Lock()
 
     def connect(self) -> int:
-        import psycopg
-
         with self._mu:
             self.conn = psycopg.connect(self.dsn, autocommit=True,
                                         application_name=f"occufly-lifting {self.name}"[:63])
@@ -223,7 +228,6 @@ class LiftingService:
                 slot = self._pg.connect()
                 log.info("lifting worker %s: PostgreSQL advisory locks, slot %s", self.name, slot)
             return
-        import fcntl
 
         path = Path(self.ctx.settings.data_dir) / LOCK_NAME
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -284,8 +288,6 @@ class LiftingService:
 
     def run_forever(self) -> None:
         """Standalone worker: run until SIGTERM/SIGINT."""
-        import signal
-
         def _term(_sig, _frm) -> None:  # noqa: ANN001
             self._stop.set()
             self._wake.set()
@@ -328,9 +330,6 @@ class LiftingService:
     def _recover_scene(self, sid: int) -> None:
         """A scene whose fill was due or running when its last owner stopped fills again; so
         does a scene whose stored labels count other versions than the votes."""
-        from app.scenes.models import Scene
-        from occufly.workspace import Workspace
-
         with self.ctx.sessions() as s:
             row = s.execute(select(LiftStatus.fill_state, Scene.workspace)
                             .join(Scene, Scene.id == LiftStatus.scene_id)
@@ -437,9 +436,6 @@ class LiftingService:
     def process_pending(self) -> int:
         """Apply up to ``batch`` pending entries of the scenes this worker owns; returns how
         many were processed."""
-        from app.annotations.models import MaskVersion
-        from app.scenes.models import Scene
-
         self._claim()
         owned = self.owned()
         if owned is not None and not owned:
@@ -674,8 +670,6 @@ class LiftingService:
 
     def _fill(self, sc: _Scene) -> None:
         """Snapshot the vote majority under the update lock, fill/denoise without it, publish."""
-        from occufly.workspace import Workspace
-
         with sc.lock:
             snap = sc.state.snapshot()
             seq = sc.seq
@@ -702,7 +696,6 @@ class LiftingService:
     def _refresh_agreement(self, msg: Message) -> None:
         """Recompute the stored per-frame agreement (the frame list's disagreement sort) of
         submitted/reviewed frames against the new labels; best effort."""
-        from app.review.service import frame_agreement
         from app.scenes.models import Frame, Scene
 
         owned = self.owned()

@@ -9,17 +9,17 @@ directory on one host -- a second one exits 2 with a message.
 from __future__ import annotations
 
 import logging
+import os
 import sys
+
+from app import db
+from app.bootstrap import build_context
+from app.config import Settings
+from app.lifting.service import LiftingBusy, LiftingService
+from occufly.errors import OccuflyError
 
 
 def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
-    import os
-
-    from app import db
-    from app.bootstrap import build_context
-    from app.config import Settings
-    from app.lifting.service import LiftingBusy, LiftingService
-    from occufly.errors import OccuflyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT")

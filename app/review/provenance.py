@@ -29,6 +29,8 @@ Provenance
 
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
 import threading
 from pathlib import Path
@@ -43,8 +45,11 @@ from app.context import AppContext
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.errors import OccuflyError
+from occufly.fsutil import atomic_write_text
+from occufly.lifting import load_labels
 from occufly.lifting import quality as lifting_quality
 from occufly.lifting import relift as lifting_relift
+from occufly.lifting.relift import labels_digest
 from occufly.workspace import Workspace
 
 #: the version states an export may take; ``accepted`` alone is the default
@@ -126,7 +131,6 @@ def plan_text(plan: dict) -> str:
 
 
 def _mask_items(ctx: AppContext, taxonomy, taken: list[dict]) -> list:  # noqa: ANN001
-    import hashlib
 
     items = []
     for t in taken:
@@ -145,9 +149,6 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
     Returns ``{"grid": SceneGrid | None (None: the workspace's grid), "provenance": {...},
     "quality": {...}}``; lifts again in ``scratch`` (left for the caller to remove) when the
     taken versions differ from what the live labels count."""
-    from occufly.lifting import load_labels
-    from occufly.lifting.relift import labels_digest
-
     report = progress or (lambda f, m="": None)
     ws = Path(ws)
     chosen = {str(t["frame"]): str(t["version"]) for t in plan["taken"]}
@@ -253,10 +254,6 @@ def scene_quality(ctx: AppContext, scene: Scene) -> dict:
     labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections) in this process
     and in ``<data dir>/cache/quality/scene_<id>.json`` (shared by the API processes, kept
     over restarts): computing it takes one local k-NN per annotated frame."""
-    import json
-
-    from occufly.fsutil import atomic_write_text
-
     ws = Path(scene.workspace)
     stamp = Workspace(ws).stamp()
     key = (scene.id, stamp)

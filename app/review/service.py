@@ -9,18 +9,24 @@ from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from app import pipeline
 from app.annotations import service as annotations
+from app.annotations.models import MaskVersion
 from app.context import AppContext
 from app.db import utcnow
+from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.review.models import ReviewComment, ReviewItem
 from app.scenes.models import Frame, Scene
 from app.users.models import User
+from occufly.lifting import LiftState
 from occufly.lifting import loo as lifting_loo
+from occufly.lifting.suspects import SuspectParams, find_suspects
+from occufly.render import scene_point_spacing
 from occufly.workspace import Workspace
 
 
@@ -200,10 +206,6 @@ def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
     """Ranked contested regions of the scene's labels (:mod:`occufly.lifting.suspects`);
     each with its size, classes, the frames that see it (frame ids and indices), the best
     frame, bounding box and centroid (scene-local metres)."""
-    from occufly.lifting import LiftState
-    from occufly.lifting.suspects import SuspectParams, find_suspects
-    from occufly.render import scene_point_spacing
-
     w = Workspace(scene.workspace)
     key = ("suspects", str(scene.workspace),
            _stamp(w.votes, w.labels_path, w.labels_stats_path, w.corrections_dir / "overrides.npz"))
@@ -249,8 +251,6 @@ def _outline(ws_scene, views: dict, frame_index: int | None, pts: np.ndarray) ->
     """Convex hull, in the pixels of frame ``frame_index``, of the points of ``pts`` that frame
     sees (the visibility's projections; [] when it sees fewer than 3). ``views`` caches each
     frame's sorted visibility."""
-    from scipy.spatial import ConvexHull, QhullError
-
     if frame_index is None:
         return []
     if frame_index not in views:
@@ -288,8 +288,6 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
     Accepting makes the version the frame's voting version; rejecting withdraws the frame's
     votes (queued for lifting only when the voting version changes).
     """
-    from app.annotations.models import MaskVersion
-
     frame.decision_noop = False
     if frame.state not in ("submitted", "accepted", "rejected"):
         raise Conflict(f"frame {frame.id} is {frame.state}; only submitted frames can be reviewed")
@@ -456,7 +454,6 @@ def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
     item = session.get(ReviewItem, item_id)
     if item is None:
         raise NotFound(f"review item {item_id} does not exist")
-    from app.deps import check_member
 
     check_member(session, user, item.scene_id)
     if user.role == "annotator":

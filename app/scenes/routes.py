@@ -5,10 +5,11 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse
+from sqlalchemy import select
 
 from app.audit import service as audit
 from app.deps import AdminUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
-from app.errors import NotFound
+from app.errors import Conflict, NotFound
 from app.jobs import service as jobs
 from app.jobs.schemas import JobOut
 from app.limits import IdPath
@@ -24,6 +25,7 @@ from app.scenes.schemas import (
     SceneOut,
     SelectionIn,
 )
+from occufly.fsutil import image_content_type
 
 router = APIRouter(prefix="/api", tags=["scenes"])
 CACHE = "private, max-age=86400"
@@ -47,8 +49,6 @@ ACCESS = {
 
 @router.get("/scenes", response_model=list[SceneOut])
 def list_scenes(session: SessionDep, user: CurrentUser):
-    from sqlalchemy import select
-
     q = select(Scene).order_by(Scene.id)
     ids = service.visible_scene_ids(session, user)
     if ids is not None:
@@ -182,7 +182,6 @@ def frame_image(frame: FrameDep, session: SessionDep, ctx: CtxDep, request: Requ
     scene = session.get(Scene, frame.scene_id)
     src = service.image_file(ctx.load_scene(scene.workspace), scene.workspace, frame.index,
                              roots=service.image_roots(ctx.settings))
-    from occufly.fsutil import image_content_type
 
     if image_content_type(src) is None:  # decided from content, never from the name
         raise NotFound(f"image of frame {frame.id} is not a PNG, JPEG, TIFF or WebP file")
@@ -198,8 +197,6 @@ def frame_image(frame: FrameDep, session: SessionDep, ctx: CtxDep, request: Requ
 
 
 def _ready(scene: Scene) -> None:
-    from app.errors import Conflict
-
     if scene.status != "ready":
         raise Conflict(f"scene {scene.id} is {scene.status}, not ready")
 

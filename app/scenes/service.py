@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import re
@@ -9,6 +10,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
+from PIL import Image
 from sqlalchemy import case, delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, aliased
@@ -16,9 +18,10 @@ from sqlalchemy.orm import Session, aliased
 from app import pipeline
 from app.config import Settings
 from app.errors import Conflict, Forbidden, Invalid, NotFound
-from app.scenes.models import Frame, Scene
+from app.scenes.models import Frame, Scene, SceneMember
 from app.users.models import User
 from occufly.errors import OccuflyError, UnsafePathError
+from occufly.fsutil import PathNotConfined, atomic_write_bytes, confined
 from occufly.scene import Scene as WsScene
 
 
@@ -242,8 +245,6 @@ def frame_out(*, session: Session, frame: Frame) -> dict:
 def image_file(ws_scene: WsScene, workspace: str, index: int, *, roots) -> Path:  # noqa: ANN001
     """The frame's image, resolved (symlinks followed) and confined to ``roots`` (the import
     roots and the data dir): a path from scene.json outside them is refused with 404."""
-    from occufly.fsutil import PathNotConfined, confined
-
     f = ws_scene.frames[index]
     if not f.image_path:
         raise NotFound(f"frame {f.name} has no image in the workspace")
@@ -301,16 +302,11 @@ def data_headers(name: str, *, download: bool = False) -> dict[str, str]:
 
 def resized_image(settings: Settings, src: Path, scene_id: int, frame_id: int, size: str) -> Path:
     """A cached JPEG no larger than SIZES[size] on its long side (rebuilt if the source changes)."""
-    from PIL import Image
-
-    from occufly.fsutil import atomic_write_bytes
-
     st = src.stat()
     out = settings.data_dir / "cache" / "images" / str(scene_id) / (
         f"{frame_id}_{size}_{st.st_mtime_ns}_{st.st_size}.jpg")
     if out.is_file():
         return out
-    import io
 
     try:
         with Image.open(src) as im:
@@ -342,8 +338,6 @@ def file_etag(p: Path) -> str:
 
 # ---- membership -----------------------------------------------------------------------------
 def members(*, session: Session, scene: Scene) -> list[dict]:
-    from app.scenes.models import SceneMember
-
     rows = session.execute(select(User).join(SceneMember, SceneMember.user_id == User.id)
                            .where(SceneMember.scene_id == scene.id).order_by(User.id)).scalars()
     return [dict(user_id=u.id, username=u.username, role=u.role, active=u.active) for u in rows]
@@ -364,8 +358,6 @@ def check_member_ids(*, session: Session, user_ids: list[int]) -> list[int]:
 
 def set_members(*, session: Session, scene: Scene, user_ids: list[int], replace: bool) -> dict:
     """Assign users to the scene (``replace``: exactly these). Returns {added, removed}."""
-    from app.scenes.models import SceneMember
-
     wanted = check_member_ids(session=session, user_ids=user_ids)
     current = set(session.scalars(select(SceneMember.user_id).where(SceneMember.scene_id == scene.id)))
     add = [u for u in wanted if u not in current]
@@ -383,8 +375,6 @@ def set_members(*, session: Session, scene: Scene, user_ids: list[int], replace:
 
 
 def remove_member(*, session: Session, scene: Scene, user_id: int) -> None:
-    from app.scenes.models import SceneMember
-
     res = session.execute(delete(SceneMember).where(SceneMember.scene_id == scene.id,
                                                     SceneMember.user_id == user_id))
     session.commit()
@@ -394,8 +384,6 @@ def remove_member(*, session: Session, scene: Scene, user_id: int) -> None:
 
 def visible_scene_ids(session: Session, user: User) -> list[int] | None:
     """Scene ids the user may see; None = all (admins)."""
-    from app.scenes.models import SceneMember
-
     if user.role == "admin":
         return None
     return list(session.scalars(select(SceneMember.scene_id).where(SceneMember.user_id == user.id)))

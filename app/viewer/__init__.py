@@ -57,7 +57,10 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
+from starlette.concurrency import run_in_threadpool
+
 from app.viewer import scene_builder
+from app.viewer.proxy import add_routes
 from app.viewer.scene_builder import DEFAULT_MAX_POINTS
 from app.viewer.server import ViewerService, default_scenes
 
@@ -95,8 +98,6 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
 
     The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
     """
-    from app.viewer.proxy import add_routes
-
     if max_points is None:
         max_points = int(getattr(settings, "viewer_max_points", DEFAULT_MAX_POINTS))
     if scenes is None:
@@ -125,7 +126,6 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
 
     @asynccontextmanager
     async def lifespan(app: Any):  # noqa: ANN202
-        from starlette.concurrency import run_in_threadpool
 
         async with inner(app) as state:
             # start viser in the background so the app is up at once; a /viewer/ request

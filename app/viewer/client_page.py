@@ -41,6 +41,8 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import zstandard
+
 ASSET_DIR = "__occufly"  # /viewer/__occufly/<name>
 _B88 = "".join(chr(c) for c in range(0x21, 0x7F) if chr(c) not in "\"&<>'`")
 _LUT = {ch: i for i, ch in enumerate(_B88)}
@@ -104,8 +106,6 @@ def viser_index() -> Path:
 
 def unpack(html: str) -> ClientAssets:
     """The CSP-clean page and its files from viser's single-file ``index.html``."""
-    import zstandard  # viser's own dependency
-
     m = re.search(r"<script\s+([^>]*)>(.*?)</script>", html, flags=re.S)
     if m is None:
         raise ClientLayoutError("viser client: no inline loader <script> in index.html")

@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from occufly.camera import Camera, look_at
+from occufly.grid import SceneGrid
 from occufly.scene import Frame, Scene
+from occufly.taxonomy import default_taxonomy
 from occufly.workspace import Workspace
 
 UTM_ORIGIN = (512_345.0, 5_412_345.0, 230.0)
@@ -78,9 +80,6 @@ def make_demo_workspace(ws: str | Path, n_points: int = 200_000, *, seed: int = 
                         with_lifting: bool = True, with_grid: bool = True,
                         voxel_size: float = 2.0) -> Scene:
     """Write a demo workspace to ``ws`` and return its :class:`Scene`."""
-    from occufly.grid import SceneGrid
-    from occufly.taxonomy import default_taxonomy
-
     ws = Path(ws)
     rng = np.random.default_rng(seed + 1)
     xyz, labels = demo_points(n_points, seed=seed)

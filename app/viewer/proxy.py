@@ -28,6 +28,8 @@ from fastapi import FastAPI, HTTPException, Request, WebSocket
 from fastapi.responses import JSONResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
 
 from app.viewer.client_page import ASSET_DIR, ClientLayoutError, client_assets
 from app.viewer.server import TICKET_HEADER, ViewerService
@@ -199,9 +201,6 @@ async def pump(websocket: WebSocket, upstream_url: str, ticket: str,
     ``stats`` (optional) is updated with bytes/frames sent to the browser and the
     ``time.perf_counter()`` of the last frame (the benchmark reads it)."""
     stats = stats if stats is not None else {"bytes": 0, "frames": 0, "last": None}
-    from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed
-
     protocols = list(websocket.scope.get("subprotocols") or [])
     try:
         upstream = await connect(upstream_url, subprotocols=protocols or None,

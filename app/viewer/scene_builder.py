@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from occufly.errors import WorkspaceError
 from occufly.scene import Scene
@@ -338,8 +339,6 @@ def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation -> (4,) float64 quaternion (w, x, y, z), w >= 0."""
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
     q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q

@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from app.viewer.scene_builder import quat_to_matrix
 
@@ -104,9 +106,6 @@ def grow(xyz: np.ndarray, labels: np.ndarray, seed: int, voxel: float) -> np.nda
     """(N,) bool: the connected region of the seed point's label -- points of that label whose
     ``voxel``-sized cells are 26-connected to the seed's cell (sparse: only occupied cells are
     hashed; connected components with scipy.sparse.csgraph)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     labels = np.asarray(labels)
     same = np.flatnonzero(labels == labels[seed])
     cells = np.floor(np.asarray(xyz, np.float64)[same] / float(voxel)).astype(np.int64)

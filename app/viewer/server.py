@@ -21,6 +21,7 @@ bare data directory, no backend) falls back to watching ``Workspace.stamp()`` ev
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import secrets
 import threading
@@ -32,10 +33,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
 from app.viewer.md import md_text
+from occufly.sampling import FrameGridSpec, sample_frame
+from occufly.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
@@ -896,7 +900,6 @@ def _user_key(user: Any) -> str | None:
 def _read_prefs(path: Path | None) -> dict:
     if path is None or not path.is_file():
         return {}
-    import json
 
     try:
         data = json.loads(path.read_text())
@@ -906,8 +909,6 @@ def _read_prefs(path: Path | None) -> dict:
 
 
 def _stamp(ws: Path) -> str:
-    from occufly.workspace import Workspace
-
     return Workspace(ws).stamp()
 
 
@@ -943,7 +944,6 @@ def _frame_image(d: sb.ViewerData, frame_index: int) -> np.ndarray | None:
         p = d.workspace / p
     if not p.is_file():
         return None
-    from PIL import Image
 
     with Image.open(p) as im:
         im.draft("RGB", (640, 640))
@@ -957,7 +957,6 @@ def load_camera_grid(d: sb.ViewerData, frame_index: int, spec: Any = None) -> tu
     the scene grid with ``occufly.sampling.sample_frame`` (default FrameGridSpec), or None."""
     if d.grid is None:
         return None
-    from occufly.sampling import FrameGridSpec, sample_frame
 
     spec = spec or FrameGridSpec()
     fr = d.scene.frames[frame_index]

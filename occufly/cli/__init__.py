@@ -21,7 +21,10 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from importlib.metadata import entry_points
 from typing import Any
+
+import numpy as np
 
 from occufly.errors import OccuflyError
 
@@ -90,8 +93,6 @@ def emit(result: Any, as_json: bool) -> None:
 
 
 def _json_default(o: Any) -> Any:
-    import numpy as np
-
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
@@ -114,8 +115,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _plugin_entry_points() -> list:
-    from importlib.metadata import entry_points
-
     return sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: ep.name)
 
 

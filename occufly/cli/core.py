@@ -6,7 +6,10 @@ import argparse
 from pathlib import Path
 
 from occufly.cli import command
+from occufly.io.importer import import_scene
 from occufly.progress import tqdm_progress
+from occufly.scene import Scene
+from occufly.workspace import Workspace
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,8 +52,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _import(args: argparse.Namespace) -> dict:
-    from occufly.io.importer import import_scene
-
     nominal = [float(v) for v in args.altitudes.split(",")] if args.altitudes else None
     with tqdm_progress("import") as bar:
         scene = import_scene(
@@ -73,10 +74,7 @@ def _import(args: argparse.Namespace) -> dict:
 
 
 def _info(args: argparse.Namespace) -> dict:
-    from occufly.workspace import Workspace
-
     ws = Workspace(args.workspace)
-    from occufly.scene import Scene
 
     scene = Scene.load(ws.root)
     out = {"workspace": str(args.workspace), **scene.summary()}

@@ -6,7 +6,15 @@ import argparse
 from pathlib import Path
 
 from occufly.cli import command
+from occufly.errors import OccuflyError
+from occufly.export import export_dataset
+from occufly.export.splits import parse_ratios
+from occufly.grid import SceneGrid
+from occufly.metrics import depth_table, evaluate_depth_dirs, evaluate_ssc_dirs, ssc_report
+from occufly.parallel import get_executor
+from occufly.preview import write_preview
 from occufly.progress import tqdm_progress
+from occufly.sampling import FrameGridSpec
 
 
 def _shape(text: str) -> tuple[int, int, int]:
@@ -91,8 +99,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _parse_frames(text: str | None) -> list[int] | None:
-    from occufly.errors import OccuflyError
-
     if not text:
         return None
     out: list[int] = []
@@ -109,17 +115,10 @@ def _parse_frames(text: str | None) -> list[int] | None:
 
 
 def _split_ratios(text: str | None):
-    from occufly.export.splits import parse_ratios
-
     return None if text is None else parse_ratios(text)
 
 
 def _export(args: argparse.Namespace) -> dict:
-    from occufly.export import export_dataset
-    from occufly.grid import SceneGrid
-    from occufly.parallel import get_executor
-    from occufly.sampling import FrameGridSpec
-
     spec = FrameGridSpec(shape=args.grid_shape, voxel_size=args.voxel_size, near=args.near, far=args.far)
     grid = SceneGrid.load(args.grid) if args.grid else None
     with get_executor(args.dask, args.workers if args.workers is not None else 2) as ex, \
@@ -137,22 +136,16 @@ def _export(args: argparse.Namespace) -> dict:
 
 
 def _eval_ssc(args: argparse.Namespace):
-    from occufly.metrics import evaluate_ssc_dirs, ssc_report
-
     res = evaluate_ssc_dirs(args.pred, args.gt)
     return res if args.json else ssc_report(res, args.format)
 
 
 def _eval_depth(args: argparse.Namespace):
-    from occufly.metrics import depth_table, evaluate_depth_dirs
-
     res = evaluate_depth_dirs(args.pred, args.gt, max_depth=args.max_depth)
     return res if args.json else depth_table(res)
 
 
 def _preview(args: argparse.Namespace) -> dict:
-    from occufly.preview import write_preview
-
     panels = tuple(p.strip() for p in args.panels.split(",") if p.strip())
     out = args.out
     if out is None:  # like grid-preview: a default next to the data, outside the dataset tree

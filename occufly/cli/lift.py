@@ -11,7 +11,17 @@ import numpy as np
 
 from occufly.cli import command
 from occufly.errors import InputFormatError, MaskError, WorkspaceError
+from occufly.fsutil import atomic_write_text
+from occufly.io.masks import read_mask
+from occufly.io.pointcloud_export import export_scene_points
+from occufly.lifting import LiftParams, LiftState, load_labels
+from occufly.lifting.quality import quality_report, summary_text, workspace_truth
+from occufly.metrics import evaluate_points
 from occufly.progress import tqdm_progress
+from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
+from occufly.scene import Scene
+from occufly.selection import select_frames
+from occufly.workspace import Workspace
 
 
 def _cell(text: str) -> float | str:
@@ -98,10 +108,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # ---- select ------------------------------------------------------------------------------
 def _select(args: argparse.Namespace) -> dict:
-    from occufly.fsutil import atomic_write_text
-    from occufly.scene import Scene
-    from occufly.selection import select_frames
-
     scene = Scene.load(args.workspace)
     res = select_frames(scene, cell=args.cell, mode=args.mode,
                         target_coverage=args.target_coverage, altitude=args.altitude,
@@ -137,10 +143,6 @@ def _mask_files(scene, masks: Path) -> dict[int, Path]:
 
 
 def _lift(args: argparse.Namespace) -> dict:
-    from occufly.io.masks import read_mask
-    from occufly.lifting import LiftParams, LiftState
-    from occufly.scene import Scene
-
     if args.confirm_views < 0:
         raise InputFormatError(f"--confirm-views: expected a number of views >= 0 (0 = off), got {args.confirm_views}")
     if not 0 <= args.keep_share <= 1:
@@ -214,9 +216,6 @@ def _frame_ids(scene, names: list[str]) -> list[int]:
 
 def _scene_and_labels(workspace: Path):  # noqa: ANN202
     """(Scene, LiftResult) of a workspace; WorkspaceError before the first ``occufly lift``."""
-    from occufly.lifting import load_labels
-    from occufly.scene import Scene
-
     scene = Scene.load(workspace)
     res = load_labels(workspace)
     if res is None:
@@ -225,9 +224,7 @@ def _scene_and_labels(workspace: Path):  # noqa: ANN202
 
 
 def _agreement(args: argparse.Namespace) -> dict:
-    from occufly.io.masks import read_mask
     from occufly.lifting import LiftState
-    from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
 
     scene, res = _scene_and_labels(args.workspace)
     files = _mask_files(scene, args.masks)
@@ -312,7 +309,6 @@ def load_truth_labels(ws: Path, truth_path: Path, n_points: int) -> np.ndarray:
 
 def _eval_points(args: argparse.Namespace) -> dict:
     from occufly.lifting import LiftState
-    from occufly.metrics import evaluate_points
 
     scene, res = _scene_and_labels(args.workspace)
     truth = load_truth_labels(args.workspace, args.truth, scene.n_points)
@@ -326,14 +322,8 @@ def _eval_points(args: argparse.Namespace) -> dict:
 
 # ---- report ------------------------------------------------------------------------------
 def _report(args: argparse.Namespace) -> dict | int:
-    from occufly.fsutil import atomic_write_text
-    from occufly.lifting.quality import quality_report, summary_text
-    from occufly.scene import Scene
-    from occufly.workspace import Workspace
-
     Workspace(args.workspace).require()
     scene = Scene.load(args.workspace)
-    from occufly.lifting.quality import workspace_truth
 
     truth = (load_truth_labels(args.workspace, args.truth, scene.n_points)
              if args.truth else workspace_truth(args.workspace, scene.n_points))
@@ -348,8 +338,6 @@ def _report(args: argparse.Namespace) -> dict | int:
 
 # ---- export-points -----------------------------------------------------------------------
 def _export_points(args: argparse.Namespace) -> dict:
-    from occufly.io.pointcloud_export import export_scene_points
-
     scene, res = _scene_and_labels(args.workspace)
     return export_scene_points(scene, np.asarray(res.labels), args.out,
                                confidence=np.asarray(res.confidence), origin=np.asarray(res.origin))

@@ -10,6 +10,9 @@ from pathlib import Path
 
 from occufly.cli import command
 from occufly.errors import InputFormatError, MaskError
+from occufly.io.mask_interchange import FORMATS, load_class_map, read_masks, write_masks
+from occufly.io.masks import encode_mask_png, read_mask
+from occufly.scene import Scene
 
 _FORMAT_HELP = ("cvat (CVAT for images 1.1 or Segmentation mask 1.1, told by the files), "
                 "cvat_images, cvat_mask, coco (instances: polygons or RLE), coco_panoptic, "
@@ -19,8 +22,6 @@ _FORMAT_HELP = ("cvat (CVAT for images 1.1 or Segmentation mask 1.1, told by the
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from occufly.io.mask_interchange import FORMATS
-
     grp = sub.add_parser("masks", help="masks in and out of CVAT, COCO, Label Studio, PNG")
     msub = grp.add_subparsers(dest="masks_command", required=True)
     p = command(msub, "import", _import,
@@ -52,10 +53,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _import(args: argparse.Namespace) -> dict:
-    from occufly.io.mask_interchange import load_class_map, read_masks
-    from occufly.io.masks import encode_mask_png
-    from occufly.scene import Scene
-
     scene = Scene.load(args.workspace)
     cmap = load_class_map(args.class_map) if args.class_map else None
     res = read_masks(args.archive, args.fmt, scene.frames, scene.taxonomy, class_map=cmap)
@@ -94,10 +91,6 @@ def _frames(scene, names: list[str]) -> list[int]:  # noqa: ANN001
 
 
 def _export(args: argparse.Namespace) -> dict:
-    from occufly.io.mask_interchange import write_masks
-    from occufly.io.masks import read_mask
-    from occufly.scene import Scene
-
     scene = Scene.load(args.workspace)
     if args.prefill:
         from occufly.export.prefill_masks import prefill_masks

@@ -8,12 +8,14 @@ import argparse
 from pathlib import Path
 
 from occufly.cli import command
+from occufly.errors import InputFormatError
 from occufly.progress import tqdm_progress
+from occufly.synthetic import generate
+from occufly.synthetic.formats import FORMATS
+from occufly.synthetic.presets import PRESETS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from occufly.synthetic.presets import PRESETS
-
     p = command(sub, "synth", _synth,
                 help="generate the synthetic aerial scene (COLMAP dense workspace + exact truth)")
     p.add_argument("out", type=Path, help="output folder (must not exist or be empty, unless --force)")
@@ -32,8 +34,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _formats(text: str) -> list[str]:
-    from occufly.synthetic.formats import FORMATS
-
     names = list(FORMATS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
     bad = [n for n in names if n not in FORMATS]
     if bad or not names:
@@ -43,9 +43,6 @@ def _formats(text: str) -> list[str]:
 
 
 def _synth(args: argparse.Namespace) -> dict:
-    from occufly.errors import InputFormatError
-    from occufly.synthetic import generate
-
     if not 1 <= args.workers <= 64:
         raise InputFormatError(f"--workers: expected 1..64 processes, got {args.workers}")
     # SIGTERM unwinds like Ctrl-C (occufly.cli.main): the temporary output folder is removed

@@ -6,13 +6,17 @@ import argparse
 from pathlib import Path
 
 from occufly.cli import command
+from occufly.densify.evaluate import evaluate_grids
+from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
+from occufly.densify.preview import save_preview
+from occufly.errors import OccuflyError
+from occufly.grid import SceneGrid
+from occufly.progress import tqdm_progress
+from occufly.taxonomy import Taxonomy, default_taxonomy
 from occufly.workspace import Workspace
 
 
 def _voxelize(args: argparse.Namespace) -> dict:
-    from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
-    from occufly.progress import tqdm_progress
-
     scale = None if args.min_points_scale == "auto" else _positive_float(args.min_points_scale)
     if args.smooth_radius < 0:
         from occufly.errors import OccuflyError
@@ -31,8 +35,6 @@ def _voxelize(args: argparse.Namespace) -> dict:
 
 
 def _positive_float(text: str) -> float:
-    from occufly.errors import OccuflyError
-
     try:
         v = float(text)
     except ValueError:
@@ -43,8 +45,6 @@ def _positive_float(text: str) -> float:
 
 
 def _load_taxonomy(ws: Path | None):
-    from occufly.taxonomy import Taxonomy, default_taxonomy
-
     if ws is not None and Workspace(ws).taxonomy_json.is_file():
         return Taxonomy.load(Workspace(ws).taxonomy_json)
     return default_taxonomy()
@@ -58,9 +58,6 @@ def _grid_path(arg: str) -> Path:
 
 
 def _eval(args: argparse.Namespace) -> dict:
-    from occufly.densify.evaluate import evaluate_grids
-    from occufly.grid import SceneGrid
-
     ws = Path(args.workspace)
     pred_path = Path(args.grid) if args.grid else _grid_path(str(ws))
     pred = SceneGrid.load(pred_path)
@@ -80,9 +77,6 @@ def _eval(args: argparse.Namespace) -> dict:
 
 
 def _write_preview(grid_path: Path, ws: Path | None, out: Path) -> None:
-    from occufly.densify.preview import save_preview
-    from occufly.grid import SceneGrid
-
     save_preview(SceneGrid.load(grid_path), _load_taxonomy(ws), out)
 
 

@@ -42,8 +42,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
+from PIL import Image
 
 from occufly.errors import InputFormatError
+from occufly.export.occufly import list_frames, read_calibration, read_splits
+from occufly.export.sscbench import read_calib
 from occufly.taxonomy import INVALID, Taxonomy, default_taxonomy
 
 LAYOUTS = ("occufly", "sscbench")
@@ -142,8 +146,6 @@ def _load_npy(path: Path) -> np.ndarray:
 
 
 def _image(path: Path) -> np.ndarray:
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB"))
@@ -260,21 +262,15 @@ class OccuFlyReader(ExportReader):
             yield mp.parent.name, mp
 
     def _list_frames(self) -> list[FrameKey]:
-        from occufly.export.occufly import list_frames
-
         return [FrameKey(s, a, f, f"{s}_{a}") for s, a, f in list_frames(self.root) if s in self.manifests]
 
     def _split_key(self, key: FrameKey) -> str:
         return key.scene
 
     def split_members(self, split: str) -> list[str]:
-        from occufly.export.occufly import read_splits
-
         return read_splits(self.root)[split]
 
     def calibration(self, scene: str) -> dict:
-        from occufly.export.occufly import read_calibration
-
         return read_calibration(self.ds / scene / "calibration.txt")
 
     def read_labels(self, key: FrameKey) -> tuple[np.ndarray, np.ndarray]:
@@ -348,8 +344,6 @@ class SSCBenchReader(ExportReader):
         return [ln.strip() for ln in p.read_text().splitlines() if ln.strip()] if p.is_file() else []
 
     def yaml(self) -> dict:
-        import yaml
-
         return yaml.safe_load((self.root / "occufly.yaml").read_text())
 
     def read_labels(self, key: FrameKey) -> tuple[np.ndarray, np.ndarray]:
@@ -361,8 +355,6 @@ class SSCBenchReader(ExportReader):
         return raw, _unpack(vox / f"{key.frame_id}.invalid", n, shape)
 
     def read(self, key: FrameKey) -> dict:
-        from occufly.export.sscbench import read_calib
-
         seq_dir = self.root / "data_2d_raw" / key.sequence
         vox = seq_dir / "voxels"
         shape = self.grid_shape

@@ -32,6 +32,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from occufly.densify.smooth import plane_offsets, project_to_planes
@@ -122,8 +123,6 @@ def _inside_footprint(data: np.ndarray, q: np.ndarray, cell: float, close: int =
     with its enclosed holes filled: a gap under a car or a canopy is inside, the land beyond
     the survey's rim is not. data: (N, 3), q: (Q, 3) float64 metres.
     """
-    from scipy import ndimage
-
     pad = close + 2
     lo = data[:, :2].min(axis=0) - pad * cell
     ij = np.floor((data[:, :2] - lo) / cell).astype(np.int64)

@@ -17,6 +17,7 @@ voxel only carved takes the carving class ranked first in the taxonomy's tie ord
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -32,10 +33,12 @@ from occufly.densify.smooth import project_to_planes
 from occufly.densify.voxelize import SceneGridSpec, bin_points, grid_spec_for, majority_vote
 from occufly.density import surface_density
 from occufly.errors import InputFormatError
+from occufly.fsutil import atomic_write_text, require_memory
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
+from occufly.workspace import Workspace
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +124,6 @@ def check_densify_memory(n_points: int, n_voxels: int, *, where: str = "voxelize
                          frames: int = 0) -> dict:
     """:class:`InputFormatError` (CLI exit 2) before any heavy work when the densification
     cannot fit in the memory available now (Linux ``MemAvailable``; unchecked elsewhere)."""
-    from occufly.fsutil import require_memory
-
     return require_memory(
         densify_memory_estimate(n_points, n_voxels, frames),
         f"{where}: densifying {n_points:,} points into a grid of {n_voxels / 1e6:.1f} M voxels",
@@ -452,11 +453,6 @@ def voxelize_workspace(
     (:func:`occufly.lifting.corrections.apply_to_labels`). Returns the report (also written next to
     the grid as ``voxelize_report.json``).
     """
-    import json
-
-    from occufly.fsutil import atomic_write_text
-    from occufly.workspace import Workspace
-
     wsp = Workspace(ws)
     t = time.perf_counter()
     scene = Scene.load(wsp.root)

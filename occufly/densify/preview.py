@@ -13,6 +13,7 @@ import io
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from occufly.fsutil import atomic_write_bytes
 from occufly.grid import SceneGrid
@@ -94,8 +95,6 @@ def oblique(
 
 def render_preview(grid: SceneGrid, taxonomy: Taxonomy, *, max_side: int = 900) -> bytes:
     """PNG bytes: top-down | oblique side by side with a legend of the classes present."""
-    from PIL import Image, ImageDraw
-
     lut = taxonomy.colour_lut()
     td = top_down(grid.labels, lut)
     f = max(1, int(max_side // max(td.shape[:2])))

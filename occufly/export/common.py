@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import json
 import os
+import struct
 import threading
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -172,9 +175,6 @@ def _isal_zlib():
 
 
 def _png_chunk(tag: bytes, body: bytes) -> bytes:
-    import struct
-    import zlib
-
     return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(body, zlib.crc32(tag)))
 
 
@@ -190,9 +190,6 @@ def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes
     Deterministic: the same pixels give the same bytes in any process of one machine (same
     ISA-L version and instruction set). ``icc_profile`` is stored as an iCCP chunk.
     """
-    import struct
-    import zlib
-
     a = np.asarray(pixels)
     if a.dtype != np.uint8 or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
         raise ValueError(f"encode_png: expected uint8 (H, W[, 3|4]), got {a.dtype} {a.shape}")
@@ -243,8 +240,6 @@ def image_as_png(im) -> bytes:
     """PNG bytes of an opened PIL image: 8-bit grey / RGB / RGBA through :func:`encode_png`
     (its ICC profile kept, as PIL's PNG writer keeps it), any other mode through PIL
     (``compress_level=1``)."""
-    import io
-
     if im.mode in _PNG_COLOUR_TYPE:
         return encode_png(np.asarray(im), icc_profile=im.info.get("icc_profile"))
     buf = io.BytesIO()

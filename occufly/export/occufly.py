@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occufly.errors import InputFormatError
 from occufly.export.common import STATE_DIR, majority_pyramid, pack_bits, pool_grid
 
 NAME = "occufly"
@@ -95,8 +96,6 @@ def calibration_text(camera, depth_shape: tuple[int, int]) -> str:
 def read_calibration(path: Path) -> dict:
     """{"fx", "fy", "cx", "cy", "width", "height", "depth_shape": (h, w) or None} of a
     ``calibration.txt`` (ours, or one holding just the six numbers)."""
-    from occufly.errors import InputFormatError
-
     try:
         text = Path(path).read_text()
     except OSError as e:

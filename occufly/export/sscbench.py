@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from occufly.errors import InputFormatError
 from occufly.export.common import STATE_DIR, ExportError, pack_bits, pool_grid
 
 NAME = "sscbench"
@@ -112,8 +113,6 @@ def calib_text(camera) -> str:
 
 def read_calib(path: Path) -> dict[str, np.ndarray]:
     """{"P2": (3, 4), "Tr": (4, 4)} the way SemanticKITTI-style loaders parse calib.txt."""
-    from occufly.errors import InputFormatError
-
     vals: dict[str, np.ndarray] = {}
     for line in Path(path).read_text().splitlines():
         if not line.strip():

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -75,9 +77,6 @@ def import_pycolmap():
     pycolmap's glog installs a failure handler for SIGTERM at import that aborts the process
     with a stack dump, replacing the CLI's handler (SIGTERM unwinds like Ctrl-C so that a
     stopped command removes its temporary output). The Python handler is put back."""
-    import signal
-    import threading
-
     before = signal.getsignal(signal.SIGTERM)
     import pycolmap
 

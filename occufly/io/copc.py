@@ -22,10 +22,13 @@ Two things copc-lib 2.6 does not expose from Python, done here on the finished f
 
 from __future__ import annotations
 
+import copy
+import io
 import os
 import struct
 from pathlib import Path
 
+import laspy
 import numpy as np
 
 from occufly.errors import InputFormatError
@@ -219,11 +222,6 @@ def _finish_copc(path: Path, las, extra: list[str], extra_vlrs: list) -> None:
 def _extra_bytes_payload(las) -> bytes:
     """The extra-bytes VLR payload laspy writes for ``las``'s point format (names, types,
     scales): a header-only copy written to memory and read back."""
-    import copy
-    import io
-
-    import laspy
-
     hdr = copy.deepcopy(las.header)
     hdr.point_count = 0
     buf = io.BytesIO()

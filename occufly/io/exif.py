@@ -13,6 +13,8 @@ import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from PIL import Image
+
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
 _XMP_START, _XMP_END = b"<x:xmpmeta", b"</x:xmpmeta>"
@@ -87,8 +89,6 @@ def read_xmp(path: str | Path, *, max_bytes: int = 1 << 20) -> dict:
 
 def read_geotag(path: str | Path) -> Geotag:
     """The :class:`Geotag` of one image (all None when it has no EXIF)."""
-    from PIL import Image
-
     path = Path(path)
     tag = Geotag(name=path.name)
     try:

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pyproj
 
 from occufly.errors import InputFormatError
 
@@ -74,8 +75,6 @@ class Alignment:
 
 def utm_crs_for(lat: np.ndarray, lon: np.ndarray):
     """The WGS 84 UTM zone of the positions' mean (pyproj CRS)."""
-    import pyproj
-
     lon0, lat0 = float(np.mean(lon)), float(np.mean(lat))
     zone = int(np.floor((lon0 + 180.0) / 6.0)) % 60 + 1
     return pyproj.CRS.from_epsg((32600 if lat0 >= 0 else 32700) + zone)
@@ -83,8 +82,6 @@ def utm_crs_for(lat: np.ndarray, lon: np.ndarray):
 
 def gps_to_crs(lat, lon, alt, crs) -> np.ndarray:
     """(M,) WGS 84 degrees + heights -> (M, 3) float64 easting, northing, height in ``crs``."""
-    import pyproj
-
     tr = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True)
     e, n = tr.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
     return np.column_stack([e, n, np.asarray(alt, np.float64)])

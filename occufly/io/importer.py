@@ -41,12 +41,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from occufly.camera import make_pose
 from occufly.errors import InputFormatError, UnsafePathError, WorkspaceError, check_name
 from occufly.fsutil import PathNotConfined, atomic_directory, confined, require_memory
 from occufly.io import crs as crsmod
 from occufly.io.colmap_dense import find_depth_map, read_depth_map, read_fused_vis
+from occufly.io.exif import read_geotags
+from occufly.io.georef import MIN_GPS_CAMERAS, align_to_gps
 from occufly.io.pointcloud import read_point_cloud
 from occufly.io.sources import into_cloud_crs, read_source, resolve_image_names
 from occufly.progress import ProgressFn, noop
@@ -408,9 +411,6 @@ def _make_metric(model, image_dir: Path, xyz_w: np.ndarray, cloud_path: Path | N
     by ``scale`` (``--scale``: metres per model unit; 1 for a model that is metric already).
     The model's poses and points (and ``xyz_w``, the cloud in the model's frame) are changed
     in place. Returns (xyz_w, CRS or None, georeferencing record for scene.meta)."""
-    from occufly.io.exif import read_geotags
-    from occufly.io.georef import MIN_GPS_CAMERAS, align_to_gps
-
     tags = read_geotags(image_dir, [im.name for im in model.images]) if scale is None else []
     n_gps = sum(1 for g in tags if g.has_gps and g.altitude is not None)
     if scale is None and n_gps >= MIN_GPS_CAMERAS:
@@ -470,8 +470,6 @@ def _find_image_dir(source: Path, images: str | Path | None, default: Path | Non
 
 
 def _check_images(image_dir: Path, names: list[str], model) -> None:
-    from PIL import Image
-
     missing = [n for n in names if not (image_dir / n).is_file()]
     if missing:
         raise InputFormatError(

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
 import numpy as np
+from PIL import Image
 
 from occufly.errors import MaskError
 from occufly.io.masks import MAX_MASK_PIXELS, decode_mask_png, encode_mask_png, mask_scale
@@ -485,8 +486,6 @@ def _read_class_map_png(root: Path) -> tuple[dict, str] | None:
 
 
 def _read_png(root: Path, taxonomy: Taxonomy) -> list[_Item]:
-    from PIL import Image
-
     pngs = [p for p in _files(root, "*.png")]
     if not pngs:
         raise MaskError(f"{root}: no PNG masks found; expected <image stem>.png files")

@@ -19,9 +19,11 @@ frame's own pixels (times at most 4 bytes per pixel for RGBA).
 from __future__ import annotations
 
 import io
+import struct
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from occufly.errors import MaskError
 from occufly.fsutil import atomic_write_bytes
@@ -38,8 +40,6 @@ def png_header(data: bytes, *, name: str = "<mask>") -> tuple[int, int, int, int
 
     Raises MaskError naming ``name`` when the bytes are not a PNG or IHDR is malformed.
     """
-    import struct
-
     if not data.startswith(PNG_SIGNATURE):
         raise MaskError(f"{name}: not a PNG file; expected a single-channel PNG of raw class ids")
     if len(data) < 33 or data[12:16] != b"IHDR":
@@ -154,8 +154,6 @@ def _mask_bytes(src: str | Path | bytes, name: str) -> bytes:
 
 def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str) -> np.ndarray:
     """Decode a mask PNG into (h, w) uint8 raw ids without checking any frame size."""
-    from PIL import Image, UnidentifiedImageError
-
     data = _mask_bytes(src, name)
     w, h = check_png_size(data, name=name)  # before decoding: the header's size is bounded
     try:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import xml.etree.ElementTree as ET
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -136,8 +137,6 @@ def _sensor_camera(sensor: ET.Element, where: str) -> Camera | str:
 
 def _zip_xml(zpath: Path, where: str) -> ET.Element:
     """``doc.xml`` of one of a project's zip files (size-checked before it is inflated)."""
-    import zipfile
-
     if not zpath.is_file():
         raise InputFormatError(f"{zpath}: missing ({where})")
     try:

@@ -35,6 +35,8 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from occufly.camera import Camera, make_pose
 from occufly.errors import InputFormatError
@@ -125,8 +127,6 @@ def _vec3(v, where: str) -> np.ndarray:
 
 def _rotvec(v, where: str) -> np.ndarray:
     """Axis-angle (3,) -> (3, 3) rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_rotvec(_vec3(v, where)).as_matrix()
 
 
@@ -161,7 +161,6 @@ def _topo_to_ecef(ref: dict):
 def _image_size(image_dir: Path | None, name: str) -> tuple[int, int] | None:
     if image_dir is None or not (image_dir / name).is_file():
         return None
-    from PIL import Image
 
     try:
         with Image.open(image_dir / name) as im:

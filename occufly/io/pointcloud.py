@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
+import laspy
 import numpy as np
 
 from occufly.errors import InputFormatError
+from occufly.fsutil import atomic_write_bytes
 from occufly.io.ply import read_ply
 
 
@@ -39,8 +42,6 @@ def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_las(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    import laspy
-
     if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
         raise InputFormatError(
             f"{path}: cannot decompress LAZ: no LAZ backend is installed (pip install 'laspy[lazrs]')"
@@ -75,12 +76,6 @@ def write_las(path: str | Path, xyz_world: np.ndarray, rgb: np.ndarray | None = 
 
     xyz_world: (N, 3) float64 world metres; rgb: (N, 3) uint8; classification: (N,) uint8.
     """
-    import io
-
-    import laspy
-
-    from occufly.fsutil import atomic_write_bytes
-
     path = Path(path)
     xyz_world = np.asarray(xyz_world, dtype=np.float64)
     # LAS 1.4 point formats 6/7: 8-bit classification, so raw ids up to 254 fit

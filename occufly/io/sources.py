@@ -28,6 +28,9 @@ import numpy as np
 from occufly.errors import InputFormatError
 from occufly.io import crs as crsmod
 from occufly.io.colmap import SparseModel, find_sparse_dir, read_sparse_model
+from occufly.io.metashape import find_metashape_xml
+from occufly.io.odm import is_odm_project
+from occufly.io.pix4d import find_pix4d_params
 
 FORMATS = ("colmap", "odm", "metashape", "pix4d")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -35,10 +38,6 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 def detect_format(source: str | Path) -> str:
     """The kind of project at ``source`` (see the module docstring) or a clear error."""
-    from occufly.io.metashape import find_metashape_xml
-    from occufly.io.odm import is_odm_project
-    from occufly.io.pix4d import find_pix4d_params
-
     source = Path(source)
     if not source.exists():
         raise InputFormatError(f"{source}: reconstruction folder not found")

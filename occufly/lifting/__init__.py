@@ -33,6 +33,7 @@ A live worker (the app's lifting service) uses::
 from __future__ import annotations
 
 from occufly.lifting.classes import ClassColumns
+from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import (
     LiftParams,
     fill_and_denoise,
@@ -49,7 +50,6 @@ from occufly.lifting.result import (
     ORIGIN_NAMES,
     ORIGIN_NONE,
     LiftResult,
-    load_labels,
     save_result,
 )
 from occufly.lifting.robust import RobustParams

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occufly.fsutil import atomic_write_text
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED
 
 TABLE_PATH = Path(__file__).with_name("confidence_calibration.json")
@@ -183,8 +184,6 @@ class CalibrationTable:
         return cls(maps, meta)
 
     def save(self, path: str | Path = TABLE_PATH) -> None:
-        from occufly.fsutil import atomic_write_text
-
         atomic_write_text(Path(path), json.dumps(self.to_json(), indent=1) + "\n")
 
 

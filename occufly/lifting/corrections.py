@@ -13,6 +13,7 @@ changes it rewrites the net layer with :func:`write_overrides` (atomic).
 from __future__ import annotations
 
 import io
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -207,8 +208,6 @@ def write_edit_points(ws: str | Path | Workspace, edit_id: int, point_ids: np.nd
                       to_class: int) -> Path:
     """Store one edit's point ids (sorted unique, as uint32 deltas, zlib) atomically;
     returns the path (:meth:`Workspace.correction_edit`)."""
-    import zlib
-
     w = Workspace.of(ws)
     ids = np.asarray(point_ids, dtype=np.int64).reshape(-1)
     if len(ids) and (ids[0] < 0 or ids[-1] > np.iinfo(np.uint32).max or np.any(np.diff(ids) <= 0)):
@@ -225,8 +224,6 @@ def write_edit_points(ws: str | Path | Workspace, edit_id: int, point_ids: np.nd
 
 def read_edit_points(ws: str | Path | Workspace, edit_id: int) -> np.ndarray:
     """(K,) int64 sorted point ids of edit ``edit_id``; WorkspaceError when missing/corrupt."""
-    import zlib
-
     p = Workspace.of(ws).correction_edit(edit_id)
     try:
         with np.load(p, allow_pickle=False) as z:
@@ -335,3 +332,17 @@ def labels_at(ws: str | Path | Workspace, point_ids: np.ndarray,
     ok[ok] = net.point_ids[pos[ok]] == ids[ok]
     out[ok] = net.labels[pos[ok]]
     return out
+
+
+def load_labels(ws: str | Path, *, corrections: bool = True) -> LiftResult | None:
+    """The labels every consumer reads: the latest fill/denoise output of workspace ``ws``
+    (memory-mapped) with reviewers' corrections applied on top
+    (:func:`occufly.lifting.corrections.apply_overrides`; ``corrections=False`` gives the
+    fill output alone), or None before the first fill."""
+    w = Workspace(ws)
+    labels = w.labels()
+    if labels is None:
+        return None
+    res = LiftResult(labels=labels, confidence=w.confidence(), origin=w.label_origin(),
+                     stats=w.lift_stats())
+    return apply_overrides(res, w) if corrections else res

@@ -40,6 +40,7 @@ from dataclasses import replace
 
 import numpy as np
 
+import occufly.lifting as pkg
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.knn import LiftParams, _check_inputs, _confirmed, _finish, _untie
 from occufly.lifting.result import LiftResult
@@ -95,7 +96,6 @@ class IncrementalFill:
         """The result of ``fill_and_denoise(xyz, direct, ...)``, recomputing only the region
         where it can differ from the previous call's."""
         # looked up on the package at call time (tests and profilers patch it there)
-        import occufly.lifting as pkg
 
         t0 = time.perf_counter()
         p = params or LiftParams()

@@ -61,15 +61,20 @@ Origin (uint8)
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from occufly.density import knn_radius as typical_knn_radius
+from occufly.fsutil import require_memory
 from occufly.lifting import calibration
+from occufly.lifting.blockknn import block_votes
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
+from occufly.parallel import single_threaded_blas
 from occufly.progress import ProgressFn, noop
 from occufly.taxonomy import Taxonomy
 
@@ -140,8 +145,6 @@ def check_fill_memory(n_points: int) -> dict:
     """Raise :class:`~occufly.errors.OccuflyError` (CLI exit 2, HTTP 4xx) before any work when
     the fill + denoise of ``n_points`` points cannot fit in the memory available now (Linux
     ``MemAvailable``; not checked where that is unknown). Returns the figures."""
-    from occufly.fsutil import require_memory
-
     return require_memory(
         fill_memory_estimate(n_points), f"kNN fill + denoise of {n_points:,} points",
         detail=f" ({FILL_BYTES_PER_POINT} bytes per point + {FILL_FIXED_BYTES / 2**30:.1f} GB)",
@@ -151,8 +154,6 @@ def check_fill_memory(n_points: int) -> dict:
 # ---- kNN fill and denoise -----------------------------------------------------------------
 def _threads(workers: int) -> int:
     """Thread count for ``workers`` (cKDTree convention: -1 = every core of this machine)."""
-    import os
-
     if workers is None or workers < 0:
         try:
             return max(1, len(os.sched_getaffinity(0)))
@@ -241,8 +242,6 @@ def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.
     points at any distance (``nearest`` (N,) gets their nearest voted distance, beyond the
     radius, so their raw confidence score is 0). Returns how many were filled (0 when
     ``p.fill_far`` is off)."""
-    from scipy.spatial import cKDTree
-
     rest = np.flatnonzero(filled < 0)
     if not p.fill_far or not len(rest):
         return 0
@@ -341,8 +340,6 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     With ``query_index`` ((q,) int) the denoise queries only those points (for timing the
     baseline on a sample); labels of the others are then just the filled labels.
     """
-    from scipy.spatial import cKDTree
-
     p = params or LiftParams()
     report = progress or noop
     xyz, direct = _check_inputs(xyz, direct)
@@ -476,8 +473,6 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     ``unsafe`` marks points whose k-th neighbour is farther than the block reaches (they need
     a query against a larger neighbourhood). ``workers`` threads share the voxels (same result).
     """
-    from occufly.lifting.blockknn import block_votes
-
     n = len(xyz)
     out_c = np.full(n, -1, dtype=np.int64)
     out_s = np.zeros(n, dtype=np.float32)
@@ -520,7 +515,6 @@ def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _Vo
     # voxels write disjoint points: threads (the kernel runs without the GIL) give the same
     # result as one loop; one BLAS thread each for the small numpy steps (a BLAS thread pool
     # costs more than they do, see occufly.parallel.single_threaded_blas)
-    from occufly.parallel import single_threaded_blas
 
     T = len(todo)
     step = max(1, min(2000, -(-T // 50)))
@@ -562,8 +556,6 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     ``filled``, ``final`` columns, ``agree``, ``fill_share``, ``fill_distance``) and the
     lattice (``edge``, ``origin``) -- what :mod:`occufly.lifting.incremental` updates.
     """
-    from scipy.spatial import cKDTree
-
     p = params or LiftParams()
     if p.method == "exact":
         return fill_and_denoise_exact(xyz, direct, taxonomy, params=p, vote_margin=vote_margin,

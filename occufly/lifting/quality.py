@@ -46,9 +46,10 @@ import numpy as np
 from occufly.errors import WorkspaceError
 from occufly.lifting.calibration import TABLE_PATH, default_table, reliability
 from occufly.lifting.classes import ClassColumns
+from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import LiftParams
 from occufly.lifting.loo import loo_labels
-from occufly.lifting.result import ORIGIN_NAMES, load_labels
+from occufly.lifting.result import ORIGIN_NAMES
 from occufly.lifting.suspects import SuspectParams
 from occufly.scene import Scene
 from occufly.taxonomy import INVALID

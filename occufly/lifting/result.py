@@ -10,6 +10,7 @@ import numpy as np
 
 from occufly.taxonomy import Taxonomy
 from occufly.workspace import LIFTING_DIR as LIFT_DIR  # noqa: F401 - the old public name
+from occufly.workspace import Workspace
 
 ORIGIN_NONE = 0
 ORIGIN_DIRECT = 1
@@ -50,23 +51,4 @@ class LiftResult:
 
 def save_result(ws: str | Path, result: LiftResult) -> None:
     """Store a fill result in workspace ``ws`` (labels last: :meth:`Workspace.write_labels`)."""
-    from occufly.workspace import Workspace
-
     Workspace(ws).write_labels(result.labels, result.confidence, result.origin, result.stats)
-
-
-def load_labels(ws: str | Path, *, corrections: bool = True) -> LiftResult | None:
-    """The labels every consumer reads: the latest fill/denoise output of workspace ``ws``
-    (memory-mapped) with reviewers' corrections applied on top
-    (:func:`occufly.lifting.corrections.apply_overrides`; ``corrections=False`` gives the
-    fill output alone), or None before the first fill."""
-    from occufly.lifting.corrections import apply_overrides
-    from occufly.workspace import Workspace
-
-    w = Workspace(ws)
-    labels = w.labels()
-    if labels is None:
-        return None
-    res = LiftResult(labels=labels, confidence=w.confidence(), origin=w.label_origin(),
-                     stats=w.lift_stats())
-    return apply_overrides(res, w) if corrections else res

@@ -78,8 +78,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from occufly.lifting.classes import ClassColumns
+from occufly.lifting.knn import _VoxelGrid
 from occufly.progress import ProgressFn, noop
 
 FEATURES_VERSION = 1
@@ -145,8 +147,6 @@ def point_features(xyz: np.ndarray, rgb: np.ndarray, params: RobustParams | None
     per-cell lowest point, so buildings and trees narrower than twice ``ground_radius`` stand
     on the terrain around them.
     """
-    from scipy import ndimage
-
     p = params or RobustParams()
     xyz = np.asarray(xyz)
     n = len(xyz)
@@ -494,8 +494,6 @@ def local_votes(xyz: np.ndarray, voted: np.ndarray, col1: np.ndarray, n1: np.nda
     of every voted point summed over the 3x3x3 voxels of edge ``edge`` around a voxel).
 
     Cost ~ the voted points (one voxel hash, 26 sorted-key lookups per occupied voxel)."""
-    from occufly.lifting.knn import _VoxelGrid
-
     pts = np.asarray(xyz[voted], np.float32) if len(voted) < len(xyz) else np.asarray(xyz, np.float32)
     grid = _VoxelGrid(pts, edge, pad=1)
     del pts

@@ -35,6 +35,7 @@ Robust decision
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
@@ -42,10 +43,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from occufly.errors import MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_bytes, atomic_write_text
+from occufly.io.masks import mask_scale, validate_ids
 from occufly.lifting.classes import ClassColumns
+from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import LiftParams
 from occufly.lifting.result import LiftResult, save_result
 from occufly.progress import ProgressFn, noop
@@ -68,8 +72,6 @@ BOUNDARY_PX = 3
 def boundary_weights(mask: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarray:
     """(h, w) uint8 vote weight of each mask pixel: 1 / 2 / 3 by chessboard distance to the
     nearest pixel whose 4-neighbourhood holds another id (< px, < 2 px, beyond)."""
-    from scipy import ndimage
-
     m = np.asarray(mask)
     edge = np.zeros(m.shape, bool)
     dv = m[1:, :] != m[:-1, :]
@@ -262,8 +264,6 @@ class LiftState:
 
     def labels(self) -> LiftResult | None:
         """The latest fill/denoise output on disk (labels, confidence, origin), or None."""
-        from occufly.lifting.result import load_labels
-
         return load_labels(self.ws)
 
     def _direct(self, with_second: bool = False) -> tuple[np.ndarray, ...]:
@@ -322,8 +322,6 @@ class LiftState:
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Validate ``mask`` for a frame and return its votes: (point ids int32, column uint8,
         weight uint8 -- all 1 with plain weighting)."""
-        from occufly.io.masks import mask_scale, validate_ids
-
         fi = self._check_frame(frame_index, name)
         frame = self.scene.frames[fi]
         mask = np.asarray(mask)
@@ -585,8 +583,10 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     (default 1) instead of ``LiftParams.confirm_views``: its margin is a posterior margin, and
     a tiny object seen by two or three views rarely has two votes for itself."""
     # looked up on the package at call time, so that a test (or a profiler) patching
-    # ``occufly.lifting.fill_and_denoise`` sees every fill, whichever entry point ran it
+    # ``occufly.lifting.fill_and_denoise`` sees every fill, whichever entry point ran it; kept
+    # in the function: the package imports this module (a module-level import is a cycle)
     import occufly.lifting as pkg
+
 
     p = params or LiftParams()
     report = progress or noop
@@ -632,8 +632,6 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
 
 
 def _npz_bytes(**arrays: np.ndarray) -> bytes:
-    import io
-
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()

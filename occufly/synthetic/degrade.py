@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
@@ -59,8 +60,6 @@ def _confusion_lut(taxonomy: Taxonomy) -> np.ndarray:
 
 def _shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: float,
                       cell: int) -> np.ndarray:
-    from scipy import ndimage
-
     if shift_px <= 0:
         return mask.copy()
     h, w = mask.shape
@@ -78,8 +77,6 @@ def _shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: floa
 
 def _skip_small(mask: np.ndarray, rng: np.random.Generator, min_blob: int, prob: float
                 ) -> np.ndarray:
-    from scipy import ndimage
-
     if min_blob <= 1 or prob <= 0:
         return mask
     drop = np.zeros(mask.shape, bool)
@@ -104,8 +101,6 @@ def _skip_small(mask: np.ndarray, rng: np.random.Generator, min_blob: int, prob:
 
 def _confuse(mask: np.ndarray, rng: np.random.Generator, lut: np.ndarray,
              rate: float) -> np.ndarray:
-    from scipy import ndimage
-
     if rate <= 0:
         return mask
     out = mask.copy()

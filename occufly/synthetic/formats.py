@@ -37,12 +37,20 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from occufly.camera import Camera
 from occufly.errors import OccuflyError, WorkspaceError
 from occufly.fsutil import atomic_directory
 from occufly.io import crs as crsmod
+from occufly.io.colmap import read_sparse_model
+from occufly.io.colmap_dense import write_fused_ply
+from occufly.io.ply import read_ply
+from occufly.io.pointcloud import read_point_cloud
+from occufly.io.pointcloud_export import LAS_SCALE, write_semantic_las
 from occufly.progress import ProgressFn, noop
+from occufly.synthetic.generate import generate
+from occufly.synthetic.presets import get_preset
 
 FORMATS = ("colmap", "odm", "metashape", "pix4d")
 CRS_EPSG = 32632
@@ -74,9 +82,6 @@ def generate_formats(out: str | Path, formats: list[str] | tuple[str, ...], *,
     With one format (``nested`` False, the default then) the project is ``out`` itself; with
     several, ``out/<format>``. The whole output appears atomically or not at all.
     """
-    from occufly.synthetic.generate import generate
-    from occufly.synthetic.presets import get_preset
-
     formats = list(dict.fromkeys(formats))
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
@@ -141,10 +146,6 @@ class _BaseScene:
     """The rendered COLMAP workspace, read back once: poses, cloud, camera, GPS."""
 
     def __init__(self, base: Path, camera: Camera, seed: int) -> None:
-        from occufly.io.colmap import read_sparse_model
-        from occufly.io.pointcloud import read_point_cloud
-        from occufly.io.pointcloud_export import LAS_SCALE
-
         self.base = base
         self.camera = camera
         self.crs = crsmod._pyproj().CRS.from_epsg(CRS_EPSG)
@@ -173,8 +174,6 @@ class _BaseScene:
         _copy_tree(self.base / "truth", dest / "truth")
 
     def write_cloud_las(self, path: Path) -> None:
-        from occufly.io.pointcloud_export import write_semantic_las
-
         write_semantic_las(path, self.xyz, np.zeros(len(self.xyz), np.uint8), self.rgb,
                            crs=self.crs)
 
@@ -185,9 +184,6 @@ class _BaseScene:
 
     # ---- COLMAP ---------------------------------------------------------------------------
     def write_colmap(self, dest: Path) -> None:
-        from occufly.io.colmap_dense import write_fused_ply
-        from occufly.io.ply import read_ply
-
         _copy_tree(self.base / "sparse", dest / "sparse")
         _copy_tree(self.base / "dense" / "stereo", dest / "dense" / "stereo")
         _link_or_copy(self.base / "dense" / "fused.ply.vis", dest / "dense" / "fused.ply.vis")
@@ -199,8 +195,6 @@ class _BaseScene:
 
     # ---- OpenDroneMap ---------------------------------------------------------------------
     def write_odm(self, dest: Path) -> None:
-        from scipy.spatial.transform import Rotation
-
         c, W, H = self._opencv(), self.camera.width, self.camera.height
         s = float(max(W, H))
         key = f"synthetic occufly-lens {W} {H} brown 0.85"

@@ -17,6 +17,7 @@ Output layout (world coordinates = scene-local + ``meta.json`` ``world_offset``)
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -135,8 +136,6 @@ def check_resources(P: Preset, n_frames: int, out: Path, *, workers: int = 1) ->
     """:func:`estimate_resources` against free disk under ``out``'s parent and available memory;
     an :class:`~occufly.errors.OccuflyError` naming both figures when they do not fit (before
     anything is written: never a full disk or an out-of-memory kill halfway)."""
-    import shutil
-
     est = estimate_resources(P, n_frames, workers=workers)
     parent = Path(out).absolute().parent
     while not parent.exists():

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.camera import Camera
+from occufly.io.colmap import import_pycolmap
 
 
 def write_sparse_model(
@@ -25,8 +26,6 @@ def write_sparse_model(
     world-to-camera in WORLD (georeferenced) coordinates; points_world: (P, 3) float64;
     colors: (P, 3) uint8; tracks: per point (frame indices (k,) int, uv (k, 2) float64 pixels).
     """
-    from occufly.io.colmap import import_pycolmap
-
     pycolmap = import_pycolmap()
     rec = pycolmap.Reconstruction()
     # the camera's own COLMAP model (PINHOLE for the default scene, FULL_OPENCV with lens

@@ -25,7 +25,9 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from occufly.camera import project_world
 from occufly.grid import SceneGrid
 from occufly.synthetic.fuse import unique_inverse, unique_sorted
 from occufly.synthetic.world import World
@@ -124,8 +126,6 @@ def survey_views(world: World, origin: np.ndarray, dims: np.ndarray, voxel: floa
 
     poses: (4, 4) float64 local world-to-camera matrices; camera: :class:`occufly.camera.Camera`.
     """
-    from occufly.camera import project_world
-
     X, Y = _column_centres(origin, dims, voxel)
     pts = np.column_stack([X.ravel(), Y.ravel(), world.ground_z(X.ravel(), Y.ravel())])
     count = np.zeros(len(pts), np.int32)
@@ -138,8 +138,6 @@ def observed_columns(xy: np.ndarray, origin: np.ndarray, dims: np.ndarray, voxel
                      radius: float) -> np.ndarray:
     """(X, Y) bool: columns whose centre has a point of ``xy`` ((N, 2) local metres) within
     ``radius`` metres (plan view): one k-d tree query per column centre."""
-    from scipy.spatial import cKDTree
-
     X, Y = int(dims[0]), int(dims[1])
     if len(xy) == 0:
         return np.zeros((X, Y), bool)

@@ -173,7 +173,7 @@ class Env:
         job = r.json()
         self.app.state.ctx.jobs.wait(job["id"], timeout=60)
         j = self.client.get(f"/api/jobs/{job['id']}", headers=admin).json()
-        assert j["status"] == "done", j
+        assert j["status"] == "done", j.get("message") or j
         scene = self.client.get("/api/scenes", headers=admin).json()[-1]
         assert scene["status"] == "ready" and scene["n_frames"] == n_frames
         self.add_members(scene["id"], members, admin)

@@ -48,6 +48,7 @@ geometry and labels stay consistent; without an ``axes`` record the flip is refu
 
 from __future__ import annotations
 
+import importlib
 import random
 from pathlib import Path
 
@@ -188,8 +189,6 @@ class Register:
     is the registration; the callback methods do nothing."""
 
     def __init__(self, data_root: str | None = None, module: str = "ssc_pl.data.datasets") -> None:
-        import importlib
-
         if data_root is not None:
             _META.root = str(export_root(data_root))
         try:

@@ -170,7 +170,8 @@ def _pct(xs, q: float) -> float | None:
     return round(float(np.percentile(np.asarray(xs), q)), 3) if len(xs) else None
 
 
-def _lift_lag(url: str, submits: list[dict], t_stop: float, timeout: float) -> dict:
+def _lift_lag(url: str, submits: list[dict], t_stop: float, timeout: float,
+              fill_wait: float | None = None) -> dict:
     """Wait for the lifting queue to drain; per acknowledged submit: votes lag (queue entry
     created -> applied) and labels lag (-> first labels_updated event counting it)."""
     from sqlalchemy import create_engine, func, select
@@ -193,7 +194,9 @@ def _lift_lag(url: str, submits: list[dict], t_stop: float, timeout: float) -> d
         drain_s = time.monotonic() - t0
         from app.lifting.models import LiftStatus
 
-        while time.monotonic() - t0 < timeout:  # the last fills (debounced) publish labels
+        t_fill = time.monotonic()
+        fill_wait = timeout if fill_wait is None else fill_wait
+        while time.monotonic() - t_fill < fill_wait:  # the last fills publish their labels
             with eng.connect() as c:
                 busy = c.scalar(select(func.count()).select_from(LiftStatus).where(
                     LiftStatus.fill_state != "idle"))
@@ -323,8 +326,15 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         def put(c, fid: int, current: str, body: bytes, kind: str):  # noqa: ANN001, ANN202
             t0 = time.perf_counter()
             try:
-                r = c.put(f"/api/frames/{fid}/mask?kind={kind}", content=body,
-                          headers={"If-Match": current, "Content-Type": "image/png"})
+                try:
+                    r = c.put(f"/api/frames/{fid}/mask?kind={kind}", content=body,
+                              headers={"If-Match": current, "Content-Type": "image/png"})
+                except httpx.RemoteProtocolError:
+                    # the server closed an idle keep-alive connection as the request left
+                    # (uvicorn's 5 s keep-alive vs a 10-30 s cadence): sent again, as a
+                    # browser does; If-Match makes a repeat of an applied save a 409
+                    r = c.put(f"/api/frames/{fid}/mask?kind={kind}", content=body,
+                              headers={"If-Match": current, "Content-Type": "image/png"})
             except httpx.HTTPError as e:
                 with lock:
                     errors.append(f"PUT {kind}: {type(e).__name__} {e}")
@@ -343,7 +353,10 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
 
         def lease(c, i: int):  # noqa: ANN001, ANN202
             try:
-                r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
+                try:
+                    r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
+                except httpx.RemoteProtocolError:  # idle keep-alive closed: once more
+                    r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
                 if r.status_code != 200:
                     with lock:
                         errors.append(f"ann{i}: next {r.status_code} {r.text[:80]}")
@@ -447,7 +460,8 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         wall = time.monotonic() - t_start[0]
         cpu_used = cpu.used()
         submits = [x for x in saves if x["kind"] == "submitted"]
-        lift = _lift_lag(url, submits, wall, timeout=max(300.0, seconds * 3))
+        lift = _lift_lag(url, submits, wall, timeout=max(300.0, seconds * 3),
+                         fill_wait=30.0 if args.knee else None)  # the knee: votes lag
         cpu_total = cpu.used()  # including the drain
         lost = corrupted = 0
         with httpx.Client(base_url=base, timeout=300) as c:

@@ -16,6 +16,8 @@ from tests.e2e.test_browser import drag, wait_opened
 
 pytestmark = pytest.mark.e2e
 
+SUBMITTED: list[int] = []  # frames submitted by an earlier test (the reviewer's test opens one)
+
 
 @pytest.fixture(scope="module")
 def sid(live):
@@ -116,6 +118,7 @@ def test_prefill_warning_goes_with_an_undone_prefill(live, sid, new_page):
         return str(f1["id"]) in (st.get("filled_versions") or {}) and not st["pending_fill"]
 
     live.wait_until(filled, timeout=60, what="the first mask lifted and filled")
+    SUBMITTED.append(f1["id"])
     page = new_page("annotator")
     page.goto(f"{live.base_url}/#/annotate?scene={sid}")
     page.click("#next-frame")
@@ -126,3 +129,15 @@ def test_prefill_warning_goes_with_an_undone_prefill(live, sid, new_page):
     page.wait_for_selector("#prefill-warning", state="detached", timeout=5_000)
     page.click("#redo")
     page.wait_for_selector("#prefill-warning", timeout=5_000)
+
+
+def test_reviewer_accept_and_reject_are_above_the_fold_at_1440x900(live, sid, new_page):
+    assert SUBMITTED, "needs the frame the prefill test submitted"
+    page = new_page("reviewer", viewport=(1440, 900))
+    page.goto(f"{live.base_url}/#/review?scene={sid}&frame={SUBMITTED[0]}")
+    page.wait_for_selector("#accept")
+    page.wait_for_selector("#panels canvas")
+    for sel in ("#accept", "#reject", "#review-comment"):
+        box = page.locator(sel).bounding_box()
+        assert box and box["y"] >= 0 and box["y"] + box["height"] <= 900, (sel, box)
+    shot(page, "reviewer_1440x900")

@@ -1,7 +1,7 @@
-"""export provenance and quality (issue 23): the review list's ranking score
+"""independent review (issue 23): the review list's ranking score
 
-Revision ID: 0011
-Revises: 0010
+Revision ID: 0009
+Revises: 0008
 Create Date: 2026-12-03 13:20:00
 
 frames.review_score: the ranking score of the frame's mask (occufly.lifting.loo.review_score:
@@ -13,8 +13,8 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-revision = '0011'
-down_revision = '0010'
+revision = '0009'
+down_revision = '0008'
 branch_labels = None
 depends_on = None
 

@@ -198,7 +198,7 @@ def viewer_callbacks(ctx: AppContext) -> dict:
     def can_open(user, scene_id) -> bool:  # noqa: ANN001 - the dropdown of a reviewer
         """Whether ``user`` may see ``scene_id`` now: the user is read again (the ticket's
         copy is as old as the socket), so a demotion, deactivation or removal from the scene
-        ends an open viewer's access (ViewerService re-checks every client twice a second)."""
+        ends an open viewer's access (ViewerService re-checks every client 4 times a second)."""
         from app.deps import is_member
         from app.users.models import User
 

@@ -50,6 +50,7 @@ from app.storage import BlobStore
 from app.users.models import User
 from occufly.errors import OccuflyError
 from occufly.fsutil import PathNotConfined, atomic_directory, atomic_write_text, confined
+from occufly.workspace import Workspace
 
 FORMAT = "occufly-backup"
 VERSION = 2  # 2: external frame images (version-1 backups restore as before)
@@ -167,7 +168,7 @@ def _external_images(ws: Path) -> list[tuple[int, Path, str]]:
     """(frame index, resolved path, path as scene.json has it) of every frame image that is
     not inside the workspace folder ``ws`` (symlinks followed)."""
     try:
-        header = json.loads((ws / "scene.json").read_text())
+        header = json.loads(Workspace(ws).scene_json.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise BackupError(f"{ws}/scene.json: cannot be read ({e}); the workspace is damaged") \
             from None
@@ -256,7 +257,7 @@ def backup(settings: Settings, dest: Path, *, images: bool = True) -> dict:
             ws = Path(row["workspace"])
             if ws.is_dir() and not ws.is_symlink():
                 files = _copy_tree(ws, tmp / "scenes" / row["name"])
-                ext, missing_img, outside = ([], [], []) if not (ws / "scene.json").is_file() \
+                ext, missing_img, outside = ([], [], []) if not Workspace(ws).scene_json.is_file() \
                     else _backup_images(ws, tmp, copy=images, seen=seen,
                                         roots=[*settings.import_roots, settings.data_dir])
                 lost += [f"scene {row['name']!r} {m}" for m in missing_img]
@@ -301,7 +302,7 @@ def _restore_images(src: Path, ws: Path, entries: list[dict]) -> None:
     frames at them (relative paths: the workspace is self-contained from now on)."""
     if not entries:
         return
-    header_path = ws / "scene.json"
+    header_path = Workspace(ws).scene_json
     header = json.loads(header_path.read_text())
     (ws / RESTORED_IMAGES).mkdir(exist_ok=True)
     for e in entries:

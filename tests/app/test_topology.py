@@ -100,7 +100,7 @@ class Topology:
             log.close()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture  # one database per test: each test creates its own users and scenes
 def scratch_pg():
     with scratch_postgres("h6_topology") as url:
         yield url

@@ -111,8 +111,10 @@ def check_quota(*, session: Session, settings, user_id: int, kind: str) -> None:
 
 def create(*, session: Session, kind: str, scene_id: int | None, params: dict,
            user_id: int | None, key: str | None = None) -> Job:
+    # heartbeat_at now: a queued job no runner has claimed yet is not "lost" until STALE_S has
+    # passed -- a sweep between this commit and the runner's submit() would interrupt it
     job = Job(kind=kind, scene_id=scene_id, params=params, status="queued", created_by_id=user_id,
-              progress=0.0, message="queued", log="")
+              progress=0.0, message="queued", log="", heartbeat_at=utcnow())
     session.add(job)
     if key is not None and user_id is not None:
         session.flush()

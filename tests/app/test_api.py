@@ -530,6 +530,7 @@ def test_job_interrupted_by_restart_is_reported_and_resumable(env):
         job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
                           params={"source": str(src), "cloud": None, "depth_maps": None})
         job.status = "running"
+        job.heartbeat_at = None  # its runner never beat: it died before
         s.commit()
         jid = job.id
     env.restart()
@@ -544,6 +545,26 @@ def test_job_interrupted_by_restart_is_reported_and_resumable(env):
     assert env.client.get("/api/scenes", headers=adm).json()[0]["status"] == "ready"
     assert env.client.post(f"/api/jobs/{jid}/resume", headers=adm).status_code == 409
 
+
+
+def test_a_job_not_yet_claimed_is_not_swept_as_lost(env):
+    """A runner's periodic sweep that falls between a job's creation and its runner's
+    submit() (CI: an import 'lost its runner' and was interrupted) must leave it alone; the
+    same job, unclaimed for longer than the stale limit, is swept."""
+    from datetime import timedelta
+
+    from app.jobs import service as jobs
+    from app.jobs.models import Job
+    from app.db import utcnow
+
+    with env.app.state.ctx.sessions() as s:
+        job = jobs.create(session=s, kind="selection", scene_id=None, user_id=None, params={})
+        jid = job.id
+        assert jobs.mark_interrupted(session=s, stale_s=15.0, alive_owner="another:1:x") == []
+        assert s.get(Job, jid).status == "queued"
+        s.get(Job, jid).heartbeat_at = utcnow() - timedelta(seconds=60)
+        s.commit()
+        assert jobs.mark_interrupted(session=s, stale_s=15.0, alive_owner="another:1:x") == [jid]
 
 def test_selection_job_and_cancel(world):
     env, hdr, scene, _ = world

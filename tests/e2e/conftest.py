@@ -236,6 +236,24 @@ def new_page(browser, live, request):
     assert not errors, f"uncaught errors in the page: {errors}"
 
 
+def wait_js(page, expression: str, *, timeout: float = 20_000, arg=None):
+    """Wait until ``expression`` (a JS function or expression) is truthy in ``page``; returns
+    its value. Polls from Python with ``page.evaluate``: Playwright's ``wait_for_function``
+    re-runs its predicate from a requestAnimationFrame callback through ``eval``, which the
+    app's CSP (``script-src 'self'``, no ``'unsafe-eval'``) refuses whenever the predicate is
+    not true on its first, DevTools-initiated, call."""
+    t_end = time.monotonic() + timeout / 1000.0
+    last = None
+    while True:
+        last = page.evaluate(expression) if arg is None else page.evaluate(expression, arg)
+        if last:
+            return last
+        if time.monotonic() > t_end:
+            raise AssertionError(f"timed out after {timeout / 1000:g} s waiting for "
+                                 f"{expression!r} in the page (last value {last!r})")
+        page.wait_for_timeout(100)
+
+
 def login(page, live: Live, role: str) -> None:
     page.goto(f"{live.base_url}/#/login")
     page.fill("#username", role)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.e2e.conftest import PASSWORDS, shot
+from tests.e2e.conftest import PASSWORDS, shot, wait_js
 
 pytestmark = pytest.mark.e2e
 
@@ -50,7 +50,7 @@ def test_admin_assigns_members_and_reads_the_audit_log(live, new_page):
 
     # removing the member takes the scene away again
     page.click("#members button[aria-label='Remove teamnew']")
-    page.wait_for_function("() => ![...document.querySelectorAll('#members td')].some((td) => td.innerText.includes('teamnew'))")
+    wait_js(page, "() => ![...document.querySelectorAll('#members td')].some((td) => td.innerText.includes('teamnew'))")
     assert "teamnew" in page.locator("#member-add").inner_text()  # offered again
     assert uid not in {m["user_id"] for m in admin.get(f"/api/scenes/{sid}/members").json()}
     assert PASSWORDS  # the fixture's accounts are untouched

@@ -12,7 +12,7 @@ import re
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import grey_png, png_ids, shot
+from tests.e2e.conftest import grey_png, png_ids, shot, wait_js
 
 pytestmark = pytest.mark.e2e
 
@@ -36,7 +36,7 @@ def painted_share(page) -> float:
 
 
 def wait_opened(page, fid: int | None = None) -> int:
-    page.wait_for_function("() => window.__occufly && window.__occufly.page.stats.openMs !== null")
+    wait_js(page, "() => window.__occufly && window.__occufly.page.stats.openMs !== null")
     got = page.evaluate("() => window.__occufly.page.frame.id")
     if fid is not None:
         assert got == fid
@@ -144,7 +144,7 @@ def test_prefill_from_3d_on_neighbouring_frame(live, new_page):
     wait_opened(page, fb)
     assert painted_share(page) == 0.0
     page.click("#prefill")
-    page.wait_for_function("() => Number(document.querySelector('#painted').dataset.share) > 0")
+    wait_js(page, "() => Number(document.querySelector('#painted').dataset.share) > 0")
     ids = editor_ids(page)
     # exactly the server's rendering of the lifted labels, and it carries the painted class
     server = png_ids(admin.get(f"/api/frames/{fb}/prefill").content)
@@ -207,7 +207,7 @@ def test_conflict_dialog_keeps_both_versions(live, new_page):
     # the version history restores theirs as the newest version (and the editor shows it)
     page.click("details.versions summary")
     page.click(f".version-list li[data-version='{theirs_version}'] button:has-text('restore')")
-    page.wait_for_function(f"() => window.__occufly.page.version !== '{cur.headers['etag'].strip(chr(34))}' && window.__occufly.page.stats.openMs !== null")
+    wait_js(page, f"() => window.__occufly.page.version !== '{cur.headers['etag'].strip(chr(34))}' && window.__occufly.page.stats.openMs !== null")
     assert np.array_equal(editor_ids(page), theirs)
     assert np.array_equal(png_ids(rev.get(f"/api/frames/{fb}/mask").content), theirs)
 
@@ -368,7 +368,7 @@ def test_admin_export_job_completes(live, new_page):
 
     sel = live.wait_until(auto_selection, timeout=20, what="auto selection")
     assert 23.0 <= sel["cell"] <= 28.0 and len(sel["auto_cells"]) == 11
-    page.wait_for_function(f"document.querySelector('#sel-cell').value == '{sel['cell']:g}'", timeout=20_000)
+    wait_js(page, f"document.querySelector('#sel-cell').value == '{sel['cell']:g}'", timeout=20_000)
     assert page.locator("#sel-auto").is_checked()
     page.locator("#sec-selection").scroll_into_view_if_needed()
     shot(page, "12_admin_selection_best_cell")
@@ -433,7 +433,7 @@ def test_polygon_and_flood_fill_tools_in_the_page(live, new_page):
     cls2 = page.evaluate("() => window.__occufly.page.editor.state.classId")
     x, y = page.evaluate("() => window.__occufly.page.editor.view.toScreen(200.5, 140.5)")
     page.mouse.click(box["x"] + x, box["y"] + y)
-    page.wait_for_function(f"() => window.__occufly.page.editor.mask.ids.some((v) => v === {cls2})")
+    wait_js(page, f"() => window.__occufly.page.editor.mask.ids.some((v) => v === {cls2})")
     ids2 = editor_ids(page)
     assert ids2[140, 200] == cls2 and (ids2 == cls).sum() <= 80 * 60
     # two undo steps: flood fill, then the polygon

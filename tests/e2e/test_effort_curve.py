@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import ARTIFACTS, grey_png, import_own_scene, shot
+from tests.e2e.conftest import ARTIFACTS, grey_png, import_own_scene, shot, wait_js
 from tests.e2e.test_browser import drag, editor_ids, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -77,7 +77,7 @@ def test_admin_effort_curve_of_submissions_started_from_the_prefill(live, sid, n
     adm.goto(f"{live.base_url}/#/admin?scene={sid}")
     adm.wait_for_selector("#effort-plot")
     try:  # the page may draw a first, older answer before the refresh that holds both masks
-        adm.wait_for_function("document.querySelector('#effort-summary')?.innerText"
+        wait_js(adm, "document.querySelector('#effort-summary')?.innerText"
                               ".includes('2 submitted mask(s)')", timeout=15_000)
     except Exception:  # noqa: BLE001 - the assertion below reports what the page shows
         pass

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import grey_png, import_own_scene, shot
+from tests.e2e.conftest import grey_png, import_own_scene, shot, wait_js
 from tests.e2e.test_browser import wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -365,8 +365,8 @@ def test_reviewer_cannot_accept_a_mask_the_page_cannot_show(live, new_page):
     page.goto(f"{live.base_url}/#/review?scene={sid}")
     page.locator(f"#frame-list tr[data-frame='{f['id']}'] a").click()
     page.wait_for_selector("canvas[data-layer='image']")
-    page.wait_for_function("() => document.body.innerText.includes('16-bit')")
+    wait_js(page, "() => document.body.innerText.includes('16-bit')")
     page.click("#accept")
-    page.wait_for_function("() => document.getElementById('alert').innerText.includes('cannot be accepted')")
+    wait_js(page, "() => document.getElementById('alert').innerText.includes('cannot be accepted')")
     assert live.client("reviewer").get(f"/api/frames/{f['id']}").json()["state"] == "submitted"
     shot(page, "security_reviewer_unreadable_mask")

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 from sqlalchemy import update
 
-from tests.e2e.conftest import grant_members, shot
+from tests.e2e.conftest import grant_members, shot, wait_js
 from tests.e2e.test_browser import editor_ids, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -154,7 +154,7 @@ def test_scissors_polygon_snaps_to_the_edges_and_fills_the_block(live, sid, new_
     page.mouse.click(*at(page, mids[0][0] + 0.5, mids[0][1] + 0.5))
     # live preview to the cursor, snapped (it goes round the top-left corner)
     page.mouse.move(*at(page, mids[1][0] + 0.5, mids[1][1] + 0.5), steps=4)
-    page.wait_for_function(f"""() => {{ const p = window.__occufly.page.editor.tools.scissors.preview;
+    wait_js(page, f"""() => {{ const p = window.__occufly.page.editor.tools.scissors.preview;
         return p && p.to[0] === {mids[1][0]} && p.to[1] === {mids[1][1]}; }}""")
     pv = np.array(page.evaluate("() => window.__occufly.page.editor.tools.scissors.preview.path"))
     assert np.hypot(pv[:, 0] - 8, pv[:, 1] - 10).min() <= 1.5

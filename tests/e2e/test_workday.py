@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.e2e.conftest import grey_png, import_own_scene, png_ids, shot
+from tests.e2e.conftest import grey_png, import_own_scene, png_ids, shot, wait_js
 from tests.e2e.test_browser import drag, editor_ids, painted_share, wait_opened
 
 pytestmark = pytest.mark.e2e
@@ -89,7 +89,7 @@ def test_submit_makes_the_frame_read_only_with_reopen_and_per_frame_versions(liv
     shot(page, "17_01_submitted_read_only")
     # reopen (nobody reviewed it yet): editable again, the next save is version 3
     page.click("#reopen")
-    page.wait_for_function("() => !document.querySelector('#readonly-banner') && window.__occufly.page.stats.openMs !== null")
+    wait_js(page, "() => !document.querySelector('#readonly-banner') && window.__occufly.page.stats.openMs !== null")
     assert live.client("admin").get(f"/api/frames/{fid}").json()["state"] == "in_progress"
     page.locator(".layer-overlay").focus()
     page.keyboard.press("b")
@@ -231,7 +231,7 @@ def test_prefill_clicked_while_the_next_frame_loads_is_bound_to_its_frame(live, 
     held = []
     page.route(f"**/api/frames/{fresh}/image*", lambda route: held.append(route))
     page.evaluate(f"() => {{ window.__occufly.page.openOrExplain({fresh}); }}")
-    page.wait_for_function("() => true")
+    wait_js(page, "() => true")
     for _ in range(100):
         if held:
             break
@@ -311,7 +311,7 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     # zoom readout and the minimap follow the view
     z0 = page.locator("#zoom-level").inner_text()
     page.keyboard.press("+")
-    page.wait_for_function(f"() => document.querySelector('#zoom-level').textContent !== '{z0}'")
+    wait_js(page, f"() => document.querySelector('#zoom-level').textContent !== '{z0}'")
     assert re.fullmatch(r"\d+ %", page.locator("#zoom-level").inner_text())
     assert page.locator("#minimap").is_visible()
     # '?' shows the key help
@@ -321,7 +321,7 @@ def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid
     page.keyboard.press("Escape")
     # Skip: released, and the next frame is another one
     page.click("#skip")
-    page.wait_for_function(f"() => window.__occufly.page.frame && window.__occufly.page.frame.id !== {fa} && window.__occufly.page.stats.openMs !== null")
+    wait_js(page, f"() => window.__occufly.page.frame && window.__occufly.page.frame.id !== {fa} && window.__occufly.page.stats.openMs !== null")
     fb = wait_opened(page)
     assert fb != fa
     assert live.client("admin").get(f"/api/frames/{fa}").json()["assignee"] is None
@@ -443,7 +443,7 @@ def test_reviewer_legend_linked_zoom_and_hotkeys_with_auto_advance(live, sid, ne
     b = c0.bounding_box()
     page.mouse.move(b["x"] + b["width"] / 2, b["y"] + b["height"] / 2)
     page.mouse.wheel(0, -300)
-    page.wait_for_function("() => window.__occufly_review && window.__occufly_review.view.z > 1")
+    wait_js(page, "() => window.__occufly_review && window.__occufly_review.view.z > 1")
     # every panel shows the same zoomed window: the same image pixel sits under each centre
     fits = page.evaluate("""() => { const p = window.__occufly_review;
         return p.canvases.map(({c}) => { const f = p.fitOf(c); return [(c.width / 2 - f.ox) / f.s, (c.height / 2 - f.oy) / f.s]; }); }""")
@@ -451,7 +451,7 @@ def test_reviewer_legend_linked_zoom_and_hotkeys_with_auto_advance(live, sid, ne
     order = [int(r.get_attribute("data-frame")) for r in page.locator("#frame-list tr[data-frame]").all()]
     cur = order.index(done[0])
     page.keyboard.press("a")
-    page.wait_for_function(f"() => window.__occufly_review.frameId !== {done[0]} && window.__occufly_review.frame && window.__occufly_review.frame.id !== {done[0]}")
+    wait_js(page, f"() => window.__occufly_review.frameId !== {done[0]} && window.__occufly_review.frame && window.__occufly_review.frame.id !== {done[0]}")
     assert live.client("reviewer").get(f"/api/frames/{done[0]}").json()["state"] == "accepted"
     assert page.evaluate("() => window.__occufly_review.frameId") != done[0]
     assert cur < len(order)
@@ -499,13 +499,13 @@ def test_open_in_3d_flies_to_the_frame_and_scene_grid_before_voxelize_says_so(li
         time.sleep(0.2)
     assert np.linalg.norm(to_cam) < near
     assert float(np.dot(to_cam / np.linalg.norm(to_cam), T[:3, 2])) > 0.9
-    page.wait_for_function(f"() => document.body.innerText.includes('{fr.stem}')", timeout=30_000)
+    wait_js(page, f"() => document.body.innerText.includes('{fr.stem}')", timeout=30_000)
     # no grid before voxelize: ticking "Scene grid" explains it and unticks
     assert st.data.grid is None
     page.get_by_text("Voxel grids").click()
     box = page.locator("div.mantine-Flex-root", has=page.get_by_text("Scene grid")).locator("input").last
     box.evaluate("e => e.click()")  # the server unticks it at once, so no .check()
-    page.wait_for_function("() => document.body.innerText.includes('no voxel grid yet')", timeout=15_000)
+    wait_js(page, "() => document.body.innerText.includes('no voxel grid yet')", timeout=15_000)
     assert st.gui["grid_scene"].value is False and not st.grid_handles
     assert "no voxel grid yet" in st.gui["grid_info"].content  # the note stays under the box
     shot(page, "17_08_viewer_open_in_3d")

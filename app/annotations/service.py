@@ -223,8 +223,11 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         h, w = mask.shape
         # stored canonically (issue 24): the decoded class ids re-encoded as an 8-bit PNG
         # without ancillary chunks -- bytes after IEND, text chunks, palettes, 16-bit or
-        # colour encodings of the upload are never kept
-        data = masks.encode_mask_png(mask)
+        # colour encodings of the upload are never kept. An upload that is canonical already
+        # (the editor's: 8-bit grey, IHDR/IDAT/IEND, nothing after the stream) is kept as it
+        # is -- it decodes to the same ids -- which saves the re-encode (issue 29: save p95)
+        if not masks.is_canonical_mask_png(data, mask.shape):
+            data = masks.encode_mask_png(mask)
         check_storage_quota(session, ctx, frame, user, len(data))
         sha256 = ctx.store.put(data)
         nbytes = len(data)

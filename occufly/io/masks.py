@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -226,6 +227,68 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(mask)).save(buf, format="PNG", compress_level=6)
     return buf.getvalue()
+
+
+
+_PNG_SIG = b"\x89PNG\r\n\x1a\n"
+
+
+def is_canonical_mask_png(data: bytes, shape: tuple[int, int]) -> bool:
+    """True when ``data`` is already what :func:`encode_mask_png` stands for: an 8-bit
+    greyscale, non-interlaced PNG of ``shape`` (H, W) made of IHDR, IDAT... and IEND only,
+    every CRC right, one zlib stream inflating to exactly the image's filtered rows with no
+    byte after it, and nothing after IEND. The editor's uploads are; storing them as they
+    are saves the re-encode (about 0.1 s of a 12 MP save's CPU). Anything else -- ancillary
+    chunks, padding after IEND or after the zlib stream, other bit depths or colour types --
+    is False, and the caller re-encodes it. Call it on bytes that already decoded."""
+    h, w = int(shape[0]), int(shape[1])
+    n = len(data)
+    if n < 8 + 25 + 12 or data[:8] != _PNG_SIG:
+        return False
+    pos = 8
+    seen_ihdr = seen_idat = False
+    inflater = zlib.decompressobj()
+    expect = h * (w + 1)  # one filter byte per row
+    out = 0
+    while pos + 12 <= n:
+        (length,) = struct.unpack_from(">I", data, pos)
+        kind = data[pos + 4:pos + 8]
+        end = pos + 12 + length
+        if end > n:
+            return False
+        body = data[pos + 8:pos + 8 + length]
+        (crc,) = struct.unpack_from(">I", data, pos + 8 + length)
+        if zlib.crc32(kind + body) & 0xFFFFFFFF != crc:
+            return False
+        if not seen_ihdr:
+            if kind != b"IHDR" or length != 13:
+                return False
+            iw, ih, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", body)
+            if (iw, ih, depth, colour, comp, filt, interlace) != (w, h, 8, 0, 0, 0, 0):
+                return False
+            seen_ihdr = True
+        elif kind == b"IDAT":
+            if inflater.eof:
+                return False  # IDAT after the stream ended: padding
+            seen_idat = True
+            try:  # counted in bounded pieces, never held whole
+                chunk = inflater.decompress(body, 1 << 20)
+                while True:
+                    out += len(chunk)
+                    if out > expect:
+                        return False
+                    if not inflater.unconsumed_tail:
+                        break
+                    chunk = inflater.decompress(inflater.unconsumed_tail, 1 << 20)
+            except zlib.error:
+                return False
+        elif kind == b"IEND":
+            return (seen_idat and length == 0 and end == n and inflater.eof
+                    and not inflater.unused_data and out == expect)
+        else:
+            return False  # any other chunk (ancillary or not) is not kept
+        pos = end
+    return False
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> None:

@@ -84,6 +84,37 @@ def test_masks_are_stored_canonically(world):
     assert env.client.get(f"/api/frames/{fid}/mask", headers=a).content == clean
 
 
+
+def test_an_upload_that_is_canonical_already_is_stored_as_it_is(world):
+    """Issue 29 (save CPU): the editor's uploads are 8-bit grey PNGs with IHDR/IDAT/IEND only;
+    they are kept byte for byte instead of being re-encoded (here: deflate level 1, which the
+    server's encoder would have turned into other bytes). The same bytes with 5 KB after the
+    zlib stream inside IDAT are re-encoded."""
+    import io
+
+    env, hdr, scene, _ = world
+    fid = _lease(env, hdr, scene)
+    a = hdr["annotator"]
+    ids = np.asarray(Image.open(io.BytesIO(mask_png(6))))
+    b = io.BytesIO()
+    Image.fromarray(ids).save(b, format="PNG", compress_level=1)
+    fast = b.getvalue()
+    assert fast != mask_png(6)
+    r = env.client.put(f"/api/frames/{fid}/mask", content=fast, headers={**a, "If-Match": "none"})
+    assert r.status_code == 200, r.text
+    assert r.json()["sha256"] == hashlib.sha256(fast).hexdigest()
+    assert env.client.get(f"/api/frames/{fid}/mask", headers=a).content == fast
+    raw = b"".join(b"\x00" + ids[i].tobytes() for i in range(ids.shape[0]))
+    padded = (fast[:8] + _chunk(b"IHDR", struct.pack(">IIBBBBB", ids.shape[1], ids.shape[0], 8, 0, 0,
+                                                     0, 0))
+              + _chunk(b"IDAT", zlib.compress(raw) + b"\x00" * 5000) + _chunk(b"IEND", b""))
+    r = env.client.put(f"/api/frames/{fid}/mask", content=padded,
+                       headers={**a, "If-Match": f'"{r.json()["version"]}"'})
+    assert r.status_code == 200, r.text
+    got = env.client.get(f"/api/frames/{fid}/mask", headers=a).content
+    assert len(got) < len(padded) - 4000 and np.array_equal(
+        np.asarray(Image.open(io.BytesIO(got))), ids)
+
 def test_per_user_quota_counts_conflicts(world):
     """The per-user quota: saves beyond it are 507 naming the quota and nothing is stored;
     conflict versions (a lost lease, a stale If-Match) count toward it."""

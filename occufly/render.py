@@ -388,18 +388,23 @@ def agreement_from_counts(full: np.ndarray, taxonomy: Taxonomy) -> dict:
     per_class = {}
     rows, cols_ = conf.truth_counts(), conf.pred_counts()
     ious = conf.class_iou()
+    # every painted pixel of a class, labelled in the rendering or not: a class painted where
+    # the rendering has no label is listed too (its figures None: nothing to compare with)
+    painted_rows = np.asarray(full, np.int64)[1:conf.C + 1, :].sum(axis=1)
     for i, c in enumerate(taxonomy.classes):
-        if rows[i] == 0 and cols_[i] == 0:
+        if rows[i] == 0 and cols_[i] == 0 and painted_rows[i] == 0:
             continue
         tp = int(cm[i, i])
+        compared = rows[i] > 0 or cols_[i] > 0
         per_class[c.name] = {
             "id": c.id,
-            "mask_pixels": int(rows[i]),
+            "mask_pixels": int(rows[i]),  # painted pixels with a rendered label (compared)
+            "painted_pixels": int(painted_rows[i]),  # all painted pixels of the class
             "rendered_pixels": int(cols_[i]),
             "agree": tp,
             "recall": tp / int(rows[i]) if rows[i] else None,
             "precision": tp / int(cols_[i]) if cols_[i] else None,
-            "iou": float(ious[i]),
+            "iou": float(ious[i]) if compared else None,
         }
     return {
         "agreement": agree / pixels if pixels else None,

@@ -76,7 +76,26 @@ def test_agreement_counts_match_a_plain_reference():
         if pc is None:
             continue
         assert pc["mask_pixels"] == int((both & (mask == c.id)).sum())
+        assert pc["painted_pixels"] == int((mask == c.id).sum())
         assert pc["agree"] == int((both & (mask == c.id) & (ren == c.id)).sum())
+    assert {v["id"] for v in res["per_class"].values() if v["painted_pixels"]} == set(np.unique(mask[is_cls]).tolist())
+
+
+def test_a_class_nobody_else_sees_is_listed_with_no_figures():
+    """A frame whose painting the rendering does not label anywhere (no independent views):
+    every painted class is still listed, with its painted pixels and no recall / IoU."""
+    from occufly.render import agreement
+
+    mask = np.zeros((40, 50), np.uint8)
+    a, b = (int(c.id) for c in TAX.classes[:2])
+    mask[:10], mask[20:25] = a, b
+    res = agreement(mask, np.zeros_like(mask), TAX)
+    assert res["pixels"] == 0 and res["agreement"] is None
+    got = {v["id"]: v for v in res["per_class"].values()}
+    assert set(got) == {a, b}
+    assert got[a]["painted_pixels"] == 500 and got[b]["painted_pixels"] == 250
+    for v in got.values():
+        assert v["mask_pixels"] == 0 and v["recall"] is None and v["iou"] is None
 
 
 def test_one_pass_counts_equal_separate_agreements():

@@ -423,19 +423,21 @@ class ReviewerPage {
         ? el(
             "details",
             { id: "per-class" },
-            el("summary", {}, "Agreement per class"),
+            el("summary", {}, lonely ? "Agreement per class (not enough independent views)" : "Agreement per class"),
+            lonely ? el("p", { class: "muted", id: "per-class-lonely" }, "Other frames see too little of what this frame painted: the figures below compare only the pixels they do see, and a class no other frame sees has none (–).") : null,
             table(
               perClass
                 .map(([k, v]) => ({ k, ...(typeof v === "object" && v ? v : { iou: v }), cls: classOf(k, v) }))
-                .sort((x, y) => (y.mask_pixels ?? 0) - (x.mask_pixels ?? 0)),
+                .sort((x, y) => (y.painted_pixels ?? y.mask_pixels ?? 0) - (x.painted_pixels ?? x.mask_pixels ?? 0)),
               [
                 { key: "k", label: "Class", fmt: (k, r) => el("span", { class: "class-cell" }, r.cls ? el("span", { class: "swatch", style: { background: `rgb(${r.cls.rgb.join(",")})` } }) : null, r.cls ? r.cls.name : k) },
-                { key: "mask_pixels", label: "Painted px", fmt: (v) => (v == null ? "–" : Number(v).toLocaleString()) },
+                { key: "painted_pixels", label: "Painted px", fmt: (v, r) => Number(v ?? r.mask_pixels ?? 0).toLocaleString() },
+                { key: "mask_pixels", label: "Seen by others px", fmt: (v) => (v == null ? "–" : Number(v).toLocaleString()) },
                 { key: "recall", label: "Recall", fmt: (v) => pct(v) },
                 { key: "precision", label: "Precision", fmt: (v) => pct(v) },
                 { key: "iou", label: "IoU", fmt: (v) => pct(v) },
               ],
-              { caption: "Recall: share of the painted pixels of the class the 3D labels agree with; precision: share of the rendered pixels of the class the painting agrees with." },
+              { caption: "Against the labels the other frames decide (leave-one-out). Seen by others: painted pixels where the other frames give a label. Recall: share of those the 3D labels agree with; precision: share of the rendered pixels of the class the painting agrees with." },
             ),
           )
         : null,

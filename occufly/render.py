@@ -360,10 +360,12 @@ def agreement(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxonomy) -> dic
 
     Counts pixels where the mask has a class (not 0 / 255) and the rendering has one (not 0).
     Returns {"agreement", "pixels", "agree", "mask_pixels", "coverage" (share of mask-labelled
-    pixels the rendering covers), "miou", "per_class": {name: {mask_pixels, rendered_pixels,
+    pixels the rendering covers), "miou", "per_class": {name: {mask_pixels (painted pixels the
+    rendering labels), painted_pixels (all painted pixels of the class), rendered_pixels,
     agree, recall, precision, iou}}, "confusion": {"ids": [...], "matrix": C x C list, rows =
     mask}}. Counted by :class:`occufly.confusion.Confusion` (mask = reference); classes absent
-    from both are left out of ``per_class`` and the mIoU (its absent-class rule).
+    from both are left out of the mIoU (its absent-class rule) and of ``per_class``, unless
+    painted where the rendering has no label: then listed with recall and iou None.
     """
     mask, rendered = _check_pair(mask, rendered)
     conf = Confusion(taxonomy.ids)
@@ -378,7 +380,10 @@ def agreement_from_counts(full: np.ndarray, taxonomy: Taxonomy) -> dict:
     renderings of one mask are counted in one pass by
     :func:`occufly.confusion.count_pairs_many`)."""
     conf = Confusion(taxonomy.ids)
-    mask_px = int(full[1:conf.C + 1, :].sum())
+    # every painted pixel of each class, labelled in the rendering or not: a class painted
+    # where the rendering has no label is listed too (its figures None: nothing to compare)
+    painted_rows = np.asarray(full, np.int64)[1:conf.C + 1, :].sum(axis=1)
+    mask_px = int(painted_rows.sum())
     both = np.zeros_like(full)
     both[1:conf.C + 1, 1:conf.C + 1] = full[1:conf.C + 1, 1:conf.C + 1]
     conf.merge_counts(both)
@@ -388,11 +393,8 @@ def agreement_from_counts(full: np.ndarray, taxonomy: Taxonomy) -> dict:
     per_class = {}
     rows, cols_ = conf.truth_counts(), conf.pred_counts()
     ious = conf.class_iou()
-    # every painted pixel of a class, labelled in the rendering or not: a class painted where
-    # the rendering has no label is listed too (its figures None: nothing to compare with)
-    painted_rows = np.asarray(full, np.int64)[1:conf.C + 1, :].sum(axis=1)
     for i, c in enumerate(taxonomy.classes):
-        if rows[i] == 0 and cols_[i] == 0 and painted_rows[i] == 0:
+        if painted_rows[i] == 0 and cols_[i] == 0:  # rows[i] <= painted_rows[i]
             continue
         tp = int(cm[i, i])
         compared = rows[i] > 0 or cols_[i] > 0

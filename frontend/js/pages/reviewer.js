@@ -374,7 +374,7 @@ class ReviewerPage {
     this.panelsEl = el("div", { class: `panels mode-${this.mode}`, id: "panels" });
     this.comment = el("textarea", { id: "review-comment", rows: 3, placeholder: "Comment (click the image to pin it to a pixel)" });
     this.pinText = el("span", { id: "pin-text" }, "No pixel pinned: click on any panel to pin.");
-    // per_class is keyed by class name: {id, mask_pixels, rendered_pixels, agree, recall, precision, iou}
+    // per_class is keyed by class name: {id, mask_pixels (seen by others), painted_pixels, rendered_pixels, agree, recall, precision, iou}
     const perClass = a.per_class && typeof a.per_class === "object" ? Object.entries(a.per_class) : [];
     const classOf = (key, v) => this.classes.find((c) => (v && v.id != null ? c.id === v.id : c.name === key)) || null;
     this.detailEl.replaceChildren(
@@ -428,10 +428,10 @@ class ReviewerPage {
             table(
               perClass
                 .map(([k, v]) => ({ k, ...(typeof v === "object" && v ? v : { iou: v }), cls: classOf(k, v) }))
-                .sort((x, y) => (y.painted_pixels ?? y.mask_pixels ?? 0) - (x.painted_pixels ?? x.mask_pixels ?? 0)),
+                .sort((x, y) => y.painted_pixels - x.painted_pixels),
               [
                 { key: "k", label: "Class", fmt: (k, r) => el("span", { class: "class-cell" }, r.cls ? el("span", { class: "swatch", style: { background: `rgb(${r.cls.rgb.join(",")})` } }) : null, r.cls ? r.cls.name : k) },
-                { key: "painted_pixels", label: "Painted px", fmt: (v, r) => Number(v ?? r.mask_pixels ?? 0).toLocaleString() },
+                { key: "painted_pixels", label: "Painted px", fmt: (v) => Number(v).toLocaleString() },
                 { key: "mask_pixels", label: "Seen by others px", fmt: (v) => (v == null ? "–" : Number(v).toLocaleString()) },
                 { key: "recall", label: "Recall", fmt: (v) => pct(v) },
                 { key: "precision", label: "Precision", fmt: (v) => pct(v) },

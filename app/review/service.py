@@ -229,6 +229,9 @@ def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
             # done / dismissed marks are stored against it)
             r["key"] = f"p{int(pts.min())}" if len(pts) else f"r{r['id']}"
             r["class_names"] = {k: names.get(int(k), k) for k in r["classes"]}
+            if r["kind"] == "island":
+                r["island_of_name"] = names.get(r["island_of"], str(r["island_of"]))
+                r["inside_name"] = names.get(r["inside"], str(r["inside"]))
             r["n_frames"] = len(r["frames"])
             r["frames"] = r["frames"][:50]
             r["outline"] = _outline(ws_scene, views, r["best_frame"], pts)

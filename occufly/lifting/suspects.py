@@ -13,7 +13,14 @@ is a suspect with its size, classes (final labels and vote majorities), the fram
 (from the visibility) and the one that sees most of it, its bounding box and centroid. Ranked
 by size. Everything is vectorised over the points and the correspondences.
 
-Small islands of one class inside another are not flagged yet.
+*Islands* (:func:`find_islands`) are the third kind: a small group of voxels (at most
+``island_max_voxels``) that is a whole 26-connected component of its class (no voxel of the
+same class touches it from outside) and whose bordering occupied voxels -- at least
+``island_min_border`` of them -- are at least ``island_share`` one other class. A 2 m patch of
+road in the middle of a lawn is one. Classes of the ``instance`` group (vehicles, people, ...)
+are small objects on another class by nature and are not islands; nor is anything that spans
+more voxels than an island may. Voxels are labelled by the majority of their points, so a
+single stray point inside a voxel does not make an island.
 """
 
 from __future__ import annotations
@@ -34,6 +41,10 @@ class SuspectParams:
     voxel: float = 1.0
     min_points: int = 10
     max_suspects: int = 200
+    island_max_voxels: int = 6
+    island_min_border: int = 6
+    island_share: float = 0.9
+    island_min_points: int = 3
 
 
 def flag_points(votes: np.ndarray, labels: np.ndarray, cls: ClassColumns,
@@ -56,10 +67,9 @@ def flag_points(votes: np.ndarray, labels: np.ndarray, cls: ClassColumns,
     return contested, overridden
 
 
-def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
-                  params: SuspectParams | None = None) -> list[dict]:
-    """Ranked suspects (largest first) of a scene; see the module docstring."""
-    p = params or SuspectParams()
+def _flag_clusters(scene: Scene, votes: np.ndarray, labels: np.ndarray,
+                   p: SuspectParams) -> list[dict]:
+    """Clusters of contested / overridden points, largest first (module docstring)."""
     cls = ClassColumns(scene.taxonomy)
     contested, overridden = flag_points(votes, labels, cls, p)
     flagged = np.flatnonzero(contested | overridden)
@@ -89,7 +99,7 @@ def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     p_cl, p_fr = pairs // vis.n_frames, pairs % vis.n_frames
     lab_all = np.asarray(labels)[flagged]
     out = []
-    for rank, c in enumerate(keep.tolist()):  # one entry per kept cluster (<= max_suspects)
+    for c in keep.tolist():  # one entry per kept cluster (<= max_suspects)
         m = cid == c
         pts = xyz[m]
         sel = p_cl == c
@@ -97,7 +107,8 @@ def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
         order = np.argsort(-cnt, kind="stable")
         cl_ids, cl_n = np.unique(lab_all[m], return_counts=True)
         out.append({
-            "id": rank + 1, "points": int(m.sum()),
+            "kind": "contested" if contested[flagged[m]].any() else "overridden",
+            "points": int(m.sum()),
             "contested": int(contested[flagged[m]].sum()),
             "overridden": int(overridden[flagged[m]].sum()),
             "classes": {str(int(k)): int(v) for k, v in zip(cl_ids, cl_n, strict=True)},
@@ -107,6 +118,152 @@ def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
             "bbox": [[float(v) for v in pts.min(0)], [float(v) for v in pts.max(0)]],
             "point_ids": flagged[m].astype(np.int64),
         })
+    return out
+
+
+def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
+                  params: SuspectParams | None = None) -> list[dict]:
+    """Ranked suspects (largest first) of a scene: clusters of contested / overridden points
+    and small islands (see the module docstring); an island most of whose points already lie
+    in a contested cluster is not listed twice. Each has ``id`` (its rank, 1-based) and
+    ``kind`` ("contested", "overridden" or "island")."""
+    p = params or SuspectParams()
+    rows = _flag_clusters(scene, votes, labels, p)
+    if rows:
+        in_cluster = np.concatenate([r["point_ids"] for r in rows])
+    else:
+        in_cluster = np.zeros(0, np.int64)
+    cls = ClassColumns(scene.taxonomy)
+    contested, overridden = flag_points(votes, labels, cls, p)
+    for isl in find_islands(scene.xyz, labels, p, exempt=scene.taxonomy.group_ids("instance")):
+        pts = isl["point_ids"]
+        if np.isin(pts, in_cluster).mean() > 0.5:
+            continue
+        xyz = np.asarray(scene.xyz[pts], np.float64)
+        fr, cnt = _frames_seeing(scene, pts)
+        rows.append({
+            "kind": "island", "points": int(len(pts)),
+            "contested": int(contested[pts].sum()), "overridden": int(overridden[pts].sum()),
+            "classes": {str(isl["class"]): int(len(pts))},
+            "island_of": isl["class"], "inside": isl["inside"],
+            "frames": [int(f) for f in fr], "best_frame": int(fr[0]) if len(fr) else None,
+            "centroid": [float(v) for v in xyz.mean(0)],
+            "bbox": [[float(v) for v in xyz.min(0)], [float(v) for v in xyz.max(0)]],
+            "point_ids": pts,
+        })
+    rows.sort(key=lambda r: -r["points"])  # stable: clusters before islands of equal size
+    rows = rows[: p.max_suspects]
+    for rank, r in enumerate(rows):
+        r["id"] = rank + 1
+    return rows
+
+
+def _frames_seeing(scene: Scene, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames that see any of the sorted point ids ``pts``, most points first, and counts."""
+    vis = scene.visibility
+    ent_pts = np.asarray(vis.point_ids, np.int64)
+    hit = np.isin(ent_pts, pts)
+    fr, cnt = np.unique(vis.frames_of_entries()[hit], return_counts=True)
+    order = np.argsort(-cnt, kind="stable")
+    return fr[order], cnt[order]
+
+
+_OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                     if (a, b, c) != (0, 0, 0)], np.int64)
+
+
+def find_islands(xyz: np.ndarray, labels: np.ndarray, p: SuspectParams,
+                 chunk: int = 32_768, exempt: np.ndarray | None = None) -> list[dict]:
+    """Small islands of one class inside another (module docstring) ->
+    [{"class", "inside", "voxels", "border", "point_ids" (sorted int64)}], largest first.
+
+    Works on the occupied voxels only (sorted keys, 26 neighbour lookups per voxel, chunked),
+    so memory scales with the labelled points, not with the scene's extent. ``exempt``: class
+    ids that are never islands (their voxels still border others)."""
+    labels = np.asarray(labels)
+    idx = np.flatnonzero(labels > 0)
+    if len(idx) < p.island_min_points:
+        return []
+    pts = np.asarray(xyz[idx], np.float64)
+    v = np.floor((pts - pts.min(0)) / p.voxel).astype(np.int64) + 1  # 1-voxel pad
+    d1, d2 = int(v[:, 1].max()) + 2, int(v[:, 2].max()) + 2
+    key = (v[:, 0] * d1 + v[:, 1]) * d2 + v[:, 2]
+    lab = labels[idx].astype(np.int64)
+    # each voxel's majority label (ties: the smaller id)
+    u, cnt = np.unique(key * 256 + lab, return_counts=True)
+    uk, ul = u >> 8, u & 255
+    order = np.lexsort((ul, -cnt, uk))
+    vk, first = np.unique(uk[order], return_index=True)
+    vlab = ul[order][first]
+    m = len(vk)
+    offs = (_OFFSETS[:, 0] * d1 + _OFFSETS[:, 1]) * d2 + _OFFSETS[:, 2]
+    half = offs > 0  # each undirected edge once
+
+    def neighbours(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        nb = vk[sel, None] + offs[None, :]
+        pos = np.minimum(np.searchsorted(vk, nb), m - 1)
+        return pos, vk[pos] == nb
+
+    # connected components of same-class voxels (26-connected), edges gathered chunk by chunk
+    src, dst = [], []
+    for a in range(0, m, chunk):
+        sel = np.arange(a, min(m, a + chunk))
+        pos, found = neighbours(sel)
+        e = found & half[None, :] & (vlab[pos] == vlab[sel, None])
+        r, c = np.nonzero(e)
+        src.append(sel[r].astype(np.int32))
+        dst.append(pos[r, c].astype(np.int32))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    src_a, dst_a = np.concatenate(src), np.concatenate(dst)
+    g = coo_matrix((np.ones(len(src_a), np.int8), (src_a, dst_a)), shape=(m, m))
+    del src, dst, src_a, dst_a
+    ncomp, comp = connected_components(g, directed=False)
+    size = np.bincount(comp, minlength=ncomp)
+    cand = np.flatnonzero(size[comp] <= p.island_max_voxels)  # voxels of small components
+    if not len(cand):
+        return []
+    # each small component's border: its voxels' occupied neighbours of another class (a
+    # neighbour two of its voxels share is counted once per voxel), and the class most of it is
+    pos, found = neighbours(cand)
+    other = found & (vlab[pos] != vlab[cand, None])
+    r, c = np.nonzero(other)
+    pair = comp[cand[r]].astype(np.int64) * 256 + vlab[pos[r, c]]
+    pu, pn = np.unique(pair, return_counts=True)
+    pcomp = pu >> 8
+    border = np.bincount(pcomp, weights=pn, minlength=ncomp)
+    o = np.lexsort((-pn, pcomp))
+    pc_, firsts = np.unique(pcomp[o], return_index=True)
+    sur = np.zeros(ncomp, np.int64)
+    wmax = np.zeros(ncomp)
+    sur[pc_] = (pu & 255)[o][firsts]
+    wmax[pc_] = pn[o][firsts]
+    share = wmax / np.maximum(border, 1)
+    ok = (size <= p.island_max_voxels) & (border >= p.island_min_border) \
+        & (share >= p.island_share)
+    if exempt is not None and len(exempt):
+        comp_lab = np.zeros(ncomp, np.int64)
+        comp_lab[comp] = vlab
+        ok &= ~np.isin(comp_lab, np.asarray(exempt, np.int64))
+    good = np.flatnonzero(ok)
+    if not len(good):
+        return []
+    pv = np.searchsorted(vk, key)  # voxel of every labelled point
+    pcomp = comp[pv]
+    keep = ok[pcomp] & (lab == vlab[pv])
+    out = []
+    kp, kc = idx[keep], pcomp[keep]
+    srt = np.argsort(kc, kind="stable")
+    kp, kc, kl = kp[srt], kc[srt], lab[keep][srt]
+    bounds = np.searchsorted(kc, good)
+    ends = np.searchsorted(kc, good, side="right")
+    for g_, s0, s1 in zip(good.tolist(), bounds.tolist(), ends.tolist(), strict=True):
+        if s1 - s0 < p.island_min_points:
+            continue
+        out.append({"class": int(kl[s0]), "inside": int(sur[g_]),
+                    "voxels": int(size[g_]), "border": int(border[g_]),
+                    "point_ids": np.sort(kp[s0:s1]).astype(np.int64)})
+    out.sort(key=lambda r: -len(r["point_ids"]))
     return out
 
 

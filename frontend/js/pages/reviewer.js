@@ -165,6 +165,13 @@ class ReviewerPage {
         list,
         [
           { key: "id", label: "#", fmt: (v) => `${v}` },
+          {
+            key: "kind",
+            label: "Kind",
+            fmt: (v, r) => (v === "island"
+              ? el("span", { class: "suspect-kind island", title: "a small patch of one class surrounded by another (no frame contests it)" }, `island of ${r.island_of_name} in ${r.inside_name}`)
+              : el("span", { class: `suspect-kind ${v}`, title: v === "contested" ? "frames' votes disagree here" : "the fill or denoise overrode the votes here" }, v === "contested" ? "votes disagree" : "fill overrode votes")),
+          },
           { key: "points", label: "Points", fmt: (v, r) => el("span", { title: `${r.contested} points with contested votes, ${r.overridden} where the fill or denoise overrode the votes` }, Number(v).toLocaleString()) },
           {
             key: "classes",

@@ -6,7 +6,7 @@ from app.corrections.models import CorrectionEdit, MaskProposal, Notification
 from app.db import Base
 from app.jobs.models import Job
 from app.lifting.models import Event, LiftQueueEntry, LiftStatus
-from app.review.models import ReviewComment, ReviewItem
+from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.models import Frame, Scene, SceneMember
 from app.users.models import AuthToken, LoginThrottle, User
 
@@ -14,4 +14,4 @@ metadata = Base.metadata
 
 __all__ = ["AuditEvent", "CorrectionEdit", "MaskProposal", "Notification", "AuthToken", "Event", "Frame", "Job", "LiftQueueEntry", "LiftStatus",
            "LoginThrottle", "MaskVersion",
-           "ReviewComment", "ReviewItem", "Scene", "SceneMember", "User", "metadata"]
+           "ReviewComment", "ReviewItem", "Scene", "SuspectMark", "SceneMember", "User", "metadata"]

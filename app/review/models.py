@@ -2,7 +2,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from sqlalchemy import JSON, DateTime, ForeignKey, Integer, String, Text
+from sqlalchemy import JSON, DateTime, ForeignKey, Integer, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
 from app.db import Base, utcnow
@@ -37,3 +37,20 @@ class ReviewComment(Base):
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     text: Mapped[str] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+
+
+class SuspectMark(Base):
+    """A reviewer's verdict on one suspect (contested region) of a scene: done (looked at and
+    fixed) or dismissed (nothing wrong). Shared by the scene's reviewers; ``key`` is the
+    suspect's stable key (its smallest point id, ``p<id>``), so a mark survives re-rankings."""
+
+    __tablename__ = "suspect_marks"
+    __table_args__ = (UniqueConstraint("scene_id", "key", name="uq_suspect_marks_scene_id_key"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    scene_id: Mapped[int] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    key: Mapped[str] = mapped_column(String(32))
+    status: Mapped[str] = mapped_column(String(16))
+    author_id: Mapped[int | None] = mapped_column(
+        ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
+    updated_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)

@@ -17,6 +17,7 @@ from app.review.schemas import (
     ReviewDecisionIn,
     ReviewItemIn,
     ReviewItemOut,
+    SuspectMarkIn,
 )
 from app.scenes import service as scenes
 from app.scenes.models import Scene
@@ -33,6 +34,7 @@ ACCESS = {
     "GET /api/frames/{fid}/disagreement": "reviewer",
     "GET /api/frames/{fid}/agreement": "reviewer",
     "GET /api/scenes/{sid}/suspects": "reviewer",
+    "PUT /api/scenes/{sid}/suspects/{key}/mark": "reviewer",
     "POST /api/frames/{fid}/review": "reviewer",
     "GET /api/scenes/{sid}/review-items": "member",
     "POST /api/scenes/{sid}/review-items": "reviewer",
@@ -61,6 +63,24 @@ def disagreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: Revie
 def suspects(scene: SceneDep, ctx: CtxDep, _user: ReviewerUser):
     """Contested regions of the scene's labels, largest first (issue 23)."""
     return service.suspects(ctx, scene)
+
+
+SuspectKey = Annotated[str, Path(pattern=r"^[pr][0-9]{1,12}$",
+                                  description="the suspect's key from GET .../suspects")]
+
+
+@router.put("/scenes/{sid}/suspects/{key}/mark")
+def mark_suspect(key: SuspectKey, body: SuspectMarkIn, scene: SceneDep, session: SessionDep,
+                 user: ReviewerUser, ip: ClientIp):
+    """Mark a suspect done / dismissed (shared by the scene's reviewers), or clear the mark
+    (``status`` null); the same mark twice is a no-op."""
+    before = service.suspect_marks(session, scene.id).get(key)
+    mark = service.set_suspect_mark(session=session, scene=scene, key=key, status=body.status,
+                                    user=user)
+    if (before and before["status"]) != (mark and mark["status"]):
+        audit.record(session, "suspect_mark", actor=user, scene_id=scene.id, target=key,
+                     client_ip=ip, detail={"status": body.status})
+    return {"key": key, "mark": mark}
 
 
 @router.get("/frames/{fid}/agreement", response_model=AgreementOut)

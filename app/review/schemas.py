@@ -3,7 +3,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from app.limits import Count, Id, text
 
@@ -73,3 +73,10 @@ class AgreementOut(BaseModel):
     pixels: int  # = independent_pixels
     per_class: dict[str, object]  # from the LOO rendering
     version: int
+
+
+class SuspectMarkIn(BaseModel):
+    """A reviewer's verdict on a suspect: done, dismissed, or null to reopen it."""
+
+    model_config = ConfigDict(extra="forbid")
+    status: Literal["done", "dismissed"] | None

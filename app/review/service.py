@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 from sqlalchemy import or_, select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app import pipeline
@@ -20,7 +21,7 @@ from app.context import AppContext
 from app.db import utcnow
 from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
-from app.review.models import ReviewComment, ReviewItem
+from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.lifting import LiftState
@@ -241,13 +242,56 @@ def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
     rows = _CACHE.get(key, compute)[:limit]
     with ctx.sessions() as s:
         fid = dict(s.execute(select(Frame.index, Frame.id).where(Frame.scene_id == scene.id)).all())
+        marks = suspect_marks(s, scene.id)
     out = []
     for r in rows:
         r = dict(r)
         r["frame_ids"] = [fid.get(i) for i in r["frames"]]
         r["best_frame_id"] = fid.get(r["best_frame"]) if r["best_frame"] is not None else None
+        r["mark"] = marks.get(r["key"])
         out.append(r)
-    return {"scene_id": scene.id, "n": len(out), "suspects": out}
+    n_open = sum(r["mark"] is None for r in out)
+    return {"scene_id": scene.id, "n": len(out), "n_open": n_open, "suspects": out}
+
+
+SUSPECT_MARKS = ("done", "dismissed")
+
+
+def suspect_marks(session: Session, scene_id: int) -> dict[str, dict]:
+    """{suspect key: {"status", "by", "at"}} of a scene's marked suspects."""
+    rows = session.execute(
+        select(SuspectMark, User.username).outerjoin(User, User.id == SuspectMark.author_id)
+        .where(SuspectMark.scene_id == scene_id)).all()
+    return {m.key: {"status": m.status, "by": name, "at": m.updated_at.isoformat() + "Z"}
+            for m, name in rows}
+
+
+def set_suspect_mark(session: Session, *, scene: Scene, key: str, status: str | None,
+                     user: User) -> dict | None:
+    """Mark suspect ``key`` of ``scene`` done / dismissed, or clear its mark (``status`` None).
+    The same mark again is a no-op (who set it and when stay). Returns the mark now held."""
+    if status is not None and status not in SUSPECT_MARKS:
+        raise Invalid(f"status: expected one of {', '.join(SUSPECT_MARKS)} or null, got {status!r}")
+    m = session.execute(select(SuspectMark).where(
+        SuspectMark.scene_id == scene.id, SuspectMark.key == key)).scalar_one_or_none()
+    if status is None:
+        if m is not None:
+            session.delete(m)
+            session.commit()
+        return None
+    if m is None:
+        m = SuspectMark(scene_id=scene.id, key=key, status=status, author_id=user.id,
+                        updated_at=utcnow())
+        session.add(m)
+    elif m.status != status:
+        m.status, m.author_id, m.updated_at = status, user.id, utcnow()
+    else:
+        return suspect_marks(session, scene.id)[key]
+    try:
+        session.commit()
+    except IntegrityError:  # two reviewers marked it at once: the first one's mark stands
+        session.rollback()
+    return suspect_marks(session, scene.id).get(key)
 
 
 def _outline(ws_scene, views: dict, frame_index: int | None, pts: np.ndarray) -> list:  # noqa: ANN001

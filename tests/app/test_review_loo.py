@@ -87,6 +87,58 @@ def test_suspects_route(world):
     assert set(top["class_names"].values()) <= {"road", "grass"}
     assert len(top["outline"]) >= 3
     assert all(0 <= x <= W and 0 <= y <= H for x, y in top["outline"])
+    assert top["kind"] == "contested" and top["mark"] is None and r.json()["n_open"] == len(sus)
+
+
+def test_suspect_marks_are_shared_and_idempotent(world):
+    from sqlalchemy import func, select
+
+    from app.audit.models import AuditEvent
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
+        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=20, include_fill=True)
+    key = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"]).json()[
+        "suspects"][0]["key"]
+    url = f"/api/scenes/{sid}/suspects/{key}/mark"
+    assert env.client.put(url, json={"status": "done"}, headers=hdr["annotator"]).status_code == 403
+    assert env.client.put(url, json={"status": "done"}).status_code == 401
+    for bad in ({"status": "fixed"}, {"status": "done", "extra": 1}, {}):
+        r = env.client.put(url, json=bad, headers=hdr["reviewer"])
+        assert r.status_code == 422, (bad, r.text)
+    for bad_key in ("x1", "p", "p1234567890123", "p1;drop", "..%2Fp1"):
+        r = env.client.put(f"/api/scenes/{sid}/suspects/{bad_key}/mark", json={"status": "done"},
+                           headers=hdr["reviewer"])
+        assert 400 <= r.status_code < 500, (bad_key, r.status_code)  # 405: a routed-away path
+    assert env.client.put(f"/api/scenes/999999/suspects/{key}/mark", json={"status": "done"},
+                          headers=hdr["reviewer"]).status_code == 404
+
+    def n_audit() -> int:
+        with env.app.state.ctx.sessions() as s:
+            return s.execute(select(func.count()).select_from(AuditEvent).where(
+                AuditEvent.action == "suspect_mark")).scalar_one()
+
+    r = env.client.put(url, json={"status": "done"}, headers=hdr["reviewer"])
+    assert r.status_code == 200, r.text
+    m = r.json()["mark"]
+    assert m["status"] == "done" and m["by"] == "reviewer"
+    # the same mark again is a no-op: no second audit event, who and when unchanged
+    r2 = env.client.put(url, json={"status": "done"}, headers=hdr["admin"])
+    assert r2.json()["mark"] == m and n_audit() == 1
+    # another reviewer (the admin) sees it in the list
+    got = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["admin"]).json()
+    top = next(s for s in got["suspects"] if s["key"] == key)
+    assert top["mark"] == m and got["n_open"] == got["n"] - 1
+    # changed by the admin, then reopened
+    r = env.client.put(url, json={"status": "dismissed"}, headers=hdr["admin"])
+    assert r.json()["mark"]["status"] == "dismissed" and r.json()["mark"]["by"] == "admin"
+    r = env.client.put(url, json={"status": None}, headers=hdr["reviewer"])
+    assert r.status_code == 200 and r.json()["mark"] is None and n_audit() == 3
+    assert next(s for s in env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"])
+                .json()["suspects"] if s["key"] == key)["mark"] is None
 
 
 def test_half_painted_frame_ranks_first(world):

@@ -156,3 +156,8 @@ def test_review_ranking_not_enough_views_and_suspects(live, new_page):
     page.reload()
     page.wait_for_selector(f"#suspects-list tr.marked.done[data-suspect='{first['key']}']")
     shot(page, "review_ranking_suspects_done")
+    # the mark is on the server: another reviewer (here the admin) sees who marked it
+    seen = {s["key"]: s["mark"] for s in
+            live.client("admin").get(f"/api/scenes/{sid}/suspects").json()["suspects"]}
+    assert seen[first["key"]]["status"] == "done"
+    assert seen[first["key"]]["by"] == rev.get("/api/auth/me").json()["username"]

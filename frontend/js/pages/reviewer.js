@@ -106,27 +106,51 @@ class ReviewerPage {
   }
 
   // ---- suspects (issue 23): contested regions, worked through like the frame list ----------
-  marksKey() {
+  /** Where an earlier version of this page kept this reviewer's marks (localStorage). */
+  legacyMarksKey() {
     const se = this.ctx.session;
     const u = (se && se.user && se.user.username) || "anonymous";
     return `occufly.suspects.${u}.${this.sceneSel.value}`;
   }
 
-  /** This reviewer's done / dismissed marks of the scene's suspects (kept in this browser). */
-  marks() {
+  /** Marks kept in this browser by the page before they moved to the server: sent once (where
+   * the server has none for that suspect), then removed here. */
+  async moveLegacyMarks(sid) {
+    let local;
     try {
-      return JSON.parse(localStorage.getItem(this.marksKey()) || "{}") || {};
+      local = JSON.parse(localStorage.getItem(this.legacyMarksKey()) || "null");
     } catch {
-      return {};
+      local = null;
     }
+    if (!local || typeof local !== "object") return false;
+    let moved = 0;
+    for (const s of this.suspects || []) {
+      const st = local[s.key];
+      if (!s.mark && (st === "done" || st === "dismissed")) {
+        const r = await api.put(`/scenes/${sid}/suspects/${encodeURIComponent(s.key)}/mark`, { status: st }).catch(() => null);
+        if (r) {
+          s.mark = r.mark;
+          moved++;
+        }
+      }
+    }
+    localStorage.removeItem(this.legacyMarksKey());
+    if (moved) toast(`${moved} suspect mark${moved === 1 ? "" : "s"} from this browser moved to the server.`);
+    return moved > 0;
   }
 
-  mark(s, status) {
-    const m = this.marks();
-    if (status) m[s.key] = status;
-    else delete m[s.key];
-    localStorage.setItem(this.marksKey(), JSON.stringify(m));
-    this.renderSuspects();
+  /** Mark suspect `s` done / dismissed, or reopen it (`status` null); shared with the scene's
+   * other reviewers. The button is disabled while the request is pending. */
+  async mark(s, status, btn) {
+    if (btn) btn.disabled = true;
+    try {
+      const r = await api.put(`/scenes/${this.sceneSel.value}/suspects/${encodeURIComponent(s.key)}/mark`, { status });
+      for (const x of this.suspects || []) if (x.key === s.key) x.mark = r.mark;
+      this.renderSuspects();
+    } catch (e) {
+      if (btn) btn.disabled = false;
+      toast(`Could not mark the suspect: ${e.message}`);
+    }
   }
 
   async loadSuspects() {
@@ -138,6 +162,7 @@ class ReviewerPage {
       const sc = await api.get(`/scenes/${sid}`).catch(() => null);
       this.suspectClasses = (sc && sc.taxonomy && sc.taxonomy.classes) || this.classes || [];
       this.suspects = (r && r.suspects) || [];
+      await this.moveLegacyMarks(sid);
       this.renderSuspects();
     } catch (e) {
       this.suspects = [];
@@ -147,8 +172,7 @@ class ReviewerPage {
 
   /** Open suspects first (by rank), then the ones marked done or dismissed. */
   orderedSuspects() {
-    const m = this.marks();
-    const list = (this.suspects || []).map((s) => ({ ...s, mark: m[s.key] || null }));
+    const list = this.suspects || [];
     return [...list.filter((s) => !s.mark), ...list.filter((s) => s.mark)];
   }
 
@@ -191,14 +215,14 @@ class ReviewerPage {
               el("button", { type: "button", class: "link suspect-2d", disabled: r.best_frame_id == null, title: "Open the frame that sees it best, region outlined", onclick: () => this.openSuspect(r) }, "2D"),
               r.best_frame_id != null ? el("a", { class: "suspect-3d", href: `/viewer/?scene=${this.sceneSel.value}&frame=${r.best_frame_id}`, target: "_blank", rel: "noopener", title: "Open the 3D viewer at the camera that sees it best" }, "3D") : null,
               r.mark
-                ? el("button", { type: "button", class: "link", onclick: () => this.mark(r, null) }, `${r.mark} · undo`)
-                : [el("button", { type: "button", class: "link suspect-done", title: "Mark done (you looked at it and fixed what was wrong)", onclick: () => this.mark(r, "done") }, "✓ done"), el("button", { type: "button", class: "link suspect-dismiss", title: "Dismiss (nothing wrong there)", onclick: () => this.mark(r, "dismissed") }, "✗")],
+                ? el("button", { type: "button", class: "link suspect-undo", title: `${r.mark.status} by ${r.mark.by || "a former user"}, ${new Date(r.mark.at).toLocaleString()}; click to reopen`, onclick: (e) => this.mark(r, null, e.currentTarget) }, `${r.mark.status}${r.mark.by ? ` by ${r.mark.by}` : ""} · undo`)
+                : [el("button", { type: "button", class: "link suspect-done", title: "Mark done (you looked at it and fixed what was wrong)", onclick: (e) => this.mark(r, "done", e.currentTarget) }, "✓ done"), el("button", { type: "button", class: "link suspect-dismiss", title: "Dismiss (nothing wrong there)", onclick: (e) => this.mark(r, "dismissed", e.currentTarget) }, "✗")],
             ),
           },
         ],
         {
-          caption: `${list.length} contested regions, largest first; ${open} open. Done / dismissed marks are yours, kept in this browser.`,
-          rowAttrs: (r) => ({ "data-suspect": r.key, class: [r.mark ? `marked ${r.mark}` : "", this.suspect && this.suspect.key === r.key ? "current" : ""].join(" ").trim() }),
+          caption: `${list.length} contested regions, largest first; ${open} open. Done / dismissed marks are shared with the scene's reviewers.`,
+          rowAttrs: (r) => ({ "data-suspect": r.key, class: [r.mark ? `marked ${r.mark.status}` : "", this.suspect && this.suspect.key === r.key ? "current" : ""].join(" ").trim() }),
         },
       ),
     );

@@ -195,6 +195,18 @@ def viewer_callbacks(ctx: AppContext) -> dict:
             return s.scalar(select(Frame.index).where(Frame.scene_id == int(scene_id),
                                                       Frame.id == int(frame_id)))
 
+    def suspect_points(scene_id, key):  # noqa: ANN001, ANN202 - ?suspect=<key> -> point ids
+        from app.review.service import suspect_points as points
+
+        if not str(scene_id).isdigit() or len(str(scene_id)) >= 10:
+            return None
+        with ctx.sessions() as s:
+            scene = s.get(Scene, int(scene_id))
+            if scene is None:
+                return None
+            s.expunge(scene)
+        return points(ctx, scene, str(key))
+
     def can_open(user, scene_id) -> bool:  # noqa: ANN001 - the dropdown of a reviewer
         """Whether ``user`` may see ``scene_id`` now: the user is read again (the ticket's
         copy is as old as the socket), so a demotion, deactivation or removal from the scene
@@ -218,7 +230,7 @@ def viewer_callbacks(ctx: AppContext) -> dict:
 
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
             "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx),
-            "frame_index": frame_index, "can_open": can_open,
+            "frame_index": frame_index, "suspect_points": suspect_points, "can_open": can_open,
             "corrections": viewer_hooks(ctx)}
 
 
@@ -242,6 +254,7 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     mount(app, settings=ctx.settings, authorize=authorize_viewer(ctx), **kw)
     if getattr(app.state, "viewer", None) is not None:  # resolves "Open in 3D" (?frame=<id>)
         app.state.viewer.frame_index = hooks["frame_index"]
+        app.state.viewer.suspect_points = hooks["suspect_points"]
 
 
 def _mount_frontend(app: FastAPI, settings: Settings) -> None:

@@ -240,7 +240,7 @@ def export_result(plan: dict) -> dict:
 
 
 # ---- the scene's quality (GET /api/scenes/{sid}/quality) -----------------------------------
-_CACHE: dict[tuple[int, str], dict] = {}
+_CACHE: dict[tuple[int, str, str], dict] = {}
 _CACHE_LOCK = threading.Lock()
 _CACHE_MAX = 8
 
@@ -251,19 +251,25 @@ def _cache_file(ctx: AppContext, scene_id: int) -> Path:
 
 def scene_quality(ctx: AppContext, scene: Scene) -> dict:
     """The quality report of the scene's live labels (every voting version), cached per
-    labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections) in this process
-    and in ``<data dir>/cache/quality/scene_<id>.json`` (shared by the API processes, kept
-    over restarts): computing it takes one local k-NN per annotated frame."""
+    labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections) and point truth
+    file in this process and in ``<data dir>/cache/quality/scene_<id>.json`` (shared by the
+    API processes, kept over restarts): computing it takes one local k-NN per annotated
+    frame."""
     ws = Path(scene.workspace)
     stamp = Workspace(ws).stamp()
-    key = (scene.id, stamp)
+    try:  # the truth kept with a workspace can arrive later (the calibration then shows)
+        tst = (Workspace(ws).truth_dir / lifting_quality.TRUTH_POINTS).stat()
+        truth_key = f"{tst.st_mtime_ns}:{tst.st_size}"
+    except OSError:
+        truth_key = "-"
+    key = (scene.id, stamp, truth_key)
     with _CACHE_LOCK:
         hit = _CACHE.get(key)
     if hit is None:
         try:
             stored = json.loads(_cache_file(ctx, scene.id).read_text())
-            hit = stored if stored.get("labels_stamp") == stamp else None
-        except (OSError, ValueError):
+            hit = stored.get("report") if stored.get("key") == [stamp, truth_key] else None
+        except (OSError, ValueError, AttributeError):
             hit = None
         if hit is not None:
             with _CACHE_LOCK:
@@ -279,7 +285,7 @@ def scene_quality(ctx: AppContext, scene: Scene) -> dict:
     try:
         f = _cache_file(ctx, scene.id)
         f.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(f, json.dumps(q))
+        atomic_write_text(f, json.dumps({"key": [stamp, truth_key], "report": q}))
     except OSError:  # a read-only data dir: the in-process cache still holds it
         pass
     with _CACHE_LOCK:

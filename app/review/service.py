@@ -203,10 +203,9 @@ def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None =
                 f["status"] == "not_enough_independent_views" for f in per_frame)}
 
 
-def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
-    """Ranked contested regions of the scene's labels (:mod:`occufly.lifting.suspects`);
-    each with its size, classes, the frames that see it (frame ids and indices), the best
-    frame, bounding box and centroid (scene-local metres)."""
+def _suspect_rows(ctx: AppContext, scene: Scene) -> list[dict]:
+    """Every suspect of the scene's current labels, ranked, with its point ids (``_points``),
+    cached per stamp of the votes, labels and corrections."""
     w = Workspace(scene.workspace)
     key = ("suspects", str(scene.workspace),
            _stamp(w.votes, w.labels_path, w.labels_stats_path, w.corrections_dir / "overrides.npz"))
@@ -236,22 +235,47 @@ def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
             r["n_frames"] = len(r["frames"])
             r["frames"] = r["frames"][:50]
             r["outline"] = _outline(ws_scene, views, r["best_frame"], pts)
+            r["_points"] = np.asarray(pts, np.int64)  # for the 3D jump (suspect_points)
             out.append(r)
         return out
 
-    rows = _CACHE.get(key, compute)[:limit]
+    return _CACHE.get(key, compute)
+
+
+def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:
+    """Ranked contested regions of the scene's labels (:mod:`occufly.lifting.suspects`);
+    each with its size, classes, the frames that see it (frame ids and indices), the best
+    frame, bounding box and centroid (scene-local metres)."""
+    rows = _suspect_rows(ctx, scene)[:limit]
     with ctx.sessions() as s:
         fid = dict(s.execute(select(Frame.index, Frame.id).where(Frame.scene_id == scene.id)).all())
         marks = suspect_marks(s, scene.id)
     out = []
     for r in rows:
-        r = dict(r)
+        r = {k: v for k, v in r.items() if k != "_points"}
         r["frame_ids"] = [fid.get(i) for i in r["frames"]]
         r["best_frame_id"] = fid.get(r["best_frame"]) if r["best_frame"] is not None else None
         r["mark"] = marks.get(r["key"])
         out.append(r)
     n_open = sum(r["mark"] is None for r in out)
     return {"scene_id": scene.id, "n": len(out), "n_open": n_open, "suspects": out}
+
+
+def suspect_points(ctx: AppContext, scene: Scene, key: str) -> np.ndarray | None:
+    """The point ids (sorted int64) of the suspect ``key`` of the scene's current ranking
+    (the 3D viewer selects them: ``/viewer/?scene=&frame=&suspect=``); None when no suspect
+    of the current labels has that key (the labels changed since the list was read) or the
+    scene has no labels yet."""
+    if not Workspace(scene.workspace).has_labels():
+        return None
+    try:
+        rows = _suspect_rows(ctx, scene)
+    except NotFound:
+        return None
+    for r in rows:
+        if r.get("key") == key:
+            return np.sort(np.asarray(r["_points"], np.int64))
+    return None
 
 
 SUSPECT_MARKS = ("done", "dismissed")

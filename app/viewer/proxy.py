@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 
 SCENE_COOKIE = "occufly_viewer_scene"
 FRAME_COOKIE = "occufly_viewer_frame"  # ?frame= of the page: the viewer flies to that camera
+SUSPECT_COOKIE = "occufly_viewer_suspect"  # ?suspect= of the page: the viewer selects its points
+_SUSPECT_KEY = re.compile(r"^[pr][0-9]{1,12}$")
 SESSION_COOKIE = "occufly_session"
 POLICY_VIOLATION = 1008
 _CTRL = re.compile(r"[\x00-\x1f\x7f]")  # never in a file name viser serves
@@ -150,7 +152,8 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                                          "user); close one")
             return
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
-        ticket = service.issue_ticket(user, scene_id, websocket.cookies.get(FRAME_COOKIE))
+        ticket = service.issue_ticket(user, scene_id, websocket.cookies.get(FRAME_COOKIE),
+                                      suspect=websocket.cookies.get(SUSPECT_COOKIE))
         stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
                  "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)
@@ -187,6 +190,12 @@ def _remember_scene(resp: Response, request: Request, prefix: str) -> None:
                         secure=secure)
     else:  # a page without ?frame= must not fly to the last one
         resp.delete_cookie(FRAME_COOKIE, path=prefix)
+    suspect = request.query_params.get("suspect")
+    if suspect and _SUSPECT_KEY.match(suspect):
+        resp.set_cookie(SUSPECT_COOKIE, suspect, path=prefix, httponly=True, samesite="lax",
+                        secure=secure)
+    else:  # nor select the last page's suspect
+        resp.delete_cookie(SUSPECT_COOKIE, path=prefix)
 
 
 def _user_name(user: Any) -> str | None:

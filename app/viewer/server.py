@@ -61,6 +61,7 @@ class Ticket:
     scene_id: str | None
     expires: float
     frame: str | None = None  # ?frame= of the page: fly to that camera on connect
+    suspect: str | None = None  # ?suspect= of the page: select that suspect's points
 
 
 @dataclass
@@ -141,6 +142,9 @@ class ViewerService:
         # frame_index(scene_id, frame) -> frame index or None: resolves the page's ?frame=
         # (the app's frame id); without it ?frame= is a frame index or a frame's stem
         self.frame_index: Callable[[str, str], int | None] | None = None
+        # suspect_points(scene_id, key) -> point ids or None: the page's ?suspect= (a key of
+        # GET /api/scenes/{sid}/suspects) is selected on connect, ready to relabel
+        self.suspect_points: Callable[[str, str], Any] | None = None
         self.on_review_item = on_review_item
         # relabel / undo / redo / stack hooks of the app's corrections service (issue 25)
         self.corrections = corrections
@@ -218,14 +222,15 @@ class ViewerService:
             self._clients.clear()
 
     # ---- tickets ---------------------------------------------------------------------------
-    def issue_ticket(self, user: Any, scene_id: str | None, frame: str | None = None) -> str:
+    def issue_ticket(self, user: Any, scene_id: str | None, frame: str | None = None, *,
+                     suspect: str | None = None) -> str:
         """A one-time token the proxy sends upstream; valid for :data:`TICKET_TTL_S`."""
         tok = secrets.token_urlsafe(24)
         now = time.monotonic()
         with self._lock:
             for k in [k for k, t in self._tickets.items() if t.expires < now]:
                 del self._tickets[k]
-            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S, frame)
+            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S, frame, suspect)
         return tok
 
     def _take_ticket(self, client_id: int) -> Ticket | None:
@@ -307,6 +312,8 @@ class ViewerService:
                     st.gui["cam_info"].content = f"Frame {md_text(ticket.frame)} is not in this scene."
                 else:
                     self.focus_frame(st, idx)
+            if ticket is not None and ticket.suspect and st.data is not None:
+                self.select_suspect(st, ticket.suspect)
         else:
             st.gui["status"].content = "No scene has been imported yet."
             st.ready.set()
@@ -683,6 +690,43 @@ class ViewerService:
             cam.position = tuple(c - back * fwd + 0.3 * back * up)
             cam.look_at = tuple(c + 20.0 * fwd)
         self.highlight_frustum(st, frame_index)
+
+    def select_suspect(self, st: ClientState, key: str) -> np.ndarray:
+        """Select the points of the scene's suspect ``key`` (highlighted, counted by class,
+        ready to relabel or file as a review item); a key the current ranking no longer
+        has (the labels changed) says so and selects nothing."""
+        ids = None
+        if self.suspect_points is not None and st.scene_id is not None:
+            try:
+                ids = self.suspect_points(st.scene_id, key)
+            except Exception:  # noqa: BLE001 - a lookup failure is a note, not a dead viewer
+                log.exception("viewer: suspect_points(%s, %s)", st.scene_id, key)
+        n = st.data.scene.n_points if st.data is not None else 0
+        if ids is None:
+            st.gui["sel_info"].content = (f"Suspect {md_text(key)} is not in the current list "
+                                          "(the labels changed): reopen it from the Suspects tab.")
+            return np.zeros(0, np.int64)
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        ids = np.unique(ids[(ids >= 0) & (ids < n)])
+        with st.lock:
+            st.selection = ids
+        st.gui["sel_info"].content = f"Suspect {md_text(key)}: **{len(ids):,}** points selected."
+        corrections_panel.after_selection(self, st)  # highlight + counts by class, relabel
+        if len(ids):  # the region in the middle of the view, seen along the frame's axis
+            xyz = np.asarray(st.data.scene.xyz[ids], np.float64)
+            c = xyz.mean(axis=0)
+            size = float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0)))
+            d = max(4.0 * size, 0.15 * sb.scene_extent(st.data))
+            if st.frame_index is not None:
+                T = np.linalg.inv(np.asarray(st.data.scene.frames[st.frame_index].T_cam_world,
+                                             np.float64))
+                fwd = T[:3, 2]
+            else:
+                fwd = np.array([0.0, 0.0, -1.0])
+            with st.client.atomic():
+                st.client.camera.position = tuple(float(v) for v in c - d * fwd)
+                st.client.camera.look_at = tuple(float(v) for v in c)
+        return ids
 
     def highlight_frustum(self, st: ClientState, frame_index: int | None) -> None:
         if (frame_index is not None and frame_index not in st.frustum_handles

@@ -5,6 +5,7 @@ the section go to docs/screenshots/ (the admin guide shows them)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -72,11 +73,20 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
         shutil.copyfile(truth, Path(ws) / "truth" / "point_labels.npy")
 
     page = new_page("admin", viewport=(1366, 900))
-    page.goto(f"{live.base_url}/#/admin?scene={sid}")
-    # the quality section: the API's figures on the page
-    q = admin.get(f"/api/scenes/{sid}/quality").json()
+    # the quality section: the API's figures on the page, for the same labels (a fill that
+    # lands between the page's request and ours changes the report: the page is read again)
     sec = page.locator("#sec-quality")
-    sec.locator("tr[data-figure='loo']").wait_for()
+    t_end = time.monotonic() + 120
+    while True:
+        page.goto(f"{live.base_url}/#/admin?scene={sid}")
+        page.reload()
+        sec.locator("tr[data-figure='loo']").wait_for()
+        q = admin.get(f"/api/scenes/{sid}/quality").json()
+        shown = sec.locator("div.quality").get_attribute("data-stamp")
+        if shown == q["labels_stamp"] or time.monotonic() > t_end:
+            break
+        time.sleep(1.0)
+    assert shown == q["labels_stamp"], "the labels kept changing after the fill"
     assert q["annotated_frames"] == 2
     lo = q["loo"]["agreement"]
     txt = sec.locator("tr[data-figure='loo']").inner_text()

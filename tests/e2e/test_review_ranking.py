@@ -5,9 +5,11 @@ regions and each opens the frame that sees it best with the region outlined, or 
 and a reviewer marks them done.
 
 Screenshots (looked at): docs/screenshots/reviewer_not_enough_views.png,
-reviewer_list.png, reviewer_suspects.png, reviewer_suspect_2d.png."""
+reviewer_list.png, reviewer_suspects.png, reviewer_suspect_2d.png, viewer_suspect.png."""
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 import pytest
@@ -126,8 +128,31 @@ def test_review_ranking_not_enough_views_and_suspects(live, new_page):
 
     first = next((s for s in with_outline if small(s)), with_outline[0])
     row = page.locator(f"#suspects-list tr[data-suspect='{first['key']}']")
-    assert row.locator("a.suspect-3d").get_attribute("href") == \
-        f"/viewer/?scene={sid}&frame={first['best_frame_id']}"
+    href = row.locator("a.suspect-3d").get_attribute("href")
+    assert href == f"/viewer/?scene={sid}&frame={first['best_frame_id']}&suspect={first['key']}"
+    # 3D: the viewer opens at the best frame's camera with the region's points selected
+    # (highlighted, counted, ready to relabel): as many as the list says, inside its box
+    svc = live.app.state.viewer
+    before = {id(c) for c in svc.client_states()}
+    vp = new_page("reviewer", viewport=(1200, 800))
+    vp.goto(f"{live.base_url}{href}")
+    t_end = time.monotonic() + 90
+    st = None
+    while time.monotonic() < t_end and st is None:
+        st = next((c for c in svc.client_states() if id(c) not in before and c.ready.is_set()
+                   and c.scene_id == str(sid) and len(c.selection)), None)
+        time.sleep(0.2)
+    assert st is not None, "the viewer never selected the suspect's points"
+    assert len(st.selection) == first["points"], (len(st.selection), first["points"])
+    xyz = np.asarray(st.data.scene.xyz)[st.selection]
+    lo, hi = np.asarray(first["bbox"][0]), np.asarray(first["bbox"][1])
+    assert (xyz >= lo - 1e-3).all() and (xyz <= hi + 1e-3).all()
+    assert st.highlighted == next(f["index"] for f in frames if f["id"] == first["best_frame_id"])
+    assert f"{first['points']:,}" in st.gui["counts"].content
+    assert st.gui["relabel_btn"].disabled is False
+    vp.wait_for_timeout(3000)
+    vp.screenshot(path=str(DOCS / "viewer_suspect.png"))
+    vp.close()
     row.locator("button.suspect-2d").click()
     page.wait_for_selector("#suspect-badge")
     page.wait_for_selector("canvas[data-layer='image']")

@@ -213,7 +213,7 @@ class ReviewerPage {
               "span",
               { class: "suspect-actions" },
               el("button", { type: "button", class: "link suspect-2d", disabled: r.best_frame_id == null, title: "Open the frame that sees it best, region outlined", onclick: () => this.openSuspect(r) }, "2D"),
-              r.best_frame_id != null ? el("a", { class: "suspect-3d", href: `/viewer/?scene=${this.sceneSel.value}&frame=${r.best_frame_id}`, target: "_blank", rel: "noopener", title: "Open the 3D viewer at the camera that sees it best" }, "3D") : null,
+              r.best_frame_id != null ? el("a", { class: "suspect-3d", href: `/viewer/?scene=${encodeURIComponent(this.sceneSel.value)}&frame=${r.best_frame_id}&suspect=${encodeURIComponent(r.key)}`, target: "_blank", rel: "noopener", title: "Open the 3D viewer at the camera that sees it best, the region's points selected (relabel them there)" }, "3D") : null,
               r.mark
                 ? el("button", { type: "button", class: "link suspect-undo", title: `${r.mark.status} by ${r.mark.by || "a former user"}, ${new Date(r.mark.at).toLocaleString()}; click to reopen`, onclick: (e) => this.mark(r, null, e.currentTarget) }, `${r.mark.status}${r.mark.by ? ` by ${r.mark.by}` : ""} · undo`)
                 : [el("button", { type: "button", class: "link suspect-done", title: "Mark done (you looked at it and fixed what was wrong)", onclick: (e) => this.mark(r, "done", e.currentTarget) }, "✓ done"), el("button", { type: "button", class: "link suspect-dismiss", title: "Dismiss (nothing wrong there)", onclick: (e) => this.mark(r, "dismissed", e.currentTarget) }, "✗")],

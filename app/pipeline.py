@@ -31,11 +31,12 @@ class PipelineMissing(RuntimeError):
 
 
 # ---- masks ----------------------------------------------------------------------------------
-def decode_mask(data: bytes, frame: SceneFrame, taxonomy: Taxonomy, *, name: str) -> np.ndarray:
+def decode_mask(data: bytes, frame: SceneFrame, taxonomy: Taxonomy, *, name: str,
+                info: dict | None = None) -> np.ndarray:
     """(h, w) uint8 raw ids from an uploaded PNG (:func:`occufly.io.masks.read_mask`: frame
     size or an exact integer downscale, ids in the taxonomy, 0 and 255 allowed); raises
-    MaskError naming ``name``."""
-    return masks.read_mask(data, frame, taxonomy, name=name)
+    MaskError naming ``name``. info: gets ``canonical`` (the bytes may be stored as they are)."""
+    return masks.read_mask(data, frame, taxonomy, name=name, info=info)
 
 
 def stored_mask_ids(data: bytes, taxonomy: Taxonomy) -> np.ndarray:

@@ -64,3 +64,62 @@ def test_everything_canonical_storage_strips_is_refused(ids):
     Image.fromarray(ids).save(b, format="PNG", pnginfo=info)
     assert not is_canonical_mask_png(b.getvalue(), ids.shape)
     assert not is_canonical_mask_png(b"\x89PNG\r\n\x1a\n", ids.shape)
+
+
+# ---- the fast decode of canonical uploads (issue 29: a save's CPU is mostly the decode) -----
+def _filtered(ids: np.ndarray, filters: list[int]) -> bytes:
+    """Rows filtered as a PNG encoder does: 0 None, 1 Sub, 2 Up (per row)."""
+    out = []
+    prev = np.zeros(ids.shape[1], np.uint8)
+    for r in range(ids.shape[0]):
+        row = ids[r]
+        f = filters[r % len(filters)] if r else filters[0]
+        if f == 0:
+            fr = row
+        elif f == 1:
+            fr = (row.astype(np.int16) - np.concatenate([[0], row[:-1]])).astype(np.uint8)
+        else:
+            fr = (row.astype(np.int16) - prev).astype(np.uint8)
+        out.append(bytes([f]) + fr.tobytes())
+        prev = row
+    return b"".join(out)
+
+
+@pytest.mark.parametrize("filters", [[0, 2], [2], [0], [0, 2, 2, 0, 2], [0, 1, 2], [1]])
+def test_fast_decode_equals_pil(ids, filters):
+    """The editor's rows (row 0 None, the rest Up), runs of None / Up, and filters the fast
+    path leaves to PIL (Sub) all decode to the image's ids, as PIL decodes them."""
+    from occufly.io.masks import decode_mask_png
+    from occufly.taxonomy import default_taxonomy
+
+    tax = default_taxonomy()
+    ids = ids.copy()
+    ids[10:30, 5:40] = 7  # a constant area: Up turns it into zero runs
+    png = _png(ids, z=zlib.compress(_filtered(ids, filters), 6))
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(png))), ids)  # a valid PNG
+    info: dict = {}
+    got = decode_mask_png(png, tax, name="x", info=info)
+    assert info["canonical"] is True
+    assert got.dtype == np.uint8 and got.flags.c_contiguous and np.array_equal(got, ids)
+    # a PIL-written PNG (its own filter choice) decodes the same, canonical or not
+    b = io.BytesIO()
+    Image.fromarray(ids).save(b, format="PNG", compress_level=9)
+    assert np.array_equal(decode_mask_png(b.getvalue(), tax, name="x"), ids)
+
+
+def test_fast_decode_refuses_what_it_must(ids):
+    from occufly.errors import MaskError
+    from occufly.io.masks import decode_mask_png
+    from occufly.taxonomy import default_taxonomy
+
+    tax = default_taxonomy()
+    raw = bytearray(_filtered(ids, [0, 2]))
+    raw[(ids.shape[1] + 1) * 3] = 9  # row 3's filter byte: no such PNG filter
+    with pytest.raises(MaskError, match="x: damaged PNG"):
+        decode_mask_png(_png(ids, z=zlib.compress(bytes(raw))), tax, name="x")
+    # a stream that inflates past the rows (a bomb in miniature) is not canonical: the fast
+    # path stops one byte past the rows and leaves it to PIL, which reads only the rows
+    big = zlib.compress(_filtered(ids, [0, 2]) + b"\x00" * 10_000_000)
+    info: dict = {}
+    assert np.array_equal(decode_mask_png(_png(ids, z=big), tax, name="x", info=info), ids)
+    assert info["canonical"] is False

@@ -139,14 +139,15 @@ def parse_if_match(raw: str | None) -> int | None:
 DECODE_SLOTS = threading.BoundedSemaphore(2)
 
 
-def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: bytes):
+def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: bytes,
+                      info: dict | None = None):
     scene = session.get(Scene, frame.scene_id)
     ws_scene = ctx.load_scene(scene.workspace)
     sf = ws_scene.frames[frame.index]
     name = f"mask upload for {frame.name}"
     masks.check_png_size(data, name=name, frame=sf)  # a bomb is refused before it waits
     with DECODE_SLOTS:
-        return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=name)
+        return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=name, info=info)
 
 
 def storage_used(session: Session, *, user_id: int | None = None,
@@ -219,14 +220,16 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         lost_lease = False
     mask = None
     if sha256 is None:
-        mask = _decode_for_frame(ctx, session, frame, data)  # MaskError -> 422, nothing stored
+        info: dict = {}
+        mask = _decode_for_frame(ctx, session, frame, data, info)  # MaskError -> 422, nothing stored
         h, w = mask.shape
         # stored canonically (issue 24): the decoded class ids re-encoded as an 8-bit PNG
         # without ancillary chunks -- bytes after IEND, text chunks, palettes, 16-bit or
         # colour encodings of the upload are never kept. An upload that is canonical already
         # (the editor's: 8-bit grey, IHDR/IDAT/IEND, nothing after the stream) is kept as it
         # is -- it decodes to the same ids -- which saves the re-encode (issue 29: save p95)
-        if not masks.is_canonical_mask_png(data, mask.shape):
+        if not (info["canonical"] if "canonical" in info
+                else masks.is_canonical_mask_png(data, mask.shape)):
             data = masks.encode_mask_png(mask)
         check_storage_quota(session, ctx, frame, user, len(data))
         sha256 = ctx.store.put(data)

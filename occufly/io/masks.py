@@ -153,10 +153,26 @@ def _mask_bytes(src: str | Path | bytes, name: str) -> bytes:
         raise MaskError(f"{name}: cannot read mask ({e.strerror})") from None
 
 
-def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str) -> np.ndarray:
-    """Decode a mask PNG into (h, w) uint8 raw ids without checking any frame size."""
+def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str,
+                    info: dict | None = None) -> np.ndarray:
+    """Decode a mask PNG into (h, w) uint8 raw ids without checking any frame size.
+
+    info: when given, ``info["canonical"]`` says whether the bytes are a canonical mask PNG
+    (:func:`is_canonical_mask_png`) -- known for free when the fast path decoded them."""
     data = _mask_bytes(src, name)
     w, h = check_png_size(data, name=name)  # before decoding: the header's size is bounded
+    rows = _canonical_rows(data, h, w)
+    if rows is not None:
+        try:
+            ids = _unfilter_none_up(rows)
+        except ValueError as e:
+            raise MaskError(f"{name}: damaged PNG ({e})") from None
+        if info is not None:
+            info["canonical"] = True
+        if ids is not None:
+            return ids
+    elif info is not None:
+        info["canonical"] = False
     try:
         img = Image.open(io.BytesIO(data))
         if img.size != (w, h):
@@ -194,7 +210,8 @@ def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str) -
 
 
 def read_mask(
-    src: str | Path | bytes, frame: Frame, taxonomy: Taxonomy, *, name: str | None = None
+    src: str | Path | bytes, frame: Frame, taxonomy: Taxonomy, *, name: str | None = None,
+    info: dict | None = None,
 ) -> np.ndarray:
     """Decode and validate a mask PNG for ``frame``.
 
@@ -207,16 +224,18 @@ def read_mask(
         name = "<upload>" if isinstance(src, (bytes, bytearray, memoryview)) else str(src)
     src = _mask_bytes(src, name)
     check_png_size(src, name=name, frame=frame)  # refuse a wrong size before decoding it
-    ids = decode_mask_png(src, taxonomy, name=name)
+    ids = decode_mask_png(src, taxonomy, name=name, info=info)
     mask_scale(ids.shape, frame, name=name)
     validate_ids(ids, taxonomy, name=name)
     return ids
 
 
 def encode_mask_png(mask: np.ndarray) -> bytes:
-    """(H, W) uint8 raw ids -> single-channel (mode L) PNG bytes."""
-    from PIL import Image
-
+    """(H, W) uint8 raw ids -> single-channel (8-bit grey) PNG bytes: IHDR, one IDAT, IEND;
+    row 0 unfiltered and every other row with PNG filter Up (the editor's encoding,
+    ``frontend/js/core/png.js``), deflated at level 6. As small as PIL's adaptive filters on
+    masks (large constant areas become zero runs), 0.07 s instead of 0.12 s for 12 MP, and
+    the fast path of :func:`decode_mask_png` decodes it (0.07 s instead of 0.12 s)."""
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"mask must be (H, W), got shape {mask.shape}")
@@ -224,10 +243,21 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
         if mask.size and (mask.min() < 0 or mask.max() > 255):
             raise ValueError("mask values must be 0..255")
         mask = mask.astype(np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(mask)).save(buf, format="PNG", compress_level=6)
-    return buf.getvalue()
+    h, w = mask.shape
+    if h == 0 or w == 0:
+        raise ValueError(f"mask must not be empty, got shape {mask.shape}")
+    rows = np.empty((h, w + 1), np.uint8)
+    rows[:, 0] = 2  # Up
+    rows[0, 0] = 0  # None
+    rows[0, 1:] = mask[0]
+    np.subtract(mask[1:], mask[:-1], out=rows[1:, 1:])  # wraps mod 256, as Up does
+    return (_PNG_SIG + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + _png_chunk(b"IDAT", zlib.compress(rows, 6)) + _png_chunk(b"IEND", b""))
 
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    return (struct.pack(">I", len(body)) + kind + body
+            + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind)) & 0xFFFFFFFF))
 
 
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
@@ -241,54 +271,95 @@ def is_canonical_mask_png(data: bytes, shape: tuple[int, int]) -> bool:
     are saves the re-encode (about 0.1 s of a 12 MP save's CPU). Anything else -- ancillary
     chunks, padding after IEND or after the zlib stream, other bit depths or colour types --
     is False, and the caller re-encodes it. Call it on bytes that already decoded."""
-    h, w = int(shape[0]), int(shape[1])
+    return _canonical_rows(data, int(shape[0]), int(shape[1])) is not None
+
+
+def _canonical_rows(data: bytes, h: int, w: int) -> np.ndarray | None:
+    """(h, w + 1) uint8: the filtered rows (filter byte first) of a canonical mask PNG of
+    (h, w) (see :func:`is_canonical_mask_png`), inflated once -- a stream that would inflate
+    to more is refused on the first byte past it (no zlib bomb is ever held). None for anything that is not canonical (the caller decodes it with
+    PIL). Filter bytes are not checked here (:func:`_unfilter_none_up`)."""
     n = len(data)
-    if n < 8 + 25 + 12 or data[:8] != _PNG_SIG:
-        return False
+    if n < 8 + 25 + 12 or data[:8] != _PNG_SIG or h <= 0 or w <= 0:
+        return None
+    mv = memoryview(data)
     pos = 8
     seen_ihdr = seen_idat = False
     inflater = zlib.decompressobj()
     expect = h * (w + 1)  # one filter byte per row
-    out = 0
+    parts: list[bytes] = []
+    got = 0
     while pos + 12 <= n:
         (length,) = struct.unpack_from(">I", data, pos)
-        kind = data[pos + 4:pos + 8]
+        kind = bytes(mv[pos + 4:pos + 8])
         end = pos + 12 + length
         if end > n:
-            return False
-        body = data[pos + 8:pos + 8 + length]
+            return None
+        body = mv[pos + 8:pos + 8 + length]
         (crc,) = struct.unpack_from(">I", data, pos + 8 + length)
-        if zlib.crc32(kind + body) & 0xFFFFFFFF != crc:
-            return False
+        if zlib.crc32(body, zlib.crc32(kind)) & 0xFFFFFFFF != crc:
+            return None
         if not seen_ihdr:
             if kind != b"IHDR" or length != 13:
-                return False
+                return None
             iw, ih, depth, colour, comp, filt, interlace = struct.unpack(">IIBBBBB", body)
             if (iw, ih, depth, colour, comp, filt, interlace) != (w, h, 8, 0, 0, 0, 0):
-                return False
+                return None
             seen_ihdr = True
         elif kind == b"IDAT":
             if inflater.eof:
-                return False  # IDAT after the stream ended: padding
+                return None  # IDAT after the stream ended: padding
             seen_idat = True
-            try:  # counted in bounded pieces, never held whole
-                chunk = inflater.decompress(body, 1 << 20)
+            try:  # at most one byte past the rows: more is refused, never inflated whole
+                chunk = inflater.decompress(body, expect - got + 1)
                 while True:
-                    out += len(chunk)
-                    if out > expect:
-                        return False
+                    if got + len(chunk) > expect:
+                        return None
+                    if chunk:
+                        parts.append(chunk)
+                    got += len(chunk)
                     if not inflater.unconsumed_tail:
                         break
-                    chunk = inflater.decompress(inflater.unconsumed_tail, 1 << 20)
+                    chunk = inflater.decompress(inflater.unconsumed_tail, expect - got + 1)
             except zlib.error:
-                return False
+                return None
         elif kind == b"IEND":
-            return (seen_idat and length == 0 and end == n and inflater.eof
-                    and not inflater.unused_data and out == expect)
+            if (seen_idat and length == 0 and end == n and inflater.eof
+                    and not inflater.unused_data and got == expect):
+                out = parts[0] if len(parts) == 1 else b"".join(parts)  # read-only is fine
+                return np.frombuffer(out, np.uint8).reshape(h, w + 1)
+            return None
         else:
-            return False  # any other chunk (ancillary or not) is not kept
+            return None  # any other chunk (ancillary or not) is not canonical
         pos = end
-    return False
+    return None
+
+
+def _unfilter_none_up(rows: np.ndarray) -> np.ndarray | None:
+    """(h, w) uint8 pixels of (h, w + 1) filtered rows whose filters are all None (0) or Up
+    (2) -- the editor writes row 0 None and the rest Up, :func:`encode_mask_png` (PIL) other
+    filters -- vectorised: a pixel is the sum mod 256 of its column's filtered bytes from the
+    last None row down (Up on row 0 is None). None when another filter occurs (Sub, Average,
+    Paeth: the caller decodes with PIL); ValueError for a filter byte past 4 (a damaged PNG)."""
+    f = rows[:, 0]
+    if int(f.max(initial=0)) > 4:
+        raise ValueError(f"row filter type {int(f.max())}; PNG has 0..4")
+    if np.any((f != 0) & (f != 2)):
+        return None
+    raw = rows[:, 1:]
+    if not np.any(f == 2):
+        return np.ascontiguousarray(raw)
+    # row by row (one vectorised add per row: 9 ms for 12 MP, where a cumsum down the
+    # strided columns takes 0.13 s); Up on row 0 adds the zero row above it
+    out = np.empty(raw.shape, np.uint8)
+    out[0] = raw[0]
+    up = f == 2
+    for r in range(1, len(f)):
+        if up[r]:
+            np.add(out[r - 1], raw[r], out=out[r])
+        else:
+            out[r] = raw[r]
+    return out
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> None:

@@ -123,8 +123,12 @@ def live(tmp_path_factory):
         for name, role in ROLES.items():
             users.create_user(session=s, username=name, password=PASSWORDS[name], role=role)
     port = free_port()
+    # keep-alive longer than any pause between a test's requests: with uvicorn's 5 s the
+    # server may close an idle connection just as a client reuses it ("connection reset by
+    # peer" on the next request, seen in a full run)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
-                                           log_level="warning", lifespan="on"))
+                                           log_level="warning", lifespan="on",
+                                           timeout_keep_alive=600))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     t_end = time.monotonic() + 20

@@ -15,6 +15,8 @@
 ``OCCUFLY_LEASE_MINUTES``      how long ``next`` holds a frame for an annotator (default 30)
 ``OCCUFLY_SESSION_HOURS``      login token lifetime (default 12)
 ``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
+``OCCUFLY_FILL_NICE``          niceness added to the lifting worker's fill thread (default 5,
+                               0 = none): saves and page requests go first on a busy host
 ``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
 ``OCCUFLY_JOB_PROCESSES``      1 (default): heavy jobs run in worker processes (or on Dask);
                                0: in threads of the server process (debugging)
@@ -88,6 +90,7 @@ class Settings:
     min_independent_coverage: float = 0.5
     session_seconds: int = 12 * 3600
     fill_debounce_s: float = 5.0
+    fill_nice: int = 5  # the fill thread's added niceness (0..19; docs/lifting-scale.md)
     job_workers: int = 2
     job_processes: bool = True
     frontend_dir: Path = REPO_ROOT / "frontend"
@@ -181,6 +184,7 @@ class Settings:
             lease_seconds=int(num("OCCUFLY_LEASE_MINUTES", 30, float) * 60),
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
+            fill_nice=num("OCCUFLY_FILL_NICE", 5),
             min_independent_coverage=num("OCCUFLY_MIN_INDEPENDENT_COVERAGE", 0.5, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
             job_processes=bool(num("OCCUFLY_JOB_PROCESSES", 1)),
@@ -207,4 +211,7 @@ class Settings:
         if env.get("OCCUFLY_FRONTEND_DIR"):
             kw["frontend_dir"] = Path(env["OCCUFLY_FRONTEND_DIR"])
         kw.update(overrides)
+        if not 0 <= kw["fill_nice"] <= 19:
+            raise ConfigError(f"OCCUFLY_FILL_NICE must be 0..19 (added niceness), got "
+                              f"{kw['fill_nice']}")
         return cls(**kw)

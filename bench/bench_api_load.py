@@ -103,9 +103,16 @@ def _mask(width: int, height: int, seed: int) -> bytes:
     for cls in (1, 8, 16, 13):  # a few rectangles of road / tree / building / vehicle
         x0, y0 = rng.integers(0, width // 2), rng.integers(0, height // 2)
         m[y0:y0 + rng.integers(50, height // 2), x0:x0 + rng.integers(50, width // 2)] = cls
-    buf = io.BytesIO()
+    if UPLOAD == "editor":  # what the editor uploads (frontend/js/core/png.js: None / Up rows)
+        from occufly.io.masks import encode_mask_png
+
+        return encode_mask_png(m)
+    buf = io.BytesIO()  # "pil1": PIL at compress level 1, what the runs before 2026-12-04 sent
     Image.fromarray(m).save(buf, format="PNG", compress_level=1)
     return buf.getvalue()
+
+
+UPLOAD = "editor"  # --upload
 
 
 MP = {12: (4000, 3000), 20: (5472, 3648)}
@@ -565,12 +572,18 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=120, help="frames per scene")
     ap.add_argument("--distinct", type=int, default=6, help="distinct mask payloads")
     ap.add_argument("--backend", default="postgresql", choices=("postgresql", "sqlite"))
+    ap.add_argument("--upload", default="editor", choices=("editor", "pil1"),
+                    help="mask encoding the clients send: the editor's (8-bit grey, rows None / "
+                         "Up, deflate; the server stores it as it is) or PIL level 1 (the "
+                         "server re-encodes it; the figures before 2026-12-04)")
     ap.add_argument("--out", default="", help="also write the JSON here")
     ap.add_argument("--postgres-url", default=os.environ.get(
         "OCCUFLY_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"))
     args = ap.parse_args()
+    global UPLOAD
+    UPLOAD = args.upload
 
-    out: dict = {"benchmark": "api_load", "cpu_count": os.cpu_count(),
+    out: dict = {"benchmark": "api_load", "cpu_count": os.cpu_count(), "upload": args.upload,
                  "argv": sys.argv[1:], "runs": []}
     mps = [int(x) for x in args.mp.split(",") if x]
     lws = [int(x) for x in args.lifting_workers.split(",") if x]

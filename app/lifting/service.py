@@ -183,6 +183,20 @@ class _Scene:
     thread: threading.Thread | None = None
 
 
+def _lower_priority(nice: int) -> None:
+    """Add ``nice`` to the calling thread's niceness (Linux: a thread is a task with its own
+    nice value; the threads it starts inherit it). The fill is the lifting worker's heavy,
+    latency-tolerant work (seconds of CPU per submit); a save waits for its request thread,
+    so on a busy host the fill yields the CPU to it. No-op where it is not supported."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except OSError:  # not permitted / not supported: run at the normal priority
+        log.info("lifting: could not lower the fill thread's priority", exc_info=True)
+
+
 class LiftingService:
     RETRY_S = 5.0  # a scene whose entries cannot be applied is retried after this long
     TAKEOVER_S = 5.0  # a scene waiting this long is taken by any worker, not only its own
@@ -634,6 +648,7 @@ class LiftingService:
             self._cv.notify_all()
 
     def _fill_loop(self, sc: _Scene) -> None:
+        _lower_priority(int(getattr(self.ctx.settings, "fill_nice", 0) or 0))
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
                 while not self._stop.is_set() and not sc.closed and (

@@ -301,3 +301,29 @@ def _alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_the_fill_thread_yields_the_cpu_to_requests(env):
+    """OCCUFLY_FILL_NICE (default 5): the fill thread of a scene runs at a higher niceness
+    than the process (request threads keep theirs), so a fill does not slow saves on a busy
+    host; the setting is checked."""
+    import threading
+
+    from app.config import ConfigError, Settings
+
+    admin, ann = env.bearer("admin"), env.bearer("annotator")
+    env.import_tiny(admin)
+    scene, _frames_ = _frames(env, admin)
+    sid = scene["id"]
+    env.select_all(sid)
+    fa = env.client.post(f"/api/scenes/{sid}/next", headers=ann).json()["id"]
+    _put(env, ann, fa, 6, None)
+    ctx = env.app.state.ctx
+    assert ctx.lifting.wait_idle(sid, timeout=30, include_fill=True)
+    fill = next(t for t in threading.enumerate() if t.name == f"occufly-fill-{sid}")
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert os.getpriority(os.PRIO_PROCESS, fill.native_id) == min(19, base + env.settings.fill_nice)
+    assert env.settings.fill_nice == 5
+    assert Settings.from_env({"OCCUFLY_FILL_NICE": "0", "OCCUFLY_ENV": "development"}).fill_nice == 0
+    with pytest.raises(ConfigError, match="OCCUFLY_FILL_NICE must be 0..19"):
+        Settings.from_env({"OCCUFLY_FILL_NICE": "25", "OCCUFLY_ENV": "development"})

@@ -124,3 +124,82 @@ def compile_kernels() -> None:
                            np.full((1, 2), 0.5), z, one, one - 1, one - 1,
                            np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
     upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
+
+
+@numba.njit(nogil=True, cache=True)
+def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids: np.ndarray,
+                       T: np.ndarray, fx: float, fy: float, cx: float, cy: float, skew: float,
+                       ksize: np.float32, margin: int, max_splat: int, lab: np.ndarray,
+                       tol: np.float32, h: int, w: int, label_pass: bool) -> None:
+    """:func:`splat_pass` (``label_pass`` False) / :func:`splat_label_pass_multi` straight
+    from the cloud, for an undistorted camera: each point ``xyz[ids[k]]`` ((N, 3) scene-local
+    metres) is projected with the float64 operations of the numpy path in their order
+    (``render._to_camera``: ``((x R0 + R1 y) + R2 z) + t``; ``Camera.project``: ``x / z``,
+    ``(fx x + skew y) + cx``), its depth rounded to float32, its splat side
+    ``clip(ceil(ksize / z), 1, max_splat)`` in float32, points ``margin`` px or more outside
+    the image dropped -- and splatted at once, without the per-point arrays (uv, z, size,
+    corners, labels) the numpy path builds. ``lab``: (N, L) uint8 label sets; ``best``:
+    (L, h * w) uint64, row j lowered as :func:`splat_label_pass_multi` lowers it."""
+    k005 = np.float32(0.005)
+    k65536 = np.float32(65536.0)
+    cap = np.float32(2.0 ** 31)
+    one = np.float32(1.0)
+    smax = np.float32(max_splat)
+    n_lab = lab.shape[1]
+    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    lo_u = -np.float64(margin)
+    hi_u = np.float64(w + margin)
+    lo_v = -np.float64(margin)
+    hi_v = np.float64(h + margin)
+    for k in range(ids.shape[0]):
+        q = ids[k]
+        x = np.float64(xyz[q, 0])
+        y = np.float64(xyz[q, 1])
+        zw = np.float64(xyz[q, 2])
+        zc = ((x * t20 + t21 * y) + t22 * zw) + t23
+        if not zc > 1e-6:
+            continue
+        xc = ((x * t00 + t01 * y) + t02 * zw) + t03
+        yc = ((x * t10 + t11 * y) + t12 * zw) + t13
+        xn = xc / zc
+        yn = yc / zc
+        u = (fx * xn + skew * yn) + cx
+        v = fy * yn + cy
+        if not (u >= lo_u and u < hi_u and v >= lo_v and v < hi_v):
+            continue
+        zi = np.float32(zc)
+        sf = np.ceil(ksize / zi)
+        if sf < one:
+            sf = one
+        if sf > smax:
+            sf = smax
+        s = np.int64(sf)
+        half = np.float64(s) / 2.0
+        col0 = np.int64(np.ceil((u - half) - 0.5))
+        row0 = np.int64(np.ceil((v - half) - 0.5))
+        for dy in range(s):
+            r = row0 + dy
+            if r < 0 or r >= h:
+                continue
+            for dx in range(s):
+                c = col0 + dx
+                if c < 0 or c >= w:
+                    continue
+                p = r * w + c
+                if not label_pass:
+                    if zi < depth[p]:
+                        depth[p] = zi
+                    continue
+                zf = depth[p]
+                if not zi <= zf + (tol + k005 * zf):
+                    continue
+                ex = c + 0.5 - u
+                ey = r + 0.5 - v
+                d2 = np.float32(ex * ex + ey * ey)
+                base = np.uint64(min(d2 * k65536, cap)) << np.uint64(8)
+                for j in range(n_lab):
+                    key = base | np.uint64(lab[q, j])
+                    if key < best[j, p]:
+                        best[j, p] = key

@@ -98,16 +98,33 @@ def splat_label_pass_multi(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, 
 @numba.njit(nogil=True, cache=True)
 def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     """(h, w) uint8: every pixel of ``img`` repeated k x k, rows / columns past the end
-    repeating the last one -- :func:`occufly.render._upsample` for uint8 images, in one pass
-    writing each output byte once (the broadcast copy reads it through a 4-D view)."""
+    repeating the last one -- :func:`occufly.render._upsample` for uint8 images. Each output
+    row of a source row is written once (runs of k bytes, no division per byte) and copied
+    to the k - 1 rows below it."""
     h0, w0 = img.shape
     out = np.empty((h, w), np.uint8)
-    for y in range(h):
+    y = 0
+    while y < h:
         sy = min(y // k, h0 - 1)
         row = img[sy]
         o = out[y]
-        for x in range(w):
-            o[x] = row[min(x // k, w0 - 1)]
+        x = 0
+        for sx in range(w0):
+            if x >= w:
+                break
+            val = row[sx]
+            e = min(x + k, w)
+            for xx in range(x, e):
+                o[xx] = val
+            x = e
+        last = row[w0 - 1]
+        for xx in range(x, w):
+            o[xx] = last
+        y2 = y + 1
+        while y2 < h and min(y2 // k, h0 - 1) == sy:
+            out[y2, :] = o
+            y2 += 1
+        y = y2
     return out
 
 

@@ -274,8 +274,8 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
     if COMPILED_PROJECTION and not cam.has_distortion and type(ksize) is float:
         # one compiled pass per pass straight from the cloud (the same float64 operations as
         # projected() below; a Python float ksize divides the float32 depths in float32 there,
-        # as np.float32(ksize) does here); no per-point arrays: 0.2-0.3 s of numpy temporaries for the
-        # 2.15 M culled points of a 20 MP frame
+        # as np.float32(ksize) does here); no per-point arrays: 0.2-0.3 s of numpy temporaries
+        # for the 2.15 M culled points of a 20 MP frame
         ids = np.arange(scene.n_points, dtype=np.int64) if cand is None \
             else np.ascontiguousarray(cand, dtype=np.int64)
         lab2 = np.ascontiguousarray(labels if multi else labels.reshape(-1, 1), dtype=np.uint8)

@@ -128,21 +128,6 @@ def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     return out
 
 
-def compile_kernels() -> None:
-    """Compile (or load from numba's cache) the pass on a one-point input."""
-    depth = np.full(4, np.inf, np.float32)
-    best = np.full(4, np.iinfo(np.uint64).max, np.uint64)
-    one = np.ones(1, np.int64)
-    z = np.ones(1, np.float32)
-    for label_pass in (False, True):
-        splat_pass(depth, best, np.full((1, 2), 0.5), z, one, one - 1, one - 1,
-                   np.ones(1, np.uint8), np.float32(0.1), 2, 2, label_pass)
-    splat_label_pass_multi(depth, np.full((2, 4), np.iinfo(np.uint64).max, np.uint64),
-                           np.full((1, 2), 0.5), z, one, one - 1, one - 1,
-                           np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
-    upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
-
-
 @numba.njit(nogil=True, cache=True)
 def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids: np.ndarray,
                        T: np.ndarray, fx: float, fy: float, cx: float, cy: float, skew: float,
@@ -220,3 +205,23 @@ def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids
                     key = base | np.uint64(lab[q, j])
                     if key < best[j, p]:
                         best[j, p] = key
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the pass on a one-point input."""
+    depth = np.full(4, np.inf, np.float32)
+    best = np.full(4, np.iinfo(np.uint64).max, np.uint64)
+    one = np.ones(1, np.int64)
+    z = np.ones(1, np.float32)
+    for label_pass in (False, True):
+        splat_pass(depth, best, np.full((1, 2), 0.5), z, one, one - 1, one - 1,
+                   np.ones(1, np.uint8), np.float32(0.1), 2, 2, label_pass)
+    splat_label_pass_multi(depth, np.full((2, 4), np.iinfo(np.uint64).max, np.uint64),
+                           np.full((1, 2), 0.5), z, one, one - 1, one - 1,
+                           np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
+    upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
+    for label_pass in (False, True):
+        project_splat_pass(depth, best.reshape(1, -1), np.zeros((1, 3), np.float32), one - 1,
+                           np.eye(4)[:3], 1.0, 1.0, 1.0, 1.0, 0.0, np.float32(1.0), 8, 8,
+                           np.ones((1, 1), np.uint8), np.float32(0.1), 2, 2, label_pass)
+

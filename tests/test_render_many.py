@@ -172,7 +172,7 @@ def test_compiled_projection_equals_the_numpy_projection(monkeypatch):
                              render_many_for_mask(sc, [la, lb], fi, shape))
         a, b = got[True], got[False]
         assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-        assert all(np.array_equal(x, y) for x, y in zip(a[2], b[2]))
+        assert all(np.array_equal(x, y) for x, y in zip(a[2], b[2], strict=True))
         assert (a[0] > 0).mean() > 0.3  # something was rendered
         n_compiled += not sc.frames[fi].camera.has_distortion
     assert n_compiled >= 3  # the compiled path was taken

@@ -228,8 +228,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         # colour encodings of the upload are never kept. An upload that is canonical already
         # (the editor's: 8-bit grey, IHDR/IDAT/IEND, nothing after the stream) is kept as it
         # is -- it decodes to the same ids -- which saves the re-encode (issue 29: save p95)
-        if not (info["canonical"] if "canonical" in info
-                else masks.is_canonical_mask_png(data, mask.shape)):
+        if not info["canonical"]:  # told by the decode (occufly.io.masks.decode_mask_png)
             data = masks.encode_mask_png(mask)
         check_storage_quota(session, ctx, frame, user, len(data))
         sha256 = ctx.store.put(data)

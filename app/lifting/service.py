@@ -648,7 +648,7 @@ class LiftingService:
             self._cv.notify_all()
 
     def _fill_loop(self, sc: _Scene) -> None:
-        _lower_priority(int(getattr(self.ctx.settings, "fill_nice", 0) or 0))
+        _lower_priority(self.ctx.settings.fill_nice)
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
                 while not self._stop.is_set() and not sc.closed and (

@@ -266,8 +266,6 @@ def suspect_points(ctx: AppContext, scene: Scene, key: str) -> np.ndarray | None
     (the 3D viewer selects them: ``/viewer/?scene=&frame=&suspect=``); None when no suspect
     of the current labels has that key (the labels changed since the list was read) or the
     scene has no labels yet."""
-    if not Workspace(scene.workspace).has_labels():
-        return None
     try:
         rows = _suspect_rows(ctx, scene)
     except NotFound:

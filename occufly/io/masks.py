@@ -277,8 +277,9 @@ def is_canonical_mask_png(data: bytes, shape: tuple[int, int]) -> bool:
 def _canonical_rows(data: bytes, h: int, w: int) -> np.ndarray | None:
     """(h, w + 1) uint8: the filtered rows (filter byte first) of a canonical mask PNG of
     (h, w) (see :func:`is_canonical_mask_png`), inflated once -- a stream that would inflate
-    to more is refused on the first byte past it (no zlib bomb is ever held). None for anything that is not canonical (the caller decodes it with
-    PIL). Filter bytes are not checked here (:func:`_unfilter_none_up`)."""
+    to more is refused on the first byte past it (no zlib bomb is ever held). None for
+    anything that is not canonical (the caller decodes it with PIL). Filter bytes are not
+    checked here (:func:`_unfilter_none_up`)."""
     n = len(data)
     if n < 8 + 25 + 12 or data[:8] != _PNG_SIG or h <= 0 or w <= 0:
         return None
@@ -337,8 +338,8 @@ def _canonical_rows(data: bytes, h: int, w: int) -> np.ndarray | None:
 
 def _unfilter_none_up(rows: np.ndarray) -> np.ndarray | None:
     """(h, w) uint8 pixels of (h, w + 1) filtered rows whose filters are all None (0) or Up
-    (2) -- the editor writes row 0 None and the rest Up, :func:`encode_mask_png` (PIL) other
-    filters -- vectorised: a pixel is the sum mod 256 of its column's filtered bytes from the
+    (2) -- the editor and :func:`encode_mask_png` write row 0 None and the rest Up; other
+    encoders (PIL) choose other filters -- vectorised: a pixel is the sum mod 256 of its column's filtered bytes from the
     last None row down (Up on row 0 is None). None when another filter occurs (Sub, Average,
     Paeth: the caller decodes with PIL); ValueError for a filter byte past 4 (a damaged PNG)."""
     f = rows[:, 0]

@@ -26,6 +26,7 @@ import numpy as np
 from occufly.errors import WorkspaceError
 from occufly.fsutil import fsync_dir, write_tmp
 from occufly.grid import SceneGrid
+from occufly.io.masks import png_chunk as _png_chunk
 
 EXPORT_FORMAT_VERSION = 2  # 2: scene-level calibration.txt, depth shape, splits, sscbench calib/geometry
 STATE_DIR = ".occufly_export"
@@ -172,10 +173,6 @@ def _isal_zlib():
         raise ImportError(f"the PNG encoder of the export needs the 'isal' package ({e}); "
                           "reinstall occufly (pip install -e .)") from None
     return isal_zlib
-
-
-def _png_chunk(tag: bytes, body: bytes) -> bytes:
-    return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(body, zlib.crc32(tag)))
 
 
 def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes:

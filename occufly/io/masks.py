@@ -251,13 +251,14 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     rows[0, 0] = 0  # None
     rows[0, 1:] = mask[0]
     np.subtract(mask[1:], mask[:-1], out=rows[1:, 1:])  # wraps mod 256, as Up does
-    return (_PNG_SIG + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-            + _png_chunk(b"IDAT", zlib.compress(rows, 6)) + _png_chunk(b"IEND", b""))
+    return (_PNG_SIG + png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + png_chunk(b"IDAT", zlib.compress(rows, 6)) + png_chunk(b"IEND", b""))
 
 
-def _png_chunk(kind: bytes, body: bytes) -> bytes:
+def png_chunk(kind: bytes, body: bytes) -> bytes:
+    """One PNG chunk: length, type, body, CRC-32 of type and body (also the export's)."""
     return (struct.pack(">I", len(body)) + kind + body
-            + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind)) & 0xFFFFFFFF))
+            + struct.pack(">I", zlib.crc32(body, zlib.crc32(kind))))
 
 
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"

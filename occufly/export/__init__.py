@@ -5,6 +5,6 @@ and :mod:`occufly.export.sscbench`.
 """
 
 from occufly.export.common import ExportError
-from occufly.export.dataset import LAYOUTS, export_dataset, export_frame_task
+from occufly.export.dataset import LAYOUTS, ExportOptions, export_dataset, export_frame_task
 
-__all__ = ["LAYOUTS", "ExportError", "export_dataset", "export_frame_task"]
+__all__ = ["LAYOUTS", "ExportError", "ExportOptions", "export_dataset", "export_frame_task"]

@@ -28,6 +28,7 @@ import json
 import math
 import re
 import time
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -356,40 +357,71 @@ def check_export_memory(grids: list[SceneGrid], spec: FrameGridSpec, image_pixel
 
 
 # ---- entry point -------------------------------------------------------------------------------
-def export_dataset(
-    ws: Path,
-    out: Path,
-    *,
-    scene_id: str = "scene_01",
-    layout: str = "occufly",
-    grid: SceneGrid | dict[int, SceneGrid] | None = None,
-    frames: list[int] | None = None,
-    executor=None,
-    progress: ProgressFn | None = None,
-    spec: FrameGridSpec | None = None,
-    grid_for_altitude: dict[int, int] | None = None,
-    workers: int | None = None,
-    split: str | None = None,
-    downsample_rule: str = "occufly",
-    velodyne: bool = False,
-    provenance: dict | None = None,
-    quality: dict | None = None,
-    split_by: str | None = None,
-    split_ratios: tuple[float, float, float] | None = None,
-) -> dict:
-    """Export per-frame ground truth of workspace ``ws`` into ``out``; returns a summary.
+@dataclass(frozen=True)
+class ExportOptions:
+    """What to export and how (every field but the workspace, the target, the executor and the
+    progress callback of :func:`export_dataset`).
 
-    frames: frame indices (default all); executor: from :func:`occufly.parallel.get_executor`
-    (default: a local pool with ``workers`` processes, closed afterwards); split: ``train`` /
-    ``val`` / ``test`` for the splits files (default: the release's rule on the scene number,
-    see :mod:`occufly.export.occufly`); downsample_rule: ``occufly`` or ``lmscnet`` for the
-    coarser grids; split_by: ``altitude`` / ``region`` / ``ratio`` split this scene's frames
-    into train / val / test (:mod:`occufly.export.splits`; ``split_ratios`` for the last two);
-    velodyne: also write ``velodyne_points`` (SSCBench layout); provenance: more
-    entries of the manifest's ``provenance`` (the web app's ``policy``, ``labels`` and the
-    per-frame ``masks`` whose votes made the labels); quality: the quality report
+    frames: frame indices (default all); grid: a :class:`SceneGrid` for every frame or
+    ``{altitude: SceneGrid}`` (default: the workspace's grids); workers: local pool size when
+    no executor is given; split: ``train`` / ``val`` / ``test`` for the splits files (default:
+    the release's rule on the scene number, see :mod:`occufly.export.occufly`);
+    downsample_rule: ``occufly`` or ``lmscnet`` for the coarser grids; split_by: ``altitude``
+    / ``region`` / ``ratio`` split this scene's frames into train / val / test
+    (:mod:`occufly.export.splits`; ``split_ratios`` for the last two); velodyne: also write
+    ``velodyne_points`` (SSCBench layout); provenance: more entries of the manifest's
+    ``provenance`` (the web app's ``policy``, ``labels`` and the per-frame ``masks`` whose
+    votes made the labels); quality: the quality report
     (:func:`occufly.lifting.quality.quality_report`) written as ``quality.json`` beside the
     manifest (:func:`quality_path`).
+    """
+
+    scene_id: str = "scene_01"
+    layout: str = "occufly"
+    grid: SceneGrid | dict[int, SceneGrid] | None = None
+    frames: list[int] | None = None
+    spec: FrameGridSpec | None = None
+    grid_for_altitude: dict[int, int] | None = None
+    workers: int | None = None
+    split: str | None = None
+    downsample_rule: str = "occufly"
+    velodyne: bool = False
+    provenance: dict | None = None
+    quality: dict | None = None
+    split_by: str | None = None
+    split_ratios: tuple[float, float, float] | None = None
+
+    def check(self) -> None:
+        """:class:`ExportError` naming the option that is wrong."""
+        if self.layout not in LAYOUTS:
+            raise ExportError(f"unknown layout {self.layout!r}; expected one of {', '.join(LAYOUTS)}")
+        if not SCENE_ID_RE.match(self.scene_id):
+            raise ExportError(f"scene id {self.scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
+        if self.split is not None and self.split not in SPLITS:
+            raise ExportError(f"split {self.split!r}: expected one of {', '.join(SPLITS)}")
+        if self.split_by is not None and self.split_by not in split_rules.RULES:
+            raise ExportError(f"split_by {self.split_by!r}: expected one of {', '.join(split_rules.RULES)}")
+        if self.split_by is not None and self.split is not None:
+            raise ExportError("--split names the whole scene's split and --split-by splits its frames: give one")
+        if self.velodyne and self.layout != "sscbench":
+            raise ExportError("--velodyne writes velodyne_points/ of the SSCBench layout; use --layout sscbench")
+        if self.downsample_rule not in DOWNSAMPLE_RULES:
+            raise ExportError(f"downsample rule {self.downsample_rule!r}: expected one of "
+                              f"{', '.join(DOWNSAMPLE_RULES)}")
+
+    @property
+    def writes_velodyne(self) -> bool:
+        return bool(self.velodyne) and self.layout == "sscbench"
+
+
+def export_dataset(ws: Path, out: Path, options: ExportOptions | None = None, *, executor=None,
+                   progress: ProgressFn | None = None, **fields) -> dict:
+    """Export per-frame ground truth of workspace ``ws`` into ``out``; returns a summary.
+
+    ``options`` (:class:`ExportOptions`) says what and how; keyword ``fields`` of
+    :class:`ExportOptions` given here override it (``export_dataset(ws, out, frames=[3])``).
+    executor: from :func:`occufly.parallel.get_executor` (default: a local pool with
+    ``options.workers`` processes, closed afterwards).
 
     Frames that use different cameras are exported as one scene per camera (the camera with
     the most frames keeps ``scene_id``, the others get ``_cam2``, ``_cam3``, ...): both layouts
@@ -399,25 +431,21 @@ def export_dataset(
     from occufly.scene import Scene
 
     t_start = time.perf_counter()
+    opts = replace(options or ExportOptions(), **fields)
+    opts.check()
     ws, out = Path(ws).absolute(), Path(out).absolute()
-    if layout not in LAYOUTS:
-        raise ExportError(f"unknown layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
-    if not SCENE_ID_RE.match(scene_id):
-        raise ExportError(f"scene id {scene_id!r}: expected letters, digits, '_', '-' (e.g. scene_01)")
-    if split is not None and split not in SPLITS:
-        raise ExportError(f"split {split!r}: expected one of {', '.join(SPLITS)}")
-    if split_by is not None and split_by not in split_rules.RULES:
-        raise ExportError(f"split_by {split_by!r}: expected one of {', '.join(split_rules.RULES)}")
-    if split_by is not None and split is not None:
-        raise ExportError("--split names the whole scene's split and --split-by splits its frames: give one")
-    if velodyne and layout != "sscbench":
-        raise ExportError("--velodyne writes velodyne_points/ of the SSCBench layout; use --layout sscbench")
-    if downsample_rule not in DOWNSAMPLE_RULES:
-        raise ExportError(f"downsample rule {downsample_rule!r}: expected one of {', '.join(DOWNSAMPLE_RULES)}")
-    lay = LAYOUTS[layout]
-    spec = spec or FrameGridSpec()
     scene = Scene.load(ws)
-    n = len(scene.frames)
+    idx = _frame_indices(len(scene.frames), opts.frames)
+    groups = camera_groups(scene, idx)
+    if len(groups) > 1:
+        return _export_per_camera(ws, out, opts, groups, executor=executor, progress=progress,
+                                  t_start=t_start)
+    return _export_one_camera(ws, out, opts, scene, idx, executor=executor, progress=progress,
+                              t_start=t_start)
+
+
+def _frame_indices(n: int, frames: list[int] | None) -> list[int]:
+    """The frame indices to export, checked against the scene's ``n`` frames."""
     idx = list(range(n)) if frames is None else [int(i) for i in frames]
     bad = [i for i in idx if not 0 <= i < n]
     if bad:
@@ -426,30 +454,34 @@ def export_dataset(
         raise ExportError("frame list has duplicates")
     if not idx:
         raise ExportError("no frames to export (the frame list is empty)")
-    groups = camera_groups(scene, idx)
-    if len(groups) > 1:
-        if len(groups) > MAX_CAMERAS:
-            raise ExportError(
-                f"{ws}: the frames use {len(groups)} different cameras; both layouts hold one "
-                f"calibration per scene, so each camera becomes its own scene (at most "
-                f"{MAX_CAMERAS}). Re-import with a shared camera model, or export subsets with --frames")
-        kw = {"layout": layout, "grid": grid, "executor": executor, "progress": progress,
-              "spec": spec, "grid_for_altitude": grid_for_altitude, "workers": workers,
-              "split": split, "downsample_rule": downsample_rule, "velodyne": velodyne,
-              "provenance": provenance, "quality": quality}
-        kw.update({"split_by": split_by, "split_ratios": split_ratios})
-        parts = [export_dataset(ws, out, scene_id=sid, frames=g, **kw)
-                 for sid, g in zip(group_scene_ids(scene_id, len(groups)), groups, strict=True)]
-        return {
-            "out": str(out), "layout": layout, "scene_id": scene_id,
-            "scenes": [{k: v for k, v in p.items() if k != "results"} for p in parts],
-            "frames": sum(p["frames"] for p in parts), "written": sum(p["written"] for p in parts),
-            "skipped_done": sum(p["skipped_done"] for p in parts),
-            "complete": all(p["complete"] for p in parts), "bytes": sum(p["bytes"] for p in parts),
-            "seconds": round(time.perf_counter() - t_start, 3),
-            "results": [r for p in parts for r in p["results"]],
-        }
-    # -- validate every frame before writing anything
+    return idx
+
+
+def _export_per_camera(ws: Path, out: Path, opts: ExportOptions, groups: list[list[int]], *,
+                       executor, progress, t_start: float) -> dict:
+    """One scene per camera group (``scene_id``, ``scene_id_cam2``, ...) and the totals."""
+    if len(groups) > MAX_CAMERAS:
+        raise ExportError(
+            f"{ws}: the frames use {len(groups)} different cameras; both layouts hold one "
+            f"calibration per scene, so each camera becomes its own scene (at most "
+            f"{MAX_CAMERAS}). Re-import with a shared camera model, or export subsets with --frames")
+    parts = [export_dataset(ws, out, replace(opts, scene_id=sid, frames=g), executor=executor,
+                            progress=progress)
+             for sid, g in zip(group_scene_ids(opts.scene_id, len(groups)), groups, strict=True)]
+    return {
+        "out": str(out), "layout": opts.layout, "scene_id": opts.scene_id,
+        "scenes": [{k: v for k, v in p.items() if k != "results"} for p in parts],
+        "frames": sum(p["frames"] for p in parts), "written": sum(p["written"] for p in parts),
+        "skipped_done": sum(p["skipped_done"] for p in parts),
+        "complete": all(p["complete"] for p in parts), "bytes": sum(p["bytes"] for p in parts),
+        "seconds": round(time.perf_counter() - t_start, 3),
+        "results": [r for p in parts for r in p["results"]],
+    }
+
+
+def _frame_altitudes(ws: Path, scene, idx: list[int]) -> dict[int, int]:
+    """Every selected frame's altitude, after checking its pose and image (nothing is written
+    before every frame passes)."""
     alts: dict[int, int] = {}
     for i in idx:
         fr = scene.frames[i]
@@ -457,23 +489,17 @@ def export_dataset(
         alts[i] = frame_altitude(fr, f"{ws}: frame {i}")
         if not fr.image_path or not Path(fr.image_path).is_file():
             raise ExportError(f"{ws}: frame {i} ({fr.name}): image file {fr.image_path!r} not found")
-    all_alts = set(alts.values())
-    for fr in scene.frames:  # map every altitude of the scene so earlier frames stay checkable
-        if fr.nominal_altitude is not None:
-            all_alts.add(int(fr.nominal_altitude))
-    grids, mapping, grid_src = _resolve_grids(ws, grid, all_alts, grid_for_altitude)
-    fingerprint = scene_fingerprint(scene)
-    old = _check_target(out, lay, scene_id, fingerprint, layout)
-    check_export_memory([grids[k] for k in set(mapping.values())], spec,
-                        max(scene.frames[i].camera.width * scene.frames[i].camera.height for i in idx),
-                        _local_workers(executor, workers, len(idx)), where=str(out))
+    return alts
 
-    # -- grids used, stored next to the export state so workers (local or remote) load them
-    sdir = lay.state_dir(out, scene_id)
+
+def _stage_grids(sdir: Path, grids: dict[int, SceneGrid], used: set[int]
+                 ) -> tuple[dict[int, tuple[str, str]], dict[int, str]]:
+    """The grids used, stored next to the export state so workers (local or remote) load them:
+    ``({key: (path, digest)}, {key: digest})``."""
     grid_paths: dict[int, tuple[str, str]] = {}
     digests = {}
     for key, g in grids.items():
-        if key not in set(mapping.values()):
+        if key not in used:
             continue
         dg = grid_digest(g)
         p = sdir / f"grid_{'all' if key < 0 else key}_{dg[:12]}.npz"
@@ -481,62 +507,138 @@ def export_dataset(
             _atomic_write(p, g.to_bytes(compress=False))  # a working copy: speed over size
         grid_paths[key] = (str(p), dg)
         digests[key] = dg
+    return grid_paths, digests
+
+
+def _export_one_camera(ws: Path, out: Path, opts: ExportOptions, scene, idx: list[int], *,
+                       executor, progress, t_start: float) -> dict:
+    """Export frames ``idx`` (all of one camera) as scene ``opts.scene_id``."""
+    lay = LAYOUTS[opts.layout]
+    spec = opts.spec or FrameGridSpec()
+    alts = _frame_altitudes(ws, scene, idx)
+    all_alts = set(alts.values())
+    for fr in scene.frames:  # map every altitude of the scene so earlier frames stay checkable
+        if fr.nominal_altitude is not None:
+            all_alts.add(int(fr.nominal_altitude))
+    grids, mapping, grid_src = _resolve_grids(ws, opts.grid, all_alts, opts.grid_for_altitude)
+    fingerprint = scene_fingerprint(scene)
+    old = _check_target(out, lay, opts.scene_id, fingerprint, opts.layout)
+    check_export_memory([grids[k] for k in set(mapping.values())], spec,
+                        max(scene.frames[i].camera.width * scene.frames[i].camera.height for i in idx),
+                        _local_workers(executor, opts.workers, len(idx)), where=str(out))
+    grid_paths, digests = _stage_grids(lay.state_dir(out, opts.scene_id), grids,
+                                       set(mapping.values()))
     # per-altitude config hash: what a frame's files depend on (not the frame selection)
     configs = {
         a: sha256_bytes(json.dumps({
-            "v": EXPORT_FORMAT_VERSION, "layout": layout, "spec": spec.to_dict(),
-            "scene": fingerprint, "grid": digests[mapping[a]], "downsample": downsample_rule,
-            "velodyne": bool(velodyne) and layout == "sscbench"}, sort_keys=True).encode())[:32]
+            "v": EXPORT_FORMAT_VERSION, "layout": opts.layout, "spec": spec.to_dict(),
+            "scene": fingerprint, "grid": digests[mapping[a]], "downsample": opts.downsample_rule,
+            "velodyne": opts.writes_velodyne}, sort_keys=True).encode())[:32]
         for a in mapping
     }
-    config = sha256_bytes(json.dumps(configs, sort_keys=True).encode())[:32]
+    grid_record = {("all" if k < 0 else str(k)): {
+        "source": grid_src[k], "digest": digests[k], "shape": list(grids[k].shape),
+        "origin": grids[k].origin.tolist(), "voxel_size": grids[k].voxel_size} for k in digests}
+    manifest = _manifest(ws, out, opts, scene, idx, alts, spec, old, grid_record, mapping,
+                         fingerprint=fingerprint, config=sha256_bytes(json.dumps(configs, sort_keys=True).encode())[:32])
+    mpath = lay.manifest_path(out, opts.scene_id)
+    _write_scene_files(out, opts, lay, manifest, mpath, scene.frames[idx[0]].camera)
 
+    # -- tasks for frames that are not done yet
+    scene_mtime = Workspace(ws).scene_json.stat().st_mtime_ns
+    tasks, skipped = [], 0
+    for i in idx:
+        fid = frame_id_of(i)
+        if frame_done(lay.marker(out, opts.scene_id, alts[i], fid), configs[alts[i]], out):
+            skipped += 1
+            continue
+        gp, gd = grid_paths[mapping[alts[i]]]
+        tasks.append({
+            "ws": str(ws), "out": str(out), "scene_mtime": scene_mtime, "scene_id": opts.scene_id,
+            "layout": opts.layout, "frame_index": i, "frame_id": fid, "altitude": alts[i],
+            "grid_path": gp, "grid_digest": gd, "spec": {
+                "shape": spec.shape, "voxel_size": spec.voxel_size, "near": spec.near,
+                "far": spec.far, "oversample": spec.oversample, "max_raster": spec.max_raster},
+            "config": configs[alts[i]], "downsample_rule": opts.downsample_rule,
+            "velodyne": opts.writes_velodyne,
+        })
+    results = _run_frame_tasks(tasks, out, executor=executor, workers=opts.workers,
+                               progress=progress)
+    manifest["complete"] = all(
+        a["altitude"] in configs
+        and frame_done(lay.marker(out, opts.scene_id, a["altitude"], fid), configs[a["altitude"]], out)
+        for fid, a in manifest["frames"].items())
+    manifest["updated"] = datetime.now(UTC).isoformat(timespec="seconds")
+    _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
+    for p, data in _dataset_files(out, opts.layout, scene.taxonomy, spec).items():
+        _atomic_write(p, data)
+    secs = [r["seconds_sample"] for r in results]
+    return {
+        "out": str(out), "layout": opts.layout, "scene_id": opts.scene_id,
+        "frames": len(idx), "written": len(results), "skipped_done": skipped,
+        "complete": manifest["complete"], "bytes": sum(r["bytes"] for r in results),
+        "seconds": round(time.perf_counter() - t_start, 3),
+        "sample_seconds_mean": round(float(np.mean(secs)), 4) if secs else None,
+        "grid_for_altitude": manifest["provenance"]["grid_for_altitude"],
+        "results": results,
+    }
+
+
+def _conventions(downsample_rule: str) -> dict:
+    """The manifest's ``conventions``: how to read every array of the export."""
+    return {
+        "frame_grid": "camera-centric, x right, y down, z forward; voxel (i,j,k) centre "
+                      "((i-X/2+.5)r, (j-Y/2+.5)r, (k+.5)r); C order",
+        "label": "raw class ids, 0 empty, 255 invalid",
+        "masks": "numpy.packbits of the flattened bool array, MSB first",
+        "pose": "pkl 'pose' (and frames[*].pose here) = (4,4) camera-to-world, scene-local metres",
+        "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened "
+                 "(shape: depth_map_shape, and per frame)",
+        "pooling": ("most common non-empty valid class per block; ties by taxonomy tie order; "
+                    "no non-empty valid voxel -> 0 if any valid voxel else 255")
+        if downsample_rule == "occufly" else
+        ("LMSCNet/MonoScene: block empty (0, or 255 if more invalid than empty) when > 95 % "
+         "of it is empty or invalid, else its most common other id (ties: smallest id)"),
+        "calibration": "scene-level calibration.txt: fx fy cx cy width height of the full "
+                       "image (COLMAP convention); '# depth_maps: h w' comment line",
+    }
+
+
+def _manifest(ws: Path, out: Path, opts: ExportOptions, scene, idx: list[int],
+              alts: dict[int, int], spec: FrameGridSpec, old: dict | None, grid_record: dict,
+              mapping: dict[int, int], *, fingerprint: str, config: str) -> dict:
+    """The scene's manifest with ``complete: false``: taxonomy, conventions, provenance and
+    the frames of this export merged into those an earlier export of the scene wrote."""
     camera = scene.frames[idx[0]].camera  # one camera per exported scene (camera_groups)
     if old and old.get("camera") not in (None, camera.to_dict()):
         raise ExportError(
-            f"{lay.manifest_path(out, scene_id)}: scene {scene_id!r} was exported with another camera "
-            f"({old['camera']}); its calibration is one camera for every frame -- export these "
-            "frames under another --scene-id")
-    depth_shape = quarter_shape(camera)
+            f"{LAYOUTS[opts.layout].manifest_path(out, opts.scene_id)}: scene {opts.scene_id!r} "
+            f"was exported with another camera ({old['camera']}); its calibration is one camera "
+            "for every frame -- export these frames under another --scene-id")
     by_alt_cam: dict[int, object] = {}
     for i in idx:
         by_alt_cam.setdefault(alts[i], scene.frames[i].camera)
-    split_rule = None if split is not None else (
-        {"rule": split_by, "ratios": list(split_rules.check_ratios(split_ratios or split_rules.DEFAULT_RATIOS))}
-        if split_by is not None else (old or {}).get("split_by"))
-    split = split or (old or {}).get("split") or default_split(scene_id)
+    split_rule = None if opts.split is not None else (
+        {"rule": opts.split_by,
+         "ratios": list(split_rules.check_ratios(opts.split_ratios or split_rules.DEFAULT_RATIOS))}
+        if opts.split_by is not None else (old or {}).get("split_by"))
+    now = datetime.now(UTC).isoformat(timespec="seconds")
     manifest = {
-        "format": "occufly-export", "version": EXPORT_FORMAT_VERSION, "layout": layout,
-        "scene_id": scene_id, "scene_fingerprint": fingerprint, "complete": False,
-        "created": (old or {}).get("created") or datetime.now(UTC).isoformat(timespec="seconds"),
-        "updated": datetime.now(UTC).isoformat(timespec="seconds"),
+        "format": "occufly-export", "version": EXPORT_FORMAT_VERSION, "layout": opts.layout,
+        "scene_id": opts.scene_id, "scene_fingerprint": fingerprint, "complete": False,
+        "created": (old or {}).get("created") or now, "updated": now,
         "taxonomy": scene.taxonomy.to_dict(),
         "learning_map": {str(k): v for k, v in scene.taxonomy.learning_map().items()},
         "grid_spec": spec.to_dict(),
-        "conventions": {
-            "frame_grid": "camera-centric, x right, y down, z forward; voxel (i,j,k) centre "
-                          "((i-X/2+.5)r, (j-Y/2+.5)r, (k+.5)r); C order",
-            "label": "raw class ids, 0 empty, 255 invalid",
-            "masks": "numpy.packbits of the flattened bool array, MSB first",
-            "pose": "pkl 'pose' (and frames[*].pose here) = (4,4) camera-to-world, scene-local metres",
-            "depth": "float32 metres along the optical axis, 0 = none, (H/4)*(W/4) flattened "
-                     "(shape: depth_map_shape, and per frame)",
-            "pooling": ("most common non-empty valid class per block; ties by taxonomy tie order; "
-                        "no non-empty valid voxel -> 0 if any valid voxel else 255")
-            if downsample_rule == "occufly" else
-            ("LMSCNet/MonoScene: block empty (0, or 255 if more invalid than empty) when > 95 % "
-             "of it is empty or invalid, else its most common other id (ties: smallest id)"),
-            "calibration": "scene-level calibration.txt: fx fy cx cy width height of the full "
-                           "image (COLMAP convention); '# depth_maps: h w' comment line",
-        },
-        "split": split,
+        "conventions": _conventions(opts.downsample_rule),
+        "split": opts.split or (old or {}).get("split") or default_split(opts.scene_id),
         "split_by": split_rule,
         # which grid axis is what in the image: adapters mirror axis 0 for a left-right flip
         "axes": frame_axes(),
-        "downsample_rule": downsample_rule,
+        "downsample_rule": opts.downsample_rule,
         "camera": camera.to_dict(),
         "image_shape": [camera.height, camera.width],
-        "depth_map_shape": list(depth_shape),
+        "depth_map_shape": list(quarter_shape(camera)),
         "provenance": {
             "workspace": str(ws), "scene_origin": scene.origin.tolist(),
             # the CRS of scene_origin and the grids' origins ({name, epsg, wkt}; None: local)
@@ -544,13 +646,10 @@ def export_dataset(
             "scene_meta": {k: scene.meta.get(k) for k in ("source", "cloud", "depth_maps",
                                                           "georeferenced", "synthetic")
                            if k in scene.meta},
-            "grids": {("all" if k < 0 else str(k)): {
-                "source": grid_src[k], "digest": digests[k], "shape": list(grids[k].shape),
-                "origin": grids[k].origin.tolist(), "voxel_size": grids[k].voxel_size}
-                for k in digests},
+            "grids": grid_record,
             "grid_for_altitude": {str(a): ("all" if k < 0 else k) for a, k in sorted(mapping.items())},
             "config_hash": config,
-            **(provenance or {}),
+            **(opts.provenance or {}),
         },
         "cameras": {str(a): c.to_dict() for a, c in sorted(by_alt_cam.items())},
     }
@@ -568,45 +667,40 @@ def export_dataset(
         for fid, s in split_rules.assign_splits(manifest["frames"], split_rule["rule"],
                                                 split_rule["ratios"]).items():
             manifest["frames"][fid]["split"] = s
-    mpath = lay.manifest_path(out, scene_id)
+    return manifest
+
+
+def _write_scene_files(out: Path, opts: ExportOptions, lay, manifest: dict, mpath: Path,
+                       camera) -> None:
+    """Before any frame: the manifest (``complete: false``), ``quality.json`` and the layout's
+    per-scene files (calibration, links)."""
     clean_stray_temporaries(out)
     _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
-    if quality is not None:
-        _atomic_write(quality_path(out, layout, scene_id), json.dumps(quality, indent=1).encode())
+    if opts.quality is not None:
+        _atomic_write(quality_path(out, opts.layout, opts.scene_id),
+                      json.dumps(opts.quality, indent=1).encode())
     seq_alts = sorted({int(a["altitude"]) for a in manifest["frames"].values()})
-    for p, data in lay.static_files(out, scene_id, camera, depth_shape, altitudes=seq_alts).items():
+    for p, data in lay.static_files(out, opts.scene_id, camera, quarter_shape(camera),
+                                    altitudes=seq_alts).items():
         _atomic_write(p, data)
-    if layout == "occufly":
+    if opts.layout == "occufly":
         for a in seq_alts:  # export format 1 wrote calibration.txt per altitude
-            (occufly_layout.scene_dir(out, scene_id) / str(a) / "calibration.txt").unlink(missing_ok=True)
+            (occufly_layout.scene_dir(out, opts.scene_id) / str(a) / "calibration.txt").unlink(missing_ok=True)
     else:
-        sscbench_layout.make_links(out, scene_id, seq_alts)
+        sscbench_layout.make_links(out, opts.scene_id, seq_alts)
 
-    # -- tasks for frames that are not done yet
-    scene_mtime = Workspace(ws).scene_json.stat().st_mtime_ns
-    tasks, skipped = [], 0
-    for i in idx:
-        fid = frame_id_of(i)
-        if frame_done(lay.marker(out, scene_id, alts[i], fid), configs[alts[i]], out):
-            skipped += 1
-            continue
-        gp, gd = grid_paths[mapping[alts[i]]]
-        tasks.append({
-            "ws": str(ws), "out": str(out), "scene_mtime": scene_mtime, "scene_id": scene_id,
-            "layout": layout, "frame_index": i, "frame_id": fid, "altitude": alts[i],
-            "grid_path": gp, "grid_digest": gd, "spec": {
-                "shape": spec.shape, "voxel_size": spec.voxel_size, "near": spec.near,
-                "far": spec.far, "oversample": spec.oversample, "max_raster": spec.max_raster},
-            "config": configs[alts[i]], "downsample_rule": downsample_rule,
-            "velodyne": bool(velodyne) and layout == "sscbench",
-        })
+
+def _run_frame_tasks(tasks: list[dict], out: Path, *, executor, workers: int | None,
+                     progress: ProgressFn | None) -> list[dict]:
+    """:func:`export_frame_task` over ``tasks`` on ``executor`` (default: a local pool of
+    ``workers``, closed afterwards); disk full is an :class:`ExportError`."""
     own = executor is None
     if own:
         from occufly.parallel import get_executor
 
         executor = get_executor(None, workers if workers is not None else min(len(tasks), 2) or 1)
     try:
-        results = executor.map(export_frame_task, tasks, progress=progress) if tasks else []
+        return executor.map(export_frame_task, tasks, progress=progress) if tasks else []
     except OSError as e:
         if is_disk_full(e):
             raise ExportError(f"disk full while exporting into {out}; completed frames are kept, "
@@ -615,22 +709,3 @@ def export_dataset(
     finally:
         if own:
             executor.close()
-    manifest["complete"] = all(
-        a["altitude"] in configs
-        and frame_done(lay.marker(out, scene_id, a["altitude"], fid), configs[a["altitude"]], out)
-        for fid, a in manifest["frames"].items())
-    manifest["updated"] = datetime.now(UTC).isoformat(timespec="seconds")
-    _atomic_write(mpath, json.dumps(manifest, indent=1).encode())
-    for p, data in _dataset_files(out, layout, scene.taxonomy, spec).items():
-        _atomic_write(p, data)
-    total_bytes = sum(r["bytes"] for r in results)
-    secs = [r["seconds_sample"] for r in results]
-    return {
-        "out": str(out), "layout": layout, "scene_id": scene_id,
-        "frames": len(idx), "written": len(results), "skipped_done": skipped,
-        "complete": manifest["complete"], "bytes": total_bytes,
-        "seconds": round(time.perf_counter() - t_start, 3),
-        "sample_seconds_mean": round(float(np.mean(secs)), 4) if secs else None,
-        "grid_for_altitude": manifest["provenance"]["grid_for_altitude"],
-        "results": results,
-    }

@@ -22,6 +22,7 @@ from app.corrections.schemas import (
     DisagreeOut,
     EditIn,
     EditOut,
+    FrameEditOut,
     LayerOut,
     NotificationsOut,
     ProjectedItemOut,
@@ -66,6 +67,7 @@ ACCESS = {
     "POST /api/frames/{fid}/proposals/{pid}/take": "annotator",
     "POST /api/frames/{fid}/proposals/{pid}/decline": "annotator",
     "GET /api/frames/{fid}/projected-items": "member",
+    "GET /api/frames/{fid}/corrections": "reviewer",
     "GET /api/notifications": "user",
     "POST /api/notifications/read": "user",
     "POST /api/scenes/{sid}/reimport": "admin",
@@ -208,6 +210,14 @@ def decline(pid: IdPath, body: DeclineIn, frame: FrameDep, session: SessionDep,
 def projected_items(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser):
     annotations.check_read(session, frame, user)
     return service.projected_items(session=session, ctx=ctx, frame=frame, user=user)
+
+
+@router.get("/frames/{fid}/corrections", response_model=list[FrameEditOut])
+def frame_corrections(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser):
+    """The scene's active 3D corrections this frame sees, newest first, each with what a
+    proposal from it would change in the frame's voting mask (the reviewer page's "Propose
+    from 3D")."""
+    return service.frame_corrections(session=session, ctx=ctx, frame=frame)
 
 
 @router.get("/notifications", response_model=NotificationsOut)

@@ -54,6 +54,16 @@ class DisagreeOut(BaseModel):
     state: str
 
 
+class FrameEditOut(EditOut):
+    """An active 3D correction as one frame sees it (GET /frames/{fid}/corrections)."""
+
+    pixels: int  # mask pixels its points fall on in this frame
+    voting_version: int | None  # the frame's voting mask compared (None: it has none)
+    disagreeing_px: int | None  # of those, painted with another class (None: no voting mask)
+    proposable_px: int | None  # of those, not of the edit's class (a proposal would set them)
+    open_proposal: int | None  # the open proposal already filed from it for this frame
+
+
 class ProposalIn(BaseModel):
     frame_id: Id
     dilate: int = Field(default=1, ge=0, le=16)

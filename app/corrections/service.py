@@ -51,6 +51,7 @@ from app.pipeline import encode_png, stored_mask_ids
 from app.review.models import ReviewItem
 from app.review.service import item_out
 from app.scenes.models import Frame, Scene
+from app.storage import claim_blob
 from app.users.models import User
 from occufly.lifting import corrections as lib
 from occufly.workspace import Workspace
@@ -417,6 +418,48 @@ def disagreeing_frames(*, session: Session, ctx: AppContext, edit: CorrectionEdi
     return [r for r in out if r["disagreeing_px"] > 0]
 
 
+def frame_corrections(*, session: Session, ctx: AppContext, frame: Frame) -> list[dict]:
+    """The scene's active 3D corrections whose points ``frame`` sees, newest first: per edit
+    (:func:`edit_out`) the mask pixels its points fall on (``pixels``), how many of those the
+    frame's voting mask gives another class (``disagreeing_px``, as :func:`disagreeing_frames`)
+    and how many a proposal would set to the edit's class before growing the region
+    (``proposable_px``: every seen pixel not of that class, unpainted ones too), plus the id of
+    the open proposal already filed from it for this frame (``open_proposal``). One decode of
+    the frame's mask; each edit costs a search of its sorted point ids."""
+    scene = session.get(Scene, frame.scene_id)
+    ws_scene = ctx.load_scene(scene.workspace)
+    if frame.index >= len(ws_scene.frames):
+        return []
+    version = (session.get(MaskVersion, frame.voting_version_id)
+               if frame.voting_version_id is not None else None)
+    mask = (stored_mask_ids(ctx.store.get(version.sha256), ws_scene.taxonomy)
+            if version is not None else None)
+    shape = mask.shape if mask is not None else (frame.height, frame.width)
+    open_props = dict(session.execute(select(MaskProposal.edit_id, MaskProposal.id).where(
+        MaskProposal.frame_id == frame.id, MaskProposal.status == "open")).all())
+    names = dict(session.execute(select(User.id, User.username)).all())
+    out = []
+    for e in session.scalars(select(CorrectionEdit).where(
+            CorrectionEdit.scene_id == frame.scene_id, CorrectionEdit.state == "active")
+            .order_by(CorrectionEdit.id.desc())):
+        px = _edit_pixels(ws_scene, frame.index, lib.read_edit_points(scene.workspace, e.id),
+                          shape)
+        if px is None:
+            continue
+        row = edit_out(session, e, names)
+        row.update(pixels=int(len(px[0])), voting_version=version.id if version else None,
+                   open_proposal=open_props.get(e.id))
+        if mask is None:
+            row.update(disagreeing_px=None, proposable_px=None)
+        else:
+            vals = mask[px]
+            row.update(disagreeing_px=int(((vals != e.to_class) & (vals != 0)
+                                           & (vals != 255)).sum()),
+                       proposable_px=int((vals != e.to_class).sum()))
+        out.append(row)
+    return out
+
+
 def _png(arr: np.ndarray) -> bytes:
     return encode_png(np.ascontiguousarray(arr, dtype=np.uint8))
 
@@ -453,8 +496,9 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     proposed = mask.copy()
     proposed[change] = edit.to_class
     p = MaskProposal(frame_id=frame.id, edit_id=edit.id, author_id=user.id, created_at=utcnow(),
-                     sha256=ctx.store.put(_png(proposed)),
-                     change_sha256=ctx.store.put(_png(change.astype(np.uint8) * 255)),
+                     sha256=claim_blob(session, ctx.store, _png(proposed)),
+                     change_sha256=claim_blob(session, ctx.store,
+                                              _png(change.astype(np.uint8) * 255)),
                      changed_px=int(change.sum()), status="open")
     session.add(p)
     session.flush()

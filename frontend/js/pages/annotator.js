@@ -7,6 +7,7 @@ import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.
 import { encodeGreyPngOffThread, decodeIdPng, resizeIds } from "../core/png.js";
 import { Editor } from "../paint/editor.js";
 import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
+import { Workbench, bindSmartTools } from "../paint/workbench.js";
 import { attachCorrections } from "./corrections.js";
 
 const IDLE_SAVE_MS = 2500;
@@ -34,14 +35,6 @@ const KEYS = [
   ["?", "this help"],
 ];
 
-function loadPrefs() {
-  try {
-    return JSON.parse(localStorage.getItem(PREFS_KEY) || "{}") || {};
-  } catch {
-    return {};
-  }
-}
-
 export async function mount(root, ctx) {
   const page = new AnnotatorPage(root, ctx);
   await page.start();
@@ -63,7 +56,6 @@ class AnnotatorPage {
     this.saving = null;
     this.idleTimer = null;
     this.stats = { openMs: null, saves: [] };
-    this.prefs = loadPrefs(); // tool, brush size, opacity, outline, hidden classes: kept between frames
     this.skipped = [];
     this._listeners = [];
     window.__occufly = { page: this }; // used by the e2e tests and bench/bench_browser.py
@@ -104,6 +96,22 @@ class AnnotatorPage {
     this.host = el("div", { class: "canvas-host", id: "canvas-host" }, el("p", { class: "empty-hint" }, 'Press "Next frame" to get a frame from the annotation queue.'));
     this.toolsEl = el("div", { class: "tools", role: "toolbar", "aria-label": "Painting tools" });
     this.paletteEl = el("div", { class: "palette", role: "radiogroup", "aria-label": "Class palette" });
+    // tools, palette, kept preferences (tool, brush size, opacity, outline, hidden classes):
+    // the workbench the reviewer's editor shares
+    this.bench = new Workbench({
+      toolsEl: this.toolsEl,
+      paletteEl: this.paletteEl,
+      prefsKey: PREFS_KEY,
+      readOnly: () => this.readOnly,
+      onHistory: () => {
+        // the prefill's warning and marks go when it is undone, come back on redo
+        const live = this.prefillLive();
+        if (live !== this._prefillShown) {
+          this._prefillShown = live;
+          if (this.frame && this.editor) this.buildSide();
+        }
+      },
+    });
     this.sideEl = el("div", { class: "side-info" });
     this.versionsEl = el("div", { class: "side-versions" });
     this.progressEl = el("details", { class: "progress-box", id: "scene-progress" }, el("summary", {}, "Scene progress"));
@@ -391,23 +399,10 @@ class AnnotatorPage {
     this.versionNumber = maskRes ? maskRes.number : null;
     this.editSeq = this.savedSeq = 0;
     ed.signals.edited.add(() => this.onEdited());
-    // server-side smart tools, bound to this frame
-    ed.smart = {
-      grabcut: async (rect, { strokes = [] } = {}) => {
-        const res = await api.send("POST", `/frames/${frame.id}/grabcut`, { json: { rect, strokes } });
-        const box = (res.headers.get("X-Box") || rect.join(",")).split(",").map(Number);
-        const d = await decodeIdPng(await res.blob());
-        return this.editor === ed ? { ids: d.ids, width: d.width, height: d.height, box } : null;
-      },
-      scissors: async (start, end) => {
-        const r = await api.post(`/frames/${frame.id}/scissors`, { start, end });
-        return this.editor === ed ? r.path : null;
-      },
-    };
+    bindSmartTools(ed, frame.id, () => this.editor === ed); // server-side smart tools, bound to this frame
     ed.signals.status.add((m) => this.status(m));
     ed.mask.changed.add(() => this.schedulePainted());
-    this.buildTools();
-    this.buildPalette(classes);
+    this.bench.attach(ed);
     this.items = (items || []).filter((it) => String(it.frame_id) === String(fid));
     this.buildSide();
     ed.view.overlayPainters.push((c, v) => this.drawPins(c, v));
@@ -416,7 +411,7 @@ class AnnotatorPage {
     this.frameInfo.replaceChildren(el("span", { class: "frame-name" }, frame.name), ` · ${frame.state.replace("_", " ")}`);
     this.frameInfo.title = `${frame.name}: ${W}×${H} px, ${frame.state.replace("_", " ")}`;
     this.opening = null;
-    this.applyPrefs();
+    this.bench.applyPrefs();
     this.setReadOnly(this.readOnlyReason(frame));
     this.skipBtn.disabled = false;
     this.loadProgress();
@@ -445,11 +440,7 @@ class AnnotatorPage {
     this.readOnlyWhy = reason;
     this.editor?.setReadOnly(this.readOnly);
     for (const b of [this.prefillBtn, this.draftBtn, this.submitBtn]) b.disabled = this.readOnly;
-    this.toolsEl.querySelectorAll("button.tool").forEach((b) => {
-      if (b.dataset.tool !== "pan") b.disabled = this.readOnly;
-    });
-    this.refreshUndo?.(); // undo/redo: enabled only with something to undo/redo
-    this.paletteEl.querySelectorAll("button").forEach((b) => (b.disabled = this.readOnly));
+    this.bench.setReadOnly(this.readOnly);
     if (this.readOnly && this.editor) this.editor.setTool("pan");
     if (this.frame) this.buildSide();
   }
@@ -482,175 +473,6 @@ class AnnotatorPage {
     } catch (e) {
       showError(e);
     }
-  }
-
-  /** Tool, brush size, opacity, outline mode and hidden classes carry over to the next frame. */
-  applyPrefs() {
-    const ed = this.editor;
-    const p = this.prefs;
-    if (p.size) ed.setSize(p.size);
-    if (p.opacity != null) ed.setOpacity(p.opacity);
-    if (p.tool && ed.tools[p.tool]) ed.setTool(p.tool);
-    if (p.outline || (p.hidden && p.hidden.length)) {
-      ed.mask.hidden = new Set(p.hidden || []);
-      ed.mask.lut = ed.mask.baseLut.slice();
-      for (const id of ed.mask.hidden) ed.mask.lut[id] = 0;
-      ed.mask.setStyle(p.outline ? "outline" : "fill");
-    }
-    this.outlineBox.checked = !!p.outline;
-    this.paletteEl.querySelectorAll(".eye").forEach((b) => b.setAttribute("aria-pressed", String(!ed.mask.hidden.has(Number(b.dataset.class)))));
-  }
-
-  savePrefs(patch) {
-    Object.assign(this.prefs, patch);
-    try {
-      localStorage.setItem(PREFS_KEY, JSON.stringify(this.prefs));
-    } catch {
-      /* private mode: keep them for this page only */
-    }
-  }
-
-  buildTools() {
-    const ed = this.editor;
-    const btns = Object.values(ed.tools).map((t) =>
-      el("button", { type: "button", class: "tool", "data-tool": t.name, "aria-pressed": String(t === ed.tool), title: `${t.label} (${t.key.toUpperCase()})`, onclick: () => ed.setTool(t.name) }, `${t.label}`, el("kbd", {}, t.key.toUpperCase())),
-    );
-    const size = el("input", { type: "range", id: "brush-size", min: 1, max: 400, value: ed.state.size });
-    const sizeOut = el("output", { for: "brush-size" }, `${ed.state.size} px`);
-    size.addEventListener("input", () => ed.setSize(Number(size.value)));
-    const op = el("input", { type: "range", id: "opacity", min: 0, max: 100, value: Math.round(ed.state.opacity * 100) });
-    const opOut = el("output", { for: "opacity" }, `${Math.round(ed.state.opacity * 100)} %`);
-    op.addEventListener("input", () => ed.setOpacity(Number(op.value) / 100));
-    const tol = el("input", { type: "range", id: "tolerance", min: 0, max: 128, value: ed.state.tolerance });
-    const tolOut = el("output", { for: "tolerance" }, `${ed.state.tolerance}`);
-    tol.addEventListener("input", () => {
-      ed.state.tolerance = Number(tol.value);
-      tolOut.textContent = tol.value;
-    });
-    const undo = el("button", { type: "button", id: "undo", title: "Undo (Ctrl+Z)", onclick: () => ed.undo() }, "Undo");
-    const redo = el("button", { type: "button", id: "redo", title: "Redo (Ctrl+Shift+Z)", onclick: () => ed.redo() }, "Redo");
-    const fit = el("button", { type: "button", title: "Fit to window (Home)", onclick: () => ed.view.fit() }, "Fit");
-    const refreshUndo = () => {
-      undo.disabled = this.readOnly || !ed.history.undos.length;
-      redo.disabled = this.readOnly || !ed.history.redos.length;
-      // the prefill's warning and marks go when it is undone, come back on redo
-      const live = this.prefillLive();
-      if (live !== this._prefillShown) {
-        this._prefillShown = live;
-        if (this.frame && this.editor === ed) this.buildSide();
-      }
-    };
-    this.refreshUndo = refreshUndo;
-    ed.history.changed.add(refreshUndo);
-    refreshUndo();
-    ed.signals.toolChanged.add((name) => {
-      btns.forEach((b) => b.setAttribute("aria-pressed", String(b.dataset.tool === name)));
-      if (!this.readOnly) this.savePrefs({ tool: name });
-    });
-    const zoom = el("output", { id: "zoom-level", title: "Zoom (+ / − / Home)" }, "");
-    const showZoom = () => (zoom.textContent = `${Math.round(ed.view.scale * 100)} %`);
-    ed.view.transformChanged.add(() => {
-      showZoom();
-      this.drawMinimap();
-    });
-    showZoom();
-    this.outlineBox = el("input", { type: "checkbox", id: "outline" });
-    this.outlineBox.addEventListener("change", () => this.setOutline(this.outlineBox.checked));
-    this.minimap = el("canvas", { id: "minimap", class: "minimap", title: "Overview: click to move the view there", width: 150, height: 100 });
-    this.minimap.addEventListener("click", (e) => {
-      const r = this.minimap.getBoundingClientRect();
-      const k = this.minimapScale;
-      if (!k) return;
-      const v = ed.view;
-      const ix = (e.clientX - r.left) / k, iy = (e.clientY - r.top) / k;
-      v.tx = v.cssW / 2 - ix * v.scale;
-      v.ty = v.cssH / 2 - iy * v.scale;
-      v.invalidate();
-      v.transformChanged.dispatch();
-    });
-    this._zoomEl = zoom;
-    ed.signals.sizeChanged.add((s) => {
-      size.value = s;
-      sizeOut.textContent = `${s} px`;
-      this.savePrefs({ size: s });
-    });
-    ed.signals.opacityChanged.add((a) => {
-      op.value = Math.round(a * 100);
-      opOut.textContent = `${Math.round(a * 100)} %`;
-      this.savePrefs({ opacity: a });
-    });
-    this.toolsEl.replaceChildren(
-      ...btns,
-      el("div", { class: "row" }, undo, redo, fit),
-      el("label", { for: "brush-size" }, "Brush size ", sizeOut),
-      size,
-      el("label", { for: "opacity" }, "Mask opacity (O) ", opOut),
-      op,
-      el("label", { for: "tolerance" }, "Flood tolerance ", tolOut),
-      tol,
-      el("label", { for: "outline", class: "check" }, this.outlineBox, " Outline mode (L)"),
-      el("div", { class: "row" }, el("span", { class: "muted" }, "Zoom"), zoom),
-      this.minimap,
-    );
-    requestAnimationFrame(() => this.drawMinimap());
-  }
-
-  setOutline(on) {
-    this.editor.mask.setStyle(on ? "outline" : "fill");
-    this.outlineBox.checked = on;
-    this.savePrefs({ outline: on });
-  }
-
-  toggleClass(id) {
-    const m = this.editor.mask;
-    const hidden = new Set(m.hidden);
-    if (hidden.has(id)) hidden.delete(id);
-    else hidden.add(id);
-    m.setHidden(hidden);
-    this.savePrefs({ hidden: [...hidden] });
-    this.paletteEl.querySelectorAll(".eye").forEach((b) => b.setAttribute("aria-pressed", String(!hidden.has(Number(b.dataset.class)))));
-  }
-
-  /** The photo scaled into the minimap with the visible part of the view as a rectangle. */
-  drawMinimap() {
-    const c = this.minimap;
-    const ed = this.editor;
-    if (!c || !ed) return;
-    const v = ed.view;
-    const k = Math.min(c.width / v.width, c.height / v.height);
-    this.minimapScale = k;
-    const g = c.getContext("2d");
-    g.fillStyle = "#2b2f36";
-    g.fillRect(0, 0, c.width, c.height);
-    if (ed.photo) g.drawImage(ed.photo, 0, 0, v.width * k, v.height * k);
-    g.globalAlpha = 0.6;
-    g.drawImage(ed.mask.canvas, 0, 0, v.width * k, v.height * k);
-    g.globalAlpha = 1;
-    const [x0, y0] = [-v.tx / v.scale, -v.ty / v.scale];
-    g.strokeStyle = "#ffbf47";
-    g.lineWidth = 2;
-    g.strokeRect(x0 * k, y0 * k, (v.cssW / v.scale) * k, (v.cssH / v.scale) * k);
-  }
-
-  buildPalette(classes) {
-    const ed = this.editor;
-    const keyOf = (i) => (i < 10 ? String((i + 1) % 10) : i < 20 ? `⇧${(i - 9) % 10}` : ", .");
-    const items = classes.map((c, i) =>
-      el(
-        "button",
-        { type: "button", role: "radio", class: "swatch-btn", "data-class": c.id, "aria-checked": String(c.id === ed.state.classId), title: `${c.name} (id ${c.id}, ${c.group})` },
-        el("span", { class: "swatch", style: { background: ed.classCss(c.id) } }),
-        el("kbd", {}, keyOf(i)),
-        el("span", {}, c.name),
-      ),
-    );
-    items.forEach((b) => b.addEventListener("click", () => ed.selectClass(Number(b.dataset.class))));
-    // per-class hide / show (the colour layer only; the ids stay)
-    const rows = items.map((b, i) =>
-      el("div", { class: "palette-row" }, b, el("button", { type: "button", class: "eye", "data-class": classes[i].id, "aria-pressed": "true", title: `Show / hide ${classes[i].name}`, "aria-label": `Show ${classes[i].name}`, onclick: () => this.toggleClass(classes[i].id) }, "◉")),
-    );
-    ed.signals.classChanged.add((id) => items.forEach((b) => b.setAttribute("aria-checked", String(Number(b.dataset.class) === id))));
-    this.paletteEl.replaceChildren(...rows);
   }
 
   /** A prefill was applied to this frame and is not undone (its warning and marks apply). */
@@ -796,16 +618,11 @@ class AnnotatorPage {
       this.showHelp();
       return;
     }
-    if (e.type === "keydown" && (e.key === "l" || e.key === "L") && !e.ctrlKey && !e.metaKey) {
-      e.preventDefault();
-      this.setOutline(!this.outlineBox.checked);
-      return;
-    }
     if (this.corrections && this.corrections.ed === this.editor && this.corrections.onKey(e)) {
       e.preventDefault(); // T takes a reviewer's proposed mask change
       return;
     }
-    if (this.editor.handleKey(e)) e.preventDefault();
+    if (this.bench.handleKey(e)) e.preventDefault(); // L outline, then the editor's keys
   }
 
   onEdited() {
@@ -822,7 +639,7 @@ class AnnotatorPage {
     setTimeout(() => {
       this._paintedPending = false;
       this.updatePainted();
-      this.drawMinimap();
+      this.bench.drawMinimap();
     }, 200);
   }
 

@@ -79,12 +79,19 @@ def upgrade() -> None:
         batch_op.create_index(batch_op.f('ix_audit_events_scene_id'), ['scene_id'], unique=False)
 
 
+# SQLite rebuilds a table in batch mode: reflect it alone, not the tables its foreign keys
+# name (the users table's expression index lower(username) cannot be reflected: SAWarning)
+_OWN_TABLE = {'resolve_fks': False}
+
+
 def downgrade() -> None:
     op.drop_table('audit_events')
     op.drop_table('scene_members')
-    with op.batch_alter_table('frames', schema=None) as batch_op:
+    with op.batch_alter_table('frames', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_column('reviewed_version_id')
-    with op.batch_alter_table('auth_tokens', schema=None) as batch_op:
+    with op.batch_alter_table('auth_tokens', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_column('last_seen_at')
         batch_op.drop_column('user_agent')
         batch_op.drop_column('client_ip')

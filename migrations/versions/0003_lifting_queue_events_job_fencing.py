@@ -68,15 +68,23 @@ def upgrade() -> None:
         batch_op.add_column(sa.Column('heartbeat_at', sa.DateTime(), nullable=True))
 
 
+# SQLite rebuilds a table in batch mode: reflect it alone, not the tables its foreign keys
+# name (the users table's expression index lower(username) cannot be reflected: SAWarning)
+_OWN_TABLE = {'resolve_fks': False}
+
+
 def downgrade() -> None:
-    with op.batch_alter_table('jobs', schema=None) as batch_op:
+    with op.batch_alter_table('jobs', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_column('heartbeat_at')
         batch_op.drop_column('owner')
-    with op.batch_alter_table('events', schema=None) as batch_op:
+    with op.batch_alter_table('events', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_index(batch_op.f('ix_events_created_at'))
     op.drop_table('events')
     op.drop_table('lift_status')
-    with op.batch_alter_table('lift_queue', schema=None) as batch_op:
+    with op.batch_alter_table('lift_queue', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_index('ix_lift_queue_status_id')
         batch_op.drop_index(batch_op.f('ix_lift_queue_scene_id'))
     op.drop_table('lift_queue')

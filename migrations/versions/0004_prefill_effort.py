@@ -38,7 +38,10 @@ def upgrade() -> None:
     with op.batch_alter_table('prefills', schema=None) as batch_op:
         batch_op.create_index(batch_op.f('ix_prefills_frame_id'), ['frame_id'], unique=False)
 
-    with op.batch_alter_table('mask_versions', schema=None) as batch_op:
+    # SQLite rebuilds the table: reflect it alone, not the tables its foreign keys name (the
+    # users table's expression index lower(username) cannot be reflected: SAWarning)
+    with op.batch_alter_table('mask_versions', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.add_column(sa.Column('prefill_id', sa.Integer(), nullable=True))
         batch_op.add_column(sa.Column('painted_px', sa.Integer(), nullable=True))
         batch_op.add_column(sa.Column('changed_px', sa.Integer(), nullable=True))
@@ -49,15 +52,25 @@ def upgrade() -> None:
         batch_op.add_column(sa.Column('handout_rank', sa.Integer(), nullable=True))
 
 
+# SQLite rebuilds a table in batch mode: reflect it alone, not the tables its foreign keys
+# name (the users table's expression index lower(username) cannot be reflected: SAWarning)
+_OWN_TABLE = {'resolve_fks': False}
+
+
 def downgrade() -> None:
-    with op.batch_alter_table('frames', schema=None) as batch_op:
+    with op.batch_alter_table('frames', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_column('handout_rank')
-    with op.batch_alter_table('mask_versions', schema=None) as batch_op:
+    # SQLite rebuilds the table: reflect it alone, not the tables its foreign keys name (the
+    # users table's expression index lower(username) cannot be reflected: SAWarning)
+    with op.batch_alter_table('mask_versions', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.drop_constraint(batch_op.f('fk_mask_versions_prefill_id_prefills'),
                                  type_='foreignkey')
         batch_op.drop_column('changed_px')
         batch_op.drop_column('painted_px')
         batch_op.drop_column('prefill_id')
-    with op.batch_alter_table('prefills', schema=None) as batch_op:
+    with op.batch_alter_table('prefills', schema=None,
+                              reflect_kwargs=_OWN_TABLE) as batch_op:
         batch_op.drop_index(batch_op.f('ix_prefills_frame_id'))
     op.drop_table('prefills')

@@ -26,7 +26,10 @@ depends_on = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table('mask_versions', schema=None) as batch_op:
+    # SQLite rebuilds the table: reflect it alone, not the tables its foreign keys name (the
+    # users table's expression index lower(username) cannot be reflected: SAWarning)
+    with op.batch_alter_table('mask_versions', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.add_column(sa.Column('source', sa.String(length=64), nullable=True))
         batch_op.add_column(sa.Column('decided_by_id', sa.Integer(), nullable=True))
         batch_op.add_column(sa.Column('decided_at', sa.DateTime(), nullable=True))
@@ -101,9 +104,13 @@ def downgrade() -> None:
     conn.execute(sa.update(mv).where(mv.c.kind.in_(('accepted', 'rejected', 'imported')))
                  .values(kind='submitted'))
     op.drop_table('job_request_keys')
-    with op.batch_alter_table('frames', schema=None) as batch_op:
+    with op.batch_alter_table('frames', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.drop_column('voting_version_id')
-    with op.batch_alter_table('mask_versions', schema=None) as batch_op:
+    # SQLite rebuilds the table: reflect it alone, not the tables its foreign keys name (the
+    # users table's expression index lower(username) cannot be reflected: SAWarning)
+    with op.batch_alter_table('mask_versions', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.drop_constraint(batch_op.f('fk_mask_versions_decided_by_id_users'),
                                  type_='foreignkey')
         batch_op.drop_column('decided_at')

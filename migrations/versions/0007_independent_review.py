@@ -30,6 +30,8 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("frames") as b:
+    # SQLite rebuilds the table: reflect it alone (the users table its foreign keys name has
+    # an expression index that cannot be reflected: SAWarning)
+    with op.batch_alter_table("frames", reflect_kwargs={"resolve_fks": False}) as b:
         for name in reversed(_COLUMNS):
             b.drop_column(name)

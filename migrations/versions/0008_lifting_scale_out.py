@@ -22,5 +22,7 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    with op.batch_alter_table('lift_queue', schema=None) as batch_op:
+    # SQLite rebuilds the table: reflect it alone (see 0004)
+    with op.batch_alter_table('lift_queue', schema=None,
+                              reflect_kwargs={'resolve_fks': False}) as batch_op:
         batch_op.drop_column('applied_by')

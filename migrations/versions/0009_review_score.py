@@ -26,5 +26,6 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("frames") as b:
+    # SQLite rebuilds the table: reflect it alone (see 0004)
+    with op.batch_alter_table("frames", reflect_kwargs={"resolve_fks": False}) as b:
         b.drop_column("review_score")

@@ -13,6 +13,15 @@ A request *body* must keep moving: once the head is in, a body that sends nothin
 ``OCCUFLY_BODY_IDLE_TIMEOUT_S`` (default 30 s) closes the connection (not while the app itself
 has paused reading, i.e. is slower than the client).
 
+A websocket is not a request body. h11 reports the upgrade request's sender in ``SEND_BODY``
+(uvicorn hands the connection to its websocket protocol on the ``Request`` event, before h11
+sees the end of the message), so the body timer used to be armed by the upgrade's own bytes --
+and, the transport now belonging to the websocket protocol, never re-armed nor cancelled: every
+``/viewer/`` socket was closed (1006 in the browser) exactly ``OCCUFLY_BODY_IDLE_TIMEOUT_S``
+after it opened, pings or not (issue 40, defect 4). The upgrade now cancels both timers and
+marks the connection, and neither timer is armed on it again; the websocket's liveness is
+uvicorn's ping/pong (``ws_ping_interval`` / ``ws_ping_timeout``).
+
 The head is parsed by h11, whose incomplete-event cap (``h11_max_incomplete_event_size``,
 64 KiB here) bounds what one connection can make the server buffer before the head is
 complete: a longer head gets 400 at once.
@@ -70,22 +79,30 @@ class TimedH11Protocol(H11Protocol):
         super().connection_made(transport)
         self._head_timer = None
         self._body_timer = None
+        self._upgraded = False  # handed to the websocket protocol: no timer of ours applies
         self._arm_head_timer()
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
         self._arm_body_timer()
 
-    def _arm_body_timer(self) -> None:
-        if self._body_timer is not None:
-            self._body_timer.cancel()
+    def _cancel_body_timer(self) -> None:
+        timer = getattr(self, "_body_timer", None)
+        if timer is not None:
+            timer.cancel()
             self._body_timer = None
+
+    def _arm_body_timer(self) -> None:
+        self._cancel_body_timer()
+        if self._upgraded:  # a websocket, not a body (see the module doc)
+            return
         if self.conn.their_state is h11.SEND_BODY and not self.transport.is_closing():
             self._body_timer = self.loop.call_later(body_idle_timeout_s(), self._body_deadline)
 
     def _body_deadline(self) -> None:
         self._body_timer = None
-        if self.transport.is_closing() or self.conn.their_state is not h11.SEND_BODY:
+        if (self._upgraded or self.transport.is_closing()
+                or self.conn.their_state is not h11.SEND_BODY):
             return
         if self.flow is not None and self.flow.read_paused:  # the app is the slow one
             self._arm_body_timer()
@@ -107,7 +124,7 @@ class TimedH11Protocol(H11Protocol):
 
     def _head_deadline(self) -> None:
         self._head_timer = None
-        if self.transport.is_closing():
+        if self._upgraded or self.transport.is_closing():
             return
         if self.cycle is not None and not self.cycle.response_complete:
             return  # a complete head arrived; the request is being handled
@@ -122,14 +139,17 @@ class TimedH11Protocol(H11Protocol):
             self._arm_head_timer()  # the next request head of a kept-alive connection
 
     def handle_websocket_upgrade(self, event: Any) -> None:  # noqa: ANN401
+        # from here on the transport belongs to the websocket protocol: this object sees no
+        # more data_received / connection_lost, so a timer left armed would fire on a live
+        # socket (data_received arms the body timer *after* this returns: the flag stops it)
+        self._upgraded = True
         self._cancel_head_timer()
+        self._cancel_body_timer()
         super().handle_websocket_upgrade(event)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_head_timer()
-        if self._body_timer is not None:
-            self._body_timer.cancel()
-            self._body_timer = None
+        self._cancel_body_timer()
         super().connection_lost(exc)
 
 

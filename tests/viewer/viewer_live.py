@@ -11,6 +11,7 @@ import uvicorn
 from fastapi import FastAPI, Request
 
 from app import viewer
+from app.serving import uvicorn_options
 
 REVIEWER = "reviewer-token"
 ANNOTATOR = "annotator-token"
@@ -64,9 +65,11 @@ class LiveServer:
         self.sock = socket.socket()
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
-        # like `occufly serve`: no permessage-deflate on the viewer socket
+        # served as `occufly serve` serves the app (app.serving: its h11 protocol with the
+        # header and body timeouts, no permessage-deflate on the viewer socket): a test
+        # server without them never saw the body timer cut the viewer socket (issue 40)
         cfg = uvicorn.Config(app, log_level="warning", lifespan="on", ws_max_size=64 << 20,
-                             ws_per_message_deflate=False)
+                             **uvicorn_options(None))
         self.server = uvicorn.Server(cfg)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
                                        daemon=True)

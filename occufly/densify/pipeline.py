@@ -157,6 +157,21 @@ def _is_degenerate(pts: np.ndarray, thickness: float) -> str | None:
     return None
 
 
+@dataclass
+class _InstanceLayer:
+    """What the instance stage leaves for the free-space check and the aggregation."""
+
+    point_keys: list[np.ndarray] = field(default_factory=list)  # voxels holding instance points
+    point_labels: list[np.ndarray] = field(default_factory=list)  # their classes
+    direct_keys: list[np.ndarray] = field(default_factory=list)  # binned directly (fallbacks)
+    carved: dict[int, np.ndarray] = field(default_factory=dict)  # class id -> carved voxels
+    stats: dict[str, dict] = field(default_factory=dict)  # class name -> counts
+    min_points_scale: float | None = None
+    density: float | None = None
+    t_dbscan: float = 0.0
+    t_carve: float = 0.0
+
+
 def densify(
     xyz: np.ndarray,
     labels: np.ndarray,
@@ -192,8 +207,90 @@ def densify(
         raise InputFormatError(f"voxel size must be > 0, got {options.voxel_size}")
     prio = taxonomy.priority_lut()
 
-    # ---- groups ------------------------------------------------------------------------
     t = time.perf_counter()
+    gl, spec, counts_per_class = _groups(xyz, labels, taxonomy, scene_origin, options, warn)
+    timings["groups"] = time.perf_counter() - t
+    report_progress(0.02, "groups")
+
+    t = time.perf_counter()
+    layer = _instances(xyz, labels, taxonomy, spec, options, counts_per_class, warn, report_progress)
+    timings["instances"] = time.perf_counter() - t
+    timings["instances_dbscan"] = layer.t_dbscan
+    timings["instances_carve"] = layer.t_carve
+
+    t = time.perf_counter()
+    free_removed = _free_space(layer, taxonomy, spec, options, views, report_progress)
+    timings["free_space"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    other_k, other_l = _other(xyz, labels, np.flatnonzero(gl == 3), spec, prio,
+                              options.smooth_radius_other * vs)
+    timings["other"] = time.perf_counter() - t
+    report_progress(0.65, "other")
+
+    t = time.perf_counter()
+    sel = np.flatnonzero(gl == 2)
+    ground = voxelize_ground(
+        spec, np.asarray(xyz[sel], np.float32), labels[sel], prio,
+        poisson=options.poisson, params=options.poisson_params,
+    )
+    if "fallback" in ground.stats:
+        warn(f"ground: {ground.stats['fallback']}; binned directly")
+    timings["ground"] = time.perf_counter() - t
+    report_progress(0.9, "ground")
+
+    t = time.perf_counter()
+    grid = SceneGrid(_aggregate(spec, ground, other_k, other_l, layer, prio).reshape(spec.shape),
+                     spec.origin, vs)
+    timings["aggregate"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    report_progress(1.0, "done")
+
+    counts = grid.class_counts()
+    occupied = int(sum(counts.values()))
+    if occupied == 0:  # cannot happen with labelled points inside the grid; never hide it
+        raise InputFormatError("labels: the densified grid is empty")
+    report = {
+        "voxel_size": vs,
+        "grid_shape": list(spec.shape),
+        "grid_origin_world": spec.origin.tolist(),
+        "points": int(len(xyz)),
+        "labelled_points": int((gl > 0).sum()),
+        "options": {
+            "carve": options.carve,
+            "poisson": options.poisson,
+            "min_points_scale": layer.min_points_scale if options.carve else None,
+            "free_space": bool(options.free_space and views is not None and views.n_frames),
+            "surface_density_per_m2": layer.density,
+        },
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "occupied_voxels": occupied,
+        "voxels_per_class": {taxonomy[c].name if c in taxonomy else str(c): n for c, n in sorted(counts.items())},
+        "voxels_per_stage": {
+            "instance_points": (int(len(np.unique(np.concatenate(layer.point_keys))))
+                                if layer.point_keys else 0),
+            "instance_direct": (int(len(np.unique(np.concatenate(layer.direct_keys))))
+                                if layer.direct_keys else 0),
+            "instance_carved": int(sum(len(v) for v in layer.carved.values())),
+            "instance_free_space_removed": int(sum(free_removed.values())),
+            "other": int(len(other_k)),
+            "ground_points": int(ground.stats.get("voxels_from_points", 0)),
+            "ground_total": int(len(ground.keys)),
+        },
+        "instances": layer.stats,
+        "ground": ground.stats,
+        "warnings": warn.items,
+    }
+    return DensifyResult(grid, report)
+
+
+def _groups(xyz: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, scene_origin: np.ndarray,
+            options: DensifyOptions, warn: _Warnings
+            ) -> tuple[np.ndarray, SceneGridSpec, np.ndarray]:
+    """Each point's class group ((N,) uint8: 0 none, 1 instance, 2 ground, 3 other), the grid
+    spanning the labelled points (checked against the voxel and memory limits) and the points
+    per class ((256,) int64)."""
+    vs = float(options.voxel_size)
     group_of = np.zeros(256, dtype=np.uint8)  # 0 none, 1 instance, 2 ground, 3 other
     for gi, g in enumerate(("instance", "ground", "other"), start=1):
         group_of[taxonomy.group_ids(g)] = gi
@@ -207,8 +304,7 @@ def densify(
         raise InputFormatError(
             "labels: no point carries a class of the taxonomy (all empty/unknown); nothing to voxelize"
         )
-    idx_lab = np.flatnonzero(labelled)
-    sub = np.asarray(xyz[idx_lab], dtype=np.float32)
+    sub = np.asarray(xyz[np.flatnonzero(labelled)], dtype=np.float32)
     lo, hi = sub.min(axis=0), sub.max(axis=0)
     del sub
     spec = grid_spec_for(lo, hi, scene_origin, vs, pad=options.pad)
@@ -225,91 +321,96 @@ def densify(
     for c in taxonomy.classes:
         if counts_per_class[c.id] == 0:
             log.info("class %s (%d) has no points", c.name, c.id)
-    timings["groups"] = time.perf_counter() - t
-    report_progress(0.02, "groups")
+    return gl, spec, counts_per_class
 
-    # ---- instances ---------------------------------------------------------------------
-    t = time.perf_counter()
-    inst_point_keys: list[np.ndarray] = []
-    inst_point_labels: list[np.ndarray] = []
-    direct_keys: list[np.ndarray] = []  # voxels of instance points binned directly (fallbacks)
-    carved: dict[int, np.ndarray] = {}
-    inst_stats: dict[str, dict] = {}
+
+def _instances(xyz: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, spec: SceneGridSpec,
+               options: DensifyOptions, counts_per_class: np.ndarray, warn: _Warnings,
+               report_progress: ProgressFn) -> _InstanceLayer:
+    """Instance classes: DBSCAN per class into instances, each carved as a visual hull; noise
+    points and degenerate instances are binned directly."""
+    vs = float(options.voxel_size)
+    layer = _InstanceLayer(min_points_scale=options.min_points_scale)
     inst_ids = [int(c) for c in taxonomy.group_ids("instance") if counts_per_class[c] > 0]
-    mp_scale = options.min_points_scale
-    density = None
-    if mp_scale is None:
-        density = surface_density(xyz)
-        mp_scale = min(1.0, density / REFERENCE_SURFACE_DENSITY)
-    t_dbscan = t_carve = 0.0
+    if layer.min_points_scale is None:
+        layer.density = surface_density(xyz)
+        layer.min_points_scale = min(1.0, layer.density / REFERENCE_SURFACE_DENSITY)
     for ci, cid in enumerate(inst_ids):
         cls = taxonomy[cid]
         sel = np.flatnonzero(labels == cid)
         pts = _smoothed(xyz, sel, min(options.smooth_radius * vs, float(cls.dbscan_eps)))
         k, ins = spec.keys_of_local(pts)
-        inst_point_keys.append(k[ins])
-        inst_point_labels.append(np.full(int(ins.sum()), cid, np.uint8))
+        layer.point_keys.append(k[ins])
+        layer.point_labels.append(np.full(int(ins.sum()), cid, np.uint8))
         st = {"points": int(len(sel))}
+        layer.stats[cls.name] = st
         if not options.carve:
-            direct_keys.append(k[ins])
-            inst_stats[cls.name] = st
+            layer.direct_keys.append(k[ins])
             continue
-        t0 = time.perf_counter()
-        eps = float(cls.dbscan_eps)
-        minpts = max(2, int(round(int(cls.dbscan_min_points) * mp_scale)))
-        st["eps"], st["min_points"] = eps, minpts
-        cl = dbscan(pts, eps, minpts, cell=options.dbscan_cell_fraction * eps)
-        t_dbscan += time.perf_counter() - t0
-        n_inst = int(cl.max()) + 1 if len(cl) else 0
-        noise = int((cl < 0).sum())
-        st.update({"instances": n_inst, "noise_points": noise, "fallback_instances": 0})
-        if noise:
-            msg = (
-                f"{cls.name}: {noise} of {len(pts)} points are DBSCAN noise "
-                f"(eps={eps}, minPts={minpts}); they are binned directly"
-                + (
-                    "; for a sparse cloud try min_points_scale auto (--min-points-scale auto)"
-                    if n_inst == 0 and options.min_points_scale is not None
-                    else ""
-                )
-            )
-            if n_inst == 0:
-                warn(msg)
-            else:
-                log.info(msg)
-        if noise:
-            nz = (cl < 0) & ins
-            direct_keys.append(k[nz])
-        t0 = time.perf_counter()
-        order = np.argsort(cl, kind="stable")
-        bounds = np.searchsorted(cl[order], np.arange(n_inst + 1))
-        keys_c: list[np.ndarray] = []
-        for j in range(n_inst):
-            members = order[bounds[j] : bounds[j + 1]]
-            p = pts[members].astype(np.float64)
-            why = _is_degenerate(p, options.degenerate_thickness * vs)
-            if why is not None:
-                warn(f"{cls.name} instance {j} ({len(p)} points) is degenerate: {why}; binned directly")
-                st["fallback_instances"] += 1
-                direct_keys.append(k[members[ins[members]]])
-                continue
-            keys_c.append(carve_instance(p, spec, options.carve_params))
-        if keys_c:
-            carved[cid] = np.unique(np.concatenate(keys_c))
-        st["carved_voxels"] = int(len(carved.get(cid, ())))
-        t_carve += time.perf_counter() - t0
-        inst_stats[cls.name] = st
+        _carve_class(layer, cls, pts, k, ins, spec, options, st, warn)
         report_progress(0.02 + 0.6 * (ci + 1) / max(1, len(inst_ids)), f"instances: {cls.name}")
-    timings["instances"] = time.perf_counter() - t
-    timings["instances_dbscan"] = t_dbscan
-    timings["instances_carve"] = t_carve
+    return layer
 
-    # ---- free space: carved voxels (without points) the cameras saw through ------------
-    t = time.perf_counter()
+
+def _carve_class(layer: _InstanceLayer, cls, pts: np.ndarray, k: np.ndarray, ins: np.ndarray,
+                 spec: SceneGridSpec, options: DensifyOptions, st: dict, warn: _Warnings) -> None:
+    """One instance class: DBSCAN its points ``pts`` ((n, 3) float32, voxel keys ``k``, inside
+    the grid ``ins``) and carve each instance into ``layer``."""
+    vs = float(options.voxel_size)
+    t0 = time.perf_counter()
+    eps = float(cls.dbscan_eps)
+    minpts = max(2, int(round(int(cls.dbscan_min_points) * layer.min_points_scale)))
+    st["eps"], st["min_points"] = eps, minpts
+    cl = dbscan(pts, eps, minpts, cell=options.dbscan_cell_fraction * eps)
+    layer.t_dbscan += time.perf_counter() - t0
+    n_inst = int(cl.max()) + 1 if len(cl) else 0
+    noise = int((cl < 0).sum())
+    st.update({"instances": n_inst, "noise_points": noise, "fallback_instances": 0})
+    if noise:
+        msg = (
+            f"{cls.name}: {noise} of {len(pts)} points are DBSCAN noise "
+            f"(eps={eps}, minPts={minpts}); they are binned directly"
+            + (
+                "; for a sparse cloud try min_points_scale auto (--min-points-scale auto)"
+                if n_inst == 0 and options.min_points_scale is not None
+                else ""
+            )
+        )
+        if n_inst == 0:
+            warn(msg)
+        else:
+            log.info(msg)
+        layer.direct_keys.append(k[(cl < 0) & ins])
+    t0 = time.perf_counter()
+    order = np.argsort(cl, kind="stable")
+    bounds = np.searchsorted(cl[order], np.arange(n_inst + 1))
+    keys_c: list[np.ndarray] = []
+    for j in range(n_inst):
+        members = order[bounds[j] : bounds[j + 1]]
+        p = pts[members].astype(np.float64)
+        why = _is_degenerate(p, options.degenerate_thickness * vs)
+        if why is not None:
+            warn(f"{cls.name} instance {j} ({len(p)} points) is degenerate: {why}; binned directly")
+            st["fallback_instances"] += 1
+            layer.direct_keys.append(k[members[ins[members]]])
+            continue
+        keys_c.append(carve_instance(p, spec, options.carve_params))
+    if keys_c:
+        layer.carved[cls.id] = np.unique(np.concatenate(keys_c))
+    st["carved_voxels"] = int(len(layer.carved.get(cls.id, ())))
+    layer.t_carve += time.perf_counter() - t0
+
+
+def _free_space(layer: _InstanceLayer, taxonomy: Taxonomy, spec: SceneGridSpec,
+                options: DensifyOptions, views: FrameDepths | None,
+                report_progress: ProgressFn) -> dict[str, int]:
+    """Remove carved voxels (without points) the cameras saw through; returns the voxels
+    removed per class name."""
     free_removed: dict[str, int] = {}
+    carved = layer.carved
     if carved and options.free_space and views is not None and views.n_frames:
-        held = np.unique(np.concatenate(inst_point_keys + direct_keys)) if inst_point_keys else \
-            np.zeros(0, np.int64)
+        held = (np.unique(np.concatenate(layer.point_keys + layer.direct_keys))
+                if layer.point_keys else np.zeros(0, np.int64))
         for cid in list(carved):
             keys = carved[cid]
             test = keys[~np.isin(keys, held)]
@@ -318,42 +419,30 @@ def densify(
             free = views.free_mask(spec.centers_local(spec.unravel(test)))
             if free.any():
                 carved[cid] = np.setdiff1d(keys, test[free], assume_unique=True)
-                inst_stats[taxonomy[cid].name]["carved_voxels"] = int(len(carved[cid]))
+                layer.stats[taxonomy[cid].name]["carved_voxels"] = int(len(carved[cid]))
             free_removed[taxonomy[cid].name] = int(free.sum())
         report_progress(0.64, "free space")
     elif carved and options.free_space:
         log.info("free-space check skipped: no frames with visibility given")
-    timings["free_space"] = time.perf_counter() - t
+    return free_removed
 
-    # ---- other -------------------------------------------------------------------------
-    t = time.perf_counter()
-    sel = np.flatnonzero(gl == 3)
-    r_other = options.smooth_radius_other * vs
-    if r_other > 0 and len(sel):  # smoothing is per class: go class by class
+
+def _other(xyz: np.ndarray, labels: np.ndarray, sel: np.ndarray, spec: SceneGridSpec,
+           prio: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """'Other' classes (points ``sel``): smoothed per class within ``radius`` metres, binned
+    directly by majority vote: ``(voxel keys, labels)``."""
+    if radius > 0 and len(sel):  # smoothing is per class: go class by class
         sel = sel[np.argsort(labels[sel], kind="stable")]
         cuts = np.flatnonzero(np.diff(labels[sel].astype(np.int16))) + 1
-        pts = np.concatenate([_smoothed(xyz, part, r_other) for part in np.split(sel, cuts)])
+        pts = np.concatenate([_smoothed(xyz, part, radius) for part in np.split(sel, cuts)])
     else:
         pts = np.asarray(xyz[sel], np.float32)
-    other_k, other_l = bin_points(spec, pts, labels[sel], prio)
-    del pts
-    timings["other"] = time.perf_counter() - t
-    report_progress(0.65, "other")
+    return bin_points(spec, pts, labels[sel], prio)
 
-    # ---- ground ------------------------------------------------------------------------
-    t = time.perf_counter()
-    sel = np.flatnonzero(gl == 2)
-    ground = voxelize_ground(
-        spec, np.asarray(xyz[sel], np.float32), labels[sel], prio,
-        poisson=options.poisson, params=options.poisson_params,
-    )
-    if "fallback" in ground.stats:
-        warn(f"ground: {ground.stats['fallback']}; binned directly")
-    timings["ground"] = time.perf_counter() - t
-    report_progress(0.9, "ground")
 
-    # ---- aggregate: ground < other < instance -------------------------------------------
-    t = time.perf_counter()
+def _aggregate(spec: SceneGridSpec, ground, other_k: np.ndarray, other_l: np.ndarray,
+               layer: _InstanceLayer, prio: np.ndarray) -> np.ndarray:
+    """The flat (n_voxels,) uint8 grid: ground < other < instance."""
     flat = np.zeros(spec.n_voxels, dtype=np.uint8)
     flat[ground.keys] = ground.labels
     flat[other_k] = other_l
@@ -361,58 +450,20 @@ def densify(
     # preferred class first, so the preferred one ends on top; then every layer voxel holding
     # instance points takes their majority class.
     inst = np.zeros(spec.n_voxels, dtype=np.uint8)
-    for cid in sorted(carved, key=lambda c: -int(prio[c])):
-        inst[carved[cid]] = cid
-    if inst_point_keys:
-        k, lab, _ = majority_vote(np.concatenate(inst_point_keys), np.concatenate(inst_point_labels), prio)
-        layer = inst > 0
-        if direct_keys:
-            layer[np.concatenate(direct_keys)] = True
-        m = layer[k]
+    for cid in sorted(layer.carved, key=lambda c: -int(prio[c])):
+        inst[layer.carved[cid]] = cid
+    if layer.point_keys:
+        k, lab, _ = majority_vote(np.concatenate(layer.point_keys),
+                                  np.concatenate(layer.point_labels), prio)
+        in_layer = inst > 0
+        if layer.direct_keys:
+            in_layer[np.concatenate(layer.direct_keys)] = True
+        m = in_layer[k]
         inst[k[m]] = lab[m]
-        del layer
+        del in_layer
     occ = inst > 0
     flat[occ] = inst[occ]
-    del inst, occ
-    grid = SceneGrid(flat.reshape(spec.shape), spec.origin, vs)
-    timings["aggregate"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_all
-    report_progress(1.0, "done")
-
-    counts = grid.class_counts()
-    occupied = int(sum(counts.values()))
-    if occupied == 0:  # cannot happen with labelled points inside the grid; never hide it
-        raise InputFormatError("labels: the densified grid is empty")
-    report = {
-        "voxel_size": vs,
-        "grid_shape": list(spec.shape),
-        "grid_origin_world": spec.origin.tolist(),
-        "points": int(len(xyz)),
-        "labelled_points": int(labelled.sum()),
-        "options": {
-            "carve": options.carve,
-            "poisson": options.poisson,
-            "min_points_scale": mp_scale if options.carve else None,
-            "free_space": bool(options.free_space and views is not None and views.n_frames),
-            "surface_density_per_m2": density,
-        },
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-        "occupied_voxels": occupied,
-        "voxels_per_class": {taxonomy[c].name if c in taxonomy else str(c): n for c, n in sorted(counts.items())},
-        "voxels_per_stage": {
-            "instance_points": int(len(np.unique(np.concatenate(inst_point_keys)))) if inst_point_keys else 0,
-            "instance_direct": int(len(np.unique(np.concatenate(direct_keys)))) if direct_keys else 0,
-            "instance_carved": int(sum(len(v) for v in carved.values())),
-            "instance_free_space_removed": int(sum(free_removed.values())),
-            "other": int(len(other_k)),
-            "ground_points": int(ground.stats.get("voxels_from_points", 0)),
-            "ground_total": int(len(ground.keys)),
-        },
-        "instances": inst_stats,
-        "ground": ground.stats,
-        "warnings": warn.items,
-    }
-    return DensifyResult(grid, report)
+    return flat
 
 
 def load_point_labels(path: str | Path, n_points: int) -> np.ndarray:

@@ -8,10 +8,11 @@ from app.jobs.models import Job
 from app.lifting.models import Event, LiftQueueEntry, LiftStatus
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.models import Frame, Scene, SceneMember
+from app.storage import MaskBlob
 from app.users.models import AuthToken, LoginThrottle, User
 
 metadata = Base.metadata
 
 __all__ = ["AuditEvent", "CorrectionEdit", "MaskProposal", "Notification", "AuthToken", "Event", "Frame", "Job", "LiftQueueEntry", "LiftStatus",
-           "LoginThrottle", "MaskVersion",
+           "LoginThrottle", "MaskBlob", "MaskVersion",
            "ReviewComment", "ReviewItem", "Scene", "SuspectMark", "SceneMember", "User", "metadata"]

@@ -105,7 +105,8 @@ def _png(ctx, sha256: str, version_id: int, number: int | None = None) -> Respon
                **scenes.data_headers(f"mask_version_{version_id}.png")}
     if number is not None:
         headers["X-Mask-Number"] = str(number)  # the per-frame version number
-    return Response(ctx.store.get(sha256), media_type="image/png", headers=headers)
+    return Response(ctx.store.get(sha256, owner=f"mask version {version_id}"),
+                    media_type="image/png", headers=headers)
 
 
 @router.get("/frames/{fid}/mask", response_class=Response, responses={200: PNG})

@@ -42,6 +42,7 @@ from app.errors import (
 )
 from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
+from app.storage import claim_blob
 from app.users.models import User
 from occufly.io import masks
 from occufly.workspace import Workspace
@@ -231,12 +232,15 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
         if not info["canonical"]:  # told by the decode (occufly.io.masks.decode_mask_png)
             data = masks.encode_mask_png(mask)
         check_storage_quota(session, ctx, frame, user, len(data))
-        sha256 = ctx.store.put(data)
+        # claimed in this transaction: a concurrent scene deletion cannot remove the blob
+        # between here and the commit (app/storage.py, issue 36)
+        sha256 = claim_blob(session, ctx.store, data)
         nbytes = len(data)
     else:
         w, h = size
         nbytes = len(data)
         check_storage_quota(session, ctx, frame, user, nbytes)
+        claim_blob(session, ctx.store, sha256=sha256, owner=f"mask version {restored_from}")
     version = MaskVersion(frame_id=frame.id, kind="conflict" if lost_lease else kind,
                           author_id=user.id, sha256=sha256, size_bytes=nbytes, width=w, height=h,
                           base_version_id=expected, restored_from_id=restored_from,
@@ -320,7 +324,7 @@ def record_prefill(session: Session, ctx: AppContext, frame: Frame, user: User, 
         .order_by(Prefill.id.desc()).limit(1))
     if same is not None and ctx.store.exists(digest):
         return same
-    p = Prefill(frame_id=frame.id, user_id=user.id, sha256=ctx.store.put(png),
+    p = Prefill(frame_id=frame.id, user_id=user.id, sha256=claim_blob(session, ctx.store, png),
                 width=int(img.shape[1]), height=int(img.shape[0]),
                 labelled_px=int(np.count_nonzero(img)), masks=masks, created_at=utcnow())
     session.add(p)
@@ -424,7 +428,7 @@ def effort(*, session: Session, scene: Scene) -> dict:
 def restore(*, session: Session, ctx: AppContext, frame: Frame, user: User, version_id: int,
             expected: int | None, kind: str = "draft") -> MaskVersion:
     old = get_version(session=session, frame=frame, version_id=version_id)
-    data = ctx.store.get(old.sha256)
+    data = ctx.store.get(old.sha256, owner=f"mask version {old.id}")
     if expected is None:
         expected = frame.current_version_id
     return store_version(session=session, ctx=ctx, frame=frame, user=user, data=data, kind=kind,

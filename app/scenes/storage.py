@@ -37,6 +37,7 @@ from app.errors import Conflict, NotFound
 from app.jobs.models import Job
 from app.scenes.models import Frame, Scene
 from app.scenes.service import own_workspace
+from app.storage import release_blobs
 
 if TYPE_CHECKING:  # app.context builds the job runner, which calls retention below
     from app.context import AppContext
@@ -270,12 +271,9 @@ def delete_scene(ctx: AppContext, session: Session, scene: Scene) -> dict:
     session.delete(scene)  # frames, versions, prefills, jobs, members, queues cascade
     session.commit()
     ctx.scene_cache.pop(str(scene.workspace), None)
-    shared = _shared_blobs(session, sid, shas)  # rows of the scene are gone: others only
-    for h in shas - shared:
-        try:
-            ctx.store.path(h).unlink(missing_ok=True)
-        except OSError:
-            log.warning("could not remove mask blob %s", h)
+    # the scene's rows are gone: a blob goes only if no row references it once its row is
+    # locked -- a concurrent save of the same bytes in another scene keeps it (issue 36)
+    release_blobs(session, ctx.store, shas)
     for t in moved:
         shutil.rmtree(t, ignore_errors=True)
     for p in archives:

@@ -9,8 +9,8 @@ from app.db import Base, utcnow
 
 AUDIT_ACTIONS = (
     "login", "login_failed", "logout", "mask_save", "mask_submit", "mask_restore", "review_accept",
-    "review_reject", "import", "export", "job", "user_create", "user_update", "password_change",
-    "password_reset", "user_unlock", "session_revoke", "membership", "backup",
+    "review_reject", "review_undo", "import", "export", "job", "user_create", "user_update",
+    "password_change", "password_reset", "user_unlock", "session_revoke", "membership", "backup",
 )
 
 

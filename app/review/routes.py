@@ -17,6 +17,7 @@ from app.review.schemas import (
     ReviewDecisionIn,
     ReviewItemIn,
     ReviewItemOut,
+    ReviewUndoIn,
     SuspectMarkIn,
 )
 from app.scenes import service as scenes
@@ -36,6 +37,7 @@ ACCESS = {
     "GET /api/scenes/{sid}/suspects": "reviewer",
     "PUT /api/scenes/{sid}/suspects/{key}/mark": "reviewer",
     "POST /api/frames/{fid}/review": "reviewer",
+    "POST /api/frames/{fid}/review/undo": "reviewer",
     "GET /api/scenes/{sid}/review-items": "member",
     "POST /api/scenes/{sid}/review-items": "reviewer",
     "POST /api/review-items/{rid}/comments": "member",
@@ -99,6 +101,18 @@ def review_frame(body: ReviewDecisionIn, frame: FrameDep, session: SessionDep, c
     audit.record(session, f"review_{body.decision}", actor=user, scene_id=frame.scene_id,
                  frame_id=frame.id, client_ip=ip,
                  detail={"version": frame.reviewed_version_id, "comment": bool(body.comment)})
+    return scenes.frame_out(session=session, frame=frame)
+
+
+@router.post("/frames/{fid}/review/undo", response_model=FrameOut)
+def undo_review(body: ReviewUndoIn, frame: FrameDep, session: SessionDep, ctx: CtxDep,
+                user: ReviewerUser, ip: ClientIp):
+    """Take back a decision (the page's Undo): the frame waits for review again."""
+    frame = service.undo_decision(session=session, ctx=ctx, frame=frame, user=user,
+                                  decision=body.decision, version=body.version)
+    audit.record(session, "review_undo", actor=user, scene_id=frame.scene_id,
+                 frame_id=frame.id, client_ip=ip,
+                 detail={"version": body.version, "decision": body.decision})
     return scenes.frame_out(session=session, frame=frame)
 
 

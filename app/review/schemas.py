@@ -11,9 +11,17 @@ from app.limits import Count, Id, text
 class ReviewDecisionIn(BaseModel):
     decision: Literal["accept", "reject"]
     comment: text(10000) | None = None
-    # the mask version the reviewer looked at; if the frame moved on since, 409 (optional:
-    # without it the decision is about the version current at that moment)
-    version: Id | None = None
+    # the mask version the reviewer looked at (required, issue 40: a decision names what it
+    # decides on); a version that is not the frame's current one is refused with 409
+    version: Id
+
+
+class ReviewUndoIn(BaseModel):
+    """Take back ``decision`` made on mask ``version`` (the frame is submitted again)."""
+
+    model_config = ConfigDict(extra="forbid")
+    decision: Literal["accept", "reject"]
+    version: Id
 
 
 class ReviewItemIn(BaseModel):

@@ -343,13 +343,15 @@ def _outline(ws_scene, views: dict, frame_index: int | None, pts: np.ndarray) ->
 
 # ---- decisions ------------------------------------------------------------------------------
 def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decision: str,
-           comment: str | None, version: int | None = None) -> Frame:
+           comment: str | None, version: int) -> Frame:
     """Accept or reject the frame's current mask version (recorded as reviewed_version_id and
     as the version's state, with its decider: ``MaskVersion.kind`` / ``decided_by_id``).
 
     The decision is one conditional UPDATE on (state, current_version_id): a mask saved
     between the reviewer's look and the click makes it a 409 instead of accepting a version
-    nobody reviewed. ``version`` (optional) names the version the reviewer looked at.
+    nobody reviewed. ``version`` names the version the reviewer looked at: a version that
+    is not the frame's current one is a 409 naming both (issue 40: a decision pressed on one
+    frame's mask never lands on another's).
 
     Deciding the version the frame's last decision already decided the same way is a no-op
     (a double click, a retried request): the frame is returned unchanged, nothing is stored
@@ -362,10 +364,10 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         raise Conflict(f"frame {frame.id} is {frame.state}; only submitted frames can be reviewed")
     if frame.current_version_id is None:
         raise Conflict(f"frame {frame.id} has no mask to review")
-    if version is not None and version != frame.current_version_id:
-        raise Conflict(f"frame {frame.id} has a newer mask (version {frame.current_version_id}) "
-                       f"than the version {version} you reviewed; look at it again",
-                       current_version=frame.current_version_id)
+    if version != frame.current_version_id:
+        raise Conflict(f"frame {frame.id}'s current mask is version {frame.current_version_id}, "
+                       f"not the version {version} you decided on; look at it again",
+                       current_version=frame.current_version_id, sent_version=version)
     target = "accepted" if decision == "accept" else "rejected"
     if frame.state == target and frame.reviewed_version_id == frame.current_version_id:
         frame.decision_noop = True
@@ -411,6 +413,50 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         notify_frame_people(session, frame=frame, actor=user, kind="rejected",
                             text=f"{user.username} rejected {frame.name}"
                                  + (f": {comment}" if comment else ""))
+    session.commit()
+    ctx.lifting.notify(frame.scene_id, frame.id)
+    session.refresh(frame)
+    return frame
+
+
+def undo_decision(*, session: Session, ctx: AppContext, frame: Frame, user: User,
+                  decision: str, version: int) -> Frame:
+    """Take back a decision (the page's Undo, issue 40): the frame, ``decision``-ed on its
+    current ``version`` and not touched since, is submitted again -- waiting for review, its
+    version voting as a submitted one, the decider cleared. A frame that moved on (another
+    decision, a new mask, its annotator took the rejected frame back) is a 409 saying so.
+    The decision's comments stay in the frame's thread (the reviewer resolves them); the
+    annotator of a withdrawn rejection is told."""
+    target = "accepted" if decision == "accept" else "rejected"
+    if version != frame.current_version_id:
+        raise Conflict(f"frame {frame.id}'s current mask is version {frame.current_version_id}, "
+                       f"not the version {version} the decision was on; nothing undone",
+                       current_version=frame.current_version_id, sent_version=version)
+    if frame.state != target or frame.reviewed_version_id != version:
+        raise Conflict(f"frame {frame.id} is {frame.state} now, not {target} on version "
+                       f"{version}: the decision cannot be undone any more",
+                       current_version=frame.current_version_id, state=frame.state)
+    res = session.execute(update(Frame).where(
+        Frame.id == frame.id, Frame.state == target, Frame.current_version_id == version,
+        Frame.reviewed_version_id == version).values(
+        state="submitted", reviewed_by_id=None, reviewed_at=None, reviewed_version_id=None,
+        assignee_id=None, lease_expires_at=None).execution_options(synchronize_session=False))
+    if res.rowcount != 1:
+        session.rollback()
+        session.refresh(frame)
+        raise Conflict(f"frame {frame.id} changed meanwhile (now {frame.state}, version "
+                       f"{frame.current_version_id}); nothing undone",
+                       current_version=frame.current_version_id, state=frame.state)
+    session.execute(update(MaskVersion).where(MaskVersion.id == version).values(
+        kind="submitted", decided_by_id=None, decided_at=None)
+        .execution_options(synchronize_session=False))
+    annotations.set_voting(session=session, ctx=ctx, frame=frame, version_id=version)
+    if decision == "reject":
+        from app.corrections.service import notify_frame_people
+
+        notify_frame_people(session, frame=frame, actor=user, kind="rejected",
+                            text=f"{user.username} withdrew the rejection of {frame.name}: "
+                                 "it waits for review again")
     session.commit()
     ctx.lifting.notify(frame.scene_id, frame.id)
     session.refresh(frame)

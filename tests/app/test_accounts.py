@@ -80,9 +80,10 @@ def test_audit_log_records_who_did_what(env):
     fid = c.post(f"/api/scenes/{scene['id']}/next", headers=ann).json()["id"]
     v1 = c.put(f"/api/frames/{fid}/mask", content=mask_png(6),
                headers={**ann, "If-Match": "none"}).json()["version"]
-    c.put(f"/api/frames/{fid}/mask?kind=submitted", content=mask_png(1),
-          headers={**ann, "If-Match": str(v1)})
-    c.post(f"/api/frames/{fid}/review", json={"decision": "reject", "comment": "sky"}, headers=rev)
+    v2 = c.put(f"/api/frames/{fid}/mask?kind=submitted", content=mask_png(1),
+               headers={**ann, "If-Match": str(v1)}).json()["version"]
+    c.post(f"/api/frames/{fid}/review", json={"decision": "reject", "comment": "sky", "version": v2},
+           headers=rev)
     c.post("/api/users", json={"username": "carol", "password": "longenough1", "role": "reviewer"},
            headers=adm)
     c.post(f"/api/scenes/{scene['id']}/export", json={}, headers=adm)

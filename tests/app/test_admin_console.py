@@ -307,11 +307,13 @@ def test_overview_counts_per_scene_and_annotator(world):
     r = env.client.put(f"/api/frames/{f1}/mask?kind=submitted", content=png(m),
                        headers={**hdr["annotator"], "If-Match": str(v)})
     assert r.status_code == 200
+    v1 = r.json()["version"]
     f2 = take("annotator")
     r = env.client.put(f"/api/frames/{f2}/mask?kind=submitted", content=png(m),
                        headers={**hdr["annotator"], "If-Match": "none"})
     f3 = take("annotator2")  # in progress
-    r = env.client.post(f"/api/frames/{f1}/review", json={"decision": "accept"}, headers=hdr["reviewer"])
+    r = env.client.post(f"/api/frames/{f1}/review", json={"decision": "accept", "version": v1},
+                        headers=hdr["reviewer"])
     assert r.status_code == 200, r.text
     o = env.client.get("/api/overview", headers=hdr["admin"]).json()
     row = next(s for s in o["scenes"] if s["scene_id"] == sid)

@@ -89,7 +89,7 @@ def test_role_matrix(world):
         ("POST", f"/api/scenes/{sid}/export", {"layout": "occufly"}, {"admin"}),
         ("GET", "/api/jobs", None, {"admin", "reviewer"}),
         ("GET", f"/api/scenes/{sid}/metrics", None, {"admin", "reviewer"}),
-        ("POST", f"/api/frames/{fid}/review", {"decision": "accept"}, {"admin", "reviewer"}),
+        ("POST", f"/api/frames/{fid}/review", {"decision": "accept", "version": 1}, {"admin", "reviewer"}),
         ("POST", f"/api/scenes/{sid}/review-items", {"frame_id": fid, "comment": "x"}, {"admin", "reviewer"}),
         ("GET", f"/api/frames/{fid}/agreement", None, {"admin", "reviewer"}),
         ("POST", f"/api/scenes/{sid}/next", None, {"admin", "annotator"}),
@@ -418,11 +418,12 @@ def test_review_reject_goes_back_to_annotator_first(world):
     assert r.status_code == 200
     # reviewing a frame that is not submitted is refused
     other = _lease(env, hdr, scene, "annotator2")
-    r = env.client.post(f"/api/frames/{other}/review", json={"decision": "accept"},
+    v = r.json()["version"]
+    r = env.client.post(f"/api/frames/{other}/review", json={"decision": "accept", "version": v},
                         headers=hdr["reviewer"])
     assert r.status_code == 409
     r = env.client.post(f"/api/frames/{fid}/review",
-                        json={"decision": "reject", "comment": "roof missing"},
+                        json={"decision": "reject", "comment": "roof missing", "version": v},
                         headers=hdr["reviewer"])
     assert r.status_code == 200 and r.json()["state"] == "rejected"
     # annotator2 (who already holds another frame) never gets it; annotator gets it back first
@@ -443,9 +444,9 @@ def test_review_reject_goes_back_to_annotator_first(world):
     assert env.client.get(f"/api/scenes/{sid}/review-items", headers=hdr["annotator2"]).json() == []
     # the annotator fixes it, the reviewer accepts
     cur = back["current_version"]
-    env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=mask_png(8),
-                   headers={**hdr["annotator"], "If-Match": str(cur)})
-    r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "accept"},
+    v = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=mask_png(8),
+                       headers={**hdr["annotator"], "If-Match": str(cur)}).json()["version"]
+    r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "accept", "version": v},
                         headers=hdr["reviewer"])
     assert r.json()["state"] == "accepted"
 

@@ -232,7 +232,8 @@ def test_disagreeing_frames_proposal_taken_or_declined_items_and_notifications(w
                           headers=a).status_code == 403
 
     # the reviewer rejects the frame with a comment: the annotator is notified
-    r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "reject",
+    v = env.client.get(f"/api/frames/{fid}", headers=rv).json()["current_version"]
+    r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "reject", "version": v,
                                                            "comment": "road, not grass"},
                         headers=rv)
     assert r.status_code == 200, r.text

@@ -205,7 +205,9 @@ def _plant_hostile(live, sid: int, fid: int) -> None:  # noqa: ANN001
     r = rev.post(f"/api/scenes/{sid}/review-items",
                  json={"frame_id": fid, "pixel": [3, 3], "comment": HOSTILE})
     assert r.status_code == 201, r.text
-    r = rev.post(f"/api/frames/{fid}/review", json={"decision": "reject", "comment": HOSTILE})
+    v = rev.get(f"/api/frames/{fid}").json()["current_version"]
+    r = rev.post(f"/api/frames/{fid}/review",
+                 json={"decision": "reject", "comment": HOSTILE, "version": v})
     assert r.status_code == 200, r.text
 
 

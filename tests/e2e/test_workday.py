@@ -192,7 +192,9 @@ def test_reviewer_sees_who_painted_per_class_names_and_a_pinned_rejection_once(l
     assert sum(comment in t for t in texts) == 1, texts
     assert page.locator("#review-items").inner_text().count(comment) == 1
     # accept frame 1 for the read-only test below
-    r = live.client("reviewer").post(f"/api/frames/{f1}/review", json={"decision": "accept"})
+    v1 = live.client("reviewer").get(f"/api/frames/{f1}").json()["current_version"]
+    r = live.client("reviewer").post(f"/api/frames/{f1}/review",
+                                     json={"decision": "accept", "version": v1})
     assert r.status_code == 200
     assert not bad, bad
     ann = new_page("annotator")

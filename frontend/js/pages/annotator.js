@@ -7,7 +7,7 @@ import { el, showError, toast, dialog, downloadBlob, fmtDate } from "../core/ui.
 import { encodeGreyPngOffThread, decodeIdPng, resizeIds } from "../core/png.js";
 import { Editor } from "../paint/editor.js";
 import { buildLut, decodeMaskOffThread } from "../paint/mask.js";
-import { Workbench, bindSmartTools } from "../paint/workbench.js";
+import { Workbench, bindSmartTools, TOOL_KEYS, keysTable } from "../paint/workbench.js";
 import { attachCorrections } from "./corrections.js";
 
 const IDLE_SAVE_MS = 2500;
@@ -16,21 +16,10 @@ const FEW_MASKS = 3; // a prefill lifted from fewer submitted masks than this ge
 const LOW_CONFIDENCE = 0.6; // prefill pixels whose lifted label is less sure than this are marked
 const LAG_SHOW_S = 2; // the lifting lag is shown from this many seconds (the target p95)
 const LAG_POLL_MS = 5000;
+// the keys of the painting tools (shared with the reviewer's editor), then this page's own
 const KEYS = [
-  ["B / E / P / F / R / G / I / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / intelligent scissors / pan"],
-  ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
-  [", / .", "previous / next class (reaches every class)"],
-  ["[ / ]", "brush size smaller / larger (kept between frames)"],
-  ["+ / − / Home", "zoom in / out / fit; wheel zooms at the cursor"],
-  ["arrows, Space+drag, middle drag", "pan"],
-  ["O", "mask on / off"],
-  ["L", "outline mode (class borders, faint insides)"],
-  ["Ctrl+Z / Ctrl+Shift+Z", "undo / redo"],
+  ...TOOL_KEYS,
   ["Ctrl+S / Ctrl+Enter", "save draft / submit"],
-  ["polygon: Enter, Backspace, Esc", "close and fill / remove last vertex / cancel"],
-  ["GrabCut: drag a box, then scribble", "left drag: object, right drag (or X to switch): background; each scribble cuts again · Enter accept · Esc cancel (mask as before the box)"],
-  ["scissors: click, Shift+click, Enter", "anchor (path snaps to edges, live preview) / straight segment / close and fill (or click the first anchor)"],
-  ["scissors: Backspace, Esc", "remove the last anchor / cancel"],
   ["T", "take a reviewer's proposed mask change (a new draft: current mask + proposal)"],
   ["?", "this help"],
 ];
@@ -300,7 +289,7 @@ class AnnotatorPage {
   showHelp() {
     return dialog({
       title: "Keyboard shortcuts",
-      body: el("table", { class: "keys", id: "hotkeys" }, el("tbody", {}, KEYS.map(([k, v]) => el("tr", {}, el("th", { scope: "row" }, el("kbd", {}, k)), el("td", {}, v))))),
+      body: keysTable(KEYS),
       buttons: [{ label: "Close", value: null, primary: true }],
     });
   }
@@ -602,6 +591,12 @@ class AnnotatorPage {
     const t = e.target;
     if (t && (t.tagName === "INPUT" || t.tagName === "TEXTAREA" || t.tagName === "SELECT") && t.type !== "range") return;
     if (document.querySelector("dialog[open]")) return;
+    if (this.opening != null && e.type === "keydown" && (e.ctrlKey || e.metaKey) && (e.key === "s" || e.key === "Enter")) {
+      // a frame is loading: the editor on screen is the previous frame's (issue 40)
+      e.preventDefault();
+      this.status("Wait until the frame has opened: nothing was saved or submitted.");
+      return;
+    }
     if (e.type === "keydown" && (e.ctrlKey || e.metaKey) && e.key === "s") {
       e.preventDefault();
       this.save("draft").catch(showError);
@@ -824,7 +819,7 @@ class AnnotatorPage {
   }
 
   async submit() {
-    if (!this.editor) return;
+    if (!this.editor || this.opening != null) return;
     this.submitBtn.disabled = true;
     try {
       const r = await this.save("submitted", { force: true });
@@ -854,9 +849,20 @@ class AnnotatorPage {
     this.prefillBtn.disabled = true;
     try {
       this.status("Rendering the lifted 3D labels into this frame…");
-      const r = await api.blob(`/frames/${frame.id}/prefill`);
+      let r;
+      try {
+        r = await api.blob(`/frames/${frame.id}/prefill`, { allow404: false });
+      } catch (e) {
+        if (stale() || !(e instanceof ApiError && e.status === 404)) throw e;
+        // the 404 says why (no lifted labels yet): said where "Rendering…" was
+        const why = `No prefill: ${e.message}. Submit masks of this scene first (the 3D labels are lifted from them), then try again.`;
+        this.status(why);
+        toast(why);
+        return;
+      }
       if (stale()) return;
       if (!r) {
+        this.status("No 3D labels to prefill from yet.");
         toast("No 3D labels to prefill from yet.");
         return;
       }
@@ -900,7 +906,10 @@ class AnnotatorPage {
       if (stale()) return;
       this.buildSide();
     } catch (e) {
-      if (!stale()) showError(e);
+      if (!stale()) {
+        this.status(`Prefill failed: ${e.message}`);
+        showError(e);
+      }
     } finally {
       if (stale()) this.status(`Prefill of ${frame.name} dropped: another frame was opened meanwhile.`);
       else this.prefillBtn.disabled = this.readOnly;

@@ -5,11 +5,12 @@
 // reject; link to the 3D viewer on this frame. A Suspects tab lists the scene's contested
 // regions: each opens the frame that sees it best with the region outlined, or the viewer.
 
-import { api } from "../core/api.js";
+import { api, isAbort } from "../core/api.js";
 import { el, showError, toast, pct, table } from "../core/ui.js";
 import { decodeIdPng } from "../core/png.js";
 import { buildLut } from "../paint/mask.js";
 import { drawOutlines } from "./corrections.js";
+import { attachReviewEditor } from "./review-editor.js";
 
 const LAYERS = [
   { key: "image", label: "Image" },
@@ -49,6 +50,7 @@ class ReviewerPage {
     this.tab = ctx.params.tab === "suspects" ? "suspects" : "frames";
     this.suspect = null; // the suspect whose region is outlined on the open frame
     window.__occufly_review = this; // for the e2e tests
+    this.fixer = attachReviewEditor(this); // "Fix in 2D" / "Propose from 3D" (review-editor.js)
   }
 
   async start() {
@@ -250,18 +252,27 @@ class ReviewerPage {
   unmount() {
     this.loadSeq++;
     document.removeEventListener("keydown", this._onKey);
+    return this.fixer.leave(); // unsaved painting in the 2D editor: saved or dropped, as asked
   }
 
   /** A accept, R reject (needs a comment), N / J next and P / K previous frame, 0 reset zoom. */
   onKey(e) {
+    if (this.fixer.active) return; // the 2D editor owns the keys while it is open
     const t = e.target;
     if (e.ctrlKey || e.metaKey || e.altKey) return;
     if (t && (t.tagName === "TEXTAREA" || t.tagName === "INPUT" || t.tagName === "SELECT")) {
       if (e.key === "Escape") t.blur();
       return;
     }
-    if (document.querySelector("dialog[open]") || !this.frame) return;
+    if (e.key === "Escape" && t && t !== document.body && this.detailEl.contains(t)) {
+      t.blur(); // leave a button / panel, so that A and R decide again
+      return;
+    }
+    // nothing acts before the frame on screen is fully loaded (openFrame clears this.frame
+    // at once) or while a decision is being sent / the page advances after it (issue 40)
+    if (document.querySelector("dialog[open]") || !this.frame || this.deciding) return;
     const k = e.key.toLowerCase();
+    if ((k === "a" || k === "r") && !this.decisionKeyOk(e)) return;
     if (k === "a") this.decide("accept");
     else if (k === "r") this.decide("reject");
     else if (k === "n" || k === "j") (this.tab === "suspects" ? this.stepSuspect(1) : this.step(1));
@@ -269,6 +280,20 @@ class ReviewerPage {
     else if (k === "0") this.resetView();
     else return;
     e.preventDefault();
+  }
+
+  /** Whether A / R may decide now: not a held key's repeats, not while a button of the frame's
+   * panel or a panel placing a pin has the focus (there a letter is a slip; the hint says
+   * how to go on). Links and buttons of the lists are fine: open a frame, then press A. */
+  decisionKeyOk(e) {
+    if (e.repeat) return false;
+    const t = e.target;
+    const inDetail = t && this.detailEl.contains(t);
+    const slip = inDetail && (t.tagName === "BUTTON" || t.tagName === "A" || (t.tagName === "CANVAS" && this.pin));
+    if (!slip) return true;
+    e.preventDefault();
+    toast(`"${e.key.toUpperCase()}" was not taken as a decision: ${t.tagName === "CANVAS" ? "a pixel is being pinned" : "a button has the focus"}. Press Esc, then ${e.key.toUpperCase()}.`);
+    return false;
   }
 
   /** Open the frame `d` rows below (above) the current one in the list; false at the end. */
@@ -326,30 +351,41 @@ class ReviewerPage {
 
   async openFrame(fid, { suspect = null } = {}) {
     const seq = ++this.loadSeq;
+    // opening frame B cancels A's downloads (a 20 MP image keeps downloading otherwise)
+    if (this.loadCtl) this.loadCtl.abort();
+    const ctl = (this.loadCtl = new AbortController());
+    const signal = ctl.signal;
     this.frameId = fid;
+    // the frame on screen is gone: no key or button decides anything until B is shown
+    this.frame = null;
+    this.shownVersion = null;
     this.pin = null;
     this.suspect = suspect;
     this.ctx.setParams({ scene: this.sceneSel.value, frame: fid });
     this.listEl.querySelectorAll("tr[data-frame]").forEach((tr) => tr.classList.toggle("current", tr.dataset.frame === String(fid)));
     this.detailEl.replaceChildren(el("p", { class: "loading" }, "Loading frame…"));
     try {
-      const frame = await api.get(`/frames/${fid}`);
+      const frame = await api.get(`/frames/${fid}`, { signal });
       const sid = frame.scene_id ?? this.sceneSel.value;
       const hasMask = frame.current_version != null; // no mask yet: nothing to fetch or compare
       const none = () => Promise.resolve(null);
+      // a layer that fails is shown as failed; a cancelled load is dropped as a whole
+      const soft = (e) => (isAbort(e) ? Promise.reject(e) : { error: e.message });
       const [scene, agreement, items, imgR, maskR, renderR, disR] = await Promise.all([
-        api.get(`/scenes/${sid}`),
-        hasMask ? api.get(`/frames/${fid}/agreement`).catch((e) => ({ error: e.message })) : Promise.resolve({ error: "no mask saved yet" }),
-        api.get(`/scenes/${sid}/review-items`).catch(() => []),
-        api.blob(`/frames/${fid}/image?size=preview`).then((r) => r || api.blob(`/frames/${fid}/image`)),
-        hasMask ? api.blob(`/frames/${fid}/mask`).catch((e) => ({ error: e.message })) : none(),
-        api.blob(`/frames/${fid}/render`).catch((e) => ({ error: e.message })),
-        hasMask ? api.blob(`/frames/${fid}/disagreement`).catch((e) => ({ error: e.message })) : none(),
+        api.get(`/scenes/${sid}`, { signal }),
+        hasMask ? api.get(`/frames/${fid}/agreement`, { signal }).catch(soft) : Promise.resolve({ error: "no mask saved yet" }),
+        api.get(`/scenes/${sid}/review-items`, { signal }).catch((e) => (isAbort(e) ? Promise.reject(e) : [])),
+        api.blob(`/frames/${fid}/image?size=preview`, { signal }).then((r) => r || api.blob(`/frames/${fid}/image`, { signal })),
+        hasMask ? api.blob(`/frames/${fid}/mask`, { signal }).catch(soft) : none(),
+        api.blob(`/frames/${fid}/render`, { signal }).catch(soft),
+        hasMask ? api.blob(`/frames/${fid}/disagreement`, { signal }).catch(soft) : none(),
       ]);
       if (seq !== this.loadSeq) return;
+      // the version on screen: the mask's own (ETag), else the frame's current one
+      const shownVersion = maskR && !maskR.error && maskR.etag ? Number(maskR.etag) : frame.current_version;
       const lut = buildLut((scene.taxonomy && scene.taxonomy.classes) || []);
       this.classes = (scene.taxonomy && scene.taxonomy.classes) || [];
-      this.frame = frame;
+      const loaded = frame; // becomes this.frame (decidable) only once everything is drawn
       this.W = frame.width;
       this.H = frame.height;
       this.layers = {};
@@ -379,6 +415,8 @@ class ReviewerPage {
       this.agreement = agreement;
       if (seq !== this.loadSeq) return;
       this.view = { z: 1, px: 0, py: 0 };
+      this.frame = loaded;
+      this.shownVersion = shownVersion;
       if (suspect && suspect.outline && suspect.outline.length >= 3) {
         // zoom to the region: its outline's box fills ~60 % of the panels
         const xs = suspect.outline.map((p) => p[0]), ys = suspect.outline.map((p) => p[1]);
@@ -388,6 +426,7 @@ class ReviewerPage {
       }
       this.renderDetail();
     } catch (e) {
+      if (isAbort(e) || seq !== this.loadSeq) return; // superseded by another frame
       this.detailEl.replaceChildren(el("p", { class: "error" }, `Could not open frame ${fid}: ${e.message}`));
       showError(e);
     }
@@ -423,6 +462,7 @@ class ReviewerPage {
         this.suspect ? el("span", { class: "badge suspect-badge", id: "suspect-badge", title: "the region is outlined on the panels" }, `suspect #${this.suspect.id}: ${Number(this.suspect.points).toLocaleString()} points`) : null,
         // the viewer picks its scene from ?scene=; ?frame= names the frame (contract link)
         el("a", { href: `/viewer/?scene=${f.scene_id ?? this.sceneSel.value}&frame=${f.id}`, target: "_blank", rel: "noopener", id: "open-3d" }, "Open in 3D viewer"),
+        ...this.fixer.headButtons(f),
         el("span", { class: "spacer" }),
         ...modeBtns,
       ),
@@ -438,8 +478,8 @@ class ReviewerPage {
           "div",
           { class: "row" },
           el("button", { type: "button", id: "pin-comment", onclick: () => this.pinComment().then((it) => it && this.renderDetail()).catch(showError) }, "Pin comment"),
-          el("button", { type: "button", id: "accept", class: "primary", title: "Accept (A)", onclick: () => this.decide("accept") }, "Accept ", el("kbd", {}, "A")),
-          el("button", { type: "button", id: "reject", class: "danger", title: "Reject with comment (R)", onclick: () => this.decide("reject") }, "Reject with comment ", el("kbd", {}, "R")),
+          el("button", { type: "button", id: "accept", class: "primary", title: "Accept (A)", disabled: !!this.deciding, onclick: () => this.decide("accept") }, "Accept ", el("kbd", {}, "A")),
+          el("button", { type: "button", id: "reject", class: "danger", title: "Reject with comment (R)", disabled: !!this.deciding, onclick: () => this.decide("reject") }, "Reject with comment ", el("kbd", {}, "R")),
           el("button", { type: "button", id: "next-review", title: "Next frame in the list (N)", onclick: () => this.step(1) }, "Next ", el("kbd", {}, "N")),
           el("label", { class: "check" }, (() => {
             const b = el("input", { type: "checkbox", id: "auto-advance" });
@@ -683,7 +723,16 @@ class ReviewerPage {
     return item;
   }
 
+  /** Accept / reject the frame on screen: the frame and mask version are captured when the
+   * key or button is pressed (never the frame being loaded next); one request at a time (a
+   * double press is one decision); the toast offers Undo. */
   async decide(decision) {
+    const f = this.frame;
+    const version = this.shownVersion;
+    if (!f || this.deciding || version == null) return;
+    this.deciding = true;
+    const prevState = f.state;
+    this.setDecisionButtons(false);
     try {
       if (decision === "accept" && this.unreadableMask) {
         showError(`This mask cannot be shown as stored (${this.unreadableMask}); it cannot be accepted from this page. Reject it, or ask an admin.`);
@@ -700,26 +749,61 @@ class ReviewerPage {
       // an unpinned comment is recorded by the review call itself
       let pinned = false;
       if (text && this.pin) pinned = !!(await this.pinComment());
-      const f = await api.post(`/frames/${this.frame.id}/review`, { decision, comment: (!pinned && text) || undefined });
-      this.frame = { ...this.frame, ...(f || {}), state: (f && f.state) || (decision === "accept" ? "accepted" : "rejected") };
-      this.comment.value = "";
-      // the decision may have filed a comment item: show the frame's items as stored
-      const sid = this.frame.scene_id ?? this.sceneSel.value;
-      const fresh = await api.get(`/scenes/${sid}/review-items?frame_id=${this.frame.id}`).catch(() => null);
-      if (fresh) this.items = fresh;
-      toast(decision === "accept" ? `Accepted ${this.frame.name}.` : `Rejected ${this.frame.name}; it goes back to its annotator.`);
+      const out = await api.post(`/frames/${f.id}/review`, { decision, version, comment: (!pinned && text) || undefined });
+      const decided = { ...f, ...(out || {}), state: (out && out.state) || (decision === "accept" ? "accepted" : "rejected") };
+      const still = this.frame === f; // nothing else was opened meanwhile
+      if (still) {
+        this.frame = decided;
+        this.comment.value = "";
+        // the decision may have filed a comment item: show the frame's items as stored
+        const sid = f.scene_id ?? this.sceneSel.value;
+        const fresh = await api.get(`/scenes/${sid}/review-items?frame_id=${f.id}`).catch(() => null);
+        if (fresh && this.frame === decided) this.items = fresh;
+      }
+      const undo = prevState !== decided.state ? { id: "undo-decision", label: "Undo", run: () => this.undoDecision(decided, decision, version, prevState) } : null;
+      toast(decision === "accept" ? `Accepted ${f.name}.` : `Rejected ${f.name}; it goes back to its annotator.`, { action: undo });
+      if (!still || this.frame !== decided) return;
       this.renderDetail();
       // auto-advance: the next frame still waiting for review, after this one in the list
       // (wrapping around to the top), else stay
       const before = (this.frames || []).map((r) => String(r.id));
-      const i = before.indexOf(String(this.frame.id));
+      const i = before.indexOf(String(f.id));
       await this.loadList();
-      if (this.autoAdvance) {
-        const waiting = (this.frames || []).filter((r) => r.state === "submitted" && String(r.id) !== String(this.frame.id));
+      if (this.autoAdvance && this.frame === decided) {
+        const waiting = (this.frames || []).filter((r) => r.state === "submitted" && String(r.id) !== String(f.id));
         const pos = (r) => { const k = before.indexOf(String(r.id)); return k < 0 ? Infinity : (k - i + before.length) % before.length; };
         const nextRow = waiting.sort((x, y) => pos(x) - pos(y))[0];
         if (nextRow) await this.openFrame(nextRow.id);
-        else toast("No other frame is waiting for review.");
+        else toast("No other frame is waiting for review.", { action: undo });
+      }
+    } catch (e) {
+      showError(e);
+    } finally {
+      this.deciding = false;
+      this.setDecisionButtons(true);
+    }
+  }
+
+  /** Accept / Reject buttons: off while a decision is pending (and before a frame is shown). */
+  setDecisionButtons(on) {
+    for (const id of ["accept", "reject"]) {
+      const b = this.detailEl.querySelector(`#${id}`);
+      if (b) b.disabled = !on || !this.frame;
+    }
+  }
+
+  /** Undo (the toast's button): the frame's state before the decision, through the API
+   * (audited): submitted again, or the earlier decision made again. */
+  async undoDecision(decided, decision, version, prevState) {
+    try {
+      const out = prevState === "accepted" || prevState === "rejected"
+        ? await api.post(`/frames/${decided.id}/review`, { decision: prevState === "accepted" ? "accept" : "reject", version })
+        : await api.post(`/frames/${decided.id}/review/undo`, { decision, version });
+      toast(`Undone: ${decided.name} is ${out ? out.state : prevState} again.`);
+      await this.loadList();
+      if (String(this.frameId) === String(decided.id) && this.frame) {
+        this.frame = { ...this.frame, ...(out || {}) };
+        this.renderDetail();
       }
     } catch (e) {
       showError(e);

@@ -8,6 +8,28 @@ import { api } from "../core/api.js";
 import { el } from "../core/ui.js";
 import { decodeIdPng } from "../core/png.js";
 
+/** The painting tools' keys (every page that paints lists them in its help, then its own). */
+export const TOOL_KEYS = [
+  ["B / E / P / F / R / G / I / H", "brush / eraser / polygon / flood fill / region fill (superpixels) / GrabCut box / intelligent scissors / pan"],
+  ["1 … 9, 0  ·  ⇧1 … ⇧0", "classes 1 … 10 · 11 … 20 of the palette"],
+  [", / .", "previous / next class (reaches every class)"],
+  ["[ / ]", "brush size smaller / larger (kept between frames)"],
+  ["+ / − / Home", "zoom in / out / fit; wheel zooms at the cursor"],
+  ["arrows, Space+drag, middle drag", "pan"],
+  ["O", "mask on / off"],
+  ["L", "outline mode (class borders, faint insides)"],
+  ["Ctrl+Z / Ctrl+Shift+Z", "undo / redo"],
+  ["polygon: Enter, Backspace, Esc", "close and fill / remove last vertex / cancel"],
+  ["GrabCut: drag a box, then scribble", "left drag: object, right drag (or X to switch): background; each scribble cuts again · Enter accept · Esc cancel (mask as before the box)"],
+  ["scissors: click, Shift+click, Enter", "anchor (path snaps to edges, live preview) / straight segment / close and fill (or click the first anchor)"],
+  ["scissors: Backspace, Esc", "remove the last anchor / cancel"],
+];
+
+/** The keyboard help table (#hotkeys) of rows [[keys, what], ...]. */
+export function keysTable(rows) {
+  return el("table", { class: "keys", id: "hotkeys" }, el("tbody", {}, rows.map(([k, v]) => el("tr", {}, el("th", { scope: "row" }, el("kbd", {}, k)), el("td", {}, v)))));
+}
+
 function loadPrefs(key) {
   try {
     return JSON.parse(localStorage.getItem(key) || "{}") || {};

@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -106,97 +107,34 @@ def import_scene(
     workspace = Path(workspace)
     if workspace.exists() and not overwrite and any(workspace.iterdir()):
         raise WorkspaceError(f"{workspace}: workspace already exists (use --force to replace it)")
-    if taxonomy is None:
-        tax = default_taxonomy()
-    elif isinstance(taxonomy, Taxonomy):
-        tax = taxonomy
-    else:
-        tax = Taxonomy.load(taxonomy)
+    tax = _taxonomy_of(taxonomy)
 
-    if roots is not None:  # no project file may be a symlink out (it would be read below)
-        confine_tree(source, roots)
     report(0.0, "reading the reconstruction")
-    model = read_source(source, fmt, images=Path(images) if images is not None else None)
-    for note in model.notes:
-        log.warning("import %s: %s", source, note)
-    image_dir = _find_image_dir(source, images, model.default_images)
-    resolve_image_names(image_dir, model)
-    for im in model.images:  # frame names reach pages and the 3D viewer
-        check_name(im.name, f"{model.path}: image")
-    cloud_path = _find_cloud(source, cloud, model.default_cloud)
-    if roots is not None:
-        depth_dir = _find_depth_dir(source, depth_maps)
-        confine_inputs(roots, model.path, image_dir, [im.name for im in model.images],
-                       cloud_path, depth_dir)
-    _check_images(image_dir, [im.name for im in model.images], model)
-
+    model, image_dir, cloud_path = _read_reconstruction(source, fmt, images, cloud, depth_maps,
+                                                        roots)
     report(0.05, "reading point cloud")
     scene_crs, crs_info = into_cloud_crs(model, cloud_path, crs)
-    if cloud_path is not None:
-        xyz_w, rgb = read_point_cloud(cloud_path)
-    else:
-        if not len(model.xyz):
-            raise InputFormatError(
-                f"{source}: no dense cloud ({'dense/fused.ply' if model.kind == 'colmap' else model.kind + ' default'}) "
-                f"and the {model.kind} model has no points: pass the dense cloud with --cloud"
-            )
-        xyz_w, rgb = model.xyz, model.rgb
-    if len(xyz_w) == 0:
-        raise InputFormatError(f"{cloud_path or source}: the point cloud is empty")
-
-    centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
-    las_cloud = cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz")
-    georef_by_coords = bool(las_cloud or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
-                            or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M)
-    georef = bool(scene_crs is not None or georef_by_coords)
-    import_warnings: list[str] = []
-    georef_info: dict | None = None
-    if model.kind == "colmap" and not georef_by_coords and (scene_crs is None or crs is not None):
-        # an SfM model in arbitrary units: make it metric from the photos' GPS (or --scale)
-        xyz_w, scene_crs, georef_info = _make_metric(model, image_dir, xyz_w, cloud_path,
-                                                     scene_crs, scale, import_warnings)
-        georef = scene_crs is not None
-        centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3]
-                              for im in model.images])
-    for w in import_warnings:
-        log.warning("import %s: %s", source, w)
-    if georef:
-        R_level = np.eye(3)
-        up_method = "georeferenced: z up"
-    else:
-        R_level, up_method = _levelling_rotation(model)
-    lo, hi = xyz_w.min(axis=0), xyz_w.max(axis=0)
-    origin_src = np.round((lo + hi) / 2.0)
+    xyz_w, rgb = _read_cloud(source, model, cloud_path)
+    place = _place(source, model, image_dir, cloud_path, xyz_w, scene_crs, crs, scale)
+    del xyz_w  # place.xyz_w is the (possibly rescaled) cloud
     # x_local = R (x_src - origin_src); the scene's world is the levelled frame, whose origin
     # offset is R @ origin_src (identity for georeferenced models)
-    xyz_local = ((xyz_w - origin_src) @ R_level.T).astype(np.float32)
-    origin = R_level @ origin_src
-
-    frames = []
-    for im in model.images:
-        R = im.T_cam_world[:3, :3]
-        t = im.T_cam_world[:3, 3]
-        # x_cam = R x_src + t = R (R_l^T x_local + o_src) + t
-        T_local = make_pose(R @ R_level.T, t + R @ origin_src)
-        frames.append(
-            Frame(name=im.name, camera=im.camera, T_cam_world=T_local,
-                  image_path=str((image_dir / im.name).resolve()))
-        )
+    xyz_local = ((place.xyz_w - place.origin_src) @ place.R_level.T).astype(np.float32)
+    frames = _local_frames(model, image_dir, place)
 
     report(0.15, "visibility")
     depth_dir = _find_depth_dir(source, depth_maps)
     vis_path = Path(str(cloud_path) + ".vis") if cloud_path is not None else None
-    vis_sub = _sub_progress(report, 0.15, 0.9)
     has_vis = vis_path is not None and vis_path.is_file()
     if visibility == "vis" and not has_vis and not (cloud_path is None and model.has_tracks):
         raise InputFormatError(
             f"{cloud_path}: --visibility vis needs the reconstruction's own visibility "
             f"({cloud_path.name}.vis or the sparse model's tracks) and there is none; use "
             "--visibility union or depth")
-    list_entries = (max(0, (vis_path.stat().st_size - 8) // 4 - len(xyz_w)) if has_vis else 0)
+    list_entries = (max(0, (vis_path.stat().st_size - 8) // 4 - len(xyz_local)) if has_vis else 0)
     check_import_resources(workspace, n_points=len(xyz_local), frames=frames,
                            list_entries=list_entries, source=source)
-    del xyz_w  # the scene keeps the local copy
+    place.xyz_w = None  # the scene keeps the local copy
 
     depth_for = DepthMaps(depth_dir, [f.name for f in frames]) if depth_dir is not None else None
 
@@ -206,66 +144,49 @@ def import_scene(
     with atomic_directory(workspace, overwrite=True) as tmp:
         wtmp = Workspace(tmp)
         wtmp.visibility_dir.mkdir()
-        lists, lists_name = None, None
-        if has_vis:
-            offsets, idx = read_fused_vis(vis_path, len(xyz_local))
-            if len(idx) and int(idx.max()) >= len(frames):
-                raise InputFormatError(
-                    f"{vis_path}: refers to image index {int(idx.max())} but the model has "
-                    f"{len(frames)} registered images"
-                )
-            lists, lists_name = FrameLists.from_point_lists(len(frames), offsets, idx), vis_path.name
-            del offsets, idx  # 4 bytes per entry remain (grouped by frame)
-        elif cloud_path is None and model.has_tracks:
-            lists, lists_name = _tracks_as_lists(model, len(xyz_local)), "COLMAP tracks"
-
+        lists, lists_name = _reconstruction_lists(model, cloud_path, vis_path if has_vis else None,
+                                                  len(xyz_local), len(frames))
         vis_mode = visibility if lists is not None else "depth"
         visibility_data, vis_stats = compute_visibility(
             frames, xyz_local, mode=vis_mode, lists=lists, lists_name=lists_name or "",
-            depth_for=depth_for, rel_tol=rel_tol, progress=vis_sub,
+            depth_for=depth_for, rel_tol=rel_tol, progress=_sub_progress(report, 0.15, 0.9),
             ids_out=wtmp.visibility_array("point_ids"), workers=workers)
         del lists
         if vis_stats["correspondences"] == 0:
             raise InputFormatError(
                 f"{source}: no frame sees any point of {cloud_path or 'the sparse cloud'} -- the "
                 "poses and the cloud do not match (different coordinate frames?)")
-        depth_desc = (
-            None if vis_mode == "vis"
-            else "depth test against MVS depth maps" if vis_stats["frames_rendered"] == 0
-            else "depth test against depth rendered from the cloud"
-            if vis_stats["frames_with_depth_maps"] == 0
-            else "depth test against MVS depth maps and depth rendered from the cloud"
-        )
-        # the reconstruction's own lists keep naming the source; the depth test is recorded apart
-        vis_source = lists_name if lists_name is not None and vis_mode != "depth" else depth_desc
+        depth_desc = _depth_test_description(vis_mode, vis_stats)
         for w in vis_stats["warnings"]:
             log.warning("import %s: %s", source, w)
 
         scene = Scene(
-            crs=crsmod.crs_record(scene_crs),
+            crs=crsmod.crs_record(place.scene_crs),
             frames=frames,
             xyz=xyz_local,
             rgb=np.ascontiguousarray(rgb, dtype=np.uint8),
-            origin=origin,
+            origin=place.R_level @ place.origin_src,
             visibility=visibility_data,
             taxonomy=tax,
             meta={
                 "source": str(source.resolve()),
                 "format": model.kind,
                 "sparse_model": str(model.path.resolve()),
-                "crs": crsmod.crs_label(scene_crs) if scene_crs is not None else None,
+                "crs": crsmod.crs_label(place.scene_crs) if place.scene_crs is not None else None,
                 "crs_handling": crs_info,
                 "import_notes": list(model.notes),
                 "cloud": str(cloud_path.resolve()) if cloud_path else None,
                 "images": str(image_dir.resolve()),
                 "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
-                "georeferenced": georef,
-                "georeferencing": georef_info,
-                "import_warnings": import_warnings,
-                "up_axis": up_method,
-                "levelling_rotation": R_level.tolist(),
-                "source_origin": origin_src.tolist(),
-                "visibility_source": vis_source,
+                "georeferenced": place.georef,
+                "georeferencing": place.georef_info,
+                "import_warnings": place.warnings,
+                "up_axis": place.up_method,
+                "levelling_rotation": place.R_level.tolist(),
+                "source_origin": place.origin_src.tolist(),
+                # the reconstruction's own lists keep naming the source; the depth test apart
+                "visibility_source": (lists_name if lists_name is not None and vis_mode != "depth"
+                                      else depth_desc),
                 "visibility_mode": vis_mode,
                 "visibility_depth_test": depth_desc,
                 "visibility_stats": vis_stats,
@@ -279,6 +200,131 @@ def import_scene(
         del scene, visibility_data
     report(1.0, "done")
     return Scene.load(workspace)
+
+
+def _taxonomy_of(taxonomy: Taxonomy | str | Path | None) -> Taxonomy:
+    if taxonomy is None:
+        return default_taxonomy()
+    return taxonomy if isinstance(taxonomy, Taxonomy) else Taxonomy.load(taxonomy)
+
+
+def _read_reconstruction(source: Path, fmt: str | None, images, cloud, depth_maps, roots):  # noqa: ANN001
+    """The reconstruction's model, its image folder and its dense cloud (None: the model's
+    own points), every file checked (names, confinement to ``roots``, images) before use."""
+    if roots is not None:  # no project file may be a symlink out (it would be read below)
+        confine_tree(source, roots)
+    model = read_source(source, fmt, images=Path(images) if images is not None else None)
+    for note in model.notes:
+        log.warning("import %s: %s", source, note)
+    image_dir = _find_image_dir(source, images, model.default_images)
+    resolve_image_names(image_dir, model)
+    for im in model.images:  # frame names reach pages and the 3D viewer
+        check_name(im.name, f"{model.path}: image")
+    cloud_path = _find_cloud(source, cloud, model.default_cloud)
+    if roots is not None:
+        confine_inputs(roots, model.path, image_dir, [im.name for im in model.images],
+                       cloud_path, _find_depth_dir(source, depth_maps))
+    _check_images(image_dir, [im.name for im in model.images], model)
+    return model, image_dir, cloud_path
+
+
+def _read_cloud(source: Path, model, cloud_path: Path | None) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
+    """(N, 3) source-frame points and (N, 3) uint8 colours: the dense cloud, else the model's."""
+    if cloud_path is not None:
+        xyz_w, rgb = read_point_cloud(cloud_path)
+    else:
+        if not len(model.xyz):
+            raise InputFormatError(
+                f"{source}: no dense cloud ({'dense/fused.ply' if model.kind == 'colmap' else model.kind + ' default'}) "
+                f"and the {model.kind} model has no points: pass the dense cloud with --cloud"
+            )
+        xyz_w, rgb = model.xyz, model.rgb
+    if len(xyz_w) == 0:
+        raise InputFormatError(f"{cloud_path or source}: the point cloud is empty")
+    return xyz_w, rgb
+
+
+@dataclass
+class _Placement:
+    """Where the reconstruction goes in the scene: metric source points, CRS, levelling."""
+
+    xyz_w: np.ndarray | None  # (N, 3) source frame (metric after georeferencing)
+    scene_crs: object
+    georef: bool
+    georef_info: dict | None
+    warnings: list[str]
+    R_level: np.ndarray  # (3, 3) source -> levelled
+    up_method: str
+    origin_src: np.ndarray  # (3,) float64 source-frame centre, rounded
+
+
+def _place(source: Path, model, image_dir: Path, cloud_path: Path | None, xyz_w: np.ndarray,  # noqa: ANN001
+           scene_crs, crs: str | None, scale: float | None) -> _Placement:  # noqa: ANN001
+    """Georeference an SfM model in arbitrary units (GPS or ``scale``) and level it (z up)."""
+    centers_w = np.array([-im.T_cam_world[:3, :3].T @ im.T_cam_world[:3, 3] for im in model.images])
+    las_cloud = cloud_path is not None and cloud_path.suffix.lower() in (".las", ".laz")
+    georef_by_coords = bool(las_cloud or np.abs(centers_w).max() > GEOREF_THRESHOLD_M
+                            or np.abs(xyz_w).max() > GEOREF_THRESHOLD_M)
+    georef = bool(scene_crs is not None or georef_by_coords)
+    import_warnings: list[str] = []
+    georef_info: dict | None = None
+    if model.kind == "colmap" and not georef_by_coords and (scene_crs is None or crs is not None):
+        # an SfM model in arbitrary units: make it metric from the photos' GPS (or --scale)
+        xyz_w, scene_crs, georef_info = _make_metric(model, image_dir, xyz_w, cloud_path,
+                                                     scene_crs, scale, import_warnings)
+        georef = scene_crs is not None
+    for w in import_warnings:
+        log.warning("import %s: %s", source, w)
+    if georef:
+        R_level, up_method = np.eye(3), "georeferenced: z up"
+    else:
+        R_level, up_method = _levelling_rotation(model)
+    lo, hi = xyz_w.min(axis=0), xyz_w.max(axis=0)
+    return _Placement(xyz_w=xyz_w, scene_crs=scene_crs, georef=georef, georef_info=georef_info,
+                      warnings=import_warnings, R_level=R_level, up_method=up_method,
+                      origin_src=np.round((lo + hi) / 2.0))
+
+
+def _local_frames(model, image_dir: Path, place: _Placement) -> list[Frame]:  # noqa: ANN001
+    """The model's images as frames with poses in the levelled, origin-shifted scene frame."""
+    frames = []
+    for im in model.images:
+        R = im.T_cam_world[:3, :3]
+        t = im.T_cam_world[:3, 3]
+        # x_cam = R x_src + t = R (R_l^T x_local + o_src) + t
+        T_local = make_pose(R @ place.R_level.T, t + R @ place.origin_src)
+        frames.append(
+            Frame(name=im.name, camera=im.camera, T_cam_world=T_local,
+                  image_path=str((image_dir / im.name).resolve()))
+        )
+    return frames
+
+
+def _reconstruction_lists(model, cloud_path: Path | None, vis_path: Path | None, n_points: int,  # noqa: ANN001
+                          n_frames: int) -> tuple[FrameLists | None, str | None]:
+    """The reconstruction's own 2D-3D lists (``fused.ply.vis`` or the sparse model's tracks)
+    and what they are called; ``(None, None)`` when it has none."""
+    if vis_path is not None:
+        offsets, idx = read_fused_vis(vis_path, n_points)
+        if len(idx) and int(idx.max()) >= n_frames:
+            raise InputFormatError(
+                f"{vis_path}: refers to image index {int(idx.max())} but the model has "
+                f"{n_frames} registered images"
+            )
+        return FrameLists.from_point_lists(n_frames, offsets, idx), vis_path.name
+    if cloud_path is None and model.has_tracks:
+        return _tracks_as_lists(model, n_points), "COLMAP tracks"
+    return None, None
+
+
+def _depth_test_description(vis_mode: str, vis_stats: dict) -> str | None:
+    if vis_mode == "vis":
+        return None
+    if vis_stats["frames_rendered"] == 0:
+        return "depth test against MVS depth maps"
+    if vis_stats["frames_with_depth_maps"] == 0:
+        return "depth test against depth rendered from the cloud"
+    return "depth test against MVS depth maps and depth rendered from the cloud"
 
 
 def confine_tree(source: Path, roots) -> int:  # noqa: ANN001

@@ -143,8 +143,13 @@ def test_reviewer_fixes_a_mask_in_2d_and_it_votes(live, setup, new_page):
     assert on_road.sum() > 20
     labels = np.asarray(load_labels(ws).labels)
     assert (labels[np.asarray(pids)[on_road]] == ROAD).mean() > 0.8
-    # the rendered 3D labels shown on the page were fetched after the lift (reopened frame)
+    # a decision now lands on the correction: A accepts the version on screen
     assert page.evaluate(f"() => {R}.frame.current_version") == new["version"]
+    page.evaluate("() => document.activeElement && document.activeElement.blur()")
+    page.keyboard.press("a")
+    _wait(lambda: rev.get(f"/api/frames/{fid}").json()["state"] == "accepted", 30, "the accept")
+    kinds = {v["version"]: v["kind"] for v in rev.get(f"/api/frames/{fid}/mask/versions").json()}
+    assert kinds[new["version"]] == "accepted", kinds
 
 
 def test_propose_from_3d_files_a_proposal_for_the_annotator(live, setup, new_page):

@@ -69,8 +69,30 @@ async function send(method, path, opts = {}) {
   }
 }
 
-async function sendOnce(method, path, { json, body, headers = {}, keepalive = false } = {}) {
-  const init = { method, headers: { ...headers }, credentials: "same-origin", keepalive };
+/** How long a request may wait for the server's answer (its status and headers) before it
+ * is given up with a readable error: a GET 60 s, a request carrying data (a 20 MP mask on a
+ * slow uplink) 180 s; a page passes `timeoutMs` where it knows better. */
+export const DEFAULT_TIMEOUT_MS = 60_000;
+const UPLOAD_TIMEOUT_MS = 180_000;
+
+/** True for the error of a request cancelled by its caller's AbortSignal (a superseded load):
+ * pages drop it silently instead of showing it. */
+export function isAbort(e) {
+  return !!e && (e.name === "AbortError" || (e instanceof ApiError && e.aborted));
+}
+
+async function sendOnce(method, path, { json, body, headers = {}, keepalive = false, signal = null, timeoutMs = method === "GET" || method === "HEAD" ? DEFAULT_TIMEOUT_MS : UPLOAD_TIMEOUT_MS } = {}) {
+  // one controller per request: aborted by the caller's signal (the body download too: the
+  // response's stream is bound to it) or by the timeout while waiting for the answer
+  const ctl = new AbortController();
+  let timedOut = false;
+  const onAbort = () => ctl.abort();
+  if (signal) {
+    if (signal.aborted) ctl.abort();
+    else signal.addEventListener("abort", onAbort, { once: true });
+  }
+  const timer = timeoutMs > 0 ? setTimeout(() => { timedOut = true; ctl.abort(); }, timeoutMs) : null;
+  const init = { method, headers: { ...headers }, credentials: "same-origin", keepalive, signal: ctl.signal };
   if (json !== undefined) {
     init.body = JSON.stringify(json);
     init.headers["Content-Type"] = "application/json";
@@ -81,7 +103,15 @@ async function sendOnce(method, path, { json, body, headers = {}, keepalive = fa
   try {
     res = await fetch(path.startsWith("/") ? `/api${path}` : path, init);
   } catch (e) {
+    if (timedOut) throw new ApiError(0, `The server did not answer ${method} ${path} within ${Math.round(timeoutMs / 1000)} s. Check the connection and retry.`);
+    if (ctl.signal.aborted) {
+      const err = new ApiError(0, `${method} ${path} was cancelled.`);
+      err.aborted = true;
+      throw err;
+    }
     throw new ApiError(0, `Cannot reach the server (${e.message}). Check the connection and retry.`);
+  } finally {
+    if (timer !== null) clearTimeout(timer);
   }
   if (!res.ok) {
     let parsed = null;
@@ -97,14 +127,29 @@ async function sendOnce(method, path, { json, body, headers = {}, keepalive = fa
 
 async function asJson(res) {
   if (res.status === 204) return null;
-  const text = await res.text();
+  const text = await readBody(res, "text");
   return text ? JSON.parse(text) : null;
+}
+
+/** Read a body; a cancelled download (the caller's signal) becomes an aborted ApiError. */
+async function readBody(res, how) {
+  try {
+    return await res[how]();
+  } catch (e) {
+    if (e && e.name === "AbortError") {
+      const err = new ApiError(0, `The download of ${res.url} was cancelled.`);
+      err.aborted = true;
+      throw err;
+    }
+    throw e;
+  }
 }
 
 export const api = {
   send,
-  async get(path) {
-    return asJson(await send("GET", path));
+  /** opts: {signal} cancels the request and its download; {timeoutMs} the wait for an answer. */
+  async get(path, opts = {}) {
+    return asJson(await send("GET", path, opts));
   },
   async post(path, json) {
     return asJson(await send("POST", path, { json: json ?? {} }));
@@ -116,12 +161,12 @@ export const api = {
     return asJson(await send("PUT", path, { json }));
   },
   /** GET a binary resource; returns {blob, etag, number, prefillId} or null on 404 / 204. */
-  async blob(path, { allow404 = true } = {}) {
+  async blob(path, { allow404 = true, signal = null, timeoutMs } = {}) {
     try {
-      const res = await send("GET", path);
+      const res = await send("GET", path, { signal, ...(timeoutMs !== undefined ? { timeoutMs } : {}) });
       if (res.status === 204) return null;
       const n = res.headers.get("X-Mask-Number");
-      return { blob: await res.blob(), etag: parseEtag(res.headers.get("ETag")), number: n ? Number(n) : null, prefillId: res.headers.get("X-Prefill-Id") };
+      return { blob: await readBody(res, "blob"), etag: parseEtag(res.headers.get("ETag")), number: n ? Number(n) : null, prefillId: res.headers.get("X-Prefill-Id") };
     } catch (e) {
       if (allow404 && e instanceof ApiError && e.status === 404) return null;
       throw e;

@@ -40,13 +40,29 @@ export function clearError() {
 
 let toastTimer = null;
 /** A short polite status message (screen readers announce it). */
-export function toast(msg) {
+/** A short message at the bottom; `action` ({label, run, id?}) adds one button (e.g. Undo),
+ * shown for `ms` (8 s with an action) and clickable; the next toast replaces it. */
+export function toast(msg, { action = null, ms = null } = {}) {
   const t = document.getElementById("toast");
   if (!t) return;
-  t.textContent = msg;
+  t.replaceChildren(msg);
+  t.classList.toggle("has-action", !!action);
+  if (action) {
+    const b = document.createElement("button");
+    b.type = "button";
+    b.className = "link toast-action";
+    if (action.id) b.id = action.id;
+    b.textContent = action.label;
+    b.addEventListener("click", () => {
+      b.disabled = true;
+      t.classList.remove("show", "has-action");
+      action.run();
+    });
+    t.append(" ", b);
+  }
   t.classList.add("show");
   clearTimeout(toastTimer);
-  toastTimer = setTimeout(() => t.classList.remove("show"), 3500);
+  toastTimer = setTimeout(() => t.classList.remove("show", "has-action"), ms ?? (action ? 8000 : 3500));
 }
 
 /**
@@ -106,7 +122,7 @@ export function table(rows, columns, { caption = null, rowAttrs = null } = {}) {
     "table",
     {},
     caption ? el("caption", {}, caption) : null,
-    el("thead", {}, el("tr", {}, columns.map((c) => el("th", { scope: "col" }, c.label)))),
+    el("thead", {}, el("tr", {}, columns.map((c) => el("th", { scope: "col", "data-col": c.key }, c.label)))),
     el(
       "tbody",
       {},
@@ -114,7 +130,7 @@ export function table(rows, columns, { caption = null, rowAttrs = null } = {}) {
         el(
           "tr",
           rowAttrs ? rowAttrs(r) : {},
-          columns.map((c) => el("td", {}, c.fmt ? c.fmt(r[c.key], r) : r[c.key] ?? "")),
+          columns.map((c) => el("td", { "data-col": c.key }, c.fmt ? c.fmt(r[c.key], r) : r[c.key] ?? "")),
         ),
       ),
     ),

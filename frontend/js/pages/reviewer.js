@@ -62,7 +62,8 @@ class ReviewerPage {
       { id: "review-state", "aria-label": "Frame state filter" },
       ["", "submitted", "in_progress", "accepted", "rejected"].map((s) => el("option", { value: s }, s || "all states")),
     );
-    this.stateSel.value = this.ctx.params.state ?? "";
+    // what needs review first (issue 40: not all 240 frames, 233 of them unassigned)
+    this.stateSel.value = this.ctx.params.state ?? "submitted";
     this.listEl = el("div", { class: "frame-list", id: "frame-list" });
     this.suspectsEl = el("div", { class: "frame-list suspects-list", id: "suspects-list", hidden: true });
     this.tabBtns = ["frames", "suspects"].map((t) =>

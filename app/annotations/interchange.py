@@ -14,8 +14,8 @@ import re
 from pathlib import Path
 
 from pydantic import BaseModel
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, aliased
 
 from app.annotations import service
 from app.annotations.models import MaskVersion
@@ -34,7 +34,8 @@ class ImportedFrame(BaseModel):
     frame_id: int
     frame: str  # the frame's image name
     item: str  # the image name in the archive
-    version: int
+    version: int  # the version's id (ids count across all frames)
+    number: int  # its 1-based number among the frame's versions ("v3", as the frame page says)
     kind: str
 
 
@@ -94,7 +95,7 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
         raise Invalid(f"the {res.tool} archive paints no frame ({len(res.skipped_empty)} "
                       f"image(s) without annotations): nothing to import")
     rows = {f.index: f for f in session.scalars(select(Frame).where(Frame.scene_id == scene.id))}
-    out: list[ImportedFrame] = []
+    stored: list[tuple[Frame, MaskVersion, str]] = []
     unchanged: list[str] = []
     for fi, mask in sorted(res.masks.items()):
         frame = rows[fi]
@@ -108,8 +109,16 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
         v: MaskVersion = service.store_version(
             session=session, ctx=ctx, frame=frame, user=user, data=data,
             kind="imported", expected=frame.current_version_id, source=source)
-        out.append(ImportedFrame(frame_id=frame.id, frame=frame.name, item=res.item_names[fi],
-                                 version=v.id, kind=v.kind))
+        stored.append((frame, v, res.item_names[fi]))
+    # each new version's number: its frame's versions up to it (one query for the archive)
+    earlier = aliased(MaskVersion)
+    numbers = dict(session.execute(
+        select(MaskVersion.id, func.count(earlier.id))
+        .join(earlier, (earlier.frame_id == MaskVersion.frame_id) & (earlier.id <= MaskVersion.id))
+        .where(MaskVersion.id.in_([v.id for _, v, _ in stored]))
+        .group_by(MaskVersion.id)).all()) if stored else {}
+    out = [ImportedFrame(frame_id=frame.id, frame=frame.name, item=item, version=v.id,
+                         number=int(numbers[v.id]), kind=v.kind) for frame, v, item in stored]
     return MaskImportOut(format=res.fmt, source=source, frames_imported=len(out), frames=out,
                          unchanged=unchanged,
                          skipped_without_annotations=res.skipped_empty, classes=res.classes)

@@ -39,6 +39,9 @@ def export_root(ctx, session, jid: int) -> Path:  # noqa: ANN001
     job = service.get(session=session, job_id=jid)
     if job.kind != "export" or job.status != "done":
         raise Conflict(f"job {jid} is not a finished export")
+    if (job.result or {}).get("deleted_at"):
+        raise NotFound(f"export job {jid} was deleted at {job.result['deleted_at']}: "
+                       f"nothing to download")
     root = Path((job.result or {}).get("output", ""))
     base = ctx.settings.exports_dir.resolve()
     if not root.is_dir() or not root.resolve().is_relative_to(base):

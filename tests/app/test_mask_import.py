@@ -44,6 +44,8 @@ def test_admin_imports_a_datumaro_cvat_archive_which_then_is_reviewed(world, tmp
     assert out["source"] == "imported from CVAT by Jane Doe"
     assert out["classes"] == {"Road": 1, "car": 13}
     assert [f["frame_id"] for f in out["frames"]] == [frames[0]["id"], frames[2]["id"]]
+    # issue 40: each frame's own version number beside the global id (the page shows "v1")
+    assert [f["number"] for f in out["frames"]] == [1, 1]
     again = _post(env, sid, archive, hdr["admin"], mapping={"car": "vehicle"}, author="Jane Doe")
     assert again.status_code == 200 and again.json()["frames_imported"] == 0
     assert again.json()["unchanged"] == [frames[0]["name"], frames[2]["name"]]

@@ -64,6 +64,14 @@ def test_admin_imports_a_datumaro_written_cvat_archive(live, sid, new_page, tmp_
     assert "imported from CVAT by J. Doe (field team)" in text and "car → 13" in text
     rows = page.locator("#mask-import-result tbody tr")
     assert rows.count() == 3 and "imported" in rows.nth(0).inner_text()
+    # issue 40: the frame's version number ("v1": their first), not the global version id
+    got = {rows.nth(i).locator("td").first.inner_text(): rows.nth(i).locator(".mi-version")
+           for i in range(3)}
+    for f in frames:
+        vs = admin.get(f"/api/frames/{f['id']}/mask/versions").json()
+        cell = got[f["name"]]
+        assert cell.inner_text() == f"v{vs[-1]['number']}" == "v1", cell.inner_text()
+        assert cell.get_attribute("data-version") == str(vs[-1]["version"])
     for f in frames:
         vs = admin.get(f"/api/frames/{f['id']}/mask/versions").json()
         assert vs[-1]["kind"] == "imported"

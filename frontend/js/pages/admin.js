@@ -305,7 +305,7 @@ class AdminPage {
       table(r.frames, [
         { key: "frame", label: "Frame" },
         { key: "item", label: "Image in the archive" },
-        { key: "version", label: "Version" },
+        { key: "number", label: "Version of the frame", fmt: (v, f) => el("span", { class: "mi-version", "data-version": f.version, title: `version id ${f.version} (ids count across all frames)` }, v != null ? `v${v}` : `id ${f.version}`) },
         { key: "kind", label: "State" },
       ], { caption: "Imported versions (they wait for review)" }),
     );
@@ -327,7 +327,7 @@ class AdminPage {
   async loadExportList() {
     await this.guard(async () => {
       const rows = (await api.get("/exports")) || [];
-      this.exportListEl.replaceChildren(el("h3", {}, "Exports on disk"), exportsTable(rows, () => { this.loadExportList(); this.loadScenes(); }));
+      this.exportListEl.replaceChildren(el("h3", {}, "Exports on disk"), exportsTable(rows, () => { this.loadExportList(); this.loadScenes(); this.loadJobs(); this.loadOverview(); }));
     });
   }
 
@@ -553,7 +553,7 @@ class AdminPage {
               el("span", { class: "spacer" }),
               ACTIVE.has(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "cancel") }, "Cancel") : null,
               ["interrupted", "failed", "cancelled"].includes(j.status) ? el("button", { type: "button", onclick: () => this.jobAction(j, "resume") }, "Resume") : null,
-              j.kind === "export" && j.status === "done" ? this.archiveControls(j) : null,
+              j.kind === "export" && j.status === "done" ? (j.result && j.result.deleted_at ? el("span", { class: "muted export-deleted", "data-job": j.id }, `export deleted ${fmtDate(j.result.deleted_at)}: nothing to download`) : this.archiveControls(j)) : null,
             ),
             j.log_tail && j.log_tail.length ? el("details", { open: ACTIVE.has(j.status) || j.status === "failed" }, el("summary", {}, "log"), el("pre", { class: "log" }, j.log_tail.join("\n"))) : null,
           ),
@@ -596,8 +596,13 @@ class AdminPage {
 
   async archiveInfo(jid) {
     const st = this.archives.get(jid);
-    const info = await api.get(`/jobs/${jid}/archive/info?format=${encodeURIComponent(st.format)}`).catch(() => null);
+    let gone = false;
+    const info = await api.get(`/jobs/${jid}/archive/info?format=${encodeURIComponent(st.format)}`).catch((e) => {
+      gone = e.status === 404;
+      return null;
+    });
     if (info && info.format === st.format) st.info = info;
+    if (gone) return this.loadJobs(); // deleted meanwhile: the job card says so, no link
     this.renderJobs();
   }
 
@@ -609,10 +614,12 @@ class AdminPage {
       st.info = await api.post(`/jobs/${jid}/archive?format=${encodeURIComponent(st.format)}`);
     } catch (e) {
       showError(e);
+      if (e.status === 404) st.info = null;
     } finally {
       st.busy = false;
       this.renderJobs();
     }
+    if (!st.info) this.loadJobs();
   }
 
   async jobAction(j, action) {
@@ -631,6 +638,7 @@ class AdminPage {
   async poll() {
     if (!this.alive) return;
     const active = this.jobs.filter((j) => ACTIVE.has(j.status));
+    let finished = false;
     if (active.length) {
       const fresh = await Promise.all(active.map((j) => api.get(`/jobs/${j.id}`).catch(() => j)));
       for (const f of fresh) {
@@ -642,15 +650,18 @@ class AdminPage {
           if (f.status === "failed") showError(`Job ${f.id} (${f.kind}) failed: ${f.message || "see its log"}`);
           else toast(`Job ${f.id} (${f.kind}) ${f.status}.`);
           if (cb) cb(f);
-          if (f.kind === "import") {
-            this.loadScenes();
-            this.loadOverview();
-          }
+          finished = true;
           if (f.kind === "export") this.loadExportList();
           if (f.kind === "export" || f.kind === "eval") this.loadMetrics();
         }
       }
       if (this.alive) this.renderJobs();
+    }
+    // a finished job (import, selection, export, voxelize, ...) changes what the overview
+    // and the scenes table count: frames to do, scenes, storage (issue 40: stale until reload)
+    if (finished && this.alive) {
+      this.loadOverview();
+      this.loadScenes();
     }
     if (this.alive) this.timer = setTimeout(() => this.poll(), active.length ? 700 : 3000);
   }

@@ -202,8 +202,7 @@ def test_cgformer_input_dict_contract(ssc):
 
 
 def test_symphonies_sample_contract_and_safe_flip(ssc):
-    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
-    import torch
+    import torch  # the torch extra: scripts/setup.sh --test installs it (no skip)
 
     from occufly.datasets.compat.symphonies import OccuFlyKITTI360, Register
 
@@ -264,7 +263,8 @@ def test_symphonies_sample_contract_and_safe_flip(ssc):
 
 
 def test_flip_refused_without_an_axis_record(ssc, tmp_path):
-    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    import torch  # noqa: F401 -- the torch extra: scripts/setup.sh --test installs it (no skip)
+
     from occufly.datasets.compat.symphonies import OccuFlyKITTI360
 
     root = tmp_path / "old"
@@ -284,8 +284,7 @@ def test_flip_refused_without_an_axis_record(ssc, tmp_path):
 
 
 def test_monoscene_sample_contract_and_per_sequence_calibration(ssc, tmp_path):
-    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
-    import torch
+    import torch  # the torch extra: scripts/setup.sh --test installs it (no skip)
 
     from occufly.datasets.compat.monoscene import Kitti360Dataset, KittiDataset, training_constants
 
@@ -315,10 +314,60 @@ def test_monoscene_sample_contract_and_per_sequence_calibration(ssc, tmp_path):
         f = ds.sample(0, flip=True)
         np.testing.assert_array_equal(f["projected_pix_1"][:, 0], 63 - d["projected_pix_1"][:, 0])
         np.testing.assert_array_equal(f["target"], d["target"])
-    test = Kitti360Dataset("test", root, root / "preprocess").sample(0)
-    assert test["frustums_masks"] is None and test["frustums_class_dists"] is None
     c = training_constants(root)
     assert c["full_scene_size"] == tuple(SPEC.shape) and c["n_classes"] == len(c["class_names"])
+
+
+def _monoscene_collate(batch):
+    """MonoScene's ``collate_fn`` reduced to what it does to each field (not its code): it
+    mirrors astra-vision/MonoScene f52bbb1 ``monoscene/data/semantic_kitti/collate.py:17-44``
+    and ai4ce/SSCBench 9e767e1 ``method/MonoScene/monoscene/data/kitti_360/collate.py:21-46``
+    (the same loop): ``torch.from_numpy`` on cam_k, T_velo_2_cam, projected_pix_s, fov_mask_s,
+    target and CP_mega_matrix of every sample, on frustums_masks / frustums_class_dists only
+    ``if "frustums_masks" in input_dict`` (collate.py:26 / :34), ``torch.stack`` of img and
+    target."""
+    import torch
+
+    out = {"frustums_masks": [], "frustums_class_dists": [], "cam_k": [], "T_velo_2_cam": [],
+           "CP_mega_matrices": [], "img": [], "target": []}
+    for s in batch[0]["scale_3ds"]:
+        out[f"projected_pix_{s}"], out[f"fov_mask_{s}"] = [], []
+    for d in batch:
+        out["cam_k"].append(torch.from_numpy(d["cam_k"]).double())
+        out["T_velo_2_cam"].append(torch.from_numpy(d["T_velo_2_cam"]).float())
+        if "frustums_masks" in d:
+            out["frustums_masks"].append(torch.from_numpy(d["frustums_masks"]))
+            out["frustums_class_dists"].append(torch.from_numpy(d["frustums_class_dists"]).float())
+        for s in d["scale_3ds"]:
+            out[f"projected_pix_{s}"].append(torch.from_numpy(d[f"projected_pix_{s}"]))
+            out[f"fov_mask_{s}"].append(torch.from_numpy(d[f"fov_mask_{s}"]))
+        out["img"].append(d["img"])
+        out["target"].append(torch.from_numpy(d["target"]))
+        out["CP_mega_matrices"].append(torch.from_numpy(d["CP_mega_matrix"]))
+    out["img"], out["target"] = torch.stack(out["img"]), torch.stack(out["target"])
+    return out
+
+
+def test_monoscene_every_split_collates(ssc):
+    """The test split collated with TypeError (frustum keys set to None, as their datasets
+    do): every split of both MonoScene adapters batches through their collate_fn's logic."""
+    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    from occufly.datasets.compat.monoscene import Kitti360Dataset, KittiDataset
+
+    for cls in (Kitti360Dataset, KittiDataset):
+        for split in ("train", "val", "test"):
+            ds = cls(split, ssc, ssc / "preprocess", frustum_size=2)
+            assert len(ds) >= 1, split
+            b = _monoscene_collate([ds[i] for i in range(min(2, len(ds)))])
+            assert b["img"].shape[1:] == (3, 48, 64) and b["target"].shape[1:] == tuple(SPEC.shape)
+            has = split != "test"  # the model's frustum loss runs for train / val only
+            assert bool(b["frustums_masks"]) == has, (cls.__name__, split)
+            if has:
+                assert b["frustums_masks"][0].shape == (4, *SPEC.shape)
+    # what their own dataset returns for test does not collate: the adapter must not do it
+    d = Kitti360Dataset("test", ssc, ssc / "preprocess").sample(0)
+    with pytest.raises(TypeError):
+        _monoscene_collate([dict(d, frustums_masks=None, frustums_class_dists=None)])
 
 
 # ---- the porting guide and its benchmark run -----------------------------------------------------

@@ -24,9 +24,16 @@ dict): ``frame_id``, ``sequence`` (str), ``P`` (3, 4), ``T_velo_2_cam`` (4, 4),
 ``[project_scale // 2, project_scale]``; ``projected_pix_<s>`` (N_s, 2) int64, ``fov_mask_<s>``
 (N_s,) bool, ``pix_z_<s>`` (N_s,) float64; ``target`` (X, Y, Z) as stored (uint8 here);
 ``CP_mega_matrix`` (4, N_8, N_8 / 8) uint8; ``frustums_masks`` (size^2, X, Y, Z) bool and
-``frustums_class_dists`` (size^2, n_classes) float64, both ``None`` for ``split="test"``;
-``img`` (3, H, W) float32 torch tensor, ImageNet-normalised. The codebase's own
-``collate_fn`` batches it.
+``frustums_class_dists`` (size^2, n_classes) float64, both absent for ``split="test"`` (theirs
+sets them to ``None``, which their own ``collate_fn`` cannot batch: it calls
+``torch.from_numpy`` on them only ``if "frustums_masks" in input_dict``, upstream
+``monoscene/data/semantic_kitti/collate.py:26-30``, SSCBench
+``monoscene/data/kitti_360/collate.py:34-38``); ``img`` (3, H, W) float32 torch tensor,
+ImageNet-normalised. The codebase's own ``collate_fn`` batches every split.
+
+Memory: the frustum masks are ``frustum_size**2`` bool copies of the full grid, per sample
+(at 192 x 128 x 128 and the configs' ``frustum_size: 8``: 64 x 3.1 M = 201 MB); see
+docs/ssc-porting.md "Memory" for the measured figures and how to lower them.
 
 Their flip (``fliplr``) mirrors the image and the projected pixels' u (u -> W - 1 - u), not
 the target, so it is right for any grid convention; this class does the same. Differences
@@ -126,10 +133,12 @@ class Kitti360Dataset(torch.utils.data.Dataset):
             masks, dists = local_frustums(data[f"projected_pix_{self.output_scale}"],
                                           data[f"pix_z_{self.output_scale}"], target, W, H,
                                           self.n_classes, self.frustum_size)
-        else:
-            masks, dists = None, None
-        data["frustums_masks"] = masks
-        data["frustums_class_dists"] = dists
+            data["frustums_masks"] = masks
+            data["frustums_class_dists"] = dists
+        # test split: no frustum keys at all. Their datasets put None there, which their own
+        # collate_fn cannot batch (torch.from_numpy(None)); the collate_fn batches frustums only
+        # ``if "frustums_masks" in input_dict`` (collate.py:26 upstream, :34 SSCBench) and the
+        # model's frustum loss is skipped for step_type == "test" (monoscene.py:187)
         with Image.open(self.image_path(scan)) as im:
             img = im.convert("RGB")
             if self.color_jitter is not None:

@@ -84,7 +84,8 @@ def list_score(agree: list, cov: list, floor: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0) -> dict:
+def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0,
+        decisions: tuple[str, ...] = ("robust",)) -> dict:
     syn, ws = ensure_seeded_scene(cache, preset, 0)
     scene = Scene.load(ws)
     tax = scene.taxonomy
@@ -110,11 +111,27 @@ def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0) -> dict:
         w.lifting_frame(fi).write_bytes(_npz_bytes(point_ids=pids, cols=cols, weights=wt))
         st._versions[int(fi)] = "bench"
     np.save(w.votes, st.votes)
-    res = fill_snapshot(scene, st.snapshot(), params=LiftParams(), ws=votes_ws, read_only=True)
+    # read_only=False: the robust decision's point features are cached in the private folder
+    # (the app's fill writes them too), so every LOO decision reads them
+    res = fill_snapshot(scene, st.snapshot(), params=LiftParams(), ws=votes_ws, read_only=False)
     t_lift = time.perf_counter() - t0
+    out = {"preset": preset, "points": scene.n_points, "frames_lifted": len(masks),
+           "wrong": {str(fi): kd for fi, kd in kinds.items()}, "lift_s": round(t_lift, 2)}
+    for dec in decisions:
+        out[dec] = score(votes_ws, scene, masks, kinds, res, dec, floor)
+    return out
+
+
+def score(votes_ws: Path, scene: Scene, masks: dict, kinds: dict, res, decision: str,
+          floor: float) -> dict:
+    """The review figures of every lifted frame with the LOO labels decided by ``decision``:
+    ``robust`` (the pipeline's robust decision without the frame, the default) or ``plain``
+    (the raw majority of the other frames' votes: the LOO labels before issue 40)."""
+    params = LiftParams(robust=decision == "robust")
     rows, t1 = [], time.perf_counter()
     for fi, m in masks.items():
-        o = frame_loo(votes_ws, scene, fi, m, self_labels=np.asarray(res.labels))
+        o = frame_loo(votes_ws, scene, fi, m, self_labels=np.asarray(res.labels), params=params,
+                      neighbours=True)
         rows.append({"frame": fi, "wrong": kinds.get(fi), "agreement": o["agreement"],
                      "self_agreement": o["self_agreement"],
                      "independent_coverage": round(o["independent_coverage"], 4),
@@ -122,7 +139,8 @@ def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0) -> dict:
                      "review_score": o["review_score"],
                      "area_agreement": o["area_agreement"],
                      "area_share": round(o["area_share"], 4),
-                     "shift_gain": round(o["shift_gain"], 4)})
+                     "shift_gain": round(o["shift_gain"], 4),
+                     "neighbours": o["neighbours"][:2]})
     t_loo = (time.perf_counter() - t1) / max(len(rows), 1)
     wrong = np.array([r["wrong"] is not None for r in rows])
     cov = [r["independent_coverage"] for r in rows]
@@ -137,25 +155,32 @@ def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0) -> dict:
         pos = np.flatnonzero(wrong[order])
         return int(pos.max() + 1) if len(pos) else 0
 
-    return {"preset": preset, "points": scene.n_points, "frames_lifted": len(rows),
-            "wrong": {str(fi): kd for fi, kd in kinds.items()},
-            "auc_loo": round(auc(s_loo, wrong), 4), "auc_self": round(auc(s_self, wrong), 4),
+    right = [r["agreement"] for r in rows if not r["wrong"] and r["agreement"] is not None]
+    right_cov = [r["agreement"] for r in rows if not r["wrong"] and r["agreement"] is not None
+                 and r["independent_coverage"] >= floor]
+    return {"auc_loo": round(auc(s_loo, wrong), 4), "auc_self": round(auc(s_self, wrong), 4),
             "auc_loo_x_painted_share": round(auc(s_both, wrong), 4),
             "auc_review_score": round(auc(s_rank, wrong), 4),
             "opened_before_all_wrong_found": {"loo": opened(s_loo), "self": opened(s_self),
                                               "loo_x_painted_share": opened(s_both),
                                               "review_score": opened(s_rank)},
-            "lift_s": round(t_lift, 2), "loo_per_frame_s": round(t_loo, 3),
+            "loo_per_frame_s": round(t_loo, 3),
             "wrong_frames": [r for r in rows if r["wrong"]],
+            "wrong_frames_loo_max": max((r["agreement"] for r in rows if r["wrong"]
+                                         and r["agreement"] is not None), default=None),
             "right_frames_review_score_max": max((r["review_score"] for r in rows
                                                   if not r["wrong"] and r["review_score"] is not None),
                                                  default=None),
-            "right_frames_loo": {"min": min((r["agreement"] for r in rows
-                                             if not r["wrong"] and r["agreement"] is not None),
-                                            default=None),
+            "right_frames_loo": {"min": min(right, default=None),
+                                 "median": float(np.median(right)) if right else None,
+                                 "below_0.75": sum(1 for a in right if a < 0.75),
+                                 "min_with_coverage": min(right_cov, default=None),
                                  "not_enough_views": sum(1 for r in rows if not r["wrong"]
                                                          and (r["agreement"] is None
-                                                              or r["independent_coverage"] < floor))}}
+                                                              or r["independent_coverage"] < floor))},
+            "right_frames_lowest": sorted((r for r in rows if not r["wrong"]
+                                           and r["agreement"] is not None),
+                                          key=lambda r: r["agreement"])[:3]}
 
 
 def main() -> None:
@@ -165,15 +190,25 @@ def main() -> None:
     ap.add_argument("--min-coverage", type=float, default=0.5)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-review"))
     ap.add_argument("--seed", type=int, default=0, help="which frames get the wrong masks")
+    ap.add_argument("--decisions", default="robust,plain",
+                    help="LOO decisions scored on the same lift: robust (the pipeline's robust "
+                         "decision without the frame, the review's) and/or plain (the raw "
+                         "majority of the other frames' votes, the review before issue 40)")
+    ap.add_argument("--json", type=Path, help="also write the JSON here")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     out = {"bench": "review", "k": args.k, "seed": args.seed,
            "min_independent_coverage": args.min_coverage,
-           "scenes": [run(args.cache, p, args.k, args.min_coverage, args.seed)
+           "scenes": [run(args.cache, p, args.k, args.min_coverage, args.seed,
+                          tuple(args.decisions.split(",")))
                       for p in args.presets.split(",")]}
     out["seconds"] = round(time.perf_counter() - t0, 1)
-    print(json.dumps(out, indent=1, default=float))
+    text = json.dumps(out, indent=1, default=float)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":

@@ -60,6 +60,16 @@ class ReviewItemOut(BaseModel):
     comments: list[CommentOut]
 
 
+class NeighbourOut(BaseModel):
+    frame_id: int
+    name: str
+    frame_index: int
+    shared_points: int  # points both frames voted
+    disagree_points: int  # of them, voted a different class
+    disagree_share: float
+    overruled_share: float | None  # of those, the share the independent labels overrule it on
+
+
 class AgreementOut(BaseModel):
     # leave-one-out agreement; None when status is "not_enough_independent_views"
     agreement: float | None
@@ -81,6 +91,10 @@ class AgreementOut(BaseModel):
     pixels: int  # = independent_pixels
     per_class: dict[str, object]  # from the LOO rendering
     version: int
+    # the frames whose votes contradict this one's, most disagreeing points first
+    # (occufly.lifting.loo.disagreeing_neighbours): overruled_share near 1 = the other frames
+    # overrule that neighbour (likely the wrong one), near 0 = they side with it
+    neighbours: list[NeighbourOut] = []
 
 
 class SuspectMarkIn(BaseModel):

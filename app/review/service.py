@@ -75,6 +75,10 @@ class _ReviewCache:
                 self._busy.pop(key, None)
             ev.set()
 
+    def has(self, key) -> bool:  # noqa: ANN001
+        with self._lock:
+            return key in self._items
+
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
@@ -94,16 +98,23 @@ def _stamp(*paths: Path) -> tuple:
     return tuple(out)
 
 
+def _review_key(scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
+    """The frame, its mask version and the stamps of every file its review is computed from:
+    the votes (a neighbour's votes withdrawn on a rejection change them), the frame's own
+    votes, the labels and the corrections."""
+    w = Workspace(scene.workspace)
+    return (str(scene.workspace), frame.index, v.id, v.sha256,
+            _stamp(w.votes, w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
+                   w.corrections_dir / "overrides.npz"))
+
+
 def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
     """The frame's current mask and what it is compared with, at the mask's size: ``mask``,
     ``loo`` (the labels decided without the frame's own votes, :mod:`occufly.lifting.loo`),
     ``confident`` (those holding >= ``CONFIDENT_SHARE`` of their votes), ``self`` (the scene's
     labels: the old, circular comparison), ``version`` -- rendered in one pass, cached."""
     v = annotations.current_version(session=session, frame=frame)
-    w = Workspace(scene.workspace)
-    key = (str(scene.workspace), frame.index, v.id, v.sha256,
-           _stamp(w.votes, w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
-                  w.corrections_dir / "overrides.npz"))
+    key = _review_key(scene, frame, v)
 
     def compute() -> dict:
         mask = _mask_array(ctx, scene, v.sha256)
@@ -113,9 +124,23 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
             raise NotFound(f"scene {scene.id} has no lifted labels yet")
         loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
         imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels)
-        return {"mask": mask, "version": v.id, **imgs}
+        # the figures once, with the entry: a cached agreement request only reads them
+        figures = lifting_loo.loo_agreement(mask, imgs["loo"], ws_scene,
+                                            self_rendered=imgs["self"],
+                                            confident_rendered=imgs["confident"])
+        nb = lifting_loo.disagreeing_neighbours(scene.workspace, ws_scene, frame.index, loo)
+        # mask and LOO stay for the disagreement image; the other renderings are spent
+        return {"mask": mask, "version": v.id, "loo": imgs["loo"], "figures": figures,
+                "neighbours": nb}
 
     return _CACHE.get(key, compute)
+
+
+def cached_review(scene: Scene, frame: Frame, session: Session) -> bool:
+    """Whether the frame's current mask's review computation is in the cache (tests, the
+    background warm-up)."""
+    v = annotations.current_version(session=session, frame=frame)
+    return _CACHE.has(_review_key(scene, frame, v))
 
 
 def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
@@ -131,10 +156,7 @@ def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Fram
     ``settings.min_independent_coverage``), the old self-agreement apart, the independent
     coverage and painted share; stored on the frame (the review list sorts by it)."""
     r = review_images(ctx, session, scene, frame)
-    mask, vid = r["mask"], r["version"]
-    ws_scene = ctx.load_scene(scene.workspace)
-    res = lifting_loo.loo_agreement(mask, r["loo"], ws_scene, self_rendered=r["self"],
-                                    confident_rendered=r["confident"])
+    vid, res = r["version"], r["figures"]
     value = res["agreement"]
     enough = res["independent_coverage"] >= ctx.settings.min_independent_coverage
     status = "ok" if enough and value is not None else "not_enough_independent_views"
@@ -156,7 +178,24 @@ def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Fram
             "min_independent_coverage": float(ctx.settings.min_independent_coverage),
             "review_score": res["review_score"], "area_agreement": res["area_agreement"],
             "area_share": float(res["area_share"]), "shift_gain": float(res["shift_gain"]),
-            "pixels": int(res["independent_pixels"]), "per_class": per_class, "version": vid}
+            "pixels": int(res["independent_pixels"]), "per_class": per_class, "version": vid,
+            "neighbours": _neighbours_out(session, scene, r["neighbours"])}
+
+
+def _neighbours_out(session: Session, scene: Scene, rows: list[dict]) -> list[dict]:
+    """The frames whose votes contradict this one's (:func:`occufly.lifting.loo.
+    disagreeing_neighbours`), with their ids and names."""
+    if not rows:
+        return []
+    by_index = {f.index: f for f in session.scalars(
+        select(Frame).where(Frame.scene_id == scene.id,
+                            Frame.index.in_([r["frame_index"] for r in rows])))}
+    out = []
+    for r in rows:
+        f = by_index.get(r["frame_index"])
+        if f is not None:
+            out.append({"frame_id": f.id, "name": f.name, **r})
+    return out
 
 
 def disagreement_png(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> bytes:

@@ -15,6 +15,7 @@ Cost: proportional to the points in f's frustum (the render cull), never a pass 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +33,7 @@ from occufly.render import (
     frustum_candidates,
     render_many_for_mask,
 )
-from occufly.scene import Scene
+from occufly.scene import Scene, project_points
 from occufly.workspace import Workspace
 
 
@@ -69,10 +70,13 @@ def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @numba.njit(nogil=True, cache=True)
 def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c: np.ndarray,
                       own_w: np.ndarray, tie_key: np.ndarray, out: np.ndarray,
-                      share: np.ndarray) -> None:
+                      share: np.ndarray, top: np.ndarray, out2: np.ndarray,
+                      second: np.ndarray) -> None:
     """out[k] = the tie-order winner column of votes[ids[k]] minus the frame's own votes
     (entries ``pos`` sorted, -1 = not in ids), -1 where no vote is left; share[k] = the
-    winner's share of the votes left (0 where none)."""
+    winner's share of the votes left (0 where none); top[k] its votes; out2[k] / second[k] the
+    runner-up column (the tie-order winner of the rest, -1 = none) and its votes -- the two
+    leading classes the robust decision reads (:class:`~occufly.lifting.votes.VoteSnapshot`)."""
     n_cls = votes.shape[1]
     sub = np.zeros(n_cls, np.int64)
     j = 0
@@ -88,6 +92,8 @@ def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c
         row = ids[k]
         best = -1
         best_key = -1
+        nxt = -1
+        nxt_key = -1
         total = 0
         for c in range(n_cls):
             v = np.int64(votes[row, c]) - sub[c]
@@ -95,10 +101,17 @@ def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c
                 total += v
                 key = v * n_cls + tie_key[c]
                 if key > best_key:
+                    nxt, nxt_key = best, best_key
                     best_key = key
                     best = c
+                elif key > nxt_key:
+                    nxt_key = key
+                    nxt = c
         out[k] = best
+        top[k] = best_key // n_cls if best >= 0 else 0
         share[k] = (best_key // n_cls) / total if total > 0 else 0.0
+        out2[k] = nxt
+        second[k] = nxt_key // n_cls if nxt >= 0 else 0
         if touched:
             for c in range(n_cls):
                 sub[c] = 0
@@ -106,32 +119,80 @@ def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c
 
 def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.ndarray,
                own_w: np.ndarray, cls: ClassColumns, share: np.ndarray | None = None, *,
-               rows: np.ndarray | None = None) -> np.ndarray:
+               rows: np.ndarray | None = None, second: bool = False
+               ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(K,) int64 winner column (:meth:`ClassColumns.winner`'s tie order; -1 = no vote) of the
     vote counts ``votes[ids]`` ((N, C) uint16, a memmap is read in place) minus a frame's
     own votes (``own_p`` point ids, ``own_c`` columns, ``own_w`` weights; a count never goes
     below 0). One compiled pass over the rows: no (K, C) copy, no packed key array.
     ``share``: an optional (K,) float32 output, the winner's share of the votes left;
     ``rows``: an optional (N,) map of scene point id -> row in ``ids`` (-1 = none), used
-    instead of a binary search of ``own_p``."""
+    instead of a binary search of ``own_p``. ``second``: return (winner, its votes, the
+    runner-up column (-1 = none), its votes), the vote pattern of :func:`robust.redecide`."""
     ids = np.ascontiguousarray(ids, dtype=np.int64)
-    out = np.empty(len(ids), np.int64)
-    share = np.empty(len(ids), np.float32) if share is None else share
-    if not len(ids):
-        return out
+    n = len(ids)
+    out = np.empty(n, np.int64)
+    share = np.empty(n, np.float32) if share is None else share
+    top, out2, n2 = np.zeros(n, np.int64), np.full(n, -1, np.int64), np.zeros(n, np.int64)
+    if not n:
+        return (out, top, out2, n2) if second else out
     if rows is not None:
         pos = rows[own_p].astype(np.int64)
     else:
         pos = np.searchsorted(ids, own_p).astype(np.int64)
-        pos = np.minimum(pos, len(ids) - 1)
+        pos = np.minimum(pos, n - 1)
         pos[ids[pos] != own_p] = -1
     order = np.argsort(pos, kind="stable") if len(pos) > 1 and (np.diff(pos) < 0).any() else None
     if order is not None:
         pos, own_c, own_w = pos[order], own_c[order], own_w[order]
     tie = np.asarray(cls._tie_key, np.int64)  # C - 1 - rank: larger = preferred on a tie
     _winner_minus_own(votes, ids, pos, np.ascontiguousarray(own_c, np.int64),
-                      np.ascontiguousarray(own_w, np.int64), tie, out, share)
-    return out
+                      np.ascontiguousarray(own_w, np.int64), tie, out, share, top, out2, n2)
+    return (out, top, out2, n2) if second else out
+
+
+def _vote_unit(ws: Path) -> int:
+    """Counts per view of the workspace's votes: 3 with boundary weighting (as
+    :meth:`LiftState.snapshot` hands them to the robust decision), else 1."""
+    try:
+        st = json.loads(Workspace(ws).lifting_state.read_text())
+    except (OSError, ValueError):
+        return 1
+    return 3 if st.get("vote_weighting") == "boundary" else 1
+
+
+def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
+                     col: np.ndarray, n1: np.ndarray, col2: np.ndarray, n2: np.ndarray,
+                     share: np.ndarray, p: LiftParams) -> None:
+    """Re-decide the voted points of ``ids`` (votes already without the frame's own) with the
+    pipeline's robust decision, :func:`occufly.lifting.robust.redecide` -- called, not copied:
+    its annotator model and point classifier are fitted on the other frames' votes in the
+    frame's cull, so a neighbour's wrong votes are overruled as the pipeline overrules them
+    instead of deciding the labels where few frames overlap. ``col`` (winner columns) and
+    ``share`` are updated in place: a re-decided point's share is its posterior
+    ``(1 + margin) / 2`` (the top of two candidates; 1 where one class was possible)."""
+    from occufly.lifting.robust import RobustParams, cached_features, redecide
+
+    sel = np.flatnonzero(col >= 0)
+    if len(sel) == 0:
+        return
+    rp = getattr(p, "robust_params", None) or RobustParams()
+    feats = cached_features(ws, scene.xyz, scene.rgb, rp, read_only=True)
+    pts = ids[sel]
+    unit = _vote_unit(ws)
+    c1 = col[sel].astype(np.int16)
+    top = n1[sel]
+    sec = n2[sel]
+    if unit != 1:  # weighted votes: the model counts views (LiftState.snapshot, fill_snapshot)
+        top = (top + unit - 1) // unit
+        sec = sec.astype(np.float32) / unit
+    else:
+        sec = sec.astype(np.uint16)
+    labels, margin, _top, _stats = redecide(
+        cls, np.asarray(feats[pts]), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
+        rp, xyz=np.asarray(scene.xyz[pts]))
+    col[sel] = cls.col_of[labels]
+    share[sel] = (1.0 + margin) / 2.0
 
 
 def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
@@ -158,8 +219,11 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
     row_of[ids] = np.arange(len(ids), dtype=np.int32)
     own_p, own_c, own_w = _frame_votes(ws, frame_index)
     share = np.empty(len(ids), np.float32)
-    col = loo_winner(votes, ids, own_p, own_c, own_w, cls, share, rows=row_of)
+    col, n1, col2, n2 = loo_winner(votes, ids, own_p, own_c, own_w, cls, share, rows=row_of,
+                                   second=True)
     voted = col >= 0
+    if getattr(p, "robust", False):
+        _robust_decision(ws, scene, cls, ids, col, n1, col2, n2, share, p)
     # fill: the points f sees without an independent vote, from the other frames' voted points
     is_vis = np.zeros(len(ids), bool)
     is_vis[row_of[vis]] = True
@@ -187,6 +251,69 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
             labels[pos[hit]] = np.asarray(ov.labels)[hit]
             share[pos[hit]] = 1.0
     return LooLabels(frame_index, ids, labels, voted, share)
+
+
+# a neighbour is named when it voted differently from the frame on at least this many of the
+# points both voted, and on at least this share of them
+NEIGHBOUR_MIN_POINTS = 50
+NEIGHBOUR_MIN_SHARE = 0.1
+_NEIGHBOUR_SAMPLE = 4096  # the frame's voted points projected to find the frames that see them
+
+
+def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: LooLabels, *,
+                           limit: int = 3) -> list[dict]:
+    """The annotated frames whose votes contradict frame ``frame_index``'s, most first.
+
+    Candidates are the frames with votes (``ws/lifting/frames``) into which a sample of the
+    frame's voted points projects (in front of the camera, inside the image); for each, on
+    the points both voted: ``shared_points``, ``disagree_points`` (a different class),
+    ``disagree_share`` and ``overruled_share`` -- the share of those disagreeing points where
+    the independent labels (``loo``, decided without the frame, with the pipeline's robust
+    decision) are not the neighbour's class either: near 1, the other frames overrule the
+    neighbour (it is the likely wrong one); near 0, they side with it. Listed when at least
+    ``NEIGHBOUR_MIN_POINTS`` and ``NEIGHBOUR_MIN_SHARE`` of the shared points disagree.
+    Cost: one projection of the sample per annotated frame, the votes of the frames that see
+    it."""
+    w = Workspace(ws)
+    own_p, own_c, _ = _frame_votes(Path(ws), frame_index)
+    d = w.lifting_frames_dir
+    others = sorted(int(q.stem) for q in d.glob("*.npz")) if d.is_dir() else []
+    others = [g for g in others if g != frame_index and 0 <= g < len(scene.frames)]
+    if not len(own_p) or not others:
+        return []
+    order = np.argsort(own_p, kind="stable")
+    own_p, own_c = own_p[order], own_c[order]
+    samp = own_p[np.unique(np.linspace(0, len(own_p) - 1, min(len(own_p), _NEIGHBOUR_SAMPLE))
+                          .astype(np.int64))]
+    loo_cols = ClassColumns(scene.taxonomy).col_of[loo.labels]  # -1: no independent label
+    out = []
+    for g in others:
+        fr = scene.frames[g]
+        uv, z = project_points(fr, scene.xyz, samp)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < fr.camera.width) \
+            & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
+        if not inside.any():
+            continue
+        gp, gc, _ = _frame_votes(Path(ws), g)
+        pos = np.minimum(np.searchsorted(own_p, gp), len(own_p) - 1)
+        hit = own_p[pos] == gp
+        n_shared = int(hit.sum())
+        if not n_shared:
+            continue
+        gp, gc, mine = gp[hit], gc[hit], own_c[pos[hit]]
+        dis = gc != mine
+        n_dis = int(dis.sum())
+        if n_dis < NEIGHBOUR_MIN_POINTS or n_dis < NEIGHBOUR_MIN_SHARE * n_shared:
+            continue
+        r = np.minimum(np.searchsorted(loo.point_ids, gp[dis]), len(loo.point_ids) - 1)
+        lc = np.where(loo.point_ids[r] == gp[dis], loo_cols[r], -1)
+        has = lc >= 0
+        over = int((has & (lc != gc[dis])).sum())
+        out.append({"frame_index": int(g), "shared_points": n_shared, "disagree_points": n_dis,
+                    "disagree_share": round(n_dis / n_shared, 4),
+                    "overruled_share": round(over / int(has.sum()), 4) if has.any() else None})
+    out.sort(key=lambda r: (-r["disagree_points"], r["frame_index"]))
+    return out[:limit]
 
 
 def render_loo(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int]) -> np.ndarray:
@@ -350,11 +477,13 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
 
 def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, *,
               params: LiftParams | None = None, self_labels: np.ndarray | None = None,
-              image: bool = False) -> dict:
+              image: bool = False, neighbours: bool = False) -> dict:
     """Leave-one-out agreement of frame ``frame_index``'s ``mask`` (see :func:`loo_agreement`);
     with ``self_labels`` ((N,) uint8, the lifted labels) also the self-agreement; with
-    ``image`` the disagreement RGBA under ``"image"``."""
+    ``image`` the disagreement RGBA under ``"image"``; with ``neighbours`` the frames whose
+    votes contradict this one's under ``"neighbours"`` (:func:`disagreeing_neighbours`)."""
     loo = loo_labels(ws, scene, frame_index, params=params)
+    nb = disagreeing_neighbours(ws, scene, frame_index, loo) if neighbours else None
     imgs = render_review(scene, loo, mask.shape, self_labels)
     ren = imgs["loo"]
     out = loo_agreement(mask, ren, scene, self_rendered=imgs.get("self"),
@@ -362,4 +491,6 @@ def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, 
     if image:
         out["image"] = disagreement_image(mask, ren, scene.taxonomy)
     out["rendered"] = ren
+    if nb is not None:
+        out["neighbours"] = nb
     return out

@@ -16,7 +16,8 @@ import gzip
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import delete, func, or_, select, update
+from sqlalchemy import case, delete, func, or_, select, update
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -98,53 +99,72 @@ def _keys(username: str, client_ip: str) -> dict[str, str]:
             "user": f"user:{name}"[:128], "ok": f"ok:{name}@{ip}"[:128]}
 
 
-def _check_throttle(session: Session, keys: dict[str, str]) -> None:
-    now = utcnow()
-    check = [keys["pair"], keys["user"]]
-    if session.get(LoginThrottle, keys["ok"]) is None:  # a known account passes a locked address
-        check.append(keys["ip"])
-    for key in check:
-        row = session.get(LoginThrottle, key)
-        if row is not None and row.locked_until is not None and row.locked_until > now:
-            wait = max(1, int((row.locked_until - now).total_seconds() + 0.999))
-            raise TooManyAttempts(
-                f"too many failed logins; try again in {wait} s", retry_after=wait)
-
-
-def _record_failure(session: Session, settings: Settings, keys: dict[str, str]) -> None:
-    now = utcnow()
+def _limits(settings: Settings) -> dict[str, tuple[int, int]]:
     free = settings.login_free_failures
-    limits = {"pair": (free, settings.login_max_lock_s),
-              "ip": (4 * free, settings.login_max_lock_s),  # an office NAT is shared by many
-              "user": (settings.login_user_free_factor * free,
-                       min(settings.login_user_max_lock_s, settings.login_max_lock_s))}
-    for kind, (n_free, cap) in limits.items():
+    return {"pair": (free, settings.login_max_lock_s),
+            "ip": (4 * free, settings.login_max_lock_s),  # an office NAT is shared by many
+            "user": (settings.login_user_free_factor * free,
+                     min(settings.login_user_max_lock_s, settings.login_max_lock_s))}
+
+
+def _reserve_attempt(session: Session, settings: Settings, keys: dict[str, str]) -> None:
+    """Count this attempt as a failure of every key *before* the password is verified, in one
+    transaction, each key's count incremented atomically (``INSERT .. ON CONFLICT DO UPDATE
+    .. WHERE not locked``: the row lock on PostgreSQL, the write lock on SQLite, serialise
+    parallel attempts, and the WHERE sees the lock the previous one set). An attempt that
+    finds a checked key locked counts nowhere and raises 429; so of parallel wrong
+    passwords at most the free failures of a key are verified (issue 36: before, all of
+    them passed the check before the first failure was recorded). A success takes its count
+    back (:func:`login`)."""
+    now = utcnow()
+    insert = postgresql.insert if session.get_bind().dialect.name == "postgresql" else sqlite.insert
+    check_ip = session.get(LoginThrottle, keys["ok"]) is None  # a known account passes a
+    limits = _limits(settings)                                  # locked address
+    t = LoginThrottle.__table__
+    for kind in ("pair", "user", "ip"):
         key = keys[kind]
-        row = session.get(LoginThrottle, key)
-        if row is None:
-            row = LoginThrottle(key=key, failures=0)
-            session.add(row)
-        row.failures += 1
-        row.updated_at = now
-        lock = security.lock_duration(row.failures, n_free, cap)
-        row.locked_until = now + lock if lock else None
-    try:
-        session.commit()
-    except IntegrityError:  # a concurrent failure created a row first; its count is enough
-        session.rollback()
+        n_free, cap = limits[kind]
+        stmt = insert(t).values(key=key, failures=1, locked_until=None, updated_at=now)
+        not_locked = (t.c.locked_until.is_(None)) | (t.c.locked_until <= now)
+        stmt = stmt.on_conflict_do_update(
+            index_elements=[t.c.key],
+            set_={"failures": t.c.failures + 1, "updated_at": now},
+            where=not_locked if (kind != "ip" or check_ip) else None,
+        ).returning(t.c.failures)
+        failures = session.scalar(stmt)
+        if failures is None:  # locked: nothing of this attempt is counted
+            until = session.scalar(select(LoginThrottle.locked_until)
+                                   .where(LoginThrottle.key == key))
+            session.rollback()
+            wait = max(1, int(((until or now) - now).total_seconds() + 0.999))
+            raise TooManyAttempts(f"too many failed logins; try again in {wait} s",
+                                  retry_after=wait)
+        lock = security.lock_duration(int(failures), n_free, cap)
+        if lock:  # the row is ours until the commit: set the lock the next attempt sees
+            session.execute(update(LoginThrottle).where(LoginThrottle.key == key)
+                            .values(locked_until=now + lock)
+                            .execution_options(synchronize_session=False))
+    session.commit()
 
 
 def login(*, session: Session, settings: Settings, username: str, password: str,
           client_ip: str, user_agent: str | None = None) -> tuple[User, str]:
     """Check credentials; returns (user, token). Failures count per pair, address and account."""
     keys = _keys(username, client_ip)
-    _check_throttle(session, keys)
+    _reserve_attempt(session, settings, keys)  # counted as a failure until it succeeds
     user = get_by_name(session=session, username=username)
     ok = security.verify_password(user.password_hash if user else None, password)
     if not ok or user is None or not user.active:
-        _record_failure(session, settings, keys)
         raise NotAuthenticated("wrong user name or password")
     session.execute(delete(LoginThrottle).where(LoginThrottle.key.in_((keys["pair"], keys["user"]))))
+    # the address's count takes this attempt back (a success is no failure of the address)
+    ip_free = _limits(settings)["ip"][0]
+    session.execute(update(LoginThrottle).where(LoginThrottle.key == keys["ip"],
+                                                LoginThrottle.failures > 0)
+                    .values(failures=LoginThrottle.failures - 1,
+                            locked_until=case((LoginThrottle.failures - 1 < ip_free, None),
+                                              else_=LoginThrottle.locked_until))
+                    .execution_options(synchronize_session=False))
     if session.get(LoginThrottle, keys["ok"]) is None:
         session.add(LoginThrottle(key=keys["ok"], failures=0, updated_at=utcnow()))
     token = _new_session(session, settings, user, client_ip=client_ip, user_agent=user_agent)

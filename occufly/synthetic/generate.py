@@ -211,27 +211,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
                  "poses": [fr.T_cam_world for fr in frames], "tmp": tmp, "edges": edges,
                  "spill": tmp / ".samples" / f"part{k:02d}"}
                 for k, r in enumerate(np.array_split(np.arange(F), max(1, min(workers, F)))) if len(r)]
-        if len(jobs) == 1:
-            parts = [_render_frames(jobs[0], renderer=renderer, report=lambda k: report(0.7 * k / F,
-                                                                                        f"rendering {k}/{F}"))]
-        else:  # contiguous frame ranges, one process each: the spills concatenate in frame order
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
-            ex = ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn"))
-            try:
-                futs = [ex.submit(_render_frames, j) for j in jobs]
-                parts, done = [], 0
-                for j, fu in zip(jobs, futs, strict=True):
-                    parts.append(fu.result())
-                    done += len(j["frames"])
-                    report(0.7 * done / F, f"rendering {done}/{F}")
-            except BaseException:  # Ctrl-C / SIGTERM / a worker's error: stop the others now
-                for proc in list(getattr(ex, "_processes", {}).values()):
-                    proc.terminate()
-                ex.shutdown(wait=False, cancel_futures=True)
-                raise
-            ex.shutdown()
+        parts = _render_jobs(jobs, renderer, report, F)
         spill = SampleSpill.union([p_["spill"] for p_ in parts])
         bboxes = [b_ for p_ in parts for b_ in p_["bboxes"]]
         mask_classes = np.logical_or.reduce([p_["mask_classes"] for p_ in parts])
@@ -250,23 +230,9 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
         # ---- visibility: contributing images (+ images whose depth map agrees) ----------
         t0 = time.perf_counter()
-        pts_l, frm_l = [contrib[0]], [contrib[1]]
         N = len(cloud.xyz)
-        if P.vis_depth_check:
-            index = TileIndex(cloud.xyz)
-            for f, fr in enumerate(frames):  # the depth maps as written (one in memory at a time)
-                dn = read_depth_map(depth_dir / f"{fr.name}.geometric.bin")
-                pts = depth_agreement(cloud.xyz, index, cams[f], fr.T_cam_world, dn,
-                                      bboxes[f], P.vis_tolerance)
-                pts_l.append(pts)
-                frm_l.append(np.full(len(pts), f, np.int32))
-            del index
-            cloud.vis_offsets, cloud.vis_frames = build_visibility(N, F, pts_l, frm_l)
-        else:  # the contributing pairs are already unique and sorted by (point, frame)
-            cloud.vis_offsets = np.zeros(N + 1, np.int64)
-            np.cumsum(np.bincount(contrib[0], minlength=N), out=cloud.vis_offsets[1:])
-            cloud.vis_frames = contrib[1].astype(np.uint32)
-        del pts_l, frm_l, contrib
+        _fused_visibility(cloud, contrib, P, frames, cams, bboxes, depth_dir)
+        del contrib
         timings["visibility"] = time.perf_counter() - t0
         report(0.85, "writing dense cloud")
 
@@ -278,39 +244,9 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
         # ---- sparse model: a subset of the points with their tracks ---------------------
         t0 = time.perf_counter()
-        rng = np.random.default_rng([seed, 2])
         n_vis = np.diff(cloud.vis_offsets)
-        cand = np.flatnonzero(n_vis >= 2)
-        pick = np.sort(rng.choice(cand, size=min(P.sparse_points, len(cand)), replace=False))
-        # every observation of the picked points, projected frame by frame (vectorised)
-        lens = n_vis[pick]
-        obs_pt = np.repeat(pick, lens)
-        obs_f = np.concatenate([cloud.vis_frames[cloud.vis_offsets[p] : cloud.vis_offsets[p + 1]]
-                                for p in pick]).astype(np.int64) if len(pick) else np.zeros(0, np.int64)
-        obs_uv = np.zeros((len(obs_pt), 2))
-        obs_ok = np.zeros(len(obs_pt), bool)
-        for f in np.unique(obs_f):
-            m = np.flatnonzero(obs_f == f)
-            uv, _, vis = project_world(cams[f], frames[f].T_cam_world, cloud.xyz[obs_pt[m]])
-            obs_uv[m] = uv
-            obs_ok[m] = vis
-        tracks = []
-        kept = []
-        starts = np.concatenate([[0], np.cumsum(lens)])
-        for k, p in enumerate(pick):
-            sl = slice(starts[k], starts[k + 1])
-            ok = obs_ok[sl]
-            if ok.sum() >= 2:
-                tracks.append((obs_f[sl][ok], obs_uv[sl][ok]))
-                kept.append(p)
-        kept_idx = np.array(kept, np.int64)
-        poses_world = []
-        for fr in frames:
-            T = fr.T_cam_world.copy()
-            T[:3, 3] = T[:3, 3] - T[:3, :3] @ offset
-            poses_world.append(T)
-        sparse_info = write_sparse_model(tmp / "sparse", cams if len(full) else camera, names, poses_world,
-                                         xyz_world[kept_idx], cloud.rgb[kept_idx], tracks)
+        sparse_info = _sparse_model(tmp / "sparse", cloud, xyz_world, P, seed, frames, cams,
+                                    cams if len(full) else camera, names, offset)
         timings["sparse"] = time.perf_counter() - t0
         report(0.9, "truth grid")
 
@@ -346,41 +282,7 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         if len(full):
             summary["full_size_frames"] = len(full)
             summary["full_image_size"] = [camera_full.width, camera_full.height]
-        meta = {
-            "format": FORMAT,
-            "version": VERSION,
-            **summary,
-            "n_frames": F,
-            "n_points": int(N),
-            "preset_params": P.to_dict(),
-            "world_offset": [float(v) for v in offset],
-            "sun_direction": [float(v) for v in world.sun],
-            "camera": camera.to_dict(),
-            **({"camera_full_size": camera_full.to_dict(),
-                "full_size_frames": [frames[f].name for f in sorted(full)]} if len(full) else {}),
-            "up_axis": "z",
-            "depth_noise": {"relative_sigma": P.depth_noise, "invalid_near_discontinuities": 0.5,
-                            "invalid_random": 0.005, "invalid_water": 0.3},
-            "fusion": {"voxel": P.fuse_voxel, "pixel_stride": P.pixel_stride, "min_views": P.min_views,
-                       "visibility": "contributing images" + (
-                           f" + depth agreement (relative tolerance {P.vis_tolerance})" if P.vis_depth_check else "")},
-            "grid_voxel": P.grid_voxel,
-            "truth_grid": {
-                "above_terrain_only": True,
-                "invalid_255": f"columns whose terrain point is inside fewer than {P.min_views} images, "
-                               "or with no fused point within 2 m (plan view)",
-                "invalid_columns": int((grid.labels[:, :, 0] == 255).sum()),
-                "columns": int(grid.shape[0] * grid.shape[1]),
-            },
-            "frames_detail": [
-                {"name": fr.name, "image_id": i + 1, "nominal_altitude": fr.nominal_altitude,
-                 "altitude_above_ground": round(fr.altitude_above_ground, 3), "pitch_deg": fr.pitch_deg,
-                 "heading_deg": fr.heading_deg, "pass": fr.pass_index, "line": fr.line, "station": fr.station,
-                 "center_world": [float(v) for v in fr.center + offset],
-                 **({"camera_id": 2 if i in full else 1} if len(full) else {})}
-                for i, fr in enumerate(frames)
-            ],
-        }
+        meta = _meta(summary, P, world, frames, full, camera, camera_full, grid, F, N)
         objects = {"world_offset": [float(v) for v in offset], "coordinates": "scene-local metres",
                    "primitives": [p.to_dict() for p in world.prims]}
         (tmp / "truth" / "objects.json").write_text(json.dumps(objects))
@@ -391,3 +293,132 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         (tmp / "truth" / "meta.json").write_text(json.dumps(meta, indent=1))
         report(1.0, "done")
     return summary
+
+
+def _render_jobs(jobs: list[dict], renderer: Renderer, report: ProgressFn, F: int) -> list[dict]:
+    """Render every job's frames (one job: in this process; more: one spawned process each,
+    contiguous frame ranges, so the spills concatenate in frame order)."""
+    if len(jobs) == 1:
+        return [_render_frames(jobs[0], renderer=renderer,
+                               report=lambda k: report(0.7 * k / F, f"rendering {k}/{F}"))]
+    import multiprocessing as mp  # only for a multi-process render
+    from concurrent.futures import ProcessPoolExecutor
+
+    ex = ProcessPoolExecutor(len(jobs), mp_context=mp.get_context("spawn"))
+    try:
+        futs = [ex.submit(_render_frames, j) for j in jobs]
+        parts, done = [], 0
+        for j, fu in zip(jobs, futs, strict=True):
+            parts.append(fu.result())
+            done += len(j["frames"])
+            report(0.7 * done / F, f"rendering {done}/{F}")
+    except BaseException:  # Ctrl-C / SIGTERM / a worker's error: stop the others now
+        for proc in list(getattr(ex, "_processes", {}).values()):
+            proc.terminate()
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown()
+    return parts
+
+
+def _fused_visibility(cloud, contrib: tuple[np.ndarray, np.ndarray], P, frames, cams,  # noqa: ANN001
+                      bboxes, depth_dir: Path) -> None:  # noqa: ANN001
+    """``cloud.vis_offsets`` / ``vis_frames``: the images that contributed to each fused point
+    (``contrib``: (point ids, frame ids)), plus, with ``P.vis_depth_check``, the images whose
+    depth map agrees with it."""
+    N, F = len(cloud.xyz), len(frames)
+    if not P.vis_depth_check:  # the contributing pairs are already unique and sorted by (point, frame)
+        cloud.vis_offsets = np.zeros(N + 1, np.int64)
+        np.cumsum(np.bincount(contrib[0], minlength=N), out=cloud.vis_offsets[1:])
+        cloud.vis_frames = contrib[1].astype(np.uint32)
+        return
+    pts_l, frm_l = [contrib[0]], [contrib[1]]
+    index = TileIndex(cloud.xyz)
+    for f, fr in enumerate(frames):  # the depth maps as written (one in memory at a time)
+        dn = read_depth_map(depth_dir / f"{fr.name}.geometric.bin")
+        pts = depth_agreement(cloud.xyz, index, cams[f], fr.T_cam_world, dn,
+                              bboxes[f], P.vis_tolerance)
+        pts_l.append(pts)
+        frm_l.append(np.full(len(pts), f, np.int32))
+    del index
+    cloud.vis_offsets, cloud.vis_frames = build_visibility(N, F, pts_l, frm_l)
+
+
+def _sparse_model(path: Path, cloud, xyz_world: np.ndarray, P, seed: int, frames, cams,  # noqa: ANN001
+                  model_cameras, names: list[str], offset: np.ndarray) -> dict:  # noqa: ANN001
+    """The COLMAP sparse model: a random subset of the multi-view points with their tracks
+    (observations projected frame by frame, vectorised)."""
+    rng = np.random.default_rng([seed, 2])
+    n_vis = np.diff(cloud.vis_offsets)
+    cand = np.flatnonzero(n_vis >= 2)
+    pick = np.sort(rng.choice(cand, size=min(P.sparse_points, len(cand)), replace=False))
+    # every observation of the picked points, projected frame by frame (vectorised)
+    lens = n_vis[pick]
+    obs_pt = np.repeat(pick, lens)
+    obs_f = np.concatenate([cloud.vis_frames[cloud.vis_offsets[p] : cloud.vis_offsets[p + 1]]
+                            for p in pick]).astype(np.int64) if len(pick) else np.zeros(0, np.int64)
+    obs_uv = np.zeros((len(obs_pt), 2))
+    obs_ok = np.zeros(len(obs_pt), bool)
+    for f in np.unique(obs_f):
+        m = np.flatnonzero(obs_f == f)
+        uv, _, vis = project_world(cams[f], frames[f].T_cam_world, cloud.xyz[obs_pt[m]])
+        obs_uv[m] = uv
+        obs_ok[m] = vis
+    tracks = []
+    kept = []
+    starts = np.concatenate([[0], np.cumsum(lens)])
+    for k, p in enumerate(pick):
+        sl = slice(starts[k], starts[k + 1])
+        ok = obs_ok[sl]
+        if ok.sum() >= 2:
+            tracks.append((obs_f[sl][ok], obs_uv[sl][ok]))
+            kept.append(p)
+    kept_idx = np.array(kept, np.int64)
+    poses_world = []
+    for fr in frames:
+        T = fr.T_cam_world.copy()
+        T[:3, 3] = T[:3, 3] - T[:3, :3] @ offset
+        poses_world.append(T)
+    return write_sparse_model(path, model_cameras, names, poses_world,
+                              xyz_world[kept_idx], cloud.rgb[kept_idx], tracks)
+
+
+def _meta(summary: dict, P, world, frames, full, camera, camera_full, grid, F: int, N: int) -> dict:  # noqa: ANN001
+    """``truth/meta.json``: the summary, the preset, the cameras, the noise model, the fusion
+    and truth-grid rules and every frame's flight record."""
+    offset = world.offset
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        **summary,
+        "n_frames": F,
+        "n_points": int(N),
+        "preset_params": P.to_dict(),
+        "world_offset": [float(v) for v in offset],
+        "sun_direction": [float(v) for v in world.sun],
+        "camera": camera.to_dict(),
+        **({"camera_full_size": camera_full.to_dict(),
+            "full_size_frames": [frames[f].name for f in sorted(full)]} if len(full) else {}),
+        "up_axis": "z",
+        "depth_noise": {"relative_sigma": P.depth_noise, "invalid_near_discontinuities": 0.5,
+                        "invalid_random": 0.005, "invalid_water": 0.3},
+        "fusion": {"voxel": P.fuse_voxel, "pixel_stride": P.pixel_stride, "min_views": P.min_views,
+                   "visibility": "contributing images" + (
+                       f" + depth agreement (relative tolerance {P.vis_tolerance})" if P.vis_depth_check else "")},
+        "grid_voxel": P.grid_voxel,
+        "truth_grid": {
+            "above_terrain_only": True,
+            "invalid_255": f"columns whose terrain point is inside fewer than {P.min_views} images, "
+                           "or with no fused point within 2 m (plan view)",
+            "invalid_columns": int((grid.labels[:, :, 0] == 255).sum()),
+            "columns": int(grid.shape[0] * grid.shape[1]),
+        },
+        "frames_detail": [
+            {"name": fr.name, "image_id": i + 1, "nominal_altitude": fr.nominal_altitude,
+             "altitude_above_ground": round(fr.altitude_above_ground, 3), "pitch_deg": fr.pitch_deg,
+             "heading_deg": fr.heading_deg, "pass": fr.pass_index, "line": fr.line, "station": fr.station,
+             "center_world": [float(v) for v in fr.center + offset],
+             **({"camera_id": 2 if i in full else 1} if len(full) else {})}
+            for i, fr in enumerate(frames)
+        ],
+    }

@@ -442,10 +442,35 @@ def build_world(preset: Preset, seed: int) -> World:
     n = int(round(size / cell))
     size = n * cell
     ground = GroundMap.filled(x0, y0, size, 0.1, GRASS)
+    roads, plan = _block_plan(C, x0, y0, size, rng)
+    H, ponds = _terrain(x0, y0, n, cell, plan, rng)
+    sun_az = rng.uniform(0, 2 * np.pi)
+    sun_el = np.deg2rad(rng.uniform(45.0, 60.0))
+    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+    world = World(preset=preset, x0=x0, y0=y0, size=size, terrain_cell=cell, heights=H, ground=ground,
+                  prims=[], roads=roads, markings=[], sun=sun)
+    B = _Builder(world, rng)
+    _paint_ground(B, ground, roads, ponds, C, x0, size, rng)
+    _cable_line(B, roads, C, M)
+    # --- blocks ------------------------------------------------------------------------------
+    for rect, kind in plan:
+        {"buildings": _fill_buildings, "parking": _fill_parking, "park": _fill_park,
+         "construction": _fill_construction}[kind](B, *rect)
+    _traffic(B, roads, C, rng)
+    _margin_trees(B, C, x0, size, rng)
+    world.build_mesh()
+    return world
 
-    # --- block plan: internal roads split the core into nb x nb blocks ---------------------
+
+WALK_W = 2.0  # walkway width beside every road (m)
+
+
+def _block_plan(C: float, x0: float, y0: float, size: float, rng: np.random.Generator
+                ) -> tuple[list[Road], list[tuple[tuple[float, float, float, float], str]]]:
+    """Internal roads split the core into nb x nb blocks, each with a kind:
+    ``(roads, [((x0, x1, y0, y1), kind)])``."""
     nb = max(2, int(round(C / 40.0)))
-    road_w, walk_w = 7.0, 2.0
+    road_w, walk_w = 7.0, WALK_W
     cuts = [C * k / nb for k in range(1, nb)]
     roads = [Road("x", c, road_w, x0, x0 + size) for c in cuts] + [Road("y", c, road_w, y0, y0 + size) for c in cuts]
     edges = [0.0] + cuts + [C]
@@ -464,7 +489,12 @@ def build_world(preset: Preset, seed: int) -> World:
     kinds = list(kinds) + [str(k) for k in extra]
     order = rng.permutation(len(blocks))
     plan = [(blocks[i], kinds[k]) for k, i in enumerate(order)]
+    return roads, plan
 
+
+def _terrain(x0: float, y0: float, n: int, cell: float, plan, rng: np.random.Generator  # noqa: ANN001
+             ) -> tuple[np.ndarray, list[tuple[float, float, float, float]]]:
+    """(n+1, n+1) terrain heights, flattened under the (first park's) pond; and the ponds."""
     # --- terrain, flattened under ponds ----------------------------------------------------
     phase = rng.uniform(0, 2 * np.pi, 4)
     gx = x0 + np.arange(n + 1) * cell
@@ -484,14 +514,13 @@ def build_world(preset: Preset, seed: int) -> World:
         w = np.clip((1.6 - r) / 0.6, 0.0, 1.0)
         w = w * w * (3 - 2 * w)
         H = H * (1 - w) + level * w
+    return H, ponds
 
-    sun_az = rng.uniform(0, 2 * np.pi)
-    sun_el = np.deg2rad(rng.uniform(45.0, 60.0))
-    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
-    world = World(preset=preset, x0=x0, y0=y0, size=size, terrain_cell=cell, heights=H, ground=ground,
-                  prims=[], roads=roads, markings=[], sun=sun)
-    B = _Builder(world, rng)
 
+def _paint_ground(B: _Builder, ground: GroundMap, roads: list[Road], ponds, C: float, x0: float,  # noqa: ANN001
+                  size: float, rng: np.random.Generator) -> None:
+    """Margin patches, ponds, then roads with walkways (painted last, on top of patches)."""
+    walk_w = WALK_W
     # --- margin: irregular patches of dirt, gravel and low vegetation ---------------------
     n_patch = int(size * size / 900)
     for _ in range(n_patch):
@@ -521,6 +550,10 @@ def build_world(preset: Preset, seed: int) -> World:
             ground.paint_rect(r.c - wa, r.c + wa, r.a0, r.a1, ROAD)
             B.take(r.c - wa - walk_w, r.c + wa + walk_w, r.a0, r.a1)
 
+
+def _cable_line(B: _Builder, roads: list[Road], C: float, M: float) -> None:
+    """The cable line, towers kept off the roads and trees out of the wires."""
+    walk_w = WALK_W
     # --- the cable line, in the margin along the south edge of the core --------------------
     ty = -min(8.0, 0.5 * M)
     n_t = max(2, int(np.ceil((C + M) / 36.0)) + 1)
@@ -535,11 +568,10 @@ def build_world(preset: Preset, seed: int) -> World:
         B.take(tx - 2.2, tx + 2.2, tyy - 2.2, tyy + 2.2)
     B.take(txs.min() - 2, txs.max() + 2, ty - 4.5, ty + 4.5)  # keep trees out of the wires
 
-    # --- blocks ------------------------------------------------------------------------------
-    for rect, kind in plan:
-        {"buildings": _fill_buildings, "parking": _fill_parking, "park": _fill_park,
-         "construction": _fill_construction}[kind](B, *rect)
 
+def _traffic(B: _Builder, roads: list[Road], C: float, rng: np.random.Generator) -> None:
+    """Vehicles on the roads, people and bicycles on the walkways (inside the core)."""
+    walk_w = WALK_W
     # --- traffic on the roads and people on the walkways (inside the core) ----------------
     for r in roads:
         n_v = max(1, int(C / 30))
@@ -572,6 +604,8 @@ def build_world(preset: Preset, seed: int) -> World:
                 B.bicycle(cx, cy, 0.0 if r.axis == "x" else np.pi / 2)
                 B.taken_dyn.append((cx - 1.0, cx + 1.0, cy - 1.0, cy + 1.0))
 
+
+def _margin_trees(B: _Builder, C: float, x0: float, size: float, rng: np.random.Generator) -> None:
     # --- a few trees in the margin ------------------------------------------------------------
     for _ in range(int(size * size / 1500)):
         px, py = rng.uniform(x0 + 3, x0 + size - 3, 2)
@@ -580,9 +614,6 @@ def build_world(preset: Preset, seed: int) -> World:
         if B.free(px - 3, px + 3, py - 3, py + 3):
             B.take(px - 3, px + 3, py - 3, py + 3)
             B.tree(px, py)
-
-    world.build_mesh()
-    return world
 
 
 def _overlaps_any(B: _Builder, cx: float, cy: float, fx: float, fy: float) -> bool:

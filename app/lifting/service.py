@@ -63,7 +63,7 @@ from app.annotations.models import MaskVersion
 from app.db import utcnow
 from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
-from app.review.service import frame_agreement
+from app.review.service import refresh_agreement
 from app.scenes.models import Scene
 from occufly.errors import OccuflyError
 from occufly.lifting.incremental import IncrementalFill
@@ -710,8 +710,10 @@ class LiftingService:
 
     def _refresh_agreement(self, msg: Message) -> None:
         """Recompute the stored per-frame agreement (the frame list's disagreement sort) of
-        submitted/reviewed frames against the new labels; best effort."""
-        from app.scenes.models import Frame, Scene
+        submitted/reviewed frames against the new labels, and leave the review list's top
+        frames computed in the review cache (:func:`app.review.service.refresh_agreement`);
+        best effort."""
+        from app.scenes.models import Scene
 
         owned = self.owned()
         if owned is not None and msg.scene_id not in owned:
@@ -720,16 +722,6 @@ class LiftingService:
             scene = s.get(Scene, msg.scene_id)
             if scene is None:
                 return
-            frames = list(s.scalars(
-                select(Frame).where(Frame.scene_id == scene.id,
-                                    Frame.current_version_id.is_not(None),
-                                    Frame.state.in_(("submitted", "accepted", "rejected")))
-                .order_by(Frame.index).limit(self.MAX_AGREEMENT_FRAMES)))
-            for f in frames:
-                if self._stop.is_set():
-                    return
-                try:
-                    frame_agreement(self.ctx, s, scene, f)
-                except Exception:  # noqa: BLE001 - a frame that cannot be rendered keeps its value
-                    log.warning("agreement of frame %s failed", f.id, exc_info=True)
-                    s.rollback()
+            # the list's top frames last, left computed in the review cache (issue 40)
+            refresh_agreement(self.ctx, s, scene, limit=self.MAX_AGREEMENT_FRAMES,
+                              stop=self._stop, log=log)

@@ -4,7 +4,6 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Path, Query, Response
 
-from app import pipeline
 from app.audit import service as audit
 from app.deps import ClientIp, CtxDep, CurrentUser, FrameDep, ReviewerUser, SceneDep, SessionDep
 from app.errors import Forbidden
@@ -49,8 +48,8 @@ ACCESS = {
 def render(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser,
            downscale: Annotated[int, Query(ge=1, le=64)] = 1):
     scene = session.get(Scene, frame.scene_id)
-    img = service.rendered(ctx, scene, frame, downscale=downscale)
-    return Response(pipeline.encode_png(img), media_type="image/png",
+    return Response(service.render_png(ctx, scene, frame, downscale=downscale),
+                    media_type="image/png",
                     headers={"Cache-Control": "private, no-cache"})
 
 

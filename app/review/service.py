@@ -40,7 +40,8 @@ rendered = annotations.rendered  # the prefill render lives with the annotations
 
 
 class _ReviewCache:
-    """The last few frames' review renderings (mask, LOO, confident LOO, self), keyed by the
+    """The last few frames' review computations (figures, neighbours, disagreement PNG; the
+    LOO, confident-LOO and self renderings are spent in them), keyed by the
     frame, its mask and the stamps (mtime, size) of every file they are computed from: the
     votes, the frame's own votes, the labels and the corrections. The reviewer page asks for
     the agreement and the disagreement image of a frame at once: they share one computation
@@ -84,7 +85,11 @@ class _ReviewCache:
             self._items.clear()
 
 
-_CACHE = _ReviewCache()
+# the review list's top frames whose review is computed in the background after each fill
+# (refresh_agreement); the caches keep them and the frame open beside them
+PREFETCH_FRAMES = 4
+_CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
+_RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
 
 
 def _stamp(*paths: Path) -> tuple:
@@ -129,9 +134,11 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
                                             self_rendered=imgs["self"],
                                             confident_rendered=imgs["confident"])
         nb = lifting_loo.disagreeing_neighbours(scene.workspace, ws_scene, frame.index, loo)
-        # mask and LOO stay for the disagreement image; the other renderings are spent
-        return {"mask": mask, "version": v.id, "loo": imgs["loo"], "figures": figures,
-                "neighbours": nb}
+        # the disagreement image is encoded once, with the figures: the page asks for both,
+        # and an entry keeps a few MB instead of the frame-sized renderings
+        rgba = pipeline.disagreement_image(mask, imgs["loo"], ws_scene.taxonomy)
+        return {"version": v.id, "figures": figures, "neighbours": nb,
+                "disagreement_png": pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))}
 
     return _CACHE.get(key, compute)
 
@@ -141,13 +148,6 @@ def cached_review(scene: Scene, frame: Frame, session: Session) -> bool:
     background warm-up)."""
     v = annotations.current_version(session=session, frame=frame)
     return _CACHE.has(_review_key(scene, frame, v))
-
-
-def compare(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> tuple[np.ndarray, np.ndarray, int]:
-    """(mask, leave-one-out rendering at the mask's size, version id) of the frame's current
-    mask: the labels decided without the frame's own votes (:mod:`occufly.lifting.loo`)."""
-    r = review_images(ctx, session, scene, frame)
-    return r["mask"], r["loo"], r["version"]
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
@@ -199,10 +199,68 @@ def _neighbours_out(session: Session, scene: Scene, rows: list[dict]) -> list[di
 
 
 def disagreement_png(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> bytes:
-    """The disagreement overlay of the mask against the leave-one-out rendering."""
-    mask, ren, _vid = compare(ctx, session, scene, frame)
-    rgba = pipeline.disagreement_image(mask, ren, ctx.load_scene(scene.workspace).taxonomy)
-    return pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))
+    """The disagreement overlay of the mask against the leave-one-out rendering (PNG)."""
+    return review_images(ctx, session, scene, frame)["disagreement_png"]
+
+
+def render_png(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1) -> bytes:
+    """The lifted labels rendered into the frame (:func:`rendered`), PNG; full size cached
+    per labels stamp (the reviewer page fetches it with the agreement)."""
+    if downscale != 1:
+        return pipeline.encode_png(rendered(ctx, scene, frame, downscale=downscale))
+    return _RENDER_CACHE.get(_render_key(scene, frame),
+                             lambda: pipeline.encode_png(rendered(ctx, scene, frame)))
+
+
+def _render_key(scene: Scene, frame: Frame) -> tuple:
+    w = Workspace(scene.workspace)
+    return (str(scene.workspace), frame.index,
+            _stamp(w.labels_path, w.labels_stats_path, w.corrections_dir / "overrides.npz"))
+
+
+def _list_order(session: Session, scene: Scene, limit: int) -> list[Frame]:
+    """The frames with a current submitted / reviewed mask in the review list's order
+    (``GET /scenes/{sid}/frames?sort=disagreement``: ranking score, highest first)."""
+    return list(session.scalars(
+        select(Frame).where(Frame.scene_id == scene.id, Frame.current_version_id.is_not(None),
+                            Frame.state.in_(("submitted", "accepted", "rejected")))
+        .order_by(Frame.review_score.is_(None), Frame.review_score.desc(),
+                  Frame.agreement.is_(None), Frame.agreement,
+                  Frame.independent_coverage.is_(None), Frame.independent_coverage,
+                  Frame.index).limit(limit)))
+
+
+def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *, limit: int = 200,
+                      stop: threading.Event | None = None, log=None) -> list[int]:  # noqa: ANN001
+    """After a fill (the lifting worker's ``labels_updated`` subscriber): recompute the stored
+    agreement of every submitted / reviewed frame (the list's sort) and leave the review of
+    the top ``PREFETCH_FRAMES`` of the list computed in the cache, so that opening them
+    costs no computation (issue 40, defect 6). The frames are computed in reverse list order
+    (the top last, so they stay in the LRU cache); where the new scores change the top, its
+    new members are computed again. Returns the frame ids left warm, top first."""
+
+    def one(f: Frame, *, warm: bool) -> None:
+        try:
+            frame_agreement(ctx, session, scene, f)
+            if warm:  # the labels' rendering the page shows beside the mask
+                render_png(ctx, scene, f)
+        except Exception:  # noqa: BLE001 - a frame that cannot be rendered keeps its value
+            if log is not None:
+                log.warning("agreement of frame %s failed", f.id, exc_info=True)
+            session.rollback()
+
+    frames = _list_order(session, scene, limit)
+    for i in range(len(frames) - 1, -1, -1):
+        if stop is not None and stop.is_set():
+            return []
+        one(frames[i], warm=i < PREFETCH_FRAMES)
+    top = _list_order(session, scene, PREFETCH_FRAMES)  # the new scores' top
+    for f in reversed(top):
+        if stop is not None and stop.is_set():
+            return []
+        if not cached_review(scene, f, session) or not _RENDER_CACHE.has(_render_key(scene, f)):
+            one(f, warm=True)
+    return [f.id for f in top]
 
 
 def evaluate_scene(*, ctx: AppContext, scene_id: int, frames: list[int] | None = None,

@@ -163,3 +163,56 @@ def test_half_painted_frame_ranks_first(world):
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
                         headers=hdr["reviewer"]).json()
     assert fl[0]["id"] == ids[3] and fl[0]["review_score"] == pytest.approx(r["review_score"])
+
+
+def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(world, monkeypatch):
+    """Issue 40, defect 6: after a fill the review of the list's top frames is already
+    computed (opening one computes nothing), and a neighbour's rejection (its votes withdrawn)
+    recomputes them in the background; the agreement names the neighbour that disagrees."""
+    from app.review import service as review
+
+    env, hdr, scene, frames = world
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    grass = np.full((H, W), 6, np.uint8)
+    for fid in ids[:3]:
+        _submit(env, hdr, fid, grass)
+    wrong = ids[3]
+    _submit(env, hdr, wrong, np.full((H, W), 1, np.uint8))
+    lifting = env.app.state.ctx.lifting
+    assert lifting.wait_idle(scene["id"], timeout=30, include_fill=True)
+    calls = []
+    real = review.lifting_loo.loo_labels
+    monkeypatch.setattr(review.lifting_loo, "loo_labels",
+                        lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement&state=submitted",
+                        headers=hdr["reviewer"]).json()
+    top = [f["id"] for f in fl[:review.PREFETCH_FRAMES]]
+    assert top[0] == wrong and set(ids[:4]) <= set(top)
+    before = {}
+    for fid in top:  # opening them: agreement, disagreement image, labels rendering
+        r = env.client.get(f"/api/frames/{fid}/agreement", headers=hdr["reviewer"])
+        assert r.status_code == 200, r.text
+        before[fid] = r.json()
+        for part in ("disagreement", "render"):
+            assert env.client.get(f"/api/frames/{fid}/{part}",
+                                  headers=hdr["reviewer"]).status_code == 200
+    assert calls == []  # all served from what the background refresh computed
+    right = before[ids[1]]
+    names = [n["frame_id"] for n in right["neighbours"]]
+    assert names and names[0] == wrong  # the neighbour painting the grass as road
+    nb = right["neighbours"][0]
+    assert nb["disagree_share"] > 0.9 and nb["name"]
+    assert [n["frame_id"] for n in before[wrong]["neighbours"]][:1] != [wrong]
+
+    # the wrong frame is rejected: its votes are withdrawn, the neighbours' figures refresh
+    r = env.client.post(f"/api/frames/{wrong}/review", headers=hdr["reviewer"],
+                        json={"decision": "reject", "comment": "grass, not road",
+                              "version": before[wrong]["version"]})
+    assert r.status_code == 200, r.text
+    assert lifting.wait_idle(scene["id"], timeout=30, include_fill=True)
+    assert calls  # recomputed in the background after the fill
+    n_bg = len(calls)
+    after = env.client.get(f"/api/frames/{ids[1]}/agreement", headers=hdr["reviewer"]).json()
+    assert len(calls) == n_bg  # served from the refreshed cache
+    assert wrong not in [n["frame_id"] for n in after["neighbours"]]
+    assert after["agreement"] == pytest.approx(1.0)

@@ -370,6 +370,76 @@ def test_monoscene_every_split_collates(ssc):
         _monoscene_collate([dict(d, frustums_masks=None, frustums_class_dists=None)])
 
 
+def test_disc_sample_contract_streams_and_flip(ssc):
+    """DISC (Enyu-Liu/DISC 00ecc7f, ssc_ia/data/datasets/kitti_360.py:101-203): keys, dtypes,
+    shapes, the instance / scene streams from the taxonomy, no target for test, the flip
+    through post_rot with the target kept, the Hydra callback."""
+    pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    import sys
+    import types
+
+    import torch
+
+    from occufly.datasets.compat.disc import OccuFlyKITTI360, Register, class_streams, training_constants
+
+    X, Y, Z = SPEC.shape
+    g = load_geometry(ssc)
+    ds = OccuFlyKITTI360("train", ssc, depth_root=ssc / "depth_full",
+                         data_config={"input_size": [48, 64], "flip": True})
+    data, label = ds.sample(0)
+    assert set(data) == {"frame_id", "sequence", "P", "cam_pose", "proj_matrix", "voxel_origin",
+                         "scale_3ds", "cam_K", "img", "depth", "post_tran", "post_rot",
+                         "projected_pix_1", "pix_z_1", "fov_mask_1", "projected_pix_2", "pix_z_2",
+                         "fov_mask_2"}
+    assert set(label) == {"class_fres", "bk_cls_info", "ins_cls_info", "target", "depth",
+                          "bev_seg_bk", "bev_seg_ins", "seg_img"}
+    assert data["img"].shape == (3, 48, 64) and data["depth"].shape == (48, 64)
+    assert data["projected_pix_1"].dtype == torch.float32 and data["projected_pix_1"].shape == (X * Y * Z, 2)
+    assert data["fov_mask_2"].dtype == torch.bool and data["projected_pix_2"].shape == (X * Y * Z // 8, 2)
+    assert data["post_rot"].shape == (3, 3) and data["post_tran"].shape == (3,)
+    assert label["target"].shape == (X, Y, Z) and label["target"].dtype == torch.uint8
+    assert label["bev_seg_bk"].shape == (X, Y) and label["seg_img"].shape == (48, 64)
+    assert label["seg_img"].dtype == torch.int64 and label["class_fres"].shape == (g.n_classes,)
+    bk, ins = class_streams(ssc)
+    # every class in exactly one stream, each led by empty (0); instance = the taxonomy group
+    assert bk["indices"][0] == 0 and ins["indices"][0] == 0
+    assert sorted([*bk["indices"][1:], *ins["indices"][1:]]) == list(range(1, g.n_classes))
+    assert {g.class_names[i] for i in ins["indices"][1:]} >= {"vehicle", "building", "person"}
+    assert "road" in bk["names"] and training_constants(ssc)["ins_cls"] == len(ins["indices"])
+    # bev: the last layer along axis 2 with a class of the stream, as its position in the stream
+    t = label["target"].numpy()
+    i, j = np.argwhere(np.isin(t[:, :, :-1], ins["indices"][1:]).any(2))[0]
+    col = t[i, j, :-1]
+    want = col[np.flatnonzero(np.isin(col, ins["indices"][1:]))[-1]]
+    assert label["bev_seg_ins"][i, j] == list(ins["indices"]).index(want)
+    # seg_img: instance labels, 0 and 255 only
+    assert set(np.unique(label["seg_img"].numpy())) <= {0, 255, *ins["indices"][1:].tolist()}
+    # no identity augmentation drift at the native size: projections are the rounded pixels
+    pix, fov, _ = vox2pix(ds.scans[0].Tr, ds.scans[0].P2[:3, :3], g.voxel_origin, g.voxel_size,
+                          64, 48, g.scene_size)
+    np.testing.assert_array_equal(data["projected_pix_1"].numpy(), pix.astype(np.float32))
+    np.testing.assert_array_equal(data["fov_mask_1"].numpy(), fov)
+    # their flip: image and depth mirrored, projections u -> fW - u through post_rot, target kept
+    fd, fl = ds.sample(0, flip=True)
+    assert torch.equal(fd["img"], torch.flip(data["img"], dims=[2]))
+    assert torch.equal(fd["depth"], torch.flip(data["depth"], dims=[1]))
+    np.testing.assert_allclose(fd["projected_pix_1"][:, 0].numpy(), 64 - data["projected_pix_1"][:, 0].numpy())
+    assert torch.equal(fl["target"], label["target"]) and torch.equal(fl["bev_seg_ins"], label["bev_seg_ins"])
+    # test split: no target and nothing computed from it (theirs: with_target = split != 'test')
+    td, tl = OccuFlyKITTI360("test", ssc).sample(0)
+    assert set(tl) == {"class_fres", "bk_cls_info", "ins_cls_info", "depth"}
+    # the callback registers the class where DISC looks types up
+    mod = types.ModuleType("fake_ssc_ia_datasets")
+    sys.modules["fake_ssc_ia_datasets"] = mod
+    try:
+        Register(data_root=str(ssc), module="fake_ssc_ia_datasets")
+        assert mod.OccuFlyKITTI360 is OccuFlyKITTI360
+        assert OccuFlyKITTI360.META_INFO["class_names"] == g.class_names
+    finally:
+        del sys.modules["fake_ssc_ia_datasets"]
+    assert Register.default_module == "ssc_ia.data.datasets"
+
+
 # ---- the porting guide and its benchmark run -----------------------------------------------------
 def test_porting_guide_names_the_commits_and_matches_the_bench_run():
     doc = (REPO / "docs" / "ssc-porting.md").read_text()

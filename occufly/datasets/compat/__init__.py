@@ -10,7 +10,9 @@ codebases):
 - :mod:`occufly.datasets.compat.monoscene` -- astra-vision/MonoScene f52bbb1
   (``KittiDataset``) and ai4ce/SSCBench 9e767e1 ``method/MonoScene`` (``Kitti360Dataset``);
 - :mod:`occufly.datasets.compat.cgformer` -- pkqbajng/CGFormer 0331e11
-  (``OccuFlyKITTI360Dataset``, mmdet registry).
+  (``OccuFlyKITTI360Dataset``, mmdet registry);
+- :mod:`occufly.datasets.compat.disc` -- Enyu-Liu/DISC 00ecc7f (``OccuFlyKITTI360`` + the
+  Hydra callback ``Register``; DISC is built on Symphonies).
 
 The torch-based modules need the extra ``occufly[torch]``; :mod:`.common` (geometry, 3D-2D
 mapping, frustums, context-prior matrix, flips, depth consistency) is numpy only.

@@ -188,15 +188,20 @@ class Register:
     ``ssc_pl.data.datasets`` so ``data.datasets.type: OccuFlyKITTI360`` finds it. Building it
     is the registration; the callback methods do nothing."""
 
-    def __init__(self, data_root: str | None = None, module: str = "ssc_pl.data.datasets") -> None:
+    dataset_class = OccuFlyKITTI360
+    default_module = "ssc_pl.data.datasets"
+
+    def __init__(self, data_root: str | None = None, module: str | None = None) -> None:
         if data_root is not None:
-            _META.root = str(export_root(data_root))
+            # the META_INFO descriptor itself (reading the attribute would call it)
+            self.dataset_class.__dict__["META_INFO"].root = str(export_root(data_root))
+        module = module or self.default_module
         try:
             mod = importlib.import_module(module)
         except ImportError as e:
-            raise ImportError(f"occufly.datasets.compat.symphonies.Register: cannot import "
-                              f"{module} ({e}); run from the Symphonies checkout (PYTHONPATH=.)") from e
-        mod.OccuFlyKITTI360 = OccuFlyKITTI360
+            raise ImportError(f"{type(self).__module__}.Register: cannot import {module} ({e}); "
+                              "run from the codebase's checkout (PYTHONPATH=.)") from e
+        setattr(mod, self.dataset_class.__name__, self.dataset_class)
 
     def __getattr__(self, name: str):
         if name.startswith("on_"):

@@ -26,11 +26,18 @@ from app.users import service
 log = logging.getLogger("occufly.security")
 
 
+def _bearer(auth: str) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header (None: no bearer header)."""
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip() or None
+    return None
+
+
 def token_from(conn) -> str | None:  # noqa: ANN001 - Request or WebSocket
     """The session token of a request or socket: a bearer header, else the session cookie."""
     auth = conn.headers.get("authorization", "")
     if auth.lower().startswith("bearer "):
-        return auth[7:].strip() or None
+        return _bearer(auth)
     return conn.cookies.get(SESSION_COOKIE) or None
 
 
@@ -96,11 +103,14 @@ def same_origin(origin_or_referer: str, host: str | None, allowed: list[str]) ->
 def csrf_refusal(*, method: str, path: str, headers, cookies, allowed: list[str]) -> str | None:  # noqa: ANN001
     """Why a request must be refused as a possible cross-site forgery, or None.
 
-    A state-changing request authenticated by the session cookie (no ``Authorization``
-    header) must carry an ``Origin`` -- or, failing that, a ``Referer`` -- naming this app.
-    Bearer-token requests cannot be forged by another site and are not checked. The login
-    itself is refused only for a foreign Origin/Referer (login CSRF)."""
-    if method.upper() not in UNSAFE_METHODS or headers.get("authorization"):
+    A state-changing request authenticated by the session cookie must carry an ``Origin`` --
+    or, failing that, a ``Referer`` -- naming this app. Only a request with a Bearer token is
+    not checked: it is judged by that token alone (:func:`token_from` never falls back to the
+    cookie then), and another site cannot make a browser send one. Any other
+    ``Authorization`` header -- e.g. ``Basic``, which a browser behind a basic-auth proxy adds
+    by itself to a forged request -- leaves the cookie the credential and is checked (issue
+    36). The login itself is refused only for a foreign Origin/Referer (login CSRF)."""
+    if method.upper() not in UNSAFE_METHODS or _bearer(headers.get("authorization", "")):
         return None
     host = headers.get("host")
     source = headers.get("origin") or headers.get("referer")

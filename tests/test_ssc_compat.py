@@ -380,7 +380,12 @@ def test_disc_sample_contract_streams_and_flip(ssc):
 
     import torch
 
-    from occufly.datasets.compat.disc import OccuFlyKITTI360, Register, class_streams, training_constants
+    from occufly.datasets.compat.disc import (
+        OccuFlyKITTI360,
+        Register,
+        class_streams,
+        training_constants,
+    )
 
     X, Y, Z = SPEC.shape
     g = load_geometry(ssc)

@@ -70,7 +70,10 @@ def test_reviewer_fixes_a_mask_in_2d_and_it_votes(live, setup, new_page):
     _open_review(page, live, sid, fid)
     assert page.evaluate(f"() => {R}.frame.current_version") == f["version"]
     page.click("#fix-2d")
+    page.evaluate(f"() => {{ {R}.fixer.open(); }}")  # a second click while it opens
+    page.keyboard.press("a")  # a key while it opens decides nothing
     wait_js(page, f"() => {R}.fixer.state === 'open'")
+    assert page.locator("#review-editor .canvas-host").count() == 1
     # the frame list is hidden; the annotator's tools and palette are there, with their keys
     assert not page.locator("#frame-list").is_visible()
     assert page.locator("#fix-base").get_attribute("data-version") == str(f["version"])
@@ -97,6 +100,11 @@ def test_reviewer_fixes_a_mask_in_2d_and_it_votes(live, setup, new_page):
     wait_js(page, "() => document.querySelector('#fix-state').dataset.state === 'unsaved'")
     DOCS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(DOCS / "reviewer_editor.png"))
+    # Cancel with unsaved painting asks first; "Keep editing" keeps it
+    page.click("#fix-cancel")
+    page.click("dialog[open] .dlg-buttons button:has-text('Keep editing')")
+    assert page.evaluate(f"() => {R}.fixer.state") == "open"
+    assert page.evaluate(f"() => {R}.fixer.ed.history.undos.length") >= 1
 
     page.keyboard.press("Control+s")
     wait_js(page, f"() => {R}.fixer.state === null && {R}.frame && {R}.frame.current_version !== {f['version']}", timeout=30_000)

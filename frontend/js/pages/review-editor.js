@@ -99,7 +99,7 @@ class ReviewEditor {
     this.state = "opening";
     this.frame = frame;
     this.section()?.classList.add("editing");
-    this.box = el("section", { class: "review-editor", id: "review-editor", "aria-label": `Fix the mask of ${frame.name}` }, el("p", { class: "loading" }, `Opening ${frame.name} at full resolution…`));
+    this.box = el("section", { class: "review-editor", id: "review-editor", "aria-label": `Fix the mask of ${frame.name}` }, el("p", { class: "loading" }, `Opening ${frame.name} at full resolution… `, el("button", { type: "button", id: "fix-cancel", onclick: () => this.close() }, "Cancel")));
     page.detailEl.replaceChildren(this.box);
     try {
       const fid = frame.id;
@@ -204,7 +204,11 @@ class ReviewEditor {
     if (!this.state) return;
     const t = e.target;
     if (isField(t) || document.querySelector("dialog[open]")) return;
-    if (this.state !== "open") return; // still loading: nothing acts yet
+    if (this.state !== "open") {
+      // still loading: nothing acts yet (and Ctrl+S is not the browser's "save page")
+      if (e.type === "keydown" && (e.ctrlKey || e.metaKey) && (e.key === "s" || e.key === "S")) e.preventDefault();
+      return;
+    }
     if (e.type === "keydown" && (e.ctrlKey || e.metaKey) && (e.key === "s" || e.key === "S")) {
       e.preventDefault();
       this.save();
@@ -316,6 +320,10 @@ class ReviewEditor {
   /** Close the editor (asks first when there is unsaved painting); true when closed. */
   async close() {
     if (!this.state) return true;
+    if (this.saving) {
+      toast("Saving your correction…");
+      return false;
+    }
     if (this.dirty) {
       const c = await dialog({
         title: "Drop your unsaved fix?",

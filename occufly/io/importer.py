@@ -156,7 +156,6 @@ def import_scene(
             raise InputFormatError(
                 f"{source}: no frame sees any point of {cloud_path or 'the sparse cloud'} -- the "
                 "poses and the cloud do not match (different coordinate frames?)")
-        depth_desc = _depth_test_description(vis_mode, vis_stats)
         for w in vis_stats["warnings"]:
             log.warning("import %s: %s", source, w)
 
@@ -168,29 +167,8 @@ def import_scene(
             origin=place.R_level @ place.origin_src,
             visibility=visibility_data,
             taxonomy=tax,
-            meta={
-                "source": str(source.resolve()),
-                "format": model.kind,
-                "sparse_model": str(model.path.resolve()),
-                "crs": crsmod.crs_label(place.scene_crs) if place.scene_crs is not None else None,
-                "crs_handling": crs_info,
-                "import_notes": list(model.notes),
-                "cloud": str(cloud_path.resolve()) if cloud_path else None,
-                "images": str(image_dir.resolve()),
-                "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
-                "georeferenced": place.georef,
-                "georeferencing": place.georef_info,
-                "import_warnings": place.warnings,
-                "up_axis": place.up_method,
-                "levelling_rotation": place.R_level.tolist(),
-                "source_origin": place.origin_src.tolist(),
-                # the reconstruction's own lists keep naming the source; the depth test apart
-                "visibility_source": (lists_name if lists_name is not None and vis_mode != "depth"
-                                      else depth_desc),
-                "visibility_mode": vis_mode,
-                "visibility_depth_test": depth_desc,
-                "visibility_stats": vis_stats,
-            },
+            meta=_scene_meta(source, model, crs_info, cloud_path, image_dir, depth_dir, place,
+                             lists_name, vis_mode, vis_stats),
         )
         report(0.9, "altitudes")
         assign_altitudes(scene, nominal_altitudes)
@@ -315,6 +293,36 @@ def _reconstruction_lists(model, cloud_path: Path | None, vis_path: Path | None,
     if cloud_path is None and model.has_tracks:
         return _tracks_as_lists(model, n_points), "COLMAP tracks"
     return None, None
+
+
+def _scene_meta(source: Path, model, crs_info, cloud_path: Path | None, image_dir: Path,  # noqa: ANN001
+                depth_dir: Path | None, place: _Placement, lists_name: str | None, vis_mode: str,
+                vis_stats: dict) -> dict:
+    """The scene's ``meta``: where it came from, its CRS and levelling, how visibility was made."""
+    depth_desc = _depth_test_description(vis_mode, vis_stats)
+    return {
+        "source": str(source.resolve()),
+        "format": model.kind,
+        "sparse_model": str(model.path.resolve()),
+        "crs": crsmod.crs_label(place.scene_crs) if place.scene_crs is not None else None,
+        "crs_handling": crs_info,
+        "import_notes": list(model.notes),
+        "cloud": str(cloud_path.resolve()) if cloud_path else None,
+        "images": str(image_dir.resolve()),
+        "depth_maps": str(depth_dir.resolve()) if depth_dir else None,
+        "georeferenced": place.georef,
+        "georeferencing": place.georef_info,
+        "import_warnings": place.warnings,
+        "up_axis": place.up_method,
+        "levelling_rotation": place.R_level.tolist(),
+        "source_origin": place.origin_src.tolist(),
+        # the reconstruction's own lists keep naming the source; the depth test apart
+        "visibility_source": (lists_name if lists_name is not None and vis_mode != "depth"
+                              else depth_desc),
+        "visibility_mode": vis_mode,
+        "visibility_depth_test": depth_desc,
+        "visibility_stats": vis_stats,
+    }
 
 
 def _depth_test_description(vis_mode: str, vis_stats: dict) -> str | None:

@@ -244,7 +244,6 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
 
         # ---- sparse model: a subset of the points with their tracks ---------------------
         t0 = time.perf_counter()
-        n_vis = np.diff(cloud.vis_offsets)
         sparse_info = _sparse_model(tmp / "sparse", cloud, xyz_world, P, seed, frames, cams,
                                     cams if len(full) else camera, names, offset)
         timings["sparse"] = time.perf_counter() - t0
@@ -258,30 +257,9 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         grid.save(tmp / "truth" / "scene_grid.npz")
         timings["truth_grid"] = time.perf_counter() - t0
 
-        classes = {
-            "world": world.classes_present(),
-            "masks": [int(i) for i in np.flatnonzero(mask_classes) if i != 0],
-            "points": [int(i) for i in np.flatnonzero(np.bincount(cloud.label, minlength=256))],
-            "grid": [int(i) for i in np.flatnonzero(np.bincount(grid.labels.ravel(), minlength=256)) if i not in (0, 255)],
-        }
-        summary = {
-            "out": str(out),
-            "preset": P.name,
-            "seed": int(seed),
-            "frames": F,
-            "points": int(N),
-            "image_size": [camera.width, camera.height],
-            "altitudes": list(P.altitudes),
-            "depth_samples": int(n_samples),
-            "mean_views_per_point": float(n_vis.mean()) if N else 0.0,
-            "sparse_points": int(sparse_info["points3D"]),
-            "grid_shape": list(grid.shape),
-            "classes_present": classes,
-            "n_classes_present": len(classes["world"]),
-        }
-        if len(full):
-            summary["full_size_frames"] = len(full)
-            summary["full_image_size"] = [camera_full.width, camera_full.height]
+        summary = _summary(out, P, seed, world, cloud, grid, mask_classes, camera, camera_full,
+                           full, n_frames=F, n_samples=n_samples,
+                           sparse_points=int(sparse_info["points3D"]))
         meta = _meta(summary, P, world, frames, full, camera, camera_full, grid, F, N)
         objects = {"world_offset": [float(v) for v in offset], "coordinates": "scene-local metres",
                    "primitives": [p.to_dict() for p in world.prims]}
@@ -292,6 +270,39 @@ def generate(out: str | Path, *, preset: str = "small", seed: int = 0,
         meta["timings"] = summary["timings"]
         (tmp / "truth" / "meta.json").write_text(json.dumps(meta, indent=1))
         report(1.0, "done")
+    return summary
+
+
+def _summary(out: Path, P, seed: int, world, cloud, grid, mask_classes: np.ndarray, camera,  # noqa: ANN001
+             camera_full, full, *, n_frames: int, n_samples: int, sparse_points: int) -> dict:  # noqa: ANN001
+    """What :func:`generate` returns (and ``meta.json`` starts with): sizes and the classes
+    present in the world, the masks, the points and the truth grid."""
+    N = len(cloud.xyz)
+    n_vis = np.diff(cloud.vis_offsets)
+    classes = {
+        "world": world.classes_present(),
+        "masks": [int(i) for i in np.flatnonzero(mask_classes) if i != 0],
+        "points": [int(i) for i in np.flatnonzero(np.bincount(cloud.label, minlength=256))],
+        "grid": [int(i) for i in np.flatnonzero(np.bincount(grid.labels.ravel(), minlength=256)) if i not in (0, 255)],
+    }
+    summary = {
+        "out": str(out),
+        "preset": P.name,
+        "seed": int(seed),
+        "frames": n_frames,
+        "points": int(N),
+        "image_size": [camera.width, camera.height],
+        "altitudes": list(P.altitudes),
+        "depth_samples": int(n_samples),
+        "mean_views_per_point": float(n_vis.mean()) if N else 0.0,
+        "sparse_points": sparse_points,
+        "grid_shape": list(grid.shape),
+        "classes_present": classes,
+        "n_classes_present": len(classes["world"]),
+    }
+    if len(full):
+        summary["full_size_frames"] = len(full)
+        summary["full_image_size"] = [camera_full.width, camera_full.height]
     return summary
 
 

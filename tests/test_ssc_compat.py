@@ -188,16 +188,29 @@ def test_cgformer_input_dict_contract(ssc):
     with pytest.raises(ValueError, match="occ_size"):
         cgformer.OccuFlyKITTI360Dataset(root, root / "depth_full", root / "preprocess" / "labels",
                                         None, "train", ["left"], [256, 256, 32], [0, -25.6, -2, 51.2, 25.6, 4.4])
-    # a 3-D flip along the vertical axis is refused; along image left-right it is accepted
-    bda = {"type": "LoadAnnotationOcc", "apply_bda": True,
+    # bda flips (their config: flip_dx / flip_dy 0.5) are accepted: CGFormer applies the same
+    # bda_rot to its features; what must hold is that the step's range is the export's
+    pcr = cgformer.point_cloud_range(root)
+    bda = {"type": "LoadAnnotationOcc", "apply_bda": True, "point_cloud_range": pcr,
            "bda_aug_conf": {"flip_dx_ratio": 0.5, "flip_dy_ratio": 0.5, "flip_dz_ratio": 0}}
     args = (root, root / "depth_full", root / "preprocess" / "labels")
-    kw = {"split": "train", "camera_used": ["left"], "occ_size": list(SPEC.shape),
-          "pc_range": cgformer.point_cloud_range(root)}
-    with pytest.raises(FlipRefused, match="flip_dy_ratio"):
-        cgformer._check_pipeline([bda], ds.geometry, "x")
-    ok = dict(bda, bda_aug_conf={"flip_dx_ratio": 0.5, "flip_dy_ratio": 0, "flip_dz_ratio": 0})
-    cgformer._check_pipeline([ok], ds.geometry, "x")
+    kw = {"split": "train", "camera_used": ["left"], "occ_size": list(SPEC.shape), "pc_range": pcr}
+    cgformer._check_pipeline([bda], pcr, "x")
+    for bad in ([0, -25.6, -2, 51.2, 25.6, 4.4], None):  # KITTI's range (their default), none
+        with pytest.raises(ValueError, match="point_cloud_range"):
+            cgformer._check_pipeline([dict(bda, point_cloud_range=bad)], pcr, "x")
+    # their voxel_transform: bda = denorm @ flip @ norm about the range's centre, labels flipped
+    # as an array (loading_annotation_occ.py:61-124); the voxel centre (i, j, k) moved by bda
+    # lies in voxel (X-1-i, Y-1-j, k) of the flipped grid: labels and features stay together
+    g = load_geometry(root)
+    c = (np.asarray(pcr[:3]) + np.asarray(pcr[3:])) / 2
+    flip = np.diag([-1.0, -1.0, 1.0])  # flip_dx and flip_dy
+    X, Y, Z = SPEC.shape
+    ijk = np.stack(np.meshgrid(np.arange(X), np.arange(Y), np.arange(Z), indexing="ij"), -1).reshape(-1, 3)
+    p = g.voxel_origin + (ijk + 0.5) * g.voxel_size
+    q = (p - c) @ flip.T + c
+    got = np.floor((q - g.voxel_origin) / g.voxel_size).astype(int)
+    np.testing.assert_array_equal(got, np.stack([X - 1 - ijk[:, 0], Y - 1 - ijk[:, 1], ijk[:, 2]], 1))
     assert len(cgformer.OccuFlyKITTI360Dataset(*args, pipeline=None, **kw)) == len(ds)
 
 

@@ -26,11 +26,18 @@ pipeline receives: ``occ_size`` (3,) and ``pc_range`` (6,) numpy, ``sequence``, 
 keywords as ``KITTI360Dataset``.
 
 Flips: CGFormer's image flip (``data_config['flip']``) goes through ``post_rot`` and is right
-for any grid. Its 3-D ``bda`` flips mirror grid axis 0 (``flip_dx``) and axis 1
-(``flip_dy``) together with the voxel queries: axis 1 is the *vertical* axis of this
-camera-centric grid, so ``flip_dy`` would turn scenes upside down (and ``flip_dx`` mirrors
-image left-right only where the manifest's ``axes`` say axis 0 is). A pipeline with
-``apply_bda=True`` and a flip this export cannot take is refused at construction.
+for any grid. Its 3-D ``bda`` augmentation (``LoadAnnotationOcc`` with ``apply_bda=True``,
+``mmdet3d_plugin/datasets/pipelines/loading_annotation_occ.py:35-124``) flips / rotates /
+scales the label grid *and* returns the same transform as ``bda_rot``, about the centre of the
+step's ``point_cloud_range``; the model applies it wherever it places image features in 3-D
+(``img2bev/VoxelProposalLayer.py:64-69``, ``LSSViewTransformer.py:98-103``, and its inverse on
+the reference points in ``transformer_utils/encoder.py:127-133``), so labels and features stay
+consistent whatever the grid's axes mean. Here ``flip_dx`` mirrors image left-right and
+``flip_dy`` image top-bottom (a camera-centric grid: axis 1 is y down in the image, not the
+world's vertical) -- both are the scene seen by a camera rolled by 180 degrees about one image
+axis, plausible for near-nadir drone views. What must hold is that the pipeline's
+``point_cloud_range`` is the export's (its centre is the flip centre; the grid is flipped as an
+array): a pipeline step with another range is refused at construction.
 """
 
 from __future__ import annotations
@@ -39,31 +46,23 @@ import os
 
 import numpy as np
 
-from occufly.datasets.compat.common import (
-    FlipRefused,
-    check_flip,
-    export_root,
-    list_scans,
-    load_geometry,
-)
+from occufly.datasets.compat.common import export_root, list_scans, load_geometry
 
 
-def _check_pipeline(pipeline, geometry, where: str) -> None:
+def _check_pipeline(pipeline, pc_range, where: str) -> None:
+    """``LoadAnnotationOcc`` turns bda flips / rotations about the centre of its
+    ``point_cloud_range`` and flips the label grid as an array: that range must be the export's,
+    or the labels land beside the features."""
     for step in pipeline or ():
         if not isinstance(step, dict) or step.get("type") != "LoadAnnotationOcc":
             continue
-        if not step.get("apply_bda", False):
-            continue
-        conf = step.get("bda_aug_conf") or {}
-        lr = check_flip(geometry, where)
-        ratio = {0: "flip_dx_ratio", 1: "flip_dy_ratio", 2: "flip_dz_ratio"}
-        for axis, key in ratio.items():
-            if axis != lr and float(conf.get(key, 0) or 0) > 0:
-                raise FlipRefused(
-                    f"{where}: LoadAnnotationOcc has apply_bda=True with {key}="
-                    f"{conf.get(key)}: in this export grid axis {axis} is not image left-right "
-                    f"(axis {lr} is; the manifest's 'axes'), so that flip turns the scene over. "
-                    f"Set {key}=0 (or apply_bda=False)")
+        pcr = step.get("point_cloud_range")
+        if pcr is None:  # their default is KITTI's [0, -25.6, -2, 51.2, 25.6, 4.4]
+            raise ValueError(f"{where}: LoadAnnotationOcc has no point_cloud_range: its default is "
+                             f"KITTI's; set point_cloud_range={list(pc_range)} (the export's)")
+        if not np.allclose(np.asarray(pcr, np.float64), np.asarray(pc_range, np.float64), atol=1e-6):
+            raise ValueError(f"{where}: LoadAnnotationOcc point_cloud_range {list(pcr)} is not the "
+                             f"export's {list(pc_range)}: its bda flips would turn about the wrong centre")
 
 
 class OccuFlyKITTI360Dataset:
@@ -96,7 +95,7 @@ class OccuFlyKITTI360Dataset:
         if "right" in camera_used:
             raise ValueError("camera_used 'right': an OccuFly export has one camera (image_00)")
         self.camera_used = [self.camera_map[c] for c in camera_used]
-        _check_pipeline(pipeline, g, str(self.root))
+        _check_pipeline(pipeline, rng, str(self.root))
         self.data_infos = self.load_annotations(self.ann_file)
         self.pipeline = None
         if pipeline is not None:

@@ -88,6 +88,18 @@ def _status_for_occufly(exc: OccuflyError) -> int:
     return 400
 
 
+#: the longest error message an answer carries (issue 36: a 422 that showed a user's value
+#: whole answered 796 MB); the messages name what was wrong well within this
+MAX_DETAIL_CHARS = 8000
+
+
+def bounded(detail: str) -> str:
+    detail = str(detail)
+    if len(detail) <= MAX_DETAIL_CHARS:
+        return detail
+    return detail[:MAX_DETAIL_CHARS - 60] + f" ... ({len(detail)} characters, cut)"
+
+
 def install(app: FastAPI) -> None:
     @app.exception_handler(DomainError)
     async def _domain(_request: Request, exc: DomainError) -> JSONResponse:
@@ -96,12 +108,12 @@ def install(app: FastAPI) -> None:
             headers["Retry-After"] = str(exc.extra["retry_after"])
         if isinstance(exc, NotAuthenticated):
             headers["WWW-Authenticate"] = "Bearer"
-        return JSONResponse({"detail": exc.detail, **exc.extra}, status_code=exc.status_code,
-                            headers=headers)
+        return JSONResponse({"detail": bounded(exc.detail), **exc.extra},
+                            status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(OccuflyError)
     async def _occufly(_request: Request, exc: OccuflyError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=_status_for_occufly(exc))
+        return JSONResponse({"detail": bounded(str(exc))}, status_code=_status_for_occufly(exc))
 
     @app.exception_handler(OSError)
     async def _os_error(_request: Request, exc: OSError) -> JSONResponse:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import InputFormatError, TaxonomyError, check_name
+from occufly.io import safe_yaml
 
 EMPTY = 0
 INVALID = 255
@@ -209,13 +210,12 @@ class Taxonomy:
             raise TaxonomyError(f"{path}: cannot read taxonomy file ({e.strerror})") from None
         try:
             if path.suffix.lower() in (".yaml", ".yml"):
-                import yaml
-
-                data = yaml.safe_load(text)
+                data = safe_yaml.load(text)  # no aliases (issue 36)
             else:
                 data = json.loads(text)
         except Exception as e:  # noqa: BLE001 - parser errors differ per format
-            raise TaxonomyError(f"{path}: not valid {path.suffix.lstrip('.') or 'JSON'}: {e}") from None
+            raise TaxonomyError(f"{path}: not valid {path.suffix.lstrip('.') or 'JSON'}: "
+                                f"{str(e)[:300]}") from None
         return cls.from_dict(data, source=str(path))
 
 

@@ -43,7 +43,9 @@ import numpy as np
 from PIL import Image
 
 from occufly.errors import MaskError
+from occufly.io import safe_yaml
 from occufly.io.masks import MAX_MASK_PIXELS, decode_mask_png, encode_mask_png, mask_scale
+from occufly.io.safe_yaml import short
 from occufly.scene import Frame
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 
@@ -134,10 +136,10 @@ def _extract(src: Path, dest: Path) -> Path:
         for info in infos:
             p = PurePosixPath(info.filename.replace("\\", "/"))
             if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]):
-                raise MaskError(f"{src}: archive member {info.filename!r} points outside the "
+                raise MaskError(f"{src}: archive member {short(info.filename)} points outside the "
                                 f"archive; expected relative paths")
             if (info.external_attr >> 16) & 0o170000 == 0o120000:
-                raise MaskError(f"{src}: archive member {info.filename!r} is a symbolic link")
+                raise MaskError(f"{src}: archive member {short(info.filename)} is a symbolic link")
         try:
             zf.extractall(dest)
         except (zipfile.BadZipFile, OSError, RuntimeError) as e:
@@ -175,18 +177,22 @@ def load_class_map(path: str | Path) -> dict[str, int]:
         raise MaskError(f"{path}: cannot read class mapping ({e.strerror})") from None
     try:
         if path.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text)
+            data = safe_yaml.load(text)  # no aliases: a 458-byte alias bomb took 2.3 GB
         else:
             data = json.loads(text)
     except Exception as e:  # noqa: BLE001 - parser errors differ per format
-        raise MaskError(f"{path}: class mapping is not valid "
-                        f"{'YAML' if path.suffix.lower() in ('.yaml', '.yml') else 'JSON'}: {e}"
-                        ) from None
+        raise MaskError(f"{path.name}: class mapping is not valid "
+                        f"{'YAML' if path.suffix.lower() in ('.yaml', '.yml') else 'JSON'}: "
+                        f"{str(e)[:300]}") from None
     if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
-        raise MaskError(f"{path}: expected a mapping {{external class name: taxonomy class name, "
-                        f"id, \"ignore\" or \"unpainted\"}}")
+        raise MaskError(f"{path.name}: expected a mapping {{external class name: taxonomy class "
+                        f"name, id, \"ignore\" or \"unpainted\"}}")
+    bad = [k for k, v in data.items() if not (v is None or isinstance(v, (str, int, float)))]
+    if bad:
+        raise MaskError(f"{path.name}: the target of {safe_yaml.short(bad[0])} is a "
+                        f"{type(data[bad[0]]).__name__}; expected a taxonomy class name, id, "
+                        f"\"ignore\" or \"unpainted\"" + (f" ({len(bad)} such entries)"
+                                                          if len(bad) > 1 else ""))
     return data
 
 
@@ -206,19 +212,19 @@ def resolve_classes(names: Sequence[str], taxonomy: Taxonomy, class_map: dict | 
             if target is None:
                 out[name] = EMPTY
             elif isinstance(target, bool):
-                problems.append(f"mapping {name!r} -> {target!r} is not a class")
+                problems.append(f"mapping {short(name)} -> {short(target)} is not a class")
             elif isinstance(target, int):
                 if target in taxonomy or target in (EMPTY, INVALID):
                     out[name] = int(target)
                 else:
-                    problems.append(f"mapping {name!r} -> id {target} is not a class id of "
+                    problems.append(f"mapping {short(name)} -> id {short(target)} is not a class id of "
                                     f"taxonomy {taxonomy.name!r}")
             elif isinstance(target, str) and _norm(target) in by_norm:
                 out[name] = by_norm[_norm(target)]
             elif isinstance(target, str) and _norm(target) in _SPECIAL_TARGETS:
                 out[name] = _SPECIAL_TARGETS[_norm(target)]
             else:
-                problems.append(f"mapping {name!r} -> {target!r} names no class of taxonomy "
+                problems.append(f"mapping {short(name)} -> {short(target)} names no class of taxonomy "
                                 f"{taxonomy.name!r}")
         elif key in by_norm:
             out[name] = by_norm[key]
@@ -227,7 +233,9 @@ def resolve_classes(names: Sequence[str], taxonomy: Taxonomy, class_map: dict | 
         else:
             unknown.append(name)
     if unknown:
-        problems.insert(0, f"unknown class(es) {', '.join(repr(u) for u in sorted(unknown))}: "
+        shown = ", ".join(short(u) for u in sorted(unknown)[:50]) + (
+            f" ... ({len(unknown)} in all)" if len(unknown) > 50 else "")
+        problems.insert(0, f"unknown class(es) {shown}: "
                            f"not in taxonomy {taxonomy.name!r} and not in the class mapping "
                            f"(taxonomy classes: {', '.join(c.name for c in taxonomy.classes)})")
     return out, problems
@@ -479,7 +487,7 @@ def _read_class_map_png(root: Path) -> tuple[dict, str] | None:
                 elif re.fullmatch(r"\d+\s*,\s*\d+\s*,\s*\d+", ks):
                     out[tuple(int(c) for c in ks.split(","))] = v
                 else:
-                    raise MaskError(f"{found[0]}: key {k!r} is neither a pixel value (0..255) "
+                    raise MaskError(f"{found[0]}: key {short(k)} is neither a pixel value (0..255) "
                                     f"nor a colour (#rrggbb or r,g,b)")
             return out, str(found[0])
     return None
@@ -586,7 +594,7 @@ def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Ta
                  is None]
     if unmatched:
         problems.append(f"{len(unmatched)} image(s) name no frame of the scene: "
-                        + ", ".join(repr(u) for u in unmatched[:50])
+                        + ", ".join(short(u) for u in unmatched[:50])
                         + (" ..." if len(unmatched) > 50 else ""))
     names = sorted({s.label for it in items for s in it.shapes})
     ids, class_problems = resolve_classes(names, taxonomy, class_map, source=source)
@@ -597,8 +605,8 @@ def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Ta
         if fi is None or not (it.shapes or it.raw):
             continue
         if fi in seen:
-            problems.append(f"frame {frames[fi].name!r} has masks in two items, {seen[fi]!r} and "
-                            f"{it.name!r}")
+            problems.append(f"frame {frames[fi].name!r} has masks in two items, {short(seen[fi])} "
+                            f"and {short(it.name)}")
         seen[fi] = it.name
     if problems:
         raise MaskImportError(source, problems)
@@ -642,10 +650,10 @@ def _paint(it: _Item, frame: Frame, ids: dict[str, int]) -> np.ndarray:
             except MaskError:
                 raise
             except Exception as e:  # noqa: BLE001 - the format library's decode failed
-                raise MaskError(f"{it.name}: cannot decode its {s.label!r} mask "
+                raise MaskError(f"{short(it.name)}: cannot decode its {short(s.label)} mask "
                                 f"({type(e).__name__}: {e})") from None
             if m.shape != (h, w):
-                raise MaskError(f"{it.name}: a {s.label!r} mask is {m.shape[1]}x{m.shape[0]} "
+                raise MaskError(f"{short(it.name)}: a {short(s.label)} mask is {m.shape[1]}x{m.shape[0]} "
                                 f"pixels in a {w}x{h} image")
         out[m] = ids[s.label]
     return out

@@ -568,7 +568,6 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     stats_mem = check_fill_memory(len(xyz))
     direct = _untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
-    C = cls.C
     n = len(xyz)
     t0 = time.perf_counter()
     stats: dict = {"method": "voxel", "memory_estimate_bytes": stats_mem["memory_bytes"]}
@@ -591,11 +590,33 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     fill_r = int(math.ceil(p.fill_radius / edge))
     grid = _VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1, origin=grid_origin)
     stats["grid_origin"] = [float(v) for v in grid.mn]
-    vox = grid.inverse
-    V = grid.n_voxels
-    stats["voxels"] = int(V)
+    stats["voxels"] = int(grid.n_voxels)
 
-    # ---- fill: exact IDW k-NN for points without votes, tree over nearby labelled points
+    filled, agree, fill_dist = _fill(xyz, dcols, grid, p, cls, stats, report)
+    fill_share = agree.copy()  # the fill's IDW share (the denoise overwrites agree)
+    t_den = time.perf_counter()
+    final, agree = _denoise(xyz, filled, agree, grid, p, cls, stats, report)
+    stats["denoise_seconds"] = time.perf_counter() - t_den
+    if keep is not None:
+        keep.update(direct=direct, filled=filled, final=final, agree=agree.copy(),
+                    fill_share=fill_share, fill_distance=fill_dist, edge=edge, origin=grid.mn)
+    res = _finish(cls, direct, filled, final, agree, vote_margin,
+                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
+                  fill_distance=fill_dist)
+    stats["seconds"] = time.perf_counter() - t0
+    res.stats = stats
+    report(1.0, "done")
+    return res
+
+
+def _fill(xyz: np.ndarray, dcols: np.ndarray, grid: _VoxelGrid, p: LiftParams, cls: ClassColumns,
+          stats: dict, report: ProgressFn) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fill: exact IDW k-NN for points without votes (``dcols`` < 0), a tree over the
+    labelled points near them. Returns (N,) int64 ``filled`` columns (-1: none), (N,) float32
+    ``agree`` (1 for voted points, the IDW share for filled ones) and (N,) float32 distance to
+    the nearest voted point (inf: none)."""
+    n, V, vox = len(xyz), grid.n_voxels, grid.inverse
+    fill_r = int(math.ceil(p.fill_radius / grid.edge))
     filled = dcols.copy()
     agree = np.zeros(n, np.float32)
     agree[dcols >= 0] = 1.0
@@ -617,12 +638,18 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
         stats["fill_tree_points"] = int(len(src))
         stats["filled_far"] = _fill_far(xyz, dcols, filled, agree, p, cls, nearest=fill_dist)
         stats["unlabelled_after_fill"] = int((filled < 0).sum())
-    fill_share = agree.copy()  # the fill's IDW share (the denoise overwrites agree)
     stats["unlabelled_before_fill"] = int(len(un_idx))
     stats["fill_seconds"] = time.perf_counter() - t_fill
+    return filled, agree, fill_dist
 
-    # ---- denoise: certified voxels, exact k-NN elsewhere
-    t_den = time.perf_counter()
+
+def _denoise(xyz: np.ndarray, filled: np.ndarray, agree: np.ndarray, grid: _VoxelGrid,
+             p: LiftParams, cls: ClassColumns, stats: dict, report: ProgressFn
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The denoise: voxels whose 3x3x3 block certifies the majority of any point's k
+    neighbours take it at once; exact k-NN elsewhere (:func:`_denoise_boundaries`). Returns
+    the (N,) ``final`` columns and ``agree`` (updated in place)."""
+    C, V, vox = cls.C, grid.n_voxels, grid.inverse
     report(0.3, "denoise: voxel histograms")
     lab = filled >= 0
     lab_idx = np.flatnonzero(lab)
@@ -651,54 +678,55 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     stats["certified_voxels"] = int(certified.sum())
     stats["block_denoise_points"] = int(len(rest))
     if len(rest):
-        report(0.5, "denoise: exact k-NN at boundaries")
-        todo = np.unique(vox[rest])
-        c, s, unsafe = _block_knn(xyz, filled, lab_idx, grid, todo, k, p.denoise_radius, cls,
-                                  progress=lambda f, m: report(0.5 + 0.4 * f, m),
-                                  keep_share=p.denoise_keep_share, only=need, workers=p.workers)
-        final[rest], agree[rest] = c[rest], s[rest]
-        # points whose k-th neighbour could lie outside their 3x3x3 block (sparse areas):
-        # the same brute force on a coarser grid, then a cKDTree for what is still unsafe
-        # (edge 2.5 v, then the denoise radius itself, where every point is safe)
-        stats["coarse_denoise_points"] = int(unsafe.sum())
-        for level, coarse_edge in enumerate((2.5 * edge, p.denoise_radius)):
-            if not unsafe.any() or coarse_edge <= edge:
-                continue
-            if level == 0 and coarse_edge >= p.denoise_radius:
-                continue
-            coarse = _VoxelGrid(xyz, coarse_edge, pad=2, origin=grid.mn)
-            todo2 = np.unique(coarse.inverse[unsafe])
-            c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
-                                         p.denoise_radius, cls, keep_share=p.denoise_keep_share,
-                                         only=unsafe, workers=p.workers)
-            sel2 = np.flatnonzero(unsafe)
-            final[sel2], agree[sel2] = c2[sel2], s2[sel2]
-            unsafe = unsafe2
-            stats[f"coarse{level + 2}_unsafe_points"] = int(unsafe.sum())
-        tree_q = np.flatnonzero(unsafe)
-        stats["tree_denoise_points"] = int(len(tree_q))
-        if len(tree_q):
-            r = int(math.ceil(p.denoise_radius / edge))
-            near = grid.dilate(np.unique(vox[tree_q]), r)
-            in_near = np.zeros(V, bool)
-            in_near[near] = True
-            src = np.flatnonzero(lab & in_near[vox])
-            tree = cKDTree(xyz[src])
-            c2, s2 = _knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
-                               weighted=False, workers=p.workers, own=filled[tree_q],
-                               keep_share=p.denoise_keep_share)
-            final[tree_q], agree[tree_q] = c2, s2
-    stats["denoise_seconds"] = time.perf_counter() - t_den
-    if keep is not None:
-        keep.update(direct=direct, filled=filled, final=final, agree=agree.copy(),
-                    fill_share=fill_share, fill_distance=fill_dist, edge=edge, origin=grid.mn)
-    res = _finish(cls, direct, filled, final, agree, vote_margin,
-                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
-                  fill_distance=fill_dist)
-    stats["seconds"] = time.perf_counter() - t0
-    res.stats = stats
-    report(1.0, "done")
-    return res
+        _denoise_boundaries(xyz, filled, lab, lab_idx, need, rest, final, agree, grid, p, cls,
+                            stats, report)
+    return final, agree
+
+
+def _denoise_boundaries(xyz: np.ndarray, filled: np.ndarray, lab: np.ndarray,
+                        lab_idx: np.ndarray, need: np.ndarray, rest: np.ndarray,
+                        final: np.ndarray, agree: np.ndarray, grid: _VoxelGrid, p: LiftParams,
+                        cls: ClassColumns, stats: dict, report: ProgressFn) -> None:
+    """Exact k-NN denoise of the points ``rest`` no certified voxel decides, written into
+    ``final`` / ``agree``: brute force per 3x3x3 block, then coarser blocks, then a cKDTree."""
+    k, edge, V, vox = p.denoise_k, grid.edge, grid.n_voxels, grid.inverse
+    report(0.5, "denoise: exact k-NN at boundaries")
+    todo = np.unique(vox[rest])
+    c, s, unsafe = _block_knn(xyz, filled, lab_idx, grid, todo, k, p.denoise_radius, cls,
+                              progress=lambda f, m: report(0.5 + 0.4 * f, m),
+                              keep_share=p.denoise_keep_share, only=need, workers=p.workers)
+    final[rest], agree[rest] = c[rest], s[rest]
+    # points whose k-th neighbour could lie outside their 3x3x3 block (sparse areas):
+    # the same brute force on a coarser grid, then a cKDTree for what is still unsafe
+    # (edge 2.5 v, then the denoise radius itself, where every point is safe)
+    stats["coarse_denoise_points"] = int(unsafe.sum())
+    for level, coarse_edge in enumerate((2.5 * edge, p.denoise_radius)):
+        if not unsafe.any() or coarse_edge <= edge:
+            continue
+        if level == 0 and coarse_edge >= p.denoise_radius:
+            continue
+        coarse = _VoxelGrid(xyz, coarse_edge, pad=2, origin=grid.mn)
+        todo2 = np.unique(coarse.inverse[unsafe])
+        c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
+                                     p.denoise_radius, cls, keep_share=p.denoise_keep_share,
+                                     only=unsafe, workers=p.workers)
+        sel2 = np.flatnonzero(unsafe)
+        final[sel2], agree[sel2] = c2[sel2], s2[sel2]
+        unsafe = unsafe2
+        stats[f"coarse{level + 2}_unsafe_points"] = int(unsafe.sum())
+    tree_q = np.flatnonzero(unsafe)
+    stats["tree_denoise_points"] = int(len(tree_q))
+    if len(tree_q):
+        r = int(math.ceil(p.denoise_radius / edge))
+        near = grid.dilate(np.unique(vox[tree_q]), r)
+        in_near = np.zeros(V, bool)
+        in_near[near] = True
+        src = np.flatnonzero(lab & in_near[vox])
+        tree = cKDTree(xyz[src])
+        c2, s2 = _knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
+                           weighted=False, workers=p.workers, own=filled[tree_q],
+                           keep_share=p.denoise_keep_share)
+        final[tree_q], agree[tree_q] = c2, s2
 
 
 def params_dict(p: LiftParams) -> dict:

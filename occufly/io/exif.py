@@ -9,6 +9,7 @@ AbsoluteAltitude, RTK flag and standard deviations and gimbal angles. Missing ta
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -46,6 +47,8 @@ class Geotag:
     rtk_std_lon: float | None = None
     rtk_std_lat: float | None = None
     rtk_std_hgt: float | None = None
+    #: why values of this photo were dropped (non-finite or out of range), naming it; None: none
+    warning: str | None = None
 
     @property
     def has_gps(self) -> bool:
@@ -56,12 +59,48 @@ class Geotag:
 
 
 def _dms(v, ref) -> float | None:
+    """Degrees from EXIF (degrees, minutes, seconds) rationals; NaN when a part is not a finite
+    number in range (a rational n/0 reads as NaN), None when the tag is not a triple."""
     try:
         d, m, s = (float(x) for x in v)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
         return None
+    if not all(math.isfinite(x) for x in (d, m, s)) or not (0 <= d <= 180 and 0 <= m < 60
+                                                            and 0 <= s < 60.001):
+        return math.nan
     out = d + m / 60.0 + s / 3600.0
     return -out if str(ref).strip().upper() in ("S", "W") else out
+
+
+#: the accepted range of every number read (issue 36: NaN, 1e999 and a latitude of 4.4e9
+#: degrees were taken as they came); a value outside is dropped with a warning
+_RANGES = {"lat": (-90.0, 90.0), "lon": (-180.0, 180.0), "altitude": (-1000.0, 50000.0),
+           "focal_35mm": (0.1, 10000.0), "focal_mm": (0.1, 10000.0),
+           "relative_altitude": (-10000.0, 50000.0), "absolute_altitude": (-1000.0, 50000.0),
+           "gimbal_pitch": (-360.0, 360.0), "gimbal_yaw": (-360.0, 360.0),
+           "gimbal_roll": (-360.0, 360.0), "rtk_flag": (0, 1000),
+           "rtk_std_lon": (0.0, 1e6), "rtk_std_lat": (0.0, 1e6), "rtk_std_hgt": (0.0, 1e6)}
+
+
+def _checked(tag: Geotag) -> Geotag:
+    """Drop every value of ``tag`` that is not finite or out of range, with a warning naming
+    the photo; a bad latitude, longitude or altitude drops the whole GPS position (the photo
+    is skipped by the georeferencing)."""
+    bad = []
+    for key, (lo, hi) in _RANGES.items():
+        v = getattr(tag, key)
+        if v is None:
+            continue
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            bad.append(f"{key} {str(v)[:24]}")
+            setattr(tag, key, None)
+    if bad:
+        gps = any(b.split()[0] in ("lat", "lon", "altitude") for b in bad)
+        if gps:
+            tag.lat = tag.lon = tag.altitude = None
+        tag.warning = (f"photo {tag.name}: {', '.join(bad)} not a finite value in range; "
+                       + ("its GPS position is skipped" if gps else "the value is skipped"))
+    return tag
 
 
 def read_xmp(path: str | Path, *, max_bytes: int = 1 << 20) -> dict:
@@ -80,10 +119,11 @@ def read_xmp(path: str | Path, *, max_bytes: int = 1 << 20) -> dict:
              or re.search(rf"<drone-dji:{tag}>([^<]*)<", packet))
         if m:
             try:
-                val = float(m.group(1).strip())
+                val = float(m.group(1).strip()[:64])
             except ValueError:
                 continue
-            out[key] = int(val) if key == "rtk_flag" else val
+            # a non-finite flag stays a float: _checked drops it (int(nan) raised here)
+            out[key] = int(val) if key == "rtk_flag" and math.isfinite(val) else val
     return out
 
 
@@ -96,26 +136,37 @@ def read_geotag(path: str | Path) -> Geotag:
             exif = img.getexif()
     except Exception:  # noqa: BLE001 - PIL raises many types for broken files
         return tag
-    tag.make = (str(exif.get(0x010F)).strip("\x00 ") or None) if exif.get(0x010F) else None
-    tag.model = (str(exif.get(0x0110)).strip("\x00 ") or None) if exif.get(0x0110) else None
+    tag.make = (str(exif.get(0x010F)).strip("\x00 ")[:64] or None) if exif.get(0x010F) else None
+    tag.model = (str(exif.get(0x0110)).strip("\x00 ")[:64] or None) if exif.get(0x0110) else None
     sub = exif.get_ifd(EXIF_IFD)
     if sub.get(0xA405):
-        tag.focal_35mm = float(sub[0xA405])
+        tag.focal_35mm = _number(sub[0xA405])
     if sub.get(0x920A):
-        tag.focal_mm = float(sub[0x920A])
+        tag.focal_mm = _number(sub[0x920A])
     gps = exif.get_ifd(GPS_IFD)
     if gps:
         if 2 in gps and 4 in gps:
             tag.lat = _dms(gps[2], gps.get(1, "N"))
             tag.lon = _dms(gps[4], gps.get(3, "E"))
         if 6 in gps:
-            alt = float(gps[6])
+            alt = _number(gps[6])
             ref = gps.get(5, 0)
             ref = ref[0] if isinstance(ref, bytes) and ref else ref
-            tag.altitude = -alt if int(ref or 0) == 1 else alt
+            try:
+                below = int(ref or 0) == 1
+            except (TypeError, ValueError):
+                below = False
+            tag.altitude = -alt if below and alt is not None else alt
     for k, v in read_xmp(path).items():
         setattr(tag, k, v)
-    return tag
+    return _checked(tag)
+
+
+def _number(v) -> float | None:  # noqa: ANN001 - an EXIF value (rational, int, bytes, ...)
+    try:
+        return float(v)
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return math.nan  # not a number: dropped with a warning by _checked
 
 
 def read_geotags(image_dir: str | Path, names: list[str]) -> list[Geotag]:

@@ -466,6 +466,7 @@ def _make_metric(model, image_dir: Path, xyz_w: np.ndarray, cloud_path: Path | N
     The model's poses and points (and ``xyz_w``, the cloud in the model's frame) are changed
     in place. Returns (xyz_w, CRS or None, georeferencing record for scene.meta)."""
     tags = read_geotags(image_dir, [im.name for im in model.images]) if scale is None else []
+    warnings.extend(g.warning for g in tags if g.warning)  # values dropped (issue 36)
     n_gps = sum(1 for g in tags if g.has_gps and g.altitude is not None)
     if scale is None and n_gps >= MIN_GPS_CAMERAS:
         al = align_to_gps(model, tags, crs=scene_crs)

@@ -180,41 +180,105 @@ def quality_report(ws: str | Path, scene: Scene | None = None, *, truth: np.ndar
     voted = views >= 1
 
     # ---- leave-one-out agreement per annotated frame ---------------------------------------
-    C = cls.C
-    cls_votes = np.zeros(C, np.int64)
-    cls_ind = np.zeros(C, np.int64)
-    cls_agree = np.zeros(C, np.int64)
-    frame_rows = []
     t_loo = time.perf_counter()
-    if loo:
-        for f in frames:
-            pids, cols = _frame_votes(w, f)
-            if not len(pids):
-                continue
-            ll = loo_labels(ws, scene, f, params=params)
-            pos = np.minimum(np.searchsorted(ll.point_ids, pids), len(ll.point_ids) - 1)
-            found = ll.point_ids[pos] == pids
-            ind = np.where(found, ll.labels[pos], 0)
-            by_votes = found & ll.voted[pos]
-            has = (ind > 0) & (ind != INVALID)
-            agree = has & (ind == cls.ids[cols])
-            cls_votes += np.bincount(cols, minlength=C)
-            cls_ind += np.bincount(cols[has], minlength=C)
-            cls_agree += np.bincount(cols[agree], minlength=C)
-            nh = int(has.sum())
-            fr = scene.frames[f]
-            frame_rows.append({
-                "frame": f, "name": fr.name, "votes": int(len(pids)), "independent": nh,
-                "independent_votes": int((has & by_votes).sum()),
-                "agree": int(agree.sum()),
-                "agreement": _share(int(agree.sum()), nh),
-                "independent_coverage": _share(nh, len(pids))})
+    frame_rows, cls_votes, cls_ind, cls_agree = (
+        _loo_rows(w, ws, scene, frames, cls, params) if loo else
+        ([], np.zeros(cls.C, np.int64), np.zeros(cls.C, np.int64), np.zeros(cls.C, np.int64)))
     t_loo = time.perf_counter() - t_loo
     tot_votes = sum(r["votes"] for r in frame_rows)
     tot_ind = sum(r["independent"] for r in frame_rows)
     tot_agree = sum(r["agree"] for r in frame_rows)
 
     # ---- confidence / calibration ------------------------------------------------------------
+    calib, truth_correct, has_t = _calibration(lab, conf, origin, labelled, valid, truth, n, bins)
+
+    # ---- per class --------------------------------------------------------------------------
+    classes = _per_class(tax, cls, lab, conf, labelled, multi, contested, truth_correct, has_t,
+                         cls_votes, cls_ind, cls_agree, n_lab)
+
+    versions = {str(k): v for k, v in sorted(res.stats.get("versions", {}).items(),
+                                             key=lambda kv: int(kv[0]))} \
+        if isinstance(res.stats.get("versions"), dict) else {}
+    return {
+        "format": FORMAT, "version": FORMAT_VERSION,
+        "policy": policy if policy is not None else {
+            "include": None, "note": "the versions the workspace's lifting state counts"},
+        "versions": versions,
+        "points": n, "labelled_points": n_lab, "labelled_share": _share(n_lab, n),
+        "annotated_frames": len(frames),
+        "loo": None if not loo else {
+            "frames": len(frame_rows),
+            "agreement": _share(tot_agree, tot_ind),
+            "independent_coverage": _share(tot_ind, tot_votes),
+            "agreement_distribution": distribution([r["agreement"] for r in frame_rows]),
+            "coverage_distribution": distribution([r["independent_coverage"] for r in frame_rows]),
+            "per_frame": frame_rows},
+        "votes": {
+            "voted_points": int(voted.sum()),
+            "multi_view_points": int(multi.sum()),
+            "multi_view_share": _share(int((multi & labelled).sum()), n_lab),
+            "multi_view_share_of_points": _share(int(multi.sum()), n),
+            "views_histogram": np.bincount(np.minimum(views[labelled], 10), minlength=11)
+                                 .astype(int).tolist(),
+        },
+        "contested": {
+            "rule": {"min_votes": sp.min_votes, "second_share": sp.second_share},
+            "points": int(contested.sum()),
+            "share": _share(int((contested & labelled).sum()), n_lab),
+            "share_of_multi_view": _share(int((contested & multi).sum()), int(multi.sum())),
+            "dissent_points": int(dissent.sum()),
+            "dissent_share": _share(int((dissent & labelled).sum()), n_lab),
+            "overridden_points": int(overridden.sum()),
+            "overridden_share": _share(int((overridden & labelled).sum()), n_lab),
+        },
+        "confidence": calib,
+        "classes": classes,
+        "seconds": {"total": round(time.perf_counter() - t0, 3), "loo": round(t_loo, 3)},
+    }
+
+
+def _loo_rows(w: Workspace, ws: Path, scene: Scene, frames: list[int], cls: ClassColumns,
+              params: LiftParams | None) -> tuple[list[dict], np.ndarray, np.ndarray, np.ndarray]:
+    """Each annotated frame's votes against its leave-one-out labels: the per-frame rows and,
+    per class column, the votes, those with an independent label and those that agree."""
+    C = cls.C
+    cls_votes = np.zeros(C, np.int64)
+    cls_ind = np.zeros(C, np.int64)
+    cls_agree = np.zeros(C, np.int64)
+    frame_rows = []
+    for f in frames:
+        pids, cols = _frame_votes(w, f)
+        if not len(pids):
+            continue
+        ll = loo_labels(ws, scene, f, params=params)
+        pos = np.minimum(np.searchsorted(ll.point_ids, pids), len(ll.point_ids) - 1)
+        found = ll.point_ids[pos] == pids
+        ind = np.where(found, ll.labels[pos], 0)
+        by_votes = found & ll.voted[pos]
+        has = (ind > 0) & (ind != INVALID)
+        agree = has & (ind == cls.ids[cols])
+        cls_votes += np.bincount(cols, minlength=C)
+        cls_ind += np.bincount(cols[has], minlength=C)
+        cls_agree += np.bincount(cols[agree], minlength=C)
+        nh = int(has.sum())
+        fr = scene.frames[f]
+        frame_rows.append({
+            "frame": f, "name": fr.name, "votes": int(len(pids)), "independent": nh,
+            "independent_votes": int((has & by_votes).sum()),
+            "agree": int(agree.sum()),
+            "agreement": _share(int(agree.sum()), nh),
+            "independent_coverage": _share(nh, len(pids))})
+    return frame_rows, cls_votes, cls_ind, cls_agree
+
+
+def _calibration(lab: np.ndarray, conf: np.ndarray, origin: np.ndarray, labelled: np.ndarray,
+                 valid: np.ndarray, truth: np.ndarray | None, n: int, bins: int
+                 ) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
+    """The report's ``confidence`` section (histograms per origin, the calibration table, the
+    reliability against ``truth`` when given), and per point whether the label is right and
+    whether it has truth (None without truth)."""
+    n_lab = int(labelled.sum())
+    has_t = None
     conf_l = conf[labelled]
     org_l = origin[labelled]
     by_origin = {}
@@ -261,8 +325,16 @@ def quality_report(ws: str | Path, scene: Scene | None = None, *, truth: np.ndar
                                  "accuracy": round(float(truth_correct[has_t & s].mean()), 6)}
                           for code, name in ORIGIN_NAMES.items()
                           if (s := origin == code)[has_t].any()}}
+    return calib, truth_correct, has_t
 
-    # ---- per class --------------------------------------------------------------------------
+
+def _per_class(tax, cls: ClassColumns, lab: np.ndarray, conf: np.ndarray, labelled: np.ndarray,  # noqa: ANN001
+               multi: np.ndarray, contested: np.ndarray, truth_correct: np.ndarray | None,
+               has_t: np.ndarray | None, cls_votes: np.ndarray, cls_ind: np.ndarray,
+               cls_agree: np.ndarray, n_lab: int) -> dict:
+    """The report's ``classes``: per class id, points, share, confidence, multi-view and
+    contested shares, votes, LOO agreement (and accuracy against truth when given)."""
+    C = cls.C
     lab_col = cls.col_of[lab]  # -1 for 0 / 255
     ok = labelled & (lab_col >= 0)
     lc = lab_col[ok].astype(np.int64)
@@ -290,46 +362,7 @@ def quality_report(ws: str | Path, scene: Scene | None = None, *, truth: np.ndar
         if per_ok is not None:
             row["accuracy"] = _share(float(per_ok[c]), float(per_t[c]))
         classes[str(cid)] = row
-
-    versions = {str(k): v for k, v in sorted(res.stats.get("versions", {}).items(),
-                                             key=lambda kv: int(kv[0]))} \
-        if isinstance(res.stats.get("versions"), dict) else {}
-    return {
-        "format": FORMAT, "version": FORMAT_VERSION,
-        "policy": policy if policy is not None else {
-            "include": None, "note": "the versions the workspace's lifting state counts"},
-        "versions": versions,
-        "points": n, "labelled_points": n_lab, "labelled_share": _share(n_lab, n),
-        "annotated_frames": len(frames),
-        "loo": None if not loo else {
-            "frames": len(frame_rows),
-            "agreement": _share(tot_agree, tot_ind),
-            "independent_coverage": _share(tot_ind, tot_votes),
-            "agreement_distribution": distribution([r["agreement"] for r in frame_rows]),
-            "coverage_distribution": distribution([r["independent_coverage"] for r in frame_rows]),
-            "per_frame": frame_rows},
-        "votes": {
-            "voted_points": int(voted.sum()),
-            "multi_view_points": int(multi.sum()),
-            "multi_view_share": _share(int((multi & labelled).sum()), n_lab),
-            "multi_view_share_of_points": _share(int(multi.sum()), n),
-            "views_histogram": np.bincount(np.minimum(views[labelled], 10), minlength=11)
-                                 .astype(int).tolist(),
-        },
-        "contested": {
-            "rule": {"min_votes": sp.min_votes, "second_share": sp.second_share},
-            "points": int(contested.sum()),
-            "share": _share(int((contested & labelled).sum()), n_lab),
-            "share_of_multi_view": _share(int((contested & multi).sum()), int(multi.sum())),
-            "dissent_points": int(dissent.sum()),
-            "dissent_share": _share(int((dissent & labelled).sum()), n_lab),
-            "overridden_points": int(overridden.sum()),
-            "overridden_share": _share(int((overridden & labelled).sum()), n_lab),
-        },
-        "confidence": calib,
-        "classes": classes,
-        "seconds": {"total": round(time.perf_counter() - t0, 3), "loo": round(t_loo, 3)},
-    }
+    return classes
 
 
 def summary_text(q: dict) -> str:

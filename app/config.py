@@ -94,6 +94,7 @@ class Settings:
     job_workers: int = 2
     job_processes: bool = True
     frontend_dir: Path = REPO_ROOT / "frontend"
+    docs_site_dir: Path = REPO_ROOT / "site"  # the built documentation (mkdocs build), at /help/
     login_free_failures: int = 5  # failures before a key gets locked out
     login_max_lock_s: int = 300
     argon2_memory_kib: int = 65536
@@ -127,6 +128,7 @@ class Settings:
             self.import_roots = [self.data_dir / "imports"]
         self.import_roots = [Path(p).absolute() for p in self.import_roots]
         self.frontend_dir = Path(self.frontend_dir)
+        self.docs_site_dir = Path(self.docs_site_dir)
         if self.lifting not in ("embedded", "external", "off"):
             raise ConfigError(f"OCCUFLY_LIFTING must be 'embedded', 'external' or 'off', got "
                               f"{self.lifting!r}")
@@ -210,6 +212,8 @@ class Settings:
                                   if o.strip()]
         if env.get("OCCUFLY_FRONTEND_DIR"):
             kw["frontend_dir"] = Path(env["OCCUFLY_FRONTEND_DIR"])
+        if env.get("OCCUFLY_DOCS_SITE_DIR"):
+            kw["docs_site_dir"] = Path(env["OCCUFLY_DOCS_SITE_DIR"])
         kw.update(overrides)
         if not 0 <= kw["fill_nice"] <= 19:
             raise ConfigError(f"OCCUFLY_FILL_NICE must be 0..19 (added niceness), got "

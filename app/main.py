@@ -103,9 +103,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return {"status": "ok", "database": ctx.engine.dialect.name}
 
     _mount_viewer(app, ctx)
-    from app.docs_offline import mount_docs
+    from app.docs_offline import mount_docs, mount_site
 
     mount_docs(app)  # Swagger UI from the swagger-ui-bundle package, no CDN (issue 26)
+    mount_site(app, lambda: ctx.settings.docs_site_dir)  # the documentation site (issue 40)
     _mount_frontend(app, settings)
     return app
 

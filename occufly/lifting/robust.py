@@ -580,22 +580,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         if local is None:
             L += logprior
         else:  # the neighbourhood's vote shares, mixed with the scene's
-            nb = local[1][local[0][a:a + p.chunk]]
-            nb /= np.maximum(nb.sum(axis=1, keepdims=True), 1e-9)
-            nb_share = nb.copy()
-            nb *= np.float32(1.0 - p.local_mix)
-            nb += np.float32(p.local_mix) * prior.astype(np.float32)
-            lp = np.log(nb)
-            # the classes the point's own views voted for keep the scene-wide prior (in a
-            # region confused with its look-alike the neighbourhood is as confused as the
-            # point); the others get the neighbourhood's share: raised near a skipped or
-            # shifted-off object, lowered where no view near the point voted for them
-            r = np.arange(len(ids))
-            lp[r, c1] = logprior_scene[c1]
-            h2 = np.flatnonzero(c2 >= 0)
-            lp[h2, c2[h2]] = logprior_scene[c2[h2]]
-            L += np.float32(p.prior_weight) * lp
-            del nb, lp
+            nb_share = _add_local_prior(L, local[1][local[0][a:a + p.chunk]], c1, c2, prior,
+                                        logprior_scene, p)
         # candidates: the K classes the votes make likeliest, within candidate_nats of the best
         cand = np.argpartition(L, C - K, axis=1)[:, C - K:] if K < C else np.tile(
             np.arange(C), (len(ids), 1))
@@ -607,24 +593,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         best = np.take_along_axis(cand, np.argmax(Lk, axis=1)[:, None], axis=1)[:, 0]
         m = np.ones(len(ids), np.float32)
         if len(multi):
-            x = np.asarray(features[ids[multi]], np.float32)
-            cm, Lm = cand[multi], Lk[multi]
-            live = np.isfinite(Lm)
-            neutral = None
-            for c in np.unique(cm[live]):
-                r, j = np.nonzero((cm == c) & live)
-                if q.ok[c]:
-                    Lm[r, j] += _gauss_loglik(x[r], q.mean[c], q.whiten[c], q.logdet[c])
-                else:  # no classifier for this class: the density of all training points
-                    if neutral is None:
-                        neutral = _gauss_loglik(x, *q.pooled)
-                    Lm[r, j] += neutral[r]
-            arg = np.argmax(Lm, axis=1)
-            best[multi] = np.take_along_axis(cm, arg[:, None], axis=1)[:, 0]
-            post = np.exp(Lm - np.take_along_axis(Lm, arg[:, None], axis=1))
-            post /= post.sum(axis=1, keepdims=True)
-            srt = np.sort(post, axis=1)
-            m[multi] = srt[:, -1] - srt[:, -2]
+            best[multi], m[multi] = _feature_decision(
+                np.asarray(features[ids[multi]], np.float32), cand[multi], Lk[multi], q)
         labels[ids] = cls.ids[best]
         margin[ids] = m
         votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
@@ -651,3 +621,49 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     })
     report(1.0, "robust decision")
     return labels, margin, top, stats
+
+
+def _add_local_prior(L: np.ndarray, nb: np.ndarray, c1: np.ndarray, c2: np.ndarray,
+                     prior: np.ndarray, logprior_scene: np.ndarray, p: RobustParams
+                     ) -> np.ndarray:
+    """Add the neighbourhood prior to ``L`` ((n, C) float32 log-likelihoods, in place):
+    ``nb`` (n, C) the neighbourhood's votes, mixed with the scene's ``prior``. Returns the
+    neighbourhood's vote shares (n, C)."""
+    nb /= np.maximum(nb.sum(axis=1, keepdims=True), 1e-9)
+    nb_share = nb.copy()
+    nb *= np.float32(1.0 - p.local_mix)
+    nb += np.float32(p.local_mix) * prior.astype(np.float32)
+    lp = np.log(nb)
+    # the classes the point's own views voted for keep the scene-wide prior (in a
+    # region confused with its look-alike the neighbourhood is as confused as the
+    # point); the others get the neighbourhood's share: raised near a skipped or
+    # shifted-off object, lowered where no view near the point voted for them
+    r = np.arange(len(L))
+    lp[r, c1] = logprior_scene[c1]
+    h2 = np.flatnonzero(c2 >= 0)
+    lp[h2, c2[h2]] = logprior_scene[c2[h2]]
+    L += np.float32(p.prior_weight) * lp
+    return nb_share
+
+
+def _feature_decision(x: np.ndarray, cm: np.ndarray, Lm: np.ndarray, q: _QDA
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Points with several candidate classes: each candidate's log-likelihood ``Lm`` ((m, K),
+    -inf where ruled out; changed in place) plus the point classifier's density of the
+    features ``x`` (m, F). Returns the decided class column (m,) and the posterior margin."""
+    live = np.isfinite(Lm)
+    neutral = None
+    for c in np.unique(cm[live]):
+        r, j = np.nonzero((cm == c) & live)
+        if q.ok[c]:
+            Lm[r, j] += _gauss_loglik(x[r], q.mean[c], q.whiten[c], q.logdet[c])
+        else:  # no classifier for this class: the density of all training points
+            if neutral is None:
+                neutral = _gauss_loglik(x, *q.pooled)
+            Lm[r, j] += neutral[r]
+    arg = np.argmax(Lm, axis=1)
+    best = np.take_along_axis(cm, arg[:, None], axis=1)[:, 0]
+    post = np.exp(Lm - np.take_along_axis(Lm, arg[:, None], axis=1))
+    post /= post.sum(axis=1, keepdims=True)
+    srt = np.sort(post, axis=1)
+    return best, srt[:, -1] - srt[:, -2]

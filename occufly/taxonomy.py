@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from occufly.errors import InputFormatError, TaxonomyError, check_name
-from occufly.io import safe_yaml
+from occufly import safe_yaml
 
 EMPTY = 0
 INVALID = 255

@@ -43,9 +43,9 @@ import numpy as np
 from PIL import Image
 
 from occufly.errors import MaskError
-from occufly.io import safe_yaml
+from occufly import safe_yaml
 from occufly.io.masks import MAX_MASK_PIXELS, decode_mask_png, encode_mask_png, mask_scale
-from occufly.io.safe_yaml import short
+from occufly.safe_yaml import short
 from occufly.scene import Frame
 from occufly.taxonomy import EMPTY, INVALID, Taxonomy
 

@@ -76,7 +76,7 @@ def test_every_error_answer_is_bounded():
 
 
 def test_safe_yaml_refuses_aliases_but_reads_plain_data():
-    from occufly.io import safe_yaml
+    from occufly import safe_yaml
 
     assert safe_yaml.load("a: 1\nb: [x, y]\n") == {"a": 1, "b": ["x", "y"]}
     with pytest.raises(safe_yaml.AliasRefused):

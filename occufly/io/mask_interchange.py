@@ -83,6 +83,7 @@ class _Shape:
     z: int = 0
     mask: Callable[[], np.ndarray] | np.ndarray | None = None  # (h, w) bool, or a loader
     polygon: list[float] | None = None  # x0, y0, x1, y1, ... in pixels
+    size: tuple[int, int] | None = None  # (h, w) the mask declares, checked before decoding
 
 
 @dataclass
@@ -296,7 +297,15 @@ def _datumaro_items(dataset) -> tuple[list[_Item], list[str]]:  # noqa: ANN001
                 label = names[ann.label]
             z = int(getattr(ann, "z_order", 0) or 0)
             if ann.type == AnnotationType.mask:
-                shapes.append(_Shape(label, z, mask=(lambda a=ann: np.asarray(a.image, bool))))
+                rle = getattr(ann, "rle", None)  # COCO RLE: {"size": [h, w], "counts": ...}
+                declared = None
+                if isinstance(rle, dict) and isinstance(rle.get("size"), (list, tuple)):
+                    try:
+                        declared = tuple(int(v) for v in rle["size"][:2])
+                    except (TypeError, ValueError):
+                        declared = (-1, -1)
+                shapes.append(_Shape(label, z, size=declared,
+                                     mask=(lambda a=ann: np.asarray(a.image, bool))))
             else:
                 shapes.append(_Shape(label, z, polygon=[float(v) for v in ann.points]))
         items.append(_Item(it.id, tuple(int(v) for v in size) if size else None, shapes))
@@ -410,8 +419,8 @@ def _ls_task(task: dict, where: str) -> _Item:
         if kind == "brushlabels":
             if v.get("format", "rle") != "rle" or not isinstance(v.get("rle"), list):
                 raise MaskError(f"{where}: brush result not in Label Studio's RLE format")
-            shapes.append(_Shape(names[0], mask=lambda rle=v["rle"], h=h, w=w: _ls_brush(rle, h, w,
-                                                                                     where)))
+            shapes.append(_Shape(names[0], size=(h, w),
+                                 mask=lambda rle=v["rle"], h=h, w=w: _ls_brush(rle, h, w, where)))
         else:
             pts = np.asarray(v.get("points") or [], float).reshape(-1, 2)
             pts = pts * np.array([w / 100.0, h / 100.0])  # Label Studio: percent of the image
@@ -493,6 +502,20 @@ def _read_class_map_png(root: Path) -> tuple[dict, str] | None:
     return None
 
 
+def _png_header_size(p: Path) -> tuple[int, int]:
+    """(h, w) from the file's PNG header, nothing decoded; a file that is not a PNG (a TIFF or
+    EPS named .png), or declares a decompression bomb, is a MaskError (issue 36)."""
+    with open(p, "rb") as fh:
+        head = fh.read(24)
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise MaskError(f"{p.name}: not a PNG file (no PNG signature and IHDR header)")
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if w * h > MAX_MASK_PIXELS:
+        raise MaskError(f"{p.name}: the PNG header declares {w}x{h} pixels, more than the "
+                        f"{MAX_MASK_PIXELS} any frame has")
+    return h, w
+
+
 def _read_png(root: Path, taxonomy: Taxonomy) -> list[_Item]:
     pngs = [p for p in _files(root, "*.png")]
     if not pngs:
@@ -500,9 +523,10 @@ def _read_png(root: Path, taxonomy: Taxonomy) -> list[_Item]:
     cmap = _read_class_map_png(root)
     items: list[_Item] = []
     for p in pngs:
+        size = _png_header_size(p)
         if cmap is None:
-            items.append(_Item(p.stem, None, [],
-                               raw=lambda p=p: decode_mask_png(p, taxonomy, name=str(p))))
+            items.append(_Item(p.stem, size, [],
+                               raw=lambda p=p: decode_mask_png(p, taxonomy, name=p.name)))
             continue
         table, src = cmap
 
@@ -528,8 +552,6 @@ def _read_png(root: Path, taxonomy: Taxonomy) -> list[_Item]:
                 raise MaskError(f"{p}: pixel value(s) {shown} are not in the class map {src}")
             return [_Shape(keys[int(v)], mask=code == v) for v in values]
 
-        with Image.open(p) as im:
-            size = (im.size[1], im.size[0])
         items.append(_Item(p.stem, size, [], raw=None))
         items[-1].shapes = shapes_of  # type: ignore[assignment] - decoded after the name check
     return items
@@ -586,9 +608,6 @@ def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy:
 def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Taxonomy,
              class_map: dict | None, source: str) -> ImportedMasks:
     look = _frame_lookup(frames)
-    for it in items:  # png with a class map: decode now (the shapes name the classes)
-        if callable(it.shapes):
-            it.shapes = it.shapes()
     problems: list[str] = []
     unmatched = [it.name for it in items if (it.shapes or it.raw) and match_frame(it.name, look)
                  is None]
@@ -596,6 +615,18 @@ def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Ta
         problems.append(f"{len(unmatched)} image(s) name no frame of the scene: "
                         + ", ".join(short(u) for u in unmatched[:50])
                         + (" ..." if len(unmatched) > 50 else ""))
+    for it in items:  # png with a class map: decode now (the shapes name the classes)
+        if callable(it.shapes):  # its header's size checked against the frame first
+            if unmatched:  # no image is decoded while a name matches no frame (issue 36)
+                it.shapes = []
+                continue
+            try:
+                mask_scale(it.size, frames[match_frame(it.name, look)], name=short(it.name))
+            except MaskError as e:
+                problems.append(str(e))
+                it.shapes = []
+                continue
+            it.shapes = it.shapes()
     names = sorted({s.label for it in items for s in it.shapes})
     ids, class_problems = resolve_classes(names, taxonomy, class_map, source=source)
     problems += class_problems
@@ -620,6 +651,8 @@ def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Ta
         fi = match_frame(it.name, look)
         frame = frames[fi]
         try:
+            if it.raw is not None and it.size is not None:  # the header, before decoding
+                mask_scale(it.size, frame, name=short(it.name))
             out = it.raw() if it.raw is not None else _paint(it, frame, ids)
             mask_scale(out.shape, frame, name=f"{it.name}")
         except MaskError as e:
@@ -645,6 +678,9 @@ def _paint(it: _Item, frame: Frame, ids: dict[str, int]) -> np.ndarray:
         if s.polygon is not None:
             m = _polygon_mask(s.polygon, h, w)
         else:
+            if s.size is not None and tuple(s.size) != (h, w):  # before decoding (issue 36)
+                raise MaskError(f"{short(it.name)}: a {short(s.label)} mask declares "
+                                f"{s.size[1]}x{s.size[0]} pixels in a {w}x{h} image")
             try:
                 m = s.mask() if callable(s.mask) else s.mask
             except MaskError:

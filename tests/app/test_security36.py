@@ -83,3 +83,96 @@ def test_safe_yaml_refuses_aliases_but_reads_plain_data():
         safe_yaml.load("a: &x 1\nb: *x\n")
     assert len(safe_yaml.short("z" * 10_000)) == 80
     assert safe_yaml.short(list(range(10 ** 5))) == "<list of 100000 items>"
+
+
+# ---- finding 2 (part) / 8: mask imports check names and declared sizes before decoding -----------
+def _zip(tmp_path, files: dict, name: str = "a.zip"):  # noqa: ANN001, ANN202
+    import zipfile
+
+    p = tmp_path / name
+    with zipfile.ZipFile(p, "w") as zf:
+        for k, v in files.items():
+            zf.writestr(k, v)
+    return p
+
+
+def _cpu_refusal(tmp_path, files, fmt="png", match=""):  # noqa: ANN001, ANN202
+    import time
+
+    from occufly.errors import MaskError
+    from occufly.io.mask_interchange import read_masks
+    from tests.app.conftest import make_tiny_scene
+
+    scene = make_tiny_scene()
+    t = time.process_time()
+    with pytest.raises(MaskError, match=match) as e:
+        read_masks(_zip(tmp_path, files), fmt, scene.frames, scene.taxonomy)
+    assert time.process_time() - t < 1.0, "decoded before refusing"
+    assert "occufly-masks-" not in str(e.value)  # no temporary path in the message
+    return str(e.value)
+
+
+def test_a_png_bomb_naming_no_frame_is_refused_before_decoding(tmp_path):
+    from tests.app.test_hardening import bomb
+
+    _cpu_refusal(tmp_path, {"nosuchframe.png": bomb(16000, 12000), "classes.json": '{"1": "tree"}'},
+                 match="name no frame")
+
+
+def test_a_png_whose_header_is_not_the_frames_size_is_refused_before_decoding(tmp_path):
+    from tests.app.conftest import make_tiny_scene
+    from tests.app.test_hardening import bomb
+
+    stem = make_tiny_scene().frames[0].stem
+    for cmap in ({"classes.json": '{"1": "tree"}'}, {}):
+        msg = _cpu_refusal(tmp_path, {f"{stem}.png": bomb(16000, 12000), **cmap},
+                           match="16000x12000")
+        assert "nothing imported" in msg or "mask is" in msg
+
+
+def test_a_png_header_of_a_decompression_bomb_is_a_422_not_a_500(tmp_path):
+    from tests.app.conftest import make_tiny_scene
+    from tests.app.test_hardening import bomb
+
+    stem = make_tiny_scene().frames[0].stem
+    _cpu_refusal(tmp_path, {f"{stem}.png": bomb(20000, 20000)[:4096],
+                            "classes.json": '{"1": "tree"}'}, match="declares 20000x20000")
+
+
+def test_a_tiff_named_png_is_refused(tmp_path):
+    import io
+
+    from PIL import Image
+
+    from tests.app.conftest import make_tiny_scene
+
+    stem = make_tiny_scene().frames[0].stem
+    buf = io.BytesIO()
+    Image.new("L", (8, 8)).save(buf, format="TIFF")
+    _cpu_refusal(tmp_path, {f"{stem}.png": buf.getvalue(), "classes.json": '{"1": "tree"}'},
+                 match="not a PNG")
+
+
+def test_a_label_studio_brush_of_another_size_is_refused_before_decoding(tmp_path, monkeypatch):
+    import json
+
+    from occufly.io import mask_interchange
+    from tests.app.conftest import make_tiny_scene
+
+    decoded = {"n": 0}
+    monkeypatch.setattr(mask_interchange, "_brush_decoder",
+                        lambda: (lambda rle: decoded.__setitem__("n", decoded["n"] + 1)))
+    f = make_tiny_scene().frames[0]
+    W, H = f.camera.width, f.camera.height
+    ok = {"type": "brushlabels", "original_width": W, "original_height": H,
+          "value": {"format": "rle", "rle": [0, 0, 0, 1], "brushlabels": ["tree"]}}
+    huge = 14000  # 196 MP: under the 200 MP cap, but not this frame's size
+    n = huge * huge * 4
+    bad = {"type": "brushlabels", "original_width": huge, "original_height": huge,
+           "value": {"format": "rle", "rle": list(n.to_bytes(4, "big")), "brushlabels": ["tree"]}}
+    # the first result declares the frame's size (the item's size), the second 196 MP
+    task = [{"data": {"image": f.name}, "annotations": [{"result": [ok, bad]}]}]
+    task[0]["annotations"][0]["result"] = [bad, ok]
+    _cpu_refusal(tmp_path, {"tasks.json": json.dumps(task)}, fmt="labelstudio",
+                 match="declares 14000x14000")
+    assert decoded["n"] == 0

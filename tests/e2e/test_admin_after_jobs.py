@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from tests.e2e.conftest import import_own_scene, shot, wait_js
+from tests.e2e.conftest import REPO, import_own_scene, shot, wait_js
 
 pytestmark = pytest.mark.e2e
+DOCS = REPO / "docs" / "screenshots"
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +68,7 @@ def test_a_deleted_export_is_no_longer_offered_for_download(live, sid, new_page)
     link = card.locator("a.archive-link")
     link.wait_for()
     assert admin.get(link.get_attribute("href")).status_code == 200
+    card.screenshot(path=str(DOCS / "admin_export_archive.png"))  # docs/guide/admin.md
     page.locator(f"#export-list tr[data-export='{jid}'] button.export-delete").click()
     page.click("dialog.modal button.primary")
     page.wait_for_selector(f"#export-list tr[data-export='{jid}']", state="detached")
@@ -74,6 +76,7 @@ def test_a_deleted_export_is_no_longer_offered_for_download(live, sid, new_page)
     card.locator(".export-deleted").wait_for()
     assert card.locator("a.archive-link, button.archive-build").count() == 0
     assert page.locator(f"a[href^='/api/jobs/{jid}/archive']").count() == 0
+    card.screenshot(path=str(DOCS / "admin_export_deleted.png"))
     r = admin.get(f"/api/jobs/{jid}/archive/info")
     assert r.status_code == 404 and "was deleted at" in r.json()["detail"], r.text
     # a fresh page shows the same

@@ -14,7 +14,13 @@ from app.jobs import runner
 from app.jobs.runner import JobRunner
 from app.lifting.client import LiftingClient
 from app.lifting.events import EventBus
+from app.review import jobs as review_jobs
+from app.scenes import jobs as scene_jobs
 from app.storage import BlobStore
+
+# the domains' job kinds (app.jobs.registry): every process that builds a context -- the API,
+# the job executor's children, the lifting worker -- has them, and the runner names none
+JOB_KINDS = (scene_jobs, review_jobs)
 
 
 def build_context(settings: Settings, *, lifting: str | None = None,

@@ -1,8 +1,9 @@
 """Executes jobs: supervisor threads in the server hand each job to an executor.
 
-Each job kind is a function ``run(jc: JobContext) -> dict | None`` registered in
-:data:`KINDS` (see ``app/jobs/kinds.py``). Kinds marked ``remote`` (import, selection,
-voxelize, export) run in :func:`app.bootstrap.run_job_process` on the job executor from
+The job kinds are declared by their domains in :mod:`app.jobs.registry` (the runner looks
+them up by name and knows none of them). Kinds marked ``remote`` (import, selection,
+voxelize, export) run in the ``entry`` the composition root gives the runner
+(:func:`app.bootstrap.run_job_process`) on the job executor from
 :mod:`occufly.parallel` -- a local process pool whose workers die with this process
 (:func:`occufly.parallel.die_with_parent`: parent-death signal + watchdog), or the Dask cluster
 when ``OCCUFLY_DASK_ADDRESS`` is set -- so heavy pipeline work never competes with the API for
@@ -11,19 +12,14 @@ supervisor thread. The child talks to the same database: status, progress, log a
 written there, and cancellation is read from there. Pipeline fan-out inside a job (per-frame
 export) uses :meth:`JobContext.executor`.
 
-Fencing: claiming a job increments ``jobs.attempts``; that number is the attempt's token.
-Every write of an attempt -- progress, log, the outcome -- is an ``UPDATE ... WHERE attempts =
-<token> AND status = 'running'``; a write that matches nothing raises :class:`StaleAttempt`
-and the attempt stops. Output folders are written under an attempt-private name
-(:meth:`JobContext.output_dir`) and moved into place inside the transaction that records
-``done`` for that attempt, so a stale attempt can neither mark the job nor touch its output.
+Fencing (:mod:`app.jobs.registry`): every write of an attempt is conditional on its token;
+output folders are moved into place inside the transaction that records ``done`` for that
+attempt (:func:`finish_attempt`), so a stale attempt can neither mark the job nor touch its
+output.
 
 Several processes: each runner has an ``owner`` id and beats ``jobs.heartbeat_at`` of the jobs
 it holds every :data:`HEARTBEAT_S`; any runner marks ``interrupted`` a queued/running job whose
 owner has not beaten for :data:`STALE_S` (a killed API process), at start-up and periodically.
-
-Progress is written to the job row at most every 0.3 s; cancellation is cooperative (the
-progress callback raises :class:`JobCancelled` once a cancel was requested).
 """
 
 from __future__ import annotations
@@ -38,20 +34,20 @@ import traceback
 import uuid
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from sqlalchemy import select, update
 
 from app.db import utcnow
 from app.jobs import service
 from app.jobs.models import Job
+from app.jobs.registry import KINDS, JobCancelled, JobContext, StaleAttempt, fenced, jsonable
 from app.pipeline import PipelineMissing
-from app.scenes import storage
+from app.scenes.models import Scene
 from occufly.errors import OccuflyError
 from occufly.parallel import get_executor
+from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
     from app.context import AppContext
@@ -61,99 +57,6 @@ log = logging.getLogger("occufly.jobs")
 HEARTBEAT_S = 2.0
 # a runner silent this long is gone (OCCUFLY_JOB_STALE_S; tests shorten it)
 STALE_S = float(os.environ.get("OCCUFLY_JOB_STALE_S") or 15.0)
-
-
-class JobCancelled(Exception):
-    pass
-
-
-class StaleAttempt(Exception):
-    """This attempt is no longer the job's current one: it must not write anything."""
-
-
-def _fenced(job_id: int, attempt: int):
-    return update(Job).where(Job.id == job_id, Job.attempts == attempt, Job.status == "running")
-
-
-@dataclass
-class JobContext:
-    ctx: AppContext
-    job_id: int
-    kind: str
-    scene_id: int | None
-    params: dict
-    attempt: int = 0
-    _last_write: float = 0.0
-    _last_msg: str = ""
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-    outputs: list[tuple[Path, Path]] = field(default_factory=list)  # (staging, final)
-
-    def _current(self, s) -> Job:  # noqa: ANN001
-        job = s.get(Job, self.job_id)
-        if job is None or job.attempts != self.attempt or job.status != "running":
-            raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale (the job is "
-                               f"{getattr(job, 'status', 'gone')}, attempt "
-                               f"{getattr(job, 'attempts', '?')})")
-        return job
-
-    def progress(self, fraction: float, message: str = "") -> None:
-        now = time.monotonic()
-        if now - self._last_write < 0.3 and message == self._last_msg and fraction < 1.0:
-            return
-        self._last_write = now
-        with self._lock, self.ctx.sessions() as s:
-            job = self._current(s)
-            if job.cancel_requested:
-                raise JobCancelled()
-            values: dict = {"progress": float(max(0.0, min(1.0, fraction)))}
-            if message:
-                values["message"] = message[:500]
-                if message != self._last_msg:
-                    values["log"] = service.append_log(job, f"{fraction:6.1%} {message}")
-            if s.execute(_fenced(self.job_id, self.attempt).values(**values)).rowcount != 1:
-                s.rollback()
-                raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale")
-            s.commit()
-        self._last_msg = message
-
-    def log(self, line: str) -> None:
-        with self._lock, self.ctx.sessions() as s:
-            job = self._current(s)
-            if s.execute(_fenced(self.job_id, self.attempt).values(
-                    log=service.append_log(job, line))).rowcount != 1:
-                s.rollback()
-                raise StaleAttempt(f"job {self.job_id} attempt {self.attempt} is stale")
-            s.commit()
-
-    def output_dir(self, final: Path) -> Path:
-        """An attempt-private folder to write ``final``'s content into; it replaces ``final``
-        when (and only if) this attempt records ``done``."""
-        final = Path(final)
-        staging = final.parent / f".{final.name}.attempt{self.attempt}"
-        final.parent.mkdir(parents=True, exist_ok=True)
-        for old in final.parent.glob(f".{final.name}.attempt*"):  # this and earlier attempts'
-            tail = old.name.rsplit(".attempt", 1)[-1]
-            if tail.isdigit() and int(tail) <= self.attempt:
-                shutil.rmtree(old, ignore_errors=True)
-        staging.mkdir()
-        self.outputs.append((staging, final))
-        return staging
-
-    def executor(self):
-        """Fan-out executor inside a job: Dask when configured, else a local pool whose
-        workers die with this job process."""
-        return get_executor(self.ctx.settings.dask_address, die_with_caller=True)
-
-
-KINDS: dict[str, Callable[[JobContext], dict | None]] = {}
-
-
-def kind(name: str):
-    def deco(fn: Callable[[JobContext], dict | None]):
-        KINDS[name] = fn
-        return fn
-
-    return deco
 
 
 class JobRunner:
@@ -181,8 +84,6 @@ class JobRunner:
         ``occufly.parallel``'s, with workers that die with this process."""
         with self._executor_lock:
             if self._executor is None:
-                from occufly.parallel import get_executor
-
                 self._executor = get_executor(self.ctx.settings.dask_address,
                                               workers=max(2, self.workers), die_with_caller=True)
             return self._executor
@@ -248,10 +149,6 @@ class JobRunner:
             self._held.discard(job_id)
 
     def _run_attempt(self, job_id: int) -> None:
-        # kinds registers itself with this module's registry (it imports runner): a
-        # module-level import would be a cycle, so the side-effect import stays here
-        from app.jobs import kinds  # noqa: F401 - registers the job kinds
-
         ctx = self.ctx
         with ctx.sessions() as s:
             res = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
@@ -263,8 +160,8 @@ class JobRunner:
                 return  # cancelled (or taken) before it started
             kind_name, attempt = s.execute(select(Job.kind, Job.attempts)
                                            .where(Job.id == job_id)).one()
-        fn = KINDS.get(kind_name)
-        if self.processes and getattr(fn, "remote", False):
+        record = KINDS.get(kind_name)
+        if self.processes and record is not None and record.remote:
             try:
                 if self.entry is None:
                     raise RuntimeError("JobRunner has no process entry (app.bootstrap sets it)")
@@ -272,15 +169,15 @@ class JobRunner:
                                            attempt).result()
             except Exception as e:  # noqa: BLE001 - the child died or could not start
                 log.exception("job %s: executor failure", job_id)
-                _finish(ctx, job_id, attempt, status="failed",
-                        message=f"job process failed: {type(e).__name__}: {e}",
-                        log_line=f"job process failed: {e}")
+                finish_attempt(ctx, job_id, attempt, status="failed",
+                               message=f"job process failed: {type(e).__name__}: {e}",
+                               log_line=f"job process failed: {e}")
             return
         execute_job(ctx, job_id, attempt)
 
 
-def _finish(ctx: AppContext, job_id: int, attempt: int, *,
-            outputs: list[tuple[Path, Path]] = (), **values: Any) -> bool:
+def finish_attempt(ctx: AppContext, job_id: int, attempt: int, *,
+                   outputs: list[tuple[Path, Path]] = (), **values: Any) -> bool:
     """Record the attempt's outcome, if it is still the job's current attempt; move its
     output folders into place in the same transaction. False (and the staging folders
     removed) for a stale attempt."""
@@ -290,7 +187,7 @@ def _finish(ctx: AppContext, job_id: int, attempt: int, *,
         job = s.get(Job, job_id)
         if job is not None and line:
             values["log"] = service.append_log(job, line)
-        res = s.execute(_fenced(job_id, attempt).values(**values))
+        res = s.execute(fenced(job_id, attempt).values(**values))
         ok = res.rowcount == 1
         if ok:
             try:
@@ -326,8 +223,6 @@ def _replace_dir(staging: Path, final: Path) -> None:
 def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> None:
     """Run attempt ``attempt`` of a job already marked ``running`` and record its outcome
     (any process). ``attempt`` None = the job's current attempt."""
-    from app.jobs import kinds  # noqa: F401 - registers the job kinds (a cycle at module level)
-
     with ctx.sessions() as s:
         job = s.get(Job, job_id)
         attempt = job.attempts if attempt is None else attempt
@@ -336,60 +231,56 @@ def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> Non
         if job.attempts != attempt or job.status != "running":
             log.warning("job %s: attempt %s is stale before it started", job_id, attempt)
             return
-    fn = KINDS.get(jc.kind)
-    if fn is None:
-        _finish(ctx, job_id, attempt, status="failed", message=f"unknown job kind {jc.kind!r}")
+    record = KINDS.get(jc.kind)
+    if record is None:
+        finish_attempt(ctx, job_id, attempt, status="failed",
+                       message=f"unknown job kind {jc.kind!r}")
         return
     try:
-        result = fn(jc)
+        result = record.run(jc)
     except StaleAttempt as e:
         log.warning("job %s: %s; stopping without writing", job_id, e)
         _drop_staging(jc)
     except JobCancelled:
-        if _finish(ctx, job_id, attempt, status="cancelled", message="cancelled",
+        if finish_attempt(ctx, job_id, attempt, status="cancelled", message="cancelled",
                    log_line="cancelled"):
             _on_failure(jc, "cancelled")
         _drop_staging(jc)
     except (PipelineMissing, OccuflyError) as e:
-        if _finish(ctx, job_id, attempt, status="failed", message=str(e)[:500],
+        if finish_attempt(ctx, job_id, attempt, status="failed", message=str(e)[:500],
                    log_line=f"failed: {e}"):
             _on_failure(jc, str(e))
         _drop_staging(jc)
     except Exception as e:  # a bug: keep the traceback in the job log
         log.exception("job %s (%s) crashed", job_id, jc.kind)
         tb = traceback.format_exc(limit=8)
-        if _finish(ctx, job_id, attempt, status="failed",
-                   message=f"internal error: {type(e).__name__}: {e}"[:500], log_line=tb):
+        if finish_attempt(ctx, job_id, attempt, status="failed",
+                          message=f"internal error: {type(e).__name__}: {e}"[:500], log_line=tb):
             _on_failure(jc, str(e))
         _drop_staging(jc)
     else:
-        if _finish(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
-                   message="done", result=_jsonable(result or {}), log_line="done"):
-            _publish_done(ctx, jc)
-            if jc.kind == "export":  # retention counts the export that just finished
-                try:
-                    storage.apply_export_retention(ctx, jc.scene_id)
-                except Exception:  # noqa: BLE001 - the export is done; retention runs again
-                    log.exception("export retention after job %s", job_id)
+        if finish_attempt(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
+                          message="done", result=jsonable(result or {}), log_line="done"):
+            _after_done(ctx, jc, record)
 
 
-# job kinds whose success changes what subscribers show (the viewer's scene grid)
-DONE_EVENTS = {"voxelize": "grid_updated"}
-
-
-def _publish_done(ctx: AppContext, jc: JobContext) -> None:
-    kind_event = DONE_EVENTS.get(jc.kind)
-    if kind_event is None or ctx.events is None or jc.scene_id is None:
-        return
-    try:
-        from app.scenes.models import Scene
-        from occufly.workspace import Workspace
-
-        with ctx.sessions() as s:
-            ws = s.get(Scene, jc.scene_id).workspace
-        ctx.events.publish(kind_event, jc.scene_id, stamp=Workspace(ws).stamp(), job=jc.job_id)
-    except Exception:  # noqa: BLE001 - the job is done; a lost notice only delays a refresh
-        log.warning("job %s: publishing %s failed", jc.job_id, kind_event, exc_info=True)
+def _after_done(ctx: AppContext, jc: JobContext, record) -> None:  # noqa: ANN001 - JobKind
+    """The kind's ``done_event`` (with the scene's workspace stamp) and its ``on_done`` hook;
+    the job is done whatever they do (a lost notice only delays a refresh)."""
+    if record.done_event is not None and ctx.events is not None and jc.scene_id is not None:
+        try:
+            with ctx.sessions() as s:
+                ws = s.get(Scene, jc.scene_id).workspace
+            ctx.events.publish(record.done_event, jc.scene_id, stamp=Workspace(ws).stamp(),
+                               job=jc.job_id)
+        except Exception:  # noqa: BLE001
+            log.warning("job %s: publishing %s failed", jc.job_id, record.done_event,
+                        exc_info=True)
+    if record.on_done is not None:
+        try:
+            record.on_done(jc)
+        except Exception:  # noqa: BLE001 - e.g. export retention: it runs again next time
+            log.exception("after job %s (%s)", jc.job_id, jc.kind)
 
 
 def _drop_staging(jc: JobContext) -> None:
@@ -399,25 +290,9 @@ def _drop_staging(jc: JobContext) -> None:
 
 
 def _on_failure(jc: JobContext, message: str) -> None:
-    hook = getattr(KINDS.get(jc.kind), "on_failure", None)
-    if hook is not None:
+    record = KINDS.get(jc.kind)
+    if record is not None and record.on_failure is not None:
         try:
-            hook(jc, message)
+            record.on_failure(jc, message)
         except Exception:  # noqa: BLE001 - never mask the job's own failure
             log.exception("failure hook of job %s", jc.job_id)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and obj != obj:
-        return None
-    if hasattr(obj, "__fspath__"):
-        return str(obj)
-    return obj

@@ -208,7 +208,8 @@ def test_viewer_refreshes_on_the_event_not_on_a_poll(env):
 def test_a_stale_job_attempt_cannot_write_the_row_or_the_output(env, tmp_path):
     from app.jobs import service as jobs
     from app.jobs.models import Job
-    from app.jobs.runner import JobContext, StaleAttempt, _finish
+    from app.jobs.registry import JobContext, StaleAttempt
+    from app.jobs.runner import finish_attempt
 
     ctx = env.app.state.ctx
     with ctx.sessions() as s:
@@ -244,13 +245,13 @@ def test_a_stale_job_attempt_cannot_write_the_row_or_the_output(env, tmp_path):
         a1.log("orphan line")
     out1.mkdir(parents=True, exist_ok=True)  # the orphan recreates its staging folder
     (out1 / "frame.txt").write_text("orphan")
-    assert not _finish(ctx, jid, a1.attempt, outputs=a1.outputs, status="done", message="done")
+    assert not finish_attempt(ctx, jid, a1.attempt, outputs=a1.outputs, status="done", message="done")
     assert not final.exists() and not out1.exists()
     with ctx.sessions() as s:
         j = s.get(Job, jid)
         assert (j.status, j.attempts) == ("running", 2) and "orphan" not in (j.log or "")
     a2.progress(0.5, "attempt 2 half way")
-    assert _finish(ctx, jid, a2.attempt, outputs=a2.outputs, status="done", message="done")
+    assert finish_attempt(ctx, jid, a2.attempt, outputs=a2.outputs, status="done", message="done")
     assert (final / "frame.txt").read_text() == "attempt 2" and not out2.exists()
     with ctx.sessions() as s:
         assert s.get(Job, jid).status == "done"

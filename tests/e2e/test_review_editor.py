@@ -11,28 +11,17 @@ Screenshot (looked at): docs/screenshots/reviewer_editor.png (the editor at 1440
 from __future__ import annotations
 
 import io
-import time
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from tests.e2e.conftest import REPO, grey_png, import_own_scene, png_ids, wait_js
+from tests.e2e.conftest import REPO, grey_png, import_own_scene, png_ids, shot, wait_js
 
 pytestmark = pytest.mark.e2e
 DOCS = REPO / "docs" / "screenshots"
 GRASS, ROAD, TREE = 6, 1, 8
 R = "window.__occufly_review"
-
-
-def _wait(pred, timeout=60.0, what="condition"):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +42,7 @@ def setup(live):
         st = rev.get(f"/api/scenes/{sid}/labels/status").json()
         return all(st.get("filled_versions", {}).get(str(f["id"])) == f["version"] for f in frames)
 
-    _wait(filled, 90, "the first fill")
+    live.wait_until(filled, 90, "the first fill")
     ann.post("/api/notifications/read", json={})
     return {"sid": sid, "frames": frames}
 
@@ -131,8 +120,8 @@ def test_reviewer_fixes_a_mask_in_2d_and_it_votes(live, setup, new_page):
     n = ann.get("/api/notifications?unread=true").json()
     assert any(x["kind"] == "corrected" and x["frame_id"] == fid for x in n["items"]), n
     # the lifting includes it (filled), and the page says so once the 3D labels follow
-    _wait(lambda: rev.get(f"/api/scenes/{sid}/labels/status").json()
-          .get("filled_versions", {}).get(str(fid)) == new["version"], 90, "the correction lifted")
+    live.wait_until(lambda: rev.get(f"/api/scenes/{sid}/labels/status").json()
+                    .get("filled_versions", {}).get(str(fid)) == new["version"], 90, "the correction lifted")
     wait_js(page, "() => { const n = document.querySelector('#fix-note'); return n && n.dataset.lifted === 'true'; }", timeout=30_000)
     # the lifted labels follow the correction: points seen on the road stroke are road now
     from app.scenes.models import Scene
@@ -155,7 +144,8 @@ def test_reviewer_fixes_a_mask_in_2d_and_it_votes(live, setup, new_page):
     assert page.evaluate(f"() => {R}.frame.current_version") == new["version"]
     page.evaluate("() => document.activeElement && document.activeElement.blur()")
     page.keyboard.press("a")
-    _wait(lambda: rev.get(f"/api/frames/{fid}").json()["state"] == "accepted", 30, "the accept")
+    live.wait_until(lambda: rev.get(f"/api/frames/{fid}").json()["state"] == "accepted", 30,
+                    "the accept")
     kinds = {v["version"]: v["kind"] for v in rev.get(f"/api/frames/{fid}/mask/versions").json()}
     assert kinds[new["version"]] == "accepted", kinds
 
@@ -186,6 +176,8 @@ def test_propose_from_3d_files_a_proposal_for_the_annotator(live, setup, new_pag
     assert "these are trees" in page.locator(f"#propose-list tr[data-edit='{e['id']}']").inner_text()
     btn.click()
     page.wait_for_selector("#proposal-list li[data-status='open']")
+    shot(page, "review_propose_3d")  # test-artifacts/: the dialog after proposing
+    assert "null" not in page.locator("#propose-list").inner_text()
     assert page.locator(f"#propose-list tr[data-edit='{e['id']}'] .propose-btn").is_disabled()
     props = rev.get(f"/api/frames/{fid}/proposals?status=open").json()
     assert [p["edit_id"] for p in props] == [e["id"]] and props[0]["author"] == "reviewer"

@@ -408,20 +408,21 @@ class ReviewEditor {
         el("td", {}, `#${e.id}`),
         el("td", { class: "class-cell" }, c ? el("span", { class: "swatch", style: { background: `rgb(${c.rgb.join(",")})` } }) : null, ` ${c ? c.name : e.to_class === 0 ? "unlabelled" : e.to_class}`),
         el("td", {}, `${e.author || "?"}${e.comment ? `: ${e.comment}` : ""}`),
-        el("td", { "data-px": e.proposable_px ?? "" }, e.proposable_px == null ? `${e.pixels.toLocaleString()} px seen` : `${e.proposable_px.toLocaleString()} of ${e.pixels.toLocaleString()} px differ`),
+        el("td", { "data-px": e.proposable_px ?? "" }, e.proposable_px == null ? `${e.pixels.toLocaleString()} px` : `${e.pixels.toLocaleString()} px, ${e.proposable_px.toLocaleString()} of another class`),
         el("td", {}, btn),
       );
     });
     const propRows = (props || []).slice().reverse().map((p) =>
       el("li", { "data-proposal": p.id, "data-status": p.status }, `#${p.id} from correction ${p.edit_id ?? "?"}: ${p.changed_px.toLocaleString()} px, ${p.status}${p.decided_by ? ` by ${p.decided_by}` : ""}${p.reply ? ` — “${p.reply}”` : ""}`),
     );
-    body.replaceChildren(
+    const parts = [
       blocked ? el("p", { class: "notice", id: "propose-blocked" }, blocked) : null,
       rows.length
-        ? el("table", { class: "propose-table" }, el("thead", {}, el("tr", {}, ["", "Relabel to", "By", "In this frame", ""].map((h) => el("th", {}, h)))), el("tbody", {}, rows))
+        ? el("table", { class: "propose-table" }, el("thead", {}, el("tr", {}, ["", "Relabel to", "By", "Its points here", ""].map((h) => el("th", {}, h)))), el("tbody", {}, rows))
         : el("p", { id: "propose-none" }, "No active 3D correction touches what this frame sees. Relabel points in the 3D viewer first (Open in 3D viewer), then propose it here."),
       el("p", { class: "muted" }, "A proposal sets the pixels the relabelled points fall on (gaps closed, grown by 1 px, only where the mask differs) to the new class; the annotator sees it as an overlay and takes it (T) or declines with a reply."),
       propRows.length ? el("div", {}, el("h3", {}, "Proposals for this frame"), el("ul", { class: "proposal-list", id: "proposal-list" }, propRows)) : null,
-    );
+    ];
+    body.replaceChildren(...parts.filter(Boolean));
   }
 }

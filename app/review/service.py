@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from collections import OrderedDict
@@ -29,6 +30,8 @@ from occufly.lifting import loo as lifting_loo
 from occufly.lifting.suspects import SuspectParams, find_suspects
 from occufly.render import scene_point_spacing
 from occufly.workspace import Workspace
+
+log = logging.getLogger("occufly.review")
 
 
 # ---- render-back and agreement --------------------------------------------------------------
@@ -228,6 +231,20 @@ def _list_order(session: Session, scene: Scene, limit: int) -> list[Frame]:
                   Frame.agreement.is_(None), Frame.agreement,
                   Frame.independent_coverage.is_(None), Frame.independent_coverage,
                   Frame.index).limit(limit)))
+
+
+def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # noqa: ANN001
+    """The ``labels_updated`` subscriber of the process whose lifting service owns the scene
+    (wired by :func:`app.bootstrap.build_lifting_service`): recompute the stored per-frame
+    agreement of submitted / reviewed frames against the new labels and leave the review
+    list's top frames computed in the review cache (:func:`refresh_agreement`)."""
+    with ctx.sessions() as s:
+        scene = s.get(Scene, msg.scene_id)
+        if scene is not None:
+            refresh_agreement(ctx, s, scene, limit=AGREEMENT_REFRESH_FRAMES, stop=stop, log=log)
+
+
+AGREEMENT_REFRESH_FRAMES = 200  # frames whose stored agreement a fill recomputes
 
 
 def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *, limit: int = 200,

@@ -2,7 +2,8 @@
 
 from app.annotations.models import MaskVersion
 from app.audit.models import AuditEvent
-from app.corrections.models import CorrectionEdit, MaskProposal, Notification
+from app.corrections.models import CorrectionEdit, MaskProposal
+from app.notifications.models import Notification
 from app.db import Base
 from app.jobs.models import Job
 from app.lifting.models import Event, LiftQueueEntry, LiftStatus

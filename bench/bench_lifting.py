@@ -153,6 +153,10 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
                            confirm_needs_vote=False)
 
 
+#: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
+ROBUST_MODES: dict = {"robust-boundary": None}
+
+
 def robustness(args: argparse.Namespace) -> dict:
     """Lifting accuracy with the new (union) vs old (.vis only) visibility on the same
     selected frames, with exact and degraded masks (occufly.synthetic.degrade), for the
@@ -178,13 +182,25 @@ def robustness(args: argparse.Namespace) -> dict:
 
     exact = {fi: mask(fi) for fi in sel.frames}
     held_masks = {fi: mask(fi) for fi in held}
-    variants = {"exact": exact, "degraded": degrade_masks(exact, tax, seed=args.seed)}
+    variants = {"exact": exact}
+    crew_of: dict = {}
+    for name in args.noise.split(","):
+        if name == "degraded":
+            variants[name] = degrade_masks(exact, tax, seed=args.seed)
+        elif name == "crew":  # the second noise model (occufly.synthetic.noise, issue 37)
+            from occufly.synthetic.noise import crew_masks
+
+            variants[name], crew_of = crew_masks(exact, tax, seed=args.seed)
+        elif name != "exact":
+            raise SystemExit(f"--noise: expected exact, degraded or crew, got {name!r}")
     out: dict = {"bench": "lifting-robustness", "synthetic": str(syn),
                  "points": scene.n_points, "frames": len(scene.frames),
                  "selected": len(sel.frames), "ratio": sel.ratio, "coverage": sel.coverage,
                  "held_out_frames": len(held),
-                 "degraded_pixels_changed": float(np.mean([(variants["degraded"][f] != exact[f]).mean()
-                                                           for f in exact]))}
+                 "seed": args.seed,
+                 "pixels_changed": {k: round(float(np.mean([(v[f] != exact[f]).mean() for f in exact])), 4)
+                                    for k, v in variants.items()},
+                 "crew_sloppy_frames": sorted(f for f, a in crew_of.items() if a == 0)}
     for vname, sc in scenes.items():
         vpp = sc.summary()["visibility"]["views_per_point"]
         out[f"views_per_point_{vname}"] = vpp["mean"]
@@ -202,14 +218,17 @@ def robustness(args: argparse.Namespace) -> dict:
                 # tieorder: the plain vote, ties by taxonomy order; plain: the plain vote, ties
                 # to the fill (the default before the robust decision); robust: the default;
                 # boundary: weighted votes (plain decision)
-                st = LiftState.open(tmp, sc, vote_weighting="boundary" if robust == "boundary" else "plain")
+                st = LiftState.open(tmp, sc, vote_weighting="boundary" if robust in (
+                    "boundary", "robust-boundary") else "plain")
                 for fi in sel.frames:
                     st.apply_frame(fi, masks[fi], version=mname)
                 direct = st.direct_labels()
                 t_fill, c_fill = time.perf_counter(), time.process_time()
                 res = st.fill_and_denoise(write=False, params=LiftParams(
-                    tie_fill=robust != "tieorder", robust=robust in ("robust", "robust-before"),
-                    robust_params=BEFORE_TINY if robust == "robust-before" else None))
+                    tie_fill=robust != "tieorder",
+                    robust=robust in ("robust", "robust-before") or robust in ROBUST_MODES,
+                    robust_params=BEFORE_TINY if robust == "robust-before"
+                    else ROBUST_MODES.get(robust)))
                 t_fill, c_fill = time.perf_counter() - t_fill, time.process_time() - c_fill
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
@@ -383,6 +402,9 @@ def main() -> None:
                          "(plain vote, ties to the fill: the default before the robust "
                          "decision), robust (the default), robust-before (the robust "
                          "decision before the tiny-object work), boundary (weighted votes)")
+    ap.add_argument("--noise", default="degraded",
+                    help="robustness: comma list of noise models besides the exact masks: "
+                         "degraded (occufly.synthetic.degrade), crew (occufly.synthetic.noise)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")

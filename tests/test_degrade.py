@@ -56,3 +56,47 @@ def test_seeded_and_independent_of_order():
     assert all(np.array_equal(a[k], b[k]) for k in masks)
     assert not np.array_equal(a[3], a[7])  # each frame its own draw
     assert not np.array_equal(a[3], degrade_masks(masks, TAX, seed=6)[3])
+
+
+# ---- the second noise model: the sloppy crew (occufly.synthetic.noise, issue 37) ----------
+def _crew_mask():
+    m = np.full((120, 160), ID["road"], np.uint8)
+    m[:, 80:] = ID["grass"]
+    m[:, 140:] = ID["parking_lot"]
+    m[10:50, 10:60] = ID["roof"]
+    m[60:80, 20:50] = ID["vehicle"]
+    m[100:102, :] = ID["cable"]
+    return m
+
+
+def test_crew_sloppy_annotator_is_systematic_and_one_way():
+    from occufly.synthetic.noise import CAREFUL, SLOPPY, paint
+
+    m = _crew_mask()
+    s = paint(m, TAX, np.random.default_rng(0), SLOPPY)
+    # every grass / parking lot / roof region painted as its look-alike; cables never painted
+    for gone in ("grass", "parking_lot", "roof", "cable"):
+        assert not (s == ID[gone]).any(), gone
+    assert (s[30, 30] == ID["building"]) and (s[60, 110] == ID["vegetation"])
+    # the reverse confusions never happen: a vegetation region stays vegetation
+    v = np.full((60, 60), ID["vegetation"], np.uint8)
+    assert (paint(v, TAX, np.random.default_rng(1), SLOPPY) != ID["grass"]).all()
+    # a careful annotator keeps the regions (only boundary drift, a patch, rare object swaps)
+    c = paint(m, TAX, np.random.default_rng(0), CAREFUL)
+    assert (c == ID["grass"]).mean() > 0.3 and (c == ID["roof"]).any()
+    assert 0 < (c != m).mean() < 0.1
+
+
+def test_crew_deals_frames_seeded_and_order_free():
+    from occufly.synthetic.noise import Crew, crew_masks
+
+    masks = {i: _crew_mask() for i in range(40)}
+    a, who = crew_masks(masks, TAX, seed=3)
+    b, who2 = crew_masks(dict(reversed(list(masks.items()))), TAX, seed=3)
+    assert who == who2 and all(np.array_equal(a[i], b[i]) for i in masks)
+    sloppy = [f for f, w in who.items() if w < Crew().sloppy]
+    assert 4 <= len(sloppy) <= 18  # about a quarter of the frames
+    for f in sloppy:
+        assert not (a[f] == ID["grass"]).any()
+    careful = [f for f, w in who.items() if w >= Crew().sloppy]
+    assert all((a[f] == ID["grass"]).any() for f in careful)

@@ -1,5 +1,5 @@
-"""Reviewers' label corrections (issue 25): versioned 3D edits, proposed 2D mask changes,
-notifications."""
+"""Reviewers' label corrections (issue 25): versioned 3D edits and proposed 2D mask changes
+(notifications: :mod:`app.notifications`)."""
 
 from __future__ import annotations
 
@@ -65,22 +65,3 @@ class MaskProposal(Base):
         ForeignKey("users.id", ondelete="SET NULL"), nullable=True)
     decided_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
     taken_version_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
-
-
-class Notification(Base):
-    """Something a user should see: a frame of theirs rejected, commented on, a proposal."""
-
-    __tablename__ = "notifications"
-
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
-    kind: Mapped[str] = mapped_column(String(32))  # rejected / comment / proposal
-    scene_id: Mapped[int | None] = mapped_column(
-        ForeignKey("scenes.id", ondelete="CASCADE"), nullable=True)
-    frame_id: Mapped[int | None] = mapped_column(
-        ForeignKey("frames.id", ondelete="CASCADE"), nullable=True)
-    item_id: Mapped[int | None] = mapped_column(
-        ForeignKey("review_items.id", ondelete="CASCADE"), nullable=True)
-    text: Mapped[str] = mapped_column(Text)
-    created_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
-    read_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)

@@ -1,5 +1,5 @@
 """Label corrections (3D edits, undo/redo/revert), proposed 2D mask changes, review items seen
-from a frame, notifications, and the guarded re-import."""
+from a frame, and the guarded re-import (notifications: app.notifications)."""
 
 from __future__ import annotations
 
@@ -24,11 +24,9 @@ from app.corrections.schemas import (
     EditOut,
     FrameEditOut,
     LayerOut,
-    NotificationsOut,
     ProjectedItemOut,
     ProposalIn,
     ProposalOut,
-    ReadIn,
     StackOut,
 )
 from app.deps import (
@@ -46,6 +44,7 @@ from app.errors import NotFound
 from app.jobs import service as jobs
 from app.jobs.models import Job
 from app.limits import IdPath
+from app.notifications.service import notify_frame_people
 from app.pipeline import encode_png, stored_mask_ids
 from app.scenes.models import Frame, Scene
 
@@ -68,8 +67,6 @@ ACCESS = {
     "POST /api/frames/{fid}/proposals/{pid}/decline": "annotator",
     "GET /api/frames/{fid}/projected-items": "member",
     "GET /api/frames/{fid}/corrections": "reviewer",
-    "GET /api/notifications": "user",
-    "POST /api/notifications/read": "user",
     "POST /api/scenes/{sid}/reimport": "admin",
     "PUT /api/frames/{fid}/reviewer-correction": "reviewer",
 }
@@ -220,16 +217,6 @@ def frame_corrections(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: 
     return service.frame_corrections(session=session, ctx=ctx, frame=frame)
 
 
-@router.get("/notifications", response_model=NotificationsOut)
-def notifications(session: SessionDep, user: CurrentUser, unread: bool = False):
-    return service.list_notifications(session=session, user=user, unread=unread)
-
-
-@router.post("/notifications/read")
-def read_notifications(body: ReadIn, session: SessionDep, user: CurrentUser) -> dict:
-    return {"marked": service.mark_read(session=session, user=user, ids=body.ids)}
-
-
 class ReimportIn(BaseModel):
     # required: the admin says explicitly what happens to reviewers' corrections
     drop_corrections: bool
@@ -270,7 +257,7 @@ def reviewer_correction(frame: FrameDep, session: SessionDep, ctx: CtxDep, user:
                                   kind="submitted", expected=expected,
                                   source="reviewer_correction")
     session.refresh(frame)
-    service.notify_frame_people(session, frame=frame, actor=user, kind="corrected",
+    notify_frame_people(session, frame=frame, actor=user, kind="corrected",
                                 text=f"{user.username} corrected the mask of {frame.name}")
     session.commit()
     audit.record(session, "mask_reviewer_correction", actor=user, scene_id=frame.scene_id,

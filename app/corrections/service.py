@@ -43,10 +43,11 @@ from sqlalchemy.orm import Session
 from app.annotations.models import MaskVersion
 from app.annotations.service import check_read
 from app.context import AppContext
-from app.corrections.models import CorrectionEdit, MaskProposal, Notification
+from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import utcnow
 from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.notifications.service import notify
 from app.pipeline import encode_png, stored_mask_ids
 from app.review.models import ReviewItem
 from app.review.service import item_out
@@ -503,10 +504,10 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     session.add(p)
     session.flush()
     for uid in {frame.last_annotator_id, frame.assignee_id} - {None}:
-        session.add(Notification(user_id=uid, kind="proposal", scene_id=frame.scene_id,
-                                 frame_id=frame.id, created_at=utcnow(),
-                                 text=f"{user.username} proposes a change of {p.changed_px} px "
-                                      f"to the mask of {frame.name}"))
+        notify(session, user_id=uid, kind="proposal", scene_id=frame.scene_id,
+               frame_id=frame.id,
+               text=f"{user.username} proposes a change of {p.changed_px} px "
+                    f"to the mask of {frame.name}")
     session.commit()
     return p
 
@@ -576,10 +577,9 @@ def decline(*, session: Session, proposal: MaskProposal, user: User, reply: str)
     proposal.decided_by_id, proposal.decided_at = user.id, utcnow()
     if proposal.author_id:
         frame = session.get(Frame, proposal.frame_id)
-        session.add(Notification(user_id=proposal.author_id, kind="declined",
-                                 scene_id=frame.scene_id, frame_id=frame.id, created_at=utcnow(),
-                                 text=f"{user.username} declined your proposal for {frame.name}: "
-                                      f"{reply}"))
+        notify(session, user_id=proposal.author_id, kind="declined",
+               scene_id=frame.scene_id, frame_id=frame.id,
+               text=f"{user.username} declined your proposal for {frame.name}: {reply}")
     session.commit()
     return proposal
 
@@ -635,49 +635,6 @@ def _hull(xy: np.ndarray) -> list[list[float]]:
             upper.pop()
         upper.append(p)
     return [[float(x), float(y)] for x, y in lower[:-1] + upper[:-1]]
-
-
-# ---- notifications -------------------------------------------------------------------------
-def notify(session: Session, *, user_id: int | None, kind: str, text: str,
-           scene_id: int | None = None, frame_id: int | None = None,
-           item_id: int | None = None) -> None:
-    """Queue a notification (committed with the caller's transaction)."""
-    if user_id is None:
-        return
-    session.add(Notification(user_id=user_id, kind=kind, text=text, scene_id=scene_id,
-                             frame_id=frame_id, item_id=item_id, created_at=utcnow()))
-
-
-def notify_frame_people(session: Session, *, frame: Frame, actor: User, kind: str,
-                        text: str, item_id: int | None = None) -> None:
-    """Tell the frame's annotator(s) (last annotator, assignee), not the actor."""
-    for uid in {frame.last_annotator_id, frame.assignee_id} - {None, actor.id}:
-        notify(session, user_id=uid, kind=kind, text=text, scene_id=frame.scene_id,
-               frame_id=frame.id, item_id=item_id)
-
-
-def list_notifications(*, session: Session, user: User, unread: bool = False,
-                       limit: int = 100) -> dict:
-    q = select(Notification).where(Notification.user_id == user.id)
-    if unread:
-        q = q.where(Notification.read_at.is_(None))
-    rows = list(session.scalars(q.order_by(Notification.id.desc()).limit(limit)))
-    n_unread = len(list(session.scalars(select(Notification.id).where(
-        Notification.user_id == user.id, Notification.read_at.is_(None)))))
-    return {"unread": n_unread,
-            "items": [dict(id=n.id, kind=n.kind, text=n.text, scene_id=n.scene_id,
-                           frame_id=n.frame_id, item_id=n.item_id, created_at=n.created_at,
-                           read_at=n.read_at) for n in rows]}
-
-
-def mark_read(*, session: Session, user: User, ids: list[int] | None) -> int:
-    q = update(Notification).where(Notification.user_id == user.id,
-                                   Notification.read_at.is_(None))
-    if ids is not None:
-        q = q.where(Notification.id.in_(ids))
-    res = session.execute(q.values(read_at=utcnow()).execution_options(synchronize_session=False))
-    session.commit()
-    return int(res.rowcount or 0)
 
 
 # ---- the 3D viewer's hooks -----------------------------------------------------------------

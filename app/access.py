@@ -22,6 +22,7 @@ from app.audit import routes as audit
 from app.corrections import routes as corrections
 from app.jobs import archive
 from app.jobs import routes as jobs
+from app.notifications import routes as notifications
 from app.review import routes as review
 from app.scenes import console, imports
 from app.scenes import routes as scenes
@@ -37,7 +38,7 @@ def table() -> dict[str, str]:
     from app.annotations import routes as annotations
     merged: dict[str, str] = dict(ACCESS)
     for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
-                corrections, imports, console):
+                corrections, notifications, imports, console):
         for key, level in getattr(mod, "ACCESS", {}).items():
             if level not in LEVELS:
                 raise ValueError(f"{mod.__name__}.ACCESS[{key!r}]: unknown level {level!r}")

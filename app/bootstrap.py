@@ -1,22 +1,28 @@
 """The composition root: builds a process's :class:`~app.context.AppContext` (database,
-mask store, lifting client, job runner, event bus) and the entry point that runs a job in an
-executor process. Everything that starts a process (the app factory, the job executor's
-children, the lifting worker) builds its context here, so no lower module imports
-``app.main``.
+mask store, event bus, lifting client, job runner) with explicit arguments, wires the event
+subscriptions, and is the entry point that runs a job in an executor process. Everything
+that starts a process (the app factory, the job executor's children, the lifting worker)
+builds its context here, so no lower module imports ``app.main``.
 """
 
 from __future__ import annotations
 
+import logging
+
 from app import db
 from app.config import Settings
-from app.context import AppContext
+from app.context import AppContext, SceneCache
+from app.events import EventBus
 from app.jobs import runner
 from app.jobs.runner import JobRunner
 from app.lifting.client import LiftingClient
-from app.lifting.events import EventBus
+from app.lifting.service import LiftingService
 from app.review import jobs as review_jobs
+from app.review import service as review
 from app.scenes import jobs as scene_jobs
 from app.storage import BlobStore
+
+log = logging.getLogger("occufly.app")
 
 # the domains' job kinds (app.jobs.registry): every process that builds a context -- the API,
 # the job executor's children, the lifting worker -- has them, and the runner names none
@@ -26,21 +32,40 @@ JOB_KINDS = (scene_jobs, review_jobs)
 def build_context(settings: Settings, *, lifting: str | None = None,
                   jobs: bool = True) -> AppContext:
     """The per-process context; ``lifting`` overrides ``settings.lifting`` (the job and
-    lifting worker processes pass ``"off"`` / ``"external"``)."""
+    lifting worker processes pass ``"off"`` / ``"external"``). The runner and the lifting
+    client get what they use explicitly; the two callables that need the whole context (a
+    job run in this process, the lifting service's subscribers) close over it."""
     engine = db.make_engine(settings.database_url)
     sessions = db.make_sessionmaker(engine)
-    holder: list[AppContext] = []
+    scenes = SceneCache()
     ctx = AppContext(
         settings=settings, engine=engine, sessions=sessions,
         store=BlobStore(settings.mask_store_dir),
-        lifting=LiftingClient(lambda: holder[0], mode=lifting or settings.lifting),
-        jobs=(JobRunner(settings.job_workers, processes=settings.job_processes,
-                        entry=run_job_process) if jobs else None),
-        events=EventBus(engine, sessions))
-    holder.append(ctx)
-    if ctx.jobs is not None:
-        ctx.jobs.bind(ctx)
+        lifting=LiftingClient(sessions=sessions, load_scene=scenes.load,
+                              make_service=lambda: build_lifting_service(ctx),
+                              mode=lifting or settings.lifting),
+        jobs=(JobRunner(settings.job_workers, settings=settings, sessions=sessions,
+                        run_here=lambda job_id, attempt: runner.execute_job(ctx, job_id, attempt),
+                        processes=settings.job_processes, entry=run_job_process)
+              if jobs else None),
+        events=EventBus(engine, sessions), scene_cache=scenes)
     return ctx
+
+
+def build_lifting_service(ctx: AppContext) -> LiftingService:
+    """The lifting service over ``ctx``'s database, store and scenes, with the subscribers of
+    the scenes it owns (:data:`app.events.CATALOGUE`): the review's agreement refresh."""
+    return LiftingService(
+        settings=ctx.settings, engine=ctx.engine, sessions=ctx.sessions, store=ctx.store,
+        load_scene=ctx.load_scene, bus=ctx.events,
+        on_owned_labels=(lambda msg, stop: review.refresh_after_fill(ctx, msg, stop),))
+
+
+def subscribe_api_process(ctx: AppContext) -> None:
+    """An API process whose lifting runs elsewhere (another process owns it, or
+    ``OCCUFLY_LIFTING=external``) keeps its own review cache warm on ``labels_updated``."""
+    if ctx.lifting.service is None and ctx.events is not None and ctx.lifting.enabled:
+        ctx.events.subscribe("labels_updated", review.warm_on_labels(ctx))
 
 
 def run_job_process(settings, job_id: int, attempt: int | None = None) -> None:  # noqa: ANN001

@@ -13,12 +13,12 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, Path, Request
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.context import AppContext
 from app.errors import Forbidden, NotAuthenticated, NotFound
-from app.scenes.models import Frame, Scene, SceneMember
+from app.scenes.membership import check_member, is_member  # noqa: F401 - re-exported for routes
+from app.scenes.models import Frame, Scene
 from app.security import SESSION_COOKIE, client_ip, token_from  # noqa: F401 - re-exported
 from app.users import service
 from app.users.models import User
@@ -60,20 +60,6 @@ def get_current_user(request: Request, session: SessionDep) -> User:
 
 
 CurrentUser = Annotated[User, Depends(get_current_user)]
-
-
-def is_member(session: Session, user: User, scene_id: int) -> bool:
-    """Admins see every scene; annotators and reviewers the scenes they are assigned to."""
-    if user.role == "admin":
-        return True
-
-    return session.scalar(select(SceneMember.id).where(
-        SceneMember.scene_id == scene_id, SceneMember.user_id == user.id)) is not None
-
-
-def check_member(session: Session, user: User, scene_id: int) -> None:
-    if not is_member(session, user, scene_id):
-        raise Forbidden(f"you are not a member of scene {scene_id}; an admin assigns scenes")
 
 
 def require_roles(*roles: str):

@@ -7,13 +7,9 @@ table is polled (``poll_s``, default 0.25 s). Subscribers in the publishing proc
 synchronously by :meth:`EventBus.publish`; other processes' subscribers are called from the
 bus's listener thread, in event-id order. Events are kept ``keep_s`` seconds (default 1 h).
 
-Events published here (payload fields):
-
-``labels_updated``  scene_id, stamp (``Workspace.stamp()`` after the write), versions
-                    (frame index -> version tag counted), fills (count for the scene)
-
-``votes_applied``   scene_id, seq (the scene's last ``lift_queue.applied_seq``), versions
-                    (frame index -> version tag applied), applied_by: once per applied batch
+Every event there is, who publishes it and who subscribes, is :data:`CATALOGUE`; publishing a
+kind it does not list is a ``ValueError``. Subscriptions are wired where the long-lived
+services are built (:mod:`app.bootstrap`, and the viewer mount in :mod:`app.main`).
 
 Several processes publish (every lifting worker, API processes for corrections), so on
 PostgreSQL an id can commit after a higher one: :meth:`EventBus.poll` re-reads the last
@@ -44,6 +40,38 @@ log = logging.getLogger("occufly.events")
 
 CHANNEL = "occufly_events"
 LIFT_CHANNEL = "occufly_lift"  # "frame queued for lifting" wake-ups (payload: scene id)
+
+
+@dataclass(frozen=True)
+class EventKind:
+    """One entry of the catalogue: the payload's fields, who publishes, who subscribes."""
+
+    payload: str
+    publishers: tuple[str, ...]
+    subscribers: tuple[str, ...]
+
+
+CATALOGUE: dict[str, EventKind] = {
+    "labels_updated": EventKind(
+        payload="scene_id, stamp (Workspace.stamp() after the write), versions (frame index "
+                "-> version tag counted), fills (count for the scene), seq, applied_by",
+        publishers=("app.lifting.service.LiftingService (after each fill)",
+                    "app.corrections.service (a correction, undo or redo changed the layer)"),
+        subscribers=("app.review.service.refresh_after_fill -- in the process whose lifting "
+                     "service owns the scene (wired by app.bootstrap.build_lifting_service)",
+                     "app.review.service.warm_on_labels -- API processes without a lifting "
+                     "service (app.bootstrap.subscribe_api_process)",
+                     "app.viewer (open viewers reload labels; wired by app.main's viewer mount)")),
+    "votes_applied": EventKind(
+        payload="scene_id, seq (the scene's last lift_queue.applied_seq), versions (frame "
+                "index -> version tag applied), applied_by: once per applied batch",
+        publishers=("app.lifting.service.LiftingService",),
+        subscribers=("tests and benchmarks (votes lag); no app component",)),
+    "grid_updated": EventKind(
+        payload="scene_id, stamp, job (the voxelize job's id)",
+        publishers=("app.jobs.runner for the voxelize kind's done_event (app.scenes.jobs)",),
+        subscribers=("app.viewer (open viewers reload the scene grid)",)),
+}
 
 
 @dataclass(frozen=True)
@@ -111,6 +139,8 @@ class EventBus:
 
     # ---- publish ----------------------------------------------------------------------------
     def publish(self, kind: str, scene_id: int | None = None, **payload) -> Message:
+        if kind not in CATALOGUE:
+            raise ValueError(f"event {kind!r} is not in app.events.CATALOGUE")
         payload = {**payload, "origin": self.origin}
         with self.sessions() as s:
             ev = Event(kind=kind, scene_id=scene_id, payload=payload, created_at=utcnow())

@@ -83,6 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     from app.corrections.routes import router as corrections_router
     from app.jobs.archive import router as archive_router
     from app.jobs.routes import router as jobs_router
+    from app.notifications.routes import router as notifications_router
     from app.review.routes import router as review_router
     from app.scenes.console import router as console_router
     from app.scenes.imports import router as imports_router
@@ -91,7 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
               review_router, jobs_router, archive_router, audit_router, corrections_router,
-              imports_router, console_router):  # the last two: issue 28's admin console
+              notifications_router, imports_router, console_router):  # the last two: issue 28's admin console
         app.include_router(r)
 
     @app.get("/api/health", tags=["meta"])

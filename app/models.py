@@ -3,10 +3,10 @@
 from app.annotations.models import MaskVersion
 from app.audit.models import AuditEvent
 from app.corrections.models import CorrectionEdit, MaskProposal
-from app.notifications.models import Notification
 from app.db import Base
 from app.jobs.models import Job
 from app.lifting.models import Event, LiftQueueEntry, LiftStatus
+from app.notifications.models import Notification
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.models import Frame, Scene, SceneMember
 from app.storage import MaskBlob

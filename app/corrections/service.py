@@ -45,12 +45,12 @@ from app.annotations.service import check_read
 from app.context import AppContext
 from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import utcnow
-from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.notifications.service import notify
 from app.pipeline import encode_png, stored_mask_ids
 from app.review.models import ReviewItem
 from app.review.service import item_out
+from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
 from app.storage import claim_blob
 from app.users.models import User
@@ -655,7 +655,7 @@ def viewer_hooks(ctx: AppContext) -> dict:
             if scene is None:
                 raise NotFound(f"scene {scene_id} does not exist")
             u = _user(s, user)
-            from app.deps import check_member
+            from app.scenes.membership import check_member
 
             check_member(s, u, scene.id)
             fid = None if frame_index is None else s.scalar(select(Frame.id).where(

@@ -5,12 +5,13 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Response
 
 from app.audit import service as audit
-from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep, check_member
+from app.deps import AdminUser, CtxDep, ReviewerUser, SceneDep, SessionDep
 from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.jobs import service
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
 from app.review import provenance
+from app.scenes.membership import check_member
 from app.scenes.service import visible_scene_ids
 from occufly.workspace import Workspace
 

@@ -50,6 +50,9 @@ from occufly.parallel import get_executor
 from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from app.config import Settings
     from app.context import AppContext
 
 log = logging.getLogger("occufly.jobs")
@@ -60,16 +63,21 @@ STALE_S = float(os.environ.get("OCCUFLY_JOB_STALE_S") or 15.0)
 
 
 class JobRunner:
-    def __init__(self, workers: int = 2, *, processes: bool = True,
+    def __init__(self, workers: int = 2, *, settings: Settings, sessions: sessionmaker[Session],
+                 run_here: Callable[[int, int], None], processes: bool = True,
                  entry: Callable[..., None] | None = None) -> None:
-        """``entry(settings, job_id, attempt)``: what runs a remote job kind on the executor
-        (:func:`app.bootstrap.run_job_process`, which builds that process's own context;
-        injected so this module never imports the composition root)."""
+        """settings / sessions: the process's; ``run_here(job_id, attempt)`` runs a claimed
+        attempt in this process (:func:`execute_job` over the process's context);
+        ``entry(settings, job_id, attempt)`` runs a remote kind on the executor
+        (:func:`app.bootstrap.run_job_process`, which builds that process's own context). All
+        three come from the composition root, so this module imports none of it."""
+        self.settings = settings
+        self.sessions = sessions
+        self.run_here = run_here
         self.entry = entry
         self.pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="occufly-job")
         self.workers = max(1, workers)
         self.processes = processes
-        self.ctx: AppContext | None = None
         self.futures: dict[int, Future] = {}
         self.owner = f"{socket.gethostname()[:30]}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self._closed = False
@@ -84,12 +92,9 @@ class JobRunner:
         ``occufly.parallel``'s, with workers that die with this process."""
         with self._executor_lock:
             if self._executor is None:
-                self._executor = get_executor(self.ctx.settings.dask_address,
+                self._executor = get_executor(self.settings.dask_address,
                                               workers=max(2, self.workers), die_with_caller=True)
             return self._executor
-
-    def bind(self, ctx: AppContext) -> None:
-        self.ctx = ctx
 
     def start(self) -> None:
         """Start the heartbeat / stale-job sweep thread (idempotent)."""
@@ -101,7 +106,7 @@ class JobRunner:
     def submit(self, job_id: int) -> None:
         if self._closed:
             return
-        with self.ctx.sessions() as s:  # ours from now on: no other process sweeps it
+        with self.sessions() as s:  # ours from now on: no other process sweeps it
             s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
                       .values(owner=self.owner, heartbeat_at=utcnow()))
             s.commit()
@@ -126,7 +131,7 @@ class JobRunner:
         last_sweep = 0.0
         while not self._stop.wait(HEARTBEAT_S):
             try:
-                with self.ctx.sessions() as s:
+                with self.sessions() as s:
                     held = sorted(self._held)
                     if held:
                         s.execute(update(Job).where(Job.id.in_(held), Job.owner == self.owner,
@@ -149,8 +154,7 @@ class JobRunner:
             self._held.discard(job_id)
 
     def _run_attempt(self, job_id: int) -> None:
-        ctx = self.ctx
-        with ctx.sessions() as s:
+        with self.sessions() as s:
             res = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
                             .values(status="running", started_at=utcnow(), progress=0.0,
                                     attempts=Job.attempts + 1, message="running",
@@ -165,23 +169,23 @@ class JobRunner:
             try:
                 if self.entry is None:
                     raise RuntimeError("JobRunner has no process entry (app.bootstrap sets it)")
-                self.job_executor().submit(self.entry, ctx.settings, job_id,
+                self.job_executor().submit(self.entry, self.settings, job_id,
                                            attempt).result()
             except Exception as e:  # noqa: BLE001 - the child died or could not start
                 log.exception("job %s: executor failure", job_id)
-                finish_attempt(ctx, job_id, attempt, status="failed",
+                finish_attempt(self.sessions, job_id, attempt, status="failed",
                                message=f"job process failed: {type(e).__name__}: {e}",
                                log_line=f"job process failed: {e}")
             return
-        execute_job(ctx, job_id, attempt)
+        self.run_here(job_id, attempt)
 
 
-def finish_attempt(ctx: AppContext, job_id: int, attempt: int, *,
+def finish_attempt(sessions: sessionmaker[Session], job_id: int, attempt: int, *,
                    outputs: list[tuple[Path, Path]] = (), **values: Any) -> bool:
     """Record the attempt's outcome, if it is still the job's current attempt; move its
     output folders into place in the same transaction. False (and the staging folders
     removed) for a stale attempt."""
-    with ctx.sessions() as s:
+    with sessions() as s:
         values.setdefault("finished_at", utcnow())
         line = values.pop("log_line", None)
         job = s.get(Job, job_id)
@@ -233,7 +237,7 @@ def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> Non
             return
     record = KINDS.get(jc.kind)
     if record is None:
-        finish_attempt(ctx, job_id, attempt, status="failed",
+        finish_attempt(ctx.sessions, job_id, attempt, status="failed",
                        message=f"unknown job kind {jc.kind!r}")
         return
     try:
@@ -242,24 +246,24 @@ def execute_job(ctx: AppContext, job_id: int, attempt: int | None = None) -> Non
         log.warning("job %s: %s; stopping without writing", job_id, e)
         _drop_staging(jc)
     except JobCancelled:
-        if finish_attempt(ctx, job_id, attempt, status="cancelled", message="cancelled",
+        if finish_attempt(ctx.sessions, job_id, attempt, status="cancelled", message="cancelled",
                    log_line="cancelled"):
             _on_failure(jc, "cancelled")
         _drop_staging(jc)
     except (PipelineMissing, OccuflyError) as e:
-        if finish_attempt(ctx, job_id, attempt, status="failed", message=str(e)[:500],
+        if finish_attempt(ctx.sessions, job_id, attempt, status="failed", message=str(e)[:500],
                    log_line=f"failed: {e}"):
             _on_failure(jc, str(e))
         _drop_staging(jc)
     except Exception as e:  # a bug: keep the traceback in the job log
         log.exception("job %s (%s) crashed", job_id, jc.kind)
         tb = traceback.format_exc(limit=8)
-        if finish_attempt(ctx, job_id, attempt, status="failed",
+        if finish_attempt(ctx.sessions, job_id, attempt, status="failed",
                           message=f"internal error: {type(e).__name__}: {e}"[:500], log_line=tb):
             _on_failure(jc, str(e))
         _drop_staging(jc)
     else:
-        if finish_attempt(ctx, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
+        if finish_attempt(ctx.sessions, job_id, attempt, outputs=jc.outputs, status="done", progress=1.0,
                           message="done", result=jsonable(result or {}), log_line="done"):
             _after_done(ctx, jc, record)
 

@@ -8,8 +8,8 @@
   crash. Several workers share the scenes on PostgreSQL (advisory locks, one owner per scene).
 - :mod:`app.lifting.client` -- :class:`LiftingClient` (``ctx.lifting`` in every API process):
   enqueue, wake, status from the database, read-only views of the votes.
-- :mod:`app.lifting.events` -- :class:`EventBus`: PostgreSQL ``LISTEN/NOTIFY`` + the ``events``
-  table (SQLite: the table, polled).
+- events go through :mod:`app.events` (the bus and the catalogue of every event); the lifting
+  service publishes ``labels_updated`` and ``votes_applied``.
 - :mod:`app.lifting.worker` -- ``occufly lifting-worker`` / ``python -m app.lifting``: the
   service as its own process.
 """

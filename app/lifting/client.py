@@ -11,20 +11,22 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select, text
 
 from app.db import utcnow
-from app.lifting.events import LIFT_CHANNEL
+from app.events import LIFT_CHANNEL
 from app.lifting.models import LiftQueueEntry, LiftStatus
 from app.lifting.service import LiftingBusy, LiftingService
 from occufly.errors import WorkspaceError
 from occufly.lifting import LiftState
 
 if TYPE_CHECKING:
-    from app.context import AppContext
-    from app.lifting.service import LiftingService
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from occufly.scene import Scene
 
 log = logging.getLogger("occufly.lifting")
 
@@ -32,16 +34,18 @@ MODES = ("embedded", "external", "off")
 
 
 class LiftingClient:
-    def __init__(self, ctx_getter, *, mode: str = "embedded") -> None:  # noqa: ANN001
+    def __init__(self, *, sessions: sessionmaker[Session], load_scene: Callable[[str], Scene],
+                 make_service: Callable[[], LiftingService], mode: str = "embedded") -> None:
+        """sessions: the database; load_scene: the process's scene cache; make_service: builds
+        the lifting service this process runs in embedded mode (the composition root's
+        :func:`app.bootstrap.build_lifting_service`)."""
         if mode not in MODES:
             raise ValueError(f"lifting mode must be one of {MODES}, got {mode!r}")
-        self._ctx_getter = ctx_getter
+        self.sessions = sessions
+        self.load_scene = load_scene
+        self.make_service = make_service
         self.mode = mode
         self.service: LiftingService | None = None
-
-    @property
-    def ctx(self) -> AppContext:
-        return self._ctx_getter()
 
     @property
     def enabled(self) -> bool:
@@ -54,7 +58,7 @@ class LiftingClient:
         if self.mode != "embedded" or self.service is not None:
             return
 
-        svc = LiftingService(self.ctx, self.ctx.events)
+        svc = self.make_service()
         try:
             svc.acquire()
         except LiftingBusy as e:
@@ -94,7 +98,7 @@ class LiftingClient:
 
     # ---- status -----------------------------------------------------------------------------
     def status(self, scene_id: int) -> dict:
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             pending = s.scalar(select(func.count()).select_from(LiftQueueEntry).where(
                 LiftQueueEntry.scene_id == scene_id, LiftQueueEntry.status == "pending")) or 0
             row = s.get(LiftStatus, scene_id)
@@ -129,7 +133,7 @@ class LiftingClient:
     # ---- read-only views of the votes -------------------------------------------------------
     def state_for(self, scene_id: int, workspace: str):  # noqa: ARG002
         """The scene's vote state opened read-only, or None (no state yet / mid-update)."""
-        scene = self.ctx.load_scene(str(workspace))
+        scene = self.load_scene(str(workspace))
         for _ in range(20):  # an update in progress marks the state dirty for milliseconds
             try:
                 return LiftState.open(workspace, scene, read_only=True)

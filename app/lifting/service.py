@@ -33,7 +33,7 @@ busy scene is not starved) on a snapshot of the vote majority, so votes go on me
 scene's ``lift_status.fill_state`` is ``due``/``running`` until the labels are written, so a
 worker killed in the middle of a fill reruns it on restart (or on the worker that takes the
 scene over); the fill is deterministic, so the labels end identical to an uninterrupted run.
-Each fill publishes ``labels_updated(scene, stamp, seq)`` once (:mod:`app.lifting.events`);
+Each fill publishes ``labels_updated(scene, stamp, seq)`` once (:mod:`app.events`);
 the review agreement of submitted/reviewed frames is refreshed by a subscriber of that event
 in the worker owning the scene.
 
@@ -61,16 +61,25 @@ from sqlalchemy import func, select, update
 
 from app.annotations.models import MaskVersion
 from app.db import utcnow
-from app.lifting.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
+from app.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
-from app.review.service import refresh_agreement
 from app.scenes.models import Scene
 from occufly.errors import OccuflyError
 from occufly.lifting.incremental import IncrementalFill
 from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
-    from app.context import AppContext
+    from collections.abc import Callable
+
+    from sqlalchemy.engine import Engine
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from app.config import Settings
+    from app.storage import BlobStore
+    from occufly.scene import Scene as WorkspaceScene
+
+    # a subscriber of the scenes this worker owns: (event, the service's stop event)
+    OwnedSubscriber = Callable[[Message, threading.Event], None]
 
 log = logging.getLogger("occufly.lifting")
 
@@ -202,12 +211,22 @@ class LiftingService:
     TAKEOVER_S = 5.0  # a scene waiting this long is taken by any worker, not only its own
     MAX_WAIT_DEBOUNCES = 3  # a fill waits at most this many debounces after the first change
 
-    def __init__(self, ctx: AppContext, bus: EventBus, *, debounce_s: float | None = None,
-                 poll_s: float = 0.5, batch: int = 256,
+    def __init__(self, *, settings: Settings, engine: Engine, sessions: sessionmaker[Session],
+                 store: BlobStore, load_scene: Callable[[str], WorkspaceScene], bus: EventBus,
+                 on_owned_labels: tuple[OwnedSubscriber, ...] = (),
+                 debounce_s: float | None = None, poll_s: float = 0.5, batch: int = 256,
                  decode_threads: int | None = None) -> None:
-        self.ctx = ctx
+        """on_owned_labels: ``labels_updated`` subscribers for the scenes this worker owns
+        (the composition root's; e.g. the review's agreement refresh), called with the event
+        and this service's stop event."""
+        self.settings = settings
+        self.engine = engine
+        self.sessions = sessions
+        self.store = store
+        self.load_scene = load_scene
         self.bus = bus
-        self.debounce_s = ctx.settings.fill_debounce_s if debounce_s is None else debounce_s
+        self.on_owned_labels = tuple(on_owned_labels)
+        self.debounce_s = settings.fill_debounce_s if debounce_s is None else debounce_s
         self.poll_s = poll_s
         self.batch = batch
         self._scenes: dict[int, _Scene] = {}
@@ -238,12 +257,12 @@ class LiftingService:
         :class:`LiftingBusy` (one worker per data directory, on one host)."""
         if self.distributed:
             if self._pg is None:
-                self._pg = PgLocks(self.ctx.engine, self.name)
+                self._pg = PgLocks(self.engine, self.name)
                 slot = self._pg.connect()
                 log.info("lifting worker %s: PostgreSQL advisory locks, slot %s", self.name, slot)
             return
 
-        path = Path(self.ctx.settings.data_dir) / LOCK_NAME
+        path = Path(self.settings.data_dir) / LOCK_NAME
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
@@ -263,7 +282,8 @@ class LiftingService:
         if self._lock_fd is None and self._pg is None:
             self.acquire()
         self._pool = ThreadPoolExecutor(self.decode_threads, thread_name_prefix="occufly-decode")
-        self.bus.subscribe("labels_updated", self._refresh_agreement)
+        for fn in self.on_owned_labels:
+            self.bus.subscribe("labels_updated", self._owned_only(fn))
         if not self.distributed:
             self._recover()
         t = threading.Thread(target=self._vote_loop, name="occufly-lift-votes", daemon=True)
@@ -271,7 +291,7 @@ class LiftingService:
         self._threads.append(t)
         if self.bus.is_postgres:
             t = threading.Thread(target=listen, name="occufly-lift-listen", daemon=True,
-                                 args=(self.ctx.engine, (LIFT_CHANNEL,)),
+                                 args=(self.engine, (LIFT_CHANNEL,)),
                                  kwargs=dict(stop=self._stop, on_wake=self._wake.set,
                                              timeout_s=self.poll_s))
             t.start()
@@ -336,7 +356,7 @@ class LiftingService:
     # ---- recovery ---------------------------------------------------------------------------
     def _recover(self) -> None:
         """SQLite (this worker owns every scene): recover each scene with a status row."""
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             sids = list(s.scalars(select(LiftStatus.scene_id)))
         for sid in sids:
             self._recover_scene(sid)
@@ -344,7 +364,7 @@ class LiftingService:
     def _recover_scene(self, sid: int) -> None:
         """A scene whose fill was due or running when its last owner stopped fills again; so
         does a scene whose stored labels count other versions than the votes."""
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             row = s.execute(select(LiftStatus.fill_state, Scene.workspace)
                             .join(Scene, Scene.id == LiftStatus.scene_id)
                             .where(LiftStatus.scene_id == sid)).first()
@@ -385,7 +405,7 @@ class LiftingService:
             pg.connect()
         slots = pg.live_slots()
         now = utcnow()
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             waiting = dict(s.execute(select(LiftQueueEntry.scene_id,
                                             func.min(LiftQueueEntry.created_at))
                                      .where(LiftQueueEntry.status == "pending")
@@ -466,7 +486,7 @@ class LiftingService:
             q = q.where(LiftQueueEntry.scene_id.in_(sorted(owned)))
         if waiting:  # a scene that just failed must not hold up the others
             q = q.where(LiftQueueEntry.scene_id.not_in(waiting))
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             rows = s.execute(q.order_by(LiftQueueEntry.id).limit(self.batch)).all()
             newest_pending = {}
             if len(rows) == self.batch:  # entries beyond the batch may supersede some in it
@@ -489,7 +509,7 @@ class LiftingService:
                 log.exception("lifting: scene %s; retrying in %.0f s", sid, self.RETRY_S)
                 self._backoff[sid] = time.monotonic() + self.RETRY_S
                 try:
-                    with self.ctx.sessions() as s:
+                    with self.sessions() as s:
                         self._set_status(s, sid, last_error=f"{type(e).__name__}: {e}")
                         s.commit()
                 except Exception:  # noqa: BLE001 - the database itself is away
@@ -534,7 +554,7 @@ class LiftingService:
                     outcome[r.id] = ("failed", str(e)[:500])
                 finally:
                     submit(i + window)
-            with self.ctx.sessions() as s:
+            with self.sessions() as s:
                 now = utcnow()
                 seq = s.scalar(select(func.max(LiftQueueEntry.applied_seq)).where(
                     LiftQueueEntry.scene_id == scene_id)) or 0
@@ -576,7 +596,7 @@ class LiftingService:
         if mask is None:
             from app.pipeline import stored_mask_ids
 
-            mask = stored_mask_ids(self.ctx.store.get(r.sha256), state.scene.taxonomy)
+            mask = stored_mask_ids(self.store.get(r.sha256), state.scene.taxonomy)
         return state.frame_votes(fi, mask, name=f"mask version {r.version_id}")
 
     def _apply_entry(self, sc: _Scene, r, votes=None) -> bool:  # noqa: ANN001
@@ -608,7 +628,7 @@ class LiftingService:
                 sc.closed = True
             from occufly.lifting import LiftState
 
-            state = LiftState.open(Path(workspace), self.ctx.load_scene(str(workspace)))
+            state = LiftState.open(Path(workspace), self.load_scene(str(workspace)))
             sc = _Scene(scene_id, str(workspace), state)
             sc.thread = threading.Thread(target=self._fill_loop, args=(sc,), daemon=True,
                                          name=f"occufly-fill-{scene_id}")
@@ -648,7 +668,7 @@ class LiftingService:
             self._cv.notify_all()
 
     def _fill_loop(self, sc: _Scene) -> None:
-        _lower_priority(self.ctx.settings.fill_nice)
+        _lower_priority(self.settings.fill_nice)
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
                 while not self._stop.is_set() and not sc.closed and (
@@ -662,7 +682,7 @@ class LiftingService:
                 sc.filling = True
             error = None
             try:
-                with self.ctx.sessions() as s:
+                with self.sessions() as s:
                     self._set_status(s, sc.scene_id, fill_state="running")
                     s.commit()
                 self._fill(sc)
@@ -674,7 +694,7 @@ class LiftingService:
                     sc.filling = False
                     again = sc.fill_due is not None
                 try:
-                    with self.ctx.sessions() as s:
+                    with self.sessions() as s:
                         self._set_status(s, sc.scene_id, fill_state="due" if again else "idle",
                                          last_error=error)
                         s.commit()
@@ -698,7 +718,7 @@ class LiftingService:
                  f"{inc.get('region_points')} in context" if inc.get("incremental") else "full")
         sc.fills += 1
         stamp = Workspace(sc.workspace).stamp()
-        with self.ctx.sessions() as s:
+        with self.sessions() as s:
             self._set_status(s, sc.scene_id, labels_stamp=stamp, bump_fills=True)
             s.commit()
         self.bus.publish("labels_updated", sc.scene_id, stamp=stamp,
@@ -706,22 +726,17 @@ class LiftingService:
                          fills=sc.fills, seq=seq, applied_by=self.name)
 
     # ---- subscribers ------------------------------------------------------------------------
-    MAX_AGREEMENT_FRAMES = 200
+    def _owned_only(self, fn: OwnedSubscriber) -> Callable[[Message], None]:
+        """``fn`` for the scenes this worker owns (every worker gets every event; the one
+        owning the scene acts), handed this service's stop event; best effort."""
 
-    def _refresh_agreement(self, msg: Message) -> None:
-        """Recompute the stored per-frame agreement (the frame list's disagreement sort) of
-        submitted/reviewed frames against the new labels, and leave the review list's top
-        frames computed in the review cache (:func:`app.review.service.refresh_agreement`);
-        best effort."""
-        from app.scenes.models import Scene
-
-        owned = self.owned()
-        if owned is not None and msg.scene_id not in owned:
-            return  # the worker owning the scene refreshes it
-        with self.ctx.sessions() as s:
-            scene = s.get(Scene, msg.scene_id)
-            if scene is None:
+        def on_event(msg: Message) -> None:
+            owned = self.owned()
+            if msg.scene_id is None or (owned is not None and msg.scene_id not in owned):
                 return
-            # the list's top frames last, left computed in the review cache (issue 40)
-            refresh_agreement(self.ctx, s, scene, limit=self.MAX_AGREEMENT_FRAMES,
-                              stop=self._stop, log=log)
+            try:
+                fn(msg, self._stop)
+            except Exception:  # noqa: BLE001 - a subscriber never stops the lifting
+                log.warning("labels_updated subscriber %s failed", fn, exc_info=True)
+
+        return on_event

@@ -13,9 +13,9 @@ import os
 import sys
 
 from app import db
-from app.bootstrap import build_context
+from app.bootstrap import build_context, build_lifting_service
 from app.config import Settings
-from app.lifting.service import LiftingBusy, LiftingService
+from app.lifting.service import LiftingBusy
 from occufly.errors import OccuflyError
 
 
@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
     if settings.auto_upgrade:
         db.upgrade(settings.database_url)
     ctx = build_context(settings, lifting="external", jobs=False)
-    svc = LiftingService(ctx, ctx.events)
+    svc = build_lifting_service(ctx)
     try:
         svc.acquire()
     except LiftingBusy as e:

@@ -20,9 +20,10 @@ from app.annotations import service as annotations
 from app.annotations.models import MaskVersion
 from app.context import AppContext
 from app.db import utcnow
-from app.deps import check_member
 from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.notifications.service import notify_frame_people
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
+from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.lifting import LiftState
@@ -522,8 +523,6 @@ def decide(*, session: Session, ctx: AppContext, frame: Frame, user: User, decis
         session.add(ReviewComment(item_id=item.id, author_id=user.id,
                                   text=f"[{decision}] {comment}"))
     if decision == "reject":  # the annotator learns of it (issue 25: notifications)
-        from app.corrections.service import notify_frame_people
-
         notify_frame_people(session, frame=frame, actor=user, kind="rejected",
                             text=f"{user.username} rejected {frame.name}"
                                  + (f": {comment}" if comment else ""))
@@ -566,8 +565,6 @@ def undo_decision(*, session: Session, ctx: AppContext, frame: Frame, user: User
         .execution_options(synchronize_session=False))
     annotations.set_voting(session=session, ctx=ctx, frame=frame, version_id=version)
     if decision == "reject":
-        from app.corrections.service import notify_frame_people
-
         notify_frame_people(session, frame=frame, actor=user, kind="rejected",
                             text=f"{user.username} withdrew the rejection of {frame.name}: "
                                  "it waits for review again")
@@ -619,8 +616,6 @@ def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | N
     session.flush()
     session.add(ReviewComment(item_id=item.id, author_id=user.id, text=comment))
     if frame_id is not None:  # the frame's annotator is told (issue 25: notifications)
-        from app.corrections.service import notify_frame_people
-
         fr = session.get(Frame, frame_id)
         notify_frame_people(session, frame=fr, actor=user, kind="comment", item_id=item.id,
                             text=f"{user.username} commented on {fr.name}: {comment[:200]}")
@@ -696,8 +691,6 @@ def add_comment(*, session: Session, item: ReviewItem, user: User, text: str) ->
     session.add(ReviewComment(item_id=item.id, author_id=user.id, text=text))
     frame = session.get(Frame, item.frame_id) if item.frame_id else None
     if frame is not None:  # the frame's annotator is told (issue 25: notifications)
-        from app.corrections.service import notify_frame_people
-
         notify_frame_people(session, frame=frame, actor=user, kind="comment", item_id=item.id,
                             text=f"{user.username} commented on {frame.name}: {text[:200]}")
     session.commit()

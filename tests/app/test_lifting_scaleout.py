@@ -61,7 +61,9 @@ def test_versions_superseded_beyond_the_batch_are_never_decoded(env):
                        content=png(np.full((H, W), 1, np.uint8)),
                        headers={**ann2, "If-Match": "none"})
     assert r.status_code == 200, r.text
-    svc = LiftingService(ctx, ctx.events, batch=2)  # batches: [a1, a2], [a3, b1]
+    svc = LiftingService(settings=ctx.settings, engine=ctx.engine, sessions=ctx.sessions,
+                         store=ctx.store, load_scene=ctx.load_scene, bus=ctx.events,
+                         batch=2)  # batches: [a1, a2], [a3, b1]
     decoded = []
     real = svc._votes_of  # noqa: SLF001
 

@@ -145,11 +145,12 @@ def test_a_broken_scene_does_not_hold_up_the_others(env):
 def test_sqlite_refuses_a_second_worker_postgresql_gives_it_a_slot(env):
     """SQLite keeps the single-host rule (a lock file in the data directory); on PostgreSQL
     a second worker takes another advisory-lock slot and shares the scenes."""
-    from app.lifting.service import LiftingBusy, LiftingService
+    from app.bootstrap import build_lifting_service
+    from app.lifting.service import LiftingBusy
 
     ctx = env.app.state.ctx
     assert ctx.lifting.service is not None  # the embedded worker holds the lock
-    other = LiftingService(ctx, ctx.events)
+    other = build_lifting_service(ctx)
     if env.backend == "sqlite":
         with pytest.raises(LiftingBusy, match="one lifting worker per data directory"):
             other.acquire()
@@ -167,7 +168,7 @@ def test_sqlite_refuses_a_second_worker_postgresql_gives_it_a_slot(env):
 def test_events_reach_other_processes_once(env):
     """Two buses over one database stand for two processes."""
     from app import db
-    from app.lifting.events import EventBus
+    from app.events import EventBus
 
     ctx = env.app.state.ctx
     engine = db.make_engine(env.settings.database_url)
@@ -178,7 +179,7 @@ def test_events_reach_other_processes_once(env):
     other.subscribe("grid_updated", lambda m: there.append(m))
     t0 = time.monotonic()
     ctx.events.publish("labels_updated", 7, stamp="abc")
-    ctx.events.publish("unrelated", 7)
+    ctx.events.publish("votes_applied", 7)  # a kind neither subscribes to
     while not there and time.monotonic() - t0 < 5:
         time.sleep(0.02)
     latency = time.monotonic() - t0
@@ -245,13 +246,13 @@ def test_a_stale_job_attempt_cannot_write_the_row_or_the_output(env, tmp_path):
         a1.log("orphan line")
     out1.mkdir(parents=True, exist_ok=True)  # the orphan recreates its staging folder
     (out1 / "frame.txt").write_text("orphan")
-    assert not finish_attempt(ctx, jid, a1.attempt, outputs=a1.outputs, status="done", message="done")
+    assert not finish_attempt(ctx.sessions, jid, a1.attempt, outputs=a1.outputs, status="done", message="done")
     assert not final.exists() and not out1.exists()
     with ctx.sessions() as s:
         j = s.get(Job, jid)
         assert (j.status, j.attempts) == ("running", 2) and "orphan" not in (j.log or "")
     a2.progress(0.5, "attempt 2 half way")
-    assert finish_attempt(ctx, jid, a2.attempt, outputs=a2.outputs, status="done", message="done")
+    assert finish_attempt(ctx.sessions, jid, a2.attempt, outputs=a2.outputs, status="done", message="done")
     assert (final / "frame.txt").read_text() == "attempt 2" and not out2.exists()
     with ctx.sessions() as s:
         assert s.get(Job, jid).status == "done"

@@ -141,3 +141,81 @@ def test_selection_reports_the_cell_lattice_it_used():
     occ = {tuple(c) for c in res["occupied_cells"]}
     ij = np.minimum(((pts - pts.min(axis=0)) / 25.0).astype(int), 2)
     assert occ == {tuple(c) for c in ij.tolist()} and len(occ) == res["cells"] == 9
+
+
+# ---- next best frames (occufly.lifting.nextbest, `occufly select --next K`, issue 37) ------
+def _voted_workspace(tmp_path, *, contested: bool):
+    """Ten cameras over a 75 m square, each seeing 20 m around itself (uv all 0, so a constant
+    mask votes its class for every point the frame sees). Frames 0-5 are annotated: grass
+    everywhere, except -- with ``contested`` -- frame 1 says road: the points only frames 0
+    and 1 see are a 1:1 tie. Labels = the vote majority, confidence 0.95."""
+    from occufly.lifting import LiftState
+    from occufly.lifting.result import LiftResult, save_result
+    from occufly.taxonomy import default_taxonomy
+
+    tax = default_taxonomy()
+    ids = {c.name: c.id for c in tax.classes}
+    cams = [(10, 10), (30, 10), (60, 10), (10, 60), (60, 60), (37, 37),
+            (20, 10), (65, 40), (40, 65), (5, 35)]
+    sc = _scene(cams, [50] * len(cams))
+    sc.taxonomy = tax
+    ws = tmp_path / "ws"
+    sc.save(ws)
+    scene = Scene.load(ws)
+    st = LiftState.open(ws, scene)
+    for f in range(6):
+        cls = "road" if (contested and f == 1) else "grass"
+        st.apply_frame(f, np.full((100, 100), ids[cls], np.uint8), version="v1")
+    direct = st.direct_labels()
+    save_result(ws, LiftResult(direct, np.full(len(direct), 0.95, np.float32),
+                               (direct > 0).astype(np.uint8)))
+    st.close()
+    return ws, scene, ids
+
+
+def test_next_frames_see_the_contested_region_and_never_repeat(tmp_path):
+    from occufly.lifting import LiftState, load_labels
+    from occufly.lifting.nextbest import propose_next
+
+    ws, scene, ids = _voted_workspace(tmp_path, contested=True)
+    st = LiftState.open(ws, scene, read_only=True)
+    lab = load_labels(ws)
+    votes = np.asarray(st.votes)
+    total = votes.sum(axis=1)
+    tied = np.flatnonzero((total == 2) & (votes.max(axis=1) == 1))
+    assert len(tied) > 50  # the region frames 0 and 1 disagree on
+    res = propose_next(scene, st.votes, lab.labels, lab.confidence, 4,
+                       annotated=set(st.included_versions()))
+    assert res.frames and res.contested >= len(tied)
+    # the first proposal sees the contested region (frame 6 sits between frames 0 and 1)
+    first = set(scene.visibility.frame(res.frames[0])[0].tolist())
+    assert res.frames[0] == 6 and len(first & set(tied.tolist())) > 0.5 * len(tied)
+    assert res.reasons[0]["contested_points"] > 0 and "grass" in res.reasons[0]["classes"]
+    # no frame proposed twice, none of the annotated ones; asking for all gives each once
+    every = propose_next(scene, st.votes, lab.labels, lab.confidence, 50,
+                         annotated=set(st.included_versions()))
+    assert len(every.frames) == len(set(every.frames))
+    assert not set(every.frames) & set(range(6))
+
+
+def test_next_frames_cli_writes_the_proposal_and_exits_2_when_nothing_is_contested(tmp_path, capsys):
+    import json
+
+    from occufly.cli import main
+
+    ws, _, _ = _voted_workspace(tmp_path / "a", contested=True)
+    assert main(["select", str(ws), "--next", "2", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["frames"][0] == 6 and len(out["frames"]) == 2
+    assert json.loads((ws / "next_frames.json").read_text())["frames"] == out["frames"]
+    ws2, _, _ = _voted_workspace(tmp_path / "b", contested=False)
+    assert main(["select", str(ws2), "--next", "2", "--json"]) == 2
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["frames"] == []
+    assert "nothing is contested or uncertain" in cap.err
+    assert not (ws2 / "next_frames.json").exists()
+    # a workspace without votes is a clear error, not a traceback
+    bare = tmp_path / "c" / "ws"
+    _scene([(10, 10)], [50]).save(bare)
+    assert main(["select", str(bare), "--next", "1"]) == 2
+    assert "no votes yet" in capsys.readouterr().err

@@ -5,16 +5,18 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from occufly.cli import command
+from occufly.cli import command, emit
 from occufly.errors import InputFormatError, MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_text
 from occufly.io.masks import read_mask
 from occufly.io.pointcloud_export import export_scene_points
 from occufly.lifting import LiftParams, LiftState, load_labels
+from occufly.lifting.nextbest import propose_next
 from occufly.lifting.quality import quality_report, summary_text, workspace_truth
 from occufly.metrics import evaluate_points
 from occufly.progress import tqdm_progress
@@ -48,6 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="keep frames the target coverage does not need (greedy modes)")
     p.add_argument("--target-coverage", type=float, default=0.99, help="greedy target rho")
     p.add_argument("--altitude", type=int, help="only frames at this nominal altitude (m)")
+    p.add_argument("--next", type=int, metavar="K",
+                   help="on a workspace with votes and lifted labels: propose the K frames "
+                        "without a mask whose masks would most settle the contested and "
+                        "uncertain labels, each with why (writes next_frames.json; exits 2 "
+                        "when nothing is contested)")
 
     p = command(sub, "lift", _lift, help="lift masks (DIR/<image stem>.png) into point labels")
     p.add_argument("workspace", type=Path)
@@ -107,7 +114,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # ---- select ------------------------------------------------------------------------------
-def _select(args: argparse.Namespace) -> dict:
+def _select(args: argparse.Namespace) -> dict | int:
+    if args.next is not None:
+        return _select_next(args)
     scene = Scene.load(args.workspace)
     res = select_frames(scene, cell=args.cell, mode=args.mode,
                         target_coverage=args.target_coverage, altitude=args.altitude,
@@ -115,6 +124,31 @@ def _select(args: argparse.Namespace) -> dict:
     out = res.to_dict()
     atomic_write_text(args.workspace / "selection.json", json.dumps(out, indent=1))
     out["written"] = str(args.workspace / "selection.json")
+    return out
+
+
+def _select_next(args: argparse.Namespace) -> dict | int:
+    if args.next < 1:
+        raise InputFormatError(f"--next: expected a number of frames >= 1, got {args.next}")
+    ws = Workspace(args.workspace)
+    if not ws.lifting_state.is_file():
+        raise WorkspaceError(f"{args.workspace}: no votes yet: lift a first round of masks "
+                             "(occufly lift) before asking for the next frames")
+    lifted = load_labels(args.workspace)
+    if lifted is None:
+        raise WorkspaceError(f"{args.workspace}: votes but no lifted labels: run occufly lift "
+                             "(without --no-fill) first")
+    scene = Scene.load(args.workspace)
+    st = LiftState.open(args.workspace, scene, read_only=True)
+    res = propose_next(scene, st.votes, lifted.labels, lifted.confidence, args.next,
+                       annotated=set(st.included_versions()))
+    out = res.to_dict()
+    if not res.frames:
+        emit(out, getattr(args, "json", False))
+        print(f"occufly select --next: {res.message}", file=sys.stderr)
+        return 2
+    atomic_write_text(args.workspace / "next_frames.json", json.dumps(out, indent=1))
+    out["written"] = str(args.workspace / "next_frames.json")
     return out
 
 

@@ -48,6 +48,7 @@ from scipy import ndimage
 from occufly.errors import MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_bytes, atomic_write_text
 from occufly.io.masks import mask_scale, validate_ids
+from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import LiftParams
@@ -582,11 +583,6 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     After a robust decision the fill's confirmation rule counts ``RobustParams.confirm_views``
     (default 1) instead of ``LiftParams.confirm_views``: its margin is a posterior margin, and
     a tiny object seen by two or three views rarely has two votes for itself."""
-    # looked up on the package at call time, so that a test (or a profiler) patching
-    # ``occufly.lifting.fill_and_denoise`` sees every fill, whichever entry point ran it; kept
-    # in the function: the package imports this module (a module-level import is a cycle)
-    import occufly.lifting as pkg
-
 
     p = params or LiftParams()
     report = progress or noop
@@ -621,7 +617,9 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
         result = incremental.fill(direct, params=p, vote_margin=margin, vote_top=top,
                                   progress=fill_progress)
     else:
-        result = pkg.fill_and_denoise(
+        # looked up on the module at call time: a test (or a profiler) patching
+        # ``occufly.lifting.knn.fill_and_denoise`` sees every fill, whichever entry point ran it
+        result = knn.fill_and_denoise(
             np.asarray(scene.xyz), direct, scene.taxonomy, params=p,
             vote_margin=margin, vote_top=top, progress=fill_progress)
     result.stats.update(robust_stats)

@@ -253,6 +253,108 @@ def robustness(args: argparse.Namespace) -> dict:
     return out
 
 
+def _noisy(args: argparse.Namespace, masks: dict, tax) -> dict:  # noqa: ANN001
+    """``masks`` as the noise model ``--curve-noise`` paints them (per-frame seeds: a frame
+    is painted the same whichever set it is painted in)."""
+    from occufly.synthetic.degrade import degrade_masks
+    from occufly.synthetic.noise import crew_masks
+
+    if args.curve_noise == "exact":
+        return dict(masks)
+    if args.curve_noise == "crew":
+        return crew_masks(masks, tax, seed=args.seed)[0]
+    return degrade_masks(masks, tax, seed=args.seed)
+
+
+def curve(args: argparse.Namespace) -> dict:
+    """Next best frames (issue 37): after the greedy frames' (noisy) masks are lifted, add up
+    to ``--curve-share`` more frames (noisy too) chosen by the proposal
+    (:func:`occufly.lifting.nextbest.propose_next`), at random, or as the coverage-greedy order
+    goes on past rho 0.99; point accuracy / mIoU after each step, beside the exact-mask figure
+    of the greedy frames."""
+    import math
+
+    from occufly.lifting.nextbest import propose_next
+    from occufly.selection import candidate_frames, greedy
+
+    syn = args.synthetic
+    scene = Scene.load(args.ws)
+    tax = scene.taxonomy
+    truth = np.load(syn / "truth" / "point_labels.npy")
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    n_add = max(1, math.floor(args.curve_share * len(scene.frames)))
+    steps = sorted({max(1, n_add // 4), max(1, n_add // 2), n_add})
+
+    def mask(i):
+        return read_mask(syn / "truth" / "masks" / f"{scene.frames[i].stem}.png",
+                         scene.frames[i], tax)
+
+    def lift(st) -> tuple:  # noqa: ANN001
+        res = st.fill_and_denoise(write=False, params=LiftParams())
+        ev = evaluate_points(res.labels, truth, tax, res.origin)
+        return res, {"accuracy": round(ev["accuracy"], 4), "miou": round(ev["miou"], 4)}
+
+    def state(name: str):  # noqa: ANN202
+        tmp = Path(args.cache) / f"curve-{name}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for f in ("scene.json", "taxonomy.json", "points", "visibility"):
+            (tmp / f).symlink_to(Path(args.ws) / f)
+        return LiftState.open(tmp, scene), tmp
+
+    out: dict = {"bench": "lifting-next-frames", "synthetic": str(syn), "seed": args.seed,
+                 "noise": args.curve_noise, "frames": len(scene.frames),
+                 "selected": len(sel.frames), "budget_frames": n_add,
+                 "budget_share": round(n_add / len(scene.frames), 4), "steps": steps}
+    exact = {f: mask(f) for f in sel.frames}
+    st, tmp = state("exact")
+    for f in sel.frames:
+        st.apply_frame(f, exact[f], version="exact")
+    out["exact_selected"] = lift(st)[1]
+    st.close()
+    shutil.rmtree(tmp, ignore_errors=True)
+    noisy = _noisy(args, exact, tax)
+    st, tmp = state("base")
+    for f in sel.frames:
+        st.apply_frame(f, noisy[f], version="noisy")
+    t = time.perf_counter()
+    base, out["noisy_selected"] = lift(st)
+    out["fill_seconds"] = round(time.perf_counter() - t, 1)
+    t = time.perf_counter()
+    prop = propose_next(scene, st.votes, base.labels, base.confidence, n_add,
+                        annotated=set(sel.frames))
+    out["propose_seconds"] = round(time.perf_counter() - t, 2)
+    out["proposal"] = {k: v for k, v in prop.to_dict().items() if k != "reasons"}
+    out["proposal_reasons"] = prop.reasons[:5]
+    st.close()
+    rest = np.setdiff1d(candidate_frames(scene, None), sel.frames)
+    rng = np.random.default_rng(args.seed + 1000)
+    added, _ = greedy(scene, candidate_frames(scene, None), list(sel.frames), 1.0)
+    orders = {"proposal": prop.frames,
+              "random": [int(f) for f in rng.permutation(rest)[:n_add]],
+              "coverage_greedy": [int(f) for f in added[:n_add]]}
+    out["orders"] = orders
+    for name, order in orders.items():
+        st, tmp = state(name)
+        for f in sel.frames:
+            st.apply_frame(f, noisy[f], version="noisy")
+        rows = [{"added": 0, **out["noisy_selected"]}]
+        done = 0
+        for s in steps:
+            if s > len(order):
+                break
+            more = {f: mask(f) for f in order[done:s]}
+            for f, m in _noisy(args, more, tax).items():
+                st.apply_frame(f, m, version="noisy")
+            done = s
+            rows.append({"added": s, **lift(st)[1]})
+            print(json.dumps({name: rows[-1]}), file=sys.stderr, flush=True)
+        out[name] = rows
+        st.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 # ---- the 20 MP vote update (issue 16 item 3) ----------------------------------------------------
 def _apply_reference(self, old: tuple, new: tuple) -> dict:
     """LiftState._apply before the incremental update (the baseline of --vote-update): a
@@ -405,6 +507,13 @@ def main() -> None:
     ap.add_argument("--noise", default="degraded",
                     help="robustness: comma list of noise models besides the exact masks: "
                          "degraded (occufly.synthetic.degrade), crew (occufly.synthetic.noise)")
+    ap.add_argument("--curve", action="store_true",
+                    help="next best frames: accuracy / mIoU against frames added after the "
+                         "greedy ones, for the proposal, random frames and the coverage-greedy "
+                         "order (needs --synthetic, --ws)")
+    ap.add_argument("--curve-share", type=float, default=0.02,
+                    help="curve: frames added, as a share of the scene's frames")
+    ap.add_argument("--curve-noise", default="degraded", choices=("exact", "degraded", "crew"))
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
@@ -428,6 +537,9 @@ def main() -> None:
         sys.exit(0 if out["identical"] else 1)
     if args.robustness:
         print(json.dumps(robustness(args), default=_json_default))
+        return
+    if args.curve:
+        print(json.dumps(curve(args), default=_json_default))
         return
     if args.quality:
         print(json.dumps(quality(args), default=_json_default))

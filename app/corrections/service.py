@@ -49,7 +49,7 @@ from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.notifications.service import notify
 from app.pipeline import encode_png, stored_mask_ids
 from app.review.models import ReviewItem
-from app.review.service import item_out
+from app.review.service import items_out
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
 from app.storage import claim_blob
@@ -594,7 +594,7 @@ def projected_items(*, session: Session, ctx: AppContext, frame: Frame, user: Us
     fids = np.asarray(fids, np.int64)
     order = np.argsort(fids)
     sorted_ids = fids[order]
-    out = []
+    seen = []  # (item, outline, visible points)
     for it in session.scalars(select(ReviewItem).where(
             ReviewItem.scene_id == frame.scene_id, ReviewItem.point_ids.is_not(None))
             .order_by(ReviewItem.id)):
@@ -606,12 +606,12 @@ def projected_items(*, session: Session, ctx: AppContext, frame: Frame, user: Us
         ok[ok] = sorted_ids[pos[ok]] == pts[ok]
         if not ok.any():
             continue
-        xy = np.asarray(uv, np.float64)[order[pos[ok]]]
-        d = item_out(session, it)
+        seen.append((it, _hull(np.asarray(uv, np.float64)[order[pos[ok]]]), int(ok.sum())))
+    out = items_out(session, [it for it, _o, _n in seen])
+    for d, (_it, outline, n) in zip(out, seen, strict=True):
         d.pop("point_ids", None)
-        d["outline"] = _hull(xy)
-        d["visible_points"] = int(ok.sum())
-        out.append(d)
+        d["outline"] = outline
+        d["visible_points"] = n
     return out
 
 

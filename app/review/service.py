@@ -671,7 +671,7 @@ def list_items(*, session: Session, scene: Scene, user: User, status: str | None
     if frame_id is not None:
         q = q.where(ReviewItem.frame_id == frame_id)
     items = list(session.scalars(q.order_by(ReviewItem.id)))
-    return [item_out(session, it) for it in items]
+    return items_out(session, items)
 
 
 def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
@@ -704,18 +704,36 @@ def set_status(*, session: Session, item: ReviewItem, status: str) -> ReviewItem
     return item
 
 
+def items_out(session: Session, items: list[ReviewItem]) -> list[dict]:
+    """The API's view of review items (:class:`app.review.schemas.ReviewItemOut`): their
+    comments in one query, the names of only the users who wrote them in another."""
+    ids = [it.id for it in items]
+    comments: dict[int, list[ReviewComment]] = {i: [] for i in ids}
+    if ids:
+        for c in session.scalars(select(ReviewComment).where(ReviewComment.item_id.in_(ids))
+                                 .order_by(ReviewComment.id)):
+            comments[c.item_id].append(c)
+    authors = {it.author_id for it in items} | {c.author_id for cs in comments.values() for c in cs}
+    authors.discard(None)
+    names = dict(session.execute(select(User.id, User.username).where(User.id.in_(authors))).all()
+                 ) if authors else {}
+    out = []
+    for item in items:
+        pts = item.point_ids or None
+        out.append(dict(
+            id=item.id, scene_id=item.scene_id, frame_id=item.frame_id,
+            pixel=[item.pixel_x, item.pixel_y] if item.pixel_x is not None else None,
+            point_ids=pts, n_points=len(pts or []), status=item.status,
+            author=names.get(item.author_id), created_at=item.created_at,
+            resolved_at=item.resolved_at,
+            comments=[dict(id=c.id, author=names.get(c.author_id), text=c.text,
+                           created_at=c.created_at) for c in comments[item.id]]))
+    return out
+
+
 def item_out(session: Session, item: ReviewItem) -> dict:
-    names = dict(session.execute(select(User.id, User.username)).all())
-    comments = list(session.scalars(select(ReviewComment).where(ReviewComment.item_id == item.id)
-                                    .order_by(ReviewComment.id)))
-    pts = item.point_ids or None
-    return dict(id=item.id, scene_id=item.scene_id, frame_id=item.frame_id,
-                pixel=[item.pixel_x, item.pixel_y] if item.pixel_x is not None else None,
-                point_ids=pts, n_points=len(pts or []), status=item.status,
-                author=names.get(item.author_id), created_at=item.created_at,
-                resolved_at=item.resolved_at,
-                comments=[dict(id=c.id, author=names.get(c.author_id), text=c.text,
-                               created_at=c.created_at) for c in comments])
+    """One review item as the API shows it (:func:`items_out`)."""
+    return items_out(session, [item])[0]
 
 
 def export_record(ctx: AppContext, scene_id: int, workspace) -> dict:  # noqa: ANN001

@@ -16,7 +16,7 @@ from occufly.fsutil import atomic_write_text
 from occufly.io.masks import read_mask
 from occufly.io.pointcloud_export import export_scene_points
 from occufly.lifting import LiftParams, LiftState, load_labels
-from occufly.lifting.nextbest import propose_next
+from occufly.lifting.nextbest import propose_for_workspace
 from occufly.lifting.quality import quality_report, summary_text, workspace_truth
 from occufly.metrics import evaluate_points
 from occufly.progress import tqdm_progress
@@ -130,18 +130,7 @@ def _select(args: argparse.Namespace) -> dict | int:
 def _select_next(args: argparse.Namespace) -> dict | int:
     if args.next < 1:
         raise InputFormatError(f"--next: expected a number of frames >= 1, got {args.next}")
-    ws = Workspace(args.workspace)
-    if not ws.lifting_state.is_file():
-        raise WorkspaceError(f"{args.workspace}: no votes yet: lift a first round of masks "
-                             "(occufly lift) before asking for the next frames")
-    lifted = load_labels(args.workspace)
-    if lifted is None:
-        raise WorkspaceError(f"{args.workspace}: votes but no lifted labels: run occufly lift "
-                             "(without --no-fill) first")
-    scene = Scene.load(args.workspace)
-    st = LiftState.open(args.workspace, scene, read_only=True)
-    res = propose_next(scene, st.votes, lifted.labels, lifted.confidence, args.next,
-                       annotated=set(st.included_versions()))
+    res = propose_for_workspace(args.workspace, args.next)
     out = res.to_dict()
     if not res.frames:
         emit(out, getattr(args, "json", False))

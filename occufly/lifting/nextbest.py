@@ -30,9 +30,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from occufly.errors import WorkspaceError
 from occufly.lifting.classes import ClassColumns
+from occufly.lifting.corrections import load_labels
 from occufly.lifting.suspects import SuspectParams, flag_points
+from occufly.lifting.votes import LiftState
+from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
+from occufly.workspace import Workspace
 
 
 @dataclass
@@ -182,3 +187,30 @@ def propose_next(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     msg = "" if frames else "no frame without a mask sees the contested or uncertain points"
     return NextFrames(frames, reasons, message=msg,
                       frame_names=[scene.frames[f].name for f in frames], **base)
+
+
+def propose_for_workspace(ws, k: int, *, scene: Scene | None = None,  # noqa: ANN001
+                          params: NextParams | None = None, progress: ProgressFn | None = None
+                          ) -> NextFrames:
+    """:func:`propose_next` on workspace ``ws``: its votes, its lifted labels and their
+    calibrated confidence, the frames whose masks are counted as annotated. Raises
+    :class:`WorkspaceError` (naming what is missing) without votes or lifted labels."""
+    report = progress or noop
+    if not Workspace(ws).lifting_state.is_file():
+        raise WorkspaceError(f"{ws}: no votes yet: lift a first round of masks before asking "
+                             "for the next frames")
+    lifted = load_labels(ws)
+    if lifted is None:
+        raise WorkspaceError(f"{ws}: votes but no lifted labels: let the fill run (occufly lift "
+                             "without --no-fill) first")
+    report(0.1, "reading votes")
+    scene = scene if scene is not None else Scene.load(ws)
+    st = LiftState.open(ws, scene, read_only=True)
+    try:
+        report(0.3, "weighing the frames")
+        res = propose_next(scene, st.votes, lifted.labels, lifted.confidence, k,
+                           annotated=set(st.included_versions()), params=params)
+    finally:
+        st.close()
+    report(1.0, f"{len(res.frames)} frames proposed")
+    return res

@@ -8,18 +8,45 @@ the previous process left ``running``/``queued`` is marked ``interrupted`` (resu
 
 from __future__ import annotations
 
+import inspect
 import logging
+import os
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+from sqlalchemy import select, text
 
-from app import db, errors
+from app import db, errors, security
+from app.annotations.confidence import router as confidence_router
+from app.annotations.models import MaskVersion
+from app.annotations.routes import router as annotations_router
+from app.annotations.smart import router as smart_router
+from app.audit.routes import router as audit_router
 from app.bodylimit import BodyLimitMiddleware
 from app.bootstrap import build_context
 from app.config import Settings
 from app.context import AppContext
+from app.corrections.routes import router as corrections_router
+from app.corrections.service import repair_all, viewer_hooks
+from app.deps import is_member, token_from
+from app.docs_offline import mount_docs, mount_site
 from app.jobs import service as jobs_service
+from app.jobs.archive import router as archive_router
+from app.jobs.routes import router as jobs_router
+from app.notifications.routes import router as notifications_router
+from app.pipeline import stored_mask_ids
+from app.review import service as review
+from app.review.routes import router as review_router
+from app.scenes.console import router as console_router
+from app.scenes.imports import router as imports_router
+from app.scenes.models import Frame, Scene
+from app.scenes.routes import router as scenes_router
 from app.scenes.storage import apply_export_retention
+from app.users import service as users
+from app.users.models import User
+from app.users.routes import router as users_router
+from occufly.parallel import die_with_parent
 
 log = logging.getLogger("occufly.app")
 
@@ -29,12 +56,8 @@ def app_from_env() -> FastAPI:
     each of ``occufly serve --workers N``'s processes runs). With ``OCCUFLY_DIE_WITH_PARENT``
     (set by ``serve --workers``) the process exits when that supervisor is gone, so no
     orphaned API process keeps serving after a ``kill -9``."""
-    import os
-
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT", "")
     if parent.isdigit():
-        from occufly.parallel import die_with_parent
-
         die_with_parent(int(parent))
     return create_app(Settings.from_env())
 
@@ -42,8 +65,6 @@ def app_from_env() -> FastAPI:
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    from app import security
-
     security.configure(time_cost=settings.argon2_time_cost, memory_kib=settings.argon2_memory_kib)
     if settings.auto_upgrade:
         db.upgrade(settings.database_url)
@@ -53,8 +74,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if interrupted:
         log.warning("jobs %s were interrupted by a server stop; resume them via the API",
                     interrupted)
-    from app.corrections.service import repair_all
-
     repair_all(ctx)  # a correction a kill -9 left half-written is applied entirely or not at all
     apply_export_retention(ctx)  # OCCUFLY_EXPORT_KEEP_LAST / _MAX_AGE_DAYS (0 = keep all)
     ctx.jobs.start()
@@ -76,20 +95,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, get_ctx=lambda: ctx)
     app.add_middleware(security.SecurityMiddleware, get_ctx=lambda: ctx)  # CSRF, headers
 
-    from app.annotations.confidence import router as confidence_router
-    from app.annotations.routes import router as annotations_router
-    from app.annotations.smart import router as smart_router
-    from app.audit.routes import router as audit_router
-    from app.corrections.routes import router as corrections_router
-    from app.jobs.archive import router as archive_router
-    from app.jobs.routes import router as jobs_router
-    from app.notifications.routes import router as notifications_router
-    from app.review.routes import router as review_router
-    from app.scenes.console import router as console_router
-    from app.scenes.imports import router as imports_router
-    from app.scenes.routes import router as scenes_router
-    from app.users.routes import router as users_router
-
     for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
               review_router, jobs_router, archive_router, audit_router, corrections_router,
               notifications_router, imports_router, console_router):  # the last two: issue 28's admin console
@@ -97,15 +102,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/api/health", tags=["meta"])
     def health() -> dict:
-        from sqlalchemy import text
-
         with ctx.sessions() as s:
             s.execute(text("SELECT 1"))
         return {"status": "ok", "database": ctx.engine.dialect.name}
 
     _mount_viewer(app, ctx)
-    from app.docs_offline import mount_docs, mount_site
-
     mount_docs(app)  # Swagger UI from the swagger-ui-bundle package, no CDN (issue 26)
     mount_site(app, lambda: ctx.settings.docs_site_dir)  # the documentation site (issue 40)
     _mount_frontend(app, settings)
@@ -126,15 +127,12 @@ def authorize_viewer(ctx: AppContext):
     """authorize(request_or_websocket) -> bool for the 3D viewer: a logged-in reviewer/admin,
     and for a reviewer the requested scene (``?scene=`` or the viewer's scene cookie) must be
     one they are a member of."""
-    from app.deps import is_member, token_from
-    from app.users import service
-
     def authorize(conn) -> bool:  # noqa: ANN001
         token = token_from(conn)
         if not token:
             return False
         with ctx.sessions() as s:
-            user = service.user_for_token(session=s, settings=ctx.settings, token=token)
+            user = users.user_for_token(session=s, settings=ctx.settings, token=token)
             if user is None or user.role not in ("reviewer", "admin"):
                 return False
             query = getattr(conn, "query_params", None) or {}
@@ -150,13 +148,6 @@ def authorize_viewer(ctx: AppContext):
 def viewer_callbacks(ctx: AppContext) -> dict:
     """The optional hooks of ``app.viewer.mount``: who is asking, which scenes, frame states,
     current masks, and filing review items from 3D (scene ids are ``str(scene.id)``)."""
-    from sqlalchemy import select
-
-    from app.deps import token_from
-    from app.review.service import make_viewer_callback
-    from app.scenes.models import Frame, Scene
-    from app.users import service as users
-
     def identify(conn):  # noqa: ANN001, ANN202
         token = token_from(conn)
         if not token:
@@ -178,9 +169,6 @@ def viewer_callbacks(ctx: AppContext) -> dict:
         return {i: viewer_state(sel, st) for i, sel, st in rows}
 
     def frame_mask(scene_id, frame_index):  # noqa: ANN001, ANN202
-        from app.annotations.models import MaskVersion
-        from app.pipeline import stored_mask_ids
-
         with ctx.sessions() as s:
             row = s.execute(select(MaskVersion.sha256, Scene.workspace).join(
                 Frame, Frame.current_version_id == MaskVersion.id).join(
@@ -198,8 +186,6 @@ def viewer_callbacks(ctx: AppContext) -> dict:
                                                       Frame.id == int(frame_id)))
 
     def suspect_points(scene_id, key):  # noqa: ANN001, ANN202 - ?suspect=<key> -> point ids
-        from app.review.service import suspect_points as points
-
         if not str(scene_id).isdigit() or len(str(scene_id)) >= 10:
             return None
         with ctx.sessions() as s:
@@ -207,15 +193,12 @@ def viewer_callbacks(ctx: AppContext) -> dict:
             if scene is None:
                 return None
             s.expunge(scene)
-        return points(ctx, scene, str(key))
+        return review.suspect_points(ctx, scene, str(key))
 
     def can_open(user, scene_id) -> bool:  # noqa: ANN001 - the dropdown of a reviewer
         """Whether ``user`` may see ``scene_id`` now: the user is read again (the ticket's
         copy is as old as the socket), so a demotion, deactivation or removal from the scene
         ends an open viewer's access (ViewerService re-checks every client 4 times a second)."""
-        from app.deps import is_member
-        from app.users.models import User
-
         uid = getattr(user, "id", None)
         if uid is None:
             return False
@@ -228,10 +211,9 @@ def viewer_callbacks(ctx: AppContext) -> dict:
             return str(scene_id).isdigit() and len(str(scene_id)) < 10 and \
                 is_member(s, fresh, int(scene_id))
 
-    from app.corrections.service import viewer_hooks
 
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
-            "frame_mask": frame_mask, "on_review_item": make_viewer_callback(ctx),
+            "frame_mask": frame_mask, "on_review_item": review.make_viewer_callback(ctx),
             "frame_index": frame_index, "suspect_points": suspect_points, "can_open": can_open,
             "corrections": viewer_hooks(ctx)}
 
@@ -244,7 +226,6 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     mount = getattr(viewer, "mount", None)
     if mount is None:
         return
-    import inspect
 
     hooks = viewer_callbacks(ctx)
     if ctx.events is not None:  # refresh open viewers on labels_updated / grid_updated
@@ -260,7 +241,6 @@ def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
 
 
 def _mount_frontend(app: FastAPI, settings: Settings) -> None:
-    from fastapi.staticfiles import StaticFiles
 
     if settings.frontend_dir.is_dir():
         app.mount("/", StaticFiles(directory=settings.frontend_dir, html=True), name="frontend")

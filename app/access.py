@@ -18,6 +18,7 @@ Levels:
 from __future__ import annotations
 
 from app.annotations import confidence, smart
+from app.annotations import routes as annotations
 from app.audit import routes as audit
 from app.corrections import routes as corrections
 from app.jobs import archive
@@ -35,7 +36,6 @@ ACCESS = {"GET /api/health": "public"}
 
 
 def table() -> dict[str, str]:
-    from app.annotations import routes as annotations
     merged: dict[str, str] = dict(ACCESS)
     for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
                 corrections, notifications, imports, console):

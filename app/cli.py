@@ -10,6 +10,7 @@ Settings come from ``OCCUFLY_*`` environment variables (see ``app/config.py``), 
 from __future__ import annotations
 
 import argparse
+import getpass
 import os
 import secrets
 import subprocess
@@ -203,7 +204,6 @@ def _db(args: argparse.Namespace) -> dict:
 
 
 def _users(args: argparse.Namespace) -> dict | list:
-    from app import db, security
     s = _settings()
     db.upgrade(s.database_url)
     security.configure(time_cost=s.argon2_time_cost, memory_kib=s.argon2_memory_kib)
@@ -239,7 +239,6 @@ def _password(args: argparse.Namespace) -> tuple[str, bool]:
     if os.environ.get("OCCUFLY_NEW_PASSWORD"):
         return os.environ["OCCUFLY_NEW_PASSWORD"], False
     if sys.stdin.isatty():
-        import getpass
 
         return getpass.getpass(f"password for {args.name}: "), False
     return secrets.token_urlsafe(12), True

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from sqlalchemy import select as sql_select
+from tqdm import tqdm
 
 from app.config import Settings
 from app.jobs import service as jobs
@@ -68,7 +69,6 @@ class DemoSteps:
             t0 = time.perf_counter()
             bar = None
             if self.stream is not None and self.tty:
-                from tqdm import tqdm
 
                 bar = tqdm(total=1000, desc=f"    {label}", file=self.stream, leave=False,
                            bar_format="{desc} {bar} {percentage:3.0f}% {elapsed}")

@@ -37,11 +37,14 @@ from collections.abc import Iterator
 
 import numpy as np
 from PIL import Image
+from scipy.ndimage import binary_closing, binary_dilation
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from app.annotations import service as annotations
 from app.annotations.models import MaskVersion
 from app.annotations.service import check_read
+from app.audit import service as audit
 from app.context import AppContext
 from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import utcnow
@@ -487,7 +490,6 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     change = np.zeros(mask.shape, bool)
     change[px] = True
     if dilate > 0:  # close the gaps between the projected points, then grow the region
-        from scipy.ndimage import binary_closing, binary_dilation
 
         change = binary_closing(change, iterations=2 * int(dilate)) | change
         change = binary_dilation(change, iterations=int(dilate))
@@ -539,7 +541,6 @@ def take(*, session: Session, ctx: AppContext, proposal: MaskProposal, user: Use
          expected: int | None) -> MaskProposal:
     """The frame's annotator takes a proposal: a new draft = the current mask with the
     proposal's changed pixels set to the proposal (lease and If-Match rules of any save)."""
-    from app.annotations import service as annotations
 
     if proposal.status != "open":
         raise Conflict(f"proposal {proposal.id} is {proposal.status}")
@@ -655,14 +656,12 @@ def viewer_hooks(ctx: AppContext) -> dict:
             if scene is None:
                 raise NotFound(f"scene {scene_id} does not exist")
             u = _user(s, user)
-            from app.scenes.membership import check_member
 
             check_member(s, u, scene.id)
             fid = None if frame_index is None else s.scalar(select(Frame.id).where(
                 Frame.scene_id == scene.id, Frame.index == int(frame_index)))
             e = create_edit(session=s, ctx=ctx, scene=scene, user=u, point_ids=point_ids,
                             to_class=int(to_class), comment=comment or None, frame_id=fid)
-            from app.audit import service as audit
 
             out = edit_out(s, e)
             audit.record(s, "correction", actor=u, scene_id=scene.id, frame_id=fid,
@@ -676,7 +675,6 @@ def viewer_hooks(ctx: AppContext) -> dict:
                 scene = s.get(Scene, int(scene_id))
                 u = _user(s, user)
                 e = (undo if which == "undo" else redo)(session=s, ctx=ctx, scene=scene, user=u)
-                from app.audit import service as audit
 
                 out = edit_out(s, e)
                 audit.record(s, f"correction_{which}", actor=u, scene_id=scene.id,

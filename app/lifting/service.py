@@ -63,8 +63,10 @@ from app.annotations.models import MaskVersion
 from app.db import utcnow
 from app.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
 from app.lifting.models import LiftQueueEntry, LiftStatus
+from app.pipeline import stored_mask_ids
 from app.scenes.models import Scene
 from occufly.errors import OccuflyError
+from occufly.lifting import LiftState
 from occufly.lifting.incremental import IncrementalFill
 from occufly.workspace import Workspace
 
@@ -594,7 +596,6 @@ class LiftingService:
         with self._cv:
             mask = self._hints.pop((r.frame_id, r.version_id), None)
         if mask is None:
-            from app.pipeline import stored_mask_ids
 
             mask = stored_mask_ids(self.store.get(r.sha256), state.scene.taxonomy)
         return state.frame_votes(fi, mask, name=f"mask version {r.version_id}")
@@ -626,7 +627,6 @@ class LiftingService:
                 return sc
             if sc is not None:  # re-imported elsewhere: the old state's fill thread ends
                 sc.closed = True
-            from occufly.lifting import LiftState
 
             state = LiftState.open(Path(workspace), self.load_scene(str(workspace)))
             sc = _Scene(scene_id, str(workspace), state)

@@ -17,6 +17,7 @@ from app.bootstrap import build_context, build_lifting_service
 from app.config import Settings
 from app.lifting.service import LiftingBusy
 from occufly.errors import OccuflyError
+from occufly.parallel import die_with_parent
 
 
 def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
@@ -24,7 +25,6 @@ def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT")
     if parent and parent.isdigit():  # started by `occufly serve --workers N`
-        from occufly.parallel import die_with_parent
 
         die_with_parent(int(parent))
     try:

@@ -44,8 +44,10 @@ from app.annotations.models import MaskVersion
 from app.context import AppContext
 from app.scenes.models import Frame, Scene
 from app.users.models import User
-from occufly.errors import OccuflyError
+from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
+from occufly.errors import OccuflyError, WorkspaceError
 from occufly.fsutil import atomic_write_text
+from occufly.grid import SceneGrid
 from occufly.lifting import load_labels
 from occufly.lifting import quality as lifting_quality
 from occufly.lifting import relift as lifting_relift
@@ -169,7 +171,6 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
     if not plan["taken"]:
         # labels that no mask version of this app made (written into the workspace by the
         # command line, say): exported as they are, and the manifest says so
-        from occufly.errors import WorkspaceError
 
         try:
             q = lifting_quality.quality_report(ws, ws_scene, policy=policy, truth=truth)
@@ -203,8 +204,6 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
         corrected = load_labels(lift_dir)
         lp = scratch / "labels_corrected.npy"
         np.save(lp, np.asarray(corrected.labels, np.uint8))
-        from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
-        from occufly.grid import SceneGrid
 
         if voxel_size is None:
             g = Workspace(ws).grid()

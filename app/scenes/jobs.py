@@ -1,5 +1,5 @@
 """The scene pipeline's job kinds: import a reconstruction, select frames to annotate,
-voxelize the labelled cloud. Each calls one pipeline entry point (looked up at run time in
+propose the next frames to paint (issue 37), voxelize the labelled cloud. Each calls one pipeline entry point (looked up at run time in
 ``app.pipeline``: a missing one fails the job with a message naming it, never a fake
 result) and records its result; all run on the job executor (``remote``).
 """
@@ -15,6 +15,7 @@ from app.scenes import service as scenes
 from app.scenes.models import Scene
 from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
 from occufly.errors import WorkspaceError
+from occufly.lifting.nextbest import propose_for_workspace
 from occufly.workspace import Workspace
 
 
@@ -84,6 +85,17 @@ def run_selection(jc: JobContext) -> dict:
                                ws_scene=ws_scene)
     jc.progress(1.0, f"{len(result['frames'])} frames selected")
     return result
+
+
+@kind("next_frames", remote=True)
+def run_next_frames(jc: JobContext) -> dict:
+    """Issue 37: propose ``k`` frames without a mask whose masks would most settle the
+    contested and uncertain labels, each with why (occufly.lifting.nextbest). An empty
+    proposal (nothing contested) is a result with its message, not a failure."""
+    ws, ws_scene = scene_of(jc)
+    res = propose_for_workspace(Path(ws), int(jc.params.get("k", 5)), scene=ws_scene,
+                                progress=jc.progress)
+    return jsonable(res.to_dict())
 
 
 @kind("voxelize", remote=True, done_event="grid_updated")

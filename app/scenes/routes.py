@@ -21,11 +21,13 @@ from app.scenes.schemas import (
     ImportIn,
     MemberOut,
     MembersIn,
+    NextFramesIn,
     SceneDetail,
     SceneOut,
     SelectionIn,
 )
 from occufly.fsutil import image_content_type
+from occufly.io.crs import parse_crs
 
 router = APIRouter(prefix="/api", tags=["scenes"])
 CACHE = "private, max-age=86400"
@@ -37,6 +39,7 @@ ACCESS = {
     "GET /api/scenes/{sid}": "member",
     "POST /api/scenes/{sid}/selection": "admin",
     "GET /api/scenes/{sid}/selection": "member",
+    "POST /api/scenes/{sid}/next-frames": "admin",
     "GET /api/scenes/{sid}/frames": "member",
     "GET /api/frames/{fid}": "member",
     "GET /api/frames/{fid}/image": "member",
@@ -65,7 +68,6 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
              if body.depth_maps else None)
     images = service.resolve_import_path(s, body.images, field="images") if body.images else None
     if body.crs:  # a CRS pyproj cannot read is a 4xx now, not a failed job later
-        from occufly.io.crs import parse_crs
 
         parse_crs(body.crs, "crs")
     if body.members:  # check the ids before anything is created
@@ -140,6 +142,18 @@ def run_selection(body: SelectionIn, scene: SceneDep, session: SessionDep, ctx: 
                   user: AdminUser):
     _ready(scene)
     job = jobs.create(session=session, kind="selection", scene_id=scene.id, user_id=user.id,
+                      params=body.model_dump())
+    ctx.jobs.submit(job.id)
+    return jobs.out(job)
+
+
+@router.post("/scenes/{sid}/next-frames", response_model=JobOut, status_code=202)
+def run_next_frames(body: NextFramesIn, scene: SceneDep, session: SessionDep, ctx: CtxDep,
+                    user: AdminUser):
+    """Issue 37: a job proposing ``k`` more frames to paint (its result: the frames, best
+    first, each with the contested / uncertain points it sees and their classes)."""
+    _ready(scene)
+    job = jobs.create(session=session, kind="next_frames", scene_id=scene.id, user_id=user.id,
                       params=body.model_dump())
     ctx.jobs.submit(job.id)
     return jobs.out(job)

@@ -86,6 +86,12 @@ class SelectionIn(BaseModel):
         return self
 
 
+class NextFramesIn(BaseModel):
+    # issue 37: how many more frames to propose for painting (the frames whose masks would
+    # most settle the contested and uncertain labels)
+    k: int = Field(default=5, ge=1, le=200)
+
+
 class FrameOut(BaseModel):
     id: int
     scene_id: int

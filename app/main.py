@@ -24,7 +24,7 @@ from app.annotations.routes import router as annotations_router
 from app.annotations.smart import router as smart_router
 from app.audit.routes import router as audit_router
 from app.bodylimit import BodyLimitMiddleware
-from app.bootstrap import build_context
+from app.bootstrap import build_context, subscribe_api_process
 from app.config import Settings
 from app.context import AppContext
 from app.corrections.routes import router as corrections_router
@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     apply_export_retention(ctx)  # OCCUFLY_EXPORT_KEEP_LAST / _MAX_AGE_DAYS (0 = keep all)
     ctx.jobs.start()
     ctx.lifting.start()
+    subscribe_api_process(ctx)  # the worker runs elsewhere: keep the review cache warm
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):

@@ -87,7 +87,9 @@ def mark_suspect(key: SuspectKey, body: SuspectMarkIn, scene: SceneDep, session:
 @router.get("/frames/{fid}/agreement", response_model=AgreementOut)
 def agreement(frame: FrameDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser):
     scene = session.get(Scene, frame.scene_id)
-    return service.frame_agreement(ctx, session, scene, frame)
+    out = service.frame_agreement(ctx, session, scene, frame)
+    service.prefetch_next(ctx, session, scene, frame)  # N finds the next frames computed
+    return out
 
 
 @router.post("/frames/{fid}/review", response_model=FrameOut)

@@ -234,6 +234,73 @@ def _list_order(session: Session, scene: Scene, limit: int) -> list[Frame]:
                   Frame.index).limit(limit)))
 
 
+_PREFETCH_LOCK = threading.Lock()
+_PREFETCH_BUSY: set = set()  # (scene id, frame id) being computed in the background
+PREFETCH_NEXT = 2  # frames after the one opened whose review is computed in the background
+
+
+def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int]) -> None:
+    """Compute the review (figures, disagreement PNG, labels rendering) of ``frame_ids`` in
+    the cache, in order, skipping those already there (a background thread's body)."""
+    try:
+        with ctx.sessions() as s:
+            scene = s.get(Scene, scene_id)
+            for fid in frame_ids:
+                f = s.get(Frame, fid)
+                if scene is None or f is None or f.current_version_id is None:
+                    continue
+                try:
+                    if not cached_review(scene, f, s):
+                        frame_agreement(ctx, s, scene, f)
+                    render_png(ctx, scene, f)
+                except Exception:  # noqa: BLE001 - best effort: the request computes it then
+                    s.rollback()
+    except Exception:  # noqa: BLE001 - the database went away (shutdown): nothing to warm
+        pass
+    finally:
+        with _PREFETCH_LOCK:
+            for fid in frame_ids:
+                _PREFETCH_BUSY.discard((scene_id, fid))
+
+
+def _start_warm(ctx: AppContext, scene_id: int, frame_ids: list[int]) -> None:
+    with _PREFETCH_LOCK:
+        todo = [f for f in frame_ids if (scene_id, f) not in _PREFETCH_BUSY]
+        _PREFETCH_BUSY.update((scene_id, f) for f in todo)
+    if todo:
+        threading.Thread(target=_warm, args=(ctx, scene_id, todo), daemon=True,
+                         name="occufly-review-prefetch").start()
+
+
+def prefetch_next(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> None:
+    """The reviewer opened ``frame``: compute the review of the ``PREFETCH_NEXT`` frames after
+    it in the review list in a background thread, so that N (next frame) finds them computed."""
+    rows = _list_order(session, scene, 200)
+    ids = [f.id for f in rows]
+    if frame.id in ids:
+        i = ids.index(frame.id)
+        _start_warm(ctx, scene.id, ids[i + 1:i + 1 + PREFETCH_NEXT])
+
+
+def warm_on_labels(ctx: AppContext):  # noqa: ANN201
+    """A ``labels_updated`` subscriber for a server process that does not run the lifting
+    worker (``OCCUFLY_LIFTING=external``, or another process owns it): the worker refreshes
+    the stored figures in its own process, this computes the list's top
+    ``PREFETCH_FRAMES`` into this process's cache, in a background thread."""
+
+    def on_event(msg) -> None:  # noqa: ANN001
+        if msg.scene_id is None:
+            return
+        with ctx.sessions() as s:
+            scene = s.get(Scene, msg.scene_id)
+            if scene is None:
+                return
+            top = [f.id for f in _list_order(s, scene, PREFETCH_FRAMES)]
+        _start_warm(ctx, msg.scene_id, top)
+
+    return on_event
+
+
 def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # noqa: ANN001
     """The ``labels_updated`` subscriber of the process whose lifting service owns the scene
     (wired by :func:`app.bootstrap.build_lifting_service`): recompute the stored per-frame

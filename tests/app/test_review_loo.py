@@ -216,3 +216,24 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
     assert len(calls) == n_bg  # served from the refreshed cache
     assert wrong not in [n["frame_id"] for n in after["neighbours"]]
     assert after["agreement"] == pytest.approx(1.0)
+
+    # opening a frame computes the next ones in the list in the background (N finds them)
+    import time
+
+    from app.scenes.models import Frame, Scene
+
+    review._CACHE.clear()
+    fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement&state=submitted",
+                        headers=hdr["reviewer"]).json()
+    first, nxt = fl[0]["id"], fl[1]["id"]
+    env.client.get(f"/api/frames/{first}/agreement", headers=hdr["reviewer"])
+    with env.app.state.ctx.sessions() as s:
+        sc, fr = s.get(Scene, scene["id"]), s.get(Frame, nxt)
+        end = time.monotonic() + 30
+        while not review.cached_review(sc, fr, s) and time.monotonic() < end:
+            time.sleep(0.05)
+        assert review.cached_review(sc, fr, s)
+    nxt_index = next(f["index"] for f in frames if f["id"] == nxt)
+    n = calls.count(nxt_index)  # (the frames after it are being computed meanwhile)
+    assert env.client.get(f"/api/frames/{nxt}/agreement", headers=hdr["reviewer"]).status_code == 200
+    assert calls.count(nxt_index) == n

@@ -36,6 +36,7 @@ class AdminPage {
     this.usersEl = el("div");
     this.scenesEl = el("div");
     this.selectionEl = el("div", { class: "plots" });
+    this.nextEl = el("div", { id: "next-frames", "aria-live": "polite" }); // issue 37
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
     this.qualityEl = el("div", { id: "quality" }); // issue 23: how the scene's labels were made
@@ -66,7 +67,7 @@ class AdminPage {
         section("sec-users", "Users", this.usersEl, this.userForm()),
         section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
         section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
-        section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl),
+        section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl, this.nextForm(), this.nextEl),
         section("sec-masks", "Masks from other tools", el("p", { class: "hint" }, "Upload masks painted in CVAT, COCO, Label Studio or as PNGs (a zip of the tool's export). Every frame they paint gets an imported version that votes and waits for review; if a class or an image name does not match the scene, nothing is stored and every problem is listed."), this.maskImportForm(), this.maskImportEl, this.maskExportForm()),
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
@@ -456,6 +457,62 @@ class AdminPage {
       }
     });
     return f;
+  }
+
+  // issue 37: after a first round of masks, the frames whose masks would most settle the
+  // contested and uncertain labels (a job; its result lists each frame with why)
+  nextForm() {
+    this.nextK = el("input", { id: "next-k", type: "number", min: 1, max: 200, step: 1, value: 5 });
+    const btn = el("button", { type: "submit", id: "next-run" }, "Propose frames");
+    const f = el(
+      "form",
+      { class: "inline-form", "aria-label": "Propose more frames to paint" },
+      field("Propose more frames to paint", this.nextK, "frames without a mask that see the most contested / uncertain points"),
+      btn,
+    );
+    f.addEventListener("submit", async (e) => {
+      e.preventDefault();
+      const k = Math.round(Number(this.nextK.value));
+      if (!(k >= 1 && k <= 200)) return showError("Propose: the number of frames must be 1 to 200.");
+      if (btn.disabled) return; // a double click starts one job
+      btn.disabled = true;
+      this.nextEl.replaceChildren(el("p", { class: "hint" }, "Weighing the frames…"));
+      const job = await this.guard(() => api.post(`/scenes/${this.sid}/next-frames`, { k }));
+      if (!job) {
+        btn.disabled = false;
+        this.nextEl.replaceChildren();
+        return;
+      }
+      this.track(job, (done) => {
+        btn.disabled = false;
+        this.showNext(done);
+      });
+    });
+    return f;
+  }
+
+  showNext(job) {
+    if (job.status !== "done" || !job.result) {
+      this.nextEl.replaceChildren(el("p", { class: "hint" }, `No proposal: ${job.message || job.status}.`));
+      return;
+    }
+    const r = job.result;
+    if (!r.frames?.length) {
+      this.nextEl.replaceChildren(el("p", { id: "next-summary" }, `No frame proposed: ${r.message}.`));
+      return;
+    }
+    const rows = (r.reasons || []).map((w, i) => ({ ...w, rank: i + 1 }));
+    this.nextEl.replaceChildren(
+      el("p", { id: "next-summary" }, `${r.frames.length} frames proposed: ${r.contested_points} contested and ${r.uncertain_points} uncertain points in the scene, ${r.annotated_frames} frames painted so far.`),
+      table(rows, [
+        { key: "rank", label: "#" },
+        { key: "frame_name", label: "frame" },
+        { key: "contested_points", label: "contested points it sees" },
+        { key: "uncertain_points", label: "uncertain points it sees" },
+        { key: "classes", label: "their classes", fmt: (v) => Object.entries(v || {}).map(([c, n]) => `${c} ${n}`).join(", ") },
+        { key: "suspects", label: "suspects it sees", fmt: (v) => (v?.length ? String(v.length) : "–") },
+      ], { caption: "Frames to paint next, best first" }),
+    );
   }
 
   async loadSelection({ force = false } = {}) {

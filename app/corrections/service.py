@@ -640,8 +640,9 @@ def _hull(xy: np.ndarray) -> list[list[float]]:
 
 # ---- the 3D viewer's hooks -----------------------------------------------------------------
 def viewer_hooks(ctx: AppContext) -> dict:
-    """relabel / undo / redo / stack for ``app.viewer`` (``ViewerService.corrections``); the
-    viewer's user is re-read by id, so a role changed since the ticket counts."""
+    """relabel / undo / redo / stack / propose for ``app.viewer``
+    (``ViewerService.corrections``); the viewer's user is re-read by id, so a role changed
+    since the ticket counts."""
 
     def _user(s: Session, user) -> User:  # noqa: ANN001
         uid = user if isinstance(user, int) else getattr(user, "id", None)
@@ -686,5 +687,26 @@ def viewer_hooks(ctx: AppContext) -> dict:
         with ctx.sessions() as s:
             return stack(session=s, scene=s.get(Scene, int(scene_id)), user=_user(s, user))
 
+    def propose_from_viewer(scene_id, edit_id, frame_index, user) -> dict:  # noqa: ANN001
+        """The viewer's "File as proposal": correction ``edit_id``'s projection into the
+        frame at ``frame_index`` as a proposal (:func:`propose`; its refusals pass through)."""
+        with ctx.sessions() as s:
+            scene = s.get(Scene, int(scene_id))
+            if scene is None:
+                raise NotFound(f"scene {scene_id} does not exist")
+            u = _user(s, user)
+            check_member(s, u, scene.id)
+            e = s.get(CorrectionEdit, int(edit_id))
+            if e is None or e.scene_id != scene.id:
+                raise NotFound(f"correction {edit_id} is not in scene {scene.id}")
+            if e.state != "active":
+                raise Conflict(f"correction {e.id} is {e.state}: redo it to propose it")
+            frame = s.scalar(select(Frame).where(Frame.scene_id == scene.id,
+                                                 Frame.index == int(frame_index)))
+            if frame is None:
+                raise NotFound(f"frame index {frame_index} is not in scene {scene.id}")
+            p = propose(session=s, ctx=ctx, edit=e, frame=frame, user=u)
+            return dict(proposal_out(s, p), frame_name=frame.name)
+
     return {"relabel": relabel, "undo": _stacked("undo"), "redo": _stacked("redo"),
-            "stack": stack_of}
+            "stack": stack_of, "propose": propose_from_viewer}

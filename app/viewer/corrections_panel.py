@@ -2,7 +2,12 @@
 brush) with filters and add / subtract modes, the highlighted selection counted by class, and
 relabel / undo / redo through the app's corrections service (``ViewerService.corrections``:
 ``relabel(scene_id, point_ids, to_class, comment, user, frame_index) -> dict``,
-``undo(scene_id, user)``, ``redo(scene_id, user)``, ``stack(scene_id, user) -> {undo, redo}``).
+``undo(scene_id, user)``, ``redo(scene_id, user)``, ``stack(scene_id, user) -> {undo, redo}``,
+``propose(scene_id, edit_id, frame_index, user) -> dict``).
+
+"File as proposal" turns the last correction made in this tab into a proposed mask change of
+the frame the viewer was opened for (or the frustum clicked since): its annotator sees it as
+an overlay and takes it with one key (issue 40, defect 2).
 
 Selections are evaluated on every point of the classes shown (not only the LOD subsample the
 browser draws), in chunks, with the vectorised functions of :mod:`app.viewer.selection`.
@@ -65,6 +70,10 @@ def build(svc: Any, st: Any) -> None:
         g["undo_btn"] = gui.add_button("Undo my last correction")
         g["redo_btn"] = gui.add_button("Redo")
         g["edit_info"] = gui.add_markdown("")
+        g["propose_btn"] = gui.add_button("File as proposal", disabled=True,
+                                          hint="The last correction's projection into the "
+                                               "frame, as a proposed mask change")
+        g["propose_info"] = gui.add_markdown("")
     st.lasso = []  # screen vertices of the lasso being drawn
     st.lasso_cam = None
     st.armed = None
@@ -92,6 +101,10 @@ def build(svc: Any, st: Any) -> None:
     @g["redo_btn"].on_click
     def _(_e: Any) -> None:
         undo_redo(svc, st, "redo")
+
+    @g["propose_btn"].on_click
+    def _(_e: Any) -> None:
+        file_proposal(svc, st)
 
 
 def on_scene_opened(svc: Any, st: Any) -> None:
@@ -308,6 +321,8 @@ def relabel(svc: Any, st: Any, choice: str, comment: str) -> dict | None:
     name = "unlabelled" if to_class == 0 else sb.class_name(st.data.taxonomy, to_class)
     st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} points "
                                    f"-> {md_text(name)}.")
+    st.last_edit = {"id": int(edit["id"]), "n_points": int(edit["n_points"]), "to": name}
+    update_proposal_button(svc, st)
     st.client.add_notification("Correction saved", f"{edit['n_points']:,} points -> {name}",
                                color="green", auto_close_seconds=4.0)
     set_selection(svc, st, np.zeros(0, np.int64))
@@ -329,6 +344,45 @@ def undo_redo(svc: Any, st: Any, which: str) -> dict | None:
     svc.refresh(st.scene_id)
     update_stack(svc, st)
     return edit
+
+
+def update_proposal_button(svc: Any, st: Any) -> None:
+    """"File as proposal" is enabled once this tab made a correction (the hook present)."""
+    if "propose_btn" not in st.gui:
+        return
+    can = svc.corrections is not None and "propose" in svc.corrections
+    st.gui["propose_btn"].disabled = not (can and getattr(st, "last_edit", None))
+
+
+def file_proposal(svc: Any, st: Any) -> dict | None:
+    """File the last correction of this tab as a proposal on the viewer's frame; the panel
+    says what happened (no frame, refused and why, or the proposal's size)."""
+    info = st.gui["propose_info"]
+    edit = getattr(st, "last_edit", None)
+    if svc.corrections is None or "propose" not in svc.corrections or st.scene_id is None:
+        info.content = "Proposals cannot be filed from this viewer."
+        return None
+    if not edit:
+        info.content = "Relabel a selection first: a proposal is a correction's projection."
+        return None
+    if st.frame_index is None:
+        info.content = ("No frame: open the viewer with **3D** from a frame (or click a "
+                        "camera) to propose correction "
+                        f"**{edit['id']}** as a change of that frame's mask.")
+        return None
+    stem = st.data.scene.frames[st.frame_index].stem if st.data is not None else "?"
+    try:
+        p = svc.corrections["propose"](st.scene_id, edit["id"], st.frame_index, st.user)
+    except Exception as e:  # noqa: BLE001 - 409 no submitted mask / already agrees, 403...
+        msg = str(getattr(e, "detail", e))
+        info.content = f"Proposal refused for {md_text(stem)}: {md_text(msg)}"
+        st.client.add_notification("Proposal not filed", msg, color="red")
+        return None
+    info.content = (f"Proposal **{p['id']}** filed on {md_text(stem)}: {p['changed_px']:,} px "
+                    f"-> {md_text(edit['to'])}; the annotator is notified.")
+    st.client.add_notification("Proposal filed", f"{p['changed_px']:,} px on {stem}",
+                               color="green", auto_close_seconds=4.0)
+    return p
 
 
 def update_stack(svc: Any, st: Any) -> None:

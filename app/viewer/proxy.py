@@ -4,6 +4,9 @@
   ``Authorization`` are *not* forwarded). ``?scene=<id>`` on the page is remembered in the
   cookie ``occufly_viewer_scene`` (path ``/viewer``) because viser's client opens its
   websocket at the page URL without the query string.
+- Each page load gets a new *view id* (cookie ``occufly_viewer_view``): viser's client
+  reopens its socket by itself after a drop, with the same id, so the server puts that tab's
+  selection, panel and camera back (:mod:`app.viewer.session_state`); a reload starts fresh.
 - The websocket (``/viewer`` -- viser's client strips the trailing slash -- and ``/viewer/``)
   is accepted only after ``authorize``; the upstream connection carries a one-time ticket
   naming the user and scene (see :mod:`app.viewer.server`), then frames are pumped both ways.
@@ -18,6 +21,7 @@ import asyncio
 import inspect
 import logging
 import re
+import secrets
 import time
 from collections import deque
 from collections.abc import Callable
@@ -39,6 +43,8 @@ log = logging.getLogger(__name__)
 SCENE_COOKIE = "occufly_viewer_scene"
 FRAME_COOKIE = "occufly_viewer_frame"  # ?frame= of the page: the viewer flies to that camera
 SUSPECT_COOKIE = "occufly_viewer_suspect"  # ?suspect= of the page: the viewer selects its points
+VIEW_COOKIE = "occufly_viewer_view"  # one per page load: a reconnect restores that tab's state
+_VIEW_ID = re.compile(r"^[A-Za-z0-9_-]{8,64}$")
 _SUSPECT_KEY = re.compile(r"^[pr][0-9]{1,12}$")
 SESSION_COOKIE = "occufly_session"
 POLICY_VIOLATION = 1008
@@ -95,6 +101,8 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                             headers={"Cache-Control": "no-cache",
                                      "X-Content-Type-Options": "nosniff"})
             _remember_scene(resp, request, prefix)
+            resp.set_cookie(VIEW_COOKIE, secrets.token_urlsafe(12), path=prefix, httponly=True,
+                            samesite="lax", secure=request.url.scheme == "https")
             return resp
         if _CTRL.search(path) or ".." in path.split("/"):
             # a NUL or other control character (``main.js%00.png``), or a dot-dot segment, names
@@ -152,8 +160,10 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
                                          "user); close one")
             return
         scene_id = websocket.cookies.get(SCENE_COOKIE) or websocket.query_params.get("scene")
+        view = websocket.cookies.get(VIEW_COOKIE)
         ticket = service.issue_ticket(user, scene_id, websocket.cookies.get(FRAME_COOKIE),
-                                      suspect=websocket.cookies.get(SUSPECT_COOKIE))
+                                      suspect=websocket.cookies.get(SUSPECT_COOKIE),
+                                      view=view if view and _VIEW_ID.match(view) else None)
         stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
                  "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)

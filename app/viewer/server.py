@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from app.viewer import corrections_panel
+from app.viewer import corrections_panel, session_state
 from app.viewer import scene_builder as sb
 from app.viewer.md import md_text
 from occufly.sampling import FrameGridSpec, sample_frame
@@ -62,6 +62,7 @@ class Ticket:
     expires: float
     frame: str | None = None  # ?frame= of the page: fly to that camera on connect
     suspect: str | None = None  # ?suspect= of the page: select that suspect's points
+    view: str | None = None  # the page load's view id: a reconnect restores its tab state
 
 
 @dataclass
@@ -92,6 +93,9 @@ class ClientState:
     lock: threading.RLock = field(default_factory=threading.RLock)
     sent_points: int = 0
     ready: threading.Event = field(default_factory=threading.Event)
+    view: str | None = None  # the tab's view id (app.viewer.session_state)
+    last_edit: dict | None = None  # the last correction made here ("File as proposal")
+    restoring: dict | None = None  # the tab state being put back (kept if the socket drops)
 
 
 def default_scenes(data_dir: Path) -> ScenesFn:
@@ -151,6 +155,10 @@ class ViewerService:
         # per-user viewer preferences (the camera filter), kept in prefs_path if given
         self.prefs_path = Path(prefs_path) if prefs_path else None
         self.prefs: dict[str, dict] = _read_prefs(self.prefs_path)
+        # each tab's state by (user, scene, view id), kept when its socket drops and put back
+        # when the same tab reconnects (beside the prefs on disk, so a restart keeps it too)
+        self.tabs = session_state.SessionStore(
+            self.prefs_path.parent / "viewer_tabs" if self.prefs_path else None)
         self.max_points = int(max_points)
         # a scene showing more than 4x this many points first gets a stratified preview of
         # this size (a quick first picture, ~7 % extra bytes), then the full LOD
@@ -223,14 +231,14 @@ class ViewerService:
 
     # ---- tickets ---------------------------------------------------------------------------
     def issue_ticket(self, user: Any, scene_id: str | None, frame: str | None = None, *,
-                     suspect: str | None = None) -> str:
+                     suspect: str | None = None, view: str | None = None) -> str:
         """A one-time token the proxy sends upstream; valid for :data:`TICKET_TTL_S`."""
         tok = secrets.token_urlsafe(24)
         now = time.monotonic()
         with self._lock:
             for k in [k for k, t in self._tickets.items() if t.expires < now]:
                 del self._tickets[k]
-            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S, frame, suspect)
+            self._tickets[tok] = Ticket(user, scene_id, now + TICKET_TTL_S, frame, suspect, view)
         return tok
 
     def _take_ticket(self, client_id: int) -> Ticket | None:
@@ -297,6 +305,7 @@ class ViewerService:
             return
         st = ClientState(client=client, max_points=self.max_points)
         st.user = ticket.user if ticket else None
+        st.view = ticket.view if ticket else None
         with self._lock:
             self._clients[client.client_id] = st
         scenes = self.scenes_for(st.user)
@@ -305,22 +314,57 @@ class ViewerService:
             scene_id = next(iter(scenes))
         self._build_gui(st, scenes, scene_id)
         if scene_id is not None:
-            self.open_scene(st, scene_id)
-            if ticket is not None and ticket.frame and st.data is not None:
-                idx = self.resolve_frame(scene_id, ticket.frame, st.data)
-                if idx is None:
-                    st.gui["cam_info"].content = f"Frame {md_text(ticket.frame)} is not in this scene."
-                else:
-                    self.focus_frame(st, idx)
-            if ticket is not None and ticket.suspect and st.data is not None:
-                self.select_suspect(st, ticket.suspect)
+            self.open_scene(st, scene_id, done=False)
+            try:
+                self._resume_or_focus(st, ticket)
+            finally:
+                st.ready.set()  # after the tab's state or the page's frame is in place
         else:
             st.gui["status"].content = "No scene has been imported yet."
             st.ready.set()
 
+    def _resume_or_focus(self, st: ClientState, ticket: Ticket | None) -> None:
+        """A reconnecting tab gets its state back; a page load opens at its ?frame= and
+        selects its ?suspect=."""
+        scene_id = st.scene_id
+        if st.data is not None:
+            snap = self.tabs.take(self._tab_key(st)) if st.view and st.data is not None \
+                else None
+            if snap is not None:  # the same tab reconnecting: put its state back
+                st.restoring = snap
+                try:
+                    session_state.restore(self, st, snap)
+                    st.restoring = None
+                    st.client.add_notification(
+                        "Reconnected", "Your selection and panel were kept.", color="blue",
+                        auto_close_seconds=3.0)
+                except Exception:  # noqa: BLE001 - a stale snapshot must not kill the tab
+                    log.exception("viewer: restoring the tab state failed")
+                return
+        if ticket is not None and ticket.frame and st.data is not None:
+            idx = self.resolve_frame(scene_id, ticket.frame, st.data)
+            if idx is None:
+                st.gui["cam_info"].content = f"Frame {md_text(ticket.frame)} is not in this scene."
+            else:
+                self.open_at_frame(st, idx)
+        if ticket is not None and ticket.suspect and st.data is not None:
+            self.select_suspect(st, ticket.suspect)
+
+    def _tab_key(self, st: ClientState) -> tuple:
+        return (_user_key(st.user), st.scene_id, st.view)
+
     def _on_disconnect(self, client: Any) -> None:
         with self._lock:
             st = self._clients.pop(client.client_id, None)
+        if st is not None and st.view and st.scene_id is not None and st.data is not None \
+                and (st.ready.is_set() or st.restoring is not None):
+            try:  # the tab may reconnect (network, restart): keep what it showed (or the
+                # state a reconnect was still putting back when it dropped again)
+                self.tabs.put(self._tab_key(st), st.restoring if st.restoring is not None
+                              else session_state.snapshot(st))
+            except Exception:  # noqa: BLE001
+                log.exception("viewer: keeping the tab state failed")
+        with self._lock:
             if st is not None and st.scene_id is not None and not any(
                     c.scene_id == st.scene_id for c in self._clients.values()):
                 self._data.pop(st.scene_id, None)  # nobody looks at it any more
@@ -483,7 +527,9 @@ class ViewerService:
             st.class_boxes[cid] = box
 
     # ---- scene content ---------------------------------------------------------------------
-    def open_scene(self, st: ClientState, scene_id: str) -> None:
+    def open_scene(self, st: ClientState, scene_id: str, *, done: bool = True) -> None:
+        """Load and send ``scene_id`` to client ``st``; ``done`` False leaves ``st.ready``
+        to the caller (a connect sets it once the tab's state or frame is in place)."""
         st.ready.clear()
         if scene_id not in self.scenes_for(st.user):  # the dropdown lists only these; a
             st.gui["status"].content = f"You cannot open scene {md_text(scene_id)}."  # stale list
@@ -544,7 +590,8 @@ class ViewerService:
                 f"**{md_text(scene_id)}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
                 f"{lifted}; showing {st.sent_points:,} points."
             )
-        st.ready.set()
+        if done:
+            st.ready.set()
 
     def _place_camera(self, st: ClientState) -> None:
         xyz = np.asarray(st.data.scene.xyz[:: max(1, st.data.scene.n_points // 50_000)], np.float64)
@@ -677,6 +724,22 @@ class ViewerService:
         stems = [f.stem for f in data.scene.frames]
         return stems.index(frame) if frame in stems else None
 
+    def open_at_frame(self, st: ClientState, frame_index: int) -> None:
+        """The page was opened for a frame ("3D" on the reviewer / annotator page or a
+        suspect): look through that frame's camera (pose and vertical field of view), its
+        frustum highlighted and the other cameras hidden for this tab ("Show cameras" brings
+        them back; the reviewer's saved choice is not changed)."""
+        st.camera_filter = sb.CAMERA_FILTERS[-1]  # "none": only the kept (highlighted) one
+        st.gui["frusta"].value = st.camera_filter  # equal to st's: the callback does nothing
+        st.highlighted = frame_index
+        self.send_frusta(st)  # highlights it
+        self.show_frame(st, frame_index)
+        self.move_to_camera(st, frame_index)
+        n = len(st.data.scene.frames)
+        st.gui["frusta_info"].content = (
+            f"Opened at **{md_text(st.data.scene.frames[frame_index].stem)}** (highlighted); "
+            f"the other {n - 1:,} cameras are hidden: choose *all* above to show them.")
+
     def focus_frame(self, st: ClientState, frame_index: int) -> None:
         """Open in 3D: show the frame's panel, fly just behind its camera (its frustum and
         what it sees in front) and highlight its frustum."""
@@ -712,7 +775,9 @@ class ViewerService:
             st.selection = ids
         st.gui["sel_info"].content = f"Suspect {md_text(key)}: **{len(ids):,}** points selected."
         corrections_panel.after_selection(self, st)  # highlight + counts by class, relabel
-        if len(ids):  # the region in the middle of the view, seen along the frame's axis
+        if len(ids) and st.frame_index is None:  # no frame: the region in the middle of the
+            # view, seen from above (opened at a frame, the view stays at that frame's camera,
+            # the one that sees the suspect best)
             xyz = np.asarray(st.data.scene.xyz[ids], np.float64)
             c = xyz.mean(axis=0)
             size = float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0)))

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.viewer import scene_builder as sb
 from tests.e2e.conftest import grey_png, import_own_scene, png_ids, shot, wait_js
 from tests.e2e.test_browser import drag, editor_ids, painted_share, wait_opened
 
@@ -496,20 +497,21 @@ def test_open_in_3d_flies_to_the_frame_and_scene_grid_before_voxelize_says_so(li
     assert st.highlighted == frame["index"] == st.frame_index
     h = st.frustum_handles[frame["index"]]
     assert tuple(h.color) == (255, 0, 200)
-    # the view sits just behind that camera, looking where it looks
+    # the view is that camera (issue 40, defect 8: pose and vertical fov), looking where it looks
     fr = st.data.scene.frames[frame["index"]]
     T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
     cam = st.client.camera
-    near = 0.2 * max(np.ptp(np.asarray(st.data.scene.xyz), axis=0).max(), 1.0)
     # the server-side camera is what the browser last reported: a report the browser sent
     # before it applied the fly-to can still arrive after it, so wait for the echo
     t_end = time.monotonic() + 15
-    while np.linalg.norm(to_cam := T[:3, 3] - np.asarray(cam.position)) >= near:
+    while np.linalg.norm(T[:3, 3] - np.asarray(cam.position)) >= 1e-3:
         if time.monotonic() > t_end:
             break
         time.sleep(0.2)
-    assert np.linalg.norm(to_cam) < near
-    assert float(np.dot(to_cam / np.linalg.norm(to_cam), T[:3, 2])) > 0.9
+    assert np.linalg.norm(T[:3, 3] - np.asarray(cam.position)) < 1e-3
+    assert float(sb.quat_to_matrix(cam.wxyz)[:, 2] @ T[:3, 2]) > 0.9999
+    assert cam.fov == pytest.approx(2 * np.arctan2(fr.camera.height / 2, fr.camera.focal[1]),
+                                    abs=1e-3)
     wait_js(page, f"() => document.body.innerText.includes('{fr.stem}')", timeout=30_000)
     # no grid before voxelize: ticking "Scene grid" explains it and unticks
     assert st.data.grid is None

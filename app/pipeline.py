@@ -1,7 +1,9 @@
-"""The one place the app calls the pipeline library (``occufly.*``).
+"""Where the app adds something to a pipeline library call: a workspace as an import source
+(copied, its frames' names and image paths checked and confined), a selection as JSON, stored
+mask PNGs decoded without a frame, label images encoded for the API.
 
-Thin adapters only: every step (mask decoding, import, selection, lifting, rendering) is the
-library's own function; the app never re-implements one.
+The app calls every other library function (mask decoding, lifting, rendering, the executor)
+directly from ``occufly``; it never re-implements one.
 """
 
 from __future__ import annotations
@@ -13,13 +15,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from occufly import lifting, render, selection
+from occufly import selection
 from occufly.errors import UnsafePathError, check_name
 from occufly.fsutil import PathNotConfined, confined, image_content_type
 from occufly.io import importer, masks
-from occufly.parallel import get_executor as _get_executor
 from occufly.progress import ProgressFn
-from occufly.scene import Frame as SceneFrame
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 from occufly.workspace import Workspace
@@ -31,14 +31,6 @@ class PipelineMissing(RuntimeError):
 
 
 # ---- masks ----------------------------------------------------------------------------------
-def decode_mask(data: bytes, frame: SceneFrame, taxonomy: Taxonomy, *, name: str,
-                info: dict | None = None) -> np.ndarray:
-    """(h, w) uint8 raw ids from an uploaded PNG (:func:`occufly.io.masks.read_mask`: frame
-    size or an exact integer downscale, ids in the taxonomy, 0 and 255 allowed); raises
-    MaskError naming ``name``. info: gets ``canonical`` (the bytes may be stored as they are)."""
-    return masks.read_mask(data, frame, taxonomy, name=name, info=info)
-
-
 def stored_mask_ids(data: bytes, taxonomy: Taxonomy) -> np.ndarray:
     """(h, w) uint8 raw ids of a stored (already validated) mask PNG, raw-id or colour."""
     return masks.decode_mask_png(data, taxonomy, name="stored mask")
@@ -125,28 +117,3 @@ def select_frames(scene: Scene, **params) -> dict:
     d = result.to_dict()
     d["frames"] = [int(i) for i in result.frames]
     return d
-
-
-# ---- lifting / render ----------------------------------------------------------------------
-def open_lift_state(workspace: Path, scene: Scene) -> lifting.LiftState:
-    """The workspace's vote state (created empty on first use)."""
-    return lifting.LiftState.open(Path(workspace), scene)
-
-
-def load_labels(workspace: Path) -> lifting.LiftResult | None:
-    """The latest fill/denoise output of the workspace, or None before the first fill."""
-    return lifting.load_labels(Path(workspace))
-
-
-render_labels = render.render_labels
-render_for_mask = render.render_for_mask
-render_prefill = render.render_prefill
-agreement = render.agreement
-disagreement_image = render.disagreement_image
-
-
-# ---- executor -------------------------------------------------------------------------------
-def get_executor(dask_address: str | None = None):
-    """The library's executor (:func:`occufly.parallel.get_executor`): a local process pool,
-    or the Dask cluster at ``dask_address``."""
-    return _get_executor(dask_address)

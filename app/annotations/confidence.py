@@ -23,12 +23,13 @@ from app.annotations.schemas import PNG
 from app.deps import CtxDep, CurrentUser, FrameDep, SessionDep
 from app.errors import NotFound
 from app.scenes.models import Scene
+from occufly.lifting import load_labels
 
 router = APIRouter(prefix="/api", tags=["annotations"])
 
 
 def confidence_image(ctx, scene: Scene, frame, *, downscale: int = 1) -> np.ndarray:  # noqa: ANN001
-    res = pipeline.load_labels(scene.workspace)
+    res = load_labels(scene.workspace)
     if res is None:
         raise NotFound(f"scene {scene.id} has no filled labels yet, so no confidence")
     conf = np.nan_to_num(np.asarray(res.confidence, np.float32), nan=0.0)

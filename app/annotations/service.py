@@ -27,7 +27,6 @@ from PIL import Image
 from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
-from app import pipeline
 from app.annotations.models import STORED_KINDS, VOTING_KINDS, MaskVersion, Prefill
 from app.context import AppContext
 from app.db import utcnow
@@ -44,7 +43,9 @@ from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
 from app.storage import claim_blob
 from app.users.models import User
+from occufly import render
 from occufly.io import masks
+from occufly.lifting import load_labels
 from occufly.workspace import Workspace
 
 CLAIMABLE = ("unassigned", "in_progress", "rejected")
@@ -148,7 +149,7 @@ def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: byt
     name = f"mask upload for {frame.name}"
     masks.check_png_size(data, name=name, frame=sf)  # a bomb is refused before it waits
     with DECODE_SLOTS:
-        return pipeline.decode_mask(data, sf, ws_scene.taxonomy, name=name, info=info)
+        return masks.read_mask(data, sf, ws_scene.taxonomy, name=name, info=info)
 
 
 def storage_used(session: Session, *, user_id: int | None = None,
@@ -508,7 +509,7 @@ def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
     hist: dict[str, int] = {}
     source = None
     labels = None
-    res = pipeline.load_labels(scene.workspace) if available else None
+    res = load_labels(scene.workspace) if available else None
     filled: dict[str, int | None] = {}
     if res is not None:
         labels, source = np.asarray(res.labels), "filled"
@@ -531,7 +532,7 @@ def labels_status(*, session: Session, ctx: AppContext, scene: Scene) -> dict:
 def current_labels(ctx: AppContext, scene: Scene):
     """(N,) uint8 lifted labels: filled/denoised if available, else direct votes, else None."""
 
-    res = pipeline.load_labels(scene.workspace)
+    res = load_labels(scene.workspace)
     if res is not None:
         return np.asarray(res.labels)
     state = ctx.lifting.state_for(scene.id, scene.workspace)
@@ -545,7 +546,7 @@ def rendered(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 1)
     if labels is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")
     ws_scene = ctx.load_scene(scene.workspace)
-    img, _depth = pipeline.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
+    img, _depth = render.render_labels(ws_scene, labels, frame.index, scale=1.0 / downscale)
     return np.asarray(img, dtype=np.uint8)
 
 
@@ -560,6 +561,6 @@ def prefill_image(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int
     if labels is None:
         raise NotFound(f"scene {scene.id} has no lifted labels yet")
     ws_scene = ctx.load_scene(scene.workspace)
-    img, _depth, filled = pipeline.render_prefill(ws_scene, labels, frame.index,
+    img, _depth, filled = render.render_prefill(ws_scene, labels, frame.index,
                                                   scale=1.0 / downscale)
     return np.asarray(img, dtype=np.uint8), filled

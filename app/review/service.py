@@ -26,7 +26,8 @@ from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
 from app.users.models import User
-from occufly.lifting import LiftState
+from occufly import render
+from occufly.lifting import LiftState, load_labels
 from occufly.lifting import loo as lifting_loo
 from occufly.lifting.suspects import SuspectParams, find_suspects
 from occufly.render import scene_point_spacing
@@ -140,7 +141,7 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
         nb = lifting_loo.disagreeing_neighbours(scene.workspace, ws_scene, frame.index, loo)
         # the disagreement image is encoded once, with the figures: the page asks for both,
         # and an entry keeps a few MB instead of the frame-sized renderings
-        rgba = pipeline.disagreement_image(mask, imgs["loo"], ws_scene.taxonomy)
+        rgba = render.disagreement_image(mask, imgs["loo"], ws_scene.taxonomy)
         return {"version": v.id, "figures": figures, "neighbours": nb,
                 "disagreement_png": pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))}
 
@@ -809,7 +810,7 @@ def export_record(ctx: AppContext, scene_id: int, workspace) -> dict:  # noqa: A
     reviewer accepted, and ``reviewed`` = the labels use exactly the accepted version."""
     with ctx.sessions() as s:
         rows = reviewed_versions(s, scene_id)
-    res = pipeline.load_labels(workspace)
+    res = load_labels(workspace)
     used = {}
     for index, tag in ((res.stats.get("versions") if res is not None else None) or {}).items():
         used[int(index)] = int(tag) if tag is not None and str(tag).isdigit() else None

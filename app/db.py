@@ -6,7 +6,6 @@ any database to head and is run by ``occufly db upgrade`` and at application sta
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -62,11 +61,6 @@ def make_engine(url: str, *, pooled: bool = True) -> Engine:
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
-
-
-def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
-    with factory() as s:
-        yield s
 
 
 def alembic_config(url: str):

@@ -154,7 +154,7 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
 
 
 #: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
-ROBUST_MODES: dict = {"robust-boundary": None}
+ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None}
 
 
 def robustness(args: argparse.Namespace) -> dict:
@@ -228,7 +228,7 @@ def robustness(args: argparse.Namespace) -> dict:
                     tie_fill=robust != "tieorder",
                     robust=robust in ("robust", "robust-before") or robust in ROBUST_MODES,
                     robust_params=BEFORE_TINY if robust == "robust-before"
-                    else ROBUST_MODES.get(robust)))
+                    else ROBUST_MODES.get(robust), reliability=robust.endswith("reliable")))
                 t_fill, c_fill = time.perf_counter() - t_fill, time.process_time() - c_fill
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
@@ -245,7 +245,7 @@ def robustness(args: argparse.Namespace) -> dict:
                                       for k, v in ev["per_class"].items()},
                     "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
                     "lift_stats": {k: v for k, v in res.stats.items()
-                                   if k.startswith("robust") or k.endswith("seconds")},
+                                   if k.startswith(("robust", "reliability")) or k.endswith("seconds")},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
                 print(json.dumps({f"{vname}/{mname}/{robust}": out[f"{vname}/{mname}/{robust}"]}),

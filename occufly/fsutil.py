@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 import re
 import shutil
@@ -96,12 +95,6 @@ def atomic_save_npy(path: str | Path, array: np.ndarray) -> None:
     path = Path(path)
     arr = np.asarray(array)
     _replace_into(write_tmp(path, writer=lambda f: np.save(f, arr, allow_pickle=False)), path)
-
-
-def npy_bytes(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array, allow_pickle=False)
-    return buf.getvalue()
 
 
 @contextmanager

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from occufly.camera import Camera, camera_center, viewing_direction
 from occufly.errors import WorkspaceError
-from occufly.fsutil import atomic_directory, atomic_save_npy
+from occufly.fsutil import atomic_directory
 from occufly.taxonomy import Taxonomy, default_taxonomy
 from occufly.workspace import Workspace
 
@@ -352,10 +352,6 @@ class Scene:
             "crs": self.crs,
         }
 
-    def save_header(self, path: str | Path) -> None:
-        """Rewrite scene.json only (frames, meta) after in-place edits such as altitudes."""
-        Workspace(path).write_header(self._header())
-
     @classmethod
     def load(cls, path: str | Path, *, mmap: bool = True) -> Scene:
         path = Path(path)
@@ -423,13 +419,6 @@ def _mapped_from(a: np.ndarray, path: Path) -> bool:
                 and a.size * 4 + int(a.offset) == path.stat().st_size)
     except OSError:
         return False
-
-
-def save_workspace_array(ws: str | Path, rel: str, array: np.ndarray) -> Path:
-    """Atomically store an array produced by a later pipeline step (e.g. ``labels/point.npy``)."""
-    p = Path(ws) / rel
-    atomic_save_npy(p, array)
-    return p
 
 
 # ---- altitudes ---------------------------------------------------------------------------------

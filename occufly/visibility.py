@@ -501,27 +501,3 @@ def compute_visibility(
     report(1.0, "visibility")
     return vis, stats
 
-
-def visibility_from_depth(
-    frames: Sequence[Frame],
-    xyz: np.ndarray,
-    depth_for: Callable[[int], np.ndarray | None] | None,
-    *,
-    rel_tol: float = 0.02,
-    render_rel_tol: float = 0.05,
-    progress: ProgressFn | None = None,
-) -> tuple[Visibility, dict]:
-    """Visibility by depth test alone (:func:`compute_visibility` with ``mode="depth"``)."""
-    return compute_visibility(frames, xyz, mode="depth", depth_for=depth_for, rel_tol=rel_tol,
-                              render_rel_tol=render_rel_tol, progress=progress)
-
-
-def visibility_from_point_lists(
-    frames: Sequence[Frame],
-    xyz: np.ndarray,
-    offsets: np.ndarray,
-    frame_indices: np.ndarray,
-) -> tuple[Visibility, dict]:
-    """Visibility from per-point lists of frames alone (``fused.ply.vis`` or tracks):
-    :func:`compute_visibility` with ``mode="vis"``."""
-    return compute_visibility(frames, xyz, mode="vis", lists=(offsets, frame_indices))

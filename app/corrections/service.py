@@ -291,14 +291,6 @@ def revert(*, session: Session, ctx: AppContext, edit_id: int, user: User) -> Co
                                                        reverted_at=utcnow()), "revert")
 
 
-def get_edit(*, session: Session, edit_id: int, user: User) -> CorrectionEdit:
-    edit = session.get(CorrectionEdit, edit_id)
-    if edit is None:
-        raise NotFound(f"correction {edit_id} does not exist")
-    check_member(session, user, edit.scene_id)
-    return edit
-
-
 def edit_out(session: Session, e: CorrectionEdit, names: dict | None = None) -> dict:
     if names is None:
         names = dict(session.execute(select(User.id, User.username)).all())

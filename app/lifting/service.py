@@ -157,15 +157,6 @@ class PgLocks:
                 "WHERE datname = current_database())", (PG_SLOT_LOCK,)).fetchall()
         return sorted(int(r[0]) for r in rows)
 
-    def scene_owners(self) -> set[int]:
-        """Scene ids whose lock some worker holds."""
-        with self._mu:
-            rows = self.conn.execute(
-                "SELECT objid FROM pg_locks WHERE locktype = 'advisory' AND classid = %s "
-                "AND objsubid = 2 AND granted AND database = (SELECT oid FROM pg_database "
-                "WHERE datname = current_database())", (PG_SCENE_LOCK,)).fetchall()
-        return {int(r[0]) for r in rows}
-
     def close(self) -> None:
         with self._mu:
             if self.conn is not None:

@@ -324,13 +324,6 @@ def resized_image(settings: Settings, src: Path, scene_id: int, frame_id: int, s
     return out
 
 
-def get_scene_or_404(session: Session, scene_id: int) -> Scene:
-    scene = session.get(Scene, scene_id)
-    if scene is None:
-        raise NotFound(f"scene {scene_id} does not exist")
-    return scene
-
-
 def file_etag(p: Path) -> str:
     st = os.stat(p)
     return f'"{st.st_mtime_ns:x}-{st.st_size:x}"'

@@ -42,11 +42,6 @@ def pack_bits(mask: np.ndarray) -> bytes:
     return np.packbits(np.ascontiguousarray(mask, dtype=bool).reshape(-1), bitorder="big").tobytes()
 
 
-def unpack_bits(data: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    n = int(np.prod(shape))
-    return np.unpackbits(np.frombuffer(data, np.uint8))[:n].astype(bool).reshape(shape)
-
-
 def majority_pool(labels: np.ndarray, factor: int, priority_lut: np.ndarray) -> np.ndarray:
     """Majority-pool an (X, Y, Z) uint8 grid (255 = invalid) by ``factor`` per axis.
 

@@ -316,11 +316,6 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     return out[:limit]
 
 
-def render_loo(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int]) -> np.ndarray:
-    """(h, w) uint8 rendering of the leave-one-out labels into their frame at the mask's size."""
-    return render_review(scene, loo, mask_shape)["loo"]
-
-
 # the ranking score compares a mask with the *confident* independent labels only: a label
 # holding at least this share of the other frames' votes (of the k-NN vote where filled).
 # Where the other frames disagree among themselves (a wrong neighbour's votes against a right

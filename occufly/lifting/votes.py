@@ -52,6 +52,7 @@ from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import LiftParams
+from occufly.lifting.reliability import frame_class_agreement, vetoed_counts, vetoes
 from occufly.lifting.result import LiftResult, save_result
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
@@ -248,14 +249,14 @@ class LiftState:
         """(N,) uint8 raw ids of the vote majority, 0 where a point has no votes."""
         return self._direct()[0]
 
-    def snapshot(self) -> VoteSnapshot:
+    def snapshot(self, counts: np.ndarray | None = None) -> VoteSnapshot:
         """The vote majority and the versions it counts, copied out of the shared counts.
 
         Cheap next to a fill (one pass over the (N, C) counts): take it under the lock that
         serialises updates, then run :meth:`fill_and_denoise` ``(snapshot=...)`` or
         :func:`fill_snapshot` without holding it. It keeps the two leading vote classes of
         every point, all the robust decision (:mod:`occufly.lifting.robust`) reads."""
-        direct, margin, top, second_col, second = self._direct(with_second=True)
+        direct, margin, top, second_col, second = self._direct(with_second=True, counts=counts)
         if self.vote_weighting == "boundary":
             # the confirmation rule counts views: a weight-3 vote is one view
             top = ((top.astype(np.uint32) + 2) // 3).astype(np.uint16)
@@ -267,10 +268,13 @@ class LiftState:
         """The latest fill/denoise output on disk (labels, confidence, origin), or None."""
         return load_labels(self.ws)
 
-    def _direct(self, with_second: bool = False) -> tuple[np.ndarray, ...]:
+    def _direct(self, with_second: bool = False, counts: np.ndarray | None = None
+                ) -> tuple[np.ndarray, ...]:
         """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes,
         top (N,) uint16 = votes of the winning class); ``with_second`` adds the second
-        class's column (N,) int8 (-1 = none) and votes (N,) uint16."""
+        class's column (N,) int8 (-1 = none) and votes (N,) uint16. ``counts``: (N, C) counts
+        to read instead of the state's (the reliability veto's)."""
+        src = self.votes if counts is None else counts
         n = self.scene.n_points
         labels = np.zeros(n, dtype=np.uint8)
         margin = np.zeros(n, dtype=np.float32)
@@ -280,7 +284,7 @@ class LiftState:
             votes2 = np.zeros(n, dtype=np.uint16)
         for a in range(0, n, _CHUNK_ROWS):
             b = min(n, a + _CHUNK_ROWS)
-            c = np.asarray(self.votes[a:b])
+            c = np.asarray(src[a:b])
             packed = self._cls.packed_winner(c)
             if packed is None:
                 col, top, second = self._cls.majority(c)
@@ -508,6 +512,30 @@ class LiftState:
 
     remove_mask = remove_frame
 
+    def reliability_snapshot(self, labels: np.ndarray, params=None  # noqa: ANN001
+                             ) -> tuple[VoteSnapshot | None, dict]:
+        """The votes without those of frames that paint a class far worse than the others
+        (:mod:`occufly.lifting.reliability`, judged against ``labels``, a first lifting), as a
+        snapshot; None when nothing is vetoed. Stats: the vetoed (frame, class) pairs."""
+        frames = {}
+        for fi in self._versions:
+            pth = self._frame_path(fi)
+            if pth.is_file():
+                frames[fi] = self._load_frame_file(pth)
+        votes, agree = frame_class_agreement({f: v[:2] for f, v in frames.items()}, labels,
+                                             self._cls)
+        veto = vetoes(votes, agree, params)
+        names = {c.id: c.name for c in self.scene.taxonomy.classes}
+        stats = {"reliability_vetoed": {
+            str(f): [names[int(self._cls.ids[c])] for c in np.flatnonzero(b)]
+            for f, b in sorted(veto.items())}}
+        if not veto:
+            return None, stats
+        counts = vetoed_counts(self.votes, frames, veto)
+        stats["reliability_votes_removed"] = int(np.asarray(self.votes, np.int64).sum()
+                                                 - counts.sum(dtype=np.int64))
+        return self.snapshot(counts=counts), stats
+
     # -- fill and denoise
     def fill_and_denoise(self, progress: ProgressFn | None = None,
                          params: LiftParams | None = None, *,
@@ -533,6 +561,15 @@ class LiftState:
                                read_only=self.read_only or not write,
                                progress=lambda f, m: report(0.05 + 0.9 * f, m),
                                incremental=incremental)
+        if getattr(params, "reliability", False):
+            # issue 37: frames that paint a class systematically worse than the others lose
+            # those votes, and the lifting is decided again from the rest
+            snap2, rstats = self.reliability_snapshot(result.labels)
+            if snap2 is not None:
+                report(0.5, "lifting again without unreliable votes")
+                result = fill_snapshot(self.scene, snap2, params=params, ws=self.ws,
+                                       read_only=self.read_only or not write)
+            result.stats.update(rstats)
         if write:
             report(0.96, "writing labels")
             save_result(self.ws, result)

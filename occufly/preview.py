@@ -27,7 +27,7 @@ from occufly.taxonomy import Taxonomy, default_taxonomy
 PANELS = ("image", "depth", "grid", "masks")
 
 
-def _find_frame(root: Path, frame: str) -> tuple[Path, str]:
+def find_frame(root: Path, frame: str) -> tuple[Path, str]:
     fid = f"{int(frame):06d}" if frame.isdigit() else frame
     hits = sorted((root / "OccuFly_Dataset").glob(f"*/*/ground_truth/{fid}/{fid}.label"))
     if not hits:
@@ -80,7 +80,7 @@ def _depth_shape(alt_dir: Path, fid: str) -> tuple[int, int] | None:
 def render_preview(export_root: str | Path, frame: str, *, panels: tuple[str, ...] = PANELS,
                    height: int = 256) -> Image.Image:
     root = Path(export_root)
-    alt_dir, fid = _find_frame(root, str(frame))
+    alt_dir, fid = find_frame(root, str(frame))
     manifest = alt_dir.parent / "manifest.json"
     tax: Taxonomy = default_taxonomy()
     shape = (192, 128, 128)

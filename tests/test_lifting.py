@@ -698,7 +698,7 @@ def test_block_knn_kernel_counts_the_exact_k_nearest(case):
     block was full -- on a random cloud, on coincident points (all distances 0) and on a
     block with fewer than k candidates."""
     from occufly.lifting.blockknn import block_votes
-    from occufly.lifting.knn import _VoxelGrid
+    from occufly.lifting.knn import VoxelGrid
 
     rng = np.random.default_rng(7)
     n, k, radius, C = {"random": (3000, 40, 1.5, 5), "duplicates": (300, 50, 1.0, 3),
@@ -707,7 +707,7 @@ def test_block_knn_kernel_counts_the_exact_k_nearest(case):
     if case == "duplicates":
         xyz[:] = xyz[0]
     cols = rng.integers(0, C, n).astype(np.int64)
-    grid = _VoxelGrid(xyz, 1.0, pad=2)
+    grid = VoxelGrid(xyz, 1.0, pad=2)
     vox = grid.inverse
     order = np.argsort(vox, kind="stable").astype(np.int64)
     vs = vox[order]

@@ -149,8 +149,8 @@ def _preview(args: argparse.Namespace) -> dict:
     panels = tuple(p.strip() for p in args.panels.split(",") if p.strip())
     out = args.out
     if out is None:  # like grid-preview: a default next to the data, outside the dataset tree
-        from occufly.preview import _find_frame
+        from occufly.preview import find_frame
 
-        alt_dir, fid = _find_frame(Path(args.export), str(args.frame))
+        alt_dir, fid = find_frame(Path(args.export), str(args.frame))
         out = Path(args.export) / "previews" / f"{alt_dir.parent.name}_{alt_dir.name}_{fid}.png"
     return write_preview(args.export, args.frame, out, panels=panels, height=args.height)

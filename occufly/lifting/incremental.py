@@ -42,7 +42,7 @@ import numpy as np
 
 import occufly.lifting as pkg
 from occufly.lifting.classes import ClassColumns
-from occufly.lifting.knn import LiftParams, _check_inputs, _confirmed, _finish, _untie
+from occufly.lifting.knn import LiftParams, check_inputs, confirmed, lift_result, untie
 from occufly.lifting.result import LiftResult
 from occufly.progress import ProgressFn
 from occufly.taxonomy import Taxonomy
@@ -57,7 +57,7 @@ class IncrementalFill:
     caller (the scene's fill thread)."""
 
     def __init__(self, xyz: np.ndarray, taxonomy: Taxonomy, *, max_fraction: float = 0.5) -> None:
-        self.xyz, _ = _check_inputs(xyz, np.zeros(len(xyz), np.uint8))
+        self.xyz, _ = check_inputs(xyz, np.zeros(len(xyz), np.uint8))
         self.taxonomy = taxonomy
         self.cls = ClassColumns(taxonomy)
         self.max_fraction = max_fraction
@@ -100,7 +100,7 @@ class IncrementalFill:
         t0 = time.perf_counter()
         p = params or LiftParams()
         n = len(self.xyz)
-        _, direct = _check_inputs(self.xyz, direct)
+        _, direct = check_inputs(self.xyz, direct)
         prev = self._prev
         usable = (prev is not None and self._params == p and p.method == "voxel"
                   and not p.fill_far and prev.get("edge") is not None
@@ -115,7 +115,7 @@ class IncrementalFill:
                          "seconds": round(time.perf_counter() - t0, 3)}
             res.stats["incremental"] = dict(self.last)
             return res
-        du = _untie(direct, vote_margin, vote_top, p)
+        du = untie(direct, vote_margin, vote_top, p)
         changed = np.flatnonzero(du != prev["direct"])
         edge, origin = float(prev["edge"]), np.asarray(prev["origin"], np.float64)
         cell = cell_size(p, edge)
@@ -146,8 +146,8 @@ class IncrementalFill:
             arrays = {k: v.copy() for k, v in arrays.items()}
             for k in _PER_POINT:
                 arrays[k][upd] = np.asarray(keep[k])[upd_in_ctx]
-        res = _finish(self.cls, du, arrays["filled"], arrays["final"], arrays["agree"],
-                      vote_margin, _confirmed(du, vote_margin, vote_top, p), p=p,
+        res = lift_result(self.cls, du, arrays["filled"], arrays["final"], arrays["agree"],
+                      vote_margin, confirmed(du, vote_margin, vote_top, p), p=p,
                       fill_share=arrays["fill_share"], fill_distance=arrays["fill_distance"])
         self._prev = {**arrays, "direct": du, "edge": edge, "origin": origin}
         self.last = {"incremental": True, "changed_points": int(len(changed)),

@@ -165,7 +165,7 @@ def _threads(workers: int) -> int:
     return max(1, int(workers))
 
 
-def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"xyz must be (N, 3), got {xyz.shape}")
@@ -175,7 +175,7 @@ def _check_inputs(xyz: np.ndarray, direct: np.ndarray) -> tuple[np.ndarray, np.n
     return np.ascontiguousarray(xyz, dtype=np.float32), direct.astype(np.uint8, copy=False)
 
 
-def _untie(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
+def untie(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
            p: LiftParams) -> np.ndarray:
     """``direct`` with tied points (margin 0, some votes) set to 0 when ``p.tie_fill``."""
     if not p.tie_fill or vote_margin is None or vote_top is None:
@@ -195,7 +195,7 @@ def _scores_to_cols(cls: ClassColumns, scores: np.ndarray) -> tuple[np.ndarray, 
     return col, share
 
 
-def _knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
+def knn_vote(tree, tree_cols: np.ndarray, queries: np.ndarray, k: int, radius: float,
               cls: ClassColumns, *, weighted: bool, workers: int = 1, chunk: int = 50_000,
               own: np.ndarray | None = None, keep_share: float | None = None,
               nearest: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +254,7 @@ def _fill_far(xyz: np.ndarray, dcols: np.ndarray, filled: np.ndarray, share: np.
             return 0
         tree = cKDTree(xyz[tree_idx])
     near = np.empty(len(rest), np.float32)
-    c, s = _knn_vote(tree, dcols[tree_idx], xyz[rest], p.fill_k, np.inf, cls, weighted=True,
+    c, s = knn_vote(tree, dcols[tree_idx], xyz[rest], p.fill_k, np.inf, cls, weighted=True,
                      workers=p.workers, nearest=near)
     filled[rest], share[rest] = c, s
     if nearest is not None:
@@ -280,7 +280,7 @@ def _keep_own(cls: ClassColumns, scores: np.ndarray, own: np.ndarray | None,
     return col, share
 
 
-def _confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
+def confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.ndarray | None,
                p: LiftParams) -> np.ndarray | None:
     """(N,) bool: direct labels confirmed by several views (kept through the denoise), or None."""
     if p.confirm_views is None or vote_margin is None or vote_top is None:
@@ -289,7 +289,7 @@ def _confirmed(direct: np.ndarray, vote_margin: np.ndarray | None, vote_top: np.
         np.asarray(vote_margin) >= p.confirm_margin)
 
 
-def _finish(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
+def lift_result(cls: ClassColumns, direct: np.ndarray, filled_cols: np.ndarray, final_cols: np.ndarray,
             agree: np.ndarray, vote_margin: np.ndarray | None, confirmed: np.ndarray | None = None,
             *, p: LiftParams | None = None, fill_share: np.ndarray | None = None,
             fill_distance: np.ndarray | None = None) -> LiftResult:
@@ -345,9 +345,9 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
     """
     p = params or LiftParams()
     report = progress or noop
-    xyz, direct = _check_inputs(xyz, direct)
+    xyz, direct = check_inputs(xyz, direct)
     check_fill_memory(len(xyz))
-    direct = _untie(direct, vote_margin, vote_top, p)
+    direct = untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     t0 = time.perf_counter()
     dcols = cls.col_of[direct].astype(np.int64)  # -1 where no label
@@ -361,7 +361,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
         tree = cKDTree(xyz[lab_idx])
         report(0.1, "fill: querying")
         near = np.empty(len(un_idx), np.float32)
-        c, s = _knn_vote(tree, dcols[lab_idx], xyz[un_idx], p.fill_k, p.fill_radius, cls,
+        c, s = knn_vote(tree, dcols[lab_idx], xyz[un_idx], p.fill_k, p.fill_radius, cls,
                          weighted=True, workers=p.workers, nearest=near)
         filled[un_idx], fill_share[un_idx], fill_dist[un_idx] = c, s, near
         _fill_far(xyz, dcols, filled, fill_share, p, cls, tree, lab_idx, nearest=fill_dist)
@@ -378,13 +378,13 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
         t_build = time.perf_counter() - tb
         q = lab2 if query_index is None else np.intersect1d(np.asarray(query_index), lab2)
         report(0.4, "denoise: querying")
-        c, s = _knn_vote(tree2, filled[lab2], xyz[q], p.denoise_k, p.denoise_radius, cls,
+        c, s = knn_vote(tree2, filled[lab2], xyz[q], p.denoise_k, p.denoise_radius, cls,
                          weighted=False, workers=p.workers, own=filled[q],
                          keep_share=p.denoise_keep_share)
         final[q], agree[q] = c, s
     t2 = time.perf_counter()
-    res = _finish(cls, direct, filled, final, agree, vote_margin,
-                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
+    res = lift_result(cls, direct, filled, final, agree, vote_margin,
+                  confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
                   fill_distance=fill_dist)
     res.stats = {"method": "exact", "fill_seconds": t1 - t0, "denoise_seconds": t2 - t1,
                  "denoise_build_seconds": t_build, "denoise_points": int(len(lab2)),
@@ -394,7 +394,7 @@ def fill_and_denoise_exact(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxono
 
 
 # -- voxel hashing helpers
-class _VoxelGrid:
+class VoxelGrid:
     """Sparse voxel hash of a point set: sorted unique keys, per-point voxel index."""
 
     def __init__(self, xyz: np.ndarray, edge: float, pad: int,
@@ -463,7 +463,7 @@ class _VoxelGrid:
         return cur
 
 
-def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: _VoxelGrid,
+def _block_knn(xyz: np.ndarray, cols: np.ndarray, lab_idx: np.ndarray, grid: VoxelGrid,
                todo: np.ndarray, k: int, radius: float, cls: ClassColumns,
                progress: ProgressFn | None = None, keep_share: float | None = None,
                only: np.ndarray | None = None, workers: int = 1
@@ -567,16 +567,16 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     if p.method != "voxel":
         raise ValueError(f"unknown lifting method {p.method!r}; expected 'voxel' or 'exact'")
     report = progress or noop
-    xyz, direct = _check_inputs(xyz, direct)
+    xyz, direct = check_inputs(xyz, direct)
     stats_mem = check_fill_memory(len(xyz))
-    direct = _untie(direct, vote_margin, vote_top, p)
+    direct = untie(direct, vote_margin, vote_top, p)
     cls = ClassColumns(taxonomy)
     n = len(xyz)
     t0 = time.perf_counter()
     stats: dict = {"method": "voxel", "memory_estimate_bytes": stats_mem["memory_bytes"]}
     dcols = cls.col_of[direct].astype(np.int64)
     if n == 0 or not (dcols >= 0).any():
-        res = _finish(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin, p=p)
+        res = lift_result(cls, direct, dcols, dcols, np.zeros(n, np.float32), vote_margin, p=p)
         res.stats = {**stats, "note": "no labelled points"}
         if keep is not None:
             keep.update(direct=direct, filled=dcols, final=dcols.copy(),
@@ -591,7 +591,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     stats["voxel"] = edge
     report(0.05, "voxel hash")
     fill_r = int(math.ceil(p.fill_radius / edge))
-    grid = _VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1, origin=grid_origin)
+    grid = VoxelGrid(xyz, edge, pad=max(fill_r, 1) + 1, origin=grid_origin)
     stats["grid_origin"] = [float(v) for v in grid.mn]
     stats["voxels"] = int(grid.n_voxels)
 
@@ -603,8 +603,8 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     if keep is not None:
         keep.update(direct=direct, filled=filled, final=final, agree=agree.copy(),
                     fill_share=fill_share, fill_distance=fill_dist, edge=edge, origin=grid.mn)
-    res = _finish(cls, direct, filled, final, agree, vote_margin,
-                  _confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
+    res = lift_result(cls, direct, filled, final, agree, vote_margin,
+                  confirmed(direct, vote_margin, vote_top, p), p=p, fill_share=fill_share,
                   fill_distance=fill_dist)
     stats["seconds"] = time.perf_counter() - t0
     res.stats = stats
@@ -612,7 +612,7 @@ def fill_and_denoise(xyz: np.ndarray, direct: np.ndarray, taxonomy: Taxonomy, *,
     return res
 
 
-def _fill(xyz: np.ndarray, dcols: np.ndarray, grid: _VoxelGrid, p: LiftParams, cls: ClassColumns,
+def _fill(xyz: np.ndarray, dcols: np.ndarray, grid: VoxelGrid, p: LiftParams, cls: ClassColumns,
           stats: dict, report: ProgressFn) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fill: exact IDW k-NN for points without votes (``dcols`` < 0), a tree over the
     labelled points near them. Returns (N,) int64 ``filled`` columns (-1: none), (N,) float32
@@ -635,7 +635,7 @@ def _fill(xyz: np.ndarray, dcols: np.ndarray, grid: _VoxelGrid, p: LiftParams, c
         if len(src):
             tree = cKDTree(xyz[src])
             near = np.empty(len(un_idx), np.float32)
-            c, s = _knn_vote(tree, dcols[src], xyz[un_idx], p.fill_k, p.fill_radius, cls,
+            c, s = knn_vote(tree, dcols[src], xyz[un_idx], p.fill_k, p.fill_radius, cls,
                              weighted=True, workers=p.workers, nearest=near)
             filled[un_idx], agree[un_idx], fill_dist[un_idx] = c, s, near
         stats["fill_tree_points"] = int(len(src))
@@ -646,7 +646,7 @@ def _fill(xyz: np.ndarray, dcols: np.ndarray, grid: _VoxelGrid, p: LiftParams, c
     return filled, agree, fill_dist
 
 
-def _denoise(xyz: np.ndarray, filled: np.ndarray, agree: np.ndarray, grid: _VoxelGrid,
+def _denoise(xyz: np.ndarray, filled: np.ndarray, agree: np.ndarray, grid: VoxelGrid,
              p: LiftParams, cls: ClassColumns, stats: dict, report: ProgressFn
              ) -> tuple[np.ndarray, np.ndarray]:
     """The denoise: voxels whose 3x3x3 block certifies the majority of any point's k
@@ -688,7 +688,7 @@ def _denoise(xyz: np.ndarray, filled: np.ndarray, agree: np.ndarray, grid: _Voxe
 
 def _denoise_boundaries(xyz: np.ndarray, filled: np.ndarray, lab: np.ndarray,
                         lab_idx: np.ndarray, need: np.ndarray, rest: np.ndarray,
-                        final: np.ndarray, agree: np.ndarray, grid: _VoxelGrid, p: LiftParams,
+                        final: np.ndarray, agree: np.ndarray, grid: VoxelGrid, p: LiftParams,
                         cls: ClassColumns, stats: dict, report: ProgressFn) -> None:
     """Exact k-NN denoise of the points ``rest`` no certified voxel decides, written into
     ``final`` / ``agree``: brute force per 3x3x3 block, then coarser blocks, then a cKDTree."""
@@ -708,7 +708,7 @@ def _denoise_boundaries(xyz: np.ndarray, filled: np.ndarray, lab: np.ndarray,
             continue
         if level == 0 and coarse_edge >= p.denoise_radius:
             continue
-        coarse = _VoxelGrid(xyz, coarse_edge, pad=2, origin=grid.mn)
+        coarse = VoxelGrid(xyz, coarse_edge, pad=2, origin=grid.mn)
         todo2 = np.unique(coarse.inverse[unsafe])
         c2, s2, unsafe2 = _block_knn(xyz, filled, lab_idx, coarse, todo2, k,
                                      p.denoise_radius, cls, keep_share=p.denoise_keep_share,
@@ -726,7 +726,7 @@ def _denoise_boundaries(xyz: np.ndarray, filled: np.ndarray, lab: np.ndarray,
         in_near[near] = True
         src = np.flatnonzero(lab & in_near[vox])
         tree = cKDTree(xyz[src])
-        c2, s2 = _knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
+        c2, s2 = knn_vote(tree, filled[src], xyz[tree_q], k, p.denoise_radius, cls,
                            weighted=False, workers=p.workers, own=filled[tree_q],
                            keep_share=p.denoise_keep_share)
         final[tree_q], agree[tree_q] = c2, s2

@@ -5,7 +5,7 @@ points f needs (its visible points and the voted points whose fill can reach the
 counts minus f's own per-frame votes (``ws/lifting/frames/<f>.npz``), their majority follows
 the pipeline's tie rule (:meth:`ClassColumns.packed_winner`); a point left without a vote
 takes the pipeline fill's inverse-distance-weighted k-NN vote of the other frames' voted
-points within ``LiftParams.fill_radius`` (``occufly.lifting.knn._knn_vote``, the same
+points within ``LiftParams.fill_radius`` (``occufly.lifting.knn.knn_vote``, the same
 function the fill calls; nothing is extrapolated beyond the radius). Reviewers' corrections
 are applied on top. The labels are rendered into f exactly as the self-agreement is
 (:func:`occufly.render.render_for_mask`) and compared with f's mask.
@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from occufly.confusion import Confusion, count_pairs_many
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
-from occufly.lifting.knn import LiftParams, _knn_vote
+from occufly.lifting.knn import LiftParams, knn_vote
 from occufly.render import (
     agreement_from_counts,
     disagreement_image,
@@ -237,7 +237,7 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         src = src[np.all((sx >= lo) & (sx <= hi), axis=1)]  # only voted points in reach
     if len(todo) and len(src):
         tree = cKDTree(np.asarray(xyz[ids[src]], dtype=np.float64))
-        c, fshare = _knn_vote(tree, col[src], q,
+        c, fshare = knn_vote(tree, col[src], q,
                               p.fill_k, p.fill_radius, cls, weighted=True, workers=p.workers)
         col[todo] = c
         share[todo] = np.where(c >= 0, fshare, 0.0)

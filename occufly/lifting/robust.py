@@ -81,7 +81,7 @@ import numpy as np
 from scipy import ndimage
 
 from occufly.lifting.classes import ClassColumns
-from occufly.lifting.knn import _VoxelGrid
+from occufly.lifting.knn import VoxelGrid
 from occufly.progress import ProgressFn, noop
 
 FEATURES_VERSION = 1
@@ -495,7 +495,7 @@ def local_votes(xyz: np.ndarray, voted: np.ndarray, col1: np.ndarray, n1: np.nda
 
     Cost ~ the voted points (one voxel hash, 26 sorted-key lookups per occupied voxel)."""
     pts = np.asarray(xyz[voted], np.float32) if len(voted) < len(xyz) else np.asarray(xyz, np.float32)
-    grid = _VoxelGrid(pts, edge, pad=1)
+    grid = VoxelGrid(pts, edge, pad=1)
     del pts
     vox = grid.inverse.astype(np.int32)
     V = grid.n_voxels

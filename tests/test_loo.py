@@ -122,3 +122,41 @@ def test_loo_winner_matches_the_numpy_majority():
     rows = np.full(n, -1, np.int32)  # the same through a point -> row map
     rows[ids] = np.arange(len(ids))
     assert np.array_equal(loo_winner(votes, ids, own_p, own_c, own_w, cls, rows=rows), want)
+
+
+def _permuted(m: np.ndarray) -> np.ndarray:
+    """Elevated and ground classes swapped: buildings painted grass, roofs road and back."""
+    lut = np.arange(256, dtype=np.uint8)
+    lut[BUILDING], lut[ROOF], lut[GRASS], lut[ROAD] = GRASS, ROAD, ROOF, BUILDING
+    return lut[m]
+
+
+def test_right_frame_next_to_a_wrong_one_is_not_blamed(tmp_path):
+    """Issue 40, defect 7: frame 5 (exact) shares most of its view with frame 6 (classes
+    permuted) and little with 9 and 10. Without frame 5 the raw majority at their shared
+    points is frame 6's wrong vote, so the plain LOO labels (the review before issue 40)
+    blamed frame 5 (0.71); the pipeline's robust decision overrules frame 6 there as it does
+    in the lifting, and frame 5 scores >= 0.75. The wrong frame still scores near 0, and
+    each names the other as the neighbour that disagrees -- frame 6 overruled, frame 5 not."""
+    scene, _ = make_scene()
+    scene.save(tmp_path / "ws")
+    path = tmp_path / "ws"
+    scene = Scene.load(path)
+    st = LiftState.open(path, scene)
+    masks = {}
+    for fi in (5, 6, 9, 10):
+        m = truth_mask(scene.frames[fi])
+        masks[fi] = _permuted(m) if fi == 6 else m
+        st.set_mask(fi, masks[fi], version=str(fi))
+    st.fill_and_denoise()
+    right = frame_loo(path, scene, 5, masks[5], neighbours=True)
+    plain = frame_loo(path, scene, 5, masks[5], params=LiftParams(robust=False))
+    assert right["independent_coverage"] > 0.8
+    assert plain["agreement"] < 0.75  # the old decision: frame 6's votes decide
+    assert right["agreement"] >= 0.75
+    nb = right["neighbours"][0]
+    assert nb["frame_index"] == 6 and nb["disagree_share"] > 0.9 and nb["overruled_share"] > 0.5
+    wrong = frame_loo(path, scene, 6, masks[6], neighbours=True)
+    assert wrong["agreement"] < 0.1
+    nb = {n["frame_index"]: n for n in wrong["neighbours"]}
+    assert nb[5]["disagree_share"] > 0.9 and nb[5]["overruled_share"] < 0.1

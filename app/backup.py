@@ -43,10 +43,10 @@ from sqlalchemy import DateTime, insert, select, text
 from sqlalchemy.engine import Engine
 
 from app import db
+from app.blobs import BlobStore
 from app.config import Settings
 from app.models import metadata
 from app.scenes.models import Scene
-from app.storage import BlobStore
 from app.users.models import User
 from occufly.errors import OccuflyError
 from occufly.fsutil import PathNotConfined, atomic_directory, atomic_write_text, confined
@@ -361,7 +361,7 @@ def restore(settings: Settings, src: Path) -> dict:
             raise BackupError(f"{src}: {len(problems)} frame image(s) cannot be restored, e.g. "
                               f"{problems[0]}")
         # masks first, each checked against its name: a damaged backup fails before the database
-        from app.storage import BlobStore
+        from app.blobs import BlobStore
 
         store = BlobStore(settings.mask_store_dir)
         n_masks = 0

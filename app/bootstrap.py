@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 
 from app import db
+from app.blobs import BlobStore
 from app.config import Settings
 from app.context import AppContext, SceneCache
 from app.events import EventBus
@@ -20,7 +21,6 @@ from app.lifting.service import LiftingService
 from app.review import jobs as review_jobs
 from app.review import service as review
 from app.scenes import jobs as scene_jobs
-from app.storage import BlobStore
 
 log = logging.getLogger("occufly.app")
 

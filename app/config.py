@@ -44,7 +44,7 @@
                                each scene (default 0 = keep all)
 ``OCCUFLY_EXPORT_MAX_AGE_DAYS``  export retention: delete finished exports older than this
                                (default 0 = never); both applied at start-up and after each
-                               export (app/scenes/storage.py)
+                               export (app/scenes/disk.py)
 ``OCCUFLY_MAX_JSON_MB``        largest JSON request body (default 1; 413 beyond, checked
                                before the body is read: app/bodylimit.py)
 ``OCCUFLY_MAX_SELECTION_MB``   largest point-id list body (corrections, review items;

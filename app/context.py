@@ -20,8 +20,8 @@ from typing import Any, Protocol
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.blobs import BlobStore
 from app.config import Settings
-from app.storage import BlobStore
 from occufly.scene import Scene
 from occufly.workspace import Workspace
 

@@ -39,10 +39,10 @@ from app.pipeline import stored_mask_ids
 from app.review import service as review
 from app.review.routes import router as review_router
 from app.scenes.console import router as console_router
+from app.scenes.disk import apply_export_retention
 from app.scenes.imports import router as imports_router
 from app.scenes.models import Frame, Scene
 from app.scenes.routes import router as scenes_router
-from app.scenes.storage import apply_export_retention
 from app.users import service as users
 from app.users.models import User
 from app.users.routes import router as users_router

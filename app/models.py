@@ -2,6 +2,7 @@
 
 from app.annotations.models import MaskVersion
 from app.audit.models import AuditEvent
+from app.blobs import MaskBlob
 from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import Base
 from app.jobs.models import Job
@@ -9,7 +10,6 @@ from app.lifting.models import Event, LiftQueueEntry, LiftStatus
 from app.notifications.models import Notification
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.models import Frame, Scene, SceneMember
-from app.storage import MaskBlob
 from app.users.models import AuthToken, LoginThrottle, User
 
 metadata = Base.metadata

@@ -28,6 +28,7 @@ from sqlalchemy import and_, case, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from app.annotations.models import STORED_KINDS, VOTING_KINDS, MaskVersion, Prefill
+from app.blobs import claim_blob
 from app.context import AppContext
 from app.db import utcnow
 from app.errors import (
@@ -41,7 +42,6 @@ from app.errors import (
 )
 from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
-from app.storage import claim_blob
 from app.users.models import User
 from occufly import render
 from occufly.io import masks
@@ -234,7 +234,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
             data = masks.encode_mask_png(mask)
         check_storage_quota(session, ctx, frame, user, len(data))
         # claimed in this transaction: a concurrent scene deletion cannot remove the blob
-        # between here and the commit (app/storage.py, issue 36)
+        # between here and the commit (app/blobs.py, issue 36)
         sha256 = claim_blob(session, ctx.store, data)
         nbytes = len(data)
     else:

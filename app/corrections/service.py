@@ -45,6 +45,7 @@ from app.annotations import service as annotations
 from app.annotations.models import MaskVersion
 from app.annotations.service import check_read
 from app.audit import service as audit
+from app.blobs import claim_blob
 from app.context import AppContext
 from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import utcnow
@@ -55,7 +56,6 @@ from app.review.models import ReviewItem
 from app.review.service import items_out
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
-from app.storage import claim_blob
 from app.users.models import User
 from occufly.lifting import corrections as lib
 from occufly.workspace import Workspace

@@ -76,8 +76,8 @@ if TYPE_CHECKING:
     from sqlalchemy.engine import Engine
     from sqlalchemy.orm import Session, sessionmaker
 
+    from app.blobs import BlobStore
     from app.config import Settings
-    from app.storage import BlobStore
     from occufly.scene import Scene as WorkspaceScene
 
     # a subscriber of the scenes this worker owns: (event, the service's stop event)

@@ -9,7 +9,7 @@ from pathlib import Path
 from app.jobs.registry import JobContext, kind
 from app.review import provenance
 from app.review import service as review
-from app.scenes import storage
+from app.scenes import disk
 from app.scenes.jobs import scene_of
 from occufly.densify.evaluate import evaluate_grids
 from occufly.errors import OccuflyError
@@ -19,7 +19,7 @@ from occufly.workspace import Workspace
 
 def _apply_retention(jc: JobContext) -> None:
     """Retention counts the export that just finished."""
-    storage.apply_export_retention(jc.ctx, jc.scene_id)
+    disk.apply_export_retention(jc.ctx, jc.scene_id)
 
 
 @kind("export", remote=True, on_done=_apply_retention)

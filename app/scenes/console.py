@@ -33,7 +33,7 @@ from app.deps import AdminUser, ClientIp, CtxDep, SceneDep, SessionDep
 from app.errors import Invalid
 from app.jobs.schemas import JidPath
 from app.limits import INT32_MAX
-from app.scenes import storage
+from app.scenes import disk
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 
@@ -61,7 +61,7 @@ STATES = ("todo", "in_progress", "submitted", "accepted", "rejected")
 def storage_route(session: SessionDep, ctx: CtxDep, _admin: AdminUser) -> dict:
     """Disk used per scene (workspace, exports and their archives, resized images, mask
     PNGs) and the data dir's file system."""
-    scenes = [storage.scene_storage(ctx, session, s)
+    scenes = [disk.scene_storage(ctx, session, s)
               for s in session.scalars(select(Scene).order_by(Scene.id))]
     du = shutil.disk_usage(ctx.settings.data_dir)
     return {"scenes": scenes, "total_bytes": sum(s["total_bytes"] for s in scenes),
@@ -76,7 +76,7 @@ def deletion_preview(scene: SceneDep, session: SessionDep, ctx: CtxDep, _admin: 
     """What deleting the scene removes (workspace, exports, cached images, mask PNGs no other
     scene uses; never the import source) and the bytes it frees; ``blocked_by`` lists what
     stops it now."""
-    return storage.deletion_preview(ctx, session, scene)
+    return disk.deletion_preview(ctx, session, scene)
 
 
 @router.delete("/scenes/{sid}", responses={409: {"description": "a job or the lifting "
@@ -88,7 +88,7 @@ def delete_scene(scene: SceneDep, session: SessionDep, ctx: CtxDep, admin: Admin
     if confirm != scene.name:
         raise Invalid(f"confirm: type the scene's name {scene.name!r} to delete it")
     sid, name = scene.id, scene.name
-    out = storage.delete_scene(ctx, session, scene)
+    out = disk.delete_scene(ctx, session, scene)
     audit.record(session, "scene_delete", actor=admin, scene_id=sid, target=name, client_ip=ip,
                  detail={"freed_bytes": out["freed_bytes"], "frames": out["frames"],
                          "mask_versions": out["mask_versions"], "exports": out["exports"]})
@@ -99,15 +99,15 @@ def delete_scene(scene: SceneDep, session: SessionDep, ctx: CtxDep, admin: Admin
 def list_exports(session: SessionDep, ctx: CtxDep, _admin: AdminUser,
                  scene_id: Annotated[int | None, Query(ge=1, le=INT32_MAX)] = None) -> list[dict]:
     """Finished exports, newest first, with the bytes their output and archives take."""
-    return storage.list_exports(ctx, session, scene_id)
+    return disk.list_exports(ctx, session, scene_id)
 
 
 @router.delete("/jobs/{jid}/export")
 def delete_export(jid: JidPath, session: SessionDep, ctx: CtxDep, admin: AdminUser,
                   ip: ClientIp) -> dict:
     """Delete a finished export's output and archives (answers what it freed)."""
-    job = storage.finished_export(session, jid)
-    out = storage.delete_export(ctx, session, job, reason=f"admin {admin.username}")
+    job = disk.finished_export(session, jid)
+    out = disk.delete_export(ctx, session, job, reason=f"admin {admin.username}")
     audit.record(session, "export_delete", actor=admin, scene_id=job.scene_id,
                  target=f"export job {jid}", client_ip=ip,
                  detail={"job_id": jid, "freed_bytes": out["freed_bytes"]})
@@ -118,7 +118,7 @@ def delete_export(jid: JidPath, session: SessionDep, ctx: CtxDep, admin: AdminUs
 def apply_retention(session: SessionDep, ctx: CtxDep, admin: AdminUser, ip: ClientIp,
                     response: Response) -> dict:
     """Apply the export retention settings now; answers what was deleted."""
-    deleted = storage.apply_export_retention(ctx)
+    deleted = disk.apply_export_retention(ctx)
     if deleted:
         audit.record(session, "export_retention", actor=admin, client_ip=ip,
                      detail={"job_ids": [d["job_id"] for d in deleted],

@@ -6,7 +6,7 @@ Create Date: 2026-12-10 10:00:00
 
 ``mask_blobs``: the sha256 of every stored mask PNG. A save upserts the row in the transaction
 that adds its version (prefill, proposal), and a scene deletion removes a blob only after
-locking its row and finding no reference (app/storage.py) -- before, a deletion could remove
+locking its row and finding no reference (app/blobs.py) -- before, a deletion could remove
 a blob another scene's concurrent save had just found present. Filled here from every digest
 the versions, prefills and proposals reference. The digest columns of versions and prefills
 get an index: the reference check looks them up by digest.

@@ -169,7 +169,7 @@ def test_per_scene_quota(world):
 
 def test_disk_full_on_a_mask_save_is_507_and_writes_nothing(world, monkeypatch):
     env, hdr, scene, _ = world
-    import app.storage as storage
+    import app.blobs as storage
 
     def full(path, data):  # noqa: ANN001, ANN202
         raise OSError(errno.ENOSPC, "No space left on device", str(path))

@@ -111,9 +111,9 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
 
     from app import db, security
     from app.annotations.models import MaskVersion
+    from app.blobs import BlobStore
     from app.lifting.models import LiftQueueEntry, LiftStatus
     from app.scenes.models import Frame
-    from app.storage import BlobStore
     from app.users import service as users
     from occufly.lifting import LiftState
     from occufly.scene import Scene as WsScene
@@ -321,13 +321,13 @@ def test_two_lifting_workers_share_the_scenes_and_take_over_after_kill_9(tmp_pat
 
     from app import db, security
     from app.annotations.models import MaskVersion
+    from app.blobs import BlobStore
     from app.config import Settings
     from app.lifting.models import Event, LiftQueueEntry, LiftStatus
     from app.lifting.service import PG_SCENE_LOCK, preferred_slot
     from app.main import close, create_app
     from app.pipeline import stored_mask_ids
     from app.scenes.models import Frame, Scene
-    from app.storage import BlobStore
     from app.users import service as users
     from occufly.lifting import LiftState
     from occufly.scene import Scene as WsScene

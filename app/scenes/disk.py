@@ -15,7 +15,8 @@ the job row, its result marked ``deleted_at`` / ``freed_bytes`` (the download an
 
 Retention (``OCCUFLY_EXPORT_KEEP_LAST``, ``OCCUFLY_EXPORT_MAX_AGE_DAYS``; 0 = off): the
 finished exports of each scene beyond the newest N, and those older than D days, are
-deleted at start-up and after every export job (app/jobs/runner.py).
+deleted at start-up and after every export job (the export kind's ``on_done``,
+:mod:`app.review.jobs`).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from app.errors import Conflict, NotFound
 from app.jobs.models import Job
 from app.scenes.models import Frame, Scene
 from app.scenes.service import own_workspace
-from app.storage import release_blobs
+from app.blobs import release_blobs
 
 if TYPE_CHECKING:  # app.context builds the job runner, which calls retention below
     from app.context import AppContext

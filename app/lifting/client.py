@@ -93,7 +93,7 @@ class LiftingClient:
         if svc is None:
             return
         if mask is not None and version_id is not None:
-            svc.hint(frame_id, version_id, mask)
+            svc.offer_decoded(frame_id, version_id, mask)
         svc.wake()
 
     # ---- status -----------------------------------------------------------------------------

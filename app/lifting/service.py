@@ -1,6 +1,6 @@
 """The lifting worker: applies queued mask versions to each scene's votes, fills, publishes.
 
-It consumes the ``lift_queue`` table (:mod:`app.lifting.queue`), in id order, which for one
+It consumes the ``lift_queue`` table (:class:`app.lifting.models.LiftQueueEntry`), in id order, which for one
 frame is version order (a version can only become current after the one it replaces
 committed). Per scene one worker owns the workspace's :class:`occufly.lifting.LiftState`
 (one writer per scene):
@@ -169,7 +169,10 @@ class PgLocks:
 
 
 @dataclass
-class _Scene:
+class _SceneWork:
+    """What this worker holds for one scene it owns: the open vote store, its update lock, the
+    pending fill's timing and the last applied queue entry."""
+
     scene_id: int
     workspace: str
     state: object  # occufly.lifting.LiftState
@@ -222,13 +225,13 @@ class LiftingService:
         self.debounce_s = settings.fill_debounce_s if debounce_s is None else debounce_s
         self.poll_s = poll_s
         self.batch = batch
-        self._scenes: dict[int, _Scene] = {}
+        self._scenes: dict[int, _SceneWork] = {}
         self._scenes_lock = threading.Lock()
         self._cv = threading.Condition()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._hints: dict[tuple[int, int], object] = {}  # (frame id, version id) -> mask
+        self._decoded: dict[tuple[int, int], object] = {}  # (frame id, version id) -> mask
         self._backoff: dict[int, float] = {}  # scene id -> monotonic time to retry it
         self._lock_fd: int | None = None
         self._pg: PgLocks | None = None  # PostgreSQL: advisory locks (scenes, worker slot)
@@ -330,12 +333,12 @@ class LiftingService:
     def wake(self) -> None:
         self._wake.set()
 
-    def hint(self, frame_id: int, version_id: int, mask) -> None:  # noqa: ANN001
+    def offer_decoded(self, frame_id: int, version_id: int, mask) -> None:  # noqa: ANN001
         """The decoded upload of ``version_id`` (embedded mode: saves a second PNG decode)."""
         with self._cv:
-            if len(self._hints) > 64:
-                self._hints.clear()
-            self._hints[(frame_id, version_id)] = mask
+            if len(self._decoded) > 64:
+                self._decoded.clear()
+            self._decoded[(frame_id, version_id)] = mask
 
     # ---- status (this process) ------------------------------------------------------------
     def busy(self, scene_id: int) -> dict:
@@ -574,7 +577,7 @@ class LiftingService:
         if changed:
             self._schedule_fill(sc)
 
-    def _votes_of(self, sc: _Scene, r):  # noqa: ANN001
+    def _votes_of(self, sc: _SceneWork, r):  # noqa: ANN001
         """The votes of entry ``r``'s mask (pool thread: decode + projection, reads only), or
         None when there is nothing to decode (no mask any more, or already counted)."""
         state = sc.state
@@ -585,13 +588,13 @@ class LiftingService:
         if state.version_of(fi) == tag and fi in state.included_versions():
             return None
         with self._cv:
-            mask = self._hints.pop((r.frame_id, r.version_id), None)
+            mask = self._decoded.pop((r.frame_id, r.version_id), None)
         if mask is None:
 
             mask = stored_mask_ids(self.store.get(r.sha256), state.scene.taxonomy)
         return state.frame_votes(fi, mask, name=f"mask version {r.version_id}")
 
-    def _apply_entry(self, sc: _Scene, r, votes=None) -> bool:  # noqa: ANN001
+    def _apply_entry(self, sc: _SceneWork, r, votes=None) -> bool:  # noqa: ANN001
         """Make the state count exactly entry ``r``'s version; False if it already did."""
         state = sc.state
         fi = int(r.frame_index)
@@ -611,7 +614,7 @@ class LiftingService:
                               name=f"mask version {r.version_id}")
         return True
 
-    def _scene(self, scene_id: int, workspace: str) -> _Scene:
+    def _scene(self, scene_id: int, workspace: str) -> _SceneWork:
         with self._scenes_lock:
             sc = self._scenes.get(scene_id)
             if sc is not None and sc.workspace == str(workspace):
@@ -620,7 +623,7 @@ class LiftingService:
                 sc.closed = True
 
             state = LiftState.open(Path(workspace), self.load_scene(str(workspace)))
-            sc = _Scene(scene_id, str(workspace), state)
+            sc = _SceneWork(scene_id, str(workspace), state)
             sc.thread = threading.Thread(target=self._fill_loop, args=(sc,), daemon=True,
                                          name=f"occufly-fill-{scene_id}")
             self._scenes[scene_id] = sc
@@ -647,7 +650,7 @@ class LiftingService:
         row.updated_at = utcnow()
 
     # ---- fill -------------------------------------------------------------------------------
-    def _schedule_fill(self, sc: _Scene, delay: float | None = None) -> None:
+    def _schedule_fill(self, sc: _SceneWork, delay: float | None = None) -> None:
         """Fill once the scene has been quiet for ``debounce_s`` (``delay``), but no later than
         ``MAX_WAIT_DEBOUNCES`` debounces after the first change it covers."""
         now = time.monotonic()
@@ -658,7 +661,7 @@ class LiftingService:
             sc.fill_due = min(due, sc.first_due + self.MAX_WAIT_DEBOUNCES * self.debounce_s)
             self._cv.notify_all()
 
-    def _fill_loop(self, sc: _Scene) -> None:
+    def _fill_loop(self, sc: _SceneWork) -> None:
         _lower_priority(self.settings.fill_nice)
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
@@ -694,7 +697,7 @@ class LiftingService:
                 with self._cv:
                     self._cv.notify_all()
 
-    def _fill(self, sc: _Scene) -> None:
+    def _fill(self, sc: _SceneWork) -> None:
         """Snapshot the vote majority under the update lock, fill/denoise without it, publish."""
         with sc.lock:
             snap = sc.state.snapshot()

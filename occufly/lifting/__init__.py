@@ -1,6 +1,8 @@
 """Multi-view label lifting: incremental votes, kNN fill, kNN denoise, confidence.
 
-The package has three parts (each module's docstring gives the details):
+Its main modules (each module's docstring gives the details; beside them ``loo`` -- the
+review's leave-one-out labels --, ``quality``, ``suspects``, ``incremental``, ``corrections``
+and ``calibration``):
 
 ``occufly.lifting.votes``
     :class:`LiftState`, the per-point vote counts of one workspace, updated one frame at a

@@ -21,7 +21,12 @@ JSON object:
   pyramid; baseline = the same with the full-resolution photo only (3 interleaved pairs,
   medians).
 
-Usage: .venv/bin/python bench/bench_browser.py [--segments 200] [--keep DIR]
+* ``--review 12,20`` (issue 40, defect 6; only this part runs): the reviewer opens the next
+  frame of the review list after a fill at 12 MP and 20 MP -> seconds from N to the frame
+  shown, after the fill (what the background refresh computed), cached, and cold (the review
+  caches emptied: the first open before issue 40); budget 0.3 s (:func:`review_bench`).
+
+Usage: .venv/bin/python bench/bench_browser.py [--segments 200] [--keep DIR] [--review 12,20]
 """
 
 from __future__ import annotations
@@ -47,30 +52,33 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
                  "--disable-component-update", "--no-first-run", "--disable-sync"]
 
 
-def photo(seed: int) -> Image.Image:
-    """A 5472x3648 'aerial photo': smooth fields, roads and fine grain (JPEG ~ real size)."""
+def photo(seed: int, w: int = W, h: int = H) -> Image.Image:
+    """A w x h (default 5472x3648) 'aerial photo': smooth fields, roads and fine grain (JPEG
+    ~ real size)."""
     rng = np.random.default_rng(seed)
-    small = rng.integers(40, 200, size=(H // 64 + 1, W // 64 + 1, 3), dtype=np.uint8)
-    base = np.asarray(Image.fromarray(small).resize((W, H), Image.BILINEAR), dtype=np.int16)
+    small = rng.integers(40, 200, size=(h // 64 + 1, w // 64 + 1, 3), dtype=np.uint8)
+    base = np.asarray(Image.fromarray(small).resize((w, h), Image.BILINEAR), dtype=np.int16)
     base[1500:1700, :] = 70  # a road
     base[:, 2600:2760] = 75
-    grain = rng.integers(-18, 18, size=(H, W, 1), dtype=np.int16)
+    grain = rng.integers(-18, 18, size=(h, w, 1), dtype=np.int16)
     return Image.fromarray(np.clip(base + grain, 0, 255).astype(np.uint8))
 
 
-def build_reconstruction(root: Path) -> Path:
-    """The recon_builder model (ground + box, 2 cameras) scaled up to 5472x3648 images."""
+def build_reconstruction(root: Path, w: int = W, h: int = H, n_cams: int = 2,
+                         name: str = "big") -> Path:
+    """The recon_builder model (ground + box, ``n_cams`` cameras) scaled up to w x h images
+    (default 5472x3648; 96 k x 64 k)."""
     from tests.recon_builder import make_reconstruction
 
-    src = root / "big"
-    make_reconstruction(src, n_cams=2, vis=True, depth_maps=False)
-    k = W // 96
-    assert (96 * k, 64 * k) == (W, H)
+    src = root / name
+    make_reconstruction(src, n_cams=n_cams, vis=True, depth_maps=False)
+    k = w // 96
+    assert (96 * k, 64 * k) == (w, h), "sizes are 96 k x 64 k"
     cams = src / "sparse" / "cameras.txt"
     head, line = cams.read_text().strip().split("\n")
     p = line.split()
     params = [float(v) * k for v in p[4:]]
-    cams.write_text(f"{head}\n1 PINHOLE {W} {H} " + " ".join(repr(v) for v in params) + "\n")
+    cams.write_text(f"{head}\n1 PINHOLE {w} {h} " + " ".join(repr(v) for v in params) + "\n")
     imgs = src / "sparse" / "images.txt"
     lines = imgs.read_text().split("\n")
     out = [lines[0]]
@@ -84,17 +92,167 @@ def build_reconstruction(root: Path) -> Path:
         out.append(ln)
     imgs.write_text("\n".join(out))
     for i, f in enumerate(sorted((src / "images").iterdir())):
-        photo(i).save(f.with_suffix(".jpg"), quality=90)
+        photo(i, w, h).save(f.with_suffix(".jpg"), quality=90)
         f.unlink()
     imgs.write_text(imgs.read_text().replace(".png", ".jpg"))
     return src
+
+
+REVIEW_SIZES = {"12": (4224, 2816), "20": (5472, 3648)}  # 11.9 MP and 20.0 MP, 96 k x 64 k
+
+NEXT_JS = """async (name) => { const t = performance.now();
+    performance.clearResourceTimings();
+    document.querySelector('#next-review').click();
+    for (;;) { const h = document.querySelector('.review-head h2');
+               if (h && h.textContent === name && document.querySelector('#agreement')) break;
+               await new Promise((r) => setTimeout(r, 5)); }
+    const s = (performance.now() - t) / 1000;
+    const req = (k) => { const e = performance.getEntriesByType('resource').filter((x) => x.name.includes(k));
+                         return e.length ? e[e.length - 1].duration / 1000 : null; };
+    return {open_s: s, agreement_request_s: req('/agreement'), disagreement_request_s: req('/disagreement'),
+            render_request_s: req('/render')}; }"""
+
+
+def _open_review(page, base: str, sid: int, frame: dict) -> None:  # noqa: ANN001
+    """The reviewer page on ``frame``, loaded afresh, its head shown."""
+    page.goto(f"{base}/#/review?scene={sid}&frame={frame['id']}")
+    page.reload()
+    page.wait_for_function(
+        "(n) => { const h = document.querySelector('.review-head h2');"
+        " return h && h.textContent === n && document.querySelector('#next-review'); }",
+        arg=frame["name"])
+
+
+def review_bench(sizes: list[str], keep: Path | None, shots: Path | None = None) -> dict:
+    """Issue 40, defect 6: the reviewer opens the next frame of the review list (N) after a
+    fill, at 12 MP and 20 MP. Three frames with submitted masks, lifted by the embedded
+    worker (its refresh computes the list's top in the background); in Chromium, from the
+    list's first frame, N to the second: ``cold`` (the review caches emptied and the
+    prefetch off: the first open before issue 40, every computation in the requests),
+    ``after_fill`` (what the background refresh / prefetch left: the first open now),
+    ``cached`` (the same frame again). Seconds from the click to the frame's head shown, and
+    the agreement / disagreement / labels-rendering requests' durations."""
+    import httpx
+    import uvicorn
+    from playwright.sync_api import sync_playwright
+
+    from app.config import Settings
+    from app.main import create_app
+    from app.review import service as review
+    from app.users import service as users
+
+    try:
+        from tests.harness import free_port
+    except ImportError:
+        from tests.e2e.conftest import free_port
+
+    out: dict = {}
+    for size in sizes:
+        w, h = REVIEW_SIZES[size]
+        tmp = Path(keep or tempfile.mkdtemp(prefix="bench_review_open_")) / f"mp{size}"
+        imports = tmp / "imports"
+        imports.mkdir(parents=True, exist_ok=True)
+        source = build_reconstruction(imports, w, h, n_cams=3, name=f"review{size}")
+        app = create_app(Settings(data_dir=tmp / "data", env="development",
+                                  import_roots=[imports], frontend_dir=REPO / "frontend"))
+        with app.state.ctx.sessions() as s:
+            users.create_user(session=s, username="admin", password="admin-password-1",
+                              role="admin")
+        port = free_port()
+        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
+                                               log_level="warning"))
+        th = threading.Thread(target=server.run, daemon=True)
+        th.start()
+        while not server.started:
+            time.sleep(0.05)
+        base = f"http://127.0.0.1:{port}"
+        c = httpx.Client(base_url=base, timeout=300)
+        tok = c.post("/api/auth/login", json={"username": "admin",
+                                              "password": "admin-password-1"}).json()["token"]
+        c.headers["Authorization"] = f"Bearer {tok}"
+        job = c.post("/api/scenes/import", json={"name": f"review{size}",
+                                                 "source": str(source)}).json()
+        while (j := c.get(f"/api/jobs/{job['id']}").json())["status"] in ("queued", "running"):
+            time.sleep(0.2)
+        assert j["status"] == "done", j
+        sid = j["scene_id"]
+        frames = c.get(f"/api/scenes/{sid}/frames").json()
+        for i, fr in enumerate(frames):  # three painted bands, the classes rotated per frame
+            ids = np.zeros((h, w), np.uint8)
+            for b, cid in enumerate(np.roll([6, 1, 2], i)):
+                ids[b * h // 3:(b + 1) * h // 3] = cid
+            buf = io.BytesIO()
+            Image.fromarray(ids, mode="L").save(buf, format="PNG", compress_level=1)
+            r = c.put(f"/api/frames/{fr['id']}/mask?kind=submitted", content=buf.getvalue(),
+                      headers={"Content-Type": "image/png", "If-Match": "none"})
+            assert r.status_code == 200, r.text
+        t0 = time.perf_counter()
+        assert app.state.ctx.lifting.wait_idle(sid, timeout=600, include_fill=True)
+        fill_and_refresh_s = time.perf_counter() - t0
+        order = c.get(f"/api/scenes/{sid}/frames?sort=disagreement&state=submitted").json()
+        first, second = order[0], order[1]
+        row: dict = {"image": [w, h], "megapixels": round(w * h / 1e6, 1),
+                     "frames": len(frames), "fill_and_background_refresh_s":
+                         round(fill_and_refresh_s, 2)}
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+            page = browser.new_context(viewport={"width": 1440, "height": 900}).new_page()
+            page.set_default_timeout(300_000)
+            page.goto(f"{base}/#/login")
+            page.fill("#username", "admin")
+            page.fill("#password", "admin-password-1")
+            page.click("button[type=submit]")
+            page.wait_for_selector("#whoami:has-text('admin')")
+
+            # after the fill: what the background refresh left (the first open now)
+            _open_review(page, base, sid, first)
+            row["after_fill"] = page.evaluate(NEXT_JS, second["name"])
+            if shots is not None:  # the agreement panel with the disagreeing neighbours
+                shots.mkdir(parents=True, exist_ok=True)
+                page.screenshot(path=str(shots / f"reviewer_neighbours_{size}mp.png"))
+            # cached: the same frame again
+            _open_review(page, base, sid, first)
+            row["cached"] = page.evaluate(NEXT_JS, second["name"])
+            # cold: nothing computed ahead (the caches emptied, the prefetch off): before issue 40
+            saved = review.PREFETCH_NEXT
+            review.PREFETCH_NEXT = 0
+            try:
+                _open_review(page, base, sid, first)
+                review._CACHE.clear()
+                review._RENDER_CACHE.clear()
+                row["cold"] = page.evaluate(NEXT_JS, second["name"])
+            finally:
+                review.PREFETCH_NEXT = saved
+            browser.close()
+        for k in ("after_fill", "cached", "cold"):
+            row[k] = {k2: (round(v, 3) if isinstance(v, float) else v) for k2, v in row[k].items()}
+        row["ratio_after_fill_to_cold"] = round(row["after_fill"]["open_s"] / row["cold"]["open_s"], 3)
+        row["budget_s"] = 0.3
+        row["after_fill_within_budget"] = row["after_fill"]["open_s"] <= 0.3
+        out[f"{size}mp"] = row
+        server.should_exit = True
+        th.join(timeout=10)
+        app.state.ctx.lifting.stop()
+    return out
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--segments", type=int, default=200)
     ap.add_argument("--keep", type=Path, default=None, help="keep the data directory here")
+    ap.add_argument("--screenshots", type=Path, default=None,
+                    help="--review: save the reviewer page after the first open here")
+    ap.add_argument("--review", default=None, metavar="SIZES",
+                    help="only the reviewer's next-frame open (issue 40) at these sizes, e.g. "
+                         "12,20 (MP)")
     args = ap.parse_args()
+    if args.review:
+        import os
+
+        res = {"bench": "review_open_next", "load_average_at_start": round(os.getloadavg()[0], 1),
+               "cores": os.cpu_count(), **review_bench(args.review.split(","), args.keep, args.screenshots)}
+        print(json.dumps(res))
+        return 0
 
     import httpx
     import uvicorn

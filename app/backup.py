@@ -361,8 +361,6 @@ def restore(settings: Settings, src: Path) -> dict:
             raise BackupError(f"{src}: {len(problems)} frame image(s) cannot be restored, e.g. "
                               f"{problems[0]}")
         # masks first, each checked against its name: a damaged backup fails before the database
-        from app.blobs import BlobStore
-
         store = BlobStore(settings.mask_store_dir)
         n_masks = 0
         for p in sorted((src / "masks").rglob("*.png")) if (src / "masks").is_dir() else []:

@@ -27,6 +27,7 @@ from app.bootstrap import build_context
 from app.config import Settings
 from app.demo import DemoSteps
 from app.demo import seed as seed_demo
+from app.errors import DomainError
 from app.jobs import service as jobs
 from app.jobs.schemas import ExportIn
 from app.lifting.worker import main
@@ -220,8 +221,6 @@ def _users(args: argparse.Namespace) -> dict | list:
                 user = service.create_user(session=session, username=args.name,
                                            password=password, role=args.role)
             except Exception as e:  # domain errors (duplicate, short password) -> one line
-                from app.errors import DomainError
-
                 if isinstance(e, DomainError):
                     raise OccuflyError(f"users create {args.name}: {e.detail}") from None
                 raise
@@ -273,12 +272,12 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
         shown = pw if pw is not None else "(existing account, password unchanged)"
         print(f"    {user:10s} password {shown}", file=sys.stderr)
     if serve:
-        import uvicorn
+        import uvicorn  # the web server, for serving only: every other command starts without it
 
         print(f"  open http://{host}:{port}/", file=sys.stderr)
         uvicorn.run(app, host=host, port=port, log_level="info", **uvicorn_options(settings))
     else:
-        from app.main import close
+        from app.main import close  # the app factory's module, loaded by demo's app already
 
         close(app)
     return info

@@ -20,7 +20,9 @@ from app.main import close, create_app
 from app.scenes import service as scenes
 from app.scenes.models import Scene
 from app.users import service as users
+from occufly.errors import WorkspaceError
 from occufly.fsutil import atomic_write_bytes
+from occufly.synthetic import generate
 from occufly.workspace import Workspace
 
 DEMO_USERS = ("admin", "reviewer", "annotator")
@@ -134,8 +136,6 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
         if source_dir is None:
             source_dir = settings.import_roots[0] / f"synthetic_{preset}_{seed_value}"
             if not (source_dir / "truth").is_dir():
-                from occufly.synthetic import generate
-
                 with steps.step(f"synthesizing the {preset} scene") as bar:
                     def both(f: float, m: str = "") -> None:
                         bar(f, m)
@@ -176,8 +176,6 @@ def seed(settings: Settings, source_dir: Path | None = None, *, preset: str = "s
                 with steps.step(f"importing {Path(source).name}") as bar:
                     _run_job(ctx, s, job, bar)
                 if job.status != "done":
-                    from occufly.errors import WorkspaceError
-
                     raise WorkspaceError(f"demo import of {source} failed: {job.message}")
             s.refresh(scene)
             scene_id = scene.id

@@ -162,7 +162,7 @@ def viewer_callbacks(ctx: AppContext) -> dict:
                     for sc in s.scalars(select(Scene).where(Scene.status == "ready"))}
 
     def frame_states(scene_id) -> dict:  # noqa: ANN001
-        from app.viewer.scene_builder import viewer_state
+        from app.viewer.scene_builder import viewer_state  # the viewer is optional (viser)
 
         with ctx.sessions() as s:
             rows = s.execute(select(Frame.index, Frame.selected, Frame.state)
@@ -221,7 +221,7 @@ def viewer_callbacks(ctx: AppContext) -> dict:
 
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:
     try:
-        import app.viewer as viewer
+        import app.viewer as viewer  # optional: viser missing -> no /viewer/
     except ImportError:
         return
     mount = getattr(viewer, "mount", None)

@@ -114,7 +114,7 @@ def grabcut(rgb: np.ndarray, rect: tuple[int, int, int, int], fg=(), bg=(),  # n
 
     ``fg`` / ``bg``: points certainly (not) on the object; ``strokes``: (kind, points) lines in
     painting order, "fg" or "bg", each ~6 px wide (at least 3 working px)."""
-    import cv2
+    import cv2  # OpenCV: a heavy import (~0.5 s) only the smart tools need
 
     x0, y0, x1, y1 = rect
     H, W = rgb.shape[:2]
@@ -159,7 +159,7 @@ def scissors(rgb: np.ndarray, start: tuple[int, int], end: tuple[int, int],
     x0, y0, x1, y1, working scale). The live-wire runs on the anchors' box plus a margin of
     half their distance (at least 24 px), downscaled so its longest side is <= ``side``.
     """
-    import cv2
+    import cv2  # OpenCV: a heavy import (~0.5 s) only the smart tools need
 
     H, W = rgb.shape[:2]
     (sx, sy), (ex, ey) = start, end

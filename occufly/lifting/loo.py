@@ -177,7 +177,8 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     if len(sel) == 0:
         return
     rp = getattr(p, "robust_params", None) or RobustParams()
-    feats = cached_features(ws, scene.xyz, scene.rgb, rp, read_only=True)
+    # the features the pipeline's fill computed and cached (fill_snapshot: default parameters)
+    feats = cached_features(ws, scene.xyz, scene.rgb, read_only=True)
     pts = ids[sel]
     unit = _vote_unit(ws)
     c1 = col[sel].astype(np.int16)

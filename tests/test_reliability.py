@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from occufly.lifting.classes import ClassColumns
-from occufly.lifting.reliability import frame_class_agreement, vetoed_counts, vetoes
+from occufly.lifting.reliability import (
+    frame_class_agreement,
+    frame_class_agreement_loo,
+    vetoed_counts,
+    vetoes,
+)
 from occufly.taxonomy import default_taxonomy
 
 TAX = default_taxonomy()
@@ -52,3 +57,16 @@ def test_no_veto_with_too_few_frames_or_votes():
     assert vetoes(*frame_class_agreement(two, truth, CLS)) == {}
     few = {f: (v[0][:150], v[1][:150]) for f, v in frames.items()}  # < 200 votes per class
     assert vetoes(*frame_class_agreement(few, truth, CLS)) == {}
+
+
+def test_judged_by_the_other_frames_a_painter_who_won_the_lifting_still_loses():
+    truth, frames, counts = _crew()
+    veg, grass = CLS.col_of[ID["vegetation"]], CLS.col_of[ID["grass"]]
+    # a first lifting that went his way (his grass-as-vegetation won): he agrees with it
+    lifted = truth.copy()
+    lifted[truth == ID["grass"]] = ID["vegetation"]
+    pairs = {f: v[:2] for f, v in frames.items()}
+    assert 4 not in vetoes(*frame_class_agreement(pairs, lifted, CLS))
+    # the other frames' votes on the same points still outvote him
+    veto = vetoes(*frame_class_agreement_loo(pairs, counts, CLS))
+    assert set(veto) == {4} and veto[4][veg] and not veto[4][grass]

@@ -12,6 +12,11 @@ the other frames' agreement on that class -- a class all frames paint poorly, su
 object, is not one frame's mistake) are *vetoed*: removed from the counts, and the lifting is
 decided again from what the other frames say. No truth is used.
 
+Judged against what? Against a first lifting (:func:`frame_class_agreement`), a systematic
+painter who sees a third of the points wins the lifting of many of them, and then agrees with
+it; against the other frames' votes on the same points (:func:`frame_class_agreement_loo`,
+the default: votes only, before any lifting) he is outvoted by the careful frames.
+
 Cost: one pass over the per-frame vote files (``ws/lifting/frames/*.npz``, about one int32 and
 one uint8 per correspondence) and a copy of the (N, C) uint16 counts.
 """
@@ -44,6 +49,32 @@ def frame_class_agreement(frames: dict[int, tuple[np.ndarray, np.ndarray]], labe
         cols = np.asarray(cols, np.int64)
         votes[f] = np.bincount(cols, minlength=C)
         agree[f] = np.bincount(cols[lab_col[np.asarray(pids)] == cols], minlength=C)
+    return votes, agree
+
+
+def frame_class_agreement_loo(frames: dict[int, tuple[np.ndarray, np.ndarray]],
+                              counts: np.ndarray, cls: ClassColumns, chunk: int = 1_000_000
+                              ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """As :func:`frame_class_agreement`, judged against the other frames' votes instead of a
+    lifting: a vote of frame ``f`` for class ``c`` agrees by the share of the other frames'
+    votes on that point that are ``c``; points no other frame voted on do not count (counts:
+    (N, C) the votes of every frame, ``f``'s included -- plain weighting, one per view)."""
+    C = cls.C
+    votes, agree = {}, {}
+    for f, (pids, cols) in frames.items():
+        v = np.zeros(C, np.int64)
+        a = np.zeros(C, np.float64)
+        for s in range(0, len(pids), chunk):
+            ids = np.asarray(pids[s:s + chunk], np.int64)
+            col = np.asarray(cols[s:s + chunk], np.int64)
+            other = np.asarray(counts[ids], np.int32)
+            other[np.arange(len(ids)), col] -= 1
+            tot = other.sum(axis=1)
+            has = tot > 0
+            share = other[np.arange(len(ids)), col] / np.maximum(tot, 1)
+            v += np.bincount(col[has], minlength=C)
+            a += np.bincount(col[has], share[has], minlength=C)
+        votes[f], agree[f] = v, a
     return votes, agree
 
 

@@ -52,7 +52,12 @@ from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import load_labels
 from occufly.lifting.knn import LiftParams
-from occufly.lifting.reliability import frame_class_agreement, vetoed_counts, vetoes
+from occufly.lifting.reliability import (
+    frame_class_agreement,
+    frame_class_agreement_loo,
+    vetoed_counts,
+    vetoes,
+)
 from occufly.lifting.result import LiftResult, save_result
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
@@ -515,15 +520,21 @@ class LiftState:
     def reliability_snapshot(self, labels: np.ndarray, params=None  # noqa: ANN001
                              ) -> tuple[VoteSnapshot | None, dict]:
         """The votes without those of frames that paint a class far worse than the others
-        (:mod:`occufly.lifting.reliability`, judged against ``labels``, a first lifting), as a
-        snapshot; None when nothing is vetoed. Stats: the vetoed (frame, class) pairs."""
+        (:mod:`occufly.lifting.reliability`; judged against ``labels``, a first lifting, or
+        with ``labels=None`` against the other frames' votes), as a snapshot; None when
+        nothing is vetoed. Stats: the vetoed (frame, class) pairs."""
         frames = {}
         for fi in self._versions:
             pth = self._frame_path(fi)
             if pth.is_file():
                 frames[fi] = self._load_frame_file(pth)
-        votes, agree = frame_class_agreement({f: v[:2] for f, v in frames.items()}, labels,
-                                             self._cls)
+        pairs = {f: v[:2] for f, v in frames.items()}
+        if labels is not None:
+            votes, agree = frame_class_agreement(pairs, labels, self._cls)
+        elif self.vote_weighting == "plain":
+            votes, agree = frame_class_agreement_loo(pairs, self.votes, self._cls)
+        else:  # weighted counts are not one vote per view
+            return None, {"reliability_vetoed": {}, "reliability_skipped": "weighted votes"}
         veto = vetoes(votes, agree, params)
         names = {c.id: c.name for c in self.scene.taxonomy.classes}
         stats = {"reliability_vetoed": {
@@ -532,7 +543,7 @@ class LiftState:
         if not veto:
             return None, stats
         counts = vetoed_counts(self.votes, frames, veto)
-        stats["reliability_votes_removed"] = int(np.asarray(self.votes, np.int64).sum()
+        stats["reliability_votes_removed"] = int(np.asarray(self.votes).sum(dtype=np.int64)
                                                  - counts.sum(dtype=np.int64))
         return self.snapshot(counts=counts), stats
 
@@ -554,22 +565,20 @@ class LiftState:
         report = progress or noop
         if write:
             self._writable()
+        rstats: dict = {}
         if snapshot is None:
             report(0.0, "majority vote")
             snapshot = self.snapshot()
+            if getattr(params, "reliability", False):
+                # issue 37: a frame's votes for a class it paints far worse than the other
+                # frames that see the same points are left out
+                vetoed, rstats = self.reliability_snapshot(None)
+                snapshot = vetoed or snapshot
         result = fill_snapshot(self.scene, snapshot, params=params, ws=self.ws,
                                read_only=self.read_only or not write,
                                progress=lambda f, m: report(0.05 + 0.9 * f, m),
                                incremental=incremental)
-        if getattr(params, "reliability", False):
-            # issue 37: frames that paint a class systematically worse than the others lose
-            # those votes, and the lifting is decided again from the rest
-            snap2, rstats = self.reliability_snapshot(result.labels)
-            if snap2 is not None:
-                report(0.5, "lifting again without unreliable votes")
-                result = fill_snapshot(self.scene, snap2, params=params, ws=self.ws,
-                                       read_only=self.read_only or not write)
-            result.stats.update(rstats)
+        result.stats.update(rstats)
         if write:
             report(0.96, "writing labels")
             save_result(self.ws, result)

@@ -110,7 +110,7 @@ class AnnotatorPage {
       el(
         "section",
         { class: "annotator", "aria-label": "Annotator" },
-        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.skipBtn, this.frameInfo, this.queueEl, el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.lagEl, this.prefillBtn, this.draftBtn, this.submitBtn, this.helpBtn),
+        el("div", { class: "toolbar" }, el("label", { for: "scene-select", class: "sr-only" }, "Scene"), this.sceneSel, this.nextBtn, this.skipBtn, el("div", { class: "frame-head" }, this.frameInfo, this.queueEl), el("span", { class: "spacer" }), this.paintedEl, this.saveState, this.lagEl, this.prefillBtn, this.draftBtn, this.submitBtn, this.helpBtn),
         el("div", { class: "workspace" }, el("aside", { class: "left" }, this.toolsEl), this.host, el("aside", { class: "right", "aria-label": "Classes and review comments" }, this.sideEl, el("h2", {}, "Classes"), this.paletteEl, this.versionsEl, this.progressEl)),
         this.statusEl,
       ),

@@ -111,7 +111,9 @@ export class View {
       c.style.width = `${w}px`;
       c.style.height = `${h}px`;
     }
-    if (!this._fitted) this.fit();
+    // until the person zooms or pans, the image stays fitted: the page's layout settles after
+    // the first resize (a 768 px tablet opened a frame at 307 % instead of fit, issue 40)
+    if (!this._fitted || !this._moved) this.fit();
     this.invalidate();
   }
 
@@ -121,6 +123,7 @@ export class View {
     this.tx = (this.cssW - this.width * s) / 2;
     this.ty = (this.cssH - this.height * s) / 2;
     this._fitted = this.cssW > 1;
+    this._moved = false;
     this.invalidate();
     this.transformChanged.dispatch();
   }
@@ -132,6 +135,7 @@ export class View {
     this.tx = sx - (sx - this.tx) * f;
     this.ty = sy - (sy - this.ty) * f;
     this.scale = s;
+    this._moved = true;
     this.invalidate();
     this.transformChanged.dispatch();
   }
@@ -139,6 +143,7 @@ export class View {
   panBy(dx, dy) {
     this.tx += dx;
     this.ty += dy;
+    this._moved = true;
     this.invalidate();
     this.transformChanged.dispatch();
   }

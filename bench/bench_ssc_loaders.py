@@ -1,27 +1,31 @@
-"""Load an SSCBench-layout export with four SSC codebases' own loading code through the
+"""Load an SSCBench-layout export with five SSC codebases' own loading code through the
 adapters of occufly.datasets.compat, and print one JSON object (docs/bench/ssc_loaders.json,
 docs/ssc-porting.md).
 
     python bench/bench_ssc_loaders.py EXPORT --symphonies DIR --monoscene DIR \
-        --sscbench DIR --cgformer DIR [--commits a,b,c,d] > docs/bench/ssc_loaders.json
+        --sscbench DIR --cgformer DIR --disc DIR [--commits a,b,c,d,e] > docs/bench/ssc_loaders.json
 
 Run outside CI; it fetches nothing: DIR are checkouts of hustvl/Symphonies 4ca4ff2,
-astra-vision/MonoScene f52bbb1, ai4ce/SSCBench 9e767e1 and pkqbajng/CGFormer 0331e11. The
-export should be ``occufly export WS OUT --layout sscbench --velodyne --split-by altitude``
-(train = 50 m, val = 40 m, test = 30 m).
+astra-vision/MonoScene f52bbb1, ai4ce/SSCBench 9e767e1, pkqbajng/CGFormer 0331e11 and
+Enyu-Liu/DISC 00ecc7f. The export should be ``occufly export WS OUT --layout sscbench
+--velodyne --split-by altitude`` (train = 50 m, val = 40 m, test = 30 m). Python deps beside
+occufly's: hydra-core, omegaconf, lightning / pytorch-lightning, numba, scikit-image.
 
 Per codebase: does its loader load the export (the codebase's DataLoader / DataModule /
-pipeline code, with the adapter as dataset), the configuration edits and code edits that
-takes, the batch shapes, the share of occupied voxels inside the image (fov mask), the
-depth-consistency share per altitude (nearest occupied voxel along each pixel's ray vs the
-depth map, within 1 m), and before / after a left-right flip -- the adapter's, and the
-codebase's own flip run on the same frame.
+pipeline code, with the adapter as dataset), does **every split** produce a batch, the
+configuration edits and code edits that takes, the batch shapes, the memory of one training
+sample (at the configs' frustum_size and at the bench's), the share of occupied voxels inside
+the image (fov mask), the depth-consistency share per altitude through **the codebase's own
+projection** (its ``vox2pix``; for CGFormer the camera matrices of its pipeline as its model
+uses them) on ``--frames-per-altitude`` frames: per pixel the nearest occupied voxel whose
+centre projects there vs the depth map, within 1 m; and whether that projection equals the
+adapter's. Before / after a flip: the adapter's, and the codebase's own flip on the same frame.
 
 What cannot be imported here is stubbed, and the JSON says so (``stubs``): torchvision (the
 CPU torch 2.13 wheel has no matching torchvision; ToTensor / Normalize / Compose are
-re-implemented, ColorJitter is the identity), and for CGFormer mmcv / mmdet (mmcv-full 1.4
-needs CUDA ops): a registry and Compose stand in for mmdet's, CGFormer's own pipeline steps
-run unchanged.
+re-implemented, ColorJitter is the identity), Symphonies' / DISC's package ``__init__`` (imports
+the models: MaskDINO, mmdet), and for CGFormer mmcv / mmdet (mmcv-full 1.4 needs CUDA ops): a
+registry and Compose stand in for mmdet's, CGFormer's own pipeline steps run unchanged.
 """
 
 from __future__ import annotations
@@ -43,9 +47,9 @@ sys.path.insert(0, str(REPO))
 from occufly.datasets.compat.common import depth_consistency, load_geometry  # noqa: E402
 
 COMMITS = {"symphonies": "4ca4ff2", "monoscene": "f52bbb1", "sscbench_monoscene": "9e767e1",
-           "cgformer": "0331e11"}
+           "cgformer": "0331e11", "disc": "00ecc7f"}
 NAMES = {"symphonies": "Symphonies", "monoscene": "MonoScene",
-         "sscbench_monoscene": "SSCBench", "cgformer": "CGFormer"}
+         "sscbench_monoscene": "SSCBench", "cgformer": "CGFormer", "disc": "DISC"}
 
 
 # ---- stubs -------------------------------------------------------------------------------------
@@ -205,13 +209,52 @@ def consistency(target, depth, K, W, H, geom, T=None, step=2) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
 
 
-N_PER_ALTITUDE = 3
+N_PER_ALTITUDE = 10
 
 
-def per_altitude(make_ds, sample_fn, geom, n=None) -> dict:
-    """Depth consistency over up to n frames of each split (= altitude with --split-by altitude)."""
+def nbytes(obj) -> int:
+    """Bytes of the arrays / tensors in a sample (dicts, lists, tuples walked)."""
+    if hasattr(obj, "nbytes") and hasattr(obj, "shape"):
+        return int(obj.nbytes)
+    if hasattr(obj, "element_size") and hasattr(obj, "numel"):
+        return int(obj.element_size() * obj.numel())
+    if isinstance(obj, dict):
+        return sum(nbytes(v) for v in obj.values())
+    if isinstance(obj, list | tuple):
+        return sum(nbytes(v) for v in obj)
+    return 0
+
+
+def zbuffer_consistency(target, depth, pix, fov, z, tol: float = 1.0) -> dict:
+    """Depth vs grid through a codebase's own projection: per pixel, the nearest occupied voxel
+    whose centre the codebase projects there (its projected_pix / fov_mask / pix_z, rounded
+    where they are float), against the depth map at that pixel; the share within ``tol`` m
+    over pixels with depth > 0 that an occupied voxel centre reaches."""
+    t = np.asarray(target).reshape(-1)
+    pix = np.asarray(pix)
+    pix = np.round(pix).astype(np.int64) if pix.dtype.kind == "f" else pix.astype(np.int64)
+    z = np.asarray(z, np.float64).reshape(-1)
+    depth = np.asarray(depth, np.float64)
+    H, W = depth.shape
+    sel = np.asarray(fov).reshape(-1) & (t != 0) & (t != 255)
+    sel &= (pix[:, 0] >= 0) & (pix[:, 0] < W) & (pix[:, 1] >= 0) & (pix[:, 1] < H)
+    lin = pix[sel, 1] * W + pix[sel, 0]
+    zb = np.full(H * W, np.inf)
+    np.minimum.at(zb, lin, z[sel])
+    d = depth.reshape(-1)
+    ok = np.isfinite(zb) & (d > 0)
+    if not ok.any():
+        return {"share": float("nan"), "pixels": 0}
+    return {"share": float(np.mean(np.abs(zb[ok] - d[ok]) <= tol)), "pixels": int(ok.sum())}
+
+
+def per_altitude(make_ds, sample_fn, n=None) -> dict:
+    """Depth consistency through the codebase's projection over n frames of each split (=
+    altitude with --split-by altitude). ``sample_fn(ds, i)`` -> (target, depth, pix, fov, z,
+    sequence, same) where ``same`` says whether the codebase's own projection function gave
+    the adapter's projection on that frame (None: not checked)."""
     n = n or N_PER_ALTITUDE
-    out = {}
+    out, frames, same = {}, {}, []
     for split in ("train", "val", "test"):
         ds = make_ds(split)
         if not len(ds):
@@ -220,32 +263,56 @@ def per_altitude(make_ds, sample_fn, geom, n=None) -> dict:
         idx = np.linspace(0, len(ds) - 1, min(n, len(ds))).round().astype(int)
         shares, alt = [], None
         for i in idx:
-            target, depth, K, W, H, seq = sample_fn(ds, int(i))
+            target, depth, pix, fov, z, seq, eq = sample_fn(ds, int(i))
             alt = seq.rsplit("_", 1)[-1]
-            shares.append(consistency(target, depth, K, W, H, geom)["share"])
-        out[f"{alt} m ({split})"] = round(float(np.mean(shares)), 4)
+            shares.append(zbuffer_consistency(target, depth, pix, fov, z)["share"])
+            if eq is not None:
+                same.append(bool(eq))
+        key = f"{alt} m ({split})"
+        out[key] = round(float(np.mean(shares)), 4)
+        frames[key] = {"n": len(shares), "min": round(float(np.min(shares)), 4),
+                       "max": round(float(np.max(shares)), 4)}
+    return {"mean": out, "frames": frames,
+            "own_projection_equals_adapter": (all(same) if same else None), "checked": len(same)}
+
+
+def batch_every_split(loaders: dict) -> dict:
+    """One batch of each split through the codebase's own loader: shapes, or the error."""
+    out = {}
+    for split, make in loaders.items():
+        try:
+            b = make()
+            out[split] = {"batched": True, "keys": len(b) if isinstance(b, dict) else None}
+        except Exception as e:  # noqa: BLE001 - a split that does not batch is the finding
+            out[split] = {"batched": False, "error": f"{type(e).__name__}: {e}"[:200]}
     return out
 
 
-# ---- Symphonies ---------------------------------------------------------------------------------
-def run_symphonies(root: Path, export: Path, frustum: int) -> dict:
+# ---- Symphonies and DISC (a Symphonies fork): Hydra configs, getattr(datasets, type) ---------
+def run_hydra_codebase(root: Path, export: Path, frustum: int, *, disc: bool) -> dict:
     stubs = stub_torchvision()
+    pkg = "ssc_ia" if disc else "ssc_pl"
     sys.path.insert(0, str(root))
-    # ssc_pl/__init__ imports the models (MaskDINO / mmdet); only its data and utils are needed
-    ssc_pl = package_stub("ssc_pl", root / "ssc_pl")
-    utils = importlib.import_module("ssc_pl.utils")
-    ssc_pl.build_from_configs = utils.build_from_configs
-    data = importlib.import_module("ssc_pl.data")
-    stubs.append("ssc_pl/__init__.py not run (imports the models: MaskDINO, mmdet); "
-                 "ssc_pl.data and ssc_pl.utils import unchanged")
+    # <pkg>/__init__ imports the models (MaskDINO / mmdet); only its data and utils are needed
+    top = package_stub(pkg, root / pkg)
+    if disc:  # data/datasets/kitti_360.py -> utils/projection.py -> models/utils/utils.py (torch only)
+        package_stub(f"{pkg}.models", root / pkg / "models")
+        package_stub(f"{pkg}.models.utils", root / pkg / "models" / "utils")
+    utils = importlib.import_module(f"{pkg}.utils")
+    top.build_from_configs = utils.build_from_configs
+    data = importlib.import_module(f"{pkg}.data")
+    helper = importlib.import_module(f"{pkg}.utils.helper")  # their vox2pix (numba)
+    stubs.append(f"{pkg}/__init__.py not run (imports the models: MaskDINO, mmdet); "
+                 f"{pkg}.data and {pkg}.utils import unchanged")
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
     geom = load_geometry(export)
     W, H = next(iter(geom.image_sizes.values()))
-    edits = [
-        "datasets=kitti_360",  # the default `datasets: semantic_kitti` must change
-        "+hydra.callbacks.occufly._target_=occufly.datasets.compat.symphonies.Register",
+    mod = "disc" if disc else "symphonies"
+    edits = [] if disc else ["datasets=kitti_360"]  # Symphonies' default `datasets: semantic_kitti`
+    edits += [
+        f"+hydra.callbacks.occufly._target_=occufly.datasets.compat.{mod}.Register",
         "data.datasets.type=OccuFlyKITTI360",
         f"data.datasets.data_root={export}",
         f"data.datasets.label_root={export}/preprocess/labels",
@@ -256,25 +323,70 @@ def run_symphonies(root: Path, export: Path, frustum: int) -> dict:
         f"model.num_classes={geom.n_classes}",
         f"evaluator.num_classes={geom.n_classes}",
     ]
-    bench_only = [f"data.datasets.frustum_size={frustum}", "data.loader.num_workers=0"]
+    if disc:
+        from occufly.datasets.compat.disc import training_constants
+
+        tc = training_constants(export)
+        edits += [f"data.datasets.data_config.input_size=[{H},{W}]",
+                  f"model.class_frequencies=[{','.join(map(str, tc['class_frequencies']))}]",
+                  f"model.decoder.bk_cls={tc['bk_cls']}", f"model.decoder.ins_cls={tc['ins_cls']}"]
+    bench_only = ["data.loader.num_workers=0"] + ([] if disc else [f"data.datasets.frustum_size={frustum}"])
     with initialize_config_dir(config_dir=str(root / "configs"), version_base=None):
-        cfg = compose(config_name="config", overrides=edits + bench_only, return_hydra_config=True)
+        cfg = compose(config_name="config_360" if disc else "config", overrides=edits + bench_only,
+                      return_hydra_config=True)
     instantiate(cfg.hydra.callbacks.occufly)  # what Hydra does with hydra.callbacks at start
     from omegaconf import OmegaConf
 
     OmegaConf.set_struct(cfg, False)
     cfg.pop("hydra")
     dls, meta = data.build_data_loaders(cfg.data)
-    inputs, labels = next(iter(dls[0]))
-    res = {"loads": True, "lengths": {s: len(dl.dataset) for s, dl in zip(("train", "val", "test"), dls, strict=True)},
-           "batch": {**shapes(inputs), **shapes(labels)},
-           "fov_share": round(fov_share(labels["target"][0].numpy(), inputs["fov_mask_1"][0].numpy()), 4),
-           "meta_info": sorted(meta)}
+    splits = ("train", "val", "test")
+    batches = {}
+
+    def first(split, dl):
+        batches[split] = next(iter(dl))
+        return {**batches[split][0], **batches[split][1]}
+
+    res = {"loads": True, "lengths": {s: len(dl.dataset) for s, dl in zip(splits, dls, strict=True)},
+           "splits_batched": batch_every_split({s: (lambda s=s, dl=dl: first(s, dl)) for s, dl in zip(splits, dls, strict=True)})}
+    inputs, labels = batches["train"]
+    res.update(batch={**shapes(inputs), **shapes(labels)},
+               fov_share=round(fov_share(labels["target"][0].numpy(), inputs["fov_mask_1"][0].numpy()), 4),
+               meta_info=sorted(meta))
     ds = dls[0].dataset
-    res["depth_consistency"] = per_altitude(
-        lambda s: type(ds)(s, export, depth_root=export / "depth_full", flip=False, frustum_size=1),
-        lambda d, i: (lambda a, b: (b["target"].numpy(), a["depth"].numpy(), a["cam_K"].numpy(),
-                                    W, H, a["sequence"]))(*d.sample(i)), geom)
+    cls = type(ds)
+    # memory of one training sample: the configs' frustum_size 8 (Symphonies), the bench's
+    if disc:
+        res["memory_mb_per_sample"] = {"config": round(nbytes(ds.sample(0)) / 2**20, 1)}
+    else:
+        res["memory_mb_per_sample"] = {
+            f"frustum_size={f}": round(nbytes(cls("train", export, depth_root=export / "depth_full", flip=False,
+                                                  frustum_size=f, context_prior=True).sample(0)) / 2**20, 1)
+            for f in (8, 2)}
+
+    def samp(d, i):
+        a, b = d.sample(i)
+        if disc:
+            pix, fov, z = helper.vox2pix(a["cam_pose"].numpy().astype(np.float64), a["cam_K"].numpy().astype(np.float64),
+                                         d.voxel_origin, d.voxel_size, d.img_shape, d.scene_size,
+                                         a["post_rot"].numpy().astype(np.float64), a["post_tran"].numpy().astype(np.float64))
+        else:
+            pix, fov, z = helper.vox2pix(a["cam_pose"].numpy().astype(np.float64), a["cam_K"].numpy().astype(np.float64),
+                                         d.voxel_origin, d.voxel_size, (W, H), d.scene_size)
+        same = bool(np.array_equal(np.asarray(pix, np.float64), a["projected_pix_1"].numpy().astype(np.float64))
+                    and np.array_equal(fov, a["fov_mask_1"].numpy()))
+        tgt = b.get("target")
+        if tgt is None:  # DISC's test samples carry no target (as theirs): read the label file
+            tgt = np.load(d.label_root / a["sequence"] / f"{a['frame_id']}_1_1.npy")
+        return np.asarray(tgt), a["depth"].numpy(), pix, fov, z, a["sequence"], same
+
+    if disc:
+        make = lambda s: cls(s, export, depth_root=export / "depth_full", data_config={"input_size": [H, W]})  # noqa: E731
+    else:
+        make = lambda s: cls(s, export, depth_root=export / "depth_full", flip=False, frustum_size=1)  # noqa: E731
+    res["depth_consistency"] = per_altitude(make, samp)
+    if disc:
+        return res | run_disc_flip(ds, export, geom, W, H, edits, bench_only, stubs, helper)
     # flips on frame 0 of train: the adapter's, and Symphonies' own KITTI360 on the same frame
     a0, l0 = ds.sample(0, False)
     a1, l1 = ds.sample(0, True)
@@ -308,6 +420,32 @@ def run_symphonies(root: Path, export: Path, frustum: int) -> dict:
     return res
 
 
+
+
+def run_disc_flip(ds, export, geom, W, H, edits, bench_only, stubs, helper) -> dict:
+    """DISC's flip on frame 0 of train: image + depth through post_rot, the target kept (the
+    adapter); the share before / after through DISC's own vox2pix with the flipped post_rot,
+    and with DISC's own target flip (np.flip(target, axis=1), kitti_360.py:134) added."""
+    a0, l0 = ds.sample(0, False)
+    a1, l1 = ds.sample(0, True)
+
+    def share(a, tgt):
+        pix, fov, z = helper.vox2pix(a["cam_pose"].numpy().astype(np.float64), a["cam_K"].numpy().astype(np.float64),
+                                     ds.voxel_origin, ds.voxel_size, ds.img_shape, ds.scene_size,
+                                     a["post_rot"].numpy().astype(np.float64), a["post_tran"].numpy().astype(np.float64))
+        return round(zbuffer_consistency(tgt, a["depth"].numpy(), pix, fov, z)["share"], 4)
+
+    t0 = l0["target"].numpy()
+    flip = {"kind": "image + depth mirrored through post_rot (theirs), target kept",
+            "before": share(a0, t0), "after_adapter": share(a1, l1["target"].numpy()),
+            "after_own_flip": share(a1, np.flip(t0, axis=1)),
+            "target_unchanged": bool(np.array_equal(l1["target"].numpy(), t0)),
+            "frame": f"{ds.scans[0].sequence}/{ds.scans[0].frame_id}"}
+    return {"flip": flip, "config_edits": len(edits), "config": edits, "code_edits": 0,
+            "bench_only_overrides": bench_only, "stubs": stubs,
+            "command_line": "tools/train.py --config-name config_360 (its default is config_sema)"}
+
+
 # ---- MonoScene family --------------------------------------------------------------------------
 def run_monoscene(root: Path, export: Path, frustum: int, *, sscbench: bool) -> dict:
     stubs = stub_torchvision()
@@ -323,7 +461,10 @@ def run_monoscene(root: Path, export: Path, frustum: int, *, sscbench: bool) -> 
         own_mod, own_cls = "monoscene.data.kitti_360.kitti_360_dataset", "Kitti360Dataset"
         dm_name, droot = "Kitti360DataModule", export
         cfg_edits = ["kitti_360_root: <export>", "kitti_360_preprocess_root: <export>/preprocess",
-                     "dataset: kitti_360"]
+                     "dataset: kitti_360",
+                     "kitti_360_logdir: <a writable folder> (was /home/duan/...: TensorBoard logs, "
+                     "checkpoints and the last.ckpt resume path; enable_log: true writes there, "
+                     "false writes no logs and no checkpoints)"]
         script = "monoscene/scripts/train_monoscene_kitti_360.py:43-52"
     else:
         dm_file = root / "monoscene" / "data" / "semantic_kitti" / "kitti_dm.py"
@@ -343,20 +484,37 @@ def run_monoscene(root: Path, export: Path, frustum: int, *, sscbench: bool) -> 
     dm = getattr(dm_mod, dm_name)(root=str(droot), preprocess_root=str(export / "preprocess"),
                                   frustum_size=frustum, project_scale=2, batch_size=1, num_workers=0)
     dm.setup()
-    batch = next(iter(dm.train_dataloader()))
+    got = {}
+
+    def first(split, make):
+        got[split] = next(iter(make()))
+        return got[split]
+
+    batched = batch_every_split({"train": lambda: first("train", dm.train_dataloader),
+                                 "val": lambda: first("val", dm.val_dataloader),
+                                 "test": lambda: first("test", dm.test_dataloader)})
+    batch = got["train"]
     res = {"loads": True,
            "lengths": {"train": len(dm.train_ds), "val": len(dm.val_ds), "test": len(dm.test_ds)},
-           "batch": shapes(batch),
+           "splits_batched": batched, "batch": shapes(batch),
            "fov_share": round(fov_share(batch["target"][0].numpy(), batch["fov_mask_1"][0].numpy()), 4)}
     ds = dm.val_ds
     ds_cls = type(ds)
+    res["memory_mb_per_sample"] = {
+        f"frustum_size={f}": round(nbytes(ds_cls("train", str(droot), str(export / "preprocess"),
+                                                 frustum_size=f).sample(0)) / 2**20, 1) for f in (8, 2)}
+    helpers = importlib.import_module("monoscene.data.utils.helpers")  # their vox2pix (numba)
 
     def samp(d, i):
         s = d.sample(i)
-        return s["target"], np.load(export / "depth_full" / s["sequence"] / f"{s['frame_id']}.npy"), s["cam_k"], W, H, s["sequence"]
+        pix, fov, z = helpers.vox2pix(s["T_velo_2_cam"], s["cam_k"], d.vox_origin, d.voxel_size,
+                                      W, H, d.scene_size)
+        same = bool(np.array_equal(pix, s["projected_pix_1"]) and np.array_equal(fov, s["fov_mask_1"]))
+        depth = np.load(export / "depth_full" / s["sequence"] / f"{s['frame_id']}.npy")
+        return s["target"], depth, pix, fov, z, s["sequence"], same
 
     res["depth_consistency"] = per_altitude(
-        lambda s: ds_cls(s, str(droot), str(export / "preprocess"), frustum_size=1), samp, geom)
+        lambda s: ds_cls(s, str(droot), str(export / "preprocess"), frustum_size=1), samp)
     # their flip mirrors image and u, not the target: the label-to-pixel map stays right
     tr = dm.train_ds
     a, b = tr.sample(0, False), tr.sample(0, True)
@@ -414,12 +572,14 @@ def run_cgformer(root: Path, export: Path) -> dict:
     exec(compile(text, str(cfg_file), "exec"), cfg)
     for mod in cfg["custom_imports"]["imports"]:  # what mmcv's Config.fromfile does
         importlib.import_module(mod)
-    res = {"loads": True, "batch": {}, "lengths": {}}
+    res = {"loads": True, "batch": {}, "lengths": {}, "splits_batched": {}}
+    built = {}
     for split, key in (("train", "train"), ("val (split='test')", "val"), ("test", "test")):
-        c = dict(cfg["data"][key])
-        ds = DATASETS.build(c)
-        res["lengths"][split] = len(ds)
-    ds = DATASETS.build(dict(cfg["data"]["train"]))
+        built[split] = DATASETS.build(dict(cfg["data"][key]))
+        res["lengths"][split] = len(built[split])
+    # every split through its own pipeline (mmcv's collate is stubbed with the rest of mmcv)
+    res["splits_batched"] = batch_every_split({s: (lambda d=d: d[0]) for s, d in built.items()})
+    ds = built["train"]
     out = ds[0]
     meta = out["img_metas"]  # CollectData: keys, and meta_keys under img_metas
     imgs, rots, trans, intrins, post_rots, post_trans, bda, s2s = out["img_inputs"]
@@ -427,36 +587,63 @@ def run_cgformer(root: Path, export: Path) -> dict:
                     "gt_occ": [list(out["gt_occ"].shape), str(out["gt_occ"].dtype)],
                     "gt_depths": [list(meta["gt_depths"].shape), str(meta["gt_depths"].dtype)],
                     "stereo_depth": [list(meta["stereo_depth"].shape), str(meta["stereo_depth"].dtype)]}
+    res["memory_mb_per_sample"] = {"config": round(nbytes(out) / 2**20, 1)}
     info = ds.get_data_info(0)
-    from occufly.datasets.compat.common import vox2pix
+    from occufly.datasets.compat.common import voxel_centres
 
-    _, fov, _ = vox2pix(info["lidar2cam"][0], info["cam_intrinsic"][0][:3, :3], geom.voxel_origin,
-                        geom.voxel_size, W, H, geom.scene_size)
+    centres, _ = voxel_centres(geom.voxel_origin, geom.voxel_size, geom.scene_size)
+
+    def project(o):
+        """Voxel centres to pixels the way CGFormer's model does (transformer_utils/encoder.py
+        :127-133: inverse(bda) on the reference points, then the camera from rots / trans,
+        intrins, post_rots / post_trans of img_inputs)."""
+        _, R, t, K, pr, pt, b, _ = [np.asarray(x, np.float64) for x in o["img_inputs"]]
+        binv = np.linalg.inv(b)
+        p = centres.astype(np.float64) @ binv[:3, :3].T + binv[:3, 3]
+        cam = (p - t[0]) @ R[0]  # R^T (p - t): rots / trans are camera -> lidar
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (cam @ K[0][:3, :3].T)[:, :2] / z[:, None]
+        uv = uv @ pr[0][:2, :2].T + pt[0][:2]
+        uv = np.where(np.isfinite(uv), uv, -1)
+        h, w = o["img_inputs"][0].shape[-2:]
+        fov = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h) & (z > 0)
+        return uv, fov, z
+
+    _, fov, _ = project(out)
     res["fov_share"] = round(fov_share(out["gt_occ"].numpy(), fov), 4)
     # depth consistency against the depth CGFormer builds from velodyne_points (its gt_depths)
     K = info["cam_intrinsic"][0][:3, :3]
     res["depth_consistency_lidar_gt_depths"] = consistency(out["gt_occ"].numpy(), meta["gt_depths"][0].numpy(), K, W, H, geom)["share"]
 
     def samp(d, i):
-        inf = d.get_data_info(i)
-        return inf["gt_occ"], np.load(inf["stereo_depth_path"]), inf["cam_intrinsic"][0], W, H, inf["sequence"]
+        o = d[i]
+        uv, fv, z = project(o)
+        return (o["gt_occ"].numpy(), np.load(d.get_data_info(i)["stereo_depth_path"]), uv, fv, z,
+                d.get_data_info(i)["sequence"], None)
 
     res["depth_consistency"] = per_altitude(
-        lambda s: DATASETS.build(dict(cfg["data"]["train"], split=s, pipeline=None)), samp, geom)
-    from occufly.datasets.compat.common import FlipRefused
+        lambda s: DATASETS.build(dict(cfg["data"]["test"], split=s)), samp)
+    # bda: apply_bda with the config's ratios is accepted; forced flip_dx + flip_dy through their
+    # LoadAnnotationOcc on frame 0, projected as the model does (inverse bda): before / after
+    flipped = [dict(st) for st in cfg["train_pipeline"]]
+    for st in flipped:
+        if st["type"] == "LoadAnnotationOcc":
+            st.update(apply_bda=True, bda_aug_conf=dict(st["bda_aug_conf"], flip_dx_ratio=1.0,
+                                                        flip_dy_ratio=1.0, rot_lim=(0, 0), scale_lim=(1, 1)))
+    fds = DATASETS.build(dict(cfg["data"]["train"], pipeline=flipped))
+    fo = fds[0]
+    depth0 = np.load(ds.get_data_info(0)["stereo_depth_path"])
 
-    bad = [dict(s) for s in cfg["train_pipeline"]]
-    for s in bad:
-        if s["type"] == "LoadAnnotationOcc":
-            s["apply_bda"] = True
-    try:
-        DATASETS.build(dict(cfg["data"]["train"], pipeline=bad))
-        refused = None
-    except FlipRefused as e:
-        refused = str(e).split(": ", 1)[1][:160]
-    res["flip"] = {"kind": "image flip via post_rot (theirs; off in the config); bda 3-D flips: "
-                           "flip_dy would mirror the vertical axis here",
-                   "apply_bda_true_with_config_ratios": f"refused: {refused}" if refused else "accepted"}
+    def share(o):
+        uv, fv, z = project(o)
+        return round(zbuffer_consistency(o["gt_occ"].numpy(), depth0, uv, fv, z)["share"], 4)
+
+    res["flip"] = {"kind": "bda flip_dx + flip_dy (LoadAnnotationOcc apply_bda=True), features placed "
+                           "with inverse(bda_rot) as the model does",
+                   "apply_bda_true_with_config_ratios": "accepted",
+                   "before": share(out), "after_adapter": share(fo),
+                   "bda_rot": np.asarray(fo["img_inputs"][6]).round(3).tolist()}
     res.update(config_edits=len(edits), config=[f"{k} = {v}" for k, v in edits.items()], code_edits=0,
                stubs=stubs, note="the model's literals that repeat the geometry (proposal_layer "
                "point_cloud_range, input_dimensions, volume_h/w/z, grid_config dbound) are "
@@ -466,42 +653,47 @@ def run_cgformer(root: Path, export: Path) -> dict:
 
 def render_table(run: dict) -> str:
     """The Markdown table docs/ssc-porting.md carries (checked against the JSON by a test)."""
-    rows = ["| codebase | commit | loads | config edits | code edits | train / val / test frames | occupied voxels in the image | depth consistency 50 / 40 / 30 m | flip: before → after |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| codebase | commit | loads | every split batches | config edits | code edits | train / val / test frames | MB per sample | occupied voxels in the image | depth consistency 50 / 40 / 30 m (own projection) | flip: before → after |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cb in run["codebases"].values():
         if not cb.get("loads"):
-            rows.append(f"| {cb['name']} | {cb['commit'][:7]} | no: {cb.get('error', '')[:80]} | | | | | | |")
+            rows.append(f"| {cb['name']} | {cb['commit'][:7]} | no: {cb.get('error', '')[:80]} | | | | | | | | |")
             continue
         L = list(cb["lengths"].values())
-        dc = " / ".join(f"{v:.2f}" if v is not None else "–" for v in cb["depth_consistency"].values())
+        dc = " / ".join(f"{v:.2f}" if v is not None else "–" for v in cb["depth_consistency"]["mean"].values())
+        ok = all(v.get("batched") for v in cb.get("splits_batched", {}).values())
+        mem = cb.get("memory_mb_per_sample", {})
+        mem = " / ".join(f"{v:.0f}" for v in mem.values()) if mem else "–"
         fl = cb.get("flip", {})
-        if "after_adapter" in fl:
+        if "after_own_flip" in fl:
             flip = f"{fl['before']:.2f} → {fl['after_adapter']:.2f} (own flip: {fl['after_own_flip']:.2f})"
+        elif "after_adapter" in fl:
+            flip = f"bda flip_dx + flip_dy: {fl['before']:.2f} → {fl['after_adapter']:.2f}"
         elif "u_mirrored" in fl:
             flip = "image + u mirrored, target kept" if fl["u_mirrored"] and fl["target_unchanged"] else "inconsistent"
         else:
-            flip = "bda flip_dy refused" if "refused" in str(fl.get("apply_bda_true_with_config_ratios")) else "–"
-        rows.append(f"| {cb['name']} | {cb['commit'][:7]} | yes | {cb['config_edits']} | {cb['code_edits']} | "
-                    f"{' / '.join(map(str, L))} | {cb['fov_share']:.3f} | {dc} | {flip} |")
+            flip = "–"
+        rows.append(f"| {cb['name']} | {cb['commit'][:7]} | yes | {'yes' if ok else 'NO'} | {cb['config_edits']} | "
+                    f"{cb['code_edits']} | {' / '.join(map(str, L))} | {mem} | {cb['fov_share']:.3f} | {dc} | {flip} |")
     return "\n".join(rows)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("export", type=Path)
-    for k in ("symphonies", "monoscene", "sscbench", "cgformer"):
+    for k in ("symphonies", "monoscene", "sscbench", "cgformer", "disc"):
         ap.add_argument(f"--{k}", type=Path, help=f"checkout of {k}")
     ap.add_argument("--commits", help="the checkouts' commits, comma-separated in the order above")
     ap.add_argument("--frustum-size", type=int, default=2,
                     help="frustum_size for the loaded batch (their configs use 8: 64 masks of the "
                          "full grid, ~0.8 GB per sample at 192x128x128)")
-    ap.add_argument("--frames-per-altitude", type=int, default=3,
-                    help="frames per altitude for the depth-consistency means (default 3)")
+    ap.add_argument("--frames-per-altitude", type=int, default=10,
+                    help="frames per altitude for the depth-consistency means (default 10)")
     a = ap.parse_args()
     global N_PER_ALTITUDE
     N_PER_ALTITUDE = a.frames_per_altitude
     export = a.export.absolute()
-    commits = dict(zip(COMMITS, (a.commits or ",,,").split(","), strict=True))
+    commits = dict(zip(COMMITS, (a.commits or ",,,,").split(","), strict=True))
     run = {"export": str(export), "frames_per_altitude": a.frames_per_altitude, "geometry": {},
            "codebases": {}}
     g = load_geometry(export)
@@ -514,11 +706,12 @@ def main() -> None:
             importlib.import_module(m)
         except ImportError:
             pass
-    jobs = {"symphonies": lambda: run_symphonies(a.symphonies, export, a.frustum_size),
+    jobs = {"symphonies": lambda: run_hydra_codebase(a.symphonies, export, a.frustum_size, disc=False),
             "monoscene": lambda: run_monoscene(a.monoscene, export, a.frustum_size, sscbench=False),
             "sscbench_monoscene": lambda: run_monoscene(a.sscbench / "method" / "MonoScene", export,
                                                         a.frustum_size, sscbench=True),
-            "cgformer": lambda: run_cgformer(a.cgformer, export)}
+            "cgformer": lambda: run_cgformer(a.cgformer, export),
+            "disc": lambda: run_hydra_codebase(a.disc, export, a.frustum_size, disc=True)}
     for key, job in jobs.items():
         try:
             r = job()

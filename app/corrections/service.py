@@ -468,6 +468,11 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     _check_editor(user)
     if frame.scene_id != edit.scene_id:
         raise NotFound(f"frame {frame.id} is not in the scene of correction {edit.id}")
+    if frame.state == "accepted":  # its annotator can never take it (issue 40, defect 3)
+        raise Conflict(f"frame {frame.id} ({frame.name}) is accepted: its annotator cannot take "
+                       "a proposal on an accepted mask. Fix the mask in 2D as a reviewer, or "
+                       "reject the frame first so that it goes back to its annotator",
+                       state=frame.state)
     votes = dict((f.id, v) for f, v in _voting_frames(session, frame.scene_id))
     if frame.id not in votes:
         raise Conflict(f"frame {frame.id} has no submitted mask to propose a change to")

@@ -100,3 +100,32 @@ def test_undo_restores_submitted_audited_and_only_while_unchanged(env):
                         headers=rev)
     assert r.status_code == 409 and "nothing undone" in r.json()["detail"]
     assert env.client.get(f"/api/frames/{fid}", headers=admin).json()["state"] == "submitted"
+
+
+def test_a_proposal_on_an_accepted_frame_is_refused_with_the_reason(world):
+    """Defect 3: a proposal filed on an accepted frame could never be taken by its annotator;
+    the server refuses it (409) and says why. Submitted again, the same frame takes them."""
+    from tests.app.test_corrections_api import _lifted, _seen
+
+    env, hdr, scene, _frames = world
+    fid, ws = _lifted(world)
+    sid, rv = scene["id"], hdr["reviewer"]
+    seen = _seen(env, ws, fid)
+    e = env.client.post(f"/api/scenes/{sid}/corrections",
+                        json={"point_ids": seen[:60].tolist(), "to_class": 1}, headers=rv).json()
+    v = env.client.get(f"/api/frames/{fid}", headers=rv).json()["current_version"]
+    r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "accept", "version": v},
+                        headers=rv)
+    assert r.status_code == 200
+    r = env.client.post(f"/api/scenes/{sid}/corrections/{e['id']}/proposals",
+                        json={"frame_id": fid}, headers=rv)
+    assert r.status_code == 409, r.text
+    assert "accepted" in r.json()["detail"] and "cannot take" in r.json()["detail"]
+    assert env.client.get(f"/api/frames/{fid}/proposals", headers=rv).json() == []
+    # submitted again (the decision undone): the annotator can take it, so it is filed
+    r = env.client.post(f"/api/frames/{fid}/review/undo", json={"decision": "accept", "version": v},
+                        headers=rv)
+    assert r.status_code == 200
+    r = env.client.post(f"/api/scenes/{sid}/corrections/{e['id']}/proposals",
+                        json={"frame_id": fid}, headers=rv)
+    assert r.status_code == 201, r.text

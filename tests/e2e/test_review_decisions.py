@@ -227,3 +227,44 @@ def test_prefill_on_a_scene_without_labels_says_why(live, new_page):
     text = page.locator("#status").inner_text()
     assert "Rendering" not in text and "no lifted labels" in text, text
     page.click("#skip")
+
+
+def test_take_on_a_submitted_frame_reopens_it_and_takes_the_proposal(live, new_page):
+    """Defect 3: on a submitted frame Take (T) was greyed with no hint until "Reopen for
+    editing" was clicked; now the button says "Reopen and take" and T does both."""
+    from app.scenes.models import Scene
+
+    sid = import_own_scene(live, "take_scene")
+    ann, rev = live.client("annotator"), live.client("reviewer")
+    f = ann.post(f"/api/scenes/{sid}/next").json()
+    r = ann.put(f"/api/frames/{f['id']}/mask?kind=submitted",
+                content=grey_png(np.full((f["height"], f["width"]), 6, np.uint8)),
+                headers={"If-Match": "none", "Content-Type": "image/png"})
+    assert r.status_code == 200, r.text
+    live.wait_until(lambda: str(f["id"]) in rev.get(f"/api/scenes/{sid}/labels/status").json()
+                    .get("filled_versions", {}), 90, "the first fill")
+    ctx = live.app.state.ctx
+    with ctx.sessions() as s:
+        ws = s.get(Scene, sid).workspace
+    seen = np.sort(np.asarray(ctx.load_scene(ws).visibility.frame(f["index"])[0], np.int64))
+    e = rev.post(f"/api/scenes/{sid}/corrections",
+                 json={"point_ids": seen[:80].tolist(), "to_class": 8}).json()
+    p = rev.post(f"/api/scenes/{sid}/corrections/{e['id']}/proposals",
+                 json={"frame_id": f["id"], "dilate": 1})
+    assert p.status_code == 201, p.text
+    page = new_page("annotator")
+    page.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={f['id']}")
+    take = page.locator("#proposal-take")
+    take.wait_for()
+    assert page.get_attribute("#readonly-banner", "data-reason") == "submitted"
+    assert take.is_enabled() and take.inner_text().startswith("Reopen and take")
+    assert "null" not in page.inner_text("#proposal-bar")
+    shot(page, "40_05_take_on_submitted")
+    page.locator(".layer-overlay").focus()
+    page.keyboard.press("t")
+    live.wait_until(lambda: ann.get(f"/api/frames/{f['id']}/proposals").json()[0]["status"]
+                    == "taken", 20, "the proposal taken")
+    assert ann.get(f"/api/frames/{f['id']}").json()["state"] == "in_progress"
+    page.wait_for_selector("#proposal-take", state="detached")
+    assert page.locator("#readonly-banner").count() == 0
+    page.click("#skip")

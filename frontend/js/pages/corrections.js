@@ -56,9 +56,13 @@ class FrameCorrections {
     if (p) {
       parts.push(
         el("span", { id: "proposal-text" }, `${p.author || "A reviewer"} proposes to change ${p.changed_px.toLocaleString()} px (from a 3D correction). `),
-        el("button", { type: "button", id: "proposal-take", class: "primary", disabled: this.page.readOnly, onclick: () => this.take().catch(showError), title: "Take it: a new draft of the current mask with the proposal (T)" }, "Take (T)"),
+        // a submitted frame is reopened as part of taking; otherwise say why Take is off
+        this.page.readOnlyWhy === "submitted"
+          ? el("button", { type: "button", id: "proposal-take", class: "primary", "data-reopen": "1", onclick: () => this.take().catch(showError), title: "You submitted this frame: taking the proposal reopens it for editing (while no reviewer has decided), then makes a new draft with the proposal (T)" }, "Reopen and take (T)")
+          : el("button", { type: "button", id: "proposal-take", class: "primary", disabled: this.page.readOnly, onclick: () => this.take().catch(showError), title: this.page.readOnly ? this.whyNoTake() : "Take it: a new draft of the current mask with the proposal (T)" }, "Take (T)"),
         el("button", { type: "button", id: "proposal-decline", onclick: () => this.decline().catch(showError) }, "Decline…"),
       );
+      if (this.page.readOnly && this.page.readOnlyWhy !== "submitted") parts.push(el("span", { id: "proposal-why", class: "muted" }, ` ${this.whyNoTake()}`));
     }
     if (n3d) parts.push(el("span", { id: "projected-items", "data-count": String(n3d) }, ` ${n3d} review item${n3d > 1 ? "s" : ""} selected in 3D (outlined).`));
     this.bar.replaceChildren(...parts);
@@ -78,10 +82,20 @@ class FrameCorrections {
     drawOutlines(c, this.items, (x, y) => v.toScreen(x, y));
   }
 
+  /** Why this person cannot take the proposal here (the frame is read-only for them). */
+  whyNoTake() {
+    return {
+      accepted: "Take is off: a reviewer accepted this frame, so its mask is not edited any more.",
+      other: `Take is off: the frame is leased to ${this.page.frame?.assignee || "someone else"}.`,
+      free: 'Take is off: this frame is not leased to you; press "Next frame" or ask for it.',
+    }[this.page.readOnlyWhy] || "Take is off: the frame is read-only for you.";
+  }
+
   onKey(e) {
     if (e.type !== "keydown" || e.ctrlKey || e.metaKey || e.altKey) return false;
-    if ((e.key === "t" || e.key === "T") && this.proposal && !this.page.readOnly) {
-      this.take().catch(showError);
+    if ((e.key === "t" || e.key === "T") && this.proposal) {
+      if (this.page.readOnly && this.page.readOnlyWhy !== "submitted") toast(this.whyNoTake());
+      else this.take().catch(showError);
       return true;
     }
     return false;
@@ -92,7 +106,9 @@ class FrameCorrections {
     if (!p || this.taking) return;
     this.taking = true;
     try {
-      if (this.page.unsaved) await this.page.save("draft", { force: true });
+      // taking on a submitted frame reopens it first (the server refuses once a reviewer decided)
+      if (this.page.readOnlyWhy === "submitted") await api.post(`/frames/${this.frame.id}/reopen`);
+      else if (this.page.unsaved) await this.page.save("draft", { force: true });
       const v = this.page.version;
       const headers = v && v !== "none" ? { "If-Match": `"${v}"` } : {};
       await api.send("POST", `/frames/${this.frame.id}/proposals/${p.id}/take`, { headers });

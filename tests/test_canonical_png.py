@@ -10,11 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image, PngImagePlugin
 
-from occufly.io.masks import encode_mask_png, is_canonical_mask_png
-
-
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+from occufly.io.masks import encode_mask_png, is_canonical_mask_png, png_chunk
 
 
 def _png(ids: np.ndarray, *, z: bytes | None = None, extra: bytes = b"", idat_split: int = 0,
@@ -23,8 +19,8 @@ def _png(ids: np.ndarray, *, z: bytes | None = None, extra: bytes = b"", idat_sp
     raw = b"".join(b"\x00" + ids[r].tobytes() for r in range(h))
     z = zlib.compress(raw, 6) if z is None else z
     parts = [z] if not idat_split else [z[i:i + idat_split] for i in range(0, len(z), idat_split)]
-    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0))
-            + b"".join(_chunk(b"IDAT", p) for p in parts) + _chunk(b"IEND", b"") + extra)
+    return (b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0))
+            + b"".join(png_chunk(b"IDAT", p) for p in parts) + png_chunk(b"IEND", b"") + extra)
 
 
 @pytest.fixture()
@@ -47,10 +43,10 @@ def test_everything_canonical_storage_strips_is_refused(ids):
     good = _png(ids)
     assert not is_canonical_mask_png(good + b"\x00" * 100, ids.shape)  # after IEND
     iend = good.rindex(b"IEND") - 4
-    text = good[:iend] + _chunk(b"tEXt", b"k\x00" + b"A" * 1000) + good[iend:]
+    text = good[:iend] + png_chunk(b"tEXt", b"k\x00" + b"A" * 1000) + good[iend:]
     assert not is_canonical_mask_png(text, ids.shape)  # ancillary chunk
     assert not is_canonical_mask_png(_png(ids, z=zlib.compress(raw) + b"\x00" * 500), ids.shape)
-    assert not is_canonical_mask_png(good[:iend] + _chunk(b"IDAT", b"\x00" * 50) + good[iend:],
+    assert not is_canonical_mask_png(good[:iend] + png_chunk(b"IDAT", b"\x00" * 50) + good[iend:],
                                      ids.shape)  # an IDAT after the stream ended
     assert not is_canonical_mask_png(_png(ids, z=zlib.compress(raw[:-10])), ids.shape)  # short
     assert not is_canonical_mask_png(_png(ids), (ids.shape[0], ids.shape[1] + 1))  # other size

@@ -7,14 +7,13 @@ from __future__ import annotations
 import json
 import zipfile
 
+import datumaro  # noqa: F401 -- the `masks` extra: scripts/setup.sh installs it (no skip)
 import numpy as np
 import pytest
 
 from occufly.cli import main
 from occufly.io.masks import read_mask, write_mask
 from tests.app.conftest import H, W, make_tiny_scene
-
-pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
 
 
 @pytest.fixture()

@@ -107,7 +107,7 @@ def test_shipped_table_names_what_it_was_fitted_on():
         assert np.all(np.diff(x) >= 0) and np.all(np.diff(y) >= -1e-9)
 
 
-def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path):
+def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path, synth_tiny):
     """On the tiny synthetic scene (stratified selection, degraded masks), the filled labels
     that are wrong have a mean confidence well below the right ones; filled labels are less
     confident than voted ones; unlabelled points have confidence 0."""
@@ -116,15 +116,14 @@ def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path):
     from occufly.lifting import LiftState
     from occufly.scene import Scene
     from occufly.selection import select_frames
-    from occufly.synthetic import generate
     from occufly.synthetic.degrade import degrade_masks
 
-    generate(tmp_path / "syn", preset="tiny", seed=0)
-    import_scene(tmp_path / "syn", tmp_path / "ws")
+    syn = synth_tiny  # generate(preset="tiny", seed=0), once per run (read-only)
+    import_scene(syn, tmp_path / "ws")
     scene = Scene.load(tmp_path / "ws")
-    truth = np.load(tmp_path / "syn" / "truth" / "point_labels.npy")
+    truth = np.load(syn / "truth" / "point_labels.npy")
     sel = select_frames(scene, mode="stratified")
-    exact = {fi: read_mask(tmp_path / "syn" / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
+    exact = {fi: read_mask(syn / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
                            scene.frames[fi], scene.taxonomy) for fi in sel.frames}
     st = LiftState.open(tmp_path / "ws", scene)
     for fi, m in degrade_masks(exact, scene.taxonomy, seed=0).items():

@@ -326,10 +326,7 @@ def test_reader_round_trip_both_layouts(ws, ssc, occ):
 
 
 def test_torch_dataset_and_collate(ssc, occ):
-    if os.environ.get("CI"):  # scripts/setup.sh --test installs it: CI must run this test
-        import torch
-    else:
-        torch = pytest.importorskip("torch", reason="install the extra: scripts/setup.sh --test")
+    import torch  # the torch extra: scripts/setup.sh --test installs it (no skip: run it)
     from torch.utils.data import DataLoader
 
     from occufly.datasets.torch import OccuFlyDataset, collate
@@ -432,8 +429,6 @@ def test_adding_frames_of_another_camera_to_a_scene_is_refused(tmp_path):
 
 
 def test_example_train_loop_on_an_export(ssc, tmp_path, capsys):
-    if not os.environ.get("CI"):
-        pytest.importorskip("torch")
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(

@@ -46,14 +46,11 @@ def test_a_killed_runs_partial_folder_is_removed_by_the_next_run(tmp_path):
 
 
 @pytest.mark.parametrize("command", ["synth", "import"])
-def test_sigterm_unwinds_a_command_and_leaves_no_partial_output(tmp_path, command):
+def test_sigterm_unwinds_a_command_and_leaves_no_partial_output(tmp_path, command, request):
     """A command stopped by SIGTERM (a job runner, `kill`) mid-way: exit 130, no ``.partial``
     folder, the target not created."""
     if command == "import":
-        from occufly.synthetic import generate
-
-        src = tmp_path / "src"
-        generate(src, preset="tiny", seed=0)
+        src = request.getfixturevalue("synth_tiny")  # generated once per run (read-only)
         work = tmp_path / "work"
         work.mkdir()
         out = work / "ws"

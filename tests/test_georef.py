@@ -3,15 +3,14 @@ GPS (real DJI Toledo files: the README's facts), the robust similarity, DJI XMP 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from occufly.io.exif import read_geotag
 from occufly.io.georef import GeorefParams, robust_similarity, umeyama
+from tests.harness import SHARED_DATA, shared_data
 
-TOLEDO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "colmap-dji-toledo"
+TOLEDO = SHARED_DATA / "colmap-dji-toledo"
 
 
 def _rot(a, b, c):
@@ -54,10 +53,10 @@ def test_dji_xmp_read(tmp_path):
     assert g.rtk_std_hgt == pytest.approx(0.031) and not g.has_gps
 
 
-@pytest.mark.skipif(not TOLEDO.is_dir(), reason="shared Toledo data not present")
 def test_toledo_import_is_metric(tmp_path):
     from occufly.io.importer import import_scene
 
+    shared_data("colmap-dji-toledo")
     g = read_geotag(TOLEDO / "images" / "DJI_0061.JPG")
     assert g.lat == pytest.approx(41.5485962, abs=1e-7)
     assert g.lon == pytest.approx(-83.6986488, abs=1e-7)

@@ -11,12 +11,18 @@ from occufly.io.importer import import_scene, source_coordinates
 from occufly.io.ply import write_ply
 from occufly.io.pointcloud import read_point_cloud, write_las
 from occufly.scene import Scene
+from tests.harness import SHARED_DATA, shared_data
 from tests.recon_builder import make_reconstruction
 
-CUP = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap-dense-cup"
+CUP = SHARED_DATA / "colmap-dense-cup"
 
 
-def test_import_colmap_dense_cup(tmp_path, capsys):
+@pytest.fixture
+def cup() -> Path:
+    return shared_data("colmap-dense-cup")  # fails, naming the folder, when it is absent
+
+
+def test_import_colmap_dense_cup(tmp_path, capsys, cup):
     ws = tmp_path / "ws"
     # a COLMAP model in SfM units with no GPS and no georeferencing is refused, saying how to
     # fix it, and leaves nothing behind (it was imported in arbitrary units before)
@@ -43,7 +49,7 @@ def test_import_colmap_dense_cup(tmp_path, capsys):
         assert np.median(rel) < 0.005
 
 
-def test_vis_writer_is_byte_identical_to_colmap():
+def test_vis_writer_is_byte_identical_to_colmap(cup):
     offsets, idx = read_fused_vis(CUP / "fused.ply.vis")
     out = Path("/tmp") / f"vis-{np.random.randint(1 << 30)}"
     write_fused_vis(out, offsets, idx)

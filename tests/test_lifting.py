@@ -372,15 +372,14 @@ def test_cli_select_lift_agreement_eval_export(ws, tmp_path, capsys):
 
 # ---- the synthetic tiny scene (generator + importer, exact truth) -------------------------
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, synth_tiny):
     from occufly.io.importer import import_scene
-    from occufly.synthetic import generate
 
     root = tmp_path_factory.mktemp("tiny")
-    generate(root / "syn", preset="tiny", seed=0)
-    scene = import_scene(root / "syn", root / "ws")
-    truth = np.load(root / "syn" / "truth" / "point_labels.npy")
-    masks = {i: read_mask(root / "syn" / "truth" / "masks" / f"{f.stem}.png", f, scene.taxonomy)
+    syn = synth_tiny  # generate(preset="tiny", seed=0), once per run (read-only)
+    scene = import_scene(syn, root / "ws")
+    truth = np.load(syn / "truth" / "point_labels.npy")
+    masks = {i: read_mask(syn / "truth" / "masks" / f"{f.stem}.png", f, scene.taxonomy)
              for i, f in enumerate(scene.frames)}
     return root / "ws", Scene.load(root / "ws"), truth, masks
 

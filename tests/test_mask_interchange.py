@@ -12,6 +12,7 @@ import json
 import zipfile
 from pathlib import Path
 
+import datumaro  # noqa: F401 -- the `masks` extra: scripts/setup.sh installs it (no skip)
 import numpy as np
 import pytest
 
@@ -21,8 +22,6 @@ from occufly.io import mask_interchange as mi
 from occufly.scene import Frame
 from occufly.taxonomy import default_taxonomy
 from tests.mask_archives import datumaro_cvat_archive
-
-pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
 
 W, H = 48, 32
 TAX = default_taxonomy()

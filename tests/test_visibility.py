@@ -22,6 +22,7 @@ from occufly.io.importer import import_scene
 from occufly.io.pointcloud import read_point_cloud
 from occufly.scene import Scene, Visibility
 from occufly.visibility import FrameLists, PointBins, compute_visibility, render_shape
+from tests.harness import shared_data
 from tests.recon_builder import make_reconstruction
 
 
@@ -212,9 +213,8 @@ def test_render_shape_resolves_the_spacing():
 
 
 def test_union_on_the_colmap_cup_adds_nothing_wrong(tmp_path):
-    from pathlib import Path
 
-    cup = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap-dense-cup"
+    cup = shared_data("colmap-dense-cup")
     scene = import_scene(cup, tmp_path / "ws", scale=1.0)  # SfM units, no GPS: scale declared
     offsets, idx = read_fused_vis(cup / "fused.ply.vis", 58)
     assert scene.visibility.offsets[-1] == len(idx)

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
-import pytest
+from tests.harness import SHARED_DATA, shared_data
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+DATA = SHARED_DATA
 
 
 def test_import_validates_format_and_crs(env):
@@ -21,12 +20,11 @@ def test_import_validates_format_and_crs(env):
     assert r.status_code == 422 and "crs" in r.text
 
 
-@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not beside the clone")
 def test_import_metashape_xml_reaches_the_reader(env):
     """A real Metashape export with format=metashape: the job runs the Metashape reader and
     fails naming the missing photos (the fixture ships none), not a generic error."""
     adm = env.bearer("admin")
-    shutil.copy(DATA / "metashape-bitbyt3r-local" / "cameras.xml", env.import_root / "cams.xml")
+    shutil.copy(shared_data("metashape-bitbyt3r-local", "cameras.xml"), env.import_root / "cams.xml")
     (env.import_root / "photos").mkdir()
     r = env.client.post("/api/scenes/import", json={
         "name": "ms", "source": "cams.xml", "format": "metashape", "images": "photos"},
@@ -38,12 +36,11 @@ def test_import_metashape_xml_reaches_the_reader(env):
     assert "94 of 94 images are missing: 001, 002" in j["message"]
 
 
-@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not beside the clone")
 def test_import_of_a_model_in_unknown_units_is_refused_unless_scaled(env):
     """COLMAP's cup model (SfM units, no GPS, no CRS) fails naming the cause and the fix;
     with scale=1 (metric already) it imports; a non-positive scale is a 422."""
     adm = env.bearer("admin")
-    shutil.copytree(DATA / "colmap-dense-cup", env.import_root / "cup")
+    shutil.copytree(shared_data("colmap-dense-cup"), env.import_root / "cup")
     r = env.client.post("/api/scenes/import", json={"name": "cup", "source": "cup"}, headers=adm)
     assert r.status_code == 202, r.text
     env.app.state.ctx.jobs.wait(r.json()["id"])

@@ -5,9 +5,6 @@ the job is interrupted, resumes as attempt 2 and completes in a folder only it w
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,9 +13,9 @@ import numpy as np
 
 from occufly.scene import Scene
 from tests.app.conftest import PASSWORD, write_tiny_workspace
+from tests.harness import ProcessServer
 
 REPO = Path(__file__).resolve().parents[2]
-PORT = 9631
 
 
 def _descendants(pid: int) -> set[int]:
@@ -101,25 +98,11 @@ def test_kill_9_during_an_export_leaves_no_writer_behind(tmp_path):
            "OCCUFLY_ARGON2_TIME_COST": "1", "PYTHONPATH": str(REPO)}
     sid = _seed(tmp_path, env)
     exports = tmp_path / "data" / "exports"
-    log = open(tmp_path / "server.log", "ab")  # noqa: SIM115
-
-    def start() -> subprocess.Popen:
-        p = subprocess.Popen([sys.executable, "-m", "uvicorn", "app.main:app_from_env",
-                              "--factory", "--host", "127.0.0.1", "--port", str(PORT),
-                              "--log-level", "warning"], cwd=REPO, env=env, stdout=log,
-                             stderr=subprocess.STDOUT)
-        end = time.monotonic() + 60
-        while time.monotonic() < end:
-            try:
-                if httpx.get(f"http://127.0.0.1:{PORT}/api/health", timeout=2).status_code == 200:
-                    return p
-            except httpx.HTTPError:
-                time.sleep(0.1)
-        raise AssertionError((tmp_path / "server.log").read_text()[-3000:])
-
-    server = start()
+    # a free port; the server counts as up only when it is this child that answers there
+    server = ProcessServer(env, tmp_path / "server.log", start_timeout=60)
+    server.start()
     try:
-        c = httpx.Client(base_url=f"http://127.0.0.1:{PORT}", timeout=30)
+        c = httpx.Client(base_url=server.url, timeout=30)
         tok = c.post("/api/auth/login", json={"username": "admin", "password": PASSWORD}).json()
         hdr = {"Authorization": f"Bearer {tok['token']}"}
         c.cookies.clear()
@@ -135,8 +118,7 @@ def test_kill_9_during_an_export_leaves_no_writer_behind(tmp_path):
         assert j["status"] == "running", f"the export was not interruptible: {j}"
         workers = _descendants(server.pid)
         assert workers  # the job pool (and the export's own pool)
-        server.send_signal(signal.SIGKILL)
-        server.wait(10)
+        server.kill9()
         end = time.monotonic() + 6
         while time.monotonic() < end and any(_alive(p) for p in workers):
             time.sleep(0.05)
@@ -146,7 +128,7 @@ def test_kill_9_during_an_export_leaves_no_writer_behind(tmp_path):
         assert _listing(exports) == staged  # nobody writes any more
         assert not (exports / f"job_{jid}").exists()  # the dead attempt published nothing
 
-        server = start()
+        server.start()  # the same port: the client's URL stays valid
         end = time.monotonic() + 30
         while (j := c.get(f"/api/jobs/{jid}", headers=hdr).json())["status"] == "running" and \
                 time.monotonic() < end:
@@ -162,10 +144,4 @@ def test_kill_9_during_an_export_leaves_no_writer_behind(tmp_path):
         assert j["result"]["output"] == str(out) and any(p.is_file() for p in out.rglob("*"))
         assert not [p.name for p in exports.iterdir() if ".attempt" in p.name]
     finally:
-        if server.poll() is None:
-            server.send_signal(signal.SIGTERM)
-            try:
-                server.wait(20)
-            except subprocess.TimeoutExpired:
-                server.kill()
-        log.close()
+        server.stop()

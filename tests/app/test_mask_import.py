@@ -8,15 +8,13 @@ from __future__ import annotations
 import io
 import json
 
+import datumaro  # noqa: F401 -- the `masks` extra: scripts/setup.sh installs it (no skip)
 import numpy as np
-import pytest
 from PIL import Image
 from sqlalchemy import func, select
 
 from tests.app.conftest import H, W
 from tests.mask_archives import datumaro_cvat_archive
-
-pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
 
 
 def _post(env, sid, path, hdr, fmt="cvat", mapping=None, author=None):  # noqa: ANN001, ANN202

@@ -104,8 +104,9 @@ def test_attack_round_two(world, tmp_path):
     st = wait(imp(rsrc))
     rec("path", "COLMAP depth map symlinked out", st[0] == "failed" and "symbolic link" in st[1], str(st))
     # psx with {projectfolder}/../.. escape
-    from tests.test_io_photogrammetry import DATA, _make_psx
-    if DATA.is_dir():  # the real Metashape chunk of ../shared/data
+    from tests.harness import shared_data
+    from tests.test_io_photogrammetry import _make_psx
+    if shared_data("metashape-easyidp-wheat-tanashi", "chunk_doc.xml"):  # the real chunk
         photos = tmp_path / "far" / "photos"
         photos.mkdir(parents=True)
         psx = _make_psx(env.import_root / "proj", photos)  # relative path leading out of the roots
@@ -121,7 +122,7 @@ def test_attack_round_two(world, tmp_path):
                headers={**hdr["reviewer"], "content-type": "application/json"})
     rec("size", "corrections body over 12 B/point", r.status_code == 413, f"{r.status_code} {r.text[:100]}")
     # PNG with a huge IHDR
-    def chunk(k, d): return struct.pack(">I", len(d)) + k + d + struct.pack(">I", zlib.crc32(k + d))
+    from occufly.io.masks import png_chunk as chunk
     bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000, 8, 0, 0, 0, 0)) + chunk(b"IDAT", zlib.compress(b"\0" * 100000)) + chunk(b"IEND", b"")
     lease = c.post(f"/api/scenes/{scene['id']}/next", headers=hdr["annotator"]).json()
     r = c.put(f"/api/frames/{lease['id']}/mask", content=bomb, headers={**hdr["annotator"], "If-Match": "none"})

@@ -137,15 +137,16 @@ def test_colmap_image_name_with_markup_is_refused(tmp_path):
         import_scene(src, tmp_path / "ws")
 
 
-@pytest.mark.skipif(not (ROOT.parent.parent / "shared" / "data").is_dir(),
-                    reason="../shared/data not beside the clone")
 def test_metashape_psx_absolute_photo_paths_are_refused(tmp_path):
     """A .psx whose frame.zip gives absolute photo paths outside the roots (the photos
     exist there): refused naming the project, before any photo is opened."""
     import zipfile
 
     from occufly.io.importer import import_scene
+    from tests.harness import shared_data
     from tests.test_io_photogrammetry import _make_psx
+
+    shared_data("metashape-easyidp-wheat-tanashi", "chunk_doc.xml")
 
     roots = [tmp_path / "imports"]
     photos = tmp_path / "elsewhere" / "photos"

@@ -12,11 +12,8 @@ import numpy as np
 from PIL import Image, PngImagePlugin
 from sqlalchemy import func, select
 
+from occufly.io.masks import png_chunk
 from tests.app.conftest import H, W, mask_png, png
-
-
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
 def _padded(m: bytes, pad: int, where: str) -> bytes:
@@ -24,7 +21,7 @@ def _padded(m: bytes, pad: int, where: str) -> bytes:
     if where == "after_iend":
         return m + b"\x00" * pad
     iend = m.rindex(b"IEND") - 4
-    return m[:iend] + _chunk(b"tEXt", b"comment\x00" + b"A" * pad) + m[iend:]
+    return m[:iend] + png_chunk(b"tEXt", b"comment\x00" + b"A" * pad) + m[iend:]
 
 
 def _lease(env, hdr, scene, who="annotator") -> int:  # noqa: ANN001
@@ -108,9 +105,9 @@ def test_an_upload_that_is_canonical_already_is_stored_as_it_is(world):
     assert r.json()["sha256"] == hashlib.sha256(fast).hexdigest()
     assert env.client.get(f"/api/frames/{fid}/mask", headers=a).content == fast
     raw = b"".join(b"\x00" + ids[i].tobytes() for i in range(ids.shape[0]))
-    padded = (fast[:8] + _chunk(b"IHDR", struct.pack(">IIBBBBB", ids.shape[1], ids.shape[0], 8, 0, 0,
+    padded = (fast[:8] + png_chunk(b"IHDR", struct.pack(">IIBBBBB", ids.shape[1], ids.shape[0], 8, 0, 0,
                                                      0, 0))
-              + _chunk(b"IDAT", zlib.compress(raw) + b"\x00" * 5000) + _chunk(b"IEND", b""))
+              + png_chunk(b"IDAT", zlib.compress(raw) + b"\x00" * 5000) + png_chunk(b"IEND", b""))
     r = env.client.put(f"/api/frames/{fid}/mask", content=padded,
                        headers={**a, "If-Match": f'"{r.json()["version"]}"'})
     assert r.status_code == 200, r.text

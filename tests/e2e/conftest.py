@@ -2,15 +2,13 @@
 loopback port, seeded through its own REST API (admin imports a reconstruction, runs the
 selection), and Debian's Chromium driven by Playwright.
 
-Seed data: the synthetic ``tiny`` scene (``occufly.synthetic.generate``) when it exists,
-otherwise the small COLMAP reconstruction of ``tests/recon_builder.py`` (ground + a box).
+Seed data: the synthetic ``tiny`` scene (``occufly.synthetic.generate``, made once per run:
+the ``synth_tiny`` fixture of tests/conftest.py). The server is tests.harness.ThreadServer.
 """
 
 from __future__ import annotations
 
 import io
-import socket
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +17,8 @@ import httpx
 import numpy as np
 import pytest
 from PIL import Image
+
+from tests.harness import ThreadServer, synth_copy
 
 REPO = Path(__file__).resolve().parents[2]
 ARTIFACTS = REPO / "test-artifacts"
@@ -29,27 +29,10 @@ PASSWORDS = {"admin": "admin-password-1", "reviewer": "reviewer-password-1",
 ROLES = {"admin": "admin", "reviewer": "reviewer", "annotator": "annotator"}
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def build_source(root: Path) -> tuple[Path, str]:
-    """Write a reconstruction under ``root``; returns (folder, description)."""
-    try:
-        from occufly.synthetic import generate  # type: ignore[attr-defined]
-    except ImportError:
-        generate = None
-    if generate is not None:
-        out = root / "tiny"
-        generate(out, preset="tiny", seed=0)
-        return out, "synthetic tiny"
-    from tests.recon_builder import make_reconstruction
-
-    out = root / "recon"
-    make_reconstruction(out, n_cams=4, vis=True)
-    return out, "recon_builder"
+def build_source(root: Path, synth_tiny: Path) -> tuple[Path, str]:
+    """The synthetic ``tiny`` scene (made once per run, see tests/conftest.py) as a folder of
+    ``root`` (hard links: the import only reads it); returns (folder, description)."""
+    return synth_copy(synth_tiny, root / "tiny"), "synthetic tiny"
 
 
 def png_ids(data: bytes) -> np.ndarray:
@@ -93,6 +76,14 @@ class Live:
             time.sleep(0.2)
         raise AssertionError(f"job {job['id']} ({job['kind']}) did not finish in {timeout} s")
 
+    def labels_status(self, scene_id: int, role: str = "admin") -> dict:
+        """``GET /api/scenes/{scene_id}/labels/status`` as ``role``. Anything but 200 fails at
+        once with the answer's body: a 500 is a defect to see, not a reason to poll again."""
+        r = self.client(role).get(f"/api/scenes/{scene_id}/labels/status")
+        assert r.status_code == 200, (f"labels/status of scene {scene_id} answered "
+                                      f"{r.status_code}: {r.text[:2000]}")
+        return r.json()
+
     def wait_until(self, fn, timeout: float = 30.0, what: str = "condition"):
         t_end = time.monotonic() + timeout
         last = None
@@ -105,9 +96,7 @@ class Live:
 
 
 @pytest.fixture(scope="session")
-def live(tmp_path_factory):
-    import uvicorn
-
+def live(tmp_path_factory, synth_tiny):
     from app.config import Settings
     from app.main import create_app
     from app.users import service as users
@@ -115,45 +104,33 @@ def live(tmp_path_factory):
     root = tmp_path_factory.mktemp("e2e")
     imports = root / "imports"
     imports.mkdir()
-    source, kind = build_source(imports)
+    source, kind = build_source(imports, synth_tiny)
     settings = Settings(data_dir=root / "data", env="development", import_roots=[imports],
                         fill_debounce_s=0.3, job_workers=2, frontend_dir=REPO / "frontend")
     app = create_app(settings)
     with app.state.ctx.sessions() as s:
         for name, role in ROLES.items():
             users.create_user(session=s, username=name, password=PASSWORDS[name], role=role)
-    port = free_port()
     # keep-alive longer than any pause between a test's requests: with uvicorn's 5 s the
     # server may close an idle connection just as a client reuses it ("connection reset by
     # peer" on the next request, seen in a full run)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
-                                           log_level="warning", lifespan="on",
-                                           timeout_keep_alive=600))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    t_end = time.monotonic() + 20
-    while not server.started:
-        if time.monotonic() > t_end or not thread.is_alive():
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.05)
-    lv = Live(base_url=f"http://127.0.0.1:{port}", app=app, source_kind=kind)
-    admin = lv.client("admin")
-    r = admin.post("/api/scenes/import", json={"name": "e2e_scene", "source": str(source)})
-    assert r.status_code in (200, 202), r.text
-    job = lv.wait_job(r.json())
-    assert job["status"] == "done", job
-    lv.scene_id = job["scene_id"]
-    grant_members(lv, lv.scene_id)
-    r = admin.post(f"/api/scenes/{lv.scene_id}/selection",
-                   json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
-    assert r.status_code in (200, 202), r.text
-    job = lv.wait_job(r.json())
-    assert job["status"] == "done", job
-    yield lv
-    for c in lv.clients.values():
-        c.close()
-    server.should_exit = True
-    thread.join(timeout=15)
+    with ThreadServer(app, timeout_keep_alive=600) as server:
+        lv = Live(base_url=server.url, app=app, source_kind=kind)
+        admin = lv.client("admin")
+        r = admin.post("/api/scenes/import", json={"name": "e2e_scene", "source": str(source)})
+        assert r.status_code in (200, 202), r.text
+        job = lv.wait_job(r.json())
+        assert job["status"] == "done", job
+        lv.scene_id = job["scene_id"]
+        grant_members(lv, lv.scene_id)
+        r = admin.post(f"/api/scenes/{lv.scene_id}/selection",
+                       json={"cell": 12.0, "mode": "stratified", "target_coverage": 0.99})
+        assert r.status_code in (200, 202), r.text
+        job = lv.wait_job(r.json())
+        assert job["status"] == "done", job
+        yield lv
+        for c in lv.clients.values():
+            c.close()
 
 
 def grant_members(lv: Live, scene_id: int) -> None:

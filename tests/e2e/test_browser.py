@@ -109,12 +109,7 @@ def test_annotator_paint_undo_redo_submit_reload(live, new_page):
     assert page.locator("#save-state").inner_text().startswith("Saved")
     # the lifted labels include this version and now carry the painted class
     def lifted():
-        r = rev.get(f"/api/scenes/{live.scene_id}/labels/status")
-        if r.status_code != 200:
-            # known backend race (reported): the first fill writes lifting/labels.npy before
-            # confidence.npy, so a read in between answers 500; poll again
-            return None
-        st = r.json()
+        st = live.labels_status(live.scene_id, "reviewer")  # a 500 fails here, at once
         inc = {str(k): v for k, v in st["included_versions"].items()}
         hist = {str(k): v for k, v in st["class_histogram"].items()}
         return st if inc.get(str(fid)) == version and hist.get(str(cls), 0) > 0 else None
@@ -136,8 +131,7 @@ def test_prefill_from_3d_on_neighbouring_frame(live, new_page):
     fb = neighbour_of(live, fa)
     admin = live.client("admin")
     def filled():
-        r = admin.get(f"/api/scenes/{live.scene_id}/labels/status")
-        return r.status_code == 200 and not r.json()["pending_fill"]
+        return not live.labels_status(live.scene_id)["pending_fill"]
     live.wait_until(filled, timeout=60, what="kNN fill of the lifted labels")
     page = new_page("admin")
     page.goto(f"{live.base_url}/#/annotate?scene={live.scene_id}&frame={fb}")
@@ -274,13 +268,9 @@ def test_admin_export_job_completes(live, new_page):
                 headers={"If-Match": cur.headers["etag"]})
     assert r.status_code == 200, r.text
     resubmitted = r.json()["version"]
-    adm = live.client("admin")
 
     def refilled():
-        r = adm.get(f"/api/scenes/{live.scene_id}/labels/status")
-        if r.status_code != 200:
-            return None
-        st = r.json()
+        st = live.labels_status(live.scene_id)
         return (st["filled_versions"].get(str(fa)) == resubmitted and not st["pending_fill"]
                 and st["class_histogram"])
     live.wait_until(refilled, timeout=90, what="the resubmitted mask lifted and filled")

@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 import zipfile
 
+import datumaro  # noqa: F401 -- the `masks` extra: scripts/setup.sh installs it (no skip)
 import pytest
 
 from tests.e2e.conftest import ARTIFACTS, REPO, import_own_scene, shot
 from tests.mask_archives import datumaro_cvat_archive
 
 pytestmark = pytest.mark.e2e
-pytest.importorskip("datumaro")  # the `masks` extra (scripts/setup.sh installs it)
 
 DOCS = REPO / "docs" / "screenshots"
 

@@ -69,8 +69,7 @@ def png_with_filters(ids: np.ndarray, filters: list[int]) -> bytes:
             r = cur - pred
         rows.append(bytes([f]) + (r & 255).astype(np.uint8).tobytes())
 
-    def chunk(t, d):
-        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
+    from occufly.io.masks import png_chunk as chunk
 
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
     return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from occufly.io.masks import png_chunk
 from tests.e2e.conftest import grey_png, import_own_scene, shot, wait_js
 from tests.e2e.test_browser import wait_opened
 
@@ -35,15 +36,10 @@ VIEWER_EXPECTED = ("script-src eval",)
 
 
 # ---- hand-made PNGs (the cases the browser's old decoder read differently) ----------------
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    return (struct.pack(">I", len(data)) + kind + data
-            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-
-
 def _png(w: int, h: int, depth: int, ctype: int, raw: bytes, extra: bytes = b"") -> bytes:
     ihdr = struct.pack(">IIBBBBB", w, h, depth, ctype, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + extra
-            + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b""))
+    return (b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", ihdr) + extra
+            + png_chunk(b"IDAT", zlib.compress(raw)) + png_chunk(b"IEND", b""))
 
 
 def _rows(arr: np.ndarray) -> bytes:
@@ -62,8 +58,8 @@ def _bomb(w: int, h: int, inflated: int = 1 << 30) -> bytes:
     stream = (b"\x78\xda" + mid * n + b"\x03\x00"
               + struct.pack(">I", (((n << 20) % 65521) << 16) | 1))
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", stream)
-            + _chunk(b"IEND", b""))
+    return (b"\x89PNG\r\n\x1a\n" + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", stream)
+            + png_chunk(b"IEND", b""))
 
 
 def mask_cases(ids: np.ndarray) -> dict[str, bytes]:
@@ -71,8 +67,8 @@ def mask_cases(ids: np.ndarray) -> dict[str, bytes]:
     gray8 = grey_png(ids)
     g16 = _png(w, h, 16, 0, _rows(ids.astype(">u2")))
     pal = bytes(np.repeat(np.arange(256, dtype=np.uint8), 3))  # index i -> (i, i, i)
-    palette = _png(w, h, 8, 3, _rows(ids), _chunk(b"PLTE", pal))
-    short = _png(w, h, 8, 3, _rows(ids), _chunk(b"PLTE", bytes([9, 9, 9]) * 4))  # 4 entries
+    palette = _png(w, h, 8, 3, _rows(ids), png_chunk(b"PLTE", pal))
+    short = _png(w, h, 8, 3, _rows(ids), png_chunk(b"PLTE", bytes([9, 9, 9]) * 4))  # 4 entries
     cut = gray8[: len(gray8) // 2]
     return {"gray8": gray8, "gray16": g16, "palette": palette, "short_palette": short,
             "truncated": cut, "zlib_bomb": _bomb(w, h)}

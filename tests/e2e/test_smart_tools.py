@@ -206,11 +206,10 @@ def test_low_confidence_marks_hide_when_the_prefill_is_undone(live, sid, new_pag
     ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
             headers={"Content-Type": "image/png",
                      "If-Match": str(f["current_version"] or "none")}).raise_for_status()
-    admin = live.client("admin")
 
     def lifted():
-        r = admin.get(f"/api/scenes/{sid}/labels/status")
-        return r.status_code == 200 and not r.json()["pending_fill"] and r.json()["included_versions"]
+        st = live.labels_status(sid)
+        return not st["pending_fill"] and st["included_versions"]
     live.wait_until(lifted, timeout=90, what="the lifted labels of the smart-tools scene")
     page = open_frame(live, sid, new_page)
     assert page.evaluate("() => window.__occufly.page.frame.id") != f["id"]

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import socket
-import threading
-import time
 from pathlib import Path
 
-import uvicorn
 from fastapi import FastAPI, Request
 
 from app import viewer
 from app.serving import uvicorn_options
+from tests.harness import ThreadServer
 
 REVIEWER = "reviewer-token"
 ANNOTATOR = "annotator-token"
@@ -57,40 +54,15 @@ def make_app(data_dir: Path, *, preview_points: int = 150_000, **kw) -> FastAPI:
     return app
 
 
-class LiveServer:
-    """uvicorn on a free loopback port in a thread (lifespan on, so viser starts with it)."""
+class LiveServer(ThreadServer):
+    """The suite's live server (tests.harness.ThreadServer: uvicorn in a thread on a free
+    loopback port, lifespan on, so viser starts with it)."""
 
     def __init__(self, app: FastAPI) -> None:
-        self.app = app
-        self.sock = socket.socket()
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
         # served as `occufly serve` serves the app (app.serving: its h11 protocol with the
         # header and body timeouts, no permessage-deflate on the viewer socket): a test
         # server without them never saw the body timer cut the viewer socket (issue 40)
-        cfg = uvicorn.Config(app, log_level="warning", lifespan="on", ws_max_size=64 << 20,
-                             **uvicorn_options(None))
-        self.server = uvicorn.Server(cfg)
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
-                                       daemon=True)
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def __enter__(self) -> LiveServer:
-        self.thread.start()
-        t0 = time.time()
-        while not self.server.started:
-            if time.time() - t0 > 30:
-                raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(timeout=15)
-        self.sock.close()
+        super().__init__(app, ws_max_size=64 << 20, **uvicorn_options(None))
 
 
 def camera_message(position=(0.0, 0.0, 50.0), look_at=(0.0, 0.0, 0.0)) -> bytes:

@@ -1,0 +1,67 @@
+"""Session fixtures of the whole suite (helpers in tests/harness.py).
+
+- ``synth_tiny``: the synthetic ``tiny`` scene (seed 0), generated once per run and shared
+  read-only; both pytest processes of ``scripts/test.sh`` share it through ``OCCUFLY_TEST_CACHE``.
+- the ``slow`` marker on the modules listed in ``SLOW`` (with why): ``scripts/test.sh`` runs
+  them in the browser lane, which otherwise waits on Chromium; ``-m "not slow"`` is a quick loop.
+- a fixed memory budget: ``occufly.fsutil.available_memory`` answers ``TEST_MEMORY_BYTES`` in
+  this process, so a step's up-front memory check (``require_memory``) gives the same answer on
+  every run instead of depending on what the other processes of a shared machine hold at that
+  moment; a test whose step would need more than that fails, every time. Tests that check the
+  refusal monkeypatch it lower themselves.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from tests.harness import SynthCache
+
+TEST_MEMORY_BYTES = 8 << 30  # the suite's steps need < 1 GB each; CI machines have >= 8 GB
+
+# tests outside tests/e2e and tests/viewer that run for tens of seconds each: path (relative to
+# the repository, a module or module::test prefix) -> why
+SLOW = {
+    "tests/app/test_job_faults.py": "kill -9 of a server process mid-export, restart, resume",
+    "tests/app/test_topology.py": "two API processes, a lifting worker and Dask, kill -9 twice",
+    "tests/app/test_serving.py": "`occufly serve` and nginx processes, header/idle timeouts",
+    "tests/test_scale.py": "the 960 x 640 `tinyfull` scene, renders of full-size frames",
+    "tests/test_synthetic_formats.py": "the tiny scene written in every photogrammetry format",
+}
+
+
+# scripts/test.sh runs tests/e2e and tests/viewer whole in the browser lane, then SLOW: a path
+# in both would run twice
+assert not [k for k in SLOW if k.startswith(("tests/e2e", "tests/viewer"))], SLOW
+
+
+def pytest_itemcollected(item) -> None:  # noqa: ANN001
+    rel = item.nodeid
+    if any(rel == k or rel.startswith(k + "::") or rel.startswith(k + "[") for k in SLOW):
+        item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def fixed_memory_budget():
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("occufly.fsutil.available_memory", lambda: TEST_MEMORY_BYTES)
+        yield TEST_MEMORY_BYTES
+
+
+@pytest.fixture(scope="session")
+def synth_cache(tmp_path_factory) -> SynthCache:
+    root = os.environ.get("OCCUFLY_TEST_CACHE")
+    cache = SynthCache(Path(root) if root else tmp_path_factory.mktemp("synth-cache"))
+    yield cache
+    changed = cache.check_untouched()
+    assert not changed, (f"a test wrote into the shared synthetic scene(s) {changed}: take a "
+                         "copy (tests.harness.synth_copy) before changing it")
+
+
+@pytest.fixture(scope="session")
+def synth_tiny(synth_cache) -> Path:
+    """The ``tiny`` synthetic scene, seed 0 (read-only: copy it with synth_copy to change it)."""
+    return synth_cache.get("tiny", 0)[0]

@@ -35,7 +35,8 @@ sys.path.insert(0, str(ROOT / "tests" / "viewer"))
 from viewer_live import CHROMIUM_ARGS, REVIEWER, LiveServer, fake_client, make_app  # noqa: E402
 
 from app.viewer.demo_scene import make_demo_workspace  # noqa: E402
-from app.viewer.server import ViewerService, default_scenes  # noqa: E402
+from app.viewer.server import ViewerService  # noqa: E402
+from app.viewer.state import default_scenes  # noqa: E402
 from occufly.fsutil import atomic_save_npy  # noqa: E402
 
 

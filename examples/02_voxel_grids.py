@@ -18,7 +18,7 @@ import viser
 
 from app.viewer import scene_builder as sb
 from app.viewer.demo_scene import make_demo_workspace
-from app.viewer.server import load_camera_grid
+from app.viewer.scene_view import load_camera_grid
 from occufly.sampling import FrameGridSpec
 
 

@@ -62,7 +62,8 @@ from starlette.concurrency import run_in_threadpool
 from app.viewer import scene_builder
 from app.viewer.proxy import add_routes
 from app.viewer.scene_builder import DEFAULT_MAX_POINTS
-from app.viewer.server import ViewerService, default_scenes
+from app.viewer.server import ViewerService
+from app.viewer.state import default_scenes
 
 __all__ = ["mount", "ViewerService", "scene_builder"]
 

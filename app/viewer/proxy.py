@@ -36,7 +36,8 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from app.viewer.client_page import ASSET_DIR, ClientLayoutError, client_assets
-from app.viewer.server import TICKET_HEADER, ViewerService
+from app.viewer.server import ViewerService
+from app.viewer.state import TICKET_HEADER
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ def test_viewer_lists_and_opens_only_member_scenes_of_a_reviewer(tmp_path):
     from types import SimpleNamespace
 
     from app.scenes.models import Scene, SceneMember
-    from app.viewer.server import ClientState
+    from app.viewer.state import ClientState
 
     settings = Settings(data_dir=tmp_path, env="development")
     app = create_app(settings)

@@ -24,6 +24,7 @@ from viewer_live import (
 
 from app import viewer
 from app.viewer import server as vserver
+from app.viewer import state as vstate
 
 PROTO = f"viser-v{viser.__version__}"
 
@@ -112,7 +113,7 @@ def test_proxied_socket_sends_float32_cloud_and_direct_socket_is_refused(tiny):
 
 
 def test_tickets_are_single_use_and_expire(tiny, monkeypatch):
-    svc = vserver.ViewerService(scenes=vserver.default_scenes(tiny.ws.parent))
+    svc = vserver.ViewerService(scenes=vstate.default_scenes(tiny.ws.parent))
     tok = svc.issue_ticket("u", "tiny")
     t = svc.redeem_ticket(tok)
     assert t is not None and t.user == "u" and t.scene_id == "tiny"
@@ -124,11 +125,11 @@ def test_tickets_are_single_use_and_expire(tiny, monkeypatch):
 
 def test_viewer_refuses_non_loopback_host(tiny):
     with pytest.raises(ValueError, match="loopback"):
-        vserver.ViewerService(scenes=vserver.default_scenes(tiny.ws.parent), host="0.0.0.0")
+        vserver.ViewerService(scenes=vstate.default_scenes(tiny.ws.parent), host="0.0.0.0")
 
 
 def test_default_scenes_finds_workspaces(tiny):
-    table = vserver.default_scenes(tiny.ws.parent)()
+    table = vstate.default_scenes(tiny.ws.parent)()
     assert list(table) == ["tiny"] and table["tiny"][1] == tiny.ws
     assert np.isfinite(len(table))
 

@@ -7,7 +7,7 @@ import pytest
 from viewer_fixtures import COUNTS, ORIGIN, build_tiny
 
 from app.viewer import scene_builder as sb
-from app.viewer.server import changed_classes
+from app.viewer.refresh import changed_classes
 from occufly.errors import WorkspaceError
 from occufly.taxonomy import default_taxonomy
 

@@ -1,0 +1,371 @@
+"""The 3D scene of one tab: opening a scene, sending its points, camera frusta and grids,
+classes shown, flying to a frame's camera, a suspect's region and rectangle selection
+(a mixin of :class:`app.viewer.server.ViewerService`)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from app.viewer import corrections_panel
+from app.viewer import scene_builder as sb
+from app.viewer.md import md_text
+from app.viewer.state import ClientState
+from occufly.sampling import FrameGridSpec, sample_frame
+
+log = logging.getLogger("app.viewer.server")
+
+
+class SceneViewMixin:
+    # ---- scene content ---------------------------------------------------------------------
+    def open_scene(self, st: ClientState, scene_id: str, *, done: bool = True) -> None:
+        """Load and send ``scene_id`` to client ``st``; ``done`` False leaves ``st.ready``
+        to the caller (a connect sets it once the tab's state or frame is in place)."""
+        st.ready.clear()
+        if scene_id not in self.scenes_for(st.user):  # the dropdown lists only these; a
+            st.gui["status"].content = f"You cannot open scene {md_text(scene_id)}."  # stale list
+            st.ready.set()
+            return
+        with st.lock:
+            st.scene_id = scene_id
+            st.gui["status"].content = f"Loading scene **{md_text(scene_id)}**..."
+            try:
+                st.data = self.scene_data(scene_id)
+            except Exception as e:  # noqa: BLE001 - show the reason to the reviewer
+                log.exception("viewer: cannot open scene %s", scene_id)
+                st.gui["status"].content = f"Cannot open scene {md_text(scene_id)}: {md_text(e)}"
+                st.ready.set()
+                return
+            st.client.scene.reset()
+            st.client.scene.set_up_direction("+z")
+            st.point_handles.clear()
+            st.point_nodes.clear()
+            st.grid_handles.clear()
+            st.frustum_handles.clear()
+            st.subsample = None
+            st.selection = np.zeros(0, np.int64)
+            st.class_visible = {}
+            for b in st.class_boxes.values():
+                b.remove()
+            st.class_boxes.clear()
+            self._rebuild_class_boxes(st)
+            if not st.point_size_set:
+                shown = min(st.max_points, st.data.scene.n_points)
+                st.point_size = round(sb.default_point_size(st.data, shown), 3)
+                st.gui["size"].value = st.point_size
+            frames = ["(none)"] + [f.stem for f in st.data.scene.frames]
+            st.gui["grid_frame"].options = frames
+            st.camera_filter = self.pref(st.user, "camera_filter",
+                                         sb.default_camera_filter(len(st.data.scene.frames)))
+            if st.camera_filter not in sb.CAMERA_FILTERS:
+                st.camera_filter = sb.default_camera_filter(len(st.data.scene.frames))
+            st.gui["frusta"].value = st.camera_filter
+            self._place_camera(st)
+            d = st.data
+            n_show = min(st.max_points, d.scene.n_points)
+            if self.preview_points and n_show > 4 * self.preview_points:
+                full = sb.stratified_subsample(d.labels, d.scene.n_points, st.max_points)
+                st.subsample = sb.stratified_subsample(d.labels, d.scene.n_points,
+                                                       self.preview_points)
+                self.send_points(st)  # quick first picture
+                self.send_frusta(st)
+                st.subsample = full
+            self.send_points(st)
+            if not st.frustum_handles:
+                self.send_frusta(st)
+            self.send_grids(st)
+            corrections_panel.on_scene_opened(self, st)
+            d = st.data
+            lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
+            st.gui["status"].content = (
+                f"**{md_text(scene_id)}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
+                f"{lifted}; showing {st.sent_points:,} points."
+            )
+        if done:
+            st.ready.set()
+
+    def _place_camera(self, st: ClientState) -> None:
+        xyz = np.asarray(st.data.scene.xyz[:: max(1, st.data.scene.n_points // 50_000)], np.float64)
+        if len(xyz) == 0:
+            return
+        c = xyz.mean(axis=0)
+        ext = sb.scene_extent(st.data)
+        cam = st.client.camera
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = tuple(c + np.array([0.0, -0.9 * ext, 0.8 * ext]))
+        cam.look_at = tuple(c)
+
+    def send_points(self, st: ClientState, classes: set[int] | None = None) -> list[sb.PointNode]:
+        """(Re)send point nodes of ``classes`` (all when None) to this client."""
+        with st.lock:
+            d = st.data
+            if d is None:
+                return []
+            if st.subsample is None:
+                st.subsample = sb.stratified_subsample(d.labels, d.scene.n_points, st.max_points)
+            nodes = sb.build_point_nodes(d, mode=st.mode, classes=classes, subsample=st.subsample)
+            present = {nd.class_id for nd in nodes}
+            stale = [cid for cid in st.point_handles if (classes is None or cid in classes)
+                     and cid not in present]
+            for cid in stale:
+                st.point_handles.pop(cid).remove()
+                st.point_nodes.pop(cid, None)
+            with st.client.atomic():
+                st.point_handles.update(sb.send_point_nodes(
+                    st.client.scene, nodes, point_size=st.point_size, visible=st.class_visible))
+            st.point_nodes.update({nd.class_id: nd for nd in nodes})
+            st.client.flush()
+            st.sent_points = int(sum(len(nd.point_ids) for nd in st.point_nodes.values()))
+            return nodes
+
+    def send_frusta(self, st: ClientState) -> None:
+        """(Re)send the camera frusta the "Show cameras" choice keeps (the focused frame of
+        "Open in 3D" always); a survey of thousands of frames starts with only the selected
+        and annotated ones."""
+        with st.lock:
+            d = st.data
+            states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
+            every = sb.frustum_nodes(d.scene, states)
+            keep = {st.highlighted} if st.highlighted is not None else set()
+            nodes = sb.filter_frustum_nodes(every, st.camera_filter, keep)
+            for h in st.frustum_handles.values():
+                h.remove()
+            scale = 0.04 * sb.scene_extent(d)
+            st.frustum_handles = sb.send_frustum_nodes(st.client.scene, nodes, scale=scale)
+            if st.gui.get("frusta_info") is not None:
+                st.gui["frusta_info"].content = f"{len(nodes):,} of {len(every):,} cameras shown."
+            for idx, h in st.frustum_handles.items():
+                def clicked(_e: Any, idx: int = idx) -> None:
+                    self.show_frame(st, idx)
+
+                h.on_click(clicked)
+            if st.highlighted is not None:  # new handles: highlight the focused frame again
+                idx, st.highlighted = st.highlighted, None
+                self.highlight_frustum(st, idx)
+
+    def send_grids(self, st: ClientState) -> None:
+        with st.lock:
+            for h in st.grid_handles.values():
+                h.remove()
+            st.grid_handles.clear()
+            d = st.data
+            if d is None:
+                return
+            surface_only = bool(st.gui["grid_surface"].value)
+            nodes: list[sb.VoxelNode] = []
+            if st.gui["grid_scene"].value and d.grid is not None:
+                from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
+
+                nodes += scene_grid_nodes_lod(d.grid, d.scene.origin, d.taxonomy)
+            frame = st.gui["grid_frame"].value
+            if frame and frame != "(none)":
+                cg = load_camera_grid(d, d.scene.frame_index(frame))
+                if cg is not None:
+                    nodes += sb.camera_grid_nodes(*cg, taxonomy=d.taxonomy,
+                                                  surface_only=surface_only)
+            st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, st.class_visible)
+
+    def set_class_visible(self, st: ClientState, class_id: int, visible: bool) -> None:
+        """Show/hide a class's points and voxels. Takes no lock on purpose: a toggle must
+        not wait for a refresh that is re-sending other classes (dict reads are atomic)."""
+        st.class_visible[class_id] = visible
+        h = st.point_handles.get(class_id)
+        if h is not None:
+            h.visible = visible
+        name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
+        for n, gh in list(st.grid_handles.items()):
+            if n.rsplit("/", 1)[-1] == name:
+                gh.visible = visible
+
+    # ---- cameras ---------------------------------------------------------------------------
+    def show_frame(self, st: ClientState, frame_index: int) -> None:
+        d = st.data
+        fr = d.scene.frames[frame_index]
+        st.frame_index = frame_index
+        states = dict(self.frame_states(st.scene_id)) if self.frame_states else {}
+        state = states.get(frame_index, "not_selected")
+        st.gui["cam_info"].content = f"**{md_text(fr.stem)}** - {md_text(state.replace('_', ' '))}"
+        st.gui["goto"].disabled = False
+        img = frame_image(d, frame_index)
+        mask = self.frame_mask(st.scene_id, frame_index) if self.frame_mask else None
+        gui = st.client.gui
+        for key in ("image", "mask"):
+            if st.gui.get(key) is not None:
+                st.gui[key].remove()
+                st.gui[key] = None
+        if img is not None:
+            st.gui["image"] = gui.add_image(img, label="image", format="jpeg")
+        if mask is not None:
+            rgb = d.taxonomy.colour_lut()[np.asarray(mask, np.uint8)]
+            st.gui["mask"] = gui.add_image(thumbnail(rgb), label="mask", format="png")
+
+    def resolve_frame(self, scene_id: str, frame: str, data: sb.ViewerData) -> int | None:
+        """The frame index named by a page's ``?frame=`` (app frame id via the hook, else a
+        frame index or stem); None when it is not a frame of the scene."""
+        n = len(data.scene.frames)
+        if self.frame_index is not None:
+            try:
+                idx = self.frame_index(scene_id, frame)
+            except Exception:  # noqa: BLE001 - a bad id is just not found
+                log.exception("viewer: frame_index(%s, %s)", scene_id, frame)
+                idx = None
+            return int(idx) if idx is not None and 0 <= int(idx) < n else None
+        if frame.isdigit() and int(frame) < n:
+            return int(frame)
+        stems = [f.stem for f in data.scene.frames]
+        return stems.index(frame) if frame in stems else None
+
+    def open_at_frame(self, st: ClientState, frame_index: int) -> None:
+        """The page was opened for a frame ("3D" on the reviewer / annotator page or a
+        suspect): look through that frame's camera (pose and vertical field of view), its
+        frustum highlighted and the other cameras hidden for this tab ("Show cameras" brings
+        them back; the reviewer's saved choice is not changed)."""
+        st.camera_filter = sb.CAMERA_FILTERS[-1]  # "none": only the kept (highlighted) one
+        st.gui["frusta"].value = st.camera_filter  # equal to st's: the callback does nothing
+        st.highlighted = frame_index
+        self.send_frusta(st)  # highlights it
+        self.show_frame(st, frame_index)
+        self.move_to_camera(st, frame_index)
+        n = len(st.data.scene.frames)
+        st.gui["frusta_info"].content = (
+            f"Opened at **{md_text(st.data.scene.frames[frame_index].stem)}** (highlighted); "
+            f"the other {n - 1:,} cameras are hidden: choose *all* above to show them.")
+
+    def focus_frame(self, st: ClientState, frame_index: int) -> None:
+        """Open in 3D: show the frame's panel, fly just behind its camera (its frustum and
+        what it sees in front) and highlight its frustum."""
+        self.show_frame(st, frame_index)
+        fr = st.data.scene.frames[frame_index]
+        T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        c, fwd, up = T[:3, 3], T[:3, 2], -T[:3, 1]
+        back = 0.12 * sb.scene_extent(st.data)
+        cam = st.client.camera
+        with st.client.atomic():
+            cam.position = tuple(c - back * fwd + 0.3 * back * up)
+            cam.look_at = tuple(c + 20.0 * fwd)
+        self.highlight_frustum(st, frame_index)
+
+    def select_suspect(self, st: ClientState, key: str) -> np.ndarray:
+        """Select the points of the scene's suspect ``key`` (highlighted, counted by class,
+        ready to relabel or file as a review item); a key the current ranking no longer
+        has (the labels changed) says so and selects nothing."""
+        ids = None
+        if self.suspect_points is not None and st.scene_id is not None:
+            try:
+                ids = self.suspect_points(st.scene_id, key)
+            except Exception:  # noqa: BLE001 - a lookup failure is a note, not a dead viewer
+                log.exception("viewer: suspect_points(%s, %s)", st.scene_id, key)
+        n = st.data.scene.n_points if st.data is not None else 0
+        if ids is None:
+            st.gui["sel_info"].content = (f"Suspect {md_text(key)} is not in the current list "
+                                          "(the labels changed): reopen it from the Suspects tab.")
+            return np.zeros(0, np.int64)
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        ids = np.unique(ids[(ids >= 0) & (ids < n)])
+        with st.lock:
+            st.selection = ids
+        st.gui["sel_info"].content = f"Suspect {md_text(key)}: **{len(ids):,}** points selected."
+        corrections_panel.after_selection(self, st)  # highlight + counts by class, relabel
+        if len(ids) and st.frame_index is None:  # no frame: the region in the middle of the
+            # view, seen from above (opened at a frame, the view stays at that frame's camera,
+            # the one that sees the suspect best)
+            xyz = np.asarray(st.data.scene.xyz[ids], np.float64)
+            c = xyz.mean(axis=0)
+            size = float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0)))
+            d = max(4.0 * size, 0.15 * sb.scene_extent(st.data))
+            if st.frame_index is not None:
+                T = np.linalg.inv(np.asarray(st.data.scene.frames[st.frame_index].T_cam_world,
+                                             np.float64))
+                fwd = T[:3, 2]
+            else:
+                fwd = np.array([0.0, 0.0, -1.0])
+            with st.client.atomic():
+                st.client.camera.position = tuple(float(v) for v in c - d * fwd)
+                st.client.camera.look_at = tuple(float(v) for v in c)
+        return ids
+
+    def highlight_frustum(self, st: ClientState, frame_index: int | None) -> None:
+        if (frame_index is not None and frame_index not in st.frustum_handles
+                and st.data is not None and 0 <= frame_index < len(st.data.scene.frames)):
+            # hidden by "Show cameras": send the frusta again with this one kept (fresh
+            # handles, so nothing to restore); send_frusta highlights it
+            st.highlighted = frame_index
+            self.send_frusta(st)
+            return
+        prev = st.highlighted
+        if prev is not None and prev in st.frustum_handles and prev != frame_index:
+            h = st.frustum_handles[prev]
+            h.color, h.scale = st.highlight_restore
+        st.highlighted = frame_index
+        h = st.frustum_handles.get(frame_index) if frame_index is not None else None
+        if h is not None:
+            if prev != frame_index:
+                st.highlight_restore = (h.color, h.scale)
+            h.color = sb.HIGHLIGHT_COLOUR
+            h.scale = 2.0 * st.highlight_restore[1]
+
+    def move_to_camera(self, st: ClientState, frame_index: int) -> None:
+        fr = st.data.scene.frames[frame_index]
+        T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        cam = st.client.camera
+        fov = 2.0 * float(np.arctan2(fr.camera.height / 2.0, fr.camera.focal[1]))
+        with st.client.atomic():
+            cam.fov = fov  # the view then matches the frame's image (vertical fov)
+            cam.wxyz = sb.matrix_to_quat(T[:3, :3])
+            cam.position = tuple(T[:3, 3])
+            cam.look_at = tuple(T[:3, 3] + 20.0 * T[:3, 2])
+
+    # ---- review ----------------------------------------------------------------------------
+    def select_rect(self, st: ClientState, position: np.ndarray, wxyz: np.ndarray, fov: float,
+                    aspect: float, screen_min: tuple[float, float],
+                    screen_max: tuple[float, float]) -> np.ndarray:
+        """Point ids (into the full cloud) of visible, sent points inside the rectangle."""
+        with st.lock:
+            parts = []
+            for cid, nd in st.point_nodes.items():
+                if not st.class_visible.get(cid, True):
+                    continue
+                inside = sb.points_in_screen_rect(nd.xyz, position, wxyz, fov, aspect,
+                                                  screen_min, screen_max)
+                parts.append(nd.point_ids[inside])
+            st.selection = np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+            return st.selection
+
+
+def thumbnail(img: np.ndarray, max_side: int = 320) -> np.ndarray:
+    h, w = img.shape[:2]
+    step = max(1, int(np.ceil(max(h, w) / max_side)))
+    return np.ascontiguousarray(img[::step, ::step])
+
+
+def frame_image(d: sb.ViewerData, frame_index: int) -> np.ndarray | None:
+    fr = d.scene.frames[frame_index]
+    if not fr.image_path:
+        return None
+    p = Path(fr.image_path)
+    if not p.is_absolute() and d.workspace is not None:
+        p = d.workspace / p
+    if not p.is_file():
+        return None
+
+    with Image.open(p) as im:
+        im.draft("RGB", (640, 640))
+        im = im.convert("RGB")
+        im.thumbnail((320, 320))
+        return np.asarray(im)
+
+
+def load_camera_grid(d: sb.ViewerData, frame_index: int, spec: Any = None) -> tuple | None:
+    """(labels, invalid, occluded, surface, T_cam_world, voxel_size) of a frame sampled from
+    the scene grid with ``occufly.sampling.sample_frame`` (default FrameGridSpec), or None."""
+    if d.grid is None:
+        return None
+
+    spec = spec or FrameGridSpec()
+    fr = d.scene.frames[frame_index]
+    gt = sample_frame(d.grid, fr.camera, fr.T_cam_world, d.scene.origin, spec)
+    return gt.labels, gt.invalid, gt.occluded, gt.surface, fr.T_cam_world, spec.voxel_size

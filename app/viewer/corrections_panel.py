@@ -22,7 +22,7 @@ import numpy as np
 
 from app.viewer import scene_builder as sb
 from app.viewer import selection as sel
-from app.viewer.md import md_text
+from app.viewer.markdown_escape import md_text
 
 log = logging.getLogger(__name__)
 

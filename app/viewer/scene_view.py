@@ -13,7 +13,7 @@ from PIL import Image
 
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
-from app.viewer.md import md_text
+from app.viewer.markdown_escape import md_text
 from app.viewer.state import ClientState
 from occufly.sampling import FrameGridSpec, sample_frame
 

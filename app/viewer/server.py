@@ -33,7 +33,7 @@ from typing import Any
 
 from app.viewer import scene_builder as sb
 from app.viewer import session_state
-from app.viewer.md import md_text
+from app.viewer.markdown_escape import md_text
 from app.viewer.panels import PanelsMixin
 from app.viewer.refresh import RefreshMixin, workspace_stamp
 from app.viewer.scene_view import SceneViewMixin

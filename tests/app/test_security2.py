@@ -76,7 +76,7 @@ def test_confined_follows_symlinks(tmp_path):
 
 def test_viewer_markdown_escapes_markup():
     """Finding 2: a frame stem / class name with markup reaches viser's markdown as text."""
-    from app.viewer.md import md_text
+    from app.viewer.markdown_escape import md_text
 
     hostile = '<iframe srcdoc="<script>alert(1)</script>">**x**[a](javascript:1)\n# h'
     out = md_text(hostile)

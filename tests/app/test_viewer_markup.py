@@ -70,7 +70,7 @@ def test_every_markdown_interpolation_is_escaped():
 
 
 def test_md_text_neutralises_hostile_names():
-    from app.viewer.md import md_text
+    from app.viewer.markdown_escape import md_text
 
     for hostile in ['<iframe srcdoc="<script>parent.fetch(1)</script>">.png',
                     "<img src=x onerror=alert(1)>", "[x](javascript:alert(1))",

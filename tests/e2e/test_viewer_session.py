@@ -26,7 +26,7 @@ import pytest
 
 from app.serving import TimedH11Protocol, uvicorn_options
 from app.viewer import scene_builder as sb
-from app.viewer.md import md_text
+from app.viewer.markdown_escape import md_text
 from tests.e2e.conftest import REPO, grey_png, import_own_scene
 from tests.harness import ThreadServer
 

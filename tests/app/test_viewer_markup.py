@@ -1,5 +1,5 @@
 """Issue 24, finding 2: every value interpolated into viser markdown (rendered as raw HTML by
-the viser client, ``rehypeRawDom``: no sanitising) goes through ``app.viewer.md.md_text``.
+the viser client, ``rehypeRawDom``: no sanitising) goes through ``app.viewer.markdown_escape.md_text``.
 
 A static check over app/viewer/*.py: each f-string that is assigned to a markdown handle's
 ``.content`` or passed to ``add_markdown`` may interpolate only ``md_text(...)``, a number

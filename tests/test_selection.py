@@ -208,6 +208,10 @@ def test_next_frames_cli_writes_the_proposal_and_exits_2_when_nothing_is_contest
     out = json.loads(capsys.readouterr().out)
     assert out["frames"][0] == 6 and len(out["frames"]) == 2
     assert json.loads((ws / "next_frames.json").read_text())["frames"] == out["frames"]
+    # the reviewer's contested suspect points to the proposed frame that sees it
+    top = out["suspects"][0]
+    assert top["kind"] == "contested" and 6 in top["proposed_frames"]
+    assert top["id"] in out["reasons"][0]["suspects"]
     ws2, _, _ = _voted_workspace(tmp_path / "b", contested=False)
     assert main(["select", str(ws2), "--next", "2", "--json"]) == 2
     cap = capsys.readouterr()

@@ -19,8 +19,9 @@ proposal is greedy: the frame of largest gain that has no mask yet, after which 
 the points it sees are multiplied by ``resolved`` (the new view settles them partly), and so
 on ``k`` times. Gains only shrink, so a lazy max-heap re-evaluates only the top candidate.
 No frame is proposed twice and no annotated frame is proposed. Each proposal says why: the
-contested / uncertain points it sees, their current classes, the suspects (clusters of
-flagged points) it sees.
+contested / uncertain points it sees, their current classes, the reviewer's suspects
+(:func:`occufly.lifting.suspects.find_suspects`) it sees; and each suspect lists the proposed
+frames that see it (a suspect no annotated frame settles points to the frames that would).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import numpy as np
 from occufly.errors import WorkspaceError
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import load_labels
-from occufly.lifting.suspects import SuspectParams, flag_points
+from occufly.lifting.suspects import SuspectParams, find_suspects, flag_points
 from occufly.lifting.votes import LiftState
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
@@ -65,13 +66,15 @@ class NextFrames:
     candidates: int
     message: str = ""
     frame_names: list[str] = field(default_factory=list)
+    suspects: list[dict] = field(default_factory=list)  # id, kind, points, proposed_frames
 
     def to_dict(self) -> dict:
         return {"mode": "next", "frames": list(self.frames), "frame_names": list(self.frame_names),
                 "proposed": len(self.frames), "reasons": self.reasons,
                 "contested_points": self.contested, "uncertain_points": self.uncertain,
                 "needy_points": self.needy, "annotated_frames": self.annotated,
-                "candidates": self.candidates, "message": self.message}
+                "candidates": self.candidates, "message": self.message,
+                "suspects": self.suspects}
 
 
 def point_need(votes: np.ndarray, labels: np.ndarray, confidence: np.ndarray | None,
@@ -157,7 +160,9 @@ def propose_next(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     heap = [(-float(g), int(f)) for g, f in zip(gains, cand, strict=True) if g > 0]
     heapq.heapify(heap)
     names = {c.id: c.name for c in scene.taxonomy.classes}
-    sus = [(i, np.asarray(s["point_ids"], np.int64)) for i, s in enumerate(suspects or [])]
+    sus = [(int(s.get("id", i + 1)), np.asarray(s["point_ids"], np.int64))
+           for i, s in enumerate(suspects or [])]
+    seen_by: dict[int, list[int]] = {}
     frames: list[int] = []
     reasons: list[dict] = []
     while heap and len(frames) < k:
@@ -174,6 +179,8 @@ def propose_next(scene: Scene, votes: np.ndarray, labels: np.ndarray,
         ids, cnt = np.unique(lab, return_counts=True)
         order = np.argsort(-cnt, kind="stable")[:5]
         seen_sus = [i for i, sp in sus if len(sp) and np.isin(sp, pids, assume_unique=True).any()]
+        for i in seen_sus:
+            seen_by.setdefault(i, []).append(f)
         reasons.append({
             "frame": f, "frame_name": scene.frames[f].name, "gain": round(g, 2),
             "contested_points": int(flagged[mine].sum()),
@@ -185,7 +192,12 @@ def propose_next(scene: Scene, votes: np.ndarray, labels: np.ndarray,
         frames.append(f)
         need[pids] *= np.float32(p.resolved)
     msg = "" if frames else "no frame without a mask sees the contested or uncertain points"
-    return NextFrames(frames, reasons, message=msg,
+    # the reviewer's suspects, each with the proposed frames that would settle it
+    sus_rows = [{"id": int(s.get("id", i + 1)), "kind": s.get("kind"),
+                 "points": int(s.get("points", len(s["point_ids"]))),
+                 "proposed_frames": seen_by.get(int(s.get("id", i + 1)), [])}
+                for i, s in enumerate(suspects or [])]
+    return NextFrames(frames, reasons, message=msg, suspects=sus_rows,
                       frame_names=[scene.frames[f].name for f in frames], **base)
 
 
@@ -208,8 +220,11 @@ def propose_for_workspace(ws, k: int, *, scene: Scene | None = None,  # noqa: AN
     st = LiftState.open(ws, scene, read_only=True)
     try:
         report(0.3, "weighing the frames")
+        report(0.2, "finding the suspects")
+        suspects = find_suspects(scene, st.votes, lifted.labels)
         res = propose_next(scene, st.votes, lifted.labels, lifted.confidence, k,
-                           annotated=set(st.included_versions()), params=params)
+                           annotated=set(st.included_versions()), params=params,
+                           suspects=suspects)
     finally:
         st.close()
     report(1.0, f"{len(res.frames)} frames proposed")

@@ -1,0 +1,50 @@
+"""Issue 37, the admin's selection panel: 'Propose more frames to paint' runs the
+next_frames job once per click and lists the frames with why."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.e2e.conftest import grey_png, import_own_scene, shot
+
+pytestmark = pytest.mark.e2e
+
+
+@pytest.fixture(scope="module")
+def sid(live):
+    return import_own_scene(live, "next_frames_panel")
+
+
+def test_admin_proposes_frames_with_why(live, sid, new_page):
+    ann, admin = live.client("annotator"), live.client("admin")
+    # two frames, one painted grass and one road: what both see is contested
+    for cls in (6, 1):
+        f = ann.post(f"/api/scenes/{sid}/next").json()
+        ids = np.full((f["height"], f["width"]), cls, np.uint8)
+        r = ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+                    headers={"If-Match": "none"})
+        assert r.status_code == 200, r.text
+
+    def filled():
+        st = admin.get(f"/api/scenes/{sid}/labels/status").json()
+        return len(st.get("filled_versions") or {}) == 2 and not st["pending_fill"]
+
+    live.wait_until(filled, timeout=120, what="both masks lifted and filled")
+    page = new_page("admin", viewport=(1366, 900))
+    page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.reload()
+    page.fill("#next-k", "3")
+    page.dblclick("#next-run")  # a hurried double click starts one job
+    page.locator("#next-summary").wait_for(timeout=60_000)
+    jobs = [j for j in admin.get(f"/api/jobs?scene_id={sid}").json() if j["kind"] == "next_frames"]
+    assert len(jobs) == 1, jobs
+    res = jobs[0]["result"]
+    assert res["frames"] and res["contested_points"] > 0
+    rows = page.locator("#next-frames tbody tr")
+    assert rows.count() == len(res["frames"])
+    assert rows.first.locator("td[data-col='frame_name']").inner_text() == res["reasons"][0]["frame_name"]
+    assert int(rows.first.locator("td[data-col='contested_points']").inner_text()) == \
+        res["reasons"][0]["contested_points"]
+    page.locator("#sec-selection").scroll_into_view_if_needed()
+    shot(page, "admin_next_frames")

@@ -628,8 +628,11 @@ def undo_decision(*, session: Session, ctx: AppContext, frame: Frame, user: User
         raise Conflict(f"frame {frame.id} changed meanwhile (now {frame.state}, version "
                        f"{frame.current_version_id}); nothing undone",
                        current_version=frame.current_version_id, state=frame.state)
+    # back to its state before the decision: an imported mask is "imported" again
+    source = session.scalar(select(MaskVersion.source).where(MaskVersion.id == version)) or ""
     session.execute(update(MaskVersion).where(MaskVersion.id == version).values(
-        kind="submitted", decided_by_id=None, decided_at=None)
+        kind="imported" if source.startswith("imported") else "submitted",
+        decided_by_id=None, decided_at=None)
         .execution_options(synchronize_session=False))
     annotations.set_voting(session=session, ctx=ctx, frame=frame, version_id=version)
     if decision == "reject":

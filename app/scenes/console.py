@@ -22,7 +22,7 @@ from datetime import timedelta
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
-from sqlalchemy import func, select
+from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
 
 from app.annotations.models import MaskVersion
@@ -192,7 +192,11 @@ def overview(session: SessionDep, ctx: CtxDep, _admin: AdminUser) -> dict:
                    func.count(func.distinct(MaskVersion.frame_id)))
             .join(Frame, Frame.id == MaskVersion.frame_id)
             .where(Frame.scene_id.in_(sids), MaskVersion.author_id.is_not(None),
-                   MaskVersion.kind.in_(("submitted", "accepted", "rejected")))
+                   MaskVersion.kind.in_(("submitted", "accepted", "rejected")),
+                   # an imported mask (accepted or not) is no one's annotation work here: the
+                   # admin who uploaded it is not an annotator (issue 40, defect 5)
+                   or_(MaskVersion.source.is_(None),
+                       MaskVersion.source.not_like("imported%")))
             .group_by(Frame.scene_id, MaskVersion.author_id)):
         r = urow(sid, uid)
         r["submissions"], r["frames_submitted"] = int(n), int(nf)

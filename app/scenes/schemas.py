@@ -114,6 +114,10 @@ class FrameOut(BaseModel):
     independent_coverage: float | None = None
     painted_share: float | None = None
     review_score: float | None = None  # the review list's ranking score (higher = look first)
+    # the current mask version's source (None: painted here; "imported from COCO by ...") and
+    # the user who stored it (for an import: the admin who uploaded it)
+    current_source: str | None = None
+    current_author: str | None = None
 
 
 class FrameDetail(FrameOut):

@@ -16,6 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, aliased
 
 from app import pipeline
+from app.annotations.models import MaskVersion
 from app.config import Settings
 from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.scenes.models import Frame, Scene, SceneMember
@@ -202,9 +203,14 @@ def list_frames(*, session: Session, scene_id: int, sort: str = "index",
                 frame_ids: list[int] | None = None) -> list[dict]:
     assignee = aliased(User)
     last = aliased(User)
-    q = (select(Frame, assignee.username, last.username)
+    author = aliased(User)
+    # the current version's source and who stored it: an imported mask names its tool and
+    # author and the admin who uploaded it (issue 40, defect 5)
+    q = (select(Frame, assignee.username, last.username, MaskVersion.source, author.username)
          .outerjoin(assignee, assignee.id == Frame.assignee_id)
          .outerjoin(last, last.id == Frame.last_annotator_id)
+         .outerjoin(MaskVersion, MaskVersion.id == Frame.current_version_id)
+         .outerjoin(author, author.id == MaskVersion.author_id)
          .where(Frame.scene_id == scene_id))
     if state:
         q = q.where(Frame.state.in_(state.split(",")))
@@ -224,10 +230,12 @@ def list_frames(*, session: Session, scene_id: int, sort: str = "index",
                        Frame.index)
     else:
         q = q.order_by(Frame.index)
-    return [frame_dict(f, a, la) for f, a, la in session.execute(q)]
+    return [frame_dict(f, a, la, source=src, author=au)
+            for f, a, la, src, au in session.execute(q)]
 
 
-def frame_dict(f: Frame, assignee: str | None, last_annotator: str | None = None) -> dict:
+def frame_dict(f: Frame, assignee: str | None, last_annotator: str | None = None, *,
+               source: str | None = None, author: str | None = None) -> dict:
     return dict(id=f.id, scene_id=f.scene_id, index=f.index, name=f.name, width=f.width,
                 height=f.height, altitude=f.altitude, nominal_altitude=f.nominal_altitude,
                 selected=f.selected, state=f.state, assignee=assignee,
@@ -235,7 +243,7 @@ def frame_dict(f: Frame, assignee: str | None, last_annotator: str | None = None
                 agreement=f.agreement, last_annotator=last_annotator,
                 handout_rank=f.handout_rank, self_agreement=f.self_agreement,
                 independent_coverage=f.independent_coverage, painted_share=f.painted_share,
-                review_score=f.review_score)
+                review_score=f.review_score, current_source=source, current_author=author)
 
 
 def frame_out(*, session: Session, frame: Frame) -> dict:

@@ -13,6 +13,8 @@ import numpy as np
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
 from app.viewer.state import ClientState, user_key
+import json
+from occufly.fsutil import atomic_write_text
 
 log = logging.getLogger("app.viewer.server")
 
@@ -212,9 +214,7 @@ class PanelsMixin:
         with self._lock:
             self.prefs.setdefault(k, {}).update(values)
             if self.prefs_path is not None:
-                import json
 
-                from occufly.fsutil import atomic_write_text
 
                 try:
                     self.prefs_path.parent.mkdir(parents=True, exist_ok=True)

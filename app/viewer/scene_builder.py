@@ -36,6 +36,8 @@ from occufly.errors import WorkspaceError
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 from occufly.workspace import Workspace
+from occufly.lifting.corrections import apply_overrides
+from occufly.lifting.result import LiftResult
 
 log = logging.getLogger(__name__)
 
@@ -118,8 +120,6 @@ class ViewerData:
         origin = opt(w.label_origin_path)
         if labels is not None and conf is not None and origin is not None:
             # what every reader sees: the fill output with reviewers' corrections on top
-            from occufly.lifting.corrections import apply_overrides
-            from occufly.lifting.result import LiftResult
 
             res = apply_overrides(LiftResult(labels, conf, origin), w)
             labels, conf, origin = res.labels, res.confidence, res.origin

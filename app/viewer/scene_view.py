@@ -16,6 +16,7 @@ from app.viewer import scene_builder as sb
 from app.viewer.markdown_escape import md_text
 from app.viewer.state import ClientState
 from occufly.sampling import FrameGridSpec, sample_frame
+from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
 
 log = logging.getLogger("app.viewer.server")
 
@@ -158,7 +159,6 @@ class SceneViewMixin:
             surface_only = bool(st.gui["grid_surface"].value)
             nodes: list[sb.VoxelNode] = []
             if st.gui["grid_scene"].value and d.grid is not None:
-                from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
 
                 nodes += scene_grid_nodes_lod(d.grid, d.scene.origin, d.taxonomy)
             frame = st.gui["grid_frame"].value

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 
 from occufly.fsutil import atomic_write_bytes
+from app.viewer import corrections_panel
+import io
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +68,6 @@ def snapshot(st: Any) -> dict:  # noqa: ANN401
 
 def restore(svc: Any, st: Any, snap: dict) -> None:  # noqa: ANN401
     """Put ``snap`` back on client ``st`` (its scene already open)."""
-    from app.viewer import corrections_panel
 
     g = st.gui
     d = st.data
@@ -187,7 +188,6 @@ class SessionStore:
 
 
 def _npy_bytes(arr: np.ndarray) -> bytes:
-    import io
 
     b = io.BytesIO()
     np.save(b, arr, allow_pickle=False)

@@ -268,3 +268,50 @@ def test_take_on_a_submitted_frame_reopens_it_and_takes_the_proposal(live, new_p
     page.wait_for_selector("#proposal-take", state="detached")
     assert page.locator("#readonly-banner").count() == 0
     page.click("#skip")
+
+
+def test_an_imported_mask_says_where_it_came_from_and_the_uploader_is_no_annotator(
+        live, new_page, tmp_path):
+    """Defect 5: imported masks looked like ordinary submissions (annotator "–"); the frame
+    page never said "imported from CVAT by Contractor team B"; the admin who uploaded them
+    counted as an annotator in the overview once they were accepted."""
+    from tests.mask_archives import datumaro_cvat_archive
+
+    sid = import_own_scene(live, "imported_scene")
+    adm, rev = live.client("admin"), live.client("reviewer")
+    frames = [f for f in adm.get(f"/api/scenes/{sid}/frames").json() if f["selected"]][:2]
+    archive = datumaro_cvat_archive(tmp_path / "task.zip", ["Road", "car"],
+                                    [f["name"] for f in frames],
+                                    (frames[0]["height"], frames[0]["width"]))
+    r = adm.post(f"/api/scenes/{sid}/masks/import",
+                 files={"archive": ("task.zip", archive.read_bytes(), "application/zip"),
+                        "mapping": ("m.json", b'{"car": "vehicle"}', "application/json")},
+                 data={"format": "cvat", "author": "Contractor team B"})
+    assert r.status_code == 200, r.text
+    src = "imported from CVAT by Contractor team B"
+    f0 = rev.get(f"/api/frames/{frames[0]['id']}").json()
+    assert f0["current_source"] == src and f0["current_author"] == "admin"
+    page = new_page("reviewer", viewport=(1440, 900))
+    page.goto(f"{live.base_url}/#/review?scene={sid}")
+    cell = page.locator(f"#frame-list tr[data-frame='{frames[0]['id']}'] .annotator-name")
+    cell.wait_for()
+    assert cell.inner_text() == "imported (CVAT)"
+    assert cell.get_attribute("title") == f"{src}, uploaded by admin"
+    _open(page, frames[0]["id"])
+    assert page.locator("#version-source").inner_text() == f"{src}, uploaded by admin"
+    shot(page, "40_06_imported_mask_source")
+    # accepted, the import is still nobody's annotation work: the admin is no annotator
+    v = f0["current_version"]
+    assert rev.post(f"/api/frames/{frames[0]['id']}/review",
+                    json={"decision": "accept", "version": v}).status_code == 200
+    o = adm.get("/api/overview").json()
+    row = next(s for s in o["scenes"] if s["scene_id"] == sid)
+    assert "admin" not in [p["username"] for p in row["annotators"]], row["annotators"]
+    # the annotator page's version list names the source and the uploader
+    ann_page = new_page("admin")
+    ann_page.goto(f"{live.base_url}/#/annotate?scene={sid}&frame={frames[1]['id']}")
+    wait_opened(ann_page, frames[1]["id"])
+    ann_page.click("details.versions summary")
+    li = ann_page.locator(".version-list li").first
+    li.wait_for()
+    assert f"{src}, uploaded by admin" in li.inner_text()

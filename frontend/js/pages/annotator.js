@@ -531,7 +531,10 @@ class AnnotatorPage {
                 el(
                   "li",
                   { "data-version": v.version, "data-number": v.number ?? "" },
-                  `v${v.number ?? v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
+                  // an imported version: its source and the admin who uploaded it (issue 40)
+                  typeof v.source === "string" && v.source.startsWith("imported")
+                    ? `v${v.number ?? v.version} ${v.kind}, ${v.source}, uploaded by ${v.author ?? "?"} ${fmtDate(v.created_at)} `
+                    : `v${v.number ?? v.version} ${v.kind} by ${v.author ?? "?"} ${fmtDate(v.created_at)} `,
                   el("button", { type: "button", class: "link", onclick: () => this.restore(v.version) }, "restore"),
                   el("a", { href: `/api/frames/${this.frame.id}/mask/versions/${v.version}`, download: `${this.frame.name}_v${v.version}.png` }, "download"),
                 ),

@@ -25,6 +25,21 @@ export async function mount(root, ctx) {
   return p;
 }
 
+/** An imported mask version (its source "imported from COCO by <author>"): who made it, and
+ * the admin who uploaded it, said wherever the version is shown (issue 40, defect 5). */
+function isImported(source) {
+  return typeof source === "string" && source.startsWith("imported");
+}
+
+function importTool(source) {
+  const m = /^imported from (\S+)/.exec(source || "");
+  return m ? m[1] : "an archive";
+}
+
+function importedText(source, uploader) {
+  return `${source}${uploader ? `, uploaded by ${uploader}` : ""}`;
+}
+
 function idsToCanvas(ids, w, h, lut) {
   const c = document.createElement("canvas");
   c.width = w;
@@ -332,7 +347,9 @@ class ReviewerPage {
           [
             { key: "name", label: "Frame", fmt: (v, r) => el("a", { href: `#/review?scene=${sid}&frame=${r.id}`, onclick: (e) => { e.preventDefault(); this.openFrame(r.id); } }, v) },
             // the assignee is cleared on submit: who painted it is last_annotator
-            { key: "assignee", label: "Annotator", fmt: (v, r) => el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–") },
+            { key: "assignee", label: "Annotator", fmt: (v, r) => (isImported(r.current_source) && !v
+              ? el("span", { class: "annotator-name imported", title: importedText(r.current_source, r.current_author) }, `imported (${importTool(r.current_source)})`)
+              : el("span", { class: "annotator-name", title: v ? `leased to ${v}` : r.last_annotator ? `painted by ${r.last_annotator}` : "nobody yet" }, (v && typeof v === "object" ? v.username : v) || r.last_annotator || "–")) },
             // the ranking score the list is sorted by (issue 23), then the leave-one-out
             // agreement; frames without enough independent views say so instead of it
             { key: "review_score", label: "Score", fmt: (v) => el("span", { class: "review-score", title: "ranking score: the share of what other frames confidently see in this frame that the mask does not reproduce (wrong class or left unpainted), plus the shift test's gain; highest first" }, v == null ? "–" : Number(v).toFixed(2)) },
@@ -454,6 +471,7 @@ class ReviewerPage {
         { class: "review-head" },
         el("h2", {}, f.name),
         el("span", { class: `badge state-${f.state}` }, f.state),
+        isImported(f.current_source) ? el("span", { class: "badge imported", id: "version-source" }, importedText(f.current_source, f.current_author)) : null,
         el("span", { class: "agreement", id: "agreement", "data-value": a.agreement ?? "" }, `Agreement ${agreeText}`),
         a.pixels != null && !lonely ? el("span", {}, `over ${Number(a.pixels).toLocaleString()} independent pixels`) : null,
         a.independent_coverage != null ? el("span", { id: "independent-coverage", "data-value": a.independent_coverage }, `independent coverage ${pct(a.independent_coverage)}${lonely ? ` (needs ${pct(a.min_independent_coverage)})` : ""}`) : null,

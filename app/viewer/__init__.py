@@ -72,7 +72,7 @@ log = logging.getLogger(__name__)
 
 def _default_review_hook() -> Callable[..., Any] | None:
     try:
-        from app.review import service as review_service  # the backend's
+        from app.review import service as review_service  # the app's, when mounted inside it
     except ImportError:
         return None
     return getattr(review_service, "create_item_from_3d", None)

@@ -99,7 +99,7 @@ def b88decode(text: str) -> bytes:
 
 
 def viser_index() -> Path:
-    import viser
+    import viser  # the viewer's one dependency, imported where it is used (the app runs without it)
 
     return Path(viser.__file__).parent / "client" / "build" / "index.html"
 

@@ -3,6 +3,7 @@ the per-user preferences behind them (a mixin of :class:`app.viewer.server.Viewe
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,7 +14,6 @@ import numpy as np
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
 from app.viewer.state import ClientState, user_key
-import json
 from occufly.fsutil import atomic_write_text
 
 log = logging.getLogger("app.viewer.server")

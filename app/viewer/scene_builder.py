@@ -33,11 +33,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from occufly.errors import WorkspaceError
+from occufly.lifting.corrections import apply_overrides
+from occufly.lifting.result import LiftResult
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 from occufly.workspace import Workspace
-from occufly.lifting.corrections import apply_overrides
-from occufly.lifting.result import LiftResult
 
 log = logging.getLogger(__name__)
 

@@ -13,10 +13,10 @@ from PIL import Image
 
 from app.viewer import corrections_panel
 from app.viewer import scene_builder as sb
+from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
 from app.viewer.markdown_escape import md_text
 from app.viewer.state import ClientState
 from occufly.sampling import FrameGridSpec, sample_frame
-from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
 
 log = logging.getLogger("app.viewer.server")
 

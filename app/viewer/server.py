@@ -136,7 +136,7 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
         with self._start_lock:
             if self.server is not None:
                 return
-            import viser
+            import viser  # the viewer's one dependency, imported where it is used (the app runs without it)
 
             server = viser.ViserServer(host=self.host, port=0, verbose=False)
             server.gui.configure_theme(control_layout="floating", show_share_button=False,

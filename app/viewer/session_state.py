@@ -22,6 +22,7 @@ A reload of the page (or a new "3D" link) has a new view id and opens fresh, at 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
 import threading
@@ -31,9 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from occufly.fsutil import atomic_write_bytes
 from app.viewer import corrections_panel
-import io
+from occufly.fsutil import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 

@@ -3,6 +3,7 @@ the per-user preferences behind them (a mixin of :class:`app.viewer.server.Viewe
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 from collections.abc import Mapping
@@ -184,8 +185,6 @@ class PanelsMixin:
         result = None
         if self.on_review_item is not None:
             try:
-                import inspect
-
                 kw = ({"frame_index": st.frame_index} if "frame_index" in
                       inspect.signature(self.on_review_item).parameters else {})
                 result = self.on_review_item(st.scene_id, ids, comment, st.user, **kw)

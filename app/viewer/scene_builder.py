@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from occufly.errors import WorkspaceError
+from occufly.lifting import LiftState
 from occufly.lifting.corrections import apply_overrides
 from occufly.lifting.result import LiftResult
 from occufly.scene import Scene
@@ -137,10 +138,6 @@ def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
     """
     votes_path = Workspace(ws).votes
     if not votes_path.is_file():
-        return None
-    try:
-        from occufly.lifting import LiftState  # the lifting engineer's vote semantics
-    except ImportError:
         return None
     try:
         votes = np.load(votes_path, mmap_mode="r", allow_pickle=False)

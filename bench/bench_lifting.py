@@ -324,7 +324,7 @@ def curve(args: argparse.Namespace) -> dict:
     prop = propose_next(scene, st.votes, base.labels, base.confidence, n_add,
                         annotated=set(sel.frames))
     out["propose_seconds"] = round(time.perf_counter() - t, 2)
-    out["proposal"] = {k: v for k, v in prop.to_dict().items() if k != "reasons"}
+    out["proposal_summary"] = {k: v for k, v in prop.to_dict().items() if k not in ("reasons", "suspects")}
     out["proposal_reasons"] = prop.reasons[:5]
     st.close()
     rest = np.setdiff1d(candidate_frames(scene, None), sel.frames)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import threading
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -20,7 +21,7 @@ from sqlalchemy.orm import Session, aliased
 from app.annotations import service
 from app.annotations.models import MaskVersion
 from app.context import AppContext
-from app.errors import Conflict, Invalid, NotFound
+from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, TooManyAttempts
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly.errors import check_name
@@ -28,6 +29,11 @@ from occufly.io import mask_interchange
 from occufly.io.masks import decode_mask_png, encode_mask_png
 
 SOURCE_MAX = 64  # MaskVersion.source
+#: mask imports read at once by this API process (each may unpack up to
+#: mask_interchange.INFLATE_FACTOR times its upload and parse 16 MB annotation files); one
+#: more is a 429 (issue 36)
+MAX_CONCURRENT_IMPORTS = 2
+_importing = threading.BoundedSemaphore(MAX_CONCURRENT_IMPORTS)
 
 
 class ImportedFrame(BaseModel):
@@ -86,11 +92,18 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
     tool = mask_interchange.TOOL_NAMES[fmt]
     source = source_label(tool, author)  # checked before the archive is read
     ws_scene = ctx.load_scene(scene.workspace)
+    if not _importing.acquire(blocking=False):
+        raise TooManyAttempts(f"{MAX_CONCURRENT_IMPORTS} mask imports are being read on this "
+                              f"server; try again when one has finished", retry_after=5)
     try:
         res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
                                           class_map=class_map)
     except mask_interchange.MaskImportError as e:  # the page lists them one per line
         raise Invalid(str(e), problems=e.problems) from None
+    except mask_interchange.InsufficientSpace as e:
+        raise InsufficientStorage(str(e)) from None
+    finally:
+        _importing.release()
     if not res.masks:
         raise Invalid(f"the {res.tool} archive paints no frame ({len(res.skipped_empty)} "
                       f"image(s) without annotations): nothing to import")

@@ -60,8 +60,6 @@ _DATUMARO = {"cvat_images": "cvat", "cvat_mask": "voc_segmentation", "coco": "co
 _DEFAULT_SPECIAL = {"background": EMPTY, "_background_": EMPTY, "unpainted": EMPTY, "ignore": INVALID,
                     "void": INVALID}
 _SPECIAL_TARGETS = {"ignore": INVALID, "unpainted": EMPTY, "background": EMPTY}
-MAX_ARCHIVE_BYTES = 8 << 30  # uncompressed; a zip claiming more is refused before extracting
-MAX_ARCHIVE_MEMBERS = 200_000
 #: Label Studio brush strokes are RGBA; a pixel belongs to the stroke from this alpha on
 BRUSH_ALPHA = 128
 LS_FROM_NAME, LS_TO_NAME = "tag", "image"  # the names in the labeling config we write
@@ -110,8 +108,77 @@ class ImportedMasks:
 
 
 # ---- archives -------------------------------------------------------------------------------
-def _extract(src: Path, dest: Path) -> Path:
-    """``src`` (a folder, a zip, or one annotation file) laid out under ``dest``; the folder."""
+MAX_ARCHIVE_BYTES = 8 << 30  # uncompressed; a zip claiming more is refused before extracting
+MAX_ARCHIVE_MEMBERS = 200_000
+#: what one zip may unpack to (what the format needs of it): this many times its own size,
+#: and never less than INFLATE_FLOOR (issue 36: a 2 MB zip wrote 2.2 GiB)
+INFLATE_FACTOR = 20
+INFLATE_FLOOR = 64 << 20
+#: an annotation file (JSON / XML / text) is parsed whole by the formats' readers (json,
+#: Datumaro's iterparse): its size and its count of values bound what parsing it allocates
+#: (issue 36: 1 MB of zipped whitespace JSON took +2 GB). 16 MB of the densest JSON (floats)
+#: parses to < 200 MB.
+MAX_TEXT_MEMBER_BYTES = 16 << 20
+MAX_TEXT_NODES = 1_000_000  # JSON strings + objects + arrays; XML tags
+MAX_JSON_VALUES = 3_000_000  # JSON values (commas): 3 M floats parse to ~100 MB
+#: the files each format reads, by suffix: nothing else of an archive is unpacked (the images
+#: a CVAT or COCO export may carry are never read)
+_NEEDS = {"cvat": (".xml", ".txt", ".png"), "cvat_images": (".xml",),
+          "cvat_mask": (".txt", ".png"), "coco": (".json",), "coco_panoptic": (".json", ".png"),
+          "labelstudio": (".json",), "png": (".png", ".txt", ".json", ".yaml", ".yml")}
+_TEXT = (".json", ".xml", ".txt", ".yaml", ".yml")
+_CHUNK = 1 << 20
+
+
+def _text_nodes(suffix: str, chunk: bytes) -> int:
+    if suffix == ".xml":
+        return chunk.count(b"<")
+    if suffix == ".json":
+        return chunk.count(b'"') // 2 + chunk.count(b"{") + chunk.count(b"[")
+    return chunk.count(b"\n")
+
+
+def _json_values(suffix: str, chunk: bytes) -> int:
+    return chunk.count(b",") if suffix == ".json" else 0
+
+
+def _member_path(src: Path, name: str) -> PurePosixPath:
+    p = PurePosixPath(name.replace("\\", "/"))
+    if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]) or "\x00" in name:
+        raise MaskError(f"{src.name}: archive member {short(name)} points outside the "
+                        f"archive; expected relative paths")
+    return p
+
+
+def _check_member(src_name: str, name: str, suffix: str, head: bytes, written: int,
+                  nodes: int, max_side: tuple[int, int] | None) -> None:
+    """Refuse a member while it is unpacked: a text file over its caps, a PNG whose header
+    is not a PNG's or is larger than every frame (checked on its first bytes)."""
+    if suffix in _TEXT and written > MAX_TEXT_MEMBER_BYTES:
+        raise MaskError(f"{src_name}: archive member {short(name)} is larger than the "
+                        f"{MAX_TEXT_MEMBER_BYTES >> 20} MB an annotation file may be")
+    if suffix in _TEXT and nodes > MAX_TEXT_NODES:
+        raise MaskError(f"{src_name}: archive member {short(name)} holds more values than an "
+                        f"annotation file may ({MAX_TEXT_NODES} strings, objects, arrays or XML "
+                        f"tags; {MAX_JSON_VALUES} JSON values)")
+    if suffix == ".png" and len(head) >= 24 and max_side is not None:
+        if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+            raise MaskError(f"{src_name}: archive member {short(name)} is not a PNG file (no PNG "
+                            f"signature and IHDR header)")
+        w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        if h > max_side[0] or w > max_side[1]:
+            raise MaskError(f"{src_name}: archive member {short(name)} declares {w}x{h} pixels, "
+                            f"larger than any frame of the scene ({max_side[1]}x{max_side[0]})")
+
+
+def _extract(src: Path, dest: Path, fmt: str = "png", *,
+             max_side: tuple[int, int] | None = None) -> Path:
+    """``src`` (a folder, a zip, or one annotation file) laid out under ``dest``; the folder.
+
+    Of a zip only the members ``fmt`` reads are unpacked (:data:`_NEEDS`), streamed and
+    counted as they are written: at most :data:`INFLATE_FACTOR` times the zip's size in all
+    (and the free space of ``dest`` is checked first), annotation files within their caps,
+    PNGs with a PNG header no larger than ``max_side`` (h, w; the largest frame)."""
     if src.is_dir():  # linked into ``dest``, so that missing folders can be added there
         for p in src.iterdir():
             (dest / p.name).symlink_to(p.resolve(), target_is_directory=p.is_dir())
@@ -119,37 +186,79 @@ def _extract(src: Path, dest: Path) -> Path:
     if not src.is_file():
         raise MaskError(f"{src}: no such archive, folder or file")
     if not zipfile.is_zipfile(src):
+        if src.suffix.lower() in _TEXT and src.stat().st_size > MAX_TEXT_MEMBER_BYTES:
+            raise MaskError(f"{src.name}: larger than the {MAX_TEXT_MEMBER_BYTES >> 20} MB an "
+                            f"annotation file may be")
         shutil.copy(src, dest / src.name)
         return dest
     try:
         zf = zipfile.ZipFile(src)
     except (zipfile.BadZipFile, OSError) as e:
-        raise MaskError(f"{src}: damaged zip archive ({e})") from None
+        raise MaskError(f"{src.name}: damaged zip archive ({e})") from None
+    needs = _NEEDS[fmt]
+    budget = max(INFLATE_FLOOR, INFLATE_FACTOR * src.stat().st_size)
     with zf:
         infos = zf.infolist()
         if len(infos) > MAX_ARCHIVE_MEMBERS:
-            raise MaskError(f"{src}: {len(infos)} files in the archive, more than the "
+            raise MaskError(f"{src.name}: {len(infos)} files in the archive, more than the "
                             f"{MAX_ARCHIVE_MEMBERS} accepted")
-        total = sum(i.file_size for i in infos)
-        if total > MAX_ARCHIVE_BYTES:
-            raise MaskError(f"{src}: the archive unpacks to {total} bytes, more than the "
-                            f"{MAX_ARCHIVE_BYTES} accepted")
+        plan = []
         for info in infos:
-            p = PurePosixPath(info.filename.replace("\\", "/"))
-            if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]):
-                raise MaskError(f"{src}: archive member {short(info.filename)} points outside the "
-                                f"archive; expected relative paths")
+            p = _member_path(src, info.filename)
             if (info.external_attr >> 16) & 0o170000 == 0o120000:
-                raise MaskError(f"{src}: archive member {short(info.filename)} is a symbolic link")
-        try:
-            zf.extractall(dest)
-        except (zipfile.BadZipFile, OSError, RuntimeError) as e:
-            raise MaskError(f"{src}: damaged zip archive ({e})") from None
+                raise MaskError(f"{src.name}: archive member {short(info.filename)} is a "
+                                f"symbolic link")
+            if info.is_dir() or p.suffix.lower() not in needs or "__MACOSX" in p.parts:
+                continue
+            plan.append((info, p))
+        total = sum(i.file_size for i, _ in plan)
+        if total > min(budget, MAX_ARCHIVE_BYTES):
+            raise MaskError(f"{src.name}: the archive's {fmt} files unpack to {total} bytes, more "
+                            f"than the {min(budget, MAX_ARCHIVE_BYTES)} accepted for a "
+                            f"{src.stat().st_size}-byte archive ({INFLATE_FACTOR} times its size, "
+                            f"at least {INFLATE_FLOOR >> 20} MB)")
+        free = shutil.disk_usage(dest).free
+        if total + (64 << 20) > free:
+            raise InsufficientSpace(f"{src.name}: unpacking it needs {total} bytes; the server's "
+                                    f"temporary folder has {free} free")
+        written = 0
+        for info, p in plan:
+            target = dest.joinpath(*p.parts)
+            suffix = p.suffix.lower()
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                n = nodes = values = 0
+                head = b""
+                with zf.open(info) as fin, open(target, "xb") as out:
+                    while chunk := fin.read(_CHUNK):
+                        n += len(chunk)
+                        written += len(chunk)
+                        if len(head) < 24:
+                            head += chunk[:24]
+                        if suffix in _TEXT:
+                            nodes += _text_nodes(suffix, chunk)
+                            values += _json_values(suffix, chunk)
+                        if n > info.file_size or written > budget:
+                            raise MaskError(f"{src.name}: archive member {short(info.filename)} "
+                                            f"unpacks to more than it declares")
+                        _check_member(src.name, info.filename, suffix, head, n,
+                                      max(nodes, values * MAX_TEXT_NODES // MAX_JSON_VALUES),
+                                      max_side)
+                        out.write(chunk)
+            except (FileExistsError, IsADirectoryError, NotADirectoryError):
+                raise MaskError(f"{src.name}: archive member {short(info.filename)} clashes with "
+                                f"another (the same name twice, or a file and a folder)") from None
+            except (zipfile.BadZipFile, OSError, RuntimeError, EOFError) as e:
+                raise MaskError(f"{src.name}: damaged zip archive ({e})") from None
     # a zip of one folder (CVAT's task_x_dataset.zip is flat; a zipped folder is not)
     entries = [p for p in dest.iterdir() if not p.name.startswith((".", "__MACOSX"))]
     if len(entries) == 1 and entries[0].is_dir() and entries[0].name not in _LAYOUT_DIRS:
         return entries[0]
     return dest
+
+
+class InsufficientSpace(MaskError):
+    """Not enough free space to unpack an archive (HTTP 507)."""
 
 
 #: folder names of the formats' own layouts (a zip holding only one of them is not a zipped
@@ -321,6 +430,12 @@ def _read_cvat_images(root: Path) -> list[_Item]:
     from datumaro.plugins.data_formats.cvat.base import CvatBase, CvatImporter
 
     class _AnnotationsOnly(CvatBase):
+        @classmethod
+        def _parse_shape_ann(cls, ann, categories, image):  # noqa: ANN001, ANN206 - Datumaro's
+            if ann.get("type") == "mask":  # its sizes checked before anything is allocated
+                _check_cvat_mask(ann, image)
+            return super()._parse_shape_ann(ann, categories, image)
+
         def _load_items(self, parsed):  # noqa: ANN001, ANN202 - Datumaro's hook
             out = {}
             for frame_id, desc in parsed.items():
@@ -346,11 +461,49 @@ def _read_cvat_images(root: Path) -> list[_Item]:
     for src in sources:
         try:
             base = _AnnotationsOnly(src["url"], **(src.get("options") or {}))
+        except MaskError:
+            raise
         except Exception as e:  # noqa: BLE001
             raise MaskError(f"{src['url']}: not a CVAT for images 1.1 XML ({e})") from None
         got, _ = _datumaro_items(Dataset.from_extractors(base))
         items += got
     return items
+
+
+def _check_cvat_mask(ann: dict, image: dict | None) -> None:
+    """A CVAT ``<mask rle left top width height>`` must lie inside its ``<image width
+    height>`` (which is checked against the frame before painting) and hold at most one run
+    per pixel: Datumaro allocates both the mask and the image canvas from these numbers."""
+    where = f"image {short((image or {}).get('name'))}: a {short(ann.get('label'))} <mask>"
+    try:
+        left, top, w, h = (int(ann.get(k)) for k in ("left", "top", "width", "height"))
+        img_w, img_h = int((image or {}).get("width")), int((image or {}).get("height"))
+    except (TypeError, ValueError):
+        raise MaskError(f"{where} (or its <image>) without integer left/top/width/height; "
+                        f"expected a mask inside a sized <image>") from None
+    if img_w <= 0 or img_h <= 0 or img_w * img_h > MAX_MASK_PIXELS:
+        raise MaskError(f"{where}: its image declares {img_w}x{img_h} pixels; expected at most "
+                        f"{MAX_MASK_PIXELS}")
+    if w <= 0 or h <= 0 or left < 0 or top < 0 or left + w > img_w or top + h > img_h:
+        raise MaskError(f"{where} declares {w}x{h} pixels at ({left}, {top}), outside its "
+                        f"{img_w}x{img_h} image")
+    if str(ann.get("rle") or "").count(",") + 1 > w * h:
+        raise MaskError(f"{where} holds more runs than its {w}x{h} pixels")
+
+
+def _datumaro_image_backend() -> None:
+    """Datumaro picks its image codec (cv2 or PIL) in a ContextVar set once, when it is first
+    imported, in that thread's context: a server's other worker threads (a request runs in a
+    copy of the event loop's context) found it unset and every image read failed with
+    ``LookupError: <ContextVar name='IMAGE_BACKEND'>`` (Segmentation mask imports, on a real
+    server). Set here, in the caller's context, when missing."""
+    from datumaro.util import image as dm_image  # heavy optional dependency
+
+    try:
+        dm_image.IMAGE_BACKEND.get()
+    except LookupError:
+        dm_image.IMAGE_BACKEND.set(dm_image.ImageBackend.cv2 if hasattr(dm_image, "cv2")
+                                   else dm_image.ImageBackend.PIL)
 
 
 def _read_datumaro(root: Path, fmt: str) -> list[_Item]:
@@ -568,6 +721,24 @@ def _detect_cvat(root: Path) -> str:
                     f"Segmentation mask 1.1 export (labelmap.txt, SegmentationClass/)")
 
 
+#: per image: at most this many shapes, of which at most MAX_MASKS_PER_ITEM full-image masks,
+#: and polygons whose bounding boxes cover at most POLYGON_AREA_FACTOR images (issue 36: 20,000
+#: small polygons in a 39 KB zip cost 14.6 s of CPU)
+MAX_SHAPES_PER_ITEM = 10_000
+MAX_MASKS_PER_ITEM = 1_000
+POLYGON_AREA_FACTOR = 64
+
+
+def _polygon_box(points: list[float], h: int, w: int) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the polygon's bounding box (one pixel of margin) clipped to the image."""
+    xy = np.asarray(points, float).reshape(-1, 2)
+    if not np.isfinite(xy).all():
+        return 0, 0, 0, 0
+    x0, y0 = np.floor(xy.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(xy.max(axis=0)).astype(int) + 2
+    return max(0, y0), min(h, y1), max(0, x0), min(w, x1)
+
+
 def _polygon_mask(points: list[float], h: int, w: int) -> np.ndarray:
     from pycocotools import mask as mask_utils  # heavy optional dependency
 
@@ -575,6 +746,28 @@ def _polygon_mask(points: list[float], h: int, w: int) -> np.ndarray:
         return np.zeros((h, w), bool)
     rle = mask_utils.frPyObjects([list(points)], h, w)
     return mask_utils.decode(mask_utils.merge(rle)).astype(bool)
+
+
+def _check_shape_budget(it: _Item, frame: Frame) -> str | None:
+    """A problem when ``it`` paints more than a frame's worth of shapes (before any is
+    rasterised or decoded), else None."""
+    if len(it.shapes) > MAX_SHAPES_PER_ITEM:
+        return (f"{short(it.name)}: {len(it.shapes)} shapes, more than the "
+                f"{MAX_SHAPES_PER_ITEM} accepted per image")
+    n_masks = sum(1 for s in it.shapes if s.polygon is None)
+    if n_masks > MAX_MASKS_PER_ITEM:
+        return (f"{short(it.name)}: {n_masks} masks, more than the {MAX_MASKS_PER_ITEM} "
+                f"accepted per image")
+    h, w = it.size or (frame.camera.height, frame.camera.width)
+    area = 0
+    for s in it.shapes:
+        if s.polygon is not None and len(s.polygon) >= 6:
+            y0, y1, x0, x1 = _polygon_box(s.polygon, h, w)
+            area += max(0, y1 - y0) * max(0, x1 - x0)
+    if area > POLYGON_AREA_FACTOR * h * w:
+        return (f"{short(it.name)}: its polygons' bounding boxes cover {area / (h * w):.0f} "
+                f"images' worth of pixels, more than the {POLYGON_AREA_FACTOR} accepted")
+    return None
 
 
 def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy: Taxonomy, *,
@@ -586,10 +779,14 @@ def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy:
         raise MaskError(f"format {fmt!r} is not supported; expected one of {', '.join(FORMATS)}")
     archive = Path(archive)
     with tempfile.TemporaryDirectory(prefix="occufly-masks-") as tmp:
-        root = _extract(archive, Path(tmp))
+        max_side = (max((f.camera.height for f in frames), default=0),
+                    max((f.camera.width for f in frames), default=0))
+        root = _extract(archive, Path(tmp), fmt, max_side=max_side)
         try:
             if fmt == "cvat":
                 fmt = _detect_cvat(root)
+            if fmt in _DATUMARO:
+                _datumaro_image_backend()
             if fmt == "cvat_images":
                 items = _read_cvat_images(root)
             elif fmt in _DATUMARO:
@@ -598,7 +795,7 @@ def read_masks(archive: str | Path, fmt: str, frames: Sequence[Frame], taxonomy:
                 items = _read_labelstudio(root)
             else:
                 items = _read_png(root, taxonomy)
-            return _resolve(items, fmt, frames, taxonomy, class_map, str(archive))
+            return _resolve(items, fmt, frames, taxonomy, class_map, archive.name)
         except MaskError as e:  # name the archive, not the temporary folder it was unpacked in
             if isinstance(e, MaskImportError) or str(root) not in str(e):
                 raise
@@ -635,6 +832,8 @@ def _resolve(items: list[_Item], fmt: str, frames: Sequence[Frame], taxonomy: Ta
         fi = match_frame(it.name, look)
         if fi is None or not (it.shapes or it.raw):
             continue
+        if (budget := _check_shape_budget(it, frames[fi])) is not None:
+            problems.append(budget)
         if fi in seen:
             problems.append(f"frame {frames[fi].name!r} has masks in two items, {short(seen[fi])} "
                             f"and {short(it.name)}")
@@ -675,8 +874,16 @@ def _paint(it: _Item, frame: Frame, ids: dict[str, int]) -> np.ndarray:
     mask_scale((h, w), frame, name=it.name)  # the frame's size (or a downscale) before decoding
     out = np.zeros((h, w), np.uint8)
     for s in sorted(it.shapes, key=lambda s: s.z):  # stable: file order within a z level
-        if s.polygon is not None:
-            m = _polygon_mask(s.polygon, h, w)
+        if s.polygon is not None:  # rasterised within its bounding box
+            if len(s.polygon) < 6:
+                continue
+            y0, y1, x0, x1 = _polygon_box(s.polygon, h, w)
+            if y1 <= y0 or x1 <= x0:
+                continue
+            xy = np.asarray(s.polygon, float).reshape(-1, 2) - (x0, y0)
+            out[y0:y1, x0:x1][_polygon_mask(xy.ravel().tolist(), y1 - y0, x1 - x0)] = \
+                ids[s.label]
+            continue
         else:
             if s.size is not None and tuple(s.size) != (h, w):  # before decoding (issue 36)
                 raise MaskError(f"{short(it.name)}: a {short(s.label)} mask declares "
@@ -730,6 +937,7 @@ def write_masks(out: str | Path, fmt: str, masks: dict[int, np.ndarray],
         stage = Path(tmp) / "out"
         stage.mkdir()
         if fmt in _DATUMARO:
+            _datumaro_image_backend()
             _write_datumaro(stage, fmt, full, frames, rows)
         elif fmt == "labelstudio":
             _write_labelstudio(stage, full, frames, rows, prediction)

@@ -7,7 +7,6 @@ viewer socket after logout, security headers, demo passwords.
 
 from __future__ import annotations
 
-import resource
 import struct
 import threading
 import time
@@ -134,10 +133,12 @@ def test_png_header_is_checked_before_decoding(bombs):
         masks.read_mask(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40, frame, scene.taxonomy)
 
 
-def test_concurrent_bombs_are_422_fast_and_cost_no_memory(world, bombs):
+def test_concurrent_bombs_are_refused_fast(world, bombs):
+    """What they cost the server's memory is measured on a server process of its own
+    (tests/app/test_import_memory.py::test_concurrent_mask_put_bombs): this process's
+    ru_maxrss, read here before, is the peak of the whole pytest run (issue 36)."""
     env, hdr, scene, _frames = world
     fid = _lease(env, hdr, scene)
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB
     results: list = []
 
     def upload(data: bytes) -> None:
@@ -159,8 +160,6 @@ def test_concurrent_bombs_are_422_fast_and_cost_no_memory(world, bombs):
     assert all(("but frame 'img_" in d and f"is {W}x{H}" in d) if code == 422 else
                "a mask of this frame accepts at most" in d for code, d in results), results
     assert elapsed < 5, elapsed
-    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before) / 1024
-    assert grown_mb < 150, grown_mb  # decoding one 30000x30000 bomb alone needs 900 MB
     # nothing was stored
     assert env.client.get(f"/api/frames/{fid}/mask/versions", headers=hdr["admin"]).json() == []
 

@@ -115,8 +115,9 @@ def _cpu_refusal(tmp_path, files, fmt="png", match=""):  # noqa: ANN001, ANN202
 def test_a_png_bomb_naming_no_frame_is_refused_before_decoding(tmp_path):
     from tests.app.test_hardening import bomb
 
+    # refused while unpacking (its header is larger than any frame) or by the name check
     _cpu_refusal(tmp_path, {"nosuchframe.png": bomb(16000, 12000), "classes.json": '{"1": "tree"}'},
-                 match="name no frame")
+                 match="name no frame|larger than any frame")
 
 
 def test_a_png_whose_header_is_not_the_frames_size_is_refused_before_decoding(tmp_path):
@@ -127,7 +128,7 @@ def test_a_png_whose_header_is_not_the_frames_size_is_refused_before_decoding(tm
     for cmap in ({"classes.json": '{"1": "tree"}'}, {}):
         msg = _cpu_refusal(tmp_path, {f"{stem}.png": bomb(16000, 12000), **cmap},
                            match="16000x12000")
-        assert "nothing imported" in msg or "mask is" in msg
+        assert "nothing imported" in msg or "mask is" in msg or "larger than any frame" in msg
 
 
 def test_a_png_header_of_a_decompression_bomb_is_a_422_not_a_500(tmp_path):

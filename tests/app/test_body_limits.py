@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import os
 import socket
-import subprocess
-import sys
 import threading
 import time
 
@@ -13,6 +11,7 @@ import psutil
 import pytest
 
 from tests.app.conftest import H, W, mask_png, png
+from tests.harness import ProcessServer
 
 
 def test_login_body_over_the_json_cap_is_413(env):
@@ -53,30 +52,11 @@ def test_mask_body_capped_by_the_frame_size(world):
 # ---- against a real server process (its memory is measured, not the test's) -----------------
 @pytest.fixture
 def live_server(tmp_path):
-    with socket.socket() as sk:
-        sk.bind(("127.0.0.1", 0))
-        port = sk.getsockname()[1]
     env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp_path / "data"), "OCCUFLY_ENV": "development",
            "OCCUFLY_LIFTING": "off", "OCCUFLY_JOB_PROCESSES": "0",
            "OCCUFLY_ARGON2_MEMORY_KIB": "1024", "OCCUFLY_ARGON2_TIME_COST": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory", "app.main:app_from_env",
-                             "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=1) as c:
-                c.sendall(b"GET /api/health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
-                if b" 200 " in c.recv(200):
-                    break
-        except OSError:
-            time.sleep(0.3)
-    else:
-        proc.kill()
-        raise RuntimeError(proc.stderr.read().decode()[-2000:])
-    yield port, psutil.Process(proc.pid)
-    proc.terminate()
-    proc.wait(10)
+    with ProcessServer(env, tmp_path / "server.log", start_timeout=60) as server:
+        yield server.port, psutil.Process(server.pid)
 
 
 def _send_body(port: int, size: int, *, chunked: bool, peak: dict) -> tuple[bytes, int]:

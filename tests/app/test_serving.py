@@ -18,56 +18,27 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.harness import ProcessServer, free_port
+
 REPO = Path(__file__).resolve().parents[2]
 HEADER_TIMEOUT_S = 2.0
 N_SLOW = 50
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+class ServeProcess(ProcessServer):
+    """``occufly serve`` on a free port (tests.harness.ProcessServer: up once /api/health
+    answers from this child), its output in ``tmp/serve.log``."""
 
-
-class ServeProcess:
     def __init__(self, tmp: Path, *extra: str, env: dict | None = None) -> None:
-        self.port = _free_port()
-        self.env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
-                    "OCCUFLY_ENV": "development", "OCCUFLY_LIFTING": "off",
-                    "OCCUFLY_JOB_PROCESSES": "0", "OCCUFLY_ARGON2_MEMORY_KIB": "1024",
-                    "OCCUFLY_ARGON2_TIME_COST": "1",
-                    "OCCUFLY_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S),
-                    "OCCUFLY_BODY_IDLE_TIMEOUT_S": str(HEADER_TIMEOUT_S), **(env or {})}
-        self.cmd = [str(REPO / ".venv" / "bin" / "occufly"), "serve", "--port",
-                    str(self.port), *extra]
-        self.proc: subprocess.Popen | None = None
-
-    def __enter__(self) -> ServeProcess:
-        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, cwd=REPO)
-        t_end = time.monotonic() + 90
-        while time.monotonic() < t_end:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"occufly serve exited: {self.proc.stdout.read().decode()}")
-            try:
-                if httpx.get(f"{self.url}/api/health", timeout=2).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError("occufly serve did not answer /api/health in 90 s")
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def __exit__(self, *exc) -> None:  # noqa: ANN002
-        self.proc.terminate()
-        try:
-            self.proc.wait(20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
+        env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
+               "OCCUFLY_ENV": "development", "OCCUFLY_LIFTING": "off",
+               "OCCUFLY_JOB_PROCESSES": "0", "OCCUFLY_ARGON2_MEMORY_KIB": "1024",
+               "OCCUFLY_ARGON2_TIME_COST": "1",
+               "OCCUFLY_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S),
+               "OCCUFLY_BODY_IDLE_TIMEOUT_S": str(HEADER_TIMEOUT_S), **(env or {})}
+        super().__init__(env, tmp / "serve.log",
+                         [str(REPO / ".venv" / "bin" / "occufly"), "serve", "--port", "{port}",
+                          *extra])
 
 
 def _closed_after(sockets: list[socket.socket], *, dribble: bool, limit_s: float) -> list:
@@ -211,7 +182,7 @@ def test_proxy_headers_only_from_trusted_proxies(tmp_path):
         r = httpx.post(f"{srv.url}/api/auth/login", json=body, headers=fwd)
         assert r.status_code == 200 and "secure" not in r.headers["set-cookie"].lower()
     p = subprocess.run([str(REPO / ".venv/bin/occufly"), "serve", "--proxy-headers", "--port",
-                        str(_free_port())], env={**os.environ, "OCCUFLY_ENV": "development",
+                        str(free_port())], env={**os.environ, "OCCUFLY_ENV": "development",
                                                  "OCCUFLY_DATA_DIR": str(tmp_path / "data"),
                                                  "OCCUFLY_TRUSTED_PROXIES": ""},
                        capture_output=True, text=True, timeout=60)
@@ -231,7 +202,7 @@ def test_nginx_tls_example_gives_secure_cookies(tmp_path):
                     "-subj", "/CN=127.0.0.1", "-keyout", str(tmp_path / "privkey.pem"),
                     "-out", str(tmp_path / "fullchain.pem")], check=True, capture_output=True)
     seed_dir = tmp_path / "srv"
-    p80, p443 = _free_port(), _free_port()
+    p80, p443 = free_port(), free_port()
     with ServeProcess(seed_dir, "--proxy-headers",
                       env={"OCCUFLY_TRUSTED_PROXIES": "127.0.0.1"}) as srv:
         conf = (REPO / "deploy" / "nginx.conf").read_text()

@@ -24,10 +24,11 @@ import pytest
 from sqlalchemy import select, text, update
 
 from tests.app.conftest import PASSWORD, H, W, png, scratch_postgres, write_tiny_workspace
+from tests.harness import ProcessServer
 
 pytestmark = pytest.mark.postgres
 
-PORTS = (9611, 9612)
+APIS = ("a", "b")  # two API processes, each on a free port (tests.harness.ProcessServer)
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -55,7 +56,7 @@ class Topology:
                     "OCCUFLY_FILL_DEBOUNCE_S": "0.3", "OCCUFLY_ARGON2_MEMORY_KIB": "1024",
                     "OCCUFLY_ARGON2_TIME_COST": "1", "OCCUFLY_AUTO_UPGRADE": "0",
                     "PYTHONPATH": str(REPO)}
-        self.api: dict[int, subprocess.Popen] = {}
+        self.api: dict[str, ProcessServer] = {}
         self.worker: subprocess.Popen | None = None
         self.logs: list = []
 
@@ -65,37 +66,24 @@ class Topology:
         return subprocess.Popen([sys.executable, *args], cwd=REPO, env=self.env, stdout=log,
                                 stderr=subprocess.STDOUT)
 
-    def start_api(self, port: int) -> None:
-        self.api[port] = self._spawn(["-m", "uvicorn", "app.main:app_from_env", "--factory",
-                                      "--host", "127.0.0.1", "--port", str(port),
-                                      "--log-level", "warning"], f"api{port}")
+    def start_api(self, name: str) -> None:
+        self.api[name] = ProcessServer(self.env, self.tmp / f"api_{name}.log").spawn()
 
     def start_worker(self) -> None:
         self.worker = self._spawn(["-m", "app.lifting"], "lifting")
 
-    def wait_healthy(self, port: int, timeout: float = 60) -> None:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if self.api[port].poll() is not None:
-                raise AssertionError((self.tmp / f"api{port}.log").read_text()[-3000:])
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.1)
-        raise AssertionError(f"API on {port} did not come up")
+    def wait_healthy(self, name: str) -> None:
+        self.api[name].wait_ready()
 
     def stop(self) -> None:
-        for p in [*self.api.values(), self.worker]:
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in [*self.api.values(), self.worker]:
-            if p is not None:
-                try:
-                    p.wait(15)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        for server in self.api.values():
+            server.stop()
+        if self.worker is not None and self.worker.poll() is None:
+            self.worker.send_signal(signal.SIGTERM)
+            try:
+                self.worker.wait(15)
+            except subprocess.TimeoutExpired:
+                self.worker.kill()
         for log in self.logs:
             log.close()
 
@@ -134,12 +122,12 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
                            dashboard_address=None)
     topo = Topology(tmp_path, scratch_pg, cluster.scheduler_address)
     try:
-        for port in PORTS:
-            topo.start_api(port)
+        for name in APIS:
+            topo.start_api(name)
         topo.start_worker()
-        for port in PORTS:
-            topo.wait_healthy(port)
-        a, b = (httpx.Client(base_url=f"http://127.0.0.1:{p}", timeout=30) for p in PORTS)
+        for name in APIS:
+            topo.wait_healthy(name)
+        a, b = (httpx.Client(base_url=topo.api[name].url, timeout=30) for name in APIS)
 
         def login(c: httpx.Client, user: str) -> dict:
             r = c.post("/api/auth/login", json={"username": user, "password": PASSWORD})
@@ -278,8 +266,7 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
         end = time.monotonic() + 10
         while len(acked[f2]) < n0 + 3 and time.monotonic() < end:
             time.sleep(0.01)
-        topo.api[PORTS[1]].send_signal(signal.SIGKILL)
-        topo.api[PORTS[1]].wait(10)
+        topo.api["b"].kill9()
         t.join(10)
         stop.set()
         assert len(acked[f2]) >= n0 + 3 and errors  # B died under the load

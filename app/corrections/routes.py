@@ -206,7 +206,10 @@ def decline(pid: IdPath, body: DeclineIn, frame: FrameDep, session: SessionDep,
 @router.get("/frames/{fid}/projected-items", response_model=list[ProjectedItemOut])
 def projected_items(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser):
     annotations.check_read(session, frame, user)
-    return service.projected_items(session=session, ctx=ctx, frame=frame, user=user)
+    from app.review.service import projected_for
+
+    return projected_for(session, user,
+                    service.projected_items(session=session, ctx=ctx, frame=frame, user=user))
 
 
 @router.get("/frames/{fid}/corrections", response_model=list[FrameEditOut])

@@ -734,6 +734,21 @@ def _visible_items(session: Session, scene: Scene, user: User):
     return q
 
 
+def projected_for(session: Session, user: User, items: list[dict]) -> list[dict]:
+    """Of the review items projected into a frame (:func:`items_out` dicts of one scene)
+    those ``user`` may see there: all for reviewers and admins; for an annotator the items
+    about frames they work(ed) on (:func:`get_item`'s rule) and the scene's 3D items filed on
+    points with no frame (what the annotator page's projection is for), never an item about
+    another annotator's frame or its comments (issue 36)."""
+    if user.role != "annotator":
+        return items
+    fids = {d["frame_id"] for d in items if d.get("frame_id") is not None}
+    mine = set(session.scalars(select(Frame.id).where(
+        Frame.id.in_(fids), or_(Frame.assignee_id == user.id,
+                                Frame.last_annotator_id == user.id)))) if fids else set()
+    return [d for d in items if d.get("frame_id") is None or d["frame_id"] in mine]
+
+
 def list_items(*, session: Session, scene: Scene, user: User, status: str | None = None,
                frame_id: int | None = None) -> list[dict]:
     q = _visible_items(session, scene, user)

@@ -42,8 +42,8 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from PIL import Image
 
-from occufly.errors import MaskError
 from occufly import safe_yaml
+from occufly.errors import MaskError
 from occufly.io.masks import MAX_MASK_PIXELS, decode_mask_png, encode_mask_png, mask_scale
 from occufly.safe_yaml import short
 from occufly.scene import Frame

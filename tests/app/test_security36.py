@@ -177,3 +177,30 @@ def test_a_label_studio_brush_of_another_size_is_refused_before_decoding(tmp_pat
     _cpu_refusal(tmp_path, {"tasks.json": json.dumps(task)}, fmt="labelstudio",
                  match="declares 14000x14000")
     assert decoded["n"] == 0
+
+
+# ---- finding 8: the annotator page's projected review items ------------------------------------
+def test_projected_items_show_an_annotator_only_what_it_may_open(world):
+    """An item about another frame whose points this frame sees stays hidden from the
+    annotator (with its comments); its own frame's item and the scene's frameless 3D item
+    show; a reviewer sees all three."""
+    from tests.app.test_corrections_api import _seen
+
+    env, hdr, scene, frames = world
+    a, rv = hdr["annotator"], hdr["reviewer"]
+    fid = env.client.post(f"/api/scenes/{scene['id']}/next", headers=a).json()["id"]
+    other = next(f["id"] for f in frames if f["id"] != fid)
+    seen = _seen(env, env.settings.workspaces_dir / "tiny", fid)[:30].tolist()
+    url = f"/api/scenes/{scene['id']}/review-items"
+    made = {}
+    for key, frame_id in (("mine", fid), ("other", other), ("frameless", None)):
+        r = env.client.post(url, json={"frame_id": frame_id, "point_ids": seen,
+                                       "comment": f"about {key}"}, headers=rv)
+        assert r.status_code == 201, r.text
+        made[key] = r.json()["id"]
+    got = env.client.get(f"/api/frames/{fid}/projected-items", headers=a).json()
+    assert sorted(it["id"] for it in got) == sorted([made["mine"], made["frameless"]]), got
+    assert "about other" not in str(got)
+    assert env.client.get(f"/api/review-items/{made['other']}", headers=a).status_code in (403, 404, 405)
+    got = env.client.get(f"/api/frames/{fid}/projected-items", headers=rv).json()
+    assert sorted(it["id"] for it in got) == sorted(made.values())

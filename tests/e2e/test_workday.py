@@ -294,7 +294,6 @@ def test_admin_histogram_coverage_plot_and_readable_metrics(live, sid, new_page)
     assert not bad, bad
 
 
-@pytest.mark.xfail(reason="known failure at stop 31: the region-fill superpixel under the click covers 12 mask pixels where the test wants > 20; cause not found yet", strict=False)
 def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid, new_page):
     """Step 2: "frame k of n", per-annotator progress, Skip, '?' help, zoom %, minimap, outline
     mode, per-class hide, brush size and tool kept between frames."""

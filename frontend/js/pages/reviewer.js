@@ -357,7 +357,7 @@ class ReviewerPage {
             { key: "state", label: "State" },
             // independent coverage, painted share and the old self-agreement, compact (last:
             // the name, who painted it and the score stay in view in a narrow list)
-            { key: "independent_coverage", label: "Coverage · painted · self", fmt: (v, r) => el("span", { class: "loo-figures", title: "independent coverage: share of the painted pixels other frames give evidence for; painted: share of the frame painted; self: agreement with labels that include this mask's own votes" }, `${v == null ? "–" : pct(v)} · ${r.painted_share == null ? "–" : pct(r.painted_share)} · ${r.self_agreement == null ? "–" : pct(r.self_agreement)}`) },
+            { key: "independent_coverage", label: "Coverage · painted · self", fmt: (v, r) => el("span", { class: "loo-figures", title: "independent coverage: share of the painted pixels other frames give evidence for; painted: share of the frame painted; self: agreement with labels that include this mask's own votes" }, `${v == null ? "–" : pct(v)} · ${r.painted_share == null ? "–" : pct(r.painted_share)} · ${r.self_agreement == null ? "–" : pct(r.self_agreement)}`.replace(/ %/g, "\u00a0%")) },
           ],
           { caption: `${frames.length} frames, highest ranking score first (what other frames see that the mask does not reproduce); then frames not scored yet`, rowAttrs: (r) => ({ "data-frame": r.id, class: String(r.id) === String(this.frameId) ? "current" : "" }) },
         ),

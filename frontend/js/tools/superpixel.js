@@ -73,18 +73,29 @@ export function slic(rgba, w, h, step = STEP, m = COMPACTNESS, iters = ITERATION
         cx[c] = sx[c] / cnt[c]; cy[c] = sy[c] / cnt[c]; cl[c] = sl[c] / cnt[c]; ca[c] = sa[c] / cnt[c]; cb[c] = sb[c] / cnt[c];
       }
   }
-  // connected components of equal labels -> final ids (a k-means cluster may be split)
+  // connected components of equal labels -> final ids (a k-means cluster may be split), and
+  // SLIC's connectivity step: a fragment smaller than a quarter of a superpixel joins the
+  // segment next to it (scanned in raster order, the one left of / above its first pixel).
+  // Without it a click on a thin structure (a cable, a kerb) or a split cluster filled a
+  // fragment of a few pixels (issue 40: 12 px where a superpixel is ~200).
   const out = new Int32Array(n).fill(-1);
   const stack = new Int32Array(n);
+  const members = new Int32Array(n); // the pixels of the component being grown
+  const minSize = Math.max(1, Math.floor((step * step) / 4));
   let next = 0;
   for (let s = 0; s < n; s++) {
     if (out[s] >= 0) continue;
     const lab = label[s];
+    const sx0 = s % w;
+    // the final id of an already labelled neighbour (left, else above)
+    const adj = sx0 > 0 ? out[s - 1] : s >= w ? out[s - w] : -1;
     let top = 0;
+    let size = 0;
     stack[top++] = s;
     out[s] = next;
     while (top) {
       const i = stack[--top];
+      members[size++] = i;
       const x = i % w;
       const nb = [x > 0 ? i - 1 : -1, x < w - 1 ? i + 1 : -1, i - w, i + w];
       for (const j of nb) {
@@ -93,7 +104,9 @@ export function slic(rgba, w, h, step = STEP, m = COMPACTNESS, iters = ITERATION
         stack[top++] = j;
       }
     }
-    next++;
+    if (size < minSize && adj >= 0) {
+      for (let t = 0; t < size; t++) out[members[t]] = adj;
+    } else next++;
   }
   return { labels: out, count: next };
 }

@@ -34,7 +34,14 @@ from starlette.concurrency import run_in_threadpool
 from app.audit import service as audit
 from app.config import Settings
 from app.deps import AdminUser, ClientIp, CtxDep, SessionDep
-from app.errors import Conflict, Forbidden, Invalid, NotFound, PayloadTooLarge
+from app.errors import (
+    Conflict,
+    Forbidden,
+    InsufficientStorage,
+    Invalid,
+    NotFound,
+    PayloadTooLarge,
+)
 from app.scenes.service import import_roots, upload_dir
 from occufly.fsutil import PathNotConfined, confined
 
@@ -46,6 +53,11 @@ ACCESS = {"GET /api/imports/browse": "admin",
 MAX_ENTRIES = 1000  # listed per folder (folders first, then files, by name)
 MAX_ZIP_ENTRIES = 100_000
 EXTRACT_FACTOR = 4  # extracted content may be at most this many times the upload cap
+#: ... and at most this many times the zip actually uploaded (at least INFLATE_FLOOR): a
+#: project folder is photos and point clouds, which deflate little (issue 36: a 2 MB zip
+#: kept 2 GiB)
+INFLATE_FACTOR = 10
+INFLATE_FLOOR = 64 << 20
 CHUNK = 1 << 20
 FOLDER_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
 
@@ -146,7 +158,14 @@ def extract_zip(zpath: Path, dest: Path, *, max_bytes: int) -> dict:
         declared = sum(i.file_size for i, _ in plan if not i.is_dir())
         if declared > max_bytes:
             raise PayloadTooLarge(f"the zip would extract to {declared} bytes; at most {max_bytes} "
-                                  "are accepted")
+                                  f"are accepted ({INFLATE_FACTOR} times the zip's size, at "
+                                  f"least {INFLATE_FLOOR >> 20} MB, at most {EXTRACT_FACTOR} "
+                                  f"times OCCUFLY_MAX_IMPORT_UPLOAD_MB)")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(dest.parent).free
+        if declared + (256 << 20) > free:
+            raise InsufficientStorage(f"the zip would extract to {declared} bytes; the server's "
+                                      f"uploads folder has {free} bytes free; nothing was written")
         if not any(parts for _, parts in plan):
             raise Invalid("the zip is empty")
         dest.mkdir(parents=True)
@@ -223,7 +242,8 @@ async def upload_route(request: Request, ctx: CtxDep, session: SessionDep, admin
                 await run_in_threadpool(fh.write, chunk)
         if not total:
             raise Invalid("empty body: send the zip of a project folder as application/zip")
-        out = await run_in_threadpool(extract_zip, tmp, work, max_bytes=EXTRACT_FACTOR * cap)
+        limit = min(EXTRACT_FACTOR * cap, max(INFLATE_FLOOR, INFLATE_FACTOR * total))
+        out = await run_in_threadpool(extract_zip, tmp, work, max_bytes=limit)
         try:
             os.rename(work, dest)  # atomic on one file system; fails if dest appeared meanwhile
         except OSError:

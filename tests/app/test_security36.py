@@ -204,3 +204,29 @@ def test_projected_items_show_an_annotator_only_what_it_may_open(world):
     assert env.client.get(f"/api/review-items/{made['other']}", headers=a).status_code in (403, 404, 405)
     got = env.client.get(f"/api/frames/{fid}/projected-items", headers=rv).json()
     assert sorted(it["id"] for it in got) == sorted(made.values())
+
+
+# ---- finding 5: a project upload may unpack to a small multiple of itself ------------------------
+def test_a_project_upload_unpacks_to_a_multiple_of_its_own_size(env):
+    """A 200 KB zip of 100 MB of zeros is refused (the old cap was 4x the 8 GB upload cap:
+    it would have kept 100 MB) with nothing left behind; a zip within 10x passes."""
+    import io
+    import zipfile
+
+    def deflated(entries: dict) -> bytes:
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+            for name, data in entries.items():
+                z.writestr(name, data)
+        return buf.getvalue()
+
+    adm = {**env.bearer("admin"), "Content-Type": "application/zip"}
+    bomb = deflated({"p/zeros.bin": b"\0" * (100 << 20)})
+    assert len(bomb) < 200_000
+    r = env.client.post("/api/imports/upload", params={"name": "bomb"}, content=bomb, headers=adm)
+    assert r.status_code == 413 and "10 times the zip's size" in r.json()["detail"], r.text
+    up = env.settings.data_dir / "uploads"
+    assert not (up / "bomb").exists() and not list((up / ".incoming").iterdir())
+    ok = deflated({"p/a.txt": b"x" * 1000})
+    r = env.client.post("/api/imports/upload", params={"name": "fine"}, content=ok, headers=adm)
+    assert r.status_code == 201, r.text

@@ -154,7 +154,9 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
 
 
 #: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
-ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None}
+ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None,
+                      "robust-prior05": RobustParams(prior_weight=0.5),
+                      "robust-prior075": RobustParams(prior_weight=0.75)}
 
 
 def robustness(args: argparse.Namespace) -> dict:

@@ -28,7 +28,10 @@ import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Query, Request, Response
+from fastapi import Path as PathParam
+from sqlalchemy import select
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from app.audit import service as audit
@@ -42,13 +45,17 @@ from app.errors import (
     NotFound,
     PayloadTooLarge,
 )
+from app.jobs.models import Job
+from app.scenes.models import Scene
 from app.scenes.service import import_roots, upload_dir
 from occufly.fsutil import PathNotConfined, confined
 
 router = APIRouter(prefix="/api", tags=["scenes"])
 
 ACCESS = {"GET /api/imports/browse": "admin",
-          "POST /api/imports/upload": "admin"}
+          "POST /api/imports/upload": "admin",
+          "GET /api/imports/uploads": "admin",
+          "DELETE /api/imports/uploads/{name}": "admin"}
 
 MAX_ENTRIES = 1000  # listed per folder (folders first, then files, by name)
 MAX_ZIP_ENTRIES = 100_000
@@ -258,3 +265,82 @@ async def upload_route(request: Request, ctx: CtxDep, session: SessionDep, admin
                  detail={"path": out["path"], "files": out["files"], "bytes": out["bytes"],
                          "upload_bytes": total})
     return out
+
+
+# ---- uploads kept on the server (issue 36: none could be listed or deleted) -------------------
+def _users_of(session: Session, folder: Path) -> dict[str, list[int]]:
+    """{upload folder name: ids of the scenes whose source or import paths lie in it}."""
+    root = str(folder)
+    out: dict[str, list[int]] = {}
+
+    def note(path: object, sid: int) -> None:
+        if isinstance(path, str) and (path == root or path.startswith(root + os.sep)):
+            name = path[len(root) + 1:].split(os.sep, 1)[0]
+            if name and sid not in out.setdefault(name, []):
+                out[name].append(sid)
+
+    for sid, source in session.execute(select(Scene.id, Scene.source)).all():
+        note(source, sid)
+    for sid, params in session.execute(select(Job.scene_id, Job.params).where(
+            Job.kind == "import", Job.scene_id.is_not(None))).all():
+        for v in (params or {}).values():
+            note(v, sid)
+    live = set(session.scalars(select(Scene.id)))
+    return {k: sorted(i for i in v if i in live) for k, v in out.items()}
+
+
+def _folder_size(path: Path) -> tuple[int, int]:
+    files = size = 0
+    for dirpath, _dirs, names in os.walk(path):
+        for n in names:
+            try:
+                size += os.lstat(os.path.join(dirpath, n)).st_size
+                files += 1
+            except OSError:
+                continue
+    return files, size
+
+
+@router.get("/imports/uploads")
+def list_uploads(ctx: CtxDep, session: SessionDep, _admin: AdminUser) -> list[dict]:
+    """The project folders uploaded as zips (``<data dir>/uploads``): name, files, bytes,
+    when, and the scenes that import from them (such an upload is not deleted)."""
+    root = upload_dir(ctx.settings)
+    if not root.is_dir():
+        return []
+    users = _users_of(session, root)
+    out = []
+    for p in sorted(root.iterdir()):
+        if p.name.startswith(".") or not p.is_dir() or p.is_symlink():
+            continue
+        files, size = _folder_size(p)
+        out.append({"name": p.name, "path": str(p), "files": files, "bytes": size,
+                    "modified": p.stat().st_mtime, "scenes": users.get(p.name, [])})
+    return out
+
+
+@router.delete("/imports/uploads/{name}", status_code=204,
+               responses={409: {"description": "a scene imports from it"}})
+def delete_upload(ctx: CtxDep, session: SessionDep, admin: AdminUser, ip: ClientIp,
+                  name: Annotated[str, PathParam(min_length=1, max_length=128)]) -> Response:
+    """Delete an uploaded project folder, unless a scene imports from it (409 naming them:
+    their frames' images may be served from it)."""
+    if not FOLDER_NAME.match(name):
+        raise Invalid(f"name {name!r}: not an upload name (letters, digits, '_', '.', '-')")
+    root = upload_dir(ctx.settings)
+    dest = root / name
+    if not dest.is_dir() or dest.is_symlink():
+        raise NotFound(f"no upload named {name!r} in {root}")
+    scenes = _users_of(session, root).get(name, [])
+    if scenes:
+        raise Conflict(f"upload {name!r} is the source of scene(s) {', '.join(map(str, scenes))}; "
+                       f"delete those scenes first")
+    files, size = _folder_size(dest)
+    trash = root / ".incoming" / f"{uuid.uuid4().hex}.del"
+    trash.parent.mkdir(parents=True, exist_ok=True)
+    os.rename(dest, trash)  # gone from the listing at once; removed below
+    shutil.rmtree(trash, ignore_errors=True)
+    audit.record(session, "upload_delete", actor=admin, target=name, client_ip=ip,
+                 detail={"files": files, "bytes": size})
+    session.commit()
+    return Response(status_code=204)

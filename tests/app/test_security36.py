@@ -230,3 +230,53 @@ def test_a_project_upload_unpacks_to_a_multiple_of_its_own_size(env):
     ok = deflated({"p/a.txt": b"x" * 1000})
     r = env.client.post("/api/imports/upload", params={"name": "fine"}, content=ok, headers=adm)
     assert r.status_code == 201, r.text
+
+
+def test_an_admin_lists_and_deletes_uploads(env):
+    """Uploads are listed with their size and the scenes importing from them; one a scene
+    uses is kept (409 naming it), another is deleted (audited); only admins."""
+    import io
+    import zipfile
+
+    from tests.app.conftest import write_tiny_workspace
+
+    adm = env.bearer("admin")
+    src = write_tiny_workspace(env.import_root / "ws")
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for p in sorted(src.rglob("*")):
+            if p.is_file():
+                z.write(p, "site/" + p.relative_to(src).as_posix())
+    zhead = {**adm, "Content-Type": "application/zip"}
+    used = env.client.post("/api/imports/upload", params={"name": "used"}, content=buf.getvalue(),
+                           headers=zhead)
+    spare = env.client.post("/api/imports/upload", params={"name": "spare"},
+                            content=buf.getvalue(), headers=zhead)
+    assert used.status_code == spare.status_code == 201, used.text
+    r = env.client.post("/api/scenes/import", json={"name": "fromup", "source": used.json()["source"]},
+                        headers=adm)
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"], timeout=60)
+    sid = r.json()["scene_id"]
+    got = {u["name"]: u for u in env.client.get("/api/imports/uploads", headers=adm).json()}
+    assert set(got) == {"used", "spare"}
+    assert got["used"]["scenes"] == [sid] and got["spare"]["scenes"] == []
+    assert got["spare"]["files"] == sum(1 for p in src.rglob("*") if p.is_file())
+    assert got["spare"]["bytes"] > 0
+    assert env.client.get("/api/imports/uploads", headers=env.bearer("reviewer")).status_code == 403
+    assert env.client.delete("/api/imports/uploads/spare",
+                             headers=env.bearer("annotator")).status_code == 403
+    r = env.client.delete("/api/imports/uploads/used", headers=adm)
+    assert r.status_code == 409 and str(sid) in r.json()["detail"]
+    assert env.client.delete("/api/imports/uploads/spare", headers=adm).status_code == 204
+    assert not (env.settings.data_dir / "uploads" / "spare").exists()
+    assert env.client.delete("/api/imports/uploads/spare", headers=adm).status_code == 404
+    assert env.client.delete("/api/imports/uploads/.incoming", headers=adm).status_code == 422
+    assert [u["name"] for u in env.client.get("/api/imports/uploads", headers=adm).json()] == ["used"]
+    from sqlalchemy import select
+
+    from app.audit.models import AuditEvent
+
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalars(select(AuditEvent.target).where(
+            AuditEvent.action == "upload_delete")).all() == ["spare"]

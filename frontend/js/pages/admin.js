@@ -47,6 +47,7 @@ class AdminPage {
     this.auditEl = el("div", { id: "audit" });
     this.overviewEl = el("div", { id: "overview" }); // issue 28: across scenes and annotators
     this.exportListEl = el("div", { id: "export-list" });
+    this.uploadsEl = el("div", { id: "uploads" }); // issue 36: uploaded project folders
     this.maskImportEl = el("div", { id: "mask-import-result", "aria-live": "polite" });
     this.sceneSel = el("select", { id: "admin-scene", "aria-label": "Scene" });
     this.sceneSel.addEventListener("change", () => {
@@ -65,7 +66,7 @@ class AdminPage {
         ),
         section("sec-overview", "Overview", el("p", { class: "hint" }, "Every scene and annotator at a glance: frames to do (selected, not started), in progress, waiting for review, accepted and rejected; time spent, throughput and how far the 3D labels lag behind."), this.overviewEl),
         section("sec-users", "Users", this.usersEl, this.userForm()),
-        section("sec-scenes", "Scenes", this.scenesEl, this.importForm()),
+        section("sec-scenes", "Scenes", this.scenesEl, this.importForm(), el("h3", {}, "Uploaded projects"), this.uploadsEl),
         section("sec-members", "Scene members", el("p", { class: "hint" }, "Annotators and reviewers see only the scenes they are members of."), this.membersEl),
         section("sec-selection", "Frame selection", this.selectionForm(), this.selectionEl, this.nextForm(), this.nextEl),
         section("sec-masks", "Masks from other tools", el("p", { class: "hint" }, "Upload masks painted in CVAT, COCO, Label Studio or as PNGs (a zip of the tool's export). Every frame they paint gets an imported version that votes and waits for review; if a class or an image name does not match the scene, nothing is stored and every problem is listed."), this.maskImportForm(), this.maskImportEl, this.maskExportForm()),
@@ -77,7 +78,7 @@ class AdminPage {
         section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
       ),
     );
-    await Promise.all([this.loadUsers(), this.loadScenes(), this.loadOverview(), this.loadExportList()]);
+    await Promise.all([this.loadUsers(), this.loadScenes(), this.loadOverview(), this.loadExportList(), this.loadUploads()]);
     await this.loadScene();
     this.loadAudit();
     this.poll();
@@ -99,6 +100,38 @@ class AdminPage {
       showError(e);
       return null;
     }
+  }
+
+  // ---- uploaded project folders (issue 36) ----------------------------------------------
+  async loadUploads() {
+    const ups = await this.guard(() => api.get("/imports/uploads"));
+    if (!ups) return;
+    if (!ups.length) {
+      this.uploadsEl.replaceChildren(el("p", { class: "hint" }, "No project uploaded as a zip is kept on the server."));
+      return;
+    }
+    const del = (u) => {
+      if (u.scenes.length) return el("span", { class: "muted" }, `used by scene ${u.scenes.join(", ")}`);
+      const b = el("button", { type: "button", class: "danger", "aria-label": `Delete upload ${u.name}` }, "Delete");
+      b.addEventListener("click", async () => {
+        const ok = await dialog({ title: `Delete upload ${u.name}?`, body: el("p", {}, `${u.files} files, ${bytes(u.bytes)} are removed from the server. No scene imports from it.`), buttons: [{ label: "Cancel", value: false }, { label: "Delete", value: true, primary: true }], cancelValue: false });
+        if (!ok) return;
+        b.disabled = true; // a double click deletes once
+        const res = await this.guard(() => api.send("DELETE", `/imports/uploads/${encodeURIComponent(u.name)}`));
+        if (res) toast(`Upload ${u.name} deleted.`);
+        this.loadUploads();
+      });
+      return b;
+    };
+    this.uploadsEl.replaceChildren(
+      table(ups, [
+        { key: "name", label: "Upload" },
+        { key: "files", label: "Files" },
+        { key: "bytes", label: "Size", fmt: (v) => bytes(v) },
+        { key: "modified", label: "Uploaded", fmt: (v) => fmtDate(new Date(v * 1000).toISOString()) },
+        { key: "scenes", label: "", fmt: (_v, u) => del(u) },
+      ], { rowAttrs: (u) => ({ "data-upload": u.name }) }),
+    );
   }
 
   // ---- users ---------------------------------------------------------------------------
@@ -181,6 +214,7 @@ class AdminPage {
       field("Name", name),
       pathField("Reconstruction folder", source, "inside an allowed import root on the server: Browse… lists them", { pick: "any" }),
       uploadControls(name, (r) => {
+        this.loadUploads();
         source.value = r.source;
         if (!name.value.trim()) name.value = r.source.split("/").pop().replace(/[^A-Za-z0-9_.-]/g, "_");
       }),

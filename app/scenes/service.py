@@ -105,9 +105,29 @@ def own_workspace(settings: Settings, scene: Scene) -> Path:
     return expected
 
 
+def _next_scene_id(session: Session) -> int | None:
+    """On SQLite the id after the highest ever handed out (``id_counters``; the UPDATE takes
+    the write lock, so two creations never get one id); None elsewhere (PostgreSQL's sequence
+    never reuses an id). SQLite alone would give max(id) + 1: a deleted newest scene's id."""
+    if session.get_bind().dialect.name != "sqlite":
+        return None
+    from app.scenes.models import IdCounter
+
+    top = select(func.coalesce(func.max(Scene.id), 0)).scalar_subquery()
+    got = session.execute(
+        update(IdCounter).where(IdCounter.name == "scenes")
+        .values(last_id=func.max(IdCounter.last_id, top) + 1)
+        .returning(IdCounter.last_id)).scalar()
+    if got is None:  # a database created without migration 0012's seed row
+        got = int(session.scalar(select(func.coalesce(func.max(Scene.id), 0)))) + 1
+        session.add(IdCounter(name="scenes", last_id=got))
+    return int(got)
+
+
 def create_scene(*, session: Session, settings: Settings, name: str, source: Path) -> Scene:
     ws = workspace_path(settings, name)
-    scene = Scene(name=name, status="importing", workspace=str(ws), source=str(source))
+    scene = Scene(name=name, status="importing", workspace=str(ws), source=str(source),
+                  id=_next_scene_id(session))
     session.add(scene)
     try:
         session.commit()

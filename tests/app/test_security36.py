@@ -280,3 +280,29 @@ def test_an_admin_lists_and_deletes_uploads(env):
     with env.app.state.ctx.sessions() as s:
         assert s.scalars(select(AuditEvent.target).where(
             AuditEvent.action == "upload_delete")).all() == ["spare"]
+
+
+# ---- finding 8: scene ids are never reused ------------------------------------------------------
+def test_a_new_scene_never_takes_a_deleted_scenes_id(env):
+    """SQLite gave max(id) + 1: after the newest scene's deletion, the next scene had its id
+    (and the audit log mixed the two). Both databases: ids only grow."""
+    from sqlalchemy import delete
+
+    from app.scenes import service as scenes
+    from app.scenes.models import Scene
+
+    ids = []
+    with env.app.state.ctx.sessions() as s:
+        for name in ("first", "second"):
+            ids.append(scenes.create_scene(session=s, settings=env.settings, name=name,
+                                           source=env.import_root).id)
+        s.execute(delete(Scene).where(Scene.id == ids[1]))
+        s.commit()
+        third = scenes.create_scene(session=s, settings=env.settings, name="third",
+                                    source=env.import_root).id
+        assert third > ids[1], (ids, third)
+        s.execute(delete(Scene))
+        s.commit()  # every scene gone: still no id handed out twice
+        fourth = scenes.create_scene(session=s, settings=env.settings, name="fourth",
+                                     source=env.import_root).id
+        assert fourth > third

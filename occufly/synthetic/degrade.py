@@ -58,7 +58,7 @@ def _confusion_lut(taxonomy: Taxonomy) -> np.ndarray:
     return lut
 
 
-def _shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: float,
+def shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: float,
                       cell: int) -> np.ndarray:
     if shift_px <= 0:
         return mask.copy()
@@ -75,7 +75,7 @@ def _shift_boundaries(mask: np.ndarray, rng: np.random.Generator, shift_px: floa
     return mask[r, c]
 
 
-def _skip_small(mask: np.ndarray, rng: np.random.Generator, min_blob: int, prob: float
+def skip_small(mask: np.ndarray, rng: np.random.Generator, min_blob: int, prob: float
                 ) -> np.ndarray:
     if min_blob <= 1 or prob <= 0:
         return mask
@@ -116,7 +116,7 @@ def _confuse(mask: np.ndarray, rng: np.random.Generator, lut: np.ndarray,
     return out
 
 
-def _unpaint(mask: np.ndarray, rng: np.random.Generator, patches: int, frac: float
+def unpaint(mask: np.ndarray, rng: np.random.Generator, patches: int, frac: float
              ) -> np.ndarray:
     if patches <= 0 or frac <= 0:
         return mask
@@ -139,10 +139,10 @@ def degrade_mask(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator 
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.uint8:
         raise ValueError(f"degrade_mask: expected an (h, w) uint8 mask, got {mask.shape} {mask.dtype}")
-    out = _shift_boundaries(mask, rng, p.shift_px, p.cell)
-    out = _skip_small(out, rng, p.min_blob, p.skip_prob)
+    out = shift_boundaries(mask, rng, p.shift_px, p.cell)
+    out = skip_small(out, rng, p.min_blob, p.skip_prob)
     out = _confuse(out, rng, _confusion_lut(taxonomy), p.confusion_rate)
-    out = _unpaint(out, rng, p.patches, p.patch_frac)
+    out = unpaint(out, rng, p.patches, p.patch_frac)
     return out
 
 

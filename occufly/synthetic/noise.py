@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from occufly.synthetic.degrade import _shift_boundaries, _skip_small, _unpaint
+from occufly.synthetic.degrade import shift_boundaries, skip_small, unpaint
 from occufly.taxonomy import Taxonomy
 
 #: whole-object swaps of the careful annotators (both directions)
@@ -103,11 +103,11 @@ def paint(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator, who: A
     if mask.ndim != 2 or mask.dtype != np.uint8:
         raise ValueError(f"paint: expected an (h, w) uint8 mask, got {mask.shape} {mask.dtype}")
     ids = _ids(taxonomy)
-    out = _shift_boundaries(mask, rng, who.shift_px, who.cell)
+    out = shift_boundaries(mask, rng, who.shift_px, who.cell)
     omit = [ids[n] for n in who.omits if n in ids]
     if omit:
         out = _omit(out, omit)
-    out = _skip_small(out, rng, who.min_blob, who.skip_prob)
+    out = skip_small(out, rng, who.min_blob, who.skip_prob)
     pairs: list[tuple[int, int, float]] = []
     if who.swap_rate > 0:
         for a, b in OBJECT_SWAPS:
@@ -125,7 +125,7 @@ def paint(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator, who: A
     for a, b in who.regions:
         if a in ids and b in ids:
             out[out == ids[a]] = ids[b]
-    return _unpaint(out, rng, who.patches, who.patch_frac)
+    return unpaint(out, rng, who.patches, who.patch_frac)
 
 
 def annotator_of(frame: int, seed: int, crew: Crew) -> int:

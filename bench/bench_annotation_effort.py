@@ -51,7 +51,7 @@ from _scene import ensure_seeded_scene  # noqa: E402
 
 from app.scenes.service import handout_order  # noqa: E402
 from occufly.io.masks import read_mask  # noqa: E402
-from occufly.lifting import LiftState  # noqa: E402
+from occufly.lifting import VoteStore  # noqa: E402
 from occufly.render import prefill_for_mask, render_for_mask  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
@@ -137,7 +137,7 @@ def lifted_sequence(ws: Path, scene: Scene, syn: Path, order: list[int], preset:
             continue
         if st is None:  # replay the submits so far into a fresh vote state
             shutil.rmtree(ws / "lifting", ignore_errors=True)
-            st = LiftState.open(ws, scene)
+            st = VoteStore.open(ws, scene)
             for j, fj in enumerate(order[:k]):
                 frj = scene.frames[fj]
                 st.set_mask(fj, read_mask(syn / "truth" / "masks" / f"{frj.stem}.png", frj, tax),

@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from _scene import ensure_seeded_scene  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
-from occufly.lifting import LiftParams, LiftState, fill_snapshot  # noqa: E402
+from occufly.lifting import LiftParams, VoteStore, fill_snapshot  # noqa: E402
 from occufly.lifting import calibration as cal  # noqa: E402
 from occufly.lifting.result import ORIGIN_NAMES  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
@@ -94,7 +94,7 @@ class Case:
         """Fill + denoise of the votes of ``masks`` (robust decision on, as the app lifts),
         with the votes counted in memory (the workspace's lifting state is not touched)."""
         tax = self.scene.taxonomy
-        st = LiftState(self.ws, self.scene, np.zeros((self.scene.n_points, len(tax.ids)), np.uint16), {})
+        st = VoteStore(self.ws, self.scene, np.zeros((self.scene.n_points, len(tax.ids)), np.uint16), {})
         flat = st.votes.reshape(-1)
         C = len(tax.ids)
         for fi, m in masks.items():

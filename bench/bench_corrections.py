@@ -57,9 +57,9 @@ def accuracy(labels: np.ndarray, truth: np.ndarray) -> float:
 
 def contested_regions(ws: Path, scene, labels: np.ndarray, cell: float):  # noqa: ANN001
     """[(region key, point ids)] most contested first (votes only, no truth)."""
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
 
-    st = LiftState.open(ws, scene)
+    st = VoteStore.open(ws, scene)
     votes = np.asarray(st.votes)
     direct = np.asarray(st.direct_labels())
     total = votes.sum(axis=1, dtype=np.int64)
@@ -79,7 +79,7 @@ def contested_regions(ws: Path, scene, labels: np.ndarray, cell: float):  # noqa
 
 def quality(args: argparse.Namespace) -> dict:
     from occufly.io.masks import read_mask
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
     from occufly.lifting import corrections as lib
     from occufly.scene import Scene
     from occufly.selection import select_frames
@@ -95,7 +95,7 @@ def quality(args: argparse.Namespace) -> dict:
                            scene.frames[fi], tax) for fi in frames}
     degraded = degrade_masks(exact, tax, seed=args.seed)
     shutil.rmtree(ws / "lifting", ignore_errors=True)
-    st = LiftState.open(ws, scene)
+    st = VoteStore.open(ws, scene)
     for fi in frames:
         st.set_mask(fi, degraded[fi], version="degraded")
     t = time.perf_counter()

@@ -35,8 +35,8 @@ from _scene import ensure_seeded_scene  # noqa: E402
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import (  # noqa: E402
     LiftParams,
-    LiftState,
     RobustParams,
+    VoteStore,
     fill_and_denoise,
     fill_and_denoise_exact,
 )
@@ -108,7 +108,7 @@ def quality(args: argparse.Namespace) -> dict:
     rng = np.random.default_rng(args.seed)
     for variant in ("truth", "degraded"):
         shutil.rmtree(ws / "lifting", ignore_errors=True)
-        st = LiftState.open(ws, scene)
+        st = VoteStore.open(ws, scene)
         dis = []
         for fi in sel.frames:
             m = mask_of[fi] if variant == "truth" else degrade(mask_of[fi], rng)
@@ -220,7 +220,7 @@ def robustness(args: argparse.Namespace) -> dict:
                 # tieorder: the plain vote, ties by taxonomy order; plain: the plain vote, ties
                 # to the fill (the default before the robust decision); robust: the default;
                 # boundary: weighted votes (plain decision)
-                st = LiftState.open(tmp, sc, vote_weighting="boundary" if robust in (
+                st = VoteStore.open(tmp, sc, vote_weighting="boundary" if robust in (
                     "boundary", "robust-boundary") else "plain")
                 for fi in sel.frames:
                     st.apply_frame(fi, masks[fi], version=mname)
@@ -302,7 +302,7 @@ def curve(args: argparse.Namespace) -> dict:
         tmp.mkdir(parents=True)
         for f in ("scene.json", "taxonomy.json", "points", "visibility"):
             (tmp / f).symlink_to(Path(args.ws) / f)
-        return LiftState.open(tmp, scene), tmp
+        return VoteStore.open(tmp, scene), tmp
 
     out: dict = {"bench": "lifting-next-frames", "synthetic": str(syn), "seed": args.seed,
                  "noise": args.curve_noise, "frames": len(scene.frames),
@@ -359,7 +359,7 @@ def curve(args: argparse.Namespace) -> dict:
 
 # ---- the 20 MP vote update (issue 16 item 3) ----------------------------------------------------
 def _apply_reference(self, old: tuple, new: tuple) -> dict:
-    """LiftState._apply before the incremental update (the baseline of --vote-update): a
+    """VoteStore._apply before the incremental update (the baseline of --vote-update): a
     mark over all points, the winner of every touched point before and after through the
     column-permuted argmax, ``ufunc.at`` on the memory-mapped counts."""
     C = self._cls.C
@@ -453,7 +453,7 @@ def vote_update(args: argparse.Namespace) -> dict:
         ws.mkdir()
         for name in ("scene.json", "taxonomy.json", "points", "visibility"):
             (ws / name).symlink_to(root / "ws" / name)
-        st = LiftState.open(ws, scene)
+        st = VoteStore.open(ws, scene)
         if impl == "baseline":
             st._apply = _apply_reference.__get__(st)
         st.apply_frame(1, np.roll(mask, 500, axis=1), version="other")
@@ -564,7 +564,7 @@ def main() -> None:
                      "ratio": sel.ratio, "coverage": sel.coverage,
                      "stratified_coverage": sel.curve[0][1],
                      "stratified_selected": len(sel.stratified_frames)}
-    st = LiftState.open(ws, scene)
+    st = VoteStore.open(ws, scene)
     masks = {}
     t = time.perf_counter()
     for fi in sel.frames:

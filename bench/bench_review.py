@@ -38,7 +38,7 @@ from _scene import ensure_seeded_scene  # noqa: E402
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting.knn import LiftParams  # noqa: E402
 from occufly.lifting.loo import frame_loo  # noqa: E402
-from occufly.lifting.votes import LiftState, _npz_bytes, fill_snapshot  # noqa: E402
+from occufly.lifting.votes import VoteStore, _npz_bytes, fill_snapshot  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
 from occufly.workspace import Workspace  # noqa: E402
@@ -102,7 +102,7 @@ def run(cache: Path, preset: str, k: int, floor: float, seed: int = 0,
     w = Workspace(votes_ws)
     w.lifting_frames_dir.mkdir(parents=True, exist_ok=True)
     C = len(tax.ids)
-    st = LiftState(votes_ws, scene, np.zeros((scene.n_points, C), np.uint16), {})
+    st = VoteStore(votes_ws, scene, np.zeros((scene.n_points, C), np.uint16), {})
     flat = st.votes.reshape(-1)
     t0 = time.perf_counter()
     for fi, m in masks.items():

@@ -339,7 +339,7 @@ import numpy as np
 ws, src = Path(sys.argv[1]), Path(sys.argv[2])
 from occufly.scene import Scene
 from occufly.io.masks import read_mask
-from occufly.lifting import LiftState, load_labels
+from occufly.lifting import VoteStore, load_labels
 from occufly.render import render_for_mask, render_labels, agreement
 out = {}
 def timed(key, fn):
@@ -351,7 +351,7 @@ def timed(key, fn):
 meta = json.loads((src / "truth" / "meta.json").read_text())
 full = meta["full_size_frames"]
 scene = Scene.load(ws)
-state = LiftState.open(ws, scene)
+state = VoteStore.open(ws, scene)
 included = state.included_versions()
 lifted = [n for n in full if scene.frame_index(n) in included]
 name = lifted[0] if lifted else full[0]

@@ -113,7 +113,7 @@ def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path, synth_tiny)
     confident than voted ones; unlabelled points have confidence 0."""
     from occufly.io.importer import import_scene
     from occufly.io.masks import read_mask
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
     from occufly.scene import Scene
     from occufly.selection import select_frames
     from occufly.synthetic.degrade import degrade_masks
@@ -125,7 +125,7 @@ def test_tiny_scene_wrong_filled_labels_are_less_confident(tmp_path, synth_tiny)
     sel = select_frames(scene, mode="stratified")
     exact = {fi: read_mask(syn / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
                            scene.frames[fi], scene.taxonomy) for fi in sel.frames}
-    st = LiftState.open(tmp_path / "ws", scene)
+    st = VoteStore.open(tmp_path / "ws", scene)
     for fi, m in degrade_masks(exact, scene.taxonomy, seed=0).items():
         st.apply_frame(fi, m)
     res = st.fill_and_denoise()

@@ -16,7 +16,7 @@ from occufly.lifting import (
     ORIGIN_DIRECT,
     ORIGIN_FILLED,
     LiftParams,
-    LiftState,
+    VoteStore,
     fill_and_denoise,
     fill_and_denoise_exact,
     load_labels,
@@ -54,7 +54,7 @@ def _expected_votes(scene, fi, mask):
 # ---- votes -------------------------------------------------------------------------------
 def test_votes_are_the_mask_pixels(ws):
     path, scene, truth = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     mask = truth_mask(scene.frames[5])
     stats = st.set_mask(5, mask, version="v1")
     pids, raw = _expected_votes(scene, 5, mask)
@@ -72,7 +72,7 @@ def test_votes_are_the_mask_pixels(ws):
 
 def test_replace_and_remove_subtract_exactly(ws, tmp_path):
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     st.set_mask(0, truth_mask(scene.frames[0]), version="a")
     st.set_mask(5, truth_mask(scene.frames[5]), version="b")
     grass = np.full((scene.frames[0].camera.height, scene.frames[0].camera.width), GRASS, np.uint8)
@@ -81,12 +81,12 @@ def test_replace_and_remove_subtract_exactly(ws, tmp_path):
     st.remove_mask(5)
     # the same final content built from scratch in a second workspace
     scene.save(tmp_path / "ws2")
-    fresh = LiftState.open(tmp_path / "ws2", Scene.load(tmp_path / "ws2"))
+    fresh = VoteStore.open(tmp_path / "ws2", Scene.load(tmp_path / "ws2"))
     fresh.set_mask(0, grass, version="c")
     assert np.array_equal(np.asarray(st.votes), np.asarray(fresh.votes))
     assert st.included_versions() == {0: "c"}
     # reopening from disk gives the same state
-    again = LiftState.open(path)
+    again = VoteStore.open(path)
     assert np.array_equal(np.asarray(again.votes), np.asarray(fresh.votes))
     assert again.included_versions() == {0: "c"}
     again.remove_mask(0)
@@ -97,7 +97,7 @@ def test_replace_and_remove_subtract_exactly(ws, tmp_path):
 
 def test_ties_follow_taxonomy_order(ws):
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     h, w = scene.frames[0].camera.height, scene.frames[0].camera.width
     st.set_mask(4, np.full((h, w), GRASS, np.uint8))
     st.set_mask(5, np.full((h, w), ROAD, np.uint8))
@@ -115,7 +115,7 @@ def test_ties_follow_taxonomy_order(ws):
 
 def test_downscaled_mask_votes(ws):
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     mask2 = truth_mask(scene.frames[10], scale=2)
     assert mask2.shape == (60, 80)
     st.set_mask(10, mask2)
@@ -129,7 +129,7 @@ def _state_bytes(st):
 
 def test_bad_masks_raise_and_leave_state_unchanged(ws, tmp_path):
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     st.set_mask(3, truth_mask(scene.frames[3]), version="ok")
     before = _state_bytes(st)
     frame = scene.frames[3]
@@ -159,7 +159,7 @@ def test_bad_masks_raise_and_leave_state_unchanged(ws, tmp_path):
     with pytest.raises(MaskError, match="not in the scene"):
         st.remove_mask(-1)
     assert _state_bytes(st) == before
-    assert _state_bytes(LiftState.open(path)) == before
+    assert _state_bytes(VoteStore.open(path)) == before
 
 
 def _png_rgb(rgb):
@@ -194,7 +194,7 @@ def test_mask_encodings_round_trip(ws, tmp_path):
 
 def test_interrupted_update_is_repaired_on_open(ws):
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     st.set_mask(2, truth_mask(scene.frames[2]))
     st.set_mask(7, truth_mask(scene.frames[7]))
     good = np.asarray(st.votes).copy()
@@ -203,7 +203,7 @@ def test_interrupted_update_is_repaired_on_open(ws):
     st.votes[:100] += 3
     st.votes.flush()
     del st
-    again = LiftState.open(path)
+    again = VoteStore.open(path)
     assert np.array_equal(np.asarray(again.votes), good)
     assert json.loads((path / "lifting" / "state.json").read_text())["dirty"] is False
 
@@ -274,7 +274,7 @@ def test_lift_truth_masks_of_selected_frames(ws):
     path, scene, truth = ws
     sel = select_frames(scene, mode="greedy", target_coverage=0.99)
     assert sel.coverage >= 0.99
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     for fi in sel.frames:
         st.set_mask(fi, truth_mask(scene.frames[fi]), version=str(fi))
     res = st.fill_and_denoise()
@@ -287,7 +287,7 @@ def test_lift_truth_masks_of_selected_frames(ws):
     assert np.array_equal(np.asarray(loaded.origin), res.origin)
     assert loaded.stats["annotated_frames"] == len(sel.frames)
     # lifting wrong masks is measurably wrong
-    st2 = LiftState.open(path, scene)
+    st2 = VoteStore.open(path, scene)
     for fi in sel.frames:
         st2.set_mask(fi, np.full_like(truth_mask(scene.frames[fi]), ROAD))
     bad = evaluate_points(st2.fill_and_denoise().labels, truth, TAX)
@@ -363,11 +363,11 @@ def test_cli_select_lift_agreement_eval_export(ws, tmp_path, capsys):
     assert main(["export-points", str(path), str(tmp_path / "o.laz"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["points"] == scene.n_points
     # a mask for an unknown frame: error naming the file, votes unchanged
-    before = np.asarray(LiftState.open(path).votes).copy()
+    before = np.asarray(VoteStore.open(path).votes).copy()
     write_mask(masks / "no_such_frame.png", truth_mask(scene.frames[0]))
     assert main(["lift", str(path), "--masks", str(masks)]) == 2
     assert "no_such_frame.png" in capsys.readouterr().err
-    assert np.array_equal(np.asarray(LiftState.open(path).votes), before)
+    assert np.array_equal(np.asarray(VoteStore.open(path).votes), before)
 
 
 # ---- the synthetic tiny scene (generator + importer, exact truth) -------------------------
@@ -390,7 +390,7 @@ def test_tiny_scene_lifting_quality(tiny):
     path, scene, truth, masks = tiny
     sel = select_frames(scene, mode="greedy", target_coverage=0.99)
     assert sel.coverage >= 0.99 and sel.ratio < 0.6
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     for fi in sel.frames:
         st.set_mask(fi, masks[fi], version="truth")
     direct = st.direct_labels()
@@ -405,7 +405,7 @@ def test_tiny_scene_lifting_quality(tiny):
                                      scene.taxonomy) for i in held])
     assert ag["agreement"] >= 0.88 and ag["coverage"] >= 0.8
     # masks swapped between frames lift to measurably wrong labels
-    st2 = LiftState.open(path, scene)
+    st2 = VoteStore.open(path, scene)
     frames = list(sel.frames)
     for fi, other in zip(frames, frames[1:] + frames[:1], strict=True):
         m = masks[other]
@@ -421,8 +421,8 @@ def test_public_state_api_snapshot_resume_read_only(ws):
 
     path, scene, truth = ws
     with pytest.raises(WorkspaceError, match="no lifting state"):
-        LiftState.open(path, scene, read_only=True)
-    st = LiftState.open(path, scene)
+        VoteStore.open(path, scene, read_only=True)
+    st = VoteStore.open(path, scene)
     for fi in (1, 4, 9):
         st.apply_frame(fi, truth_mask(scene.frames[fi]), version=f"v{fi}")
     assert st.version_of(4) == "v4" and st.version_of(2) is None
@@ -444,11 +444,11 @@ def test_public_state_api_snapshot_resume_read_only(ws):
     votes = np.asarray(st.votes).copy()
     st.close()
     # a worker restarted on the same workspace resumes with the same counts and versions
-    again = LiftState.open(path, scene)
+    again = VoteStore.open(path, scene)
     assert np.array_equal(np.asarray(again.votes), votes)
     assert again.included_versions() == {1: "v1", 4: "v4", 9: "v9"}
     # a reader never writes: read-only counts, refused updates, refused dirty states
-    ro = LiftState.open(path, scene, read_only=True)
+    ro = VoteStore.open(path, scene, read_only=True)
     assert np.array_equal(ro.direct_labels(), snap.direct)
     with pytest.raises(WorkspaceError, match="read-only"):
         ro.apply_frame(2, truth_mask(scene.frames[2]))
@@ -457,7 +457,7 @@ def test_public_state_api_snapshot_resume_read_only(ws):
     assert not ro.votes.flags.writeable
     again._write_state(dirty=True)
     with pytest.raises(WorkspaceError, match="interrupted"):
-        LiftState.open(path, scene, read_only=True)
+        VoteStore.open(path, scene, read_only=True)
 
 
 def test_boundary_vote_weighting(ws):
@@ -472,7 +472,7 @@ def test_boundary_vote_weighting(ws):
     assert w[0, 9] == 2 and w[0, 8] == 3 and w[0, 0] == 3
     assert (boundary_weights(np.full((4, 4), GRASS, np.uint8)) == 3).all()
     path, scene, truth = ws
-    st = LiftState.open(path, scene, vote_weighting="boundary")
+    st = VoteStore.open(path, scene, vote_weighting="boundary")
     mask = truth_mask(scene.frames[5])
     stats = st.apply_frame(5, mask, version="v1")
     pids, raw = _expected_votes(scene, 5, mask)
@@ -487,13 +487,13 @@ def test_boundary_vote_weighting(ws):
     # the winner is the mask's class either way (one view)
     assert np.array_equal(st.labels_of_points(pids), raw)
     st.close()
-    again = LiftState.open(path, scene)
+    again = VoteStore.open(path, scene)
     assert again.vote_weighting == "boundary"
     again._write_state(dirty=True)
-    rebuilt = LiftState.open(path, scene)  # recount from the per-frame files, with weights
+    rebuilt = VoteStore.open(path, scene)  # recount from the per-frame files, with weights
     assert int(np.asarray(rebuilt.votes).sum()) == int(wexp.sum())
     with pytest.raises(WorkspaceError, match="'boundary' votes"):
-        LiftState.open(path, scene, vote_weighting="plain")
+        VoteStore.open(path, scene, vote_weighting="plain")
     rebuilt.remove_frame(5)
     assert int(np.asarray(rebuilt.votes).sum()) == 0
 
@@ -538,7 +538,7 @@ def test_robust_decision_survives_degraded_masks(tiny):
     acc, tiny_iou = {}, {}
     for name, mm in (("exact", exact), ("deg0", degrade_masks(exact, scene.taxonomy, seed=0)),
                      ("deg1", degrade_masks(exact, scene.taxonomy, seed=1))):
-        st = LiftState.open(path, scene)
+        st = VoteStore.open(path, scene)
         for fi in list(st.included_versions()):
             st.remove_frame(fi)
         for fi in sel.frames:
@@ -574,7 +574,7 @@ def test_robust_features_cached_and_read_only_never_writes(ws):
     from occufly.workspace import Workspace
 
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     st.set_mask(0, truth_mask(scene.frames[0]), version="a")
     st.set_mask(5, truth_mask(scene.frames[5]), version="b")
     d = Workspace(path).lifting_dir
@@ -640,7 +640,7 @@ def test_incremental_vote_update_matches_a_recount(ws):
     """Random first saves, replacements (also with the same mask), removals: the counts equal
     a recount of the per-frame files and points_changed the direct labels that changed."""
     path, scene, _ = ws
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     rng = np.random.default_rng(5)
     ids = TAX.ids
     for step in range(14):

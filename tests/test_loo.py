@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from occufly.lifting import LiftState
+from occufly.lifting import VoteStore
 from occufly.lifting.knn import LiftParams
 from occufly.lifting.loo import frame_loo, loo_labels
 from occufly.scene import Scene
@@ -22,7 +22,7 @@ def lifted(tmp_path_factory):
     path = tmp_path_factory.mktemp("loo") / "ws"
     scene.save(path)
     scene = Scene.load(path)
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     masks = {}
     for fi in SELECTED:
         m = truth_mask(scene.frames[fi])
@@ -70,7 +70,7 @@ def test_half_painted_frame_reports_its_painted_share(lifted):
 
 def test_loo_labels_exclude_the_frames_own_votes(lifted):
     path, scene, masks, labels = lifted
-    st = LiftState.open(path, scene, read_only=True)
+    st = VoteStore.open(path, scene, read_only=True)
     loo = loo_labels(path, scene, WRONG, params=LiftParams(robust=False))
     # with the pipeline's plain decision (LiftParams.robust False) the LOO labels equal the
     # majority of the counts minus the frame's votes, recomputed here
@@ -142,7 +142,7 @@ def test_right_frame_next_to_a_wrong_one_is_not_blamed(tmp_path):
     scene.save(tmp_path / "ws")
     path = tmp_path / "ws"
     scene = Scene.load(path)
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     masks = {}
     for fi in (5, 6, 9, 10):
         m = truth_mask(scene.frames[fi])

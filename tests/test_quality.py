@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from occufly.cli import main as cli_main
-from occufly.lifting import LiftState, load_labels
+from occufly.lifting import VoteStore, load_labels
 from occufly.lifting.quality import distribution, quality_report
 from occufly.lifting.relift import labels_digest, relift
 from occufly.scene import Scene
@@ -22,7 +22,7 @@ SELECTED = (1, 4, 5, 6, 9, 10)
 
 def _truth_points(scene: Scene) -> np.ndarray:
     """Point truth by the majority of the exact masks over every frame that sees a point."""
-    st = LiftState(Path("."), scene, np.zeros((scene.n_points, len(scene.taxonomy.ids)), np.uint16), {})
+    st = VoteStore(Path("."), scene, np.zeros((scene.n_points, len(scene.taxonomy.ids)), np.uint16), {})
     flat = st.votes.reshape(-1)
     C = len(scene.taxonomy.ids)
     for fi, fr in enumerate(scene.frames):
@@ -37,7 +37,7 @@ def lifted(tmp_path_factory):
     path = tmp_path_factory.mktemp("quality") / "ws"
     scene.save(path)
     scene = Scene.load(path)
-    st = LiftState.open(path, scene)
+    st = VoteStore.open(path, scene)
     masks = {}
     for fi in SELECTED:
         m = truth_mask(scene.frames[fi])

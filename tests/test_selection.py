@@ -149,7 +149,7 @@ def _voted_workspace(tmp_path, *, contested: bool):
     mask votes its class for every point the frame sees). Frames 0-5 are annotated: grass
     everywhere, except -- with ``contested`` -- frame 1 says road: the points only frames 0
     and 1 see are a 1:1 tie. Labels = the vote majority, confidence 0.95."""
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
     from occufly.lifting.result import LiftResult, save_result
     from occufly.taxonomy import default_taxonomy
 
@@ -162,7 +162,7 @@ def _voted_workspace(tmp_path, *, contested: bool):
     ws = tmp_path / "ws"
     sc.save(ws)
     scene = Scene.load(ws)
-    st = LiftState.open(ws, scene)
+    st = VoteStore.open(ws, scene)
     for f in range(6):
         cls = "road" if (contested and f == 1) else "grass"
         st.apply_frame(f, np.full((100, 100), ids[cls], np.uint8), version="v1")
@@ -174,11 +174,11 @@ def _voted_workspace(tmp_path, *, contested: bool):
 
 
 def test_next_frames_see_the_contested_region_and_never_repeat(tmp_path):
-    from occufly.lifting import LiftState, load_labels
+    from occufly.lifting import VoteStore, load_labels
     from occufly.lifting.nextbest import propose_next
 
     ws, scene, ids = _voted_workspace(tmp_path, contested=True)
-    st = LiftState.open(ws, scene, read_only=True)
+    st = VoteStore.open(ws, scene, read_only=True)
     lab = load_labels(ws)
     votes = np.asarray(st.votes)
     total = votes.sum(axis=1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occufly.lifting import LiftState
+from occufly.lifting import VoteStore
 from occufly.lifting.suspects import contested_share, find_suspects
 from occufly.scene import Scene
 from tests.lift_scene import BOXES, BUILDING, GRASS, ROAD, ROOF, make_scene, truth_mask
@@ -14,7 +14,7 @@ def test_a_wrongly_painted_house_is_the_top_suspect(tmp_path):
     scene, _truth = make_scene()
     scene.save(tmp_path / "ws")
     scene = Scene.load(tmp_path / "ws")
-    st = LiftState.open(tmp_path / "ws", scene)
+    st = VoteStore.open(tmp_path / "ws", scene)
     for fi in (1, 4, 5, 6):
         m = truth_mask(scene.frames[fi]).copy()
         if fi == 5:
@@ -93,7 +93,7 @@ def test_find_suspects_lists_an_island_the_votes_did_not_contest(tmp_path):
     scene, _truth = make_scene()
     scene.save(tmp_path / "ws")
     scene = Scene.load(tmp_path / "ws")
-    st = LiftState.open(tmp_path / "ws", scene)
+    st = VoteStore.open(tmp_path / "ws", scene)
     for fi in (1, 4, 5, 6):
         st.set_mask(fi, truth_mask(scene.frames[fi]), version=str(fi))
     labels = st.fill_and_denoise().labels.copy()

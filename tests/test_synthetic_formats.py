@@ -107,7 +107,7 @@ def test_every_format_gives_the_colmap_cameras_and_pixels(imported):
 
 def test_lifting_the_same_masks_gives_identical_labels(synth, imported):
     from occufly.io.masks import read_mask
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
 
     root, _ = synth
     base, scenes = imported
@@ -115,7 +115,7 @@ def test_lifting_the_same_masks_gives_identical_labels(synth, imported):
     truth = np.load(root / "colmap" / "truth" / "point_labels.npy")
     labels = {}
     for fmt, sc in scenes.items():
-        state = LiftState.open(base / fmt, sc)
+        state = VoteStore.open(base / fmt, sc)
         for p in masks:
             fi = sc.frame_index(p.stem)
             state.apply_frame(fi, read_mask(p, sc.frames[fi], sc.taxonomy), name=str(p))

@@ -82,7 +82,7 @@ def test_no_module_spells_a_workspace_path():
 
 
 def test_direct_labels_is_a_read_only_reader(tmp_path):
-    from occufly.lifting import LiftState, read_direct_labels
+    from occufly.lifting import VoteStore, read_direct_labels
     from tests.lift_scene import make_scene, truth_mask
 
     scene, _truth = make_scene()
@@ -90,7 +90,7 @@ def test_direct_labels_is_a_read_only_reader(tmp_path):
     ws = Workspace(tmp_path / "ws")
     assert read_direct_labels(ws.root) is None  # no vote state yet, and none is created
     assert not ws.lifting_dir.exists()
-    st = LiftState.open(ws.root, scene)
+    st = VoteStore.open(ws.root, scene)
     st.apply_frame(5, truth_mask(scene.frames[5]), version="v1")
     st.save()
     expected = st.direct_labels()

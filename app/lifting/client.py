@@ -21,7 +21,7 @@ from app.events import LIFT_CHANNEL
 from app.lifting.models import LiftQueueEntry, LiftStatus
 from app.lifting.service import LiftingBusy, LiftingService
 from occufly.errors import WorkspaceError
-from occufly.lifting import LiftState
+from occufly.lifting import VoteStore
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -136,7 +136,7 @@ class LiftingClient:
         scene = self.load_scene(str(workspace))
         for _ in range(20):  # an update in progress marks the state dirty for milliseconds
             try:
-                return LiftState.open(workspace, scene, read_only=True)
+                return VoteStore.open(workspace, scene, read_only=True)
             except WorkspaceError as e:
                 if "no lifting state" in str(e):
                     return None

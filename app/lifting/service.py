@@ -2,7 +2,7 @@
 
 It consumes the ``lift_queue`` table (:class:`app.lifting.models.LiftQueueEntry`), in id order, which for one
 frame is version order (a version can only become current after the one it replaces
-committed). Per scene one worker owns the workspace's :class:`occufly.lifting.LiftState`
+committed). Per scene one worker owns the workspace's :class:`occufly.lifting.VoteStore`
 (one writer per scene):
 
 - PostgreSQL: a session-level advisory lock ``(PG_SCENE_LOCK, scene id)`` held on the worker's
@@ -20,8 +20,8 @@ batch are decoded and projected in a thread pool (PNG decoding and the numpy pro
 release the GIL) and applied to the votes one at a time, in queue order. An entry is applied
 exactly once:
 
-- ``LiftState.apply_frame`` replaces the frame's votes and records the version tag on disk
-  (crash-safe, repaired by ``LiftState.open``);
+- ``VoteStore.apply_frame`` replaces the frame's votes and records the version tag on disk
+  (crash-safe, repaired by ``VoteStore.open``);
 - the entry is marked ``applied`` (with a per-scene ``applied_seq`` and ``applied_by``, the
   worker) afterwards; a worker killed in between leaves the entry pending, and whichever
   worker owns the scene next sees the state already counts that version and only marks it.
@@ -66,7 +66,7 @@ from app.lifting.models import LiftQueueEntry, LiftStatus
 from app.pipeline import stored_mask_ids
 from app.scenes.models import Scene
 from occufly.errors import OccuflyError
-from occufly.lifting import LiftState
+from occufly.lifting import VoteStore
 from occufly.lifting.incremental import IncrementalFill
 from occufly.workspace import Workspace
 
@@ -175,7 +175,7 @@ class _SceneWork:
 
     scene_id: int
     workspace: str
-    state: object  # occufly.lifting.LiftState
+    state: object  # occufly.lifting.VoteStore
     lock: threading.Lock = field(default_factory=threading.Lock)  # updates vs snapshot
     fill_due: float | None = None
     first_due: float | None = None  # when the pending fill was first asked for
@@ -622,7 +622,7 @@ class LiftingService:
             if sc is not None:  # re-imported elsewhere: the old state's fill thread ends
                 sc.closed = True
 
-            state = LiftState.open(Path(workspace), self.load_scene(str(workspace)))
+            state = VoteStore.open(Path(workspace), self.load_scene(str(workspace)))
             sc = _SceneWork(scene_id, str(workspace), state)
             sc.thread = threading.Thread(target=self._fill_loop, args=(sc,), daemon=True,
                                          name=f"occufly-fill-{scene_id}")

@@ -27,7 +27,7 @@ from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly import render
-from occufly.lifting import LiftState, load_labels
+from occufly.lifting import VoteStore, load_labels
 from occufly.lifting import loo as lifting_loo
 from occufly.lifting.suspects import SuspectParams, find_suspects
 from occufly.render import scene_point_spacing
@@ -398,7 +398,7 @@ def _suspect_rows(ctx: AppContext, scene: Scene) -> list[dict]:
         if labels is None:
             raise NotFound(f"scene {scene.id} has no lifted labels yet")
         ws_scene = ctx.load_scene(scene.workspace)
-        st = LiftState.open(scene.workspace, ws_scene, read_only=True)
+        st = VoteStore.open(scene.workspace, ws_scene, read_only=True)
         # voxels at least 1.5 point spacings wide, so neighbouring points connect
         params = SuspectParams(voxel=max(1.0, 1.5 * scene_point_spacing(ws_scene)))
         rows = find_suspects(ws_scene, st.votes, labels, params)

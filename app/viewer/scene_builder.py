@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from occufly.errors import WorkspaceError
-from occufly.lifting import LiftState
+from occufly.lifting import VoteStore
 from occufly.lifting.corrections import apply_overrides
 from occufly.lifting.result import LiftResult
 from occufly.scene import Scene
@@ -103,7 +103,7 @@ class ViewerData:
     @classmethod
     def load(cls, ws: str | Path, *, scene: Scene | None = None) -> ViewerData:
         """Load a workspace: scene, ``lifting/{labels,confidence,origin}.npy`` if present,
-        direct votes (``occufly.lifting.LiftState``) if available, ``grid/scene_grid.npz``."""
+        direct votes (``occufly.lifting.VoteStore``) if available, ``grid/scene_grid.npz``."""
         ws = Path(ws)
         w = Workspace(ws)
         scene = scene if scene is not None else Scene.load(ws)
@@ -132,7 +132,7 @@ class ViewerData:
 def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
     """Direct (mask-vote majority) labels from ``lifting/votes.npy``, read-only, or None.
 
-    Built without ``LiftState.open`` on purpose: that may create or repair the state (writes),
+    Built without ``VoteStore.open`` on purpose: that may create or repair the state (writes),
     and the backend's lifting worker owns the workspace. A torn read during a concurrent
     update only affects the display until the next refresh.
     """
@@ -145,7 +145,7 @@ def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
             log.warning("viewer: %s has shape %s, expected (%d, %d)", votes_path, votes.shape,
                         scene.n_points, len(scene.taxonomy))
             return None
-        return np.asarray(LiftState(ws, scene, votes, {}).direct_labels(), dtype=np.uint8)
+        return np.asarray(VoteStore(ws, scene, votes, {}).direct_labels(), dtype=np.uint8)
     except Exception as e:  # noqa: BLE001 - a half-written lifting state must not kill the viewer
         log.warning("viewer: cannot read direct votes in %s: %s", ws, e)
         return None

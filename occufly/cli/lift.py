@@ -15,7 +15,7 @@ from occufly.errors import InputFormatError, MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_text
 from occufly.io.masks import read_mask
 from occufly.io.pointcloud_export import export_scene_points
-from occufly.lifting import LiftParams, LiftState, load_labels
+from occufly.lifting import LiftParams, VoteStore, load_labels
 from occufly.lifting.nextbest import propose_for_workspace
 from occufly.lifting.quality import quality_report, summary_text, workspace_truth
 from occufly.metrics import evaluate_points
@@ -172,7 +172,7 @@ def _lift(args: argparse.Namespace) -> dict:
         raise InputFormatError(f"--keep-share: expected a share in [0, 1], got {args.keep_share}")
     scene = Scene.load(args.workspace)
     files = _mask_files(scene, args.masks)
-    state = LiftState.open(args.workspace, scene)
+    state = VoteStore.open(args.workspace, scene)
     included = state.included_versions()
     if not files and not (args.sync and included):
         raise InputFormatError(
@@ -247,7 +247,7 @@ def _scene_and_labels(workspace: Path):  # noqa: ANN202
 
 
 def _agreement(args: argparse.Namespace) -> dict:
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
 
     scene, res = _scene_and_labels(args.workspace)
     files = _mask_files(scene, args.masks)
@@ -255,7 +255,7 @@ def _agreement(args: argparse.Namespace) -> dict:
     missing = [scene.frames[f].name for f in frames if f not in files]
     if missing:
         raise InputFormatError(f"{args.masks}: no mask for frame(s) {', '.join(missing)}")
-    annotated = set(LiftState.open(args.workspace, scene).included_versions())
+    annotated = set(VoteStore.open(args.workspace, scene).included_versions())
     if args.held_out:
         frames = [f for f in frames if f not in annotated]
     if not frames:
@@ -331,12 +331,12 @@ def load_truth_labels(ws: Path, truth_path: Path, n_points: int) -> np.ndarray:
 
 
 def _eval_points(args: argparse.Namespace) -> dict:
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
 
     scene, res = _scene_and_labels(args.workspace)
     truth = load_truth_labels(args.workspace, args.truth, scene.n_points)
     out = evaluate_points(np.asarray(res.labels), truth, scene.taxonomy, np.asarray(res.origin))
-    direct = LiftState.open(args.workspace, scene).direct_labels()
+    direct = VoteStore.open(args.workspace, scene).direct_labels()
     has = (direct > 0) & (truth > 0) & (truth < 255)
     out["direct_votes"] = {"points": int(has.sum()),
                            "accuracy": float((direct[has] == truth[has]).mean()) if has.any() else None}

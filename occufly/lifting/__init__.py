@@ -5,9 +5,9 @@ review's leave-one-out labels --, ``quality``, ``suspects``, ``incremental``, ``
 and ``calibration``):
 
 ``occufly.lifting.votes``
-    :class:`LiftState`, the per-point vote counts of one workspace, updated one frame at a
-    time (:meth:`~LiftState.apply_frame`, :meth:`~LiftState.remove_frame`), crash-safe on
-    disk and resumed by :meth:`~LiftState.open`; :meth:`~LiftState.snapshot` copies out the
+    :class:`VoteStore`, the per-point vote counts of one workspace, updated one frame at a
+    time (:meth:`~VoteStore.apply_frame`, :meth:`~VoteStore.remove_frame`), crash-safe on
+    disk and resumed by :meth:`~VoteStore.open`; :meth:`~VoteStore.snapshot` copies out the
     vote majority so a fill can run while updates go on.
 ``occufly.lifting.knn``
     :func:`fill_and_denoise` (certified voxels plus exact k-NN at class boundaries) and
@@ -25,7 +25,7 @@ layer above this package: ``pyproject.toml``'s import-linter contracts).
 
 A live worker (the app's lifting service) uses::
 
-    state = LiftState.open(ws, scene)           # resumes from disk
+    state = VoteStore.open(ws, scene)           # resumes from disk
     state.version_of(fi)                        # what is counted for frame fi
     state.apply_frame(fi, mask, version="42")   # or state.remove_frame(fi)
     snap = state.snapshot()                     # under the worker's update lock
@@ -58,8 +58,8 @@ from occufly.lifting.robust import RobustParams
 from occufly.lifting.votes import (
     STATE_VERSION,
     VOTE_WEIGHTINGS,
-    LiftState,
     VoteSnapshot,
+    VoteStore,
     boundary_weights,
     fill_snapshot,
     read_direct_labels,
@@ -67,7 +67,7 @@ from occufly.lifting.votes import (
 
 __all__ = [
     "LIFT_DIR", "ORIGIN_CORRECTED", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
-    "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "LiftState",
+    "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "VoteStore",
     "VoteSnapshot", "fill_and_denoise", "fill_and_denoise_exact",
     "fill_snapshot", "load_labels", "read_direct_labels", "params_dict", "save_result", "typical_knn_radius",
 ]

@@ -116,7 +116,7 @@ class LiftParams:
     robust: bool = True
     robust_params: object | None = None
     # issue 37: leave out the votes of frames that paint a class far worse than the other
-    # frames seeing the same points (occufly.lifting.reliability; LiftState.fill_and_denoise)
+    # frames seeing the same points (occufly.lifting.reliability; VoteStore.fill_and_denoise)
     reliability: bool = False
     # threads of the k-NN queries and of the boundary brute force (-1 = every core, as in
     # cKDTree); the result does not depend on it

@@ -153,7 +153,7 @@ def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.
 
 def _vote_unit(ws: Path) -> int:
     """Counts per view of the workspace's votes: 3 with boundary weighting (as
-    :meth:`LiftState.snapshot` hands them to the robust decision), else 1."""
+    :meth:`VoteStore.snapshot` hands them to the robust decision), else 1."""
     try:
         st = json.loads(Workspace(ws).lifting_state.read_text())
     except (OSError, ValueError):
@@ -184,7 +184,7 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     c1 = col[sel].astype(np.int16)
     top = n1[sel]
     sec = n2[sel]
-    if unit != 1:  # weighted votes: the model counts views (LiftState.snapshot, fill_snapshot)
+    if unit != 1:  # weighted votes: the model counts views (VoteStore.snapshot, fill_snapshot)
         top = (top + unit - 1) // unit
         sec = sec.astype(np.float32) / unit
     else:

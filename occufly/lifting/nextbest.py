@@ -35,7 +35,7 @@ from occufly.errors import WorkspaceError
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import load_labels
 from occufly.lifting.suspects import SuspectParams, find_suspects, flag_points
-from occufly.lifting.votes import LiftState
+from occufly.lifting.votes import VoteStore
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.workspace import Workspace
@@ -217,7 +217,7 @@ def propose_for_workspace(ws, k: int, *, scene: Scene | None = None,  # noqa: AN
                              "without --no-fill) first")
     report(0.1, "reading votes")
     scene = scene if scene is not None else Scene.load(ws)
-    st = LiftState.open(ws, scene, read_only=True)
+    st = VoteStore.open(ws, scene, read_only=True)
     try:
         report(0.3, "weighing the frames")
         report(0.2, "finding the suspects")

@@ -2,8 +2,8 @@
 
 The live labels of a scene count every voting version (submitted, accepted, imported). An
 export under a narrower policy (accepted versions only, the default) needs the labels those
-versions alone give: :func:`relift` counts them in a fresh :class:`LiftState` under a scratch
-folder -- :meth:`LiftState.apply_frame` for each mask, :meth:`LiftState.snapshot`, then
+versions alone give: :func:`relift` counts them in a fresh :class:`VoteStore` under a scratch
+folder -- :meth:`VoteStore.apply_frame` for each mask, :meth:`VoteStore.snapshot`, then
 :func:`fill_snapshot`, exactly the calls the app's lifting worker makes -- and writes
 ``labels.npy`` / ``confidence.npy`` / ``origin.npy`` there. Vote counts are sums, so the order
 in which masks are applied does not matter, and the fill is deterministic: lifting the same
@@ -23,7 +23,7 @@ import numpy as np
 
 from occufly.lifting.knn import LiftParams
 from occufly.lifting.result import LiftResult, save_result
-from occufly.lifting.votes import LiftState, fill_snapshot
+from occufly.lifting.votes import VoteStore, fill_snapshot
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.workspace import Workspace
@@ -56,7 +56,7 @@ def relift(scene: Scene, masks: Iterable[tuple[int, str, np.ndarray]], scratch: 
         raise FileExistsError(f"{scratch}: already holds a lifting state (relift needs an empty "
                               "folder)")
     scratch.mkdir(parents=True, exist_ok=True)
-    state = LiftState.open(scratch, scene, vote_weighting=vote_weighting)
+    state = VoteStore.open(scratch, scene, vote_weighting=vote_weighting)
     try:
         items = list(masks)
         for k, (fi, tag, mask) in enumerate(items):

@@ -6,7 +6,7 @@ Votes
     and 255 (ignore) cast no vote. Counts live in ``ws/lifting/votes.npy``, a memory-mapped
     (N, C) uint16 array over the taxonomy's classes in table order, and every frame's own votes
     in ``ws/lifting/frames/<frame_index>.npz`` (point ids, class column) so that replacing or
-    removing a mask subtracts exactly what it added. The cost of :meth:`LiftState.apply_frame` is
+    removing a mask subtracts exactly what it added. The cost of :meth:`VoteStore.apply_frame` is
     proportional to the points that frame sees, never to the scene.
 
     Crash safety: ``state.json`` is marked dirty before the votes are touched and clean after;
@@ -19,7 +19,7 @@ Majority
     :meth:`ClassColumns.packed_winner`).
 
 Update cost
-    :meth:`LiftState.apply_frame` reads and writes only the points whose vote from that frame
+    :meth:`VoteStore.apply_frame` reads and writes only the points whose vote from that frame
     changes (a per-point code of the frame's old and new vote), updates their counts in memory
     and recounts a winner only where the winning class lost a vote. On a fabricated
     5472 x 3648 frame seeing 1.7 M points (``bench/bench_lifting.py --vote-update``, best of
@@ -28,7 +28,7 @@ Update cost
     changed-point figures.
 
 Robust decision
-    :meth:`LiftState.snapshot` also keeps each point's second vote class, which the robust
+    :meth:`VoteStore.snapshot` also keeps each point's second vote class, which the robust
     decision of :func:`fill_snapshot` (:mod:`occufly.lifting.robust`, ``LiftParams.robust``)
     needs besides the majority.
 """
@@ -93,7 +93,7 @@ def boundary_weights(mask: np.ndarray, px: int = BOUNDARY_PX) -> np.ndarray:
     return (1 + (d >= px).astype(np.uint8) + (d >= 2 * px).astype(np.uint8)).astype(np.uint8)
 
 
-class LiftState:
+class VoteStore:
     """Per-point vote counts for one scene workspace, updated incrementally.
 
     Not safe for concurrent writers: one process (the web app's lifting worker or the CLI)
@@ -120,7 +120,7 @@ class LiftState:
     # -- open / save
     @classmethod
     def open(cls, ws: str | Path, scene: Scene | None = None, *,
-             read_only: bool = False, vote_weighting: str | None = None) -> LiftState:
+             read_only: bool = False, vote_weighting: str | None = None) -> VoteStore:
         """Load the lifting state of workspace ``ws`` (resuming from what is on disk: the
         counts, the per-frame votes and the included versions), or create an empty one.
 
@@ -588,7 +588,7 @@ class LiftState:
 
 @dataclass
 class VoteSnapshot:
-    """The vote majority of a :class:`LiftState` at one moment.
+    """The vote majority of a :class:`VoteStore` at one moment.
 
     direct: (N,) uint8 raw ids (0 = no votes); margin: (N,) float32 ``(top - second) /
     votes``; top: (N,) uint16 votes of the winning class; versions: frame index -> version
@@ -616,7 +616,7 @@ def read_direct_labels(ws: str | Path) -> np.ndarray | None:
     interrupted update is a :class:`WorkspaceError` here (the lifting worker repairs it)."""
     if not Workspace(ws).lifting_state.is_file():
         return None
-    return LiftState.open(ws, read_only=True).direct_labels()
+    return VoteStore.open(ws, read_only=True).direct_labels()
 
 
 def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | None = None,

@@ -103,7 +103,7 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
     from app.lifting.models import LiftQueueEntry, LiftStatus
     from app.scenes.models import Frame
     from app.users import service as users
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
     from occufly.scene import Scene as WsScene
     from occufly.workspace import Workspace
 
@@ -234,7 +234,7 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
         ref = tmp_path / "ref"
         shutil.copytree(ws.root, ref, ignore=shutil.ignore_patterns("lifting"))
         ref_scene = WsScene.load(ref)
-        clean = LiftState.open(ref, ref_scene)
+        clean = VoteStore.open(ref, ref_scene)
         store = BlobStore(tmp_path / "data" / "masks")
         from app.pipeline import stored_mask_ids
 
@@ -316,7 +316,7 @@ def test_two_lifting_workers_share_the_scenes_and_take_over_after_kill_9(tmp_pat
     from app.pipeline import stored_mask_ids
     from app.scenes.models import Frame, Scene
     from app.users import service as users
-    from occufly.lifting import LiftState
+    from occufly.lifting import VoteStore
     from occufly.scene import Scene as WsScene
     from occufly.workspace import Workspace
 
@@ -452,7 +452,7 @@ def test_two_lifting_workers_share_the_scenes_and_take_over_after_kill_9(tmp_pat
         shutil.rmtree(ref, ignore_errors=True)
         shutil.copytree(ws.root, ref, ignore=shutil.ignore_patterns("lifting"))
         ref_scene = WsScene.load(ref)
-        clean = LiftState.open(ref, ref_scene)
+        clean = VoteStore.open(ref, ref_scene)
         store = BlobStore(tmp_path / "data" / "masks")
         with ctx.sessions() as s:
             for fid, versions in acked.items():

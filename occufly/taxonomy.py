@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from occufly.errors import InputFormatError, TaxonomyError, check_name
 from occufly import safe_yaml
+from occufly.errors import InputFormatError, TaxonomyError, check_name
 
 EMPTY = 0
 INVALID = 255

@@ -22,7 +22,11 @@ def _jpeg(path, *, gps=None, xmp: bytes | None = None):  # noqa: ANN001, ANN202
     return path
 
 
-def _gps(lat, lon=(IFDRational(2), IFDRational(30), IFDRational(0)), alt=IFDRational(120)):  # noqa: ANN001, ANN202
+_LON = (IFDRational(2), IFDRational(30), IFDRational(0))
+_ALT = IFDRational(120)
+
+
+def _gps(lat, lon=_LON, alt=_ALT):  # noqa: ANN001, ANN202
     return {1: "N", 2: lat, 3: "W", 4: lon, 5: b"\x00", 6: alt}
 
 

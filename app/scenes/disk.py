@@ -33,14 +33,14 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from app.annotations.models import MaskVersion, Prefill
+from app.blobs import release_blobs
 from app.db import utcnow
 from app.errors import Conflict, NotFound
 from app.jobs.models import Job
 from app.scenes.models import Frame, Scene
 from app.scenes.service import own_workspace
-from app.blobs import release_blobs
 
-if TYPE_CHECKING:  # app.context builds the job runner, which calls retention below
+if TYPE_CHECKING:  # annotations only: the services are handed the context
     from app.context import AppContext
 
 log = logging.getLogger("occufly.storage")

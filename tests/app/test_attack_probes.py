@@ -1,4 +1,4 @@
-"""Issue 24: the attack round after the fixes -- paths from files, sizes a client controls and
+"""The attack round after issue 24's fixes -- paths from files, sizes a client controls and
 values leaving as HTML that the issue did not list. Each probe must hold; the counts are printed
 (``-s``) and quoted in docs/security.md."""
 import json

@@ -46,6 +46,7 @@ from app.jobs.models import Job
 from app.limits import IdPath
 from app.notifications.service import notify_frame_people
 from app.pipeline import encode_png, stored_mask_ids
+from app.review.service import projected_for
 from app.scenes.models import Frame, Scene
 
 router = APIRouter(prefix="/api", tags=["corrections"])
@@ -206,7 +207,6 @@ def decline(pid: IdPath, body: DeclineIn, frame: FrameDep, session: SessionDep,
 @router.get("/frames/{fid}/projected-items", response_model=list[ProjectedItemOut])
 def projected_items(frame: FrameDep, session: SessionDep, ctx: CtxDep, user: CurrentUser):
     annotations.check_read(session, frame, user)
-    from app.review.service import projected_for
 
     return projected_for(session, user,
                     service.projected_items(session=session, ctx=ctx, frame=frame, user=user))

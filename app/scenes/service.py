@@ -19,7 +19,7 @@ from app import pipeline
 from app.annotations.models import MaskVersion
 from app.config import Settings
 from app.errors import Conflict, Forbidden, Invalid, NotFound
-from app.scenes.models import Frame, Scene, SceneMember
+from app.scenes.models import Frame, IdCounter, Scene, SceneMember
 from app.users.models import User
 from occufly.errors import OccuflyError, UnsafePathError
 from occufly.fsutil import PathNotConfined, atomic_write_bytes, confined
@@ -111,7 +111,6 @@ def _next_scene_id(session: Session) -> int | None:
     never reuses an id). SQLite alone would give max(id) + 1: a deleted newest scene's id."""
     if session.get_bind().dialect.name != "sqlite":
         return None
-    from app.scenes.models import IdCounter
 
     top = select(func.coalesce(func.max(Scene.id), 0)).scalar_subquery()
     got = session.execute(

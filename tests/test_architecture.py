@@ -117,3 +117,23 @@ def test_no_function_over_120_lines():
                     if n > 120:
                         long.append(f"{p.relative_to(REPO)}:{node.lineno} {node.name} ({n} lines)")
     assert long == [], "functions over 120 lines:\n" + "\n".join(long)
+
+
+def test_every_function_level_import_in_the_app_says_why():
+    """An import inside a function is for a heavy or optional dependency, never to get around
+    a circle (issue 35): each one in app/ carries its reason as a comment on its line."""
+    import ast
+
+    bare = []
+    for p in sorted((REPO / "app").rglob("*.py")):
+        src = p.read_text()
+        lines = src.split("\n")
+        seen = set()
+        for node in ast.walk(ast.parse(src)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for sub in ast.walk(node):
+                    if isinstance(sub, (ast.Import, ast.ImportFrom)) and sub.lineno not in seen:
+                        seen.add(sub.lineno)
+                        if "#" not in lines[sub.lineno - 1]:
+                            bare.append(f"{p.relative_to(REPO)}:{sub.lineno}: {lines[sub.lineno - 1].strip()}")
+    assert bare == [], "function-level imports without a reason:\n" + "\n".join(bare)

@@ -29,7 +29,7 @@ from tests.export_fixtures import SPEC, make_grid, make_workspace
 
 REPO = Path(__file__).resolve().parents[1]
 COMMITS = {"Symphonies": "4ca4ff2", "MonoScene": "f52bbb1", "SSCBench": "9e767e1",
-           "CGFormer": "0331e11"}
+           "CGFormer": "0331e11", "DISC": "00ecc7f"}
 
 
 @pytest.fixture(scope="module")
@@ -464,10 +464,29 @@ def test_porting_guide_names_the_commits_and_matches_the_bench_run():
     for name, commit in COMMITS.items():
         assert name in doc and commit in doc, name
     run = json.loads((REPO / "docs" / "bench" / "ssc_loaders.json").read_text())
-    assert set(run["codebases"]) == {"symphonies", "monoscene", "sscbench_monoscene", "cgformer"}
+    assert set(run["codebases"]) == {"symphonies", "monoscene", "sscbench_monoscene", "cgformer", "disc"}
     for key, cb in run["codebases"].items():
         assert cb["commit"].startswith(COMMITS[cb["name"]]), key
         assert cb["loads"], (key, cb.get("error"))
+        # every split of every codebase went through its own loader to a batch
+        assert set(cb["splits_batched"]) == set(cb["lengths"]) and len(cb["lengths"]) == 3, key
+        assert all(v["batched"] for v in cb["splits_batched"].values()), (key, cb["splits_batched"])
+        assert all(n > 0 for n in cb["lengths"].values()), key
+        # depth vs grid through the codebase's own projection, >= 10 frames per altitude
+        dc = cb["depth_consistency"]
+        assert len(dc["mean"]) == 3 and all(f["n"] >= 10 for f in dc["frames"].values()), key
+        assert dc["own_projection_equals_adapter"] in (True, None), key
+        assert cb["memory_mb_per_sample"], key
+    # the training smoke run: the guide carries its figures, the SSC loss fell
+    train = json.loads((REPO / "docs" / "bench" / "ssc_train.json").read_text())
+    assert train["steps"] >= 25 and (REPO / train["plot"]).is_file()
+    assert f"{train['steps']} steps" in doc  # the guide says how short the run was
+    for k in ("monoscene", "monoscene_ssc_ce", "baseline"):
+        assert train["loss"][k]["last_25"] < train["loss"][k]["first_25"], k
+    for k, t in train["test"].items():
+        ours, theirs = t["occufly_metrics"], t["monoscene_sscmetrics"]
+        assert abs(ours["completion_iou"] - theirs["completion_iou"]) < 1e-3, k  # the same IoU
+        assert f"{ours['completion_iou'] * 100:.1f}" in doc, k
     # the guide's table is the run's table (bench_ssc_loaders.render_table), not a copy by hand
     assert "<!-- ssc-bench-table -->\n\n" + run["table"] + "\n" in doc
     import importlib.util

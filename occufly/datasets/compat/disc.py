@@ -3,8 +3,8 @@ export, and the Hydra callback that makes it selectable from the config.
 
 DISC is built on Symphonies: ``tools/train.py`` builds its loaders with
 ``build_data_loaders(cfg.data)``, which looks the dataset up with
-``getattr(ssc_ia.data.datasets, cfg.data.datasets.type)`` (``ssc_ia/data/build.py:17-23``,
-``ssc_ia/utils/build.py:59-67``), and ``@hydra.main(..., version_base=None)`` is Hydra >= 1.2,
+``getattr(ssc_ia.data.datasets, cfg.data.datasets.type)`` (``ssc_ia/data/build.py:8-21``,
+``ssc_ia/utils/build.py:55-63``), and ``@hydra.main(..., version_base=None)`` is Hydra >= 1.2,
 which runs ``hydra.callbacks`` before the task. So the port is **configuration only**:
 :class:`Register` (a Hydra callback) adds :class:`OccuFlyKITTI360` to ``ssc_ia.data.datasets``::
 

@@ -279,7 +279,7 @@ def test_hostile_names_render_as_text_on_every_page_and_in_the_viewer(live, new_
     # reviewer: scene chooser (scene name), frame list (frame name), detail (name, comments)
     page = new_page("reviewer")
     _watch_csp(page)
-    page.goto(f"{live.base_url}/#/review?scene={sid}")
+    page.goto(f"{live.base_url}/#/review?scene={sid}&state=")  # all states: the frame is rejected
     page.wait_for_selector(f"#frame-list tr[data-frame='{fid}']")
     seen["reviewer list: frame"] = MARK in page.locator("#frame-list").inner_text()
     seen["reviewer: scene"] = ("hostile " + MARK) in _text_and_values(page)
@@ -290,7 +290,7 @@ def test_hostile_names_render_as_text_on_every_page_and_in_the_viewer(live, new_
     _assert_inert(page, "reviewer")
     shot(page, "security_reviewer_hostile")
     # the scene whose class is named HOSTILE: refused, and the refusal is text
-    page.goto(f"{live.base_url}/#/review?scene={sid_cls}")
+    page.goto(f"{live.base_url}/#/review?scene={sid_cls}&state=")  # all states
     page.wait_for_timeout(500)
     first = page.locator("#frame-list tr[data-frame] a").first
     first.click()
@@ -360,7 +360,7 @@ def test_reviewer_cannot_accept_a_mask_the_page_cannot_show(live, new_page):
     h, w = ids.shape
     ctx.store.path(sha).write_bytes(_png(w, h, 16, 0, _rows(ids.astype(">u2"))))
     page = new_page("reviewer")
-    page.goto(f"{live.base_url}/#/review?scene={sid}")
+    page.goto(f"{live.base_url}/#/review?scene={sid}&state=")  # all states: the frame is rejected
     page.locator(f"#frame-list tr[data-frame='{f['id']}'] a").click()
     page.wait_for_selector("canvas[data-layer='image']")
     wait_js(page, "() => document.body.innerText.includes('16-bit')")

@@ -373,6 +373,9 @@ def restore(settings: Settings, src: Path) -> dict:
             n_masks += 1
         counts = {}
         with engine.begin() as conn:
+            # the migrations seed id_counters in the fresh database: the backup's rows replace
+            # them (a backup made before migration 0012 has none: re-seeded below)
+            conn.execute(text("DELETE FROM id_counters"))
             for table in _tables():
                 batch, n = [], 0
                 for row in _rows(src, table.name):
@@ -388,6 +391,16 @@ def restore(settings: Settings, src: Path) -> dict:
                     conn.execute(insert(table), batch)
                     n += len(batch)
                 counts[table.name] = n
+            # scene ids continue after every id the restored rows know (never reused, issue 36)
+            seen = conn.execute(text(
+                "SELECT COALESCE(MAX(i), 0) FROM (SELECT MAX(id) AS i FROM scenes UNION ALL "
+                "SELECT MAX(scene_id) FROM audit_events UNION ALL SELECT MAX(scene_id) FROM jobs "
+                "UNION ALL SELECT MAX(last_id) FROM id_counters WHERE name = 'scenes') AS seen")
+            ).scalar_one()
+            if conn.execute(text("UPDATE id_counters SET last_id = :v WHERE name = 'scenes'"),
+                            {"v": int(seen)}).rowcount == 0:
+                conn.execute(text("INSERT INTO id_counters (name, last_id) VALUES ('scenes', :v)"),
+                             {"v": int(seen)})
             if conn.dialect.name == "postgresql":  # ids continue after the restored ones
                 for table in _tables():
                     pk = list(table.primary_key.columns)

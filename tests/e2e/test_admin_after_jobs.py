@@ -21,6 +21,7 @@ def _open(page, live, sid) -> None:  # noqa: ANN001
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
     page.reload()  # one mount: the hash change after the login's landing page mounts it twice
     page.locator("#overview tr[data-scene='admin_after_jobs']").first.wait_for()
+    page.wait_for_load_state("networkidle")  # a loaded host: the page's last re-render is done
 
 
 def test_overview_follows_a_finished_selection_job(live, sid, new_page):
@@ -32,6 +33,7 @@ def test_overview_follows_a_finished_selection_job(live, sid, new_page):
     assert todo.inner_text() == str(before["todo"])
     # a coarser grid selects fewer frames: "to do" changes when the job finishes
     page.fill("#sel-cell", "40")
+    assert page.input_value("#sel-cell") == "40"  # not reset by a late re-render
     page.click("#sec-selection button[type=submit]")
     page.wait_for_selector("#toast:has-text('selection) done')", timeout=60_000)
     after = next(s for s in admin.get("/api/overview").json()["scenes"] if s["scene_id"] == sid)

@@ -483,7 +483,11 @@ def test_two_lifting_workers_share_the_scenes_and_take_over_after_kill_9(tmp_pat
         while time.monotonic() < end:
             with ctx.sessions() as s:
                 st = s.get(LiftStatus, sid)
-                if st.fill_state == "running":
+                # the victim has applied every save (a loaded host may start a fill after the
+                # first batch, with later entries still pending) and is filling
+                pending = s.scalar(select(LiftQueueEntry.id).where(
+                    LiftQueueEntry.scene_id == sid, LiftQueueEntry.status == "pending").limit(1))
+                if st.fill_state == "running" and pending is None:
                     break
             time.sleep(0.005)
         fills_before = st.fills

@@ -238,7 +238,6 @@ def _password(args: argparse.Namespace) -> tuple[str, bool]:
     if os.environ.get("OCCUFLY_NEW_PASSWORD"):
         return os.environ["OCCUFLY_NEW_PASSWORD"], False
     if sys.stdin.isatty():
-
         return getpass.getpass(f"password for {args.name}: "), False
     return secrets.token_urlsafe(12), True
 

@@ -71,7 +71,6 @@ class DemoSteps:
             t0 = time.perf_counter()
             bar = None
             if self.stream is not None and self.tty:
-
                 bar = tqdm(total=1000, desc=f"    {label}", file=self.stream, leave=False,
                            bar_format="{desc} {bar} {percentage:3.0f}% {elapsed}")
             state = {"last": 0, "quarter": 0}

@@ -128,6 +128,7 @@ def authorize_viewer(ctx: AppContext):
     """authorize(request_or_websocket) -> bool for the 3D viewer: a logged-in reviewer/admin,
     and for a reviewer the requested scene (``?scene=`` or the viewer's scene cookie) must be
     one they are a member of."""
+
     def authorize(conn) -> bool:  # noqa: ANN001
         token = token_from(conn)
         if not token:
@@ -149,6 +150,7 @@ def authorize_viewer(ctx: AppContext):
 def viewer_callbacks(ctx: AppContext) -> dict:
     """The optional hooks of ``app.viewer.mount``: who is asking, which scenes, frame states,
     current masks, and filing review items from 3D (scene ids are ``str(scene.id)``)."""
+
     def identify(conn):  # noqa: ANN001, ANN202
         token = token_from(conn)
         if not token:

@@ -264,7 +264,6 @@ def export_masks(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: Admin
     prefill of its selected frames (``what=prefill``; Label Studio: as predictions) as a zip
     for CVAT, COCO, Label Studio or plain PNGs, one item per frame."""
     with tempfile.TemporaryDirectory(prefix="occufly-mask-export-") as tmp:
-
         safe = re.sub(r"[^A-Za-z0-9._-]+", "_", scene.name).strip("._") or f"scene{scene.id}"
         name = f"{safe}_{what}_{format}.zip"
         path = FsPath(tmp) / "out.zip"

@@ -487,7 +487,6 @@ def propose(*, session: Session, ctx: AppContext, edit: CorrectionEdit, frame: F
     change = np.zeros(mask.shape, bool)
     change[px] = True
     if dilate > 0:  # close the gaps between the projected points, then grow the region
-
         change = binary_closing(change, iterations=2 * int(dilate)) | change
         change = binary_dilation(change, iterations=int(dilate))
     change &= mask != edit.to_class
@@ -648,19 +647,22 @@ def viewer_hooks(ctx: AppContext) -> dict:
             raise Forbidden("log in again")
         return u
 
+    def _member_scene(s: Session, scene_id, user) -> tuple[Scene, User]:  # noqa: ANN001
+        """The scene (404) and the viewer's user, who must be an active member of it."""
+        scene = s.get(Scene, int(scene_id))
+        if scene is None:
+            raise NotFound(f"scene {scene_id} does not exist")
+        u = _user(s, user)
+        check_member(s, u, scene.id)
+        return scene, u
+
     def relabel(scene_id, point_ids, to_class, comment, user, frame_index=None) -> dict:  # noqa: ANN001
         with ctx.sessions() as s:
-            scene = s.get(Scene, int(scene_id))
-            if scene is None:
-                raise NotFound(f"scene {scene_id} does not exist")
-            u = _user(s, user)
-
-            check_member(s, u, scene.id)
+            scene, u = _member_scene(s, scene_id, user)
             fid = None if frame_index is None else s.scalar(select(Frame.id).where(
                 Frame.scene_id == scene.id, Frame.index == int(frame_index)))
             e = create_edit(session=s, ctx=ctx, scene=scene, user=u, point_ids=point_ids,
                             to_class=int(to_class), comment=comment or None, frame_id=fid)
-
             out = edit_out(s, e)
             audit.record(s, "correction", actor=u, scene_id=scene.id, frame_id=fid,
                          detail={"edit": e.id, "to": e.to_class, "points": e.n_points,
@@ -673,7 +675,6 @@ def viewer_hooks(ctx: AppContext) -> dict:
                 scene = s.get(Scene, int(scene_id))
                 u = _user(s, user)
                 e = (undo if which == "undo" else redo)(session=s, ctx=ctx, scene=scene, user=u)
-
                 out = edit_out(s, e)
                 audit.record(s, f"correction_{which}", actor=u, scene_id=scene.id,
                              detail={"edit": e.id, "via": "viewer"})
@@ -688,11 +689,7 @@ def viewer_hooks(ctx: AppContext) -> dict:
         """The viewer's "File as proposal": correction ``edit_id``'s projection into the
         frame at ``frame_index`` as a proposal (:func:`propose`; its refusals pass through)."""
         with ctx.sessions() as s:
-            scene = s.get(Scene, int(scene_id))
-            if scene is None:
-                raise NotFound(f"scene {scene_id} does not exist")
-            u = _user(s, user)
-            check_member(s, u, scene.id)
+            scene, u = _member_scene(s, scene_id, user)
             e = s.get(CorrectionEdit, int(edit_id))
             if e is None or e.scene_id != scene.id:
                 raise NotFound(f"correction {edit_id} is not in scene {scene.id}")

@@ -590,7 +590,6 @@ class LiftingService:
         with self._cv:
             mask = self._decoded.pop((r.frame_id, r.version_id), None)
         if mask is None:
-
             mask = stored_mask_ids(self.store.get(r.sha256), state.scene.taxonomy)
         return state.frame_votes(fi, mask, name=f"mask version {r.version_id}")
 

@@ -25,7 +25,6 @@ def main(argv: list[str] | None = None) -> int:  # noqa: ARG001
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT")
     if parent and parent.isdigit():  # started by `occufly serve --workers N`
-
         die_with_parent(int(parent))
     try:
         settings = Settings.from_env()

@@ -171,7 +171,6 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
     if not plan["taken"]:
         # labels that no mask version of this app made (written into the workspace by the
         # command line, say): exported as they are, and the manifest says so
-
         try:
             q = lifting_quality.quality_report(ws, ws_scene, policy=policy, truth=truth)
         except WorkspaceError:
@@ -204,7 +203,6 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
         corrected = load_labels(lift_dir)
         lp = scratch / "labels_corrected.npy"
         np.save(lp, np.asarray(corrected.labels, np.uint8))
-
         if voxel_size is None:
             g = Workspace(ws).grid()
             voxel_size = float(g.voxel_size) if g is not None else 0.5

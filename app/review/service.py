@@ -302,6 +302,9 @@ def warm_on_labels(ctx: AppContext):  # noqa: ANN201
     return on_event
 
 
+AGREEMENT_REFRESH_FRAMES = 200  # frames whose stored agreement a fill recomputes
+
+
 def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # noqa: ANN001
     """The ``labels_updated`` subscriber of the process whose lifting service owns the scene
     (wired by :func:`app.bootstrap.build_lifting_service`): recompute the stored per-frame
@@ -310,13 +313,11 @@ def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # 
     with ctx.sessions() as s:
         scene = s.get(Scene, msg.scene_id)
         if scene is not None:
-            refresh_agreement(ctx, s, scene, limit=AGREEMENT_REFRESH_FRAMES, stop=stop, log=log)
+            refresh_agreement(ctx, s, scene, stop=stop, log=log)
 
 
-AGREEMENT_REFRESH_FRAMES = 200  # frames whose stored agreement a fill recomputes
-
-
-def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *, limit: int = 200,
+def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *,
+                      limit: int = AGREEMENT_REFRESH_FRAMES,
                       stop: threading.Event | None = None, log=None) -> list[int]:  # noqa: ANN001
     """After a fill (the lifting worker's ``labels_updated`` subscriber): recompute the stored
     agreement of every submitted / reviewed frame (the list's sort) and leave the review of

@@ -68,7 +68,6 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
              if body.depth_maps else None)
     images = service.resolve_import_path(s, body.images, field="images") if body.images else None
     if body.crs:  # a CRS pyproj cannot read is a 4xx now, not a failed job later
-
         parse_crs(body.crs, "crs")
     if body.members:  # check the ids before anything is created
         service.check_member_ids(session=session, user_ids=body.members)

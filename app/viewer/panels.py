@@ -213,8 +213,6 @@ class PanelsMixin:
         with self._lock:
             self.prefs.setdefault(k, {}).update(values)
             if self.prefs_path is not None:
-
-
                 try:
                     self.prefs_path.parent.mkdir(parents=True, exist_ok=True)
                     atomic_write_text(self.prefs_path, json.dumps(self.prefs))

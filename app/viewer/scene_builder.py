@@ -121,7 +121,6 @@ class ViewerData:
         origin = opt(w.label_origin_path)
         if labels is not None and conf is not None and origin is not None:
             # what every reader sees: the fill output with reviewers' corrections on top
-
             res = apply_overrides(LiftResult(labels, conf, origin), w)
             labels, conf, origin = res.labels, res.confidence, res.origin
         direct = _load_direct(ws, scene)

@@ -159,7 +159,6 @@ class SceneViewMixin:
             surface_only = bool(st.gui["grid_surface"].value)
             nodes: list[sb.VoxelNode] = []
             if st.gui["grid_scene"].value and d.grid is not None:
-
                 nodes += scene_grid_nodes_lod(d.grid, d.scene.origin, d.taxonomy)
             frame = st.gui["grid_frame"].value
             if frame and frame != "(none)":

@@ -40,7 +40,7 @@ from dataclasses import replace
 
 import numpy as np
 
-import occufly.lifting as pkg
+from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.knn import LiftParams, check_inputs, confirmed, lift_result, untie
 from occufly.lifting.result import LiftResult
@@ -95,8 +95,8 @@ class IncrementalFill:
              progress: ProgressFn | None = None) -> LiftResult:
         """The result of ``fill_and_denoise(xyz, direct, ...)``, recomputing only the region
         where it can differ from the previous call's."""
-        # looked up on the package at call time (tests and profilers patch it there)
-
+        # knn.fill_and_denoise is looked up at call time: a test or profiler patching
+        # occufly.lifting.knn sees the incremental fills too (the app's only fill path)
         t0 = time.perf_counter()
         p = params or LiftParams()
         n = len(self.xyz)
@@ -107,7 +107,7 @@ class IncrementalFill:
                   and (p.voxel is None or p.voxel == prev["edge"]))
         if not usable:
             keep: dict = {}
-            res = pkg.fill_and_denoise(self.xyz, direct, self.taxonomy, params=p,
+            res = knn.fill_and_denoise(self.xyz, direct, self.taxonomy, params=p,
                                        vote_margin=vote_margin, vote_top=vote_top,
                                        progress=progress, keep=keep)
             self._prev, self._params = keep, p
@@ -141,7 +141,7 @@ class IncrementalFill:
             keep = {}
             # the subset, on the whole cloud's lattice; direct is already untied and the
             # confirmation / confidence of the subset are not used (pointwise, below)
-            pkg.fill_and_denoise(self.xyz[ctx], du[ctx], self.taxonomy,
+            knn.fill_and_denoise(self.xyz[ctx], du[ctx], self.taxonomy,
                                  params=replace(p, voxel=edge), grid_origin=origin, keep=keep)
             arrays = {k: v.copy() for k, v in arrays.items()}
             for k in _PER_POINT:

@@ -24,7 +24,7 @@ from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
 from app.deps import AdminUser, CtxDep, SessionDep
-from app.errors import Conflict, NotFound
+from app.errors import DISK_FULL_ERRNOS, Conflict, InsufficientStorage, NotFound
 from app.jobs import service
 from app.jobs.schemas import JidPath
 
@@ -85,6 +85,13 @@ def build(root: Path, dest: Path, fmt: str) -> Path:
                 for p, name in files:
                     t.add(p, arcname=name, recursive=False)
         os.replace(tmp, dest)
+    except OSError as e:
+        if e.errno not in DISK_FULL_ERRNOS:
+            raise
+        raise InsufficientStorage(  # the partial archive is removed below (issue 36)
+            f"disk full while writing the archive {dest.name} of export {root.name} (in "
+            f"{dest.parent}): nothing was kept -- an admin must free space, then try again"
+        ) from None
     finally:
         tmp.unlink(missing_ok=True)
     return dest

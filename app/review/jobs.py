@@ -14,6 +14,7 @@ from app.scenes.jobs import scene_of
 from occufly.densify.evaluate import evaluate_grids
 from occufly.errors import OccuflyError
 from occufly.export import export_dataset
+from occufly.export.common import ExportDiskFull, ExportError, is_disk_full
 from occufly.workspace import Workspace
 
 
@@ -35,16 +36,17 @@ def run_export(jc: JobContext) -> dict:
     scratch = jc.ctx.settings.data_dir / "scratch" / f"export_{jc.job_id}_{jc.attempt}"
     shutil.rmtree(scratch, ignore_errors=True)
     try:
-        lab = provenance.export_labels(jc.ctx, Path(ws), ws_scene, plan, scratch,
-                                       progress=lambda f, m="": jc.progress(0.3 * f, m))
-        # written under an attempt-private name, moved to ``out`` when this attempt is
-        # recorded done (a stale attempt of the same job can never touch it; app.jobs.runner)
-        staging = jc.output_dir(out)
-        summary = export_dataset(
-            Path(ws), staging, scene_id=f"scene_{jc.scene_id:02d}",
-            layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
-            executor=jc.executor(), grid=lab["grid"], provenance=lab["provenance"],
-            quality=lab["quality"], progress=lambda f, m="": jc.progress(0.3 + 0.7 * f, m))
+        summary, lab, staging = _write_export(jc, ws, ws_scene, plan, scratch, out)
+    except (OSError, ExportError) as e:
+        # the disk (or a quota) filled while the labels were lifted again or the files were
+        # written: the runner removes the attempt's staging folder (nothing of this export is
+        # left) and the job says so in words, naming where it was writing
+        if not is_disk_full(e):
+            raise
+        raise ExportDiskFull(
+            f"disk full while exporting scene {jc.scene_id} to {out}: nothing of this export "
+            "was kept (the partial output was removed) -- free space in the data folder, then "
+            "run the export again") from None
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     q = lab["quality"]
@@ -58,6 +60,23 @@ def run_export(jc: JobContext) -> dict:
                 "loo_agreement": (q.get("loo") or {}).get("agreement"),
                 "multi_view_share": q["votes"]["multi_view_share"],
                 "contested_share": q["contested"]["share"]}}
+
+
+def _write_export(jc: JobContext, ws, ws_scene, plan: dict, scratch: Path,  # noqa: ANN001
+                  out: Path) -> tuple[dict, dict, Path]:
+    """Lift the planned versions (in ``scratch`` when needed) and write the export into the
+    attempt's staging folder: ``(summary, labels, staging)``."""
+    lab = provenance.export_labels(jc.ctx, Path(ws), ws_scene, plan, scratch,
+                                   progress=lambda f, m="": jc.progress(0.3 * f, m))
+    # written under an attempt-private name, moved to ``out`` when this attempt is
+    # recorded done (a stale attempt of the same job can never touch it; app.jobs.runner)
+    staging = jc.output_dir(out)
+    summary = export_dataset(
+        Path(ws), staging, scene_id=f"scene_{jc.scene_id:02d}",
+        layout=jc.params.get("layout", "occufly"), frames=jc.params.get("frames"),
+        executor=jc.executor(), grid=lab["grid"], provenance=lab["provenance"],
+        quality=lab["quality"], progress=lambda f, m="": jc.progress(0.3 + 0.7 * f, m))
+    return summary, lab, staging
 
 
 @kind("eval")

@@ -36,6 +36,10 @@ class ExportError(WorkspaceError):
     """An export target is unusable (exists and is not ours, disk full, bad frame)."""
 
 
+class ExportDiskFull(ExportError):
+    """The disk (or the quota) filled while an export wrote (ENOSPC / EDQUOT)."""
+
+
 # ---- arrays ------------------------------------------------------------------------------------
 def pack_bits(mask: np.ndarray) -> bytes:
     """np.packbits of the C-order flattened bool array, MSB first (FORMATS.md section 3)."""
@@ -270,7 +274,7 @@ DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 def is_disk_full(e: BaseException) -> bool:
-    return isinstance(e, OSError) and e.errno in DISK_FULL
+    return isinstance(e, ExportDiskFull) or (isinstance(e, OSError) and e.errno in DISK_FULL)
 
 
 def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict) -> int:
@@ -311,7 +315,7 @@ def write_frame_files(files: dict[Path, bytes], marker: Path, marker_data: dict)
             except OSError:
                 pass
         if is_disk_full(e):
-            raise ExportError(
+            raise ExportDiskFull(
                 f"disk full while writing {path}: the frame was not written; frames already "
                 "completed are kept -- free space and rerun the same export to resume"
             ) from None

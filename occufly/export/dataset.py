@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import time
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -42,6 +43,7 @@ from occufly.export.axes import frame_axes
 from occufly.export.common import (
     DOWNSAMPLE_RULES,
     EXPORT_FORMAT_VERSION,
+    ExportDiskFull,
     ExportError,
     cached,
     clean_stray_temporaries,
@@ -53,7 +55,7 @@ from occufly.export.common import (
     sha256_bytes,
     write_frame_files,
 )
-from occufly.fsutil import atomic_write_bytes
+from occufly.fsutil import atomic_directory, atomic_write_bytes
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn
 from occufly.sampling import (
@@ -295,7 +297,7 @@ def _atomic_write(path: Path, data: bytes) -> None:
         atomic_write_bytes(path, data)
     except OSError as e:
         if is_disk_full(e):
-            raise ExportError(f"disk full while writing {path}; nothing of this export was "
+            raise ExportDiskFull(f"disk full while writing {path}; nothing of this export was "
                               "changed beyond completed frames -- free space and rerun") from None
         raise
 
@@ -428,12 +430,67 @@ def export_dataset(ws: Path, out: Path, options: ExportOptions | None = None, *,
     hold one calibration per scene / sequence. The summary then has ``scenes`` (one summary
     each) and the totals.
     """
-    from occufly.scene import Scene
-
     t_start = time.perf_counter()
     opts = replace(options or ExportOptions(), **fields)
     opts.check()
     ws, out = Path(ws).absolute(), Path(out).absolute()
+    if out.exists():
+        if not out.is_dir() or any(out.iterdir()):
+            # adding to / resuming an earlier export: each frame is written atomically, the
+            # frames already complete are kept whatever happens (rerun to resume)
+            return _export_scene(ws, out, opts, executor=executor, progress=progress,
+                                 t_start=t_start)
+        # an empty folder (maybe a mount point: never swapped for a sibling): written in
+        # place and emptied again if the export fails
+        try:
+            return _export_scene(ws, out, opts, executor=executor, progress=progress,
+                                 t_start=t_start)
+        except BaseException as e:
+            _empty_folder(out)
+            if is_disk_full(e):
+                raise _disk_full_error(out) from None
+            raise
+    # a new export: built under a temporary sibling (.NAME.<pid>-XXXX.partial) and renamed
+    # into place once complete; on any failure the sibling is removed and nothing is left
+    tmp = None
+    try:
+        with atomic_directory(out) as tmp:
+            summary = _export_scene(ws, tmp, opts, executor=executor, progress=progress,
+                                    t_start=t_start)
+    except ExportError as e:
+        if is_disk_full(e):
+            raise _disk_full_error(out) from None
+        raise type(e)(str(e).replace(str(tmp), str(out)) if tmp else str(e)) from None
+    except OSError as e:
+        if is_disk_full(e):
+            raise _disk_full_error(out) from None
+        raise
+    summary["out"] = str(out)
+    for part in summary.get("scenes") or []:
+        part["out"] = str(out)
+    return summary
+
+
+def _disk_full_error(out: Path) -> ExportDiskFull:
+    return ExportDiskFull(
+        f"disk full while exporting to {out}: the export was not written (the partial output "
+        "was removed) -- free space and run it again")
+
+
+def _empty_folder(out: Path) -> None:
+    """Remove what a failed export wrote into ``out``, which was empty before it."""
+    for p in list(out.iterdir()) if out.is_dir() else []:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def _export_scene(ws: Path, out: Path, opts: ExportOptions, *, executor, progress,
+                  t_start: float) -> dict:
+    """:func:`export_dataset` into ``out`` as it stands (checked by ``_check_target``)."""
+    from occufly.scene import Scene
+
     scene = Scene.load(ws)
     idx = _frame_indices(len(scene.frames), opts.frames)
     groups = camera_groups(scene, idx)
@@ -465,8 +522,8 @@ def _export_per_camera(ws: Path, out: Path, opts: ExportOptions, groups: list[li
             f"{ws}: the frames use {len(groups)} different cameras; both layouts hold one "
             f"calibration per scene, so each camera becomes its own scene (at most "
             f"{MAX_CAMERAS}). Re-import with a shared camera model, or export subsets with --frames")
-    parts = [export_dataset(ws, out, replace(opts, scene_id=sid, frames=g), executor=executor,
-                            progress=progress)
+    parts = [_export_scene(ws, out, replace(opts, scene_id=sid, frames=g), executor=executor,
+                           progress=progress, t_start=time.perf_counter())
              for sid, g in zip(group_scene_ids(opts.scene_id, len(groups)), groups, strict=True)]
     return {
         "out": str(out), "layout": opts.layout, "scene_id": opts.scene_id,
@@ -703,7 +760,7 @@ def _run_frame_tasks(tasks: list[dict], out: Path, *, executor, workers: int | N
         return executor.map(export_frame_task, tasks, progress=progress) if tasks else []
     except OSError as e:
         if is_disk_full(e):
-            raise ExportError(f"disk full while exporting into {out}; completed frames are kept, "
+            raise ExportDiskFull(f"disk full while exporting into {out}; completed frames are kept, "
                               "free space and rerun to resume") from None
         raise
     finally:

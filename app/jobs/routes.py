@@ -85,10 +85,10 @@ def _start(session, ctx, scene, user, kind: str, params: dict,  # noqa: ANN001
             return service.out(found)
     if scene.status != "ready":
         raise Conflict(f"scene {scene.id} is {scene.status}, not ready")
-    with service.QUOTA_LOCK:  # issue 24: per-user job quota, export disk quota
-        service.check_quota(session=session, settings=ctx.settings, user_id=user.id, kind=kind)
-        job = service.create(session=session, kind=kind, scene_id=scene.id, params=params,
-                             user_id=user.id, key=key)
+    # issue 24: per-user job quota, export disk quota -- checked in the job's own transaction
+    # under the user's database lock, so it holds across API processes (issue 36)
+    job = service.create(session=session, kind=kind, scene_id=scene.id, params=params,
+                         user_id=user.id, key=key, quota=ctx.settings)
     if getattr(job, "reused", False):
         if response is not None:
             response.status_code = 200

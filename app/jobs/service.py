@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import threading
 import time
 from datetime import timedelta
 from pathlib import Path
@@ -17,6 +16,7 @@ from sqlalchemy.orm import Session
 from app.db import utcnow
 from app.errors import Conflict, InsufficientStorage, Invalid, NotFound, TooManyAttempts
 from app.jobs.models import Job, JobRequestKey
+from app.shared_limits import JOB_QUOTA, serialise
 
 LOG_LINES = 200
 
@@ -49,9 +49,11 @@ def find_by_key(*, session: Session, user_id: int, key: str, kind: str, scene_id
 
 
 # ---- quotas (issue 24: 40 export requests in 5 s wrote 11 GB) --------------------------------
-#: one process's job creations are serialised through the quota check, so concurrent requests
-#: cannot all see room for one more (N server processes: at most N x the quota in a race)
-QUOTA_LOCK = threading.Lock()
+# The count and the job's insert are one transaction serialised in the database per user
+# (app.shared_limits.serialise: an advisory lock on PostgreSQL, the write lock on SQLite), so
+# the quota holds across API processes (issue 36; before, a process-local lock serialised one
+# process's requests only: N processes let in up to N x the quota in a race). No process lock
+# is kept: the database lock already serialises the threads of one process.
 _EXPORTS_SIZE: dict[str, tuple[float, int]] = {}
 EXPORTS_SIZE_TTL_S = 10.0
 
@@ -91,7 +93,8 @@ def exports_bytes(exports_dir: Path, *, fresh: bool = False) -> int:
 def check_quota(*, session: Session, settings, user_id: int, kind: str) -> None:  # noqa: ANN001
     """Before a job is created: 429 when the user already has ``active_jobs_per_user`` jobs
     queued or running (Retry-After 10 s); for an export, 507 when the exports folder already
-    takes ``export_quota_bytes``. Call under :data:`QUOTA_LOCK` together with the create."""
+    takes ``export_quota_bytes``. On its own it is an early answer (nothing created yet); the
+    binding check is the one :func:`create` makes with ``quota=`` in its transaction."""
     active = session.scalar(select(func.count()).select_from(Job).where(
         Job.created_by_id == user_id, Job.status.in_(("queued", "running")))) or 0
     if active >= settings.active_jobs_per_user:
@@ -110,7 +113,18 @@ def check_quota(*, session: Session, settings, user_id: int, kind: str) -> None:
 
 
 def create(*, session: Session, kind: str, scene_id: int | None, params: dict,
-           user_id: int | None, key: str | None = None) -> Job:
+           user_id: int | None, key: str | None = None, quota=None) -> Job:  # noqa: ANN001
+    """Add a queued job. ``quota`` (the settings): the user's job quota is checked in the
+    transaction that adds the job, under the user's lock in the database (see above), so
+    concurrent requests in any number of API processes cannot all see room for one more."""
+    if quota is not None and user_id is not None:
+        session.commit()  # a fresh transaction: the lock is held from here to the commit
+        serialise(session, JOB_QUOTA, user_id)
+        try:
+            check_quota(session=session, settings=quota, user_id=user_id, kind=kind)
+        except Exception:
+            session.rollback()  # releases the lock
+            raise
     # heartbeat_at now: a queued job no runner has claimed yet is not "lost" until STALE_S has
     # passed -- a sweep between this commit and the runner's submit() would interrupt it
     job = Job(kind=kind, scene_id=scene_id, params=params, status="queued", created_by_id=user_id,

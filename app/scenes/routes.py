@@ -9,7 +9,7 @@ from sqlalchemy import select
 
 from app.audit import service as audit
 from app.deps import AdminUser, ClientIp, CtxDep, CurrentUser, FrameDep, SceneDep, SessionDep
-from app.errors import Conflict, NotFound
+from app.errors import Conflict, DomainError, NotFound
 from app.jobs import service as jobs
 from app.jobs.schemas import JobOut
 from app.limits import IdPath
@@ -76,11 +76,17 @@ def import_scene(body: ImportIn, session: SessionDep, ctx: CtxDep, user: AdminUs
     scene = service.create_scene(session=session, settings=s, name=body.name, source=source)
     if body.members:
         service.set_members(session=session, scene=scene, user_ids=body.members, replace=True)
-    job = jobs.create(session=session, kind="import", scene_id=scene.id, user_id=user.id,
-                      params={"source": str(source), "cloud": str(cloud) if cloud else None,
-                              "depth_maps": str(depth) if depth else None,
-                              "format": body.format, "images": str(images) if images else None,
-                              "crs": body.crs, "scale": body.scale})
+    try:  # the binding quota check, in the job's transaction (holds across API processes)
+        job = jobs.create(session=session, kind="import", scene_id=scene.id, user_id=user.id,
+                          params={"source": str(source), "cloud": str(cloud) if cloud else None,
+                                  "depth_maps": str(depth) if depth else None,
+                                  "format": body.format,
+                                  "images": str(images) if images else None,
+                                  "crs": body.crs, "scale": body.scale}, quota=s)
+    except DomainError:  # lost the race for the last place: the new scene goes again
+        session.delete(scene)
+        session.commit()
+        raise
     ctx.jobs.submit(job.id)
     audit.record(session, "import", actor=user, scene_id=scene.id, target=scene.name,
                  client_ip=ip, detail={"source": str(source), "job_id": job.id,

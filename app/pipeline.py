@@ -94,6 +94,7 @@ def workspace_image_paths(scene: Scene, source: Path, roots: list[Path] | None) 
                     f"{header}: frame {f.name!r} image_path {f.image_path!r} {where}") from None
             # inside the roots is not enough (a database or key file may sit there too): what
             # is there must be an image by its content
+            importer.refuse_hard_link(real, f"{header}: frame {f.name!r} image_path ")
             if real.is_file() and image_content_type(real) is None:
                 raise UnsafePathError(
                     f"{header}: frame {f.name!r} image_path {f.image_path!r} is not a PNG, "

@@ -109,6 +109,11 @@ def browse(settings: Settings, raw: str | None) -> dict:
             row = {"name": e.name, "path": str(real / e.name)}
             if stat.S_ISDIR(st.st_mode):
                 dirs.append({**row, "kind": "dir"})
+            elif stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
+                # a hard link may be a file from outside the roots: an import refuses it
+                # (occufly.io.importer.refuse_hard_link); the browser says so
+                files.append({**row, "kind": "file", "bytes": int(st.st_size), "hard_link": True,
+                              "refused": "a hard link: imports refuse it, copy the file in"})
             elif stat.S_ISREG(st.st_mode):
                 files.append({**row, "kind": "file", "bytes": int(st.st_size)})
     entries = sorted(dirs, key=lambda r: r["name"]) + sorted(files, key=lambda r: r["name"])

@@ -284,6 +284,9 @@ def image_file(ws_scene: WsScene, workspace: str, index: int, *, roots) -> Path:
         raise NotFound(f"image of frame {f.name} lies outside the import roots") from None
     if not p.is_file():
         raise NotFound(f"image of frame {f.name} is missing ({p.name})")
+    if p.stat().st_nlink > 1:  # a hard link made after the import (occufly.io.importer)
+        raise NotFound(f"image of frame {f.name} is a hard link ({p.name}); hard links in the "
+                       "import roots are not served -- copy the file in instead")
     return p
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -335,6 +336,23 @@ def _depth_test_description(vis_mode: str, vis_stats: dict) -> str | None:
     return "depth test against MVS depth maps and depth rendered from the cloud"
 
 
+def refuse_hard_link(p: Path, where: str = "") -> None:
+    """UnsafePathError when ``p`` (symlinks followed) is a regular file with more than one
+    name (``st_nlink > 1``). A hard link inside an import root to a file outside it looks like
+    any file there -- ``confined`` cannot tell -- so imports refuse every hard-linked file
+    (COLMAP, ODM, Metashape and Pix4D workspaces do not make them); the message names the file
+    and says what to do. ``where`` prefixes the message (the file the path came from)."""
+    try:
+        st = os.stat(p)
+    except OSError:
+        return  # a missing file is reported by whoever opens it
+    if stat.S_ISREG(st.st_mode) and st.st_nlink > 1:
+        raise UnsafePathError(
+            f"{where}{p} is a hard link ({st.st_nlink} names for one file): a hard link in an "
+            "import root may be a file from anywhere on its disk, so imports refuse hard "
+            "links -- copy the file in instead (cp without -l or --preserve=links)")
+
+
 def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
     """``source`` (a project file or folder) and every symlink under it resolve inside
     ``roots``: a reader never opens a file elsewhere through a link in the project (a
@@ -348,6 +366,7 @@ def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
         raise UnsafePathError(f"{source} resolves to {os.path.realpath(source)}, outside the "
                               "import roots") from None
     if not source.is_dir():
+        refuse_hard_link(source)
         return 1
     n = 0
     for dirpath, dirnames, filenames in os.walk(source, followlinks=False):
@@ -361,6 +380,7 @@ def confine_tree(source: Path, roots) -> int:  # noqa: ANN001
                     raise UnsafePathError(
                         f"{p} is a symbolic link to {os.path.realpath(p)}, outside the import "
                         "roots; imports read only files inside them") from None
+            refuse_hard_link(p)
     return n
 
 
@@ -377,6 +397,7 @@ def confine_inputs(roots, project: Path, image_dir: Path, names: list[str],  # n
             raise UnsafePathError(
                 f"{project}: {what} {p} resolves to {os.path.realpath(p)}, outside the import "
                 "roots; imports read only files inside them") from None
+        refuse_hard_link(p, f"{project}: {what} ")
 
     check(image_dir, "image folder")
     for n in names:

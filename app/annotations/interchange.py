@@ -9,9 +9,12 @@ an external author is recorded) -- which votes and waits for review like a submi
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import os
 import re
-import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -29,11 +32,36 @@ from occufly.io import mask_interchange
 from occufly.io.masks import decode_mask_png, encode_mask_png
 
 SOURCE_MAX = 64  # MaskVersion.source
-#: mask imports read at once by this API process (each may unpack up to
-#: mask_interchange.INFLATE_FACTOR times its upload and parse 16 MB annotation files); one
-#: more is a 429 (issue 36)
+#: mask imports read at once on this host, whatever the number of API processes (each may
+#: unpack up to mask_interchange.INFLATE_FACTOR times its upload and parse 16 MB annotation
+#: files); one more is a 429 (issue 36). The slots are ``flock``-ed files under the data dir
+#: (``locks/mask-import/slot<i>``): an flock belongs to one open file, so it excludes other
+#: threads of this process as well as other processes, and the kernel drops it when its
+#: holder dies (a killed import never keeps a slot)
 MAX_CONCURRENT_IMPORTS = 2
-_importing = threading.BoundedSemaphore(MAX_CONCURRENT_IMPORTS)
+IMPORT_RETRY_AFTER_S = 5
+
+
+@contextmanager
+def import_slot(data_dir: Path, slots: int = MAX_CONCURRENT_IMPORTS) -> Iterator[int]:
+    """Hold one of ``slots`` host-wide import slots while the block runs (its number), or
+    raise TooManyAttempts (429, Retry-After) when every slot is held."""
+    folder = Path(data_dir) / "locks" / "mask-import"
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(slots):
+        fd = os.open(folder / f"slot{i}", os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue
+        try:
+            yield i
+        finally:
+            os.close(fd)  # closing the file releases its lock
+        return
+    raise TooManyAttempts(f"{slots} mask imports are being read on this server; try again "
+                          f"when one has finished", retry_after=IMPORT_RETRY_AFTER_S)
 
 
 class ImportedFrame(BaseModel):
@@ -92,18 +120,14 @@ def import_archive(*, session: Session, ctx: AppContext, scene: Scene, user: Use
     tool = mask_interchange.TOOL_NAMES[fmt]
     source = source_label(tool, author)  # checked before the archive is read
     ws_scene = ctx.load_scene(scene.workspace)
-    if not _importing.acquire(blocking=False):
-        raise TooManyAttempts(f"{MAX_CONCURRENT_IMPORTS} mask imports are being read on this "
-                              f"server; try again when one has finished", retry_after=5)
     try:
-        res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
-                                          class_map=class_map)
+        with import_slot(ctx.settings.data_dir):
+            res = mask_interchange.read_masks(archive, fmt, ws_scene.frames, ws_scene.taxonomy,
+                                              class_map=class_map)
     except mask_interchange.MaskImportError as e:  # the page lists them one per line
         raise Invalid(str(e), problems=e.problems) from None
     except mask_interchange.InsufficientSpace as e:
         raise InsufficientStorage(str(e)) from None
-    finally:
-        _importing.release()
     if not res.masks:
         raise Invalid(f"the {res.tool} archive paints no frame ({len(res.skipped_empty)} "
                       f"image(s) without annotations): nothing to import")

@@ -49,6 +49,8 @@
                                before the body is read: app/bodylimit.py)
 ``OCCUFLY_MAX_SELECTION_MB``   largest point-id list body (corrections, review items;
                                default 64)
+``OCCUFLY_MAX_CORRECTION_POINTS``  point ids one 3D correction may name (default 2000000;
+                               413 beyond, counted before the ids are parsed)
 ``OCCUFLY_USER_QUOTA_MB``      mask storage one user's versions may take, conflicts included
                                (default 2048; 507 beyond)
 ``OCCUFLY_SCENE_QUOTA_MB``     mask storage one scene's versions may take (default 10240)
@@ -114,6 +116,7 @@ class Settings:
     # issue 24: request body caps (app/bodylimit.py), storage and job quotas
     max_json_bytes: int = 1 << 20
     max_selection_bytes: int = 64 << 20
+    max_correction_points: int = 2_000_000  # issue 36: a 1 M-point lasso fits (issue 38)
     user_quota_bytes: int = 2048 << 20
     scene_quota_bytes: int = 10240 << 20
     active_jobs_per_user: int = 4
@@ -199,6 +202,7 @@ class Settings:
             export_max_age_days=num("OCCUFLY_EXPORT_MAX_AGE_DAYS", 0.0, float),
             max_json_bytes=int(num("OCCUFLY_MAX_JSON_MB", 1, float) * 2**20),
             max_selection_bytes=int(num("OCCUFLY_MAX_SELECTION_MB", 64, float) * 2**20),
+            max_correction_points=num("OCCUFLY_MAX_CORRECTION_POINTS", 2_000_000),
             user_quota_bytes=int(num("OCCUFLY_USER_QUOTA_MB", 2048, float) * 2**20),
             scene_quota_bytes=int(num("OCCUFLY_SCENE_QUOTA_MB", 10240, float) * 2**20),
             active_jobs_per_user=num("OCCUFLY_ACTIVE_JOBS_PER_USER", 4),

@@ -43,6 +43,7 @@ from app.scenes.disk import apply_export_retention
 from app.scenes.imports import router as imports_router
 from app.scenes.models import Frame, Scene
 from app.scenes.routes import router as scenes_router
+from app.shared_limits import SocketLeases
 from app.users import service as users
 from app.users.models import User
 from app.users.routes import router as users_router
@@ -218,7 +219,9 @@ def viewer_callbacks(ctx: AppContext) -> dict:
     return {"identify": identify, "scenes": scenes, "frame_states": frame_states,
             "frame_mask": frame_mask, "on_review_item": review.make_viewer_callback(ctx),
             "frame_index": frame_index, "suspect_points": suspect_points, "can_open": can_open,
-            "corrections": viewer_hooks(ctx)}
+            "corrections": viewer_hooks(ctx),
+            # the per-user socket cap counted in the database, across API processes (issue 36)
+            "socket_leases": SocketLeases(ctx.sessions)}
 
 
 def _mount_viewer(app: FastAPI, ctx: AppContext) -> None:

@@ -94,7 +94,8 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
           max_points: int | None = None, prefix: str = "/viewer",
           subscribe: Callable[[str, Callable[[Any], None]], None] | None = None,
           can_open: Callable[[Any, str], bool] | None = None,
-          corrections: dict[str, Callable[..., Any]] | None = None) -> None:
+          corrections: dict[str, Callable[..., Any]] | None = None,
+          socket_leases: Any = None) -> None:
     """Add the ``/viewer/`` proxy routes and the viser server's lifecycle to ``fastapi_app``.
 
     The service is available as ``fastapi_app.state.viewer`` (a :class:`ViewerService`).
@@ -113,6 +114,7 @@ def mount(fastapi_app: Any, *, settings: Any, authorize: Callable[[Any], Any],
         corrections=corrections,  # relabel / undo / redo from 3D (app.corrections)
         prefs_path=Path(getattr(settings, "data_dir", "data")) / "viewer_prefs.json",
         max_sockets_per_user=getattr(settings, "viewer_sockets_per_user", None),
+        socket_leases=socket_leases,  # the cap counted in the database (app.shared_limits)
     )
     if subscribe is not None:
         def _on_event(msg: Any) -> None:

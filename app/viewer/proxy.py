@@ -35,6 +35,7 @@ from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
+from app.shared_limits import SocketCapReached
 from app.viewer.client_page import ASSET_DIR, ClientLayoutError, client_assets
 from app.viewer.server import ViewerService
 from app.viewer.state import TICKET_HEADER
@@ -153,7 +154,9 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
             user = getattr(websocket.state, "user", None)
         key = _user_name(user)
         cap = service.max_sockets_per_user
-        if key is not None and cap is not None and service.open_sockets.get(key, 0) >= cap:
+        try:
+            lease = await _claim_socket(service, key, cap)
+        except SocketCapReached:
             # each viewer socket holds its own copy of the scene in viser (tens of MB)
             await websocket.accept()
             await websocket.close(code=POLICY_VIOLATION,
@@ -168,15 +171,10 @@ def add_routes(app: FastAPI, service: ViewerService, *, authorize: Callable[[Any
         stats = {"opened": time.perf_counter(), "bytes": 0, "frames": 0, "last": None,
                  "log": deque(maxlen=256)}  # (perf_counter, cumulative bytes) per frame
         service.proxy_stats.append(stats)
-        if key is not None:
-            service.open_sockets[key] = service.open_sockets.get(key, 0) + 1
         try:
             await pump(websocket, f"ws://127.0.0.1:{service.port}/", ticket, stats)
         finally:
-            if key is not None:
-                service.open_sockets[key] -= 1
-                if service.open_sockets[key] <= 0:
-                    del service.open_sockets[key]
+            await _release_socket(service, key, lease)
 
     app.add_api_route(f"{prefix}/", page, methods=["GET"], include_in_schema=False)
     app.add_api_route(f"{prefix}/{{path:path}}", page, methods=["GET"], include_in_schema=False)
@@ -207,6 +205,36 @@ def _remember_scene(resp: Response, request: Request, prefix: str) -> None:
                         secure=secure)
     else:  # nor select the last page's suspect
         resp.delete_cookie(SUSPECT_COOKIE, path=prefix)
+
+
+async def _claim_socket(service: ViewerService, key: str | None, cap: int | None) -> int | None:
+    """Count a new socket of user ``key`` against ``cap``: in the database when the service
+    has :class:`~app.shared_limits.SocketLeases` (the cap holds across API processes; the
+    lease id is returned), else in this process. :class:`SocketCapReached` when it is full."""
+    if key is None:
+        return None
+    leases = service.socket_leases
+    if cap is not None and leases is not None:
+        lease = await run_in_threadpool(leases.claim, key, cap)
+    else:
+        if cap is not None and service.open_sockets.get(key, 0) >= cap:
+            raise SocketCapReached(service.open_sockets[key], cap)
+        lease = None
+    service.open_sockets[key] = service.open_sockets.get(key, 0) + 1
+    return lease
+
+
+async def _release_socket(service: ViewerService, key: str | None, lease: int | None) -> None:
+    if key is None:
+        return
+    service.open_sockets[key] -= 1
+    if service.open_sockets[key] <= 0:
+        del service.open_sockets[key]
+    if lease is not None and service.socket_leases is not None:
+        try:
+            await run_in_threadpool(service.socket_leases.release, lease)
+        except Exception:  # noqa: BLE001 - the row's lease runs out by itself
+            log.warning("viewer proxy: releasing socket %s failed", lease, exc_info=True)
 
 
 def _user_name(user: Any) -> str | None:

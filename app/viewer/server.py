@@ -31,6 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from app.shared_limits import SocketLeases
 from app.viewer import scene_builder as sb
 from app.viewer import session_state
 from app.viewer.markdown_escape import md_text
@@ -64,7 +65,8 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
                  can_open: Callable[[Any, str], bool] | None = None,
                  corrections: dict[str, Callable[..., Any]] | None = None,
                  prefs_path: Path | None = None, access_check_s: float = 0.25,
-                 max_sockets_per_user: int | None = None) -> None:
+                 max_sockets_per_user: int | None = None,
+                 socket_leases: SocketLeases | None = None) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the viewer binds loopback only, got host {host!r}")
         self.scenes = scenes
@@ -75,9 +77,12 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
         # again: a reviewer removed from the scene, demoted or deactivated is disconnected
         # (1008) within that time, on whichever replica the socket is (issue 24, finding 7)
         self.access_check_s = float(access_check_s)
-        # at most this many open viewer sockets per user and process (the proxy refuses more,
-        # 1008); None: no cap. open_sockets: the proxy's count per user name
+        # at most this many open viewer sockets per user (the proxy refuses more, 1008); None:
+        # no cap. Counted in the database across every API process when socket_leases is
+        # given (the app: app.shared_limits.SocketLeases, issue 36), else per process.
+        # open_sockets: this process's count per user name
         self.max_sockets_per_user = max_sockets_per_user
+        self.socket_leases = socket_leases
         self.open_sockets: dict[str, int] = {}
         self.revoked: list[tuple[str | None, str | None]] = []  # (user, scene) closed for access
         self.frame_states = frame_states
@@ -167,6 +172,8 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
             self.server.stop()
             self.server = None
             self._clients.clear()
+            if self.socket_leases is not None:  # this process's socket rows go now
+                self.socket_leases.close()
 
     # ---- tickets ---------------------------------------------------------------------------
     def issue_ticket(self, user: Any, scene_id: str | None, frame: str | None = None, *,

@@ -567,7 +567,11 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     local = None
     if xyz is not None and p.local_voxel > 0:
         report(0.25, "neighbourhood votes")
-        local = local_votes(xyz, vidx, col1, n1, col2, n2, C, p.local_voxel, p.chunk)
+        vox, block = local_votes(xyz, vidx, col1, n1, col2, n2, C, p.local_voxel, p.chunk)
+        # per voxel, once: the neighbourhood's vote shares and the log of the mixed prior
+        # (the same float32 operations per row as per point, so the same values)
+        local = (vox, *_local_prior_tables(block, prior, p))
+        del block
     t_local = time.perf_counter()
     K = min(p.candidates, C)
     changed = 0
@@ -580,21 +584,11 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         if local is None:
             L += logprior
         else:  # the neighbourhood's vote shares, mixed with the scene's
-            nb_share = _add_local_prior(L, local[1][local[0][a:a + p.chunk]], c1, c2, prior,
-                                        logprior_scene, p)
-        # candidates: the K classes the votes make likeliest, within candidate_nats of the best
-        cand = np.argpartition(L, C - K, axis=1)[:, C - K:] if K < C else np.tile(
-            np.arange(C), (len(ids), 1))
-        Lk = np.take_along_axis(L, cand, axis=1)
+            vrow = local[0][a:a + p.chunk]
+            _add_local_prior(L, local[2], vrow, c1, c2, logprior_scene, p)
+        best, m, n_multi = _decide_chunk(L, K, p.candidate_nats, features, ids, q)
         del L
-        Lk[Lk < Lk.max(axis=1, keepdims=True) - p.candidate_nats] = -np.inf
-        multi = np.flatnonzero(np.isfinite(Lk).sum(axis=1) > 1)
-        evaluated += len(multi)
-        best = np.take_along_axis(cand, np.argmax(Lk, axis=1)[:, None], axis=1)[:, 0]
-        m = np.ones(len(ids), np.float32)
-        if len(multi):
-            best[multi], m[multi] = _feature_decision(
-                np.asarray(features[ids[multi]], np.float32), cand[multi], Lk[multi], q)
+        evaluated += n_multi
         labels[ids] = cls.ids[best]
         margin[ids] = m
         votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
@@ -603,9 +597,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         if p.confirm_needs_vote:
             supported = votes_best
             if local is not None and p.confirm_local_share < 1.0:
-                near = nb_share[np.arange(len(ids)), best] >= p.confirm_local_share
+                near = local[1][vrow, best] >= p.confirm_local_share
                 supported = np.where(near, np.maximum(votes_best, 1), votes_best)
-                del nb_share
         else:
             supported = np.maximum(votes_best, 1)
         top[ids] = supported.astype(np.uint16)
@@ -623,17 +616,23 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     return labels, margin, top, stats
 
 
-def _add_local_prior(L: np.ndarray, nb: np.ndarray, c1: np.ndarray, c2: np.ndarray,
-                     prior: np.ndarray, logprior_scene: np.ndarray, p: RobustParams
-                     ) -> np.ndarray:
+def _local_prior_tables(block: np.ndarray, prior: np.ndarray, p: RobustParams
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel of the neighbourhood grid, from its block vote counts ``block`` (V, C):
+    (the neighbourhood's vote shares (V, C) float32, the log of those shares mixed with the
+    scene's ``prior`` (V, C) float32). Computed once per voxel, gathered per point."""
+    share = block / np.maximum(block.sum(axis=1, keepdims=True), 1e-9)
+    mixed = share * np.float32(1.0 - p.local_mix)
+    mixed += np.float32(p.local_mix) * prior.astype(np.float32)
+    return share, np.log(mixed)
+
+
+def _add_local_prior(L: np.ndarray, lp_vox: np.ndarray, vrow: np.ndarray, c1: np.ndarray,
+                     c2: np.ndarray, logprior_scene: np.ndarray, p: RobustParams) -> None:
     """Add the neighbourhood prior to ``L`` ((n, C) float32 log-likelihoods, in place):
-    ``nb`` (n, C) the neighbourhood's votes, mixed with the scene's ``prior``. Returns the
-    neighbourhood's vote shares (n, C)."""
-    nb /= np.maximum(nb.sum(axis=1, keepdims=True), 1e-9)
-    nb_share = nb.copy()
-    nb *= np.float32(1.0 - p.local_mix)
-    nb += np.float32(p.local_mix) * prior.astype(np.float32)
-    lp = np.log(nb)
+    ``lp_vox[vrow]`` the log of each point's neighbourhood vote shares mixed with the scene's
+    (:func:`_local_prior_tables`)."""
+    lp = lp_vox[vrow]
     # the classes the point's own views voted for keep the scene-wide prior (in a
     # region confused with its look-alike the neighbourhood is as confused as the
     # point); the others get the neighbourhood's share: raised near a skipped or
@@ -642,8 +641,39 @@ def _add_local_prior(L: np.ndarray, nb: np.ndarray, c1: np.ndarray, c2: np.ndarr
     lp[r, c1] = logprior_scene[c1]
     h2 = np.flatnonzero(c2 >= 0)
     lp[h2, c2[h2]] = logprior_scene[c2[h2]]
-    L += np.float32(p.prior_weight) * lp
-    return nb_share
+    lp *= np.float32(p.prior_weight)
+    L += lp
+
+
+def _decide_chunk(L: np.ndarray, K: int, nats: float, features: np.ndarray, ids: np.ndarray,
+                  q: _QDA) -> tuple[np.ndarray, np.ndarray, int]:
+    """The decision of one chunk from its log-likelihoods ``L`` (n, C): (class column (n,),
+    posterior margin (n,) float32, how many points the classifier weighed). Candidates: the
+    ``K`` classes ``L`` makes likeliest, those within ``nats`` of the best; a point with one
+    candidate takes it (margin 1) without the classifier. Only the points with a second class
+    within ``nats`` are partitioned (most points of a survey have one)."""
+    n, C = L.shape
+    best = np.argmax(L, axis=1)
+    m = np.ones(n, np.float32)
+    if K < 2:  # one candidate per point (argpartition's top 1 is the maximum)
+        return best, m, 0
+    lmax = np.take_along_axis(L, best[:, None], axis=1)
+    rows = np.flatnonzero(np.count_nonzero(L >= lmax - np.float32(nats), axis=1) > 1)
+    if len(rows) == 0:
+        return best, m, 0
+    Lr = L[rows]
+    cand = np.argpartition(Lr, C - K, axis=1)[:, C - K:] if K < C else np.tile(
+        np.arange(C), (len(rows), 1))
+    Lk = np.take_along_axis(Lr, cand, axis=1)
+    del Lr
+    Lk[Lk < Lk.max(axis=1, keepdims=True) - nats] = -np.inf
+    multi = np.flatnonzero(np.isfinite(Lk).sum(axis=1) > 1)
+    best[rows] = np.take_along_axis(cand, np.argmax(Lk, axis=1)[:, None], axis=1)[:, 0]
+    if len(multi):
+        r = rows[multi]
+        best[r], m[r] = _feature_decision(
+            np.asarray(features[ids[r]], np.float32), cand[multi], Lk[multi], q)
+    return best, m, len(multi)
 
 
 def _feature_decision(x: np.ndarray, cm: np.ndarray, Lm: np.ndarray, q: _QDA

@@ -92,6 +92,9 @@ class Settings:
     min_independent_coverage: float = 0.5
     session_seconds: int = 12 * 3600
     fill_debounce_s: float = 5.0
+    # issue 38: how long GET /scenes/{sid}/quality waits for a report being computed before
+    # it answers with the last one (stale) or 202 (none yet); the computation goes on
+    quality_wait_s: float = 1.5
     fill_nice: int = 5  # the fill thread's added niceness (0..19; docs/lifting-scale.md)
     job_workers: int = 2
     job_processes: bool = True
@@ -121,7 +124,11 @@ class Settings:
     scene_quota_bytes: int = 10240 << 20
     active_jobs_per_user: int = 4
     export_quota_bytes: int = 51200 << 20
-    viewer_sockets_per_user: int = 4  # open 3D viewer sockets per user and API process
+    viewer_sockets_per_user: int = 4  # open 3D viewer sockets per user (all API processes)
+    # issue 36: review items and comments, counted in the database (app.review.service)
+    open_review_items_per_user: int = 500  # open items one user filed in one scene
+    comments_per_user_hour: int = 300  # comments (a new item's first included) per user
+    comments_per_item: int = 500  # comments in one item's thread
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).absolute()
@@ -146,6 +153,9 @@ class Settings:
             )
         if len(self.secret_key) < 16:
             raise ConfigError("OCCUFLY_SECRET_KEY must be at least 16 characters")
+        if not 0.0 <= self.quality_wait_s <= 600.0:
+            raise ConfigError(f"OCCUFLY_QUALITY_WAIT_S must be 0 to 600 seconds, got "
+                              f"{self.quality_wait_s!r}")
 
     @property
     def is_dev(self) -> bool:
@@ -189,6 +199,7 @@ class Settings:
             lease_seconds=int(num("OCCUFLY_LEASE_MINUTES", 30, float) * 60),
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
+            quality_wait_s=num("OCCUFLY_QUALITY_WAIT_S", 1.5, float),
             fill_nice=num("OCCUFLY_FILL_NICE", 5),
             min_independent_coverage=num("OCCUFLY_MIN_INDEPENDENT_COVERAGE", 0.5, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
@@ -208,6 +219,9 @@ class Settings:
             active_jobs_per_user=num("OCCUFLY_ACTIVE_JOBS_PER_USER", 4),
             export_quota_bytes=int(num("OCCUFLY_EXPORT_QUOTA_MB", 51200, float) * 2**20),
             viewer_sockets_per_user=num("OCCUFLY_VIEWER_SOCKETS_PER_USER", 4),
+            open_review_items_per_user=num("OCCUFLY_OPEN_REVIEW_ITEMS_PER_USER", 500),
+            comments_per_user_hour=num("OCCUFLY_COMMENTS_PER_USER_HOUR", 300),
+            comments_per_item=num("OCCUFLY_COMMENTS_PER_ITEM", 500),
         )
         kw["trusted_proxies"] = [p.strip() for p in (env.get("OCCUFLY_TRUSTED_PROXIES") or "")
                                   .split(",") if p.strip()]

@@ -126,16 +126,20 @@ def list_items(scene: SceneDep, session: SessionDep, user: CurrentUser,
 
 
 @router.post("/scenes/{sid}/review-items", response_model=ReviewItemOut, status_code=201)
-def create_item(body: ReviewItemIn, scene: SceneDep, session: SessionDep, user: ReviewerUser):
+def create_item(body: ReviewItemIn, scene: SceneDep, session: SessionDep, ctx: CtxDep,
+                user: ReviewerUser):
     item = service.create_item(session=session, scene=scene, user=user, frame_id=body.frame_id,
-                               pixel=body.pixel, point_ids=body.point_ids, comment=body.comment)
+                               pixel=body.pixel, point_ids=body.point_ids, comment=body.comment,
+                               settings=ctx.settings)
     return service.item_out(session, item)
 
 
 @router.post("/review-items/{rid}/comments", response_model=ReviewItemOut, status_code=201)
-def add_comment(rid: RidPath, body: CommentIn, session: SessionDep, user: CurrentUser):
+def add_comment(rid: RidPath, body: CommentIn, session: SessionDep, ctx: CtxDep,
+                user: CurrentUser):
     item = service.get_item(session=session, item_id=rid, user=user)
-    service.add_comment(session=session, item=item, user=user, text=body.text)
+    service.add_comment(session=session, item=item, user=user, text=body.text,
+                        settings=ctx.settings)
     return service.item_out(session, item)
 
 

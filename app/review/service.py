@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
-from sqlalchemy import or_, select, update
+from sqlalchemy import func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -20,11 +20,12 @@ from app.annotations import service as annotations
 from app.annotations.models import MaskVersion
 from app.context import AppContext
 from app.db import utcnow
-from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.errors import Conflict, Forbidden, Invalid, NotFound, TooManyAttempts
 from app.notifications.service import notify_frame_people
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
+from app.shared_limits import ITEM_COMMENTS, REVIEW_QUOTA, serialise
 from app.users.models import User
 from occufly import render
 from occufly.lifting import VoteStore, load_labels
@@ -660,9 +661,68 @@ def reviewed_versions(session: Session, scene_id: int) -> list[dict]:
             for fid, idx, st, cur, rev in rows]
 
 
+# ---- quotas on review items and comments (issue 36) -------------------------------------------
+# Counted in the database under the user's lock (and, for a thread, the item's), in the
+# transaction that adds the row: they hold across API processes (app.shared_limits). A
+# reviewer's reject-with-comment (:func:`decide`) is not refused: one per decision; its
+# comment counts towards the hour.
+def _comment_quota(session: Session, settings, user_id: int,  # noqa: ANN001
+                   item_id: int | None) -> None:
+    now = utcnow()
+    n, oldest = session.execute(select(func.count(), func.min(ReviewComment.created_at)).where(
+        ReviewComment.author_id == user_id,
+        ReviewComment.created_at > now - timedelta(hours=1))).one()
+    cap = settings.comments_per_user_hour
+    if n >= cap:
+        wait = max(1, int((oldest + timedelta(hours=1) - now).total_seconds()) + 1)
+        raise TooManyAttempts(
+            f"comment quota: you wrote {n} comments in the last hour, at most {cap} an hour "
+            f"(OCCUFLY_COMMENTS_PER_USER_HOUR); try again in {wait} s", retry_after=wait,
+            comments_last_hour=int(n), quota=cap)
+    if item_id is None:
+        return
+    n = session.scalar(select(func.count()).select_from(ReviewComment).where(
+        ReviewComment.item_id == item_id)) or 0
+    cap = settings.comments_per_item
+    if n >= cap:
+        raise Conflict(f"comment quota: review item {item_id} has {n} comments, at most {cap} "
+                       "(OCCUFLY_COMMENTS_PER_ITEM); file a new review item",
+                       comments=int(n), quota=cap)
+
+
+def _item_quota(session: Session, settings, user_id: int, scene_id: int) -> None:  # noqa: ANN001
+    n = session.scalar(select(func.count()).select_from(ReviewItem).where(
+        ReviewItem.author_id == user_id, ReviewItem.scene_id == scene_id,
+        ReviewItem.status == "open")) or 0
+    cap = settings.open_review_items_per_user
+    if n >= cap:
+        raise TooManyAttempts(
+            f"review item quota: you have {n} open review items in scene {scene_id}, at most "
+            f"{cap} (OCCUFLY_OPEN_REVIEW_ITEMS_PER_USER); resolve some first",
+            open_items=int(n), quota=cap)
+
+
+def _check_quotas(session: Session, settings, user_id: int, *,  # noqa: ANN001
+                  scene_id: int | None = None, item_id: int | None = None) -> None:
+    """Take the locks (the item's first, then the user's: one order everywhere) and check; on
+    a refusal the transaction is rolled back, which releases them."""
+    if item_id is not None:
+        serialise(session, ITEM_COMMENTS, item_id)
+    serialise(session, REVIEW_QUOTA, user_id)
+    try:
+        if scene_id is not None:
+            _item_quota(session, settings, user_id, scene_id)
+        _comment_quota(session, settings, user_id, item_id)
+    except Exception:
+        session.rollback()
+        raise
+
+
 # ---- review items ---------------------------------------------------------------------------
 def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | None,
-                pixel: list[int] | None, point_ids: list[int] | None, comment: str) -> ReviewItem:
+                pixel: list[int] | None, point_ids: list[int] | None, comment: str,
+                settings) -> ReviewItem:  # noqa: ANN001
+    """File a review item with its first comment (``settings``: the quotas)."""
     if frame_id is None and not point_ids:
         raise Invalid("a review item needs a frame_id (optionally with a pixel) or point_ids")
     if pixel is not None and frame_id is None:
@@ -681,6 +741,7 @@ def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | N
         if ids.min() < 0 or ids.max() >= scene.n_points:
             raise Invalid(f"point_ids must be in 0..{scene.n_points - 1}")
         point_ids = np.unique(ids).tolist()
+    _check_quotas(session, settings, user.id, scene_id=scene.id)
     item = ReviewItem(scene_id=scene.id, frame_id=frame_id, author_id=user.id,
                       pixel_x=pixel[0] if pixel else None, pixel_y=pixel[1] if pixel else None,
                       point_ids=point_ids or None, status="open")
@@ -696,11 +757,12 @@ def create_item(*, session: Session, scene: Scene, user: User, frame_id: int | N
 
 
 def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, sessions,
-                        frame_index: int | None = None) -> int:
+                        settings, frame_index: int | None = None) -> int:  # noqa: ANN001
     """Callback for the 3D viewer: file a review item on a set of point ids; returns its id.
 
     ``user`` is a User row or a user id; ``sessions`` the app's session factory
-    (``ctx.sessions``; :func:`make_viewer_callback` binds it).
+    (``ctx.sessions``) and ``settings`` its settings (the quotas; :func:`make_viewer_callback`
+    binds both).
     """
     with sessions() as s:
         scene = s.get(Scene, int(scene_id))
@@ -715,14 +777,14 @@ def create_item_from_3d(scene_id: int, point_ids, comment: str, user, *, session
             Frame.scene_id == scene.id, Frame.index == int(frame_index)))
         item = create_item(session=s, scene=scene, user=u, frame_id=frame_id, pixel=None,
                            point_ids=[int(i) for i in np.asarray(point_ids).reshape(-1)],
-                           comment=comment)
+                           comment=comment, settings=settings)
         return item.id
 
 
 def make_viewer_callback(ctx: AppContext):
     def on_review_item(scene_id, point_ids, comment, user, frame_index=None):  # noqa: ANN001
         return create_item_from_3d(scene_id, point_ids, comment, user, sessions=ctx.sessions,
-                                   frame_index=frame_index)
+                                   settings=ctx.settings, frame_index=frame_index)
 
     return on_review_item
 
@@ -774,7 +836,10 @@ def get_item(*, session: Session, item_id: int, user: User) -> ReviewItem:
     return item
 
 
-def add_comment(*, session: Session, item: ReviewItem, user: User, text: str) -> ReviewItem:
+def add_comment(*, session: Session, item: ReviewItem, user: User, text: str,
+                settings) -> ReviewItem:  # noqa: ANN001
+    """Add a comment to ``item``'s thread (``settings``: the quotas)."""
+    _check_quotas(session, settings, user.id, item_id=item.id)
     session.add(ReviewComment(item_id=item.id, author_id=user.id, text=text))
     frame = session.get(Frame, item.frame_id) if item.frame_id else None
     if frame is not None:  # the frame's annotator is told (issue 25: notifications)

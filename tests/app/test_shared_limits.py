@@ -42,3 +42,85 @@ def test_viewer_socket_leases_of_a_stopped_process_expire(env):
     with sessions() as s:
         assert s.scalar(select(func.count()).select_from(ViewerSocket)) == 0
     b.close()
+
+
+# ---- review items and comments ---------------------------------------------------------------
+def _limits(env, **kw) -> None:  # noqa: ANN001
+    ctx = env.app.state.ctx
+    ctx.settings = dataclasses.replace(ctx.settings, **kw)
+
+
+def _concurrently(n: int, call) -> list:  # noqa: ANN001
+    with ThreadPoolExecutor(n) as pool:
+        return list(pool.map(call, range(n)))
+
+
+def test_open_review_items_per_user_and_scene(world):
+    """Quota 3 open items per user and scene: of 12 concurrent creations 3 are 201, 9 are 429
+    naming the quota; another user is not affected; resolving one frees a place (before: no
+    quota, all 12 created)."""
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    _limits(env, open_review_items_per_user=3)
+
+    def post(i: int, who: str = "reviewer"):  # noqa: ANN202
+        return env.client.post(f"/api/scenes/{sid}/review-items", headers=hdr[who],
+                               json={"frame_id": frames[i % len(frames)]["id"],
+                                     "comment": f"look here {i}"})
+
+    answers = _concurrently(12, post)
+    codes = [r.status_code for r in answers]
+    assert codes.count(201) == 3 and codes.count(429) == 9, codes
+    refused = next(r for r in answers if r.status_code == 429)
+    assert "OCCUFLY_OPEN_REVIEW_ITEMS_PER_USER" in refused.json()["detail"], refused.text
+    assert refused.json()["quota"] == 3 and refused.json()["open_items"] == 3
+    items = env.client.get(f"/api/scenes/{sid}/review-items", headers=hdr["admin"]).json()
+    assert len(items) == 3  # nothing half-made by the refused ones (no item, no comment)
+    assert post(0, "admin").status_code == 201  # another user has their own quota
+    r = env.client.patch(f"/api/review-items/{items[0]['id']}", json={"status": "resolved"},
+                         headers=hdr["reviewer"])
+    assert r.status_code == 200, r.text
+    assert post(1).status_code == 201  # resolving one freed a place
+    assert post(2).status_code == 429
+
+
+def test_comments_per_user_and_hour_and_per_item(world):
+    """Quota 5 comments an hour per user: an item (its first comment) and 10 concurrent
+    comments -> 4 accepted, 6 429 with Retry-After; quota 4 comments per item: two users
+    writing 10 comments concurrently into a fresh item -> 3 accepted (4 with the first), the
+    rest 409 naming the quota."""
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    _limits(env, comments_per_user_hour=5)
+    r = env.client.post(f"/api/scenes/{sid}/review-items", headers=hdr["reviewer"],
+                        json={"frame_id": frames[0]["id"], "comment": "first"})
+    assert r.status_code == 201, r.text
+    rid = r.json()["id"]
+
+    def comment(i: int, who: str = "reviewer", item: int = rid):  # noqa: ANN202
+        return env.client.post(f"/api/review-items/{item}/comments", headers=hdr[who],
+                               json={"text": f"comment {i}"})
+
+    answers = _concurrently(10, comment)
+    codes = [r.status_code for r in answers]
+    assert codes.count(201) == 4 and codes.count(429) == 6, codes
+    refused = next(r for r in answers if r.status_code == 429)
+    assert "OCCUFLY_COMMENTS_PER_USER_HOUR" in refused.json()["detail"], refused.text
+    assert 3500 <= int(refused.headers["retry-after"]) <= 3601, refused.headers
+    thread = env.client.get(f"/api/scenes/{sid}/review-items", headers=hdr["admin"]).json()
+    assert len(thread[0]["comments"]) == 5
+
+    _limits(env, comments_per_user_hour=1000, comments_per_item=4)
+    r = env.client.post(f"/api/scenes/{sid}/review-items", headers=hdr["admin"],
+                        json={"frame_id": frames[1]["id"], "comment": "second item"})
+    assert r.status_code == 201, r.text
+    rid2 = r.json()["id"]
+    answers = _concurrently(10, lambda i: comment(i, ("reviewer", "admin")[i % 2], rid2))
+    codes = [r.status_code for r in answers]
+    assert codes.count(201) == 3 and codes.count(409) == 7, codes
+    refused = next(r for r in answers if r.status_code == 409)
+    assert "OCCUFLY_COMMENTS_PER_ITEM" in refused.json()["detail"], refused.text
+    assert f"review item {rid2}" in refused.json()["detail"]
+    items = {d["id"]: d for d in env.client.get(f"/api/scenes/{sid}/review-items",
+                                                 headers=hdr["admin"]).json()}
+    assert len(items[rid2]["comments"]) == 4

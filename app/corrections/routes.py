@@ -7,16 +7,18 @@ import io
 from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, Response
+from fastapi import APIRouter, Depends, Header, Request, Response
 from PIL import Image
 from pydantic import BaseModel
 from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
 
 from app.annotations import service as annotations
 from app.annotations.routes import png_body
 from app.audit import service as audit
 from app.corrections import service
 from app.corrections.models import CorrectionEdit
+from app.corrections.parsing import ParsedEdit, parse_edit, read_body
 from app.corrections.schemas import (
     DeclineIn,
     DisagreeOut,
@@ -87,9 +89,23 @@ def _proposal_of(session, frame, pid: int, user):  # noqa: ANN001, ANN202
     return p
 
 
-@router.post("/scenes/{sid}/corrections", response_model=EditOut, status_code=201)
-def create_edit(body: EditIn, scene: SceneDep, session: SessionDep, ctx: CtxDep,
-                user: ReviewerUser, ip: ClientIp):
+async def edit_body(request: Request, ctx: CtxDep) -> ParsedEdit:
+    """The correction's body, parsed without a Python object per point (app.corrections.parsing);
+    the body itself is capped by app.bodylimit before it is read."""
+    cap = ctx.settings.max_correction_points
+    body = await read_body(request.stream(), cap)
+    return await run_in_threadpool(parse_edit, body, cap)
+
+
+EDIT_BODY_DOC = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": EditIn.model_json_schema()}}}}
+
+
+@router.post("/scenes/{sid}/corrections", response_model=EditOut, status_code=201,
+             openapi_extra=EDIT_BODY_DOC)
+def create_edit(body: Annotated[ParsedEdit, Depends(edit_body)], scene: SceneDep,
+                session: SessionDep, ctx: CtxDep, user: ReviewerUser, ip: ClientIp):
+    """Relabel points (``point_ids`` or the compact ``point_ids_b64``) to ``to_class``."""
     e = service.create_edit(session=session, ctx=ctx, scene=scene, user=user,
                             point_ids=body.point_ids, to_class=body.to_class,
                             comment=body.comment, frame_id=body.frame_id)

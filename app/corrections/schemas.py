@@ -8,11 +8,22 @@ from pydantic import BaseModel, Field
 from app.limits import Count, Id, text
 
 
-class EditIn(BaseModel):
-    point_ids: list[Count] = Field(min_length=1, max_length=50_000_000)
+class EditMeta(BaseModel):
+    """A correction's fields besides its points (app.corrections.parsing reads those)."""
+
     to_class: int = Field(ge=0, le=255)  # raw class id, 0 = unlabelled
     comment: text(10000) | None = None
     frame_id: Id | None = None  # the frame the reviewer was looking through, if any
+
+
+class EditIn(EditMeta):
+    """The body of POST /scenes/{sid}/corrections as documented (the route parses it with
+    app.corrections.parsing, never as a Python list): exactly one of ``point_ids`` and
+    ``point_ids_b64``, at most OCCUFLY_MAX_CORRECTION_POINTS points (413 beyond)."""
+
+    point_ids: list[Count] | None = Field(default=None, min_length=1)
+    point_ids_b64: str | None = Field(
+        default=None, description="base64 of the point ids packed as little-endian uint32")
 
 
 class EditOut(BaseModel):

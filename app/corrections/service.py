@@ -49,7 +49,7 @@ from app.blobs import claim_blob
 from app.context import AppContext
 from app.corrections.models import CorrectionEdit, MaskProposal
 from app.db import utcnow
-from app.errors import Conflict, Forbidden, Invalid, NotFound
+from app.errors import Conflict, Forbidden, Invalid, NotFound, PayloadTooLarge
 from app.notifications.service import notify
 from app.pipeline import encode_png, stored_mask_ids
 from app.review.models import ReviewItem
@@ -163,6 +163,10 @@ def create_edit(*, session: Session, ctx: AppContext, scene: Scene, user: User,
     _check_class(ctx, scene, int(to_class))
     if scene.status != "ready":
         raise Conflict(f"scene {scene.id} is {scene.status}, not ready")
+    cap = ctx.settings.max_correction_points
+    if len(point_ids) > cap:  # the API counts before parsing (app.corrections.parsing)
+        raise PayloadTooLarge(f"point_ids: a correction names at most {cap} points "
+                              f"(OCCUFLY_MAX_CORRECTION_POINTS), this one {len(point_ids)}")
     try:
         ids = lib.normalise_point_ids(point_ids, scene.n_points)
     except ValueError as e:

@@ -34,6 +34,7 @@ from _scene import ensure_seeded_scene  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import (  # noqa: E402
+    DEFAULT_VOTE_WEIGHTING,
     LiftParams,
     RobustParams,
     VoteStore,
@@ -154,9 +155,20 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
 
 
 #: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
-ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None,
+ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-interior": None,
+                      "robust-plain": None,
                       "robust-prior05": RobustParams(prior_weight=0.5),
                       "robust-prior075": RobustParams(prior_weight=0.75)}
+
+
+def weighting_of(mode: str) -> str:
+    """The vote weighting a robustness mode lifts with: ``boundary`` / ``robust-boundary``
+    and ``interior`` / ``robust-interior`` name theirs, a mode ending ``-plain`` forces plain
+    votes, every other the library's default for a new state."""
+    for w in ("boundary", "interior"):
+        if mode in (w, f"robust-{w}"):
+            return w
+    return "plain" if mode.endswith("plain") or mode in ("tieorder",) else DEFAULT_VOTE_WEIGHTING
 
 
 def robustness(args: argparse.Namespace) -> dict:
@@ -220,8 +232,7 @@ def robustness(args: argparse.Namespace) -> dict:
                 # tieorder: the plain vote, ties by taxonomy order; plain: the plain vote, ties
                 # to the fill (the default before the robust decision); robust: the default;
                 # boundary: weighted votes (plain decision)
-                st = VoteStore.open(tmp, sc, vote_weighting="boundary" if robust in (
-                    "boundary", "robust-boundary") else "plain")
+                st = VoteStore.open(tmp, sc, vote_weighting=weighting_of(robust))
                 for fi in sel.frames:
                     st.apply_frame(fi, masks[fi], version=mname)
                 direct = st.direct_labels()
@@ -516,6 +527,8 @@ def main() -> None:
     ap.add_argument("--curve-share", type=float, default=0.02,
                     help="curve: frames added, as a share of the scene's frames")
     ap.add_argument("--curve-noise", default="degraded", choices=("exact", "degraded", "crew"))
+    ap.add_argument("--interior-floor", type=int, default=None,
+                    help="robustness: least weight of an 'interior' vote (votes.INTERIOR_FLOOR)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
@@ -537,6 +550,10 @@ def main() -> None:
         out = vote_update(args)
         print(json.dumps(out, default=_json_default))
         sys.exit(0 if out["identical"] else 1)
+    if args.interior_floor is not None:
+        import occufly.lifting.votes as votes_mod
+
+        votes_mod.INTERIOR_FLOOR = args.interior_floor
     if args.robustness:
         print(json.dumps(robustness(args), default=_json_default))
         return

@@ -56,18 +56,20 @@ from occufly.lifting.result import (
 )
 from occufly.lifting.robust import RobustParams
 from occufly.lifting.votes import (
+    DEFAULT_VOTE_WEIGHTING,
     STATE_VERSION,
     VOTE_WEIGHTINGS,
     VoteSnapshot,
     VoteStore,
     boundary_weights,
     fill_snapshot,
+    interior_weights,
     read_direct_labels,
 )
 
 __all__ = [
     "LIFT_DIR", "ORIGIN_CORRECTED", "ORIGIN_DENOISED", "ORIGIN_DIRECT", "ORIGIN_FILLED", "ORIGIN_NAMES",
-    "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "boundary_weights", "ClassColumns", "LiftParams", "LiftResult", "VoteStore",
+    "ORIGIN_NONE", "RobustParams", "STATE_VERSION", "VOTE_WEIGHTINGS", "DEFAULT_VOTE_WEIGHTING", "boundary_weights", "interior_weights", "ClassColumns", "LiftParams", "LiftResult", "VoteStore",
     "VoteSnapshot", "fill_and_denoise", "fill_and_denoise_exact",
     "fill_snapshot", "load_labels", "read_direct_labels", "params_dict", "save_result", "typical_knn_radius",
 ]

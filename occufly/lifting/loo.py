@@ -27,6 +27,7 @@ from occufly.confusion import Confusion, count_pairs_many
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
 from occufly.lifting.knn import LiftParams, knn_vote
+from occufly.lifting.votes import vote_unit
 from occufly.render import (
     agreement_from_counts,
     disagreement_image,
@@ -152,13 +153,13 @@ def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.
 
 
 def _vote_unit(ws: Path) -> int:
-    """Counts per view of the workspace's votes: 3 with boundary weighting (as
-    :meth:`VoteStore.snapshot` hands them to the robust decision), else 1."""
+    """Counts per view of the workspace's votes (:data:`~occufly.lifting.votes.VOTE_UNITS`, as
+    :meth:`VoteStore.snapshot` hands them to the robust decision)."""
     try:
         st = json.loads(Workspace(ws).lifting_state.read_text())
     except (OSError, ValueError):
         return 1
-    return 3 if st.get("vote_weighting") == "boundary" else 1
+    return vote_unit(str(st.get("vote_weighting", "plain")))
 
 
 def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,

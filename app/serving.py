@@ -13,6 +13,14 @@ A request *body* must keep moving: once the head is in, a body that sends nothin
 ``OCCUFLY_BODY_IDLE_TIMEOUT_S`` (default 30 s) closes the connection (not while the app itself
 has paused reading, i.e. is slower than the client).
 
+A body must also keep *up* a minimum average rate (issue 36): one that dribbles a byte every
+few seconds re-arms the idle timer with each byte and was held open for as long as the body
+caps allowed. From the first body bytes on, after ``OCCUFLY_BODY_RATE_GRACE_S`` (default
+10 s) the bytes received must average at least ``OCCUFLY_BODY_MIN_RATE_BPS`` (default 500
+bytes/s, Apache's ``mod_reqtimeout`` default; 0 turns it off), or the connection is closed.
+While the app has paused reading the measurement stops and starts afresh (with its grace)
+when bytes flow again: a client is never cut for the app's slowness.
+
 A websocket is not a request body. h11 reports the upgrade request's sender in ``SEND_BODY``
 (uvicorn hands the connection to its websocket protocol on the ``Request`` event, before h11
 sees the end of the message), so the body timer used to be armed by the upgrade's own bytes --
@@ -46,6 +54,9 @@ log = logging.getLogger("occufly.serving")
 
 HEADER_TIMEOUT_S = 10.0
 BODY_IDLE_TIMEOUT_S = 30.0
+BODY_MIN_RATE_BPS = 500.0
+BODY_RATE_GRACE_S = 10.0
+RATE_RECHECK_S = 0.25  # the rate timer wakes at most this often
 KEEP_ALIVE_S = 5
 MAX_HEAD_BYTES = 64 * 1024
 
@@ -69,22 +80,97 @@ def body_idle_timeout_s() -> float:
     return _seconds("OCCUFLY_BODY_IDLE_TIMEOUT_S", BODY_IDLE_TIMEOUT_S)
 
 
+def body_rate_grace_s() -> float:
+    return _seconds("OCCUFLY_BODY_RATE_GRACE_S", BODY_RATE_GRACE_S)
+
+
+def body_min_rate_bps() -> float:
+    """The minimum average body rate in bytes/s (``OCCUFLY_BODY_MIN_RATE_BPS``; 0: off)."""
+    name, raw = "OCCUFLY_BODY_MIN_RATE_BPS", os.environ.get("OCCUFLY_BODY_MIN_RATE_BPS", "")
+    try:
+        value = float(raw) if raw else BODY_MIN_RATE_BPS
+    except ValueError:
+        raise InputFormatError(f"{name} must be a number of bytes per second, got {raw!r}") \
+            from None
+    if not value >= 0 or value == float("inf"):
+        raise InputFormatError(f"{name} must be >= 0 (0: no minimum rate), got {raw!r}")
+    return value
+
+
 class TimedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol with a deadline for each request head (see the module doc)."""
 
     closed_for_slow_head = 0  # per process; the tests and the log read it
     closed_for_idle_body = 0
+    closed_for_slow_body = 0
 
     def connection_made(self, transport: Any) -> None:  # noqa: ANN401
         super().connection_made(transport)
         self._head_timer = None
         self._body_timer = None
+        self._rate_timer = None
+        self._rate_t0: float | None = None  # loop time the body's measurement started
+        self._rate_bytes = 0  # bytes received since then
         self._upgraded = False  # handed to the websocket protocol: no timer of ours applies
         self._arm_head_timer()
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
         self._arm_body_timer()
+        self._count_body(len(data))
+
+    # ---- minimum body rate -----------------------------------------------------------------
+    def _rate_reset(self) -> None:
+        timer = getattr(self, "_rate_timer", None)
+        if timer is not None:
+            timer.cancel()
+        self._rate_timer = None
+        self._rate_t0 = None
+        self._rate_bytes = 0
+
+    def _rate_applies(self) -> bool:
+        return (not self._upgraded and not self.transport.is_closing()
+                and self.conn.their_state is h11.SEND_BODY
+                and not (self.flow is not None and self.flow.read_paused))
+
+    def _count_body(self, n: int) -> None:
+        if not self._rate_applies():  # no body under way, a websocket, or the app paused
+            self._rate_reset()        # reading: measure afresh when bytes flow again
+            return
+        if self._rate_t0 is None:  # the body starts (the head's own packet is not counted)
+            rate = body_min_rate_bps()
+            if rate > 0:
+                self._rate_t0 = self.loop.time()
+                self._rate_bytes = 0
+                self._rate_timer = self.loop.call_later(body_rate_grace_s(), self._rate_deadline)
+            return
+        self._rate_bytes += n
+
+    def _rate_deadline(self) -> None:
+        self._rate_timer = None
+        if self._rate_t0 is None:
+            return
+        if not self._rate_applies():
+            self._rate_reset()
+            return
+        rate = body_min_rate_bps()
+        now = self.loop.time()
+        if rate <= 0:
+            self._rate_reset()
+            return
+        if self._rate_bytes >= rate * (now - self._rate_t0):
+            # when the average would fall under the minimum if nothing more arrived
+            due = self._rate_t0 + self._rate_bytes / rate
+            self._rate_timer = self.loop.call_later(max(RATE_RECHECK_S, due - now),
+                                                    self._rate_deadline)
+            return
+        TimedH11Protocol.closed_for_slow_body += 1
+        log.info("closing connection from %s: request body at %.0f bytes/s (%d bytes in "
+                 "%.1f s), under the minimum of %.0f", self.client,
+                 self._rate_bytes / max(now - self._rate_t0, 1e-9), self._rate_bytes,
+                 now - self._rate_t0, rate)
+        self._rate_reset()
+        self.transport.close()
 
     def _cancel_body_timer(self) -> None:
         timer = getattr(self, "_body_timer", None)
@@ -145,11 +231,13 @@ class TimedH11Protocol(H11Protocol):
         self._upgraded = True
         self._cancel_head_timer()
         self._cancel_body_timer()
+        self._rate_reset()
         super().handle_websocket_upgrade(event)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_head_timer()
         self._cancel_body_timer()
+        self._rate_reset()
         super().connection_lost(exc)
 
 
@@ -158,6 +246,8 @@ def uvicorn_options(settings: Any, *, proxy_headers: bool = False) -> dict:  # n
     served uses them)."""
     header_timeout_s()  # a bad OCCUFLY_HEADER_TIMEOUT_S fails here, before serving
     body_idle_timeout_s()
+    body_rate_grace_s()
+    body_min_rate_bps()
     opts: dict = dict(
         http=TimedH11Protocol, timeout_keep_alive=KEEP_ALIVE_S,
         h11_max_incomplete_event_size=MAX_HEAD_BYTES,

@@ -31,6 +31,8 @@ SLOW = {
     "tests/app/test_job_faults.py": "kill -9 of a server process mid-export, restart, resume",
     "tests/app/test_topology.py": "two API processes, a lifting worker and Dask, kill -9 twice",
     "tests/app/test_serving.py": "`occufly serve` and nginx processes, header/idle timeouts",
+    "tests/app/test_cross_process_limits.py":
+        "two API processes on PostgreSQL: job quota, viewer-socket cap and access across them",
     "tests/test_scale.py": "the 960 x 640 `tinyfull` scene, renders of full-size frames",
     "tests/test_synthetic_formats.py": "the tiny scene written in every photogrammetry format",
     "tests/app/test_schema.py": "schemathesis: generated requests against every route",

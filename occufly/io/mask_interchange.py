@@ -35,7 +35,7 @@ import re
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
@@ -533,22 +533,49 @@ _FORMAT_TITLES = {"cvat_mask": "Segmentation mask 1.1", "coco": "instances",
 
 
 def _read_labelstudio(root: Path) -> list[_Item]:
+    """Every task of the Label Studio JSON exports under ``root``, read one task at a time
+    (ijson): what is kept of a task is compact (a brush RLE as bytes), so memory is bounded by
+    one task and the compact tasks, not by the parsed file (issue 36)."""
     files = [p for p in _files(root, "*.json") if p.name != "dataset_meta.json"]
     if not files:
         raise MaskError(f"{root}: no Label Studio JSON export (*.json) found")
     items: list[_Item] = []
     for path in files:
-        try:
-            tasks = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise MaskError(f"{path}: not a Label Studio JSON export ({e})") from None
-        if isinstance(tasks, dict):
-            tasks = [tasks]
-        if not isinstance(tasks, list) or not all(isinstance(t, dict) for t in tasks):
-            raise MaskError(f"{path}: expected a Label Studio JSON export (a list of tasks)")
-        for ti, task in enumerate(tasks):
-            items.append(_ls_task(task, f"{path.name}: task {task.get('id', ti)}"))
+        items.extend(_ls_file_items(path))
     return items
+
+
+def _ls_file_items(path: Path) -> Iterator[_Item]:
+    import ijson  # the masks extra; streams the list of tasks
+
+    not_tasks = f"{path}: expected a Label Studio JSON export (a list of tasks)"
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64).lstrip()[:1]
+            fh.seek(0)
+            if head == b"{":  # one task (the member is at most MAX_TEXT_MEMBER_BYTES)
+                task = json.load(fh)
+                yield _ls_task(task, f"{path.name}: task {task.get('id', 0)}")
+                return
+            if head != b"[":
+                raise MaskError(not_tasks)
+            for ti, task in enumerate(ijson.items(fh, "item", use_float=True)):
+                if not isinstance(task, dict):
+                    raise MaskError(not_tasks)
+                yield _ls_task(task, f"{path.name}: task {task.get('id', ti)}")
+    except (OSError, ValueError, ijson.JSONError) as e:
+        raise MaskError(f"{path}: not a Label Studio JSON export ({e})") from None
+
+
+def _compact_rle(rle: list, where: str) -> np.ndarray:
+    """A brush RLE (a list of byte values) as uint8: one byte a value instead of a list."""
+    try:
+        arr = np.asarray(rle, dtype=np.int64)
+    except (TypeError, ValueError, OverflowError):
+        raise MaskError(f"{where}: damaged brush RLE (values must be bytes 0..255)") from None
+    if arr.ndim != 1 or (arr.size and (arr.min() < 0 or arr.max() > 255)):
+        raise MaskError(f"{where}: damaged brush RLE (values must be bytes 0..255)")
+    return arr.astype(np.uint8)
 
 
 def _ls_task(task: dict, where: str) -> _Item:
@@ -579,8 +606,9 @@ def _ls_task(task: dict, where: str) -> _Item:
         if kind == "brushlabels":
             if v.get("format", "rle") != "rle" or not isinstance(v.get("rle"), list):
                 raise MaskError(f"{where}: brush result not in Label Studio's RLE format")
+            compact = _compact_rle(v["rle"], where)
             shapes.append(_Shape(names[0], size=(h, w),
-                                 mask=lambda rle=v["rle"], h=h, w=w: _ls_brush(rle, h, w, where)))
+                                 mask=lambda rle=compact, h=h, w=w: _ls_brush(rle, h, w, where)))
         else:
             pts = np.asarray(v.get("points") or [], float).reshape(-1, 2)
             pts = pts * np.array([w / 100.0, h / 100.0])  # Label Studio: percent of the image
@@ -598,11 +626,11 @@ def _brush_decoder() -> Callable[[list[int]], np.ndarray]:
     except ImportError:
         from label_studio_converter.brush import decode_rle  # heavy optional dependency
 
-        return lambda rle: np.asarray(decode_rle(rle), np.uint8)
+        return lambda rle: np.asarray(decode_rle([int(v) for v in rle]), np.uint8)
     return lambda rle: np.asarray(rs_decode([int(v) for v in rle], False), np.uint8)
 
 
-def _ls_brush(rle: list[int], h: int, w: int, where: str) -> np.ndarray:
+def _ls_brush(rle: np.ndarray, h: int, w: int, where: str) -> np.ndarray:
     # the stream's first 32 bits count its values: checked before anything is allocated
     num = int.from_bytes(bytes(int(v) & 255 for v in rle[:4]), "big") if len(rle) >= 4 else -1
     if num != h * w * 4 or h * w > MAX_MASK_PIXELS:

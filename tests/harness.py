@@ -5,7 +5,7 @@ run, free ports and the one live-server harness (in a thread or as a child proce
   is absent: CI always has it, so an absence is a broken checkout, not an optional extra.
 - :func:`synth_scene` -- ``occufly.synthetic.generate(preset, seed)`` made once per test run
   (both halves of ``scripts/test.sh`` share it through ``OCCUFLY_TEST_CACHE``) and handed out
-  read-only; :func:`synth_copy` gives a test its own copy (hard links) inside a folder of its own.
+  read-only; :func:`synth_copy` gives a test its own copy inside a folder of its own.
 - :class:`ThreadServer` -- uvicorn serving an app object in a thread, on a socket bound here
   (port 0), so no other process can be answering on that port.
 - :class:`ProcessServer` -- uvicorn (or ``occufly serve``) as a child process on a free port; it
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import fcntl
 import json
-import os
 import shutil
 import signal
 import socket
@@ -81,16 +80,11 @@ class SynthCache:
 
 
 def synth_copy(src: Path, dest: Path) -> Path:
-    """A test's own copy of a cached scene: hard links (instant, no space); the files must be
-    replaced, not rewritten in place, which is what every writer in occufly does (atomic
-    renames). The session checks the cache is unchanged at its end."""
-    def link(a: str, b: str) -> None:
-        try:
-            os.link(a, b)
-        except OSError:  # another file system (OCCUFLY_TEST_CACHE elsewhere): a real copy
-            shutil.copy2(a, b)
-
-    shutil.copytree(src, dest, copy_function=link)
+    """A test's own copy of a cached scene: real copies (a few MB), not hard links -- an import
+    refuses hard-linked files in its root (issue 36: a link to a file outside the root), and a
+    link would also make the cache's own files look linked. The session checks the cache is
+    unchanged at its end."""
+    shutil.copytree(src, dest, copy_function=shutil.copy2)
     return dest
 
 

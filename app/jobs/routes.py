@@ -10,7 +10,7 @@ from app.errors import Conflict, Forbidden, Invalid, NotFound
 from app.jobs import service
 from app.jobs.schemas import EvalIn, ExportIn, JidPath, JobOut, VoxelizeIn
 from app.limits import INT32_MAX
-from app.review import provenance
+from app.review import provenance, quality_cache
 from app.scenes.membership import check_member
 from app.scenes.service import visible_scene_ids
 from occufly.workspace import Workspace
@@ -131,13 +131,22 @@ def export_plan(scene: SceneDep, session: SessionDep, _user: AdminUser,
 
 
 @router.get("/scenes/{sid}/quality")
-def scene_quality(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser) -> dict:
-    """The quality report of the scene's live labels (docs/quality-json.md), cached per labels
-    stamp; 404 before the first fill."""
+def scene_quality(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: ReviewerUser,
+                  response: Response) -> dict:
+    """The quality report of the scene's live labels (docs/quality-json.md), computed in the
+    background per labels stamp (app.review.quality_cache): the current report, or the last
+    one with ``stale`` and ``computing`` while the current is computed, or 202
+    ``{"computing": true}`` before the first; 404 before the first fill."""
     w = Workspace(scene.workspace)
     if not (w.has_labels() and w.lifting_state.is_file()):
         raise NotFound(f"scene {scene.id} has no lifted labels yet: nothing to report")
-    return provenance.scene_quality(ctx, scene)
+    q = quality_cache.scene_quality(ctx, scene)
+    if q is None:
+        response.status_code = 202
+        return {"computing": True, "stale": False,
+                "message": f"the quality report of scene {scene.id} is being computed (one "
+                           "leave-one-out decision per annotated frame); ask again shortly"}
+    return q
 
 
 @router.post("/scenes/{sid}/eval", response_model=JobOut, status_code=202)

@@ -188,7 +188,7 @@ class _SceneWork:
     thread: threading.Thread | None = None
 
 
-def _lower_priority(nice: int) -> None:
+def lower_thread_priority(nice: int) -> None:
     """Add ``nice`` to the calling thread's niceness (Linux: a thread is a task with its own
     nice value; the threads it starts inherit it). The fill is the lifting worker's heavy,
     latency-tolerant work (seconds of CPU per submit); a save waits for its request thread,
@@ -661,7 +661,7 @@ class LiftingService:
             self._cv.notify_all()
 
     def _fill_loop(self, sc: _SceneWork) -> None:
-        _lower_priority(self.settings.fill_nice)
+        lower_thread_priority(self.settings.fill_nice)
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
                 while not self._stop.is_set() and not sc.closed and (

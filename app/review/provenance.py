@@ -30,9 +30,7 @@ Provenance
 from __future__ import annotations
 
 import hashlib
-import json
 import shutil
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -42,11 +40,10 @@ from sqlalchemy.orm import Session
 from app import pipeline
 from app.annotations.models import MaskVersion
 from app.context import AppContext
-from app.scenes.models import Frame, Scene
+from app.scenes.models import Frame
 from app.users.models import User
 from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
 from occufly.errors import OccuflyError, WorkspaceError
-from occufly.fsutil import atomic_write_text
 from occufly.grid import SceneGrid
 from occufly.lifting import load_labels
 from occufly.lifting import quality as lifting_quality
@@ -234,61 +231,3 @@ def export_result(plan: dict) -> dict:
             "unreviewed_frames": plan["unreviewed_frames"], "left_out": plan["left_out"],
             "drafts_after_taken": plan["drafts_after_taken"], "include": plan["include"],
             "took": plan_text(plan)}
-
-
-# ---- the scene's quality (GET /api/scenes/{sid}/quality) -----------------------------------
-_CACHE: dict[tuple[int, str, str], dict] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_MAX = 8
-
-
-def _cache_file(ctx: AppContext, scene_id: int) -> Path:
-    return Path(ctx.settings.data_dir) / "cache" / "quality" / f"scene_{scene_id}.json"
-
-
-def scene_quality(ctx: AppContext, scene: Scene) -> dict:
-    """The quality report of the scene's live labels (every voting version), cached per
-    labels stamp (:meth:`Workspace.stamp`: labels, vote state, corrections) and point truth
-    file in this process and in ``<data dir>/cache/quality/scene_<id>.json`` (shared by the
-    API processes, kept over restarts): computing it takes one local k-NN per annotated
-    frame."""
-    ws = Path(scene.workspace)
-    stamp = Workspace(ws).stamp()
-    try:  # the truth kept with a workspace can arrive later (the calibration then shows)
-        tst = (Workspace(ws).truth_dir / lifting_quality.TRUTH_POINTS).stat()
-        truth_key = f"{tst.st_mtime_ns}:{tst.st_size}"
-    except OSError:
-        truth_key = "-"
-    key = (scene.id, stamp, truth_key)
-    with _CACHE_LOCK:
-        hit = _CACHE.get(key)
-    if hit is None:
-        try:
-            stored = json.loads(_cache_file(ctx, scene.id).read_text())
-            hit = stored.get("report") if stored.get("key") == [stamp, truth_key] else None
-        except (OSError, ValueError, AttributeError):
-            hit = None
-        if hit is not None:
-            with _CACHE_LOCK:
-                _CACHE[key] = hit
-    if hit is not None:
-        return {**hit, "cached": True}
-    ws_scene = ctx.load_scene(str(ws))
-    q = lifting_quality.quality_report(
-        ws, ws_scene, truth=lifting_quality.workspace_truth(ws, ws_scene.n_points), policy={
-        "include": ["accepted", "submitted", "imported"],
-        "note": "the live labels: every voting version (submitted, accepted, imported)"})
-    q["labels_stamp"] = stamp
-    try:
-        f = _cache_file(ctx, scene.id)
-        f.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(f, json.dumps({"key": [stamp, truth_key], "report": q}))
-    except OSError:  # a read-only data dir: the in-process cache still holds it
-        pass
-    with _CACHE_LOCK:
-        for k in [k for k in _CACHE if k[0] == scene.id]:
-            del _CACHE[k]
-        while len(_CACHE) >= _CACHE_MAX:
-            del _CACHE[next(iter(_CACHE))]
-        _CACHE[key] = q
-    return {**q, "cached": False}

@@ -6,6 +6,7 @@ source, sha256) and lifting exactly those versions again reproduces the labels b
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -140,13 +141,16 @@ def test_export_takes_accepted_versions_by_default_and_records_their_provenance(
     assert json.loads((mp2.parent / "quality.json").read_text())["annotated_frames"] == 2
 
     # the scene's quality report (admin page): admin and reviewer, cached per labels stamp
+    # (waiting for the background computation as long as it takes: tests/app/test_quality_cache
+    # checks the answers while it runs)
+    env.app.state.ctx.settings = dataclasses.replace(env.settings, quality_wait_s=300)
     q1 = env.client.get(f"/api/scenes/{sid}/quality", headers=rev)
     assert q1.status_code == 200, q1.text
     assert q1.json()["annotated_frames"] == 2 and q1.json()["cached"] is False
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=adm).json()["cached"] is True
-    from app.review import provenance
+    from app.review import quality_cache
 
-    provenance._CACHE.clear()  # another API process (or a restart) reads the shared file
+    quality_cache._CACHE.clear()  # another API process (or a restart) reads the shared file
     q2 = env.client.get(f"/api/scenes/{sid}/quality", headers=adm).json()
     assert q2["cached"] is True and q2["labels_stamp"] == q1.json()["labels_stamp"]
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=ann).status_code == 403
@@ -166,6 +170,7 @@ def test_export_with_nothing_accepted_fails_naming_the_policy(world):
     assert "nothing to export" in j["message"] and "accepted" in j["message"]
     assert env.client.post(f"/api/scenes/{sid}/export", json={"include": ["draft"]},
                            headers=adm).status_code == 422
+    env.app.state.ctx.settings = dataclasses.replace(env.settings, quality_wait_s=300)
     assert env.client.get(f"/api/scenes/{sid}/quality", headers=adm).status_code == 200
 
 

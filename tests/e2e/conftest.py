@@ -31,7 +31,7 @@ ROLES = {"admin": "admin", "reviewer": "reviewer", "annotator": "annotator"}
 
 def build_source(root: Path, synth_tiny: Path) -> tuple[Path, str]:
     """The synthetic ``tiny`` scene (made once per run, see tests/conftest.py) as a folder of
-    ``root`` (hard links: the import only reads it); returns (folder, description)."""
+    ``root`` (a copy); returns (folder, description)."""
     return synth_copy(synth_tiny, root / "tiny"), "synthetic tiny"
 
 

@@ -35,6 +35,19 @@ def _mask(live, f: dict, top: int) -> bytes:  # noqa: ANN001
     return grey_png(ids)
 
 
+
+def _current_quality(admin, sid: int) -> dict:  # noqa: ANN001
+    """The report of the current labels (it is computed in the background: 202 / stale until
+    then)."""
+    end = time.monotonic() + 180
+    while True:
+        r = admin.get(f"/api/scenes/{sid}/quality")
+        if r.status_code == 200 and not r.json().get("stale"):
+            return r.json()
+        assert r.status_code in (200, 202), r.text
+        assert time.monotonic() < end, "the quality report of the current labels never came"
+        time.sleep(0.5)
+
 def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
     ann, rev, admin = live.client("annotator"), live.client("reviewer"), live.client("admin")
     f1 = ann.post(f"/api/scenes/{sid}/next").json()
@@ -81,7 +94,7 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
         page.goto(f"{live.base_url}/#/admin?scene={sid}")
         page.reload()
         sec.locator("tr[data-figure='loo']").wait_for()
-        q = admin.get(f"/api/scenes/{sid}/quality").json()
+        q = _current_quality(admin, sid)
         shown = sec.locator("div.quality").get_attribute("data-stamp")
         if shown == q["labels_stamp"] or time.monotonic() > t_end:
             break

@@ -28,6 +28,7 @@ class AdminPage {
     this.root = root;
     this.ctx = ctx;
     this.timer = null;
+    this.qualityTimer = null;
     this.alive = true;
     this.jobs = [];
   }
@@ -87,6 +88,7 @@ class AdminPage {
   unmount() {
     this.alive = false;
     clearTimeout(this.timer);
+    clearTimeout(this.qualityTimer);
   }
 
   get sid() {
@@ -828,6 +830,7 @@ class AdminPage {
   async loadQuality() {
     const sid = this.sid;
     if (!sid) return;
+    clearTimeout(this.qualityTimer);
     let q = null;
     try {
       q = await api.get(`/scenes/${sid}/quality`);
@@ -836,7 +839,17 @@ class AdminPage {
       if (sid === this.sid) this.qualityEl.replaceChildren(el("p", {}, "No lifted labels yet: nothing to report."));
       return;
     }
-    if (sid === this.sid) this.qualityEl.replaceChildren(qualityView(q));
+    if (sid !== this.sid || !this.alive) return;
+    // issue 38: the report is computed in the background (minutes on a survey): the page shows
+    // the last one, says it is being brought up to date, and asks again until it is
+    if (q && q.computing) this.qualityTimer = setTimeout(() => this.loadQuality(), 3000);
+    if (q && q.computing && !q.loo && !q.votes) {
+      this.qualityEl.replaceChildren(el("p", { class: "hint", "data-quality": "computing" }, "Computing the quality report (one leave-one-out decision per annotated frame) — it appears here when ready."));
+      return;
+    }
+    const view = qualityView(q);
+    if (q.stale) view.prepend(el("p", { class: "warn", "data-quality": "stale" }, "These figures are of earlier labels; the report of the current labels is being computed and replaces them when ready."));
+    this.qualityEl.replaceChildren(view);
   }
 
   async loadMetrics() {

@@ -251,10 +251,14 @@ def reimport(scene: SceneDep, session: SessionDep, ctx: CtxDep, user: AdminUser,
                            .order_by(Job.id).limit(1))
     if first is None:
         raise NotFound(f"scene {scene.id} has no import to repeat")
+    # the job quota (issue 24/36): answered before any correction is dropped; the binding
+    # check is the one in the job's transaction (it holds across API processes)
+    jobs.check_quota(session=session, settings=ctx.settings, user_id=user.id, kind="import")
     dropped = service.guard_reimport(session=session, scene=scene, drop=body.drop_corrections,
                                      user=user)
     job = jobs.create(session=session, kind="import", scene_id=scene.id, user_id=user.id,
-                      params={**(first.params or {}), "drop_corrections": body.drop_corrections})
+                      params={**(first.params or {}), "drop_corrections": body.drop_corrections},
+                      quota=ctx.settings)
     ctx.jobs.submit(job.id)
     audit.record(session, "reimport", actor=user, scene_id=scene.id, client_ip=ip,
                  detail={"job_id": job.id, "dropped_corrections": dropped})

@@ -118,7 +118,9 @@ def create(*, session: Session, kind: str, scene_id: int | None, params: dict,
     transaction that adds the job, under the user's lock in the database (see above), so
     concurrent requests in any number of API processes cannot all see room for one more."""
     if quota is not None and user_id is not None:
-        session.commit()  # a fresh transaction: the lock is held from here to the commit
+        # held from here to the commit below (PostgreSQL reads each statement afresh; on
+        # SQLite the write lock makes this transaction the only writer); a refusal rolls back
+        # the caller's uncommitted changes with it
         serialise(session, JOB_QUOTA, user_id)
         try:
             check_quota(session=session, settings=quota, user_id=user_id, kind=kind)

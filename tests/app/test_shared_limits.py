@@ -124,3 +124,62 @@ def test_comments_per_user_and_hour_and_per_item(world):
     items = {d["id"]: d for d in env.client.get(f"/api/scenes/{sid}/review-items",
                                                  headers=hdr["admin"]).json()}
     assert len(items[rid2]["comments"]) == 4
+
+
+# ---- the job quota on a re-import ------------------------------------------------------------
+def test_reimport_counts_against_the_job_quota(world):
+    """A re-import is an import job: refused 429 naming the quota when the admin has no place
+    left (before: no check on this route), before any correction would be dropped."""
+    from sqlalchemy import func, select
+
+    from app.jobs.models import Job
+
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    with env.app.state.ctx.sessions() as s:
+        before = s.scalar(select(func.count()).select_from(Job))
+    _limits(env, active_jobs_per_user=0)
+    r = env.client.post(f"/api/scenes/{sid}/reimport", json={"drop_corrections": True},
+                        headers=hdr["admin"])
+    assert r.status_code == 429, r.text
+    assert "OCCUFLY_ACTIVE_JOBS_PER_USER" in r.json()["detail"]
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(Job)) == before
+    _limits(env, active_jobs_per_user=4)
+    r = env.client.post(f"/api/scenes/{sid}/reimport", json={"drop_corrections": True},
+                        headers=hdr["admin"])
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"], timeout=60)
+
+
+def test_an_import_that_loses_the_last_place_leaves_no_scene(env, monkeypatch):
+    """The import route answers early from the quota, then makes the scene row, and the
+    binding check runs in the job's transaction: when another request took the last place in
+    between (simulated: the second check refuses), the new scene is removed again (429) and
+    its name stays free."""
+    from app.errors import TooManyAttempts
+    from app.jobs import service as jobs
+    from tests.app.conftest import write_tiny_workspace
+
+    admin = env.bearer("admin")
+    calls = []
+    real = jobs.check_quota
+
+    def second_refuses(**kw):  # noqa: ANN003, ANN202
+        calls.append(kw["kind"])
+        if len(calls) == 2:
+            raise TooManyAttempts("job quota: taken meanwhile (OCCUFLY_ACTIVE_JOBS_PER_USER)",
+                                  retry_after=10)
+        return real(**kw)
+
+    monkeypatch.setattr(jobs, "check_quota", second_refuses)
+    src = write_tiny_workspace(env.import_root / "race_src")
+    r = env.client.post("/api/scenes/import", json={"name": "race", "source": str(src)},
+                        headers=admin)
+    assert r.status_code == 429 and calls == ["import", "import"], (r.text, calls)
+    assert [s["name"] for s in env.client.get("/api/scenes", headers=admin).json()] == []
+    monkeypatch.setattr(jobs, "check_quota", real)
+    r = env.client.post("/api/scenes/import", json={"name": "race", "source": str(src)},
+                        headers=admin)
+    assert r.status_code == 202, r.text
+    env.app.state.ctx.jobs.wait(r.json()["id"], timeout=60)

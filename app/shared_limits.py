@@ -136,7 +136,8 @@ class SocketLeases:
 
     def renew(self) -> int:
         """Push this process's leases ``lease_s`` ahead; the number of rows renewed. A row
-        another process removed as expired (this one stalled past its lease) is forgotten."""
+        another process removed as expired (this one stalled past its lease) is not brought
+        back: that socket no longer counts until it closes."""
         with self._mu:
             ids = sorted(self.held)
         if not ids:

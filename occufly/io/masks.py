@@ -173,6 +173,7 @@ def decode_mask_png(src: str | Path | bytes, taxonomy: Taxonomy, *, name: str,
             return ids
     elif info is not None:
         info["canonical"] = False
+    _check_inflated_size(data, w, h, name)
     try:
         img = Image.open(io.BytesIO(data))
         if img.size != (w, h):
@@ -273,6 +274,46 @@ def is_canonical_mask_png(data: bytes, shape: tuple[int, int]) -> bool:
     chunks, padding after IEND or after the zlib stream, other bit depths or colour types --
     is False, and the caller re-encodes it. Call it on bytes that already decoded."""
     return _canonical_rows(data, int(shape[0]), int(shape[1])) is not None
+
+
+_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def _check_inflated_size(data: bytes, w: int, h: int, name: str) -> None:
+    """MaskError when the IDAT stream of a (not canonical) PNG inflates to more than its
+    ``w`` x ``h`` image's filtered rows can be: a frame-sized header over a zlib bomb (issue
+    36: PIL decoded the image and ignored 60 MB more, so the bomb was stored). Inflated in
+    pieces, counted, never held; stops on the first byte past the bound."""
+    mv, pos, n = memoryview(data), 8, len(data)
+    depth, colour, interlace = 8, 0, 0
+    inflater = zlib.decompressobj()
+    bound = got = 0
+    while pos + 12 <= n:
+        (length,) = struct.unpack_from(">I", data, pos)
+        kind = bytes(mv[pos + 4:pos + 8])
+        body = mv[pos + 8:min(n, pos + 8 + length)]
+        if kind == b"IHDR" and length == 13:
+            depth, colour, interlace = body[8], body[9], body[12]
+            row = 1 + -(-w * _CHANNELS.get(colour, 4) * max(depth, 1) // 8)
+            bound = h * row + (7 * h + 64 if interlace else 0)  # Adam7: a filter byte a pass row
+        elif kind == b"IDAT" and bound and not inflater.eof:
+            try:
+                out = inflater.decompress(body, min(bound - got + 1, 1 << 20))
+                while True:
+                    got += len(out)
+                    if got > bound:
+                        raise MaskError(
+                            f"{name}: its image data inflates to more than a {w}x{h} image "
+                            f"holds ({bound} bytes): refused unread (a zlib bomb?)")
+                    if not inflater.unconsumed_tail:
+                        break
+                    out = inflater.decompress(inflater.unconsumed_tail,
+                                              min(bound - got + 1, 1 << 20))
+            except zlib.error:
+                return  # damaged: the decoder says so
+        elif kind == b"IEND":
+            return
+        pos += 12 + length
 
 
 def _canonical_rows(data: bytes, h: int, w: int) -> np.ndarray | None:

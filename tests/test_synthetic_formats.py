@@ -73,6 +73,18 @@ def test_layouts_are_each_tools(synth):
     assert (root / "pix4d" / "1_initial" / "params" / "synthetic_wkt.prj").is_file()
 
 
+def test_generated_projects_pass_the_import_roots_checks(synth):
+    """Each format's project imports in the web app too: no symlink out of the folder and no
+    hard-linked file (app imports refuse both, occufly.io.importer.confine_tree)."""
+    from occufly.io.importer import confine_tree
+
+    root, _ = synth
+    linked = [p for p in root.rglob("*") if p.is_file() and p.stat().st_nlink > 1]
+    assert linked == []
+    for f in FORMATS:
+        assert confine_tree(root / f, [root]) > 10
+
+
 def test_every_format_gives_the_colmap_cameras_and_pixels(imported):
     _, scenes = imported
     ref = scenes["colmap"]

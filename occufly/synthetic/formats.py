@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 import time
 from pathlib import Path
@@ -124,18 +123,18 @@ def import_hint(root: Path, fmt: str) -> str:
     return f"occufly import {root} -w WS"
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
+def _copy(src: Path, dst: Path) -> None:
+    """A real copy, not a hard link: the web app's imports refuse hard-linked files (a link in
+    an import root may be any file of its disk; occufly.io.importer.refuse_hard_link), and a
+    generated project must import there like one from the real tool."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+    shutil.copy2(src, dst)
 
 
 def _copy_tree(src: Path, dst: Path) -> None:
     for p in sorted(src.rglob("*")):
         if p.is_file():
-            _link_or_copy(p, dst / p.relative_to(src))
+            _copy(p, dst / p.relative_to(src))
 
 
 def _f(v: float) -> str:
@@ -186,7 +185,7 @@ class _BaseScene:
     def write_colmap(self, dest: Path) -> None:
         _copy_tree(self.base / "sparse", dest / "sparse")
         _copy_tree(self.base / "dense" / "stereo", dest / "dense" / "stereo")
-        _link_or_copy(self.base / "dense" / "fused.ply.vis", dest / "dense" / "fused.ply.vis")
+        _copy(self.base / "dense" / "fused.ply.vis", dest / "dense" / "fused.ply.vis")
         normals = read_ply(self.base / "dense" / "fused.ply").normals
         if normals is None:
             normals = np.zeros_like(self.xyz)

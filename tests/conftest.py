@@ -33,6 +33,8 @@ SLOW = {
     "tests/app/test_serving.py": "`occufly serve` and nginx processes, header/idle timeouts",
     "tests/app/test_cross_process_limits.py":
         "two API processes on PostgreSQL: job quota, viewer-socket cap and access across them",
+    "tests/app/test_shared_limits.py::test_serialise_holds_between_two_processes":
+        "two child processes racing for a quota's last places, SQLite and PostgreSQL",
     "tests/test_scale.py": "the 960 x 640 `tinyfull` scene, renders of full-size frames",
     "tests/test_synthetic_formats.py": "the tiny scene written in every photogrammetry format",
     "tests/app/test_schema.py": "schemathesis: generated requests against every route",

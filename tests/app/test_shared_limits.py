@@ -4,7 +4,9 @@ PostgreSQL. (Two real API processes: tests/app/test_cross_process_limits.py.)
 - viewer-socket leases: a process that stops renewing (killed) frees its places when the
   leases run out; one that runs keeps them;
 - quotas on review items and comments: concurrent requests (threads, no process lock exists)
-  pass at most the quota, each refusal a 429 naming the quota's variable.
+  pass at most the quota, each refusal a 429 naming the quota's variable;
+- the job quota on a re-import and an import that loses the last place;
+- the database lock itself between two processes (SQLite and PostgreSQL; slow lane).
 """
 
 from __future__ import annotations
@@ -183,3 +185,75 @@ def test_an_import_that_loses_the_last_place_leaves_no_scene(env, monkeypatch):
                         headers=admin)
     assert r.status_code == 202, r.text
     env.app.state.ctx.jobs.wait(r.json()["id"], timeout=60)
+
+
+# ---- the lock itself, between processes --------------------------------------------------------
+RACER = """
+import sys, time
+from sqlalchemy import func, select
+from app import db
+from app.shared_limits import JOB_QUOTA, ViewerSocket, serialise
+from app.db import utcnow
+
+url, name, cap, locked = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] == "1"
+sessions = db.make_sessionmaker(db.make_engine(url, pooled=False))
+start = float(sys.argv[5])
+time.sleep(max(0.0, start - time.time()))  # both processes begin together
+for _ in range(10):
+    with sessions() as s:
+        if locked:
+            serialise(s, JOB_QUOTA, 7)
+        n = s.scalar(select(func.count()).select_from(ViewerSocket).where(
+            ViewerSocket.username == name))
+        time.sleep(0.05)  # between the count and the insert: where the race is
+        if n < cap:
+            s.add(ViewerSocket(username=name, process="racer", opened_at=utcnow(),
+                               expires_at=utcnow()))
+        s.commit()
+"""
+
+
+def _race(url: str, name: str, cap: int, locked: bool) -> int:
+    import subprocess
+    import sys
+
+    from sqlalchemy import delete, func, select
+
+    from app import db
+    from tests.harness import REPO
+
+    start = time.time() + 3.0  # both children are up by then (imports take ~1 s)
+    procs = [subprocess.Popen([sys.executable, "-c", RACER, url, name, str(cap),
+                               "1" if locked else "0", str(start)], cwd=REPO)
+             for _ in range(2)]
+    for p in procs:
+        assert p.wait(60) == 0
+    engine = db.make_engine(url, pooled=False)
+    try:
+        with db.make_sessionmaker(engine)() as s:
+            n = s.scalar(select(func.count()).select_from(ViewerSocket).where(
+                ViewerSocket.username == name))
+            s.execute(delete(ViewerSocket).where(ViewerSocket.username == name))
+            s.commit()
+    finally:
+        engine.dispose()
+    return int(n)
+
+
+@pytest.mark.slow  # child processes (tests/conftest.py SLOW)
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_serialise_holds_between_two_processes(backend, request, tmp_path):
+    """Two processes each count and add 10 times (50 ms between count and insert) with a cap
+    of 3: under :func:`app.shared_limits.serialise` exactly 3 rows are added, on SQLite (the
+    write lock, one file shared by two processes) and on PostgreSQL (the advisory lock)."""
+    import shutil
+
+    if backend == "sqlite":
+        shutil.copy(request.getfixturevalue("sqlite_template"), tmp_path / "race.db")
+        url = f"sqlite:///{tmp_path / 'race.db'}"
+    else:
+        url = request.getfixturevalue("pg_url")
+    n = _race(url, f"race-{backend}", 3, locked=True)
+    # measured without the lock (locked=False): 4 rows on SQLite and 3-4 on PostgreSQL
+    print(f"\n{backend}: 2 processes x 10 attempts, cap 3, serialised: {n} rows")
+    assert n == 3

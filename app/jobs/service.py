@@ -123,6 +123,14 @@ def create(*, session: Session, kind: str, scene_id: int | None, params: dict,
         # the caller's uncommitted changes with it
         serialise(session, JOB_QUOTA, user_id)
         try:
+            if key is not None:  # the same key's request that held the lock before us won
+                found = find_by_key(session=session, user_id=user_id, key=key, kind=kind,
+                                    scene_id=scene_id, params=params)
+                if found is not None:
+                    session.commit()
+                    found.reused = True  # the caller must not submit it again
+                    return found
+                serialise(session, JOB_QUOTA, user_id)  # again: an expired key was committed
             check_quota(session=session, settings=quota, user_id=user_id, kind=kind)
         except Exception:
             session.rollback()  # releases the lock

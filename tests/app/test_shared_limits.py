@@ -257,3 +257,22 @@ def test_serialise_holds_between_two_processes(backend, request, tmp_path):
     # measured without the lock (locked=False): 4 rows on SQLite and 3-4 on PostgreSQL
     print(f"\n{backend}: 2 processes x 10 attempts, cap 3, serialised: {n} rows")
     assert n == 3
+
+
+def test_retries_with_one_idempotency_key_at_the_quota_get_the_one_job(world):
+    """8 concurrent retries of one job request (one Idempotency-Key) with a quota of 1: one
+    202, seven 200 with the same job -- never a 429 for a retry of a request that got its
+    place (the binding check looks the key up again under the lock)."""
+    env, hdr, scene, _frames = world
+    _limits(env, active_jobs_per_user=1)
+    headers = {**hdr["admin"], "Idempotency-Key": "retry-1"}
+
+    def post(_i: int):  # noqa: ANN202
+        return env.client.post(f"/api/scenes/{scene['id']}/voxelize", json={"voxel_size": 0.5},
+                               headers=headers)
+
+    answers = _concurrently(8, post)
+    codes = sorted(r.status_code for r in answers)
+    assert codes == [200] * 7 + [202], [(r.status_code, r.text[:120]) for r in answers]
+    assert len({r.json()["id"] for r in answers}) == 1
+    env.app.state.ctx.jobs.wait(answers[0].json()["id"], timeout=60)

@@ -115,9 +115,39 @@ class TimedH11Protocol(H11Protocol):
         self._arm_head_timer()
 
     def data_received(self, data: bytes) -> None:
+        if self._head_too_large(data):
+            return
         super().data_received(data)
         self._arm_body_timer()
         self._count_body(len(data))
+
+    # ---- the head's size, however it arrives (issue 36) --------------------------------------
+    _head_bytes = 0
+    _head_tail = b""
+
+    def _head_too_large(self, data: bytes) -> bool:
+        """h11's cap (``h11_max_incomplete_event_size``) holds only while a head is still
+        incomplete: a 100 KiB head arriving in one read was answered. Count the bytes of
+        the head under way (up to its blank line) and answer 400 past MAX_HEAD_BYTES (as h11
+        does for an incomplete one)."""
+        if self._upgraded or self.conn.their_state is not h11.IDLE:
+            self._head_bytes, self._head_tail = 0, b""
+            return False
+        buf = self._head_tail + data
+        end = buf.find(b"\r\n\r\n")
+        size = self._head_bytes + (len(data) if end < 0 else end + 4 - len(self._head_tail))
+        if size > MAX_HEAD_BYTES:
+            msg = f"request head over {MAX_HEAD_BYTES} bytes\r\n".encode()
+            self.transport.write(b"HTTP/1.1 400 Bad Request\r\n"
+                                 b"content-type: text/plain; charset=utf-8\r\nconnection: "
+                                 b"close\r\ncontent-length: %d\r\n\r\n%s" % (len(msg), msg))
+            self.transport.close()
+            return True
+        if end < 0:
+            self._head_bytes, self._head_tail = size, buf[-3:]
+        else:
+            self._head_bytes, self._head_tail = 0, b""
+        return False
 
     # ---- minimum body rate -----------------------------------------------------------------
     def _rate_reset(self) -> None:

@@ -1,28 +1,44 @@
-"""Viewer benchmark: open /viewer/ through the app and time the first complete 2 M point cloud.
+"""Viewer benchmark at survey scale: the 3D review in headless Chromium (SwiftShader WebGL).
 
-Headless Chromium (SwiftShader WebGL) on loopback, the app's proxy in front of viser. Measures
+Opens ``/viewer/?scene=bench`` through the app's proxy, once per point sending scheme, in a
+fresh browser each (so the tab's memory is its own), on the same workspace in the same run:
 
-- ``proxy.first_cloud_s``: from ``page.goto('/viewer/?scene=bench')`` to the last websocket
-  frame of the initial scene arriving in the browser (all class nodes received);
-- ``proxy.ws_bytes`` / ``page_bytes``: bytes the browser received;
-- the same through a *direct* viser connection (no proxy, no ticket) as the baseline measured
-  in the same run, and the ratio proxy / direct;
-- ``bytes_per_point`` and the ratio to the raw float32 xyz + uint8 rgb payload (15 B/point);
-- responsiveness while an "annotator" rewrites the labels every 0.5 s (each rewrite triggers a
-  live refresh): latency of a class toggle clicked in the browser until the server sees it.
+- ``legacy``: the old path, a 150 k preview then one node per class of the whole LOD;
+- ``progressive``: the level of detail of :mod:`app.viewer.point_lod` (a coarse level, then
+  region tiles from the middle out).
 
-Prints one JSON object. Usage: ``python bench/bench_viewer.py [--points 2000000]``.
+For each it reports
+
+- ``first_points_s``: page opened -> the first screenshot with points on it (the canvas crop
+  clear of the panels has a pixel standard deviation > 20);
+- ``full_lod_s``: page opened -> the first screenshot taken after the server sent the last
+  chunk of the level of detail and the browser received it (``lod_sent_s`` / ``lod_received_s``);
+- ``connected_s`` / ``first_sent_s``: page opened -> the viewer has the tab's client / has
+  sent its first points (server side);
+- ``orbit``: frames three.js renders per second (counted by a WebGL ``clear`` hook) while the
+  view orbits the scene for ``--orbit-s`` seconds (camera moved at 30 Hz, each step signalled
+  as the browser's camera message is: see :func:`orbit_fps`), and the points drawn meanwhile;
+- ``memory``: the tab's renderer and the GPU process (SwiftShader keeps the buffers there):
+  RSS and peak RSS (VmHWM) from /proc, and the page's JS heap (performance.memory);
+- ``lasso``: a screen lasso (the selection tool's own function) chosen to hold ~``--lasso``
+  points, relabelled to *water* (blue) through a file-backed corrections hook: the time until
+  a screenshot shows the region blue (``relabel_visible_s``), then undo until it is not
+  (``undo_visible_s``); ``select_s``: lasso closed -> selection highlighted in the browser;
+- ``toggle_p50_s``: a class checkbox clicked in the browser until the server sees it.
+
+Prints one JSON object. ``--shots DIR`` saves the progressive run's screenshots (first points,
+full LOD, the 1 M selection). Usage: ``python bench/bench_viewer.py --points 8000000``.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
+import io
 import json
+import os
 import statistics
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -32,80 +48,310 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "viewer"))
 
-from viewer_live import CHROMIUM_ARGS, REVIEWER, LiveServer, fake_client, make_app  # noqa: E402
+from viewer_live import CHROMIUM_ARGS, REVIEWER, LiveServer, make_app  # noqa: E402
 
+from app.viewer import corrections_panel  # noqa: E402
+from app.viewer import selection as sel  # noqa: E402
 from app.viewer.demo_scene import make_demo_workspace  # noqa: E402
-from app.viewer.server import ViewerService  # noqa: E402
-from app.viewer.state import default_scenes  # noqa: E402
-from occufly.fsutil import atomic_save_npy  # noqa: E402
+from occufly.lifting.corrections import write_overrides  # noqa: E402
+
+WATER = 14
+BLUE = np.array([0, 0, 255])
+VIEW = (1000, 700)
 
 
-def png_std(b: bytes) -> float:
-    import io
-
+def shot(page, path: Path | None = None) -> np.ndarray:
     from PIL import Image
 
-    img = np.asarray(Image.open(io.BytesIO(b)).convert("L"), np.float32)
-    h, w = img.shape
-    # the left 60 % below the top quarter: clear of the GUI panel and the notification
-    return float(img[h // 4:, : int(0.6 * w)].std())
+    b = page.screenshot(timeout=180_000)
+    if path is not None:
+        path.write_bytes(b)
+    return np.asarray(Image.open(io.BytesIO(b)).convert("RGB"), np.int16)
 
 
-def open_in_browser(browser, srv: LiveServer, svc: ViewerService, *, quiet_s: float = 1.0,
-                    timeout_s: float = 300.0) -> dict:
-    """Open /viewer/ through the proxy; time the last websocket frame of the initial load
-    (measured in the proxy, which forwards every byte the browser gets) and the first
-    non-blank canvas screenshot."""
-    ctx = browser.new_context(viewport={"width": 1000, "height": 700})
-    ctx.add_cookies([{"name": "occufly_session", "value": REVIEWER, "url": srv.url}])
-    page = ctx.new_page()
-    n_before = len(svc.proxy_stats)
+def has_points(img: np.ndarray) -> bool:
+    h, w = img.shape[:2]
+    return float(img[h // 4:, : int(0.6 * w)].mean(axis=2).std()) > 20
+
+
+class FileCorrections:
+    """relabel / undo / redo / stack hooks writing the net override layer the app writes
+    (occufly.lifting.corrections), an in-memory edit stack instead of the database."""
+
+    def __init__(self, ws: Path) -> None:
+        self.ws, self.edits, self.undone = ws, [], []
+
+    def _write(self) -> None:
+        if self.edits:
+            ids = np.concatenate([e[0] for e in self.edits])
+            lab = np.concatenate([np.full(len(e[0]), e[1], np.uint8) for e in self.edits])
+        else:
+            ids, lab = np.zeros(0, np.int64), np.zeros(0, np.uint8)
+        write_overrides(self.ws, ids, lab)
+
+    def relabel(self, scene_id, point_ids, to_class, comment, user, frame_index=None) -> dict:
+        self.edits.append((np.asarray(point_ids, np.int64), int(to_class)))
+        self.undone.clear()
+        self._write()
+        return {"id": len(self.edits), "n_points": len(point_ids)}
+
+    def undo(self, scene_id, user) -> dict:
+        e = self.edits.pop()
+        self.undone.append(e)
+        self._write()
+        return {"id": len(self.edits) + 1, "n_points": len(e[0])}
+
+    def redo(self, scene_id, user) -> dict:
+        self.edits.append(self.undone.pop())
+        self._write()
+        return {"id": len(self.edits), "n_points": len(self.edits[-1][0])}
+
+    def stack(self, scene_id, user) -> dict:
+        return {"undo": len(self.edits) or None, "redo": len(self.undone) or None}
+
+    def hooks(self) -> dict:
+        return {"relabel": self.relabel, "undo": self.undo, "redo": self.redo,
+                "stack": self.stack}
+
+
+def _proc_tree(root_pid: int) -> list[int]:
+    kids: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            kids.setdefault(ppid, []).append(int(d))
+    out, todo = [], [root_pid]
+    while todo:
+        p = todo.pop()
+        for c in kids.get(p, []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def tab_memory(page) -> dict:
+    """RSS / peak RSS (MB) of Chromium's renderer(s) and GPU process, and the JS heap."""
+    out: dict = {"renderer_rss_mb": 0.0, "renderer_peak_mb": 0.0, "gpu_rss_mb": 0.0,
+                 "gpu_peak_mb": 0.0}
+    for pid in _proc_tree(os.getpid()):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+            status = Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            continue
+        kb = {ln.split(":")[0]: int(ln.split()[1]) for ln in status.splitlines()
+              if ln.startswith(("VmRSS", "VmHWM"))}
+        kind = ("renderer" if "--type=renderer" in cmd else
+                "gpu" if "--type=gpu-process" in cmd else None)
+        if kind is None or "VmRSS" not in kb:
+            continue
+        out[f"{kind}_rss_mb"] += kb["VmRSS"] / 1024
+        out[f"{kind}_peak_mb"] += kb.get("VmHWM", 0) / 1024
+    heap = page.evaluate("() => performance.memory ? performance.memory.usedJSHeapSize : null")
+    out["js_heap_mb"] = None if heap is None else heap / 2**20
+    out["tab_total_rss_mb"] = out["renderer_rss_mb"] + out["gpu_rss_mb"]
+    out["tab_total_peak_mb"] = out["renderer_peak_mb"] + out["gpu_peak_mb"]
+    return {k: (round(v, 1) if isinstance(v, float) else v) for k, v in out.items()}
+
+
+# counts the frames three.js renders (one clear() per frame): viser renders on demand, so
+# requestAnimationFrame alone also counts frames that draw nothing
+RENDER_HOOK = """(() => { const w = window; w.__renders = 0;
+  for (const C of [self.WebGLRenderingContext, self.WebGL2RenderingContext]) { if (!C) continue;
+    const clear = C.prototype.clear;
+    C.prototype.clear = function (m) { w.__renders++; return clear.call(this, m); }; } })();"""
+
+
+def orbit_fps(page, svc, st, seconds: float, hz: float = 30.0) -> dict:
+    """Frames rendered per second while the view orbits the scene centre.
+
+    The camera is moved by the server at ``hz`` (viser camera updates), and each step is
+    signalled to the viewer as the browser's own camera message is when a reviewer drags
+    (``camera_moved``, what viser's camera ``on_update`` calls). Playwright's mouse is not
+    used: each synthetic mouse event waits until the renderer acknowledges it, which under
+    software WebGL stalls the driver for seconds, not the page."""
+    cam = st.client.camera
+    c = np.asarray(cam.look_at, np.float64)
+    p0 = np.asarray(cam.position, np.float64) - c
+    rad, a0 = float(np.hypot(p0[0], p0[1])), float(np.arctan2(p0[1], p0[0]))
+    n0 = page.evaluate("() => window.__renders")
     t0 = time.perf_counter()
-    resp = page.goto(srv.url + "/viewer/?scene=bench")
-    page_bytes = len(resp.body()) if resp is not None else 0
-    st = None
-    while st is None and time.perf_counter() - t0 < timeout_s:
-        st = next(iter(svc.client_states()), None)
-        page.wait_for_timeout(50)
-    if st is None or not st.ready.wait(timeout_s):
-        raise RuntimeError("viewer did not load the scene")
-    t_sent = time.perf_counter() - t0
-    stats = svc.proxy_stats[n_before]
-    preview = svc.preview_points if st.sent_points > 4 * svc.preview_points else 0
-    need = 15 * (st.sent_points + preview)  # float32 xyz + uint8 rgb per point
-    while (stats["bytes"] < need or stats["last"] is None
-           or time.perf_counter() - stats["last"] < quiet_s):
-        if time.perf_counter() - t0 > timeout_s:
-            raise RuntimeError(f"only {stats['bytes']} of >= {need} bytes arrived")
-        page.wait_for_timeout(50)
-    first_cloud = stats["last"] - t0
-    first_preview = next((t - t0 for t, b in stats["log"] if b >= 15 * preview), None) \
-        if preview else None
-    first_picture = None
+    k = 0
+    while time.perf_counter() - t0 < seconds:
+        a = a0 + 0.03 * k
+        with st.client.atomic():
+            cam.position = tuple(c + np.array([rad * np.cos(a), rad * np.sin(a), p0[2]]))
+            cam.look_at = tuple(c)
+        if svc.lod_scheme != "legacy":
+            svc.camera_moved(st)
+        k += 1
+        time.sleep(max(0.0, t0 + k / hz - time.perf_counter()))
+    dt = time.perf_counter() - t0
+    n1 = page.evaluate("() => window.__renders")
+    return {"fps": round((n1 - n0) / dt, 2), "frames": n1 - n0, "seconds": round(dt, 2),
+            "camera_updates": k}
+
+
+def lasso_polygon(st, cam, want: int) -> tuple[np.ndarray, int]:
+    """A screen rectangle (as a lasso polygon) left of the panels holding ~``want`` points."""
+    xyz = np.asarray(st.data.scene.xyz)
+    step = max(1, len(xyz) // 1_000_000)
+    sub = np.asarray(xyz[::step], np.float32)
+    pos, wxyz, fov, asp = cam
+    u, v, front = sel.project_to_screen(sub, pos, wxyz, fov, asp)
+    cu, cv = 0.3, 0.6
+    lo, hi = 0.005, 0.3
+    for _ in range(20):
+        half = (lo + hi) / 2
+        n = int((front & (np.abs(u - cu) < half) & (np.abs(v - cv) < half * VIEW[0] / VIEW[1]))
+                .sum()) * step
+        lo, hi = (half, hi) if n < want else (lo, half)
+    hv = half * VIEW[0] / VIEW[1]
+    poly = np.array([[cu - half, cv - hv], [cu + half, cv - hv], [cu + half, cv + hv],
+                     [cu - half, cv + hv]])
+    return poly, n
+
+
+def blue_share(img: np.ndarray, poly: np.ndarray, colour: np.ndarray = BLUE) -> float:
+    """Share of the pixels inside the lasso's bounding box close to ``colour``."""
+    h, w = img.shape[:2]
+    (u0, v0), (u1, v1) = poly.min(axis=0), poly.max(axis=0)
+    crop = img[int(v0 * h) + 2:int(v1 * h) - 2, int(u0 * w) + 2:int(u1 * w) - 2]
+    return float((np.abs(crop - colour).sum(axis=2) < 60).mean())
+
+
+def wait_shot(page, pred, timeout_s: float, t0: float) -> tuple[float | None, np.ndarray | None]:
+    img = None
     while time.perf_counter() - t0 < timeout_s:
-        # page screenshot (no element-stability wait: software WebGL frames are slow)
-        if png_std(page.screenshot(timeout=120_000)) > 20:  # crop: see png_std
-            first_picture = time.perf_counter() - t0
-            break
-        page.wait_for_timeout(200)
-    out = {
-        "first_cloud_s": round(first_cloud, 3),
-        "preview_points": preview,
-        "first_preview_s": None if first_preview is None else round(first_preview, 3),
-        "server_sent_s": round(t_sent, 3),
-        "first_picture_s": None if first_picture is None else round(first_picture, 3),
-        "ws_bytes": int(stats["bytes"]),
-        "ws_frames": int(stats["frames"]),
-        "page_bytes": page_bytes,
-        "points_sent": st.sent_points,
-    }
-    return {"stats": out, "ctx": ctx, "page": page, "state": st}
+        img = shot(page)
+        if pred(img):
+            return time.perf_counter() - t0, img
+        page.wait_for_timeout(100)
+    return None, img
+
+
+def lasso_relabel(page, svc, st, want: int, shots: Path | None) -> dict:
+    """Lasso ~``want`` points from the default view, relabel to water, undo; times until
+    the browser shows each."""
+    svc._place_camera(st)
+    page.wait_for_timeout(1500)
+    cam = st.client.camera
+    camt = (np.asarray(cam.position), np.asarray(cam.wxyz), float(cam.fov), float(cam.aspect))
+    poly, est = lasso_polygon(st, camt, want)
+    base = blue_share(shot(page), poly)
+    st.gui["sel_mode"].value = "replace"
+    st.lasso, st.lasso_cam = [tuple(p) for p in poly], camt
+    t0 = time.perf_counter()
+    picked = corrections_panel.close_lasso(svc, st)
+    t_sel = time.perf_counter() - t0
+    cyan = np.array([0, 255, 255])
+    t_hi, img = wait_shot(page, lambda im: blue_share(im, poly, cyan) > 0.3, 60, t0)
+    if shots is not None and img is not None:
+        shot(page, shots / "viewer_scale_selection_1m.png")
+    st.gui["to_class"].value = next(o for o in st.gui["to_class"].options
+                                    if o.endswith(f"({WATER})"))
+    t0 = time.perf_counter()
+    corrections_panel.relabel(svc, st, st.gui["to_class"].value, "bench")
+    t_call = time.perf_counter() - t0
+    t_vis, img = wait_shot(page, lambda im: blue_share(im, poly) > base + 0.1, 60, t0)
+    after = blue_share(img, poly) if img is not None else None
+    if shots is not None:
+        shot(page, shots / "viewer_scale_relabelled.png")
+    t0 = time.perf_counter()
+    corrections_panel.undo_redo(svc, st, "undo")
+    t_undo, img = wait_shot(page, lambda im: blue_share(im, poly) < base + 0.03, 60, t0)
+    return {"selected_points": int(len(picked)), "estimate": est,
+            "close_lasso_s": round(t_sel, 3),
+            "selection_visible_s": None if t_hi is None else round(t_hi, 3),
+            "relabel_call_s": round(t_call, 3),
+            "relabel_visible_s": None if t_vis is None else round(t_vis, 3),
+            "undo_visible_s": None if t_undo is None else round(t_undo, 3),
+            "blue_share_before_after": [round(base, 3), None if after is None else round(after, 3)]}
+
+
+def toggles(page, st, n: int) -> dict:
+    """Click the road checkbox in the browser; latency until the server sees it."""
+    lat = []
+    row = page.locator("div.mantine-Flex-root", has=page.get_by_text("road (", exact=False))
+    box = row.locator("input").last.element_handle()
+    for i in range(n):
+        want_hidden = i % 2 == 0
+        t1 = time.perf_counter()
+        box.evaluate("e => e.click()")  # JS click: no wait for rAF-stable layout
+        while st.class_visible.get(1, True) == want_hidden and time.perf_counter() - t1 < 20:
+            page.wait_for_timeout(5)
+        lat.append(time.perf_counter() - t1)
+        page.wait_for_timeout(300)
+    return {"p50": round(statistics.median(lat), 3), "max": round(max(lat), 3)}
+
+
+def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -> dict:
+    svc.lod_scheme = scheme
+    browser = p.chromium.launch(executable_path="/usr/bin/chromium",
+                                args=CHROMIUM_ARGS + ["--enable-precise-memory-info"])
+    try:
+        ctx = browser.new_context(viewport={"width": VIEW[0], "height": VIEW[1]})
+        ctx.add_init_script(RENDER_HOOK)
+        ctx.add_cookies([{"name": "occufly_session", "value": REVIEWER, "url": srv.url}])
+        page = ctx.new_page()
+        n_before = len(svc.proxy_stats)
+        t0 = time.perf_counter()
+        page.goto(srv.url + "/viewer/?scene=bench")
+        st = None
+        while st is None and time.perf_counter() - t0 < 300:
+            st = next(iter(svc.client_states()), None)
+            page.wait_for_timeout(20)
+        t_conn = time.perf_counter() - t0
+        t_first, _img = wait_shot(page, has_points, 600, t0)
+        if shots is not None:
+            shot(page, shots / "viewer_scale_first_points.png")
+        if not st.lod_done.wait(600):
+            raise RuntimeError("the level of detail was not sent in 600 s")
+        lod_sent = st.lod_done_at - t0
+        stats = svc.proxy_stats[n_before]
+        while stats["last"] is None or stats["last"] < st.lod_done_at \
+                or time.perf_counter() - stats["last"] < 0.5:
+            page.wait_for_timeout(50)
+        lod_recv = stats["last"] - t0
+        shot(page, shots / "viewer_scale_full_lod.png" if shots else None)
+        t_full = time.perf_counter() - t0
+        out = {"connected_s": round(t_conn, 3),
+               "first_sent_s": round(st.first_sent_at - t0, 3) if st.first_sent_at else None,
+               "first_points_s": None if t_first is None else round(t_first, 3),
+               "lod_sent_s": round(lod_sent, 3), "lod_received_s": round(lod_recv, 3),
+               "full_lod_s": round(t_full, 3), "points_shown": st.sent_points,
+               "ws_bytes": int(stats["bytes"]), "point_nodes": len(st.chunk_handles)
+               or len(st.point_handles)}
+        page.wait_for_timeout(1000)
+        out["orbit"] = orbit_fps(page, svc, st, args.orbit_s)
+        # drawn while moving: the coarse level (tiles hidden) or, on the old path, everything
+        out["orbit"]["points_drawn"] = (st.lod_plan.n_coarse if st.lod_plan is not None
+                                        and svc.motion_rest_s is not None else st.sent_points)
+        out["memory_after_orbit"] = tab_memory(page)
+        out["toggle_latency_s"] = toggles(page, st, args.toggles)
+        if args.lasso:
+            out["lasso"] = lasso_relabel(page, svc, st, args.lasso, shots)
+        out["memory_end"] = tab_memory(page)
+        ctx.close()
+        while svc.client_states():
+            time.sleep(0.05)
+        return out
+    finally:
+        browser.close()
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=2_000_000)
+    ap.add_argument("--max-points", type=int, default=None, help="the viewer's LOD budget")
     ap.add_argument("--toggles", type=int, default=6)
+    ap.add_argument("--orbit-s", type=float, default=5.0)
+    ap.add_argument("--lasso", type=int, default=1_000_000)
+    ap.add_argument("--schemes", default="legacy,progressive")
+    ap.add_argument("--shots", type=Path, default=None)
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -114,86 +360,32 @@ def main() -> None:
         t = time.perf_counter()
         make_demo_workspace(root / "bench", args.points, seed=1, with_grid=False)
         gen_s = time.perf_counter() - t
-        app = make_app(root)
+        kw = {"max_points": args.max_points} if args.max_points else {}
+        app = make_app(root, corrections=FileCorrections(root / "bench").hooks(), **kw)
         svc = app.state.viewer
-        result: dict = {"bench": "viewer", "points": args.points, "generate_s": round(gen_s, 2)}
-        with LiveServer(app) as srv:
-            # baseline in the same run: a socket-level client straight to viser (no proxy,
-            # no browser) vs the same client through the app's proxy
-            direct = ViewerService(scenes=default_scenes(root), max_points=args.points,
-                                   require_ticket=False)
-            direct.start()
-            need = 15 * args.points  # float32 xyz + uint8 rgb per point (plus a preview)
-            base = asyncio.run(fake_client(f"ws://127.0.0.1:{direct.port}/", {},
-                                           min_bytes=need, max_s=300))
-            direct.stop()
-            via = asyncio.run(fake_client(
-                f"ws://127.0.0.1:{srv.port}/viewer",
-                {"Cookie": f"occufly_session={REVIEWER}; occufly_viewer_scene=bench"},
-                min_bytes=need, max_s=300))
-            result["socket_direct"] = {"s": round(base["last_s"], 3), "bytes": base["bytes"]}
-            result["socket_via_proxy"] = {"s": round(via["last_s"], 3), "bytes": via["bytes"]}
-            result["ratio_proxy_vs_direct_time"] = round(via["last_s"] / base["last_s"], 3)
-            while svc.client_states():  # the socket client has gone
-                time.sleep(0.05)
-            with sync_playwright() as p:
-                browser = p.chromium.launch(executable_path="/usr/bin/chromium",
-                                            args=CHROMIUM_ARGS)
-                run = open_in_browser(browser, srv, svc)
-                prox = run["stats"]
-                result["browser_via_proxy"] = prox
-                raw = 15 * prox["points_sent"]
-                result["bytes_per_point"] = round(prox["ws_bytes"] / max(prox["points_sent"], 1), 2)
-                result["ratio_bytes_vs_raw_xyz32_rgb8"] = round(prox["ws_bytes"] / raw, 3)
-                quiet = responsiveness(run["page"], run["state"], root, args.toggles,
-                                       with_saves=False)
-                busy = responsiveness(run["page"], run["state"], root, args.toggles)
-                result["toggle_latency_idle_s"] = quiet
-                result["toggle_latency_during_saves_s"] = busy
-                result["ratio_toggle_p50_saves_vs_idle"] = round(busy["p50"] / quiet["p50"], 2)
-                run["ctx"].close()
-                browser.close()
+        result: dict = {"bench": "viewer_scale", "points": args.points,
+                        "max_points": svc.max_points, "coarse_points": svc.preview_points,
+                        "tiles": svc.lod_tiles ** 2, "generate_s": round(gen_s, 2),
+                        "cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}
+        with LiveServer(app) as srv, sync_playwright() as p:
+            for scheme in args.schemes.split(","):
+                result[scheme] = run_scheme(p, srv, svc, scheme, args,
+                                            args.shots if scheme == "progressive" else None)
+                print(json.dumps({scheme: result[scheme]}), file=sys.stderr, flush=True)
+        result["load_avg_end"] = os.getloadavg()
+        if "legacy" in result and "progressive" in result:
+            old, new = result["legacy"], result["progressive"]
+            ratio = {}
+            for k in ("first_points_s", "full_lod_s"):
+                if old.get(k) and new.get(k):
+                    ratio[k] = round(new[k] / old[k], 3)
+            ratio["orbit_fps"] = round(new["orbit"]["fps"] / max(old["orbit"]["fps"], 1e-6), 2)
+            lo, ln = old.get("lasso", {}), new.get("lasso", {})
+            for k in ("relabel_visible_s", "undo_visible_s"):
+                if lo.get(k) and ln.get(k):
+                    ratio[k] = round(ln[k] / lo[k], 3)
+            result["ratio_new_vs_old"] = ratio
         print(json.dumps(result))
-
-
-def responsiveness(page, st, root: Path, toggles: int, *, with_saves: bool = True) -> dict:
-    """Click a class checkbox while an 'annotator' rewrites the labels every 0.5 s (each
-    rewrite is picked up by the live refresh); latency = click until the server sees it."""
-    labels = np.load(root / "bench" / "lifting" / "labels.npy")
-    stop = threading.Event()
-    saves = {"n": 0}
-
-    def annotator() -> None:
-        lab = labels.copy()
-        person = np.flatnonzero(lab == 11)
-        while not stop.is_set():
-            lab[person] = 36 if saves["n"] % 2 == 0 else 11
-            atomic_save_npy(root / "bench" / "lifting" / "labels.npy", lab)
-            saves["n"] += 1
-            stop.wait(0.5)
-
-    th = threading.Thread(target=annotator, daemon=True)
-    if with_saves:
-        th.start()
-    lat = []
-    row = page.locator("div.mantine-Flex-root", has=page.get_by_text("road (", exact=False))
-    box = row.locator("input").last.element_handle()
-    try:
-        for i in range(toggles):
-            want_hidden = i % 2 == 0
-            t1 = time.perf_counter()
-            box.evaluate("e => e.click()")  # JS click: no wait for rAF-stable layout
-            while (st.class_visible.get(1, True) == want_hidden
-                   and time.perf_counter() - t1 < 20):
-                page.wait_for_timeout(5)
-            lat.append(time.perf_counter() - t1)
-            page.wait_for_timeout(300)
-    finally:
-        stop.set()
-        if with_saves:
-            th.join()
-    return {"p50": round(statistics.median(lat), 3), "max": round(max(lat), 3),
-            "label_saves": saves["n"]}
 
 
 if __name__ == "__main__":

@@ -81,15 +81,13 @@ class PanelsMixin:
             if abs(float(g["size"].value) - st.point_size) < 1e-9:
                 return  # our own default being applied
             st.point_size_set = True
-            st.point_size = float(g["size"].value)
-            with st.lock:
-                for h in st.point_handles.values():
-                    h.point_size = st.point_size
+            self.set_point_size(st, float(g["size"].value))
 
         @g["lod"].on_update
         def _(_e: Any) -> None:
             st.max_points = max(1000, int(g["lod"].value))
             st.subsample = None
+            st.lod_plan = None  # a new plan (the old chunks are removed)
             self.send_points(st)
 
         @g["grid_scene"].on_update

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.viewer import point_lod
 from app.viewer import scene_builder as sb
 from occufly.workspace import Workspace
 
@@ -53,12 +54,22 @@ class RefreshMixin:
         affected = set(classes) if classes is not None else changed_classes(old, new)
         for st in self.clients_of(scene_id):
             with st.lock:
-                st.data = new
+                prev, st.data = st.data if st.data is not None else old, new
                 if new.labels is not None and old.labels is None:
                     st.subsample = None
+                    st.lod_plan = None
                     affected = None  # first labels: everything changes
                 if affected is None or affected:
                     self._rebuild_class_boxes(st)
+                if (classes is None and affected is not None and st.lod_plan is not None
+                        and self.lod_scheme != "legacy"):
+                    # only the (class, tile) chunks holding changed points
+                    keys = point_lod.affected_chunks(st.lod_plan, prev, new, st.mode)
+                    if keys is None:
+                        self.send_points(st)
+                    elif keys:
+                        self.update_chunks(st, keys)
+                elif affected is None or affected:
                     self.send_points(st, None if affected is None else affected)
         return set() if affected is None else affected
 

@@ -5,13 +5,15 @@ classes shown, flying to a frame's camera, a suspect's region and rectangle sele
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
-from app.viewer import corrections_panel
+from app.viewer import corrections_panel, point_lod
 from app.viewer import scene_builder as sb
 from app.viewer.grid_lod import scene_grid_nodes_lod  # no per-voxel freeze
 from app.viewer.markdown_escape import md_text
@@ -22,6 +24,15 @@ log = logging.getLogger("app.viewer.server")
 
 
 class SceneViewMixin:
+    #: "progressive" (coarse level, then region tiles: :mod:`app.viewer.point_lod`) or
+    #: "legacy" (whole-class nodes after a preview; kept for the benchmark's baseline)
+    lod_scheme = "progressive"
+    lod_tiles = point_lod.DEFAULT_TILES
+    refine_batches = 2  # the refinement tiles arrive in this many batches
+    refine_pause_s = 0.0  # after each batch (the round trip of _drawn paces them)
+    draw_wait_s: float | None = 15.0  # at most this long for the browser to draw a batch
+    motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
+
     # ---- scene content ---------------------------------------------------------------------
     def open_scene(self, st: ClientState, scene_id: str, *, done: bool = True) -> None:
         """Load and send ``scene_id`` to client ``st``; ``done`` False leaves ``st.ready``
@@ -41,10 +52,17 @@ class SceneViewMixin:
                 st.gui["status"].content = f"Cannot open scene {md_text(scene_id)}: {md_text(e)}"
                 st.ready.set()
                 return
+            st.lod_gen += 1  # stops the refinement of the scene shown before
+            st.first_sent_at = 0.0
             st.client.scene.reset()
             st.client.scene.set_up_direction("+z")
             st.point_handles.clear()
             st.point_nodes.clear()
+            st.chunks.clear()
+            st.chunk_handles.clear()
+            st.detail_handles.clear()
+            st.lod_plan = None
+            self._watch_motion(st)
             st.grid_handles.clear()
             st.frustum_handles.clear()
             st.subsample = None
@@ -66,26 +84,16 @@ class SceneViewMixin:
                 st.camera_filter = sb.default_camera_filter(len(st.data.scene.frames))
             st.gui["frusta"].value = st.camera_filter
             self._place_camera(st)
-            d = st.data
-            n_show = min(st.max_points, d.scene.n_points)
-            if self.preview_points and n_show > 4 * self.preview_points:
-                full = sb.stratified_subsample(d.labels, d.scene.n_points, st.max_points)
-                st.subsample = sb.stratified_subsample(d.labels, d.scene.n_points,
-                                                       self.preview_points)
-                self.send_points(st)  # quick first picture
-                self.send_frusta(st)
-                st.subsample = full
-            self.send_points(st)
+            if self.lod_scheme == "legacy":
+                self._send_legacy_preview(st)
+            else:
+                self.send_frusta(st)  # the cameras come with the first (coarse) points
+            self.send_points(st)  # progressive: the coarse level now, the tiles behind it
             if not st.frustum_handles:
                 self.send_frusta(st)
             self.send_grids(st)
             corrections_panel.on_scene_opened(self, st)
-            d = st.data
-            lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
-            st.gui["status"].content = (
-                f"**{md_text(scene_id)}**: {d.scene.n_points:,} points, {len(d.scene.frames)} cameras, "
-                f"{lifted}; showing {st.sent_points:,} points."
-            )
+            st.gui["status"].content = self.status_line(st)
         if done:
             st.ready.set()
 
@@ -100,8 +108,205 @@ class SceneViewMixin:
         cam.position = tuple(c + np.array([0.0, -0.9 * ext, 0.8 * ext]))
         cam.look_at = tuple(c)
 
+    def _send_legacy_preview(self, st: ClientState) -> None:
+        """The old path (``lod_scheme = "legacy"``): a stratified preview of
+        ``preview_points`` in whole-class nodes, then every class node again at full LOD."""
+        d = st.data
+        n_show = min(st.max_points, d.scene.n_points)
+        if self.preview_points and n_show > 4 * self.preview_points:
+            full = sb.stratified_subsample(d.labels, d.scene.n_points, st.max_points)
+            st.subsample = sb.stratified_subsample(d.labels, d.scene.n_points,
+                                                   self.preview_points)
+            self._send_class_nodes(st)  # quick first picture
+            st.lod_done.clear()  # the full level follows
+            self.send_frusta(st)
+            st.subsample = full
+
     def send_points(self, st: ClientState, classes: set[int] | None = None) -> list[sb.PointNode]:
-        """(Re)send point nodes of ``classes`` (all when None) to this client."""
+        """(Re)send the points of ``classes`` (all when None) to this client: the coarse
+        level at once, the region tiles from a background thread (:mod:`point_lod`)."""
+        if self.lod_scheme == "legacy":
+            return self._send_class_nodes(st, classes)
+        with st.lock:
+            d = st.data
+            if d is None:
+                return []
+            if classes is not None and st.lod_plan is not None:
+                keys = {k for k in st.chunks if k[1] in classes}
+                keys |= {(g, c) for g in st.sent_groups for c in classes}
+                return list(self.update_chunks(st, keys).values())
+            if st.lod_plan is None:
+                for h in st.chunk_handles.values():
+                    h.remove()
+                st.chunk_handles.clear()
+                st.chunks.clear()
+                st.sent_groups = set()
+                st.lod_plan = point_lod.plan_lod(
+                    d, st.max_points, coarse_points=self.preview_points or st.max_points,
+                    tiles=self.lod_tiles, subsample=st.subsample)
+                st.subsample = st.lod_plan.ids
+            st.lod_gen += 1
+            st.lod_done.clear()
+            st.lod_started = time.perf_counter()
+            nodes = self._send_groups(st, {0})
+            st.first_sent_at = st.first_sent_at or time.perf_counter()
+            gen, plan = st.lod_gen, st.lod_plan
+        if plan.order:
+            threading.Thread(target=self._refine, args=(st, gen, plan), daemon=True,
+                             name="viewer-lod").start()
+        else:
+            self._lod_finished(st, gen)
+        return list(nodes.values())
+
+    def _send_groups(self, st: ClientState, groups: set[int]) -> dict:
+        """Build and send every chunk of ``groups`` (st.lock held)."""
+        chunks = point_lod.build_chunks(st.data, st.lod_plan, mode=st.mode, groups=groups)
+        stale = [k for k in st.chunks if k[0] in groups and k not in chunks]
+        self._put_chunks(st, chunks, stale)
+        st.sent_groups |= groups
+        return chunks
+
+    def update_chunks(self, st: ClientState, keys: set[tuple[int, int]]) -> dict:
+        """Re-send the chunks ``keys`` (of groups already sent) after a label change; a chunk
+        left empty is removed. Returns the chunks sent."""
+        with st.lock:
+            keys = {k for k in keys if k[0] in st.sent_groups}
+            if not keys or st.data is None or st.lod_plan is None:
+                return {}
+            chunks = point_lod.build_chunks(st.data, st.lod_plan, mode=st.mode, keys=keys)
+            self._put_chunks(st, chunks, [k for k in keys if k not in chunks])
+            return chunks
+
+    def _put_chunks(self, st: ClientState, chunks: dict, stale: list) -> None:
+        d = st.data
+        for k in stale:
+            h = st.chunk_handles.pop(k, None)
+            if h is not None:
+                h.remove()
+            st.chunks.pop(k, None)
+        with st.client.atomic():
+            for cid in sorted({c for _g, c in chunks}):
+                if cid not in st.point_handles:  # the class's frame: one visibility flag
+                    st.point_handles[cid] = st.client.scene.add_frame(
+                        point_lod.class_frame_name(d.taxonomy, cid), show_axes=False,
+                        visible=st.class_visible.get(cid, True))
+            for cid in sorted({c for g, c in chunks if g > 0}):
+                if cid not in st.detail_handles:  # the tiles: hidden while the camera moves
+                    st.detail_handles[cid] = st.client.scene.add_frame(
+                        point_lod.detail_frame_name(d.taxonomy, cid), show_axes=False,
+                        visible=not st.moving)
+            for k, nd in chunks.items():
+                st.chunk_handles[k] = st.client.scene.add_point_cloud(
+                    nd.name, points=nd.xyz, colors=nd.colors, point_size=st.point_size,
+                    precision="float32", point_shape="square", point_shading="flat")
+        st.client.flush()
+        st.chunks.update(chunks)
+        st.point_nodes = point_lod.merge_by_class(st.chunks, d.taxonomy)
+        st.sent_points = int(sum(len(nd.point_ids) for nd in st.chunks.values()))
+
+    def _refine(self, st: ClientState, gen: int, plan: point_lod.LodPlan) -> None:
+        """Send the refinement tiles in ``refine_batches`` batches (the middle of the view
+        first), each after the browser has drawn what it had: under software WebGL every
+        batch that arrives costs a frame of everything shown, so few batches, each behind
+        a round trip (:meth:`_drawn`), put the coarse picture on screen first and the full
+        level soon after, without a backlog of frames."""
+        try:
+            batches = point_lod.batches(plan, self.refine_batches)
+            for batch in batches:
+                self._drawn(st)
+                with st.lock:
+                    if st.lod_gen != gen or st.data is None:
+                        return
+                    self._send_groups(st, set(batch))
+                if self.refine_pause_s:
+                    time.sleep(self.refine_pause_s)
+            self._lod_finished(st, gen)
+        except Exception:  # noqa: BLE001 - a closed tab ends its refinement
+            log.debug("viewer: refinement stopped", exc_info=True)
+
+    def _drawn(self, st: ClientState) -> None:
+        """Wait (at most ``draw_wait_s``) until the browser has handled every message sent so
+        far and drawn a frame: viser's client answers a render request (a 16 x 16 picture)
+        only after the messages before it, and handles nothing else meanwhile."""
+        get_render = getattr(st.client, "get_render", None)
+        if get_render is None or not self.draw_wait_s:
+            return
+        try:
+            get_render(16, 16, timeout=self.draw_wait_s)
+        except Exception:  # noqa: BLE001 - no answer (a socket-level client): go on
+            log.debug("viewer: no render answer", exc_info=True)
+
+    def _lod_finished(self, st: ClientState, gen: int) -> None:
+        with st.lock:
+            if st.lod_gen != gen:
+                return
+            st.lod_done_at = time.perf_counter()
+            st.lod_done.set()
+            if st.data is not None and "status" in st.gui and st.scene_id is not None:
+                st.gui["status"].content = self.status_line(st)
+
+    def status_line(self, st: ClientState) -> str:
+        d = st.data
+        lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
+        return (f"**{md_text(st.scene_id)}**: {d.scene.n_points:,} points, "
+                f"{len(d.scene.frames)} cameras, {lifted}; showing {st.sent_points:,} points.")
+
+    # ---- motion level of detail -------------------------------------------------------------
+    def _watch_motion(self, st: ClientState) -> None:
+        """Hide the refinement tiles while the reviewer moves the camera (once per client)."""
+        if st.motion_hooked or self.motion_rest_s is None or self.lod_scheme == "legacy":
+            return
+        st.motion_hooked = True
+
+        def moved(_cam: Any) -> None:
+            self.camera_moved(st)
+
+        st.client.camera.on_update(moved)
+
+    def camera_moved(self, st: ClientState) -> None:
+        """A camera message: the tiles go (the coarse level alone is drawn) until the camera
+        has rested ``motion_rest_s``; then they come back (visibility flags, no data)."""
+        with st.motion_lock:
+            st.last_move = time.monotonic()
+            if st.moving:
+                return
+            st.moving = True
+        self._set_detail_visible(st, False)
+        threading.Thread(target=self._rest_watch, args=(st,), daemon=True,
+                         name="viewer-motion").start()
+
+    def _rest_watch(self, st: ClientState) -> None:
+        while True:
+            with st.motion_lock:
+                wait = st.last_move + self.motion_rest_s - time.monotonic()
+                if wait <= 0:
+                    st.moving = False
+                    break
+            time.sleep(wait)
+        self._set_detail_visible(st, True)
+
+    def _set_detail_visible(self, st: ClientState, visible: bool) -> None:
+        try:
+            with st.client.atomic():
+                for h in list(st.detail_handles.values()):
+                    h.visible = visible
+        except Exception:  # noqa: BLE001 - the tab closed meanwhile
+            log.debug("viewer: motion LOD", exc_info=True)
+
+    def set_point_size(self, st: ClientState, size: float) -> None:
+        st.point_size = float(size)
+        with st.lock:
+            handles = (st.chunk_handles if self.lod_scheme != "legacy"
+                       else st.point_handles).values()
+            for h in handles:
+                h.point_size = st.point_size
+            sel = st.gui.get("_sel_handle")
+            if sel is not None:
+                sel.point_size = st.point_size * 1.6
+
+    def _send_class_nodes(self, st: ClientState,
+                          classes: set[int] | None = None) -> list[sb.PointNode]:
+        """The old path: (re)send whole-class nodes of ``classes`` (all when None)."""
         with st.lock:
             d = st.data
             if d is None:
@@ -121,6 +326,9 @@ class SceneViewMixin:
             st.point_nodes.update({nd.class_id: nd for nd in nodes})
             st.client.flush()
             st.sent_points = int(sum(len(nd.point_ids) for nd in st.point_nodes.values()))
+            st.first_sent_at = st.first_sent_at or time.perf_counter()
+            st.lod_done_at = time.perf_counter()
+            st.lod_done.set()
             return nodes
 
     def send_frusta(self, st: ClientState) -> None:

@@ -63,6 +63,23 @@ class ClientState:
     class_boxes: dict[int, Any] = field(default_factory=dict)
     lock: threading.RLock = field(default_factory=threading.RLock)
     sent_points: int = 0
+    # level of detail (app.viewer.point_lod): the plan, the chunks sent by (group, class id)
+    # and their handles; point_handles then holds each class's frame, point_nodes the
+    # chunks merged by class. lod_gen stops a refinement made stale by a new send.
+    lod_plan: Any = None
+    chunks: dict[tuple[int, int], sb.PointNode] = field(default_factory=dict)
+    chunk_handles: dict[tuple[int, int], Any] = field(default_factory=dict)
+    sent_groups: set[int] = field(default_factory=set)
+    lod_gen: int = 0
+    lod_started: float = 0.0
+    lod_done_at: float = 0.0
+    first_sent_at: float = 0.0  # perf_counter when the first points of a scene were sent
+    lod_done: threading.Event = field(default_factory=threading.Event)
+    detail_handles: dict[int, Any] = field(default_factory=dict)  # /points/<class>/detail
+    moving: bool = False  # the camera moves: the detail frames are hidden
+    last_move: float = 0.0
+    motion_hooked: bool = False
+    motion_lock: threading.Lock = field(default_factory=threading.Lock)
     ready: threading.Event = field(default_factory=threading.Event)
     view: str | None = None  # the tab's view id (app.viewer.session_state)
     last_edit: dict | None = None  # the last correction made here ("File as proposal")

@@ -1,0 +1,177 @@
+"""Level of detail for survey-sized point clouds: a coarse level first, then region tiles.
+
+One point cloud node per class of 2 M points reached the browser in 2.4 s, but software WebGL
+(SwiftShader) needed ~18 s before it drew anything: the browser decoded and uploaded every
+class's whole buffer before the first frame, and each later frame drew all of it. The viewer
+now sends the points it shows (the stratified LOD subsample of ``max_points``) as
+
+- a **coarse level**: ``coarse_points`` of them (per-class stratified again, so a rare class is
+  on screen from the start), one node per class ``/points/<class>/coarse`` -- the first picture;
+- **refinement tiles**: the rest, split by a ``tiles`` x ``tiles`` grid over the scene's
+  footprint, one node per (class, tile) ``/points/<class>/detail/t<k>``, sent from the
+  middle of the view outwards in a few batches (:func:`batches`), each once the browser has
+  drawn the one before (every batch that arrives costs software WebGL a frame of everything
+  shown, so tile-by-tile sending drew 16 growing frames and was slower than one bulk send).
+
+``/points/<class>`` is a frame (no axes) holding its class's nodes: a class toggle is one
+visibility flag. ``/points/<class>/detail`` holds the tiles: while the camera moves the
+viewer hides these frames (the coarse level alone is drawn, fast enough to orbit under
+software WebGL) and shows them again once the camera rests (``motion_rest_s``). The plan (which points, which tile) is fixed when a scene is opened: a
+relabel moves points between the class nodes of the *same* tile, so a correction re-sends only
+the (class, tile) chunks holding changed points (:func:`affected_chunks`).
+
+Chunk keys are ``(group, class id)`` with group 0 = coarse and ``1 + tile index`` = a tile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.viewer import scene_builder as sb
+
+DEFAULT_COARSE_POINTS = 200_000
+DEFAULT_TILES = 4  # 4 x 4 region tiles over the footprint
+
+
+@dataclass
+class LodPlan:
+    """ids: (M,) int64 sorted point ids shown; group: (M,) int16 0 = coarse level, 1 + k =
+    refinement tile k; order: the tile groups (1 + k) in sending order."""
+
+    ids: np.ndarray
+    group: np.ndarray
+    order: list[int]
+
+    @property
+    def n_coarse(self) -> int:
+        return int((self.group == 0).sum())
+
+
+def plan_lod(data: sb.ViewerData, max_points: int, *, coarse_points: int = DEFAULT_COARSE_POINTS,
+             tiles: int = DEFAULT_TILES, focus: np.ndarray | None = None,
+             subsample: np.ndarray | None = None, seed: int = 0) -> LodPlan:
+    """The points shown and their level: a stratified subsample of ``max_points`` (or
+    ``subsample``), ``coarse_points`` of them in the coarse level, the rest in tiles ordered
+    by distance of the tile's centre to ``focus`` (scene-local xy; default the middle)."""
+    n = data.scene.n_points
+    ids = subsample if subsample is not None else sb.stratified_subsample(
+        data.labels, n, max_points, seed=seed)
+    ids = np.asarray(ids, np.int64)
+    group = np.zeros(len(ids), np.int16)
+    if len(ids) <= coarse_points or tiles < 1:
+        return LodPlan(ids, group, [])
+    lab = np.asarray(data.labels[ids]) if data.labels is not None else None
+    coarse = sb.stratified_subsample(lab, len(ids), coarse_points, seed=seed + 1)
+    xy = np.asarray(data.scene.xyz[ids, :2], np.float64)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    span = np.maximum(hi - lo, 1e-6)
+    cell = np.minimum(((xy - lo) / span * tiles).astype(np.int64), tiles - 1)
+    group[:] = 1 + cell[:, 0] * tiles + cell[:, 1]
+    group[coarse] = 0
+    centre = lo + span * (np.stack(np.meshgrid(np.arange(tiles), np.arange(tiles),
+                                               indexing="ij"), -1).reshape(-1, 2) + 0.5) / tiles
+    f = (lo + hi) / 2 if focus is None else np.asarray(focus, np.float64)[:2]
+    present = set(np.unique(group[group > 0]).tolist())
+    order = [1 + int(k) for k in np.argsort(np.linalg.norm(centre - f, axis=1), kind="stable")
+             if 1 + int(k) in present]
+    return LodPlan(ids, group, order)
+
+
+def batches(plan: LodPlan, n: int) -> list[list[int]]:
+    """The tile groups of ``plan.order`` cut into at most ``n`` batches of about equal point
+    counts (in order: the middle of the view first)."""
+    if not plan.order:
+        return []
+    sizes = np.bincount(plan.group, minlength=max(plan.order) + 1)[plan.order]
+    edges = np.cumsum(sizes) / max(int(sizes.sum()), 1)
+    cut = np.minimum((edges * max(1, n) - 1e-9).astype(np.int64), max(1, n) - 1)
+    out: list[list[int]] = [[] for _ in range(max(1, n))]
+    for g, b in zip(plan.order, cut.tolist(), strict=True):
+        out[b].append(g)
+    return [b for b in out if b]
+
+
+def chunk_name(taxonomy: sb.Taxonomy, class_id: int, group: int) -> str:
+    part = "coarse" if group == 0 else f"detail/t{group - 1:03d}"
+    return f"/points/{sb.class_name(taxonomy, class_id)}/{part}"
+
+
+def detail_frame_name(taxonomy: sb.Taxonomy, class_id: int) -> str:
+    return f"/points/{sb.class_name(taxonomy, class_id)}/detail"
+
+
+def class_frame_name(taxonomy: sb.Taxonomy, class_id: int) -> str:
+    return f"/points/{sb.class_name(taxonomy, class_id)}"
+
+
+def build_chunks(data: sb.ViewerData, plan: LodPlan, *, mode: str = "semantic",
+                 groups: set[int] | None = None,
+                 keys: set[tuple[int, int]] | None = None) -> dict[tuple[int, int], sb.PointNode]:
+    """The chunk nodes of ``groups`` (all when None), or only the chunks ``keys``, keyed by
+    ``(group, class id)``, points split by the *current* labels."""
+    lab = (np.asarray(data.labels[plan.ids]) if data.labels is not None
+           else np.zeros(len(plan.ids), np.uint8)).astype(np.int64)
+    key = plan.group.astype(np.int64) * 256 + lab
+    keep = np.ones(len(key), bool)
+    if groups is not None:
+        keep &= np.isin(plan.group, np.fromiter(groups, np.int64))
+    if keys is not None:
+        keep &= np.isin(key, np.fromiter((g * 256 + c for g, c in keys), np.int64))
+    pos = np.flatnonzero(keep)
+    pos = pos[np.argsort(key[pos], kind="stable")]
+    k = key[pos]
+    uniq, starts = np.unique(k, return_index=True)
+    ends = np.append(starts[1:], len(k))
+    idx = plan.ids[pos]
+    cols = sb.point_colours(data, mode, idx)
+    xyz = np.asarray(data.scene.xyz[idx], dtype=np.float32)
+    out = {}
+    for u, a, b in zip(uniq.tolist(), starts.tolist(), ends.tolist(), strict=True):
+        g, cid = divmod(int(u), 256)
+        out[(g, cid)] = sb.PointNode(chunk_name(data.taxonomy, cid, g), cid, idx[a:b],
+                                     np.ascontiguousarray(xyz[a:b]),
+                                     np.ascontiguousarray(cols[a:b]))
+    return out
+
+
+def affected_chunks(plan: LodPlan, old: sb.ViewerData, new: sb.ViewerData,
+                    mode: str) -> set[tuple[int, int]] | None:
+    """The ``(group, class id)`` chunks whose points changed from ``old`` to ``new`` (label,
+    or what colour ``mode`` shows); None when everything must be re-sent."""
+    if (old.labels is None) != (new.labels is None) or old.scene.n_points != new.scene.n_points:
+        return None
+    if new.labels is None:
+        return set()
+    ol, nl = np.asarray(old.labels[plan.ids]), np.asarray(new.labels[plan.ids])
+    changed = ol != nl
+    extra = {"confidence": ("confidence",), "origin": ("origin",),
+             "disagreement": ("direct", "origin")}.get(mode, ())
+    for name in extra:
+        a, b = getattr(old, name), getattr(new, name)
+        if (a is None) != (b is None):
+            return None
+        if a is not None:
+            changed |= np.asarray(a[plan.ids]) != np.asarray(b[plan.ids])
+    pos = np.flatnonzero(changed)
+    g = plan.group[pos].astype(np.int64)
+    keys = np.union1d(g * 256 + ol[pos], g * 256 + nl[pos])
+    return {divmod(int(k), 256) for k in keys}
+
+
+def merge_by_class(chunks: dict[tuple[int, int], sb.PointNode],
+                   taxonomy: sb.Taxonomy) -> dict[int, sb.PointNode]:
+    """One aggregate :class:`PointNode` per class of every chunk sent (what selection on the
+    shown points and the tests read)."""
+    by: dict[int, list[sb.PointNode]] = {}
+    for (_g, cid), nd in sorted(chunks.items()):
+        by.setdefault(cid, []).append(nd)
+    out = {}
+    for cid, parts in by.items():
+        out[cid] = sb.PointNode(
+            class_frame_name(taxonomy, cid), cid,
+            np.concatenate([p.point_ids for p in parts]),
+            np.concatenate([p.xyz for p in parts]),
+            np.concatenate([p.colors for p in parts]))
+    return out

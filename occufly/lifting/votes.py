@@ -14,7 +14,9 @@ Votes
     repaired on open by recounting from the per-frame files.
 
 Majority
-    Unweighted; ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
+    Unweighted by default (``vote_weighting="plain"``; ``"boundary"`` and ``"interior"``
+    weight each view's vote by its pixel's distance to a boundary of its own mask, measured
+    in issue 37 and not the default: docs/lifting.md); ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
     one argmax over packed keys ``count << bits | (C - 1 - rank)``,
     :meth:`ClassColumns.packed_winner`).
 

@@ -25,10 +25,11 @@ from datetime import timedelta
 import numpy as np
 from PIL import Image
 from sqlalchemy import and_, case, func, or_, select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.annotations.models import STORED_KINDS, VOTING_KINDS, MaskVersion, Prefill
-from app.blobs import claim_blob
+from app.blobs import claim_blob, release_blobs
 from app.context import AppContext
 from app.db import utcnow
 from app.errors import (
@@ -186,6 +187,24 @@ def check_storage_quota(session: Session, ctx: AppContext, frame: Frame, user: U
             quota="scene", used_bytes=used, quota_bytes=s.scene_quota_bytes)
 
 
+def _insert_version(session: Session, ctx: AppContext, frame_id: int, sha256: str) -> None:
+    """Flush the new version's row. A frame deleted with its scene while this save ran
+    (issue 36 attack pass: a foreign-key failure was a 500) is a 404 with nothing stored:
+    the transaction is rolled back and the blob it claimed released unless referenced."""
+    try:
+        session.flush()
+    except IntegrityError:
+        session.rollback()
+        if session.get(Frame, frame_id) is not None:
+            raise
+        if ctx.store.exists(sha256):  # kept by no row of this save: released unless used
+            claim_blob(session, ctx.store, sha256=sha256, owner=f"frame {frame_id}")
+            session.commit()
+            release_blobs(session, ctx.store, {sha256})
+        raise NotFound(f"frame {frame_id} was deleted (with its scene) while this mask was "
+                       "being saved; nothing was stored") from None
+
+
 def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User, data: bytes,
                   kind: str, expected: int | None, restored_from: int | None = None,
                   sha256: str | None = None, size: tuple[int, int] | None = None,
@@ -249,7 +268,7 @@ def store_version(*, session: Session, ctx: AppContext, frame: Frame, user: User
     if kind == "submitted" and not lost_lease:
         _record_effort(session, ctx, frame, user, version, mask, prefill_id)
     session.add(version)
-    session.flush()
+    _insert_version(session, ctx, frame.id, sha256)
     if lost_lease:
         session.commit()
         raise Conflict(f"frame {frame.id} is no longer leased to you (it is {frame.state}); your "

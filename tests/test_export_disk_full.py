@@ -6,6 +6,7 @@ staged grids) removes the partial output. Simulated with monkeypatch (no tiny tm
 from __future__ import annotations
 
 import errno
+import os
 from pathlib import Path
 
 import pytest
@@ -44,9 +45,9 @@ def _leftovers(parent: Path, name: str) -> list[str]:
     return sorted(p.name for p in parent.iterdir() if name in p.name)
 
 
-# where the disk fills: a frame's files (2nd frame), the manifest rewritten after the last
+# where the disk fills: a frame's files, the manifest rewritten after the last
 # frame, the very first write (the staged grid)
-CASES = {"second frame": (common, "write_tmp", 6), "final manifest": (dataset, "_atomic_write", 3),
+CASES = {"a frame": (common, "write_tmp", 6), "final manifest": (dataset, "_atomic_write", 3),
          "first write": (dataset, "_atomic_write", 0)}
 
 
@@ -93,3 +94,31 @@ def test_other_errors_name_the_target_not_the_temporary_folder(ws, tmp_path):
         export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 9])
     assert ".partial" not in str(ei.value)
     assert not out.exists() and _leftovers(tmp_path, "bad") == []
+
+
+def test_an_interrupted_new_export_resumes_from_its_partial_folder(ws, tmp_path, monkeypatch):
+    """Ctrl-C (or a kill) leaves the hidden partial folder; the next run takes it over once
+    its process is gone, keeps its completed frames and renames it into place."""
+    out = tmp_path / "resume"
+    real = common.write_tmp
+    calls = {"n": 0}
+
+    def interrupted(path, data):  # noqa: ANN001, ANN202
+        calls["n"] += 1
+        if calls["n"] > 14:  # after the first frame's files and marker
+            raise KeyboardInterrupt
+        return real(path, data)
+
+    monkeypatch.setattr(common, "write_tmp", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1, 2])
+    monkeypatch.undo()
+    assert not out.exists()
+    (partial,) = [p for p in tmp_path.iterdir() if p.name.startswith(".resume.")]
+    # as if its process had died: a pid that runs nothing
+    dead = partial.with_name(partial.name.replace(f".{os.getpid()}-", ".999999999-"))
+    partial.rename(dead)
+    res = export_dataset(ws, out, spec=SPEC, workers=1, frames=[0, 1, 2])
+    assert res["complete"] and res["skipped_done"] >= 1 and res["out"] == str(out)
+    assert _leftovers(tmp_path, "resume") == ["resume"]
+    assert oct(out.stat().st_mode & 0o777) != oct(0o700)  # not mkdtemp's private mode

@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -55,7 +57,7 @@ from occufly.export.common import (
     sha256_bytes,
     write_frame_files,
 )
-from occufly.fsutil import atomic_directory, atomic_write_bytes
+from occufly.fsutil import atomic_write_bytes, fsync_dir, ordinary_mode
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn
 from occufly.sampling import (
@@ -451,24 +453,62 @@ def export_dataset(ws: Path, out: Path, options: ExportOptions | None = None, *,
                 raise _disk_full_error(out) from None
             raise
     # a new export: built under a temporary sibling (.NAME.<pid>-XXXX.partial) and renamed
-    # into place once complete; on any failure the sibling is removed and nothing is left
-    tmp = None
+    # into place once complete. A failure removes the sibling (disk full included: nothing is
+    # left); an interrupted run (Ctrl-C, SIGTERM, a kill) leaves it, and the next run for the
+    # same target takes it over with its completed frames (the export resumes)
+    tmp = _partial_dir(out)
     try:
-        with atomic_directory(out) as tmp:
-            summary = _export_scene(ws, tmp, opts, executor=executor, progress=progress,
-                                    t_start=t_start)
-    except ExportError as e:
+        summary = _export_scene(ws, tmp, opts, executor=executor, progress=progress,
+                                t_start=t_start)
+        os.replace(tmp, out)
+        fsync_dir(out.parent)
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:
+        shutil.rmtree(tmp, ignore_errors=True)
         if is_disk_full(e):
             raise _disk_full_error(out) from None
-        raise type(e)(str(e).replace(str(tmp), str(out)) if tmp else str(e)) from None
-    except OSError as e:
-        if is_disk_full(e):
-            raise _disk_full_error(out) from None
+        if isinstance(e, ExportError):
+            raise type(e)(str(e).replace(str(tmp), str(out))) from None
         raise
     summary["out"] = str(out)
     for part in summary.get("scenes") or []:
         part["out"] = str(out)
     return summary
+
+
+def _partial_dir(out: Path) -> Path:
+    """The hidden sibling a new export of ``out`` is built in: the partial folder an
+    interrupted run left (its process gone) is taken over, so its completed frames count;
+    else a new one."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    pat = re.compile(rf"^\.{re.escape(out.name)}\.(\d+)-.*\.partial$")
+    for p in sorted(out.parent.iterdir()):
+        m = pat.match(p.name)
+        if not (m and p.is_dir() and not _process_alive(int(m.group(1)))):
+            continue
+        mine = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", suffix=".partial",
+                                     dir=out.parent))
+        try:
+            os.replace(p, mine)  # an empty folder is replaced atomically
+        except OSError:  # another run took it first
+            mine.rmdir()
+            continue
+        return mine
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", suffix=".partial",
+                                dir=out.parent))
+    os.chmod(tmp, ordinary_mode(directory=True))  # mkdtemp's 0700 would be the export's
+    return tmp
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _disk_full_error(out: Path) -> ExportDiskFull:

@@ -32,10 +32,25 @@ def test_admin_proposes_frames_with_why(live, sid, new_page):
 
     live.wait_until(filled, timeout=120, what="both masks lifted and filled")
     page = new_page("admin", viewport=(1366, 900))
+    # the page's job list is held until the click has started the job: a list that left
+    # before the job existed must not drop it (its card and its table were lost that way)
+    held, released = [], []
+
+    def hold(route):  # noqa: ANN001, ANN202
+        if released:
+            route.continue_()
+        else:
+            held.append(route)
+
+    page.route(lambda url: "/api/jobs?scene_id=" in url, hold)
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
-    page.reload()
     page.fill("#next-k", "3")
-    page.dblclick("#next-run")  # a hurried double click starts one job
+    with page.expect_response(lambda r: r.url.endswith("/next-frames")):
+        page.dblclick("#next-run")  # a hurried double click starts one job
+    assert held, "the page's job list was not held"
+    released.append(True)
+    for route in held:
+        route.continue_()
     page.locator("#next-summary").wait_for(timeout=180_000)  # a remote job: a loaded CI host is slow
     jobs = [j for j in admin.get(f"/api/jobs?scene_id={sid}").json() if j["kind"] == "next_frames"]
     assert len(jobs) == 1, jobs

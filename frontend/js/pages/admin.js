@@ -615,8 +615,12 @@ class AdminPage {
       showError(e);
       return null;
     });
-    if (!jobs) return;
-    this.jobs = jobs;
+    if (!jobs || sid !== this.sid) return;
+    // a job started while this list was on its way (a click during the page's load) is not in
+    // it: keep tracking it, or its card and its callback (the next-frames table, ...) are lost
+    const known = new Set(jobs.map((j) => j.id));
+    const started = this.jobs.filter((j) => !known.has(j.id) && ACTIVE.has(j.status) && (!sid || String(j.scene_id) === String(sid)));
+    this.jobs = [...started, ...jobs];
     this.renderJobs();
   }
 

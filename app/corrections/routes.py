@@ -89,9 +89,12 @@ def _proposal_of(session, frame, pid: int, user):  # noqa: ANN001, ANN202
     return p
 
 
-async def edit_body(request: Request, ctx: CtxDep) -> ParsedEdit:
+async def edit_body(request: Request, ctx: CtxDep, _user: ReviewerUser,
+                    _scene: SceneDep) -> ParsedEdit:
     """The correction's body, parsed without a Python object per point (app.corrections.parsing);
-    the body itself is capped by app.bodylimit before it is read."""
+    the body itself is capped by app.bodylimit before it is read. Read only once the caller is
+    known to be a reviewer of the scene (``_user``, ``_scene``: an anonymous or foreign request
+    is a 401 / 403 before its body is read, not a 422 about it)."""
     cap = ctx.settings.max_correction_points
     body = await read_body(request.stream(), cap)
     return await run_in_threadpool(parse_edit, body, cap)

@@ -179,10 +179,11 @@ def orbit_fps(page, svc, st, seconds: float, hz: float = 30.0, warm_s: float = 5
     c = np.asarray(cam.look_at, np.float64)
     p0 = np.asarray(cam.position, np.float64) - c
     rad, a0 = float(np.hypot(p0[0], p0[1])), float(np.arctan2(p0[1], p0[0]))
-    t0 = time.perf_counter()
+    t0 = t1 = time.perf_counter()
     k = 0
     n0 = None
-    while time.perf_counter() - t0 < warm_s + seconds:
+    nxt = t0
+    while n0 is None or time.perf_counter() - t1 < seconds:  # (that evaluate may block)
         if n0 is None and time.perf_counter() - t0 >= warm_s:  # the frame in flight is done
             n0, t1 = page.evaluate("() => window.__renders"), time.perf_counter()
         a = a0 + 0.03 * k
@@ -192,9 +193,10 @@ def orbit_fps(page, svc, st, seconds: float, hz: float = 30.0, warm_s: float = 5
         if svc.lod_scheme != "legacy":
             svc.camera_moved(st)
         k += 1
-        time.sleep(max(0.0, t0 + k / hz - time.perf_counter()))
-    dt = time.perf_counter() - t1
+        nxt = max(nxt + 1.0 / hz, time.perf_counter())
+        time.sleep(max(0.0, nxt - time.perf_counter()))
     n1 = page.evaluate("() => window.__renders")
+    dt = time.perf_counter() - t1
     return {"fps": round((n1 - n0) / dt, 2), "frames": n1 - n0, "seconds": round(dt, 2),
             "warm_s": warm_s, "camera_updates": k}
 
@@ -336,7 +338,8 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
                                         and svc.motion_rest_s is not None else st.sent_points)
         out["memory_after_orbit"] = tab_memory(page)
         try:  # a step that fails (a timeout on a starved machine) is reported, not fatal
-            out["toggle_latency_s"] = toggles(page, st, args.toggles)
+            if args.toggles:
+                out["toggle_latency_s"] = toggles(page, st, args.toggles)
         except Exception as e:  # noqa: BLE001
             out["toggle_latency_s"] = {"error": f"{type(e).__name__}: {str(e)[:200]}"}
         if args.lasso:

@@ -147,7 +147,7 @@ def run_selection(body: SelectionIn, scene: SceneDep, session: SessionDep, ctx: 
                   user: AdminUser):
     _ready(scene)
     job = jobs.create(session=session, kind="selection", scene_id=scene.id, user_id=user.id,
-                      params=body.model_dump())
+                      params=body.model_dump(), quota=ctx.settings)  # issue 36: every job kind
     ctx.jobs.submit(job.id)
     return jobs.out(job)
 
@@ -159,7 +159,7 @@ def run_next_frames(body: NextFramesIn, scene: SceneDep, session: SessionDep, ct
     first, each with the contested / uncertain points it sees and their classes)."""
     _ready(scene)
     job = jobs.create(session=session, kind="next_frames", scene_id=scene.id, user_id=user.id,
-                      params=body.model_dump())
+                      params=body.model_dump(), quota=ctx.settings)  # issue 36: every job kind
     ctx.jobs.submit(job.id)
     return jobs.out(job)
 

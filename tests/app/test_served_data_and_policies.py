@@ -136,6 +136,24 @@ def test_admin_job_quota_429(world):
         assert s.query(Job).filter(Job.kind == "export").count() == 3
 
 
+def test_every_job_kind_counts_against_the_quota(world):
+    """Selection and next-frames jobs are jobs like the others (CPU-heavy on a survey): with
+    quota 2 and the runner held, the third request of any kind is a 429 naming the quota."""
+    env, hdr, scene, _frames = world
+    ctx = env.app.state.ctx
+    ctx.settings = dataclasses.replace(ctx.settings, active_jobs_per_user=2)
+    ctx.jobs.submit = lambda job_id: None  # hold the job runner so the jobs stay queued
+    sid, adm = scene["id"], hdr["admin"]
+    for _ in range(2):
+        r = env.client.post(f"/api/scenes/{sid}/selection", json={}, headers=adm)
+        assert r.status_code == 202, r.text
+    for path, body in ((f"/api/scenes/{sid}/selection", {}), (f"/api/scenes/{sid}/export", {}),
+                       (f"/api/scenes/{sid}/next-frames", {"k": 3})):
+        r = env.client.post(path, json=body, headers=adm)
+        assert r.status_code == 429, (path, r.status_code, r.text)
+        assert "job quota" in r.json()["detail"], r.text
+
+
 def test_export_disk_quota_507(world):
     env, hdr, scene, _frames = world
     ctx = env.app.state.ctx

@@ -14,6 +14,12 @@ of the ``occufly`` CLI, exactly as a user types them::
     voxelize  occufly voxelize WS
     export    occufly export WS OUT --workers 2                  (local process pool)
     export_dask occufly export WS OUT2 --dask tcp://...          (Dask LocalCluster, 2 workers)
+    review    bench/_survey_stages.py review WS SRC              (quality report, suspects list,
+                                                                  LOO agreement of one frame, a
+                                                                  1 M point correction + undo)
+    gated_export bench/_survey_stages.py gated WS SRC K          (export gated to accepted frames:
+                                                                  relift of 4/5 of the masks,
+                                                                  voxelize, export every K-th frame)
 
 Per stage: wall time, CPU time (user + sys of the CLI and the children it waited for, read
 with ``wait4``), peak RSS (``ru_maxrss``: the largest single process) and the peak RSS summed
@@ -52,7 +58,14 @@ CLI = [sys.executable, "-m", "occufly.cli"]
 
 # issue 16's budgets on 2 cores / 24 GB
 BUDGET = {"peak_rss_gb": 16.0, "import_s": 30 * 60, "fill_s": 5 * 60, "voxelize_s": 10 * 60,
-          "slope_linear": 1.15, "frame_path_s": 1.0}
+          "slope_linear": 1.15, "frame_path_s": 1.0,
+          # issue 38's review budgets (CPU seconds of one request's work on one core)
+          "loo_one_frame_s": 1.0, "suspects_s": 1.0, "quality_report_s": 2.0,
+          "correction_1m_s": 2.0}
+STAGES = "synth,import,select,lift,fill,voxelize,export,export_dask,frame_path,review,gated_export"
+STAGE_SCRIPT = [sys.executable, str(REPO / "bench" / "_survey_stages.py")]
+# a stage whose wall or CPU time moved by more than this against --compare is flagged
+MOVED = 0.15
 # the stages whose cost should grow linearly with their size driver
 LINEAR = ("import", "lift", "fill", "voxelize", "export", "export_dask")
 
@@ -203,6 +216,8 @@ def _summary_result(stage: str, r: dict | None) -> dict:
         "export": ("frames", "written", "bytes", "seconds", "sample_seconds_mean", "skipped_done"),
     }.get(stage.replace("_dask", ""), ())
     out = {k: r[k] for k in keep if k in r}
+    if stage in ("review", "gated_export"):  # bench/_survey_stages.py: figures only
+        return dict(r)
     if stage == "import" and isinstance(r.get("visibility"), dict):
         v = r["visibility"]
         out["correspondences"] = v.get("correspondences")
@@ -318,6 +333,8 @@ def run_size(preset: str, root: Path, res: Results, *, stages: list[str], dask: 
     if not keep_exports:
         for p in (out_local, out_dask):
             shutil.rmtree(p, ignore_errors=True)
+    do("review", [*STAGE_SCRIPT, "review", str(ws), str(src)], [ws])
+    do("gated_export", [*STAGE_SCRIPT, "gated", str(ws), str(src), str(export_stride)], [])
 
 
 def _cluster_pids(cluster) -> list[int]:
@@ -486,6 +503,37 @@ def budgets(res: Results) -> dict:
                                       "ok": fp[k + "_cpu_s"] <= BUDGET["frame_path_s"]}
                                   for k in ("mask_save_to_votes", "prefill_render", "agreement",
                                             "export_one_frame_total") if k + "_cpu_s" in fp}
+    rv = (st.get("review") or {}).get("result") or {}
+    for k in ("loo_one_frame", "suspects", "quality_report", "correction_1m"):
+        if k + "_cpu_s" in rv:
+            out[k] = {"wall_s": rv.get(k + "_s"), "cpu_s": rv[k + "_cpu_s"],
+                      "budget_s": BUDGET[k + "_s"], "ok": rv[k + "_cpu_s"] <= BUDGET[k + "_s"]}
+    return out
+
+
+def compare(res: Results, earlier: dict) -> dict:
+    """Per size and stage, this run against an earlier results file: wall and CPU ratios, and
+    the stages that moved by more than ``MOVED`` (to be explained in the closing note)."""
+    out: dict = {"moved_threshold": MOVED, "sizes": {}}
+    for name, S in res.data["sizes"].items():
+        E = (earlier.get("sizes") or {}).get(name)
+        if not E:
+            continue
+        rows = {}
+        for stage, f in S["stages"].items():
+            e = E["stages"].get(stage)
+            if not e or f.get("exit") != 0 or e.get("exit") != 0:
+                continue
+            r = {"wall_s": [e["wall_s"], f["wall_s"]], "cpu_s": [_stage_cpu(e), _stage_cpu(f)],
+                 "peak_mb": [max(e["peak_rss_mb"], e["peak_rss_tree_mb"]),
+                             max(f["peak_rss_mb"], f["peak_rss_tree_mb"])]}
+            for k in ("wall_s", "cpu_s", "peak_mb"):
+                a, b = r[k]
+                r[k.replace("_s", "").replace("_mb", "") + "_ratio"] = round(b / a, 3) if a else None
+            r["moved"] = any(v is not None and abs(v - 1) > MOVED
+                             for v in (r["wall_ratio"], r["cpu_ratio"], r["peak_ratio"]))
+            rows[stage] = r
+        out["sizes"][name] = rows
     return out
 
 
@@ -497,7 +545,8 @@ def markdown_table(data: dict) -> str:
     """README's "How big, how long" table from a results file: per size and stage, wall time,
     CPU time (user + sys of the process tree) and peak memory (the larger of the biggest
     process and the sampled process-tree sum)."""
-    order = ["synth", "import", "select", "lift", "fill", "voxelize", "export", "export_dask"]
+    order = ["synth", "import", "select", "lift", "fill", "voxelize", "export", "export_dask",
+             "review", "gated_export"]
     sizes = [n for n in data.get("sizes", {}) if data["sizes"][n].get("scene")]
     sizes.sort(key=lambda n: data["sizes"][n]["scene"].get("points", 0))
     rows = ["| stage | " + " | ".join(
@@ -533,7 +582,10 @@ def main(argv: list[str] | None = None) -> int:
                     "(default ROOT/results.json)")
     ap.add_argument("--sizes", default="bench,survey-half,survey",
                     help="comma-separated presets, smallest first")
-    ap.add_argument("--stages", default="synth,import,select,lift,fill,voxelize,export,export_dask,frame_path")
+    ap.add_argument("--stages", default=STAGES)
+    ap.add_argument("--compare", type=Path, metavar="EARLIER",
+                    help="an earlier results file: per stage wall / CPU / peak ratios, stages "
+                    f"that moved more than {MOVED:.0%} flagged (under 'comparison')")
     ap.add_argument("--resume", action="store_true", help="keep the stages already in --out")
     ap.add_argument("--no-dask", action="store_true")
     ap.add_argument("--keep-exports", action="store_true")
@@ -572,6 +624,9 @@ def main(argv: list[str] | None = None) -> int:
             res.save()
         res.data["growth"] = growth(res)
         res.data["budgets"] = budgets(res)
+        if args.compare:
+            res.data["comparison"] = {"earlier": str(args.compare),
+                                      **compare(res, json.loads(args.compare.read_text()))}
         res.save()
     print(json.dumps(res.data, separators=(",", ":")))
     return 1 if failures else 0

@@ -96,6 +96,10 @@ class _ReviewCache:
 PREFETCH_FRAMES = 4
 _CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
 _RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
+# the suspects list of the scenes' current labels (issue 38: seconds of CPU on a survey, so it
+# is computed after each fill, not when a reviewer opens the tab); its own cache, so that the
+# frames warmed after it do not push it out
+_SUSPECT_CACHE = _ReviewCache(4)
 
 
 def _stamp(*paths: Path) -> tuple:
@@ -241,12 +245,16 @@ _PREFETCH_BUSY: set = set()  # (scene id, frame id) being computed in the backgr
 PREFETCH_NEXT = 2  # frames after the one opened whose review is computed in the background
 
 
-def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int]) -> None:
+def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int], *,
+          suspects: bool = False) -> None:
     """Compute the review (figures, disagreement PNG, labels rendering) of ``frame_ids`` in
-    the cache, in order, skipping those already there (a background thread's body)."""
+    the cache, in order, skipping those already there (a background thread's body); with
+    ``suspects`` the scene's suspects list first."""
     try:
         with ctx.sessions() as s:
             scene = s.get(Scene, scene_id)
+            if suspects and scene is not None:
+                _warm_suspects(ctx, scene)
             for fid in frame_ids:
                 f = s.get(Frame, fid)
                 if scene is None or f is None or f.current_version_id is None:
@@ -265,13 +273,14 @@ def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int]) -> None:
                 _PREFETCH_BUSY.discard((scene_id, fid))
 
 
-def _start_warm(ctx: AppContext, scene_id: int, frame_ids: list[int]) -> None:
+def _start_warm(ctx: AppContext, scene_id: int, frame_ids: list[int], *,
+                suspects: bool = False) -> None:
     with _PREFETCH_LOCK:
         todo = [f for f in frame_ids if (scene_id, f) not in _PREFETCH_BUSY]
         _PREFETCH_BUSY.update((scene_id, f) for f in todo)
-    if todo:
-        threading.Thread(target=_warm, args=(ctx, scene_id, todo), daemon=True,
-                         name="occufly-review-prefetch").start()
+    if todo or suspects:
+        threading.Thread(target=_warm, args=(ctx, scene_id, todo), kwargs={"suspects": suspects},
+                         daemon=True, name="occufly-review-prefetch").start()
 
 
 def prefetch_next(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> None:
@@ -298,7 +307,7 @@ def warm_on_labels(ctx: AppContext):  # noqa: ANN201
             if scene is None:
                 return
             top = [f.id for f in _list_order(s, scene, PREFETCH_FRAMES)]
-        _start_warm(ctx, msg.scene_id, top)
+        _start_warm(ctx, msg.scene_id, top, suspects=True)
 
     return on_event
 
@@ -314,6 +323,7 @@ def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # 
     with ctx.sessions() as s:
         scene = s.get(Scene, msg.scene_id)
         if scene is not None:
+            _warm_suspects(ctx, scene)
             refresh_agreement(ctx, s, scene, stop=stop, log=log)
 
 
@@ -424,7 +434,15 @@ def _suspect_rows(ctx: AppContext, scene: Scene) -> list[dict]:
             out.append(r)
         return out
 
-    return _CACHE.get(key, compute)
+    return _SUSPECT_CACHE.get(key, compute)
+
+
+def _warm_suspects(ctx: AppContext, scene: Scene) -> None:
+    """Compute the scene's suspects list into the cache (after a fill; best effort)."""
+    try:
+        _suspect_rows(ctx, scene)
+    except Exception:  # noqa: BLE001 - no labels yet / a workspace mid-update: the tab computes it
+        log.debug("suspects of scene %s not warmed", scene.id, exc_info=True)
 
 
 def suspects(ctx: AppContext, scene: Scene, *, limit: int = 100) -> dict:

@@ -90,6 +90,32 @@ def test_suspects_route(world):
     assert top["kind"] == "contested" and top["mark"] is None and r.json()["n_open"] == len(sus)
 
 
+def test_suspects_list_is_computed_after_a_fill_not_when_opened(world, monkeypatch):
+    """Issue 38: the suspects of a survey take seconds of CPU; the process that owns the
+    scene's lifting computes them after each fill, so the reviewer's tab computes nothing."""
+    import time
+
+    from app.review import service as review
+
+    env, hdr, scene, frames = world
+    calls = []
+    real = review.find_suspects
+    monkeypatch.setattr(review, "find_suspects", lambda *a, **k: calls.append(1) or real(*a, **k))
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
+        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    end = time.monotonic() + 30
+    while not calls and time.monotonic() < end:  # the fill's subscriber, in the background
+        time.sleep(0.05)
+    assert calls, "the suspects were not computed after the fill"
+    time.sleep(0.5)  # a later fill's refresh, if one was still due
+    n = len(calls)
+    r = env.client.get(f"/api/scenes/{scene['id']}/suspects", headers=hdr["reviewer"])
+    assert r.status_code == 200 and r.json()["suspects"], r.text
+    assert len(calls) == n  # served from what the fill's refresh computed
+
+
 def test_suspect_marks_are_shared_and_idempotent(world):
     from sqlalchemy import func, select
 

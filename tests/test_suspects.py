@@ -121,3 +121,29 @@ def test_find_suspects_lists_an_island_the_votes_did_not_contest(tmp_path):
     assert s["best_frame"] is not None and s["frames"][0] == s["best_frame"]
     assert [r["id"] for r in sus] == list(range(1, len(sus) + 1))
     assert [r["points"] for r in sus] == sorted((r["points"] for r in sus), reverse=True)
+
+
+def test_frames_seeing_groups_counts_each_groups_views_like_a_search_per_group():
+    """The one-pass (point -> group map) count of the frames that see each group of points
+    equals counting each group's points in each frame's visibility on its own; ordered by
+    count, ties by frame index."""
+    from occufly.lifting.suspects import _frames_seeing_groups
+
+    scene, _truth = make_scene()
+    rng = np.random.default_rng(0)
+    group = np.full(scene.n_points, -1, np.int32)
+    members = {}
+    for g in range(6):  # disjoint random groups, one of them seen by no frame possibly
+        free = np.flatnonzero(group < 0)
+        pts = np.sort(rng.choice(free, size=int(rng.integers(1, 400)), replace=False))
+        group[pts] = g
+        members[g] = pts
+    got = _frames_seeing_groups(scene, group)
+    vis = scene.visibility
+    for g, pts in members.items():
+        counts = np.array([np.isin(vis.frame_ids(f), pts).sum() for f in range(vis.n_frames)])
+        seen = np.flatnonzero(counts)
+        want = seen[np.argsort(-counts[seen], kind="stable")]
+        fr, cnt = got.get(g, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+        assert fr.tolist() == want.tolist()
+        assert cnt.tolist() == counts[want].tolist()

@@ -68,10 +68,12 @@ def flag_points(votes: np.ndarray, labels: np.ndarray, cls: ClassColumns,
 
 
 def _flag_clusters(scene: Scene, votes: np.ndarray, labels: np.ndarray,
-                   p: SuspectParams) -> list[dict]:
-    """Clusters of contested / overridden points, largest first (module docstring)."""
+                   p: SuspectParams, flags: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> list[dict]:
+    """Clusters of contested / overridden points, largest first (module docstring).
+    ``flags``: :func:`flag_points`' (contested, overridden) when the caller has them."""
     cls = ClassColumns(scene.taxonomy)
-    contested, overridden = flag_points(votes, labels, cls, p)
+    contested, overridden = flags if flags is not None else flag_points(votes, labels, cls, p)
     flagged = np.flatnonzero(contested | overridden)
     if not len(flagged):
         return []
@@ -88,36 +90,60 @@ def _flag_clusters(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     keep = keep[np.argsort(-size[keep], kind="stable")][: p.max_suspects]
     if not len(keep):
         return []
-    # frames that see each cluster: correspondences of flagged points
-    vis = scene.visibility
-    ent_pts = np.asarray(vis.point_ids, np.int64)
-    ent_fr = vis.frames_of_entries()
-    pos = np.minimum(np.searchsorted(flagged, ent_pts), len(flagged) - 1)
-    hit = flagged[pos] == ent_pts
-    pair = cid[pos[hit]].astype(np.int64) * vis.n_frames + ent_fr[hit]
-    pairs, pc = np.unique(pair, return_counts=True)
-    p_cl, p_fr = pairs // vis.n_frames, pairs % vis.n_frames
+    # frames that see each kept cluster: one pass over the correspondences (a point -> group
+    # map, not a search per correspondence)
+    group = np.full(scene.n_points, -1, np.int32)
+    kept = np.zeros(n, bool)
+    kept[keep] = True
+    fk = kept[cid]
+    group[flagged[fk]] = cid[fk]
+    frames_of = _frames_seeing_groups(scene, group)
+    # the kept clusters' members: flagged positions sorted by cluster (stable: ascending
+    # positions within one, as a boolean mask would give them)
+    order = np.argsort(cid, kind="stable")
+    starts = np.searchsorted(cid[order], np.arange(n + 1))
     lab_all = np.asarray(labels)[flagged]
     out = []
     for c in keep.tolist():  # one entry per kept cluster (<= max_suspects)
-        m = cid == c
+        m = order[starts[c]:starts[c + 1]]
         pts = xyz[m]
-        sel = p_cl == c
-        fr, cnt = p_fr[sel], pc[sel]
-        order = np.argsort(-cnt, kind="stable")
+        fr, _cnt = frames_of.get(c, (np.zeros(0, np.int64), None))
         cl_ids, cl_n = np.unique(lab_all[m], return_counts=True)
+        ids = flagged[m]
         out.append({
-            "kind": "contested" if contested[flagged[m]].any() else "overridden",
-            "points": int(m.sum()),
-            "contested": int(contested[flagged[m]].sum()),
-            "overridden": int(overridden[flagged[m]].sum()),
+            "kind": "contested" if contested[ids].any() else "overridden",
+            "points": int(len(m)),
+            "contested": int(contested[ids].sum()),
+            "overridden": int(overridden[ids].sum()),
             "classes": {str(int(k)): int(v) for k, v in zip(cl_ids, cl_n, strict=True)},
-            "frames": [int(f) for f in fr[order]],
-            "best_frame": int(fr[order[0]]) if len(fr) else None,
+            "frames": [int(f) for f in fr],
+            "best_frame": int(fr[0]) if len(fr) else None,
             "centroid": [float(v) for v in pts.mean(0)],
             "bbox": [[float(v) for v in pts.min(0)], [float(v) for v in pts.max(0)]],
-            "point_ids": flagged[m].astype(np.int64),
+            "point_ids": ids.astype(np.int64),
         })
+    return out
+
+
+def _frames_seeing_groups(scene: Scene, group: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per group of points (``group``: (N,) int32 group of each point, -1 = none): the frames
+    that see any of its points, most points first (ties: lower frame index first), and their
+    counts. One gather over the correspondences for every group together."""
+    vis = scene.visibility
+    g = group[np.asarray(vis.point_ids)]
+    hit = np.flatnonzero(g >= 0)
+    if not len(hit):
+        return {}
+    # frame of each hit correspondence: the frames' entries are contiguous, in frame order
+    bounds = np.cumsum(vis.counts_per_frame())
+    fr = np.searchsorted(bounds, hit, side="right").astype(np.int64)
+    pairs, cnt = np.unique(g[hit].astype(np.int64) * vis.n_frames + fr, return_counts=True)
+    gid, frm = pairs // vis.n_frames, pairs % vis.n_frames
+    out = {}
+    edges = np.flatnonzero(np.diff(gid)) + 1
+    for a, b in zip(np.r_[0, edges], np.r_[edges, len(gid)], strict=True):
+        order = np.argsort(-cnt[a:b], kind="stable")
+        out[int(gid[a])] = (frm[a:b][order], cnt[a:b][order])
     return out
 
 
@@ -128,19 +154,23 @@ def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     in a contested cluster is not listed twice. Each has ``id`` (its rank, 1-based) and
     ``kind`` ("contested", "overridden" or "island")."""
     p = params or SuspectParams()
-    rows = _flag_clusters(scene, votes, labels, p)
-    if rows:
-        in_cluster = np.concatenate([r["point_ids"] for r in rows])
-    else:
-        in_cluster = np.zeros(0, np.int64)
     cls = ClassColumns(scene.taxonomy)
     contested, overridden = flag_points(votes, labels, cls, p)
-    for isl in find_islands(scene.xyz, labels, p, exempt=scene.taxonomy.group_ids("instance")):
+    rows = _flag_clusters(scene, votes, labels, p, flags=(contested, overridden))
+    in_cluster = np.zeros(scene.n_points, bool)
+    for r in rows:
+        in_cluster[r["point_ids"]] = True
+    islands = [isl for isl in find_islands(scene.xyz, labels, p,
+                                           exempt=scene.taxonomy.group_ids("instance"))
+               if in_cluster[isl["point_ids"]].mean() <= 0.5]
+    group = np.full(scene.n_points, -1, np.int32)
+    for k, isl in enumerate(islands):  # islands are disjoint (one class each, connected)
+        group[isl["point_ids"]] = k
+    frames_of = _frames_seeing_groups(scene, group) if islands else {}
+    for k, isl in enumerate(islands):
         pts = isl["point_ids"]
-        if np.isin(pts, in_cluster).mean() > 0.5:
-            continue
         xyz = np.asarray(scene.xyz[pts], np.float64)
-        fr, cnt = _frames_seeing(scene, pts)
+        fr, _cnt = frames_of.get(k, (np.zeros(0, np.int64), None))
         rows.append({
             "kind": "island", "points": int(len(pts)),
             "contested": int(contested[pts].sum()), "overridden": int(overridden[pts].sum()),
@@ -156,16 +186,6 @@ def find_suspects(scene: Scene, votes: np.ndarray, labels: np.ndarray,
     for rank, r in enumerate(rows):
         r["id"] = rank + 1
     return rows
-
-
-def _frames_seeing(scene: Scene, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Frames that see any of the sorted point ids ``pts``, most points first, and counts."""
-    vis = scene.visibility
-    ent_pts = np.asarray(vis.point_ids, np.int64)
-    hit = np.isin(ent_pts, pts)
-    fr, cnt = np.unique(vis.frames_of_entries()[hit], return_counts=True)
-    order = np.argsort(-cnt, kind="stable")
-    return fr[order], cnt[order]
 
 
 _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)

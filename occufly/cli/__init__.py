@@ -4,7 +4,7 @@ Each command group registers its sub-commands from its own module of this packag
 (``occufly/cli/<group>.py`` with a ``register(subparsers)`` function listed in
 :data:`COMMAND_MODULES`). Packages built on the library add their own groups through the
 ``occufly.commands`` entry point (the web app's ``serve``, ``db``, ``users``, ``demo``,
-``backup`` live in ``app/cli.py``): the library never imports them by name. A command handler takes
+``backup`` parse in ``app/cli.py``): the library never imports them by name. A command handler takes
 the parsed ``argparse.Namespace`` and returns either an exit code or a dict; a dict is printed
 as JSON with ``--json`` and as a readable summary otherwise.
 

@@ -21,6 +21,7 @@ import hashlib
 import io
 import threading
 from datetime import timedelta
+from pathlib import Path
 
 import numpy as np
 from PIL import Image
@@ -45,6 +46,7 @@ from app.limits import INT32_MAX
 from app.scenes.models import Frame, Scene
 from app.users.models import User
 from occufly import render
+from occufly.errors import WorkspaceError
 from occufly.io import masks
 from occufly.lifting import load_labels
 from occufly.workspace import Workspace
@@ -145,7 +147,19 @@ DECODE_SLOTS = threading.BoundedSemaphore(2)
 def _decode_for_frame(ctx: AppContext, session: Session, frame: Frame, data: bytes,
                       info: dict | None = None):
     scene = session.get(Scene, frame.scene_id)
-    ws_scene = ctx.load_scene(scene.workspace)
+    gone = NotFound(f"frame {frame.id}: its scene {frame.scene_id} was deleted while the mask "
+                    "was saved; nothing was stored")
+    if scene is None:
+        raise gone
+    try:
+        ws_scene = ctx.load_scene(scene.workspace)
+    except (OSError, WorkspaceError):
+        # the scene is being deleted (app.scenes.disk.delete_scene moves its workspace away
+        # first, in one rename): a 404, not a 500; a workspace broken while its scene stands
+        # stays an error
+        if not Path(scene.workspace).is_dir():
+            raise gone from None
+        raise
     sf = ws_scene.frames[frame.index]
     name = f"mask upload for {frame.name}"
     masks.check_png_size(data, name=name, frame=sf)  # a bomb is refused before it waits

@@ -32,25 +32,34 @@ def test_admin_proposes_frames_with_why(live, sid, new_page):
 
     live.wait_until(filled, timeout=120, what="both masks lifted and filled")
     page = new_page("admin", viewport=(1366, 900))
-    # the page's job list is held until the click has started the job: a list that left
-    # before the job existed must not drop it (its card and its table were lost that way)
+    # the page's job list is answered by the server at once but delivered only after the click
+    # has started the job: a list that left before the job existed must not drop it (its card
+    # and the next-frames table were lost that way)
     held, released = [], []
 
     def hold(route):  # noqa: ANN001, ANN202
         if released:
             route.continue_()
         else:
-            held.append(route)
+            held.append((route, route.fetch()))  # the list as it is now, delivered later
 
     page.route(lambda url: "/api/jobs?scene_id=" in url, hold)
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.reload()  # a fresh page on this scene (the one new_page opened shows the first scene)
+    for _ in range(300):  # the page has asked for the scene's job list: click now
+        if any(f"scene_id={sid}" in r.request.url for r, _ in held):
+            break
+        page.wait_for_timeout(100)
+    assert any(f"scene_id={sid}" in r.request.url for r, _ in held), "the job list was not held"
     page.fill("#next-k", "3")
     with page.expect_response(lambda r: r.url.endswith("/next-frames")):
         page.dblclick("#next-run")  # a hurried double click starts one job
-    assert held, "the page's job list was not held"
     released.append(True)
-    for route in held:
-        route.continue_()
+    for route, answer in held:
+        try:
+            route.fulfill(response=answer)
+        except Exception:  # noqa: BLE001 - a request of the page before the reload: gone
+            pass
     page.locator("#next-summary").wait_for(timeout=180_000)  # a remote job: a loaded CI host is slow
     jobs = [j for j in admin.get(f"/api/jobs?scene_id={sid}").json() if j["kind"] == "next_frames"]
     assert len(jobs) == 1, jobs

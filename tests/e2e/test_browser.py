@@ -322,7 +322,14 @@ def test_admin_export_job_completes(live, new_page):
     # its frames are submitted, not accepted: the export takes them in by choice (issue 23)
     page.check("#export-include-unreviewed")
     jid = run_job("#start-export", "export", confirm=True)
-    page.locator(f"li.job[data-job='{jid}']").scroll_into_view_if_needed()
+    for attempt in range(10):  # the job list is redrawn when a poll lands: the card is replaced
+        try:
+            page.locator(f"li.job[data-job='{jid}']").scroll_into_view_if_needed(timeout=5000)
+            break
+        except Exception:  # noqa: BLE001 - "not attached to the DOM": take the new card
+            if attempt == 9:
+                raise
+            page.wait_for_timeout(300)
     shot(page, "09_admin_export_finished", full_page=True)
     assert page.locator(f"li.job[data-job='{jid}'] progress").get_attribute("value") == "1"
     # issue 28 item 7: the only download is the compressed archive (the legacy tar is gone)

@@ -194,7 +194,13 @@ def test_forced_reconnect_keeps_selection_and_panel_and_relabel_works(live, serv
     page.get_by_role("option", name="rectangle", exact=True).click()
     _wait(lambda: st.gui["tool"].value == "rectangle", 10, "the tool")
     counts = st.gui["counts"].content
-    pos = np.asarray(st.client.camera.position).copy()
+
+    def camera_at_rest():  # the flight to the frame's camera may still be reporting
+        a = np.asarray(st.client.camera.position).copy()
+        time.sleep(0.6)
+        return a if np.allclose(a, st.client.camera.position, atol=1e-6) else None
+
+    pos = _wait(camera_at_rest, 30, "the camera at rest")
 
     # the server drops the socket (as a restart or a proxy would): viser's page reconnects
     ws = svc.server._websock_server

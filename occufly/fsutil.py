@@ -136,7 +136,8 @@ def atomic_directory(path: str | Path, *, overwrite: bool = False):
         raise
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (someone else's live process counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -162,7 +163,7 @@ def remove_stale_partials(path: str | Path) -> list[Path]:
         if not m or not p.is_dir() or p.is_symlink():
             continue
         pid = int(m.group(1) or m.group(2))
-        if pid != os.getpid() and not _pid_alive(pid):
+        if pid != os.getpid() and not pid_alive(pid):
             shutil.rmtree(p, ignore_errors=True)
             removed.append(p)
     return removed

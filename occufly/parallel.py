@@ -28,6 +28,7 @@ from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from typing import Any
 
 from occufly.errors import OccuflyError
+from occufly.fsutil import pid_alive
 from occufly.progress import ProgressFn
 
 
@@ -162,22 +163,13 @@ def die_with_parent(parent_pid: int, interval_s: float = 0.5) -> None:
             pass
     ppid = os.getppid()
 
-    def alive(pid: int) -> bool:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
-
     def watch() -> None:
         while True:
-            if os.getppid() != ppid or not alive(parent_pid):
+            if os.getppid() != ppid or not pid_alive(parent_pid):
                 os._exit(70)
             time.sleep(interval_s)
 
-    if os.getppid() != ppid or not alive(parent_pid):
+    if os.getppid() != ppid or not pid_alive(parent_pid):
         os._exit(70)
     threading.Thread(target=watch, name="occufly-parent-watchdog", daemon=True).start()
 

@@ -57,7 +57,7 @@ from occufly.export.common import (
     sha256_bytes,
     write_frame_files,
 )
-from occufly.fsutil import atomic_write_bytes, fsync_dir, ordinary_mode
+from occufly.fsutil import atomic_write_bytes, fsync_dir, ordinary_mode, pid_alive
 from occufly.grid import SceneGrid
 from occufly.progress import ProgressFn
 from occufly.sampling import (
@@ -485,7 +485,7 @@ def _partial_dir(out: Path) -> Path:
     pat = re.compile(rf"^\.{re.escape(out.name)}\.(\d+)-.*\.partial$")
     for p in sorted(out.parent.iterdir()):
         m = pat.match(p.name)
-        if not (m and p.is_dir() and not _process_alive(int(m.group(1)))):
+        if not (m and p.is_dir() and not pid_alive(int(m.group(1)))):
             continue
         mine = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}-", suffix=".partial",
                                      dir=out.parent))
@@ -499,16 +499,6 @@ def _partial_dir(out: Path) -> Path:
                                 dir=out.parent))
     os.chmod(tmp, ordinary_mode(directory=True))  # mkdtemp's 0700 would be the export's
     return tmp
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _disk_full_error(out: Path) -> ExportDiskFull:

@@ -247,3 +247,40 @@ def world(env):
 def pytest_configure(config) -> None:  # noqa: ANN001
     config.addinivalue_line(
         "markers", "job_processes: run remote job kinds in spawned worker processes")
+
+
+def seed_served_data(tmp: Path, extra_env: dict | None = None, *,
+                     n_points: int | None = None) -> tuple[dict, int]:
+    """A data folder under ``tmp`` with an admin (``PASSWORD``) and the tiny scene imported,
+    for an app started afterwards in a child process (tests that measure the server's own
+    memory or talk to it over raw sockets): (the child's environment, the scene id).
+    ``n_points``: the scene's recorded point count, for the caps that scale with it."""
+    from app.jobs import service as jobs
+    from app.scenes import service as scenes
+    from app.scenes.models import Scene as SceneRow
+
+    (tmp / "imports").mkdir()
+    env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
+           "OCCUFLY_IMPORT_ROOTS": str(tmp / "imports"), "OCCUFLY_ENV": "development",
+           "OCCUFLY_LIFTING": "off", "OCCUFLY_JOB_PROCESSES": "0",
+           "OCCUFLY_ARGON2_MEMORY_KIB": "1024", "OCCUFLY_ARGON2_TIME_COST": "1",
+           "PYTHONPATH": str(Path(__file__).resolve().parents[2]), **(extra_env or {})}
+    settings = Settings.from_env(env, job_processes=False)
+    app = create_app(settings)
+    ctx = app.state.ctx
+    src = tmp / "imports" / "tiny"
+    write_tiny_workspace(src)
+    with ctx.sessions() as s:
+        users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
+        scene = scenes.create_scene(session=s, settings=settings, name="tiny", source=src)
+        job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
+                          params={"source": str(src)})
+        sid = scene.id
+    ctx.jobs.submit(job.id)
+    ctx.jobs.wait(job.id, timeout=120)
+    if n_points is not None:
+        with ctx.sessions() as s:
+            s.get(SceneRow, sid).n_points = n_points
+            s.commit()
+    close(app)
+    return env, sid

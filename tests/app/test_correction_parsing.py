@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
 from pathlib import Path
 
 import httpx
@@ -20,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 
 from app.corrections.parsing import parse_edit
 from app.errors import Invalid, PayloadTooLarge
-from tests.app.conftest import PASSWORD, write_tiny_workspace
+from tests.app.conftest import PASSWORD, seed_served_data
 
 
 def _b64(ids) -> str:  # noqa: ANN001
@@ -119,41 +118,15 @@ def test_a_base64_correction_equals_the_json_one_and_the_cap_is_a_setting(world)
 def server(tmp_path_factory):
     if not Path("/proc/self/clear_refs").exists():
         pytest.skip("needs Linux /proc/<pid>/clear_refs")
-    from app.config import Settings
-    from app.jobs import service as jobs
-    from app.main import close, create_app
-    from app.scenes import service as scenes
-    from app.scenes.models import Scene
-    from app.users import service as users
-    from tests.app.test_import_memory import REPO, Server
+    from tests.app.test_import_memory import Server
     from tests.harness import ProcessServer
 
     tmp = tmp_path_factory.mktemp("correction_memory")
-    (tmp / "imports").mkdir()
     (tmp / "tmp").mkdir()
-    env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
-           "OCCUFLY_IMPORT_ROOTS": str(tmp / "imports"), "OCCUFLY_ENV": "development",
-           "OCCUFLY_LIFTING": "off", "OCCUFLY_JOB_PROCESSES": "0",
-           "OCCUFLY_ARGON2_MEMORY_KIB": "1024", "OCCUFLY_ARGON2_TIME_COST": "1",
-           "OCCUFLY_MAX_SELECTION_MB": "256",  # the body cap lets 10 M ids through to the route
-           "PYTHONPATH": str(REPO), "TMPDIR": str(tmp / "tmp")}
-    settings = Settings.from_env(env, job_processes=False)
-    app = create_app(settings)
-    ctx = app.state.ctx
-    src = tmp / "imports" / "tiny"
-    write_tiny_workspace(src)
-    with ctx.sessions() as s:
-        users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
-        scene = scenes.create_scene(session=s, settings=settings, name="tiny", source=src)
-        job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
-                          params={"source": str(src)})
-        sid = scene.id
-    ctx.jobs.submit(job.id)
-    ctx.jobs.wait(job.id, timeout=120)
-    with ctx.sessions() as s:  # a 20 M-point scene as far as the body cap is concerned
-        s.get(Scene, sid).n_points = 20_000_000
-        s.commit()
-    close(app)
+    # the body cap lets 10 M ids through to the route; a 20 M-point scene as far as the
+    # point-id bounds are concerned
+    env, sid = seed_served_data(tmp, {"OCCUFLY_MAX_SELECTION_MB": "256",
+                                      "TMPDIR": str(tmp / "tmp")}, n_points=20_000_000)
     proc = ProcessServer(env, tmp / "server.log", start_timeout=90).start()
     try:
         c = httpx.Client(base_url=proc.url, timeout=120)

@@ -7,13 +7,12 @@ a hang -- and the server must answer the next request. Counts in docs/security.m
 
 from __future__ import annotations
 
-import os
 import socket
 
 import httpx
 import pytest
 
-from tests.app.conftest import PASSWORD, write_tiny_workspace
+from tests.app.conftest import PASSWORD, seed_served_data
 from tests.harness import ProcessServer
 
 SERVE = ("{python}", "-c", "import sys; from occufly.cli import main; "
@@ -23,34 +22,8 @@ SERVE = ("{python}", "-c", "import sys; from occufly.cli import main; "
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    from app.config import Settings
-    from app.jobs import service as jobs
-    from app.main import close, create_app
-    from app.scenes import service as scenes
-    from app.users import service as users
-    from tests.app.test_import_memory import REPO
-
     tmp = tmp_path_factory.mktemp("headers")
-    (tmp / "imports").mkdir()
-    env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
-           "OCCUFLY_IMPORT_ROOTS": str(tmp / "imports"), "OCCUFLY_ENV": "development",
-           "OCCUFLY_LIFTING": "off", "OCCUFLY_JOB_PROCESSES": "0",
-           "OCCUFLY_ARGON2_MEMORY_KIB": "1024", "OCCUFLY_ARGON2_TIME_COST": "1",
-           "PYTHONPATH": str(REPO)}
-    settings = Settings.from_env(env, job_processes=False)
-    app = create_app(settings)
-    ctx = app.state.ctx
-    src = tmp / "imports" / "tiny"
-    write_tiny_workspace(src)
-    with ctx.sessions() as s:
-        users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
-        scene = scenes.create_scene(session=s, settings=settings, name="tiny", source=src)
-        job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
-                          params={"source": str(src)})
-        sid = scene.id
-    ctx.jobs.submit(job.id)
-    ctx.jobs.wait(job.id, timeout=120)
-    close(app)
+    env, sid = seed_served_data(tmp)
     proc = ProcessServer(env, tmp / "server.log", argv=SERVE, start_timeout=90).start()
     try:
         c = httpx.Client(base_url=proc.url, timeout=30)

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from occufly.io.masks import png_chunk
-from tests.app.conftest import PASSWORD, H, W, make_tiny_scene, write_tiny_workspace
+from tests.app.conftest import PASSWORD, H, W, make_tiny_scene, seed_served_data
 from tests.harness import ProcessServer
 
 REPO = Path(__file__).resolve().parents[2]
@@ -69,35 +69,11 @@ class Server:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from app.config import Settings
-    from app.jobs import service as jobs
-    from app.main import close, create_app
-    from app.scenes import service as scenes
-    from app.users import service as users
     from occufly.io import mask_interchange
 
     tmp = tmp_path_factory.mktemp("import_memory")
-    (tmp / "imports").mkdir()
     (tmp / "tmp").mkdir()
-    env = {**os.environ, "OCCUFLY_DATA_DIR": str(tmp / "data"),
-           "OCCUFLY_IMPORT_ROOTS": str(tmp / "imports"), "OCCUFLY_ENV": "development",
-           "OCCUFLY_LIFTING": "off", "OCCUFLY_JOB_PROCESSES": "0",
-           "OCCUFLY_ARGON2_MEMORY_KIB": "1024", "OCCUFLY_ARGON2_TIME_COST": "1",
-           "PYTHONPATH": str(REPO), "TMPDIR": str(tmp / "tmp")}
-    settings = Settings.from_env(env, job_processes=False)
-    app = create_app(settings)
-    ctx = app.state.ctx
-    src = tmp / "imports" / "tiny"
-    write_tiny_workspace(src)
-    with ctx.sessions() as s:
-        users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
-        scene = scenes.create_scene(session=s, settings=settings, name="tiny", source=src)
-        job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
-                          params={"source": str(src)})
-        sid = scene.id
-    ctx.jobs.submit(job.id)
-    ctx.jobs.wait(job.id, timeout=120)
-    close(app)
+    env, sid = seed_served_data(tmp, {"TMPDIR": str(tmp / "tmp")})
     proc = ProcessServer(env, tmp / "server.log", start_timeout=90).start()
     try:
         c = httpx.Client(base_url=proc.url, timeout=30)

@@ -15,20 +15,7 @@ import occufly.export.common as common
 import occufly.export.dataset as dataset
 from occufly.parallel import get_executor
 from tests.app.conftest import H, W, png
-
-
-def _fail_after(monkeypatch, module, name: str, n_ok: int) -> dict:  # noqa: ANN001
-    real = getattr(module, name)
-    calls = {"n": 0}
-
-    def failing(*a, **k):  # noqa: ANN002, ANN003, ANN202
-        calls["n"] += 1
-        if calls["n"] > n_ok:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real(*a, **k)
-
-    monkeypatch.setattr(module, name, failing)
-    return calls
+from tests.test_export_disk_full import _fail_after
 
 
 def _export(env, adm, sid):  # noqa: ANN001, ANN202

@@ -77,6 +77,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -282,17 +283,6 @@ def cached_features(ws: str | Path | None, xyz: np.ndarray, rgb: np.ndarray,
 
 
 # ---- annotator model -------------------------------------------------------------------------
-def _vote_loglik(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
-                 n2: np.ndarray) -> np.ndarray:
-    """(m, C) float32 sum_c n_c log pi[t, c] over the two leading vote classes."""
-    L = logpi.T[np.maximum(c1, 0)] * n1[:, None].astype(np.float32)
-    has2 = n2 > 0
-    if has2.any():
-        idx = np.flatnonzero(has2)
-        L[idx] += logpi.T[c2[idx]] * n2[idx, None].astype(np.float32)
-    return L
-
-
 def estimate_confusion(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.ndarray, C: int,
                        p: RobustParams) -> tuple[np.ndarray, np.ndarray]:
     """Pooled Dawid-Skene EM over every voted point: (pi (C, C) float64 with rows = true
@@ -580,14 +570,10 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         report(0.3 + 0.7 * a / len(vidx), "robust decision")
         ids = vidx[a:a + p.chunk]
         c1, c2 = col1[ids].astype(np.int64), col2[ids].astype(np.int64)
-        L = _vote_loglik(logpi, c1, n1[ids], c2, n2[ids])
-        if local is None:
-            L += logprior
-        else:  # the neighbourhood's vote shares, mixed with the scene's
-            vrow = local[0][a:a + p.chunk]
-            _add_local_prior(L, local[2], vrow, c1, c2, logprior_scene, p)
-        best, m, n_multi = _decide_chunk(L, K, p.candidate_nats, features, ids, q)
-        del L
+        vrow = local[0][a:a + p.chunk] if local is not None else None
+        best, m, n_multi = _decide_chunk(
+            logpi, c1, n1[ids], c2, n2[ids], logprior_scene, logprior,
+            None if local is None else (local[2], vrow), K, p, features, ids, q)
         evaluated += n_multi
         labels[ids] = cls.ids[best]
         margin[ids] = m
@@ -627,73 +613,184 @@ def _local_prior_tables(block: np.ndarray, prior: np.ndarray, p: RobustParams
     return share, np.log(mixed)
 
 
-def _add_local_prior(L: np.ndarray, lp_vox: np.ndarray, vrow: np.ndarray, c1: np.ndarray,
-                     c2: np.ndarray, logprior_scene: np.ndarray, p: RobustParams) -> None:
-    """Add the neighbourhood prior to ``L`` ((n, C) float32 log-likelihoods, in place):
-    ``lp_vox[vrow]`` the log of each point's neighbourhood vote shares mixed with the scene's
-    (:func:`_local_prior_tables`)."""
-    lp = lp_vox[vrow]
-    # the classes the point's own views voted for keep the scene-wide prior (in a
-    # region confused with its look-alike the neighbourhood is as confused as the
-    # point); the others get the neighbourhood's share: raised near a skipped or
-    # shifted-off object, lowered where no view near the point voted for them
-    r = np.arange(len(L))
-    lp[r, c1] = logprior_scene[c1]
-    h2 = np.flatnonzero(c2 >= 0)
-    lp[h2, c2[h2]] = logprior_scene[c2[h2]]
-    lp *= np.float32(p.prior_weight)
-    L += lp
+@numba.njit(nogil=True, cache=True)
+def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
+                     n2: np.ndarray, lp_vox: np.ndarray, vrow: np.ndarray,
+                     logprior_scene: np.ndarray, logprior: np.ndarray, pw: np.float32,
+                     K: int, nats: np.float32, best: np.ndarray, cand: np.ndarray,
+                     lk: np.ndarray) -> np.ndarray:
+    """Per point (one compiled pass, float32 as the model is): the log-likelihood of every
+    class, ``sum_c n_c log pi[t, c]`` over the two leading vote classes plus the weighted log
+    prior (with ``lp_vox`` non-empty: the neighbourhood's row ``lp_vox[vrow]`` for the classes
+    the point's views did not vote for, the scene's for those they did); ``best`` its argmax
+    (the first of equals). Returns the rows with a second class within ``nats`` of the best,
+    and for each of those its ``K`` likeliest classes within ``nats`` in ``cand`` (by
+    likelihood, the lower column first among equals) with their log-likelihoods in ``lk``
+    (slots beyond them: -inf)."""
+    n = c1.shape[0]
+    C = logpi_t.shape[0]
+    local = lp_vox.shape[0] > 0
+    L = np.empty(C, np.float32)
+    multi = np.zeros(n, np.bool_)
+    for i in range(n):
+        a = max(c1[i], 0)
+        w1 = np.float32(n1[i])
+        w2 = np.float32(n2[i])
+        b = c2[i]
+        ra = logpi_t[a]
+        if local:
+            lv = lp_vox[vrow[i]]
+            for t in range(C):
+                L[t] = ra[t] * w1
+            if w2 > 0:
+                rb = logpi_t[b]
+                for t in range(C):
+                    L[t] += rb[t] * w2
+            # the classes the views voted for take the scene's prior, the others the
+            # neighbourhood's (each value the same float32 sum as one formula per class)
+            L[a] += logprior_scene[a] * pw
+            if b >= 0:
+                L[b] += logprior_scene[b] * pw
+            for t in range(C):
+                if t != a and t != b:
+                    L[t] += lv[t] * pw
+        else:
+            for t in range(C):
+                L[t] = ra[t] * w1
+            if w2 > 0:
+                rb = logpi_t[b]
+                for t in range(C):
+                    L[t] += rb[t] * w2
+            for t in range(C):
+                L[t] += logprior[t]
+        arg = 0
+        for t in range(1, C):
+            if L[t] > L[arg]:
+                arg = t
+        best[i] = arg
+        if K < 2:
+            continue
+        floor = L[arg] - nats
+        # the K largest within nats, kept sorted (the lower column first among equals)
+        got = 0
+        for t in range(C):
+            v = L[t]
+            if v < floor:
+                continue
+            if got == K and not v > lk[i, K - 1]:
+                continue
+            j = got if got < K else K - 1
+            while j > 0 and v > lk[i, j - 1]:
+                if j < K:
+                    lk[i, j] = lk[i, j - 1]
+                    cand[i, j] = cand[i, j - 1]
+                j -= 1
+            lk[i, j] = v
+            cand[i, j] = t
+            if got < K:
+                got += 1
+        if got < 2:
+            continue
+        multi[i] = True
+        for k in range(got, K):
+            lk[i, k] = -np.inf
+            cand[i, k] = arg
+    return multi
 
 
-def _decide_chunk(L: np.ndarray, K: int, nats: float, features: np.ndarray, ids: np.ndarray,
-                  q: _QDA) -> tuple[np.ndarray, np.ndarray, int]:
-    """The decision of one chunk from its log-likelihoods ``L`` (n, C): (class column (n,),
-    posterior margin (n,) float32, how many points the classifier weighed). Candidates: the
-    ``K`` classes ``L`` makes likeliest, those within ``nats`` of the best; a point with one
-    candidate takes it (margin 1) without the classifier. Only the points with a second class
-    within ``nats`` are partitioned (most points of a survey have one)."""
-    n, C = L.shape
-    best = np.argmax(L, axis=1)
+@numba.njit(nogil=True, cache=True)
+def _gauss_row(x: np.ndarray, mean: np.ndarray, whiten: np.ndarray, logdet: np.float32,
+               d: np.ndarray) -> np.float32:
+    """The Gaussian log-density of one feature row (float32, as :func:`_gauss_loglik`)."""
+    F = x.shape[0]
+    for f in range(F):
+        d[f] = x[f] - mean[f]
+    ss = np.float32(0.0)
+    for g in range(F):
+        z = np.float32(0.0)
+        for f in range(F):
+            z += d[f] * whiten[g, f]
+        ss += z * z
+    return np.float32(-0.5) * (ss + logdet)
+
+
+@numba.njit(nogil=True, cache=True)
+def _feature_kernel(x: np.ndarray, cand: np.ndarray, lk: np.ndarray, mean: np.ndarray,
+                    whiten: np.ndarray, logdet: np.ndarray, ok: np.ndarray, p_mean: np.ndarray,
+                    p_whiten: np.ndarray, p_logdet: np.float32, best: np.ndarray,
+                    margin: np.ndarray) -> None:
+    """Per row with several candidates: each live candidate's log-likelihood plus the point
+    classifier's density of the features (the pooled density for a class without one), the
+    argmax (the first of equals) and the posterior margin top - second."""
+    m, K = cand.shape
+    d = np.empty(x.shape[1], np.float32)
+    post = np.empty(K, np.float32)
+    for i in range(m):
+        neutral = np.float32(0.0)
+        have_neutral = False
+        arg = -1
+        for k in range(K):
+            if lk[i, k] == -np.inf:
+                continue
+            c = cand[i, k]
+            if ok[c]:
+                g = _gauss_row(x[i], mean[c], whiten[c], logdet[c], d)
+            else:
+                if not have_neutral:
+                    neutral = _gauss_row(x[i], p_mean, p_whiten, p_logdet, d)
+                    have_neutral = True
+                g = neutral
+            lk[i, k] += g
+            if arg < 0 or lk[i, k] > lk[i, arg]:
+                arg = k
+        best[i] = cand[i, arg]
+        total = np.float32(0.0)
+        for k in range(K):
+            post[k] = np.exp(lk[i, k] - lk[i, arg])
+            total += post[k]
+        top = np.float32(0.0)
+        second = np.float32(0.0)
+        for k in range(K):
+            v = post[k] / total
+            if v > top:
+                second = top
+                top = v
+            elif v > second:
+                second = v
+        margin[i] = top - second
+
+
+def _decide_chunk(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
+                  n2: np.ndarray, logprior_scene: np.ndarray, logprior: np.ndarray,
+                  local: tuple | None, K: int, p: RobustParams, features: np.ndarray,
+                  ids: np.ndarray, q: _QDA) -> tuple[np.ndarray, np.ndarray, int]:
+    """The decision of one chunk of voted points ``ids``: (class column (n,), posterior margin
+    (n,) float32, how many points the classifier weighed). Candidates: the ``K`` classes the
+    votes and the prior make likeliest (``local``: (the per-voxel log of the mixed
+    neighbourhood prior, each point's voxel row), else the scene's prior), those within
+    ``candidate_nats`` of the best; a point with one candidate takes it (margin 1) without the
+    classifier (most points of a survey have one). Compiled kernels, no (n, C) array."""
+    n = len(ids)
+    C = logpi.shape[0]
+    best = np.empty(n, np.int64)
     m = np.ones(n, np.float32)
-    if K < 2:  # one candidate per point (argpartition's top 1 is the maximum)
-        return best, m, 0
-    lmax = np.take_along_axis(L, best[:, None], axis=1)
-    rows = np.flatnonzero(np.count_nonzero(L >= lmax - np.float32(nats), axis=1) > 1)
+    Kc = max(1, K)
+    cand = np.empty((n, Kc), np.int64)
+    lk = np.empty((n, Kc), np.float32)
+    lp_vox, vrow = local if local is not None else (np.zeros((0, C), np.float32),
+                                                    np.zeros(0, np.int32))
+    multi = _vote_candidates(
+        np.ascontiguousarray(logpi.T, np.float32), c1, np.asarray(n1, np.float32), c2,
+        np.asarray(n2, np.float32), lp_vox, np.asarray(vrow), logprior_scene, logprior,
+        np.float32(p.prior_weight), K, np.float32(p.candidate_nats), best, cand, lk)
+    rows = np.flatnonzero(multi)
     if len(rows) == 0:
         return best, m, 0
-    Lr = L[rows]
-    cand = np.argpartition(Lr, C - K, axis=1)[:, C - K:] if K < C else np.tile(
-        np.arange(C), (len(rows), 1))
-    Lk = np.take_along_axis(Lr, cand, axis=1)
-    del Lr
-    Lk[Lk < Lk.max(axis=1, keepdims=True) - nats] = -np.inf
-    multi = np.flatnonzero(np.isfinite(Lk).sum(axis=1) > 1)
-    best[rows] = np.take_along_axis(cand, np.argmax(Lk, axis=1)[:, None], axis=1)[:, 0]
-    if len(multi):
-        r = rows[multi]
-        best[r], m[r] = _feature_decision(
-            np.asarray(features[ids[r]], np.float32), cand[multi], Lk[multi], q)
-    return best, m, len(multi)
-
-
-def _feature_decision(x: np.ndarray, cm: np.ndarray, Lm: np.ndarray, q: _QDA
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Points with several candidate classes: each candidate's log-likelihood ``Lm`` ((m, K),
-    -inf where ruled out; changed in place) plus the point classifier's density of the
-    features ``x`` (m, F). Returns the decided class column (m,) and the posterior margin."""
-    live = np.isfinite(Lm)
-    neutral = None
-    for c in np.unique(cm[live]):
-        r, j = np.nonzero((cm == c) & live)
-        if q.ok[c]:
-            Lm[r, j] += _gauss_loglik(x[r], q.mean[c], q.whiten[c], q.logdet[c])
-        else:  # no classifier for this class: the density of all training points
-            if neutral is None:
-                neutral = _gauss_loglik(x, *q.pooled)
-            Lm[r, j] += neutral[r]
-    arg = np.argmax(Lm, axis=1)
-    best = np.take_along_axis(cm, arg[:, None], axis=1)[:, 0]
-    post = np.exp(Lm - np.take_along_axis(Lm, arg[:, None], axis=1))
-    post /= post.sum(axis=1, keepdims=True)
-    srt = np.sort(post, axis=1)
-    return best, srt[:, -1] - srt[:, -2]
+    cm, lm = cand[rows], lk[rows]
+    b, mm = np.empty(len(rows), np.int64), np.empty(len(rows), np.float32)
+    pm, pwh, pld = q.pooled
+    _feature_kernel(np.asarray(features[ids[rows]], np.float32), cm, lm, q.mean, q.whiten,
+                    q.logdet, q.ok, np.asarray(pm, np.float32), np.asarray(pwh, np.float32),
+                    np.float32(pld), b, mm)
+    best[rows], m[rows] = b, mm
+    return best, m, len(rows)

@@ -21,8 +21,8 @@ COPY frontend ./frontend
 RUN pip install --no-deps . && useradd --create-home --uid 1000 occufly && mkdir -p /data \
  && chown occufly /data
 USER occufly
-# the compiled kernels (denoise k-NN, label splats, free-space depth rasters) into the user's numba cache
-RUN python -c "import occufly.lifting.blockknn as k, occufly.splat as s, occufly.densify.depthraster as d; k.compile_kernels(); s.compile_kernels(); d.compile_kernels()"
+# the compiled kernels (denoise k-NN, robust vote decision, label splats, free-space depth rasters) into the user's numba cache
+RUN python -c "import occufly.lifting.blockknn as k, occufly.lifting.robust as r, occufly.splat as s, occufly.densify.depthraster as d; k.compile_kernels(); s.compile_kernels(); d.compile_kernels(); r.compile_kernels()"
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \

@@ -794,3 +794,21 @@ def _decide_chunk(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndar
                     np.float32(pld), b, mm)
     best[rows], m[rows] = b, mm
     return best, m, len(rows)
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the decision's kernels on a tiny input: the Docker
+    image runs this at build time, so a container's first fill or review request does not
+    pay the compilation."""
+    C, F = 2, 2
+    one = np.zeros(1, np.int64)
+    best, cand, lk = np.empty(1, np.int64), np.empty((1, 2), np.int64), np.empty((1, 2), np.float32)
+    z = np.zeros(C, np.float32)
+    for lp_vox in (np.zeros((1, C), np.float32), np.zeros((0, C), np.float32)):
+        _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
+                         np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
+                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk)
+    eye = np.eye(F, dtype=np.float32)
+    _feature_kernel(np.zeros((1, F), np.float32), np.array([[0, 1]]), np.zeros((1, 2), np.float32),
+                    np.zeros((C, F), np.float32), np.stack([eye, eye]), z, np.array([True, False]),
+                    np.zeros(F, np.float32), eye, np.float32(0.0), best, np.empty(1, np.float32))

@@ -701,14 +701,16 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
 @numba.njit(nogil=True, cache=True)
 def _gauss_row(x: np.ndarray, mean: np.ndarray, whiten: np.ndarray, logdet: np.float32,
                d: np.ndarray) -> np.float32:
-    """The Gaussian log-density of one feature row (float32, as :func:`_gauss_loglik`)."""
+    """The Gaussian log-density of one feature row (float32, as :func:`_gauss_loglik`).
+    ``whiten`` is upper triangular (the transposed Cholesky factor of :func:`_gaussian`): the
+    zeros below its diagonal are skipped."""
     F = x.shape[0]
     for f in range(F):
         d[f] = x[f] - mean[f]
     ss = np.float32(0.0)
     for g in range(F):
         z = np.float32(0.0)
-        for f in range(F):
+        for f in range(g, F):
             z += d[f] * whiten[g, f]
         ss += z * z
     return np.float32(-0.5) * (ss + logdet)

@@ -156,16 +156,17 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
 
 #: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
 ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-interior": None,
-                      "robust-plain": None,
+                      "robust-snap": None, "robust-plain": None,
                       "robust-prior05": RobustParams(prior_weight=0.5),
                       "robust-prior075": RobustParams(prior_weight=0.75)}
 
 
 def weighting_of(mode: str) -> str:
-    """The vote weighting a robustness mode lifts with: ``boundary`` / ``robust-boundary``
-    and ``interior`` / ``robust-interior`` name theirs, a mode ending ``-plain`` forces plain
-    votes, every other the library's default for a new state."""
-    for w in ("boundary", "interior"):
+    """The vote weighting a robustness mode lifts with: ``boundary`` / ``robust-boundary``,
+    ``interior`` / ``robust-interior`` and ``snap`` / ``robust-snap`` (masks snapped to their
+    photos' edges) name theirs, a mode ending ``-plain`` forces plain votes, every other the
+    library's default for a new state."""
+    for w in ("boundary", "interior", "snap"):
         if mode in (w, f"robust-{w}"):
             return w
     return "plain" if mode.endswith("plain") or mode in ("tieorder",) else DEFAULT_VOTE_WEIGHTING
@@ -261,9 +262,30 @@ def robustness(args: argparse.Namespace) -> dict:
                                    if k.startswith(("robust", "reliability")) or k.endswith("seconds")},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
+                if weighting_of(robust) == "snap":  # what the snapping did to the masks
+                    out[f"{vname}/{mname}/{robust}"]["snap_pixels"] = _snap_pixels(
+                        sc, masks, exact)
                 print(json.dumps({f"{vname}/{mname}/{robust}": out[f"{vname}/{mname}/{robust}"]}),
                       file=sys.stderr, flush=True)
     return out
+
+
+def _snap_pixels(sc: Scene, masks: dict, exact: dict) -> dict:
+    """Mean share of the painted pixels of ``masks`` that differ from the exact masks,
+    before and after :func:`occufly.lifting.snap.snap_frame_mask`, and the share it changed."""
+    from occufly.lifting.snap import snap_frame_mask
+    from occufly.taxonomy import EMPTY
+
+    before, after, changed = [], [], []
+    for fi, m in masks.items():
+        s = snap_frame_mask(sc.frames[fi], m)
+        painted = m != EMPTY
+        before.append(float(((m != exact[fi]) & painted).mean()))
+        after.append(float(((s != exact[fi]) & painted).mean()))
+        changed.append(float((s != m).mean()))
+    return {"wrong_before": round(float(np.mean(before)), 5),
+            "wrong_after": round(float(np.mean(after)), 5),
+            "changed": round(float(np.mean(changed)), 5)}
 
 
 def _noisy(args: argparse.Namespace, masks: dict, tax) -> dict:  # noqa: ANN001
@@ -516,7 +538,9 @@ def main() -> None:
                     help="robustness: tieorder (plain vote, ties by taxonomy order), plain "
                          "(plain vote, ties to the fill: the default before the robust "
                          "decision), robust (the default), robust-before (the robust "
-                         "decision before the tiny-object work), boundary (weighted votes)")
+                         "decision before the tiny-object work), boundary (weighted votes), "
+                         "robust-interior / robust-snap (the robust decision with interior "
+                         "vote weights / masks snapped to their photos' edges)")
     ap.add_argument("--noise", default="degraded",
                     help="robustness: comma list of noise models besides the exact masks: "
                          "degraded (occufly.synthetic.degrade), crew (occufly.synthetic.noise)")
@@ -529,6 +553,12 @@ def main() -> None:
     ap.add_argument("--curve-noise", default="degraded", choices=("exact", "degraded", "crew"))
     ap.add_argument("--interior-floor", type=int, default=None,
                     help="robustness: least weight of an 'interior' vote (votes.INTERIOR_FLOOR)")
+    ap.add_argument("--snap-share", type=float, default=None,
+                    help="robustness: band of the 'snap' weighting as a share of the mask's "
+                         "longer side (snap.SNAP_SHARE)")
+    ap.add_argument("--snap-ratio", type=float, default=None,
+                    help="robustness: the 'snap' colour check ratio (snap.SNAP_COLOUR_RATIO; "
+                         "0 = no colour check)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
@@ -554,6 +584,13 @@ def main() -> None:
         import occufly.lifting.votes as votes_mod
 
         votes_mod.INTERIOR_FLOOR = args.interior_floor
+    if args.snap_share is not None or args.snap_ratio is not None:
+        import occufly.lifting.snap as snap_mod
+
+        if args.snap_share is not None:
+            snap_mod.SNAP_SHARE = args.snap_share
+        if args.snap_ratio is not None:
+            snap_mod.SNAP_COLOUR_RATIO = args.snap_ratio or None
     if args.robustness:
         print(json.dumps(robustness(args), default=_json_default))
         return

@@ -15,8 +15,9 @@ Votes
 
 Majority
     Unweighted by default (``vote_weighting="plain"``; ``"boundary"`` and ``"interior"``
-    weight each view's vote by its pixel's distance to a boundary of its own mask, measured
-    in issue 37 and not the default: docs/lifting.md); ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
+    weight each view's vote by its pixel's distance to a boundary of its own mask, ``"snap"``
+    first moves the mask's boundaries onto its photo's edges (:mod:`occufly.lifting.snap`);
+    measured in issue 37 and not the default: docs/lifting.md); ties go to the class that comes first in ``taxonomy.tie_order`` (vectorised:
     one argmax over packed keys ``count << bits | (C - 1 - rank)``,
     :meth:`ClassColumns.packed_winner`).
 
@@ -61,6 +62,7 @@ from occufly.lifting.reliability import (
     vetoes,
 )
 from occufly.lifting.result import LiftResult, save_result
+from occufly.lifting.snap import snap_frame_mask
 from occufly.progress import ProgressFn, noop
 from occufly.scene import Scene
 from occufly.taxonomy import EMPTY, INVALID
@@ -75,9 +77,12 @@ _CHUNK_ROWS = 1_000_000
 #: so the views in which a point lies well inside a region outvote those in which it sits on
 #: an edge. ``interior`` (issue 37): the same idea scaled to each painted region's own size
 #: (:func:`interior_weights`), so that a small or thin region's core keeps a full vote.
-VOTE_WEIGHTINGS = ("plain", "boundary", "interior")
+#: ``snap`` (issue 37): one vote per view, of the mask with its class boundaries first moved
+#: onto the edges of the frame's photo (:func:`occufly.lifting.snap.snap_mask`; a frame with
+#: no readable photo votes its mask as painted).
+VOTE_WEIGHTINGS = ("plain", "boundary", "interior", "snap")
 #: counts per view (the weight of a vote well inside a region) of each weighting
-VOTE_UNITS = {"plain": 1, "boundary": 3, "interior": 4}
+VOTE_UNITS = {"plain": 1, "boundary": 3, "interior": 4, "snap": 1}
 #: the weighting of a new lifting state (an existing one keeps the one it was built with)
 DEFAULT_VOTE_WEIGHTING = "plain"
 BOUNDARY_PX = 3
@@ -207,7 +212,8 @@ class VoteStore:
         a state, and raises :class:`WorkspaceError` when there is none or it is dirty.
 
         vote_weighting: ``"plain"`` (one vote per view), ``"boundary"`` or ``"interior"``
-        (votes fall off near mask boundaries, see :data:`VOTE_WEIGHTINGS`); fixed when the
+        (votes fall off near mask boundaries), ``"snap"`` (one vote per view of the mask
+        snapped to its photo's edges), see :data:`VOTE_WEIGHTINGS`; fixed when the
         state is created
         (None: the stored one, ``"plain"`` for a new state).
         """
@@ -429,6 +435,8 @@ class VoteStore:
         uv = np.asarray(uv)
         col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
         row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
+        if self.vote_weighting == "snap":
+            mask = snap_frame_mask(frame, mask)
         raw = mask[row, col]
         keep = (raw != EMPTY) & (raw != INVALID)
         if self.vote_weighting == "boundary":
@@ -565,7 +573,7 @@ class VoteStore:
         old = self._old_votes(fi)
         self._write_state(dirty=True)
         arrays = {"point_ids": pids, "cols": cols}
-        if self.vote_weighting != "plain":
+        if vote_unit(self.vote_weighting) != 1:
             arrays["weights"] = weights
         atomic_write_bytes(self._frame_path(fi), _npz_bytes(**arrays))
         stats = self._apply(old, (pids, cols, weights))
@@ -612,7 +620,7 @@ class VoteStore:
         pairs = {f: v[:2] for f, v in frames.items()}
         if labels is not None:
             votes, agree = frame_class_agreement(pairs, labels, self._cls)
-        elif self.vote_weighting == "plain":
+        elif vote_unit(self.vote_weighting) == 1:
             votes, agree = frame_class_agreement_loo(pairs, self.votes, self._cls)
         else:  # weighted counts are not one vote per view
             return None, {"reliability_vetoed": {}, "reliability_skipped": "weighted votes"}

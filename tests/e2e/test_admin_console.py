@@ -206,3 +206,36 @@ def test_overview_and_audit_names(live, new_page):
     page.click("form[aria-label='Filter audit log'] button[type=submit]")
     page.wait_for_selector(f"#audit td:text-is('{f['name']}')")
     assert page.locator("#audit td:text-is('console_overview')").count() >= 1
+
+
+def test_folder_browser_marks_a_hard_linked_file_and_does_not_offer_it(live, new_page):
+    """Imports refuse a file with a second name (it may be a file from outside the roots):
+    the folder browser shows such a file with the reason and gives no button to pick it."""
+    import os
+    import shutil
+
+    root, _src = _source(live)
+    probe = root / "zz_hard_link_probe"  # sorts after the scene sources (_source takes the first)
+    probe.mkdir()
+    try:
+        (probe / "cameras.xml").write_text("<document/>")
+        os.link(probe / "cameras.xml", probe / "linked.xml")
+        (probe / "plain.xml").write_text("<document/>")
+        page = new_page("admin")
+        page.goto(f"{live.base_url}/#/admin")
+        page.wait_for_selector("#imp-members input[type=checkbox]")
+        page.click("button[aria-label='Browse for imp-source']")
+        page.wait_for_selector(f"#folder-browser .fb-dir[data-path='{root}']")
+        page.click(f"#folder-browser .fb-dir[data-path='{root}']")
+        page.click(f"#folder-browser .fb-dir[data-path='{probe}']")
+        page.wait_for_selector("#folder-browser li[data-refused]")
+        refused = page.locator("#folder-browser li[data-refused]")
+        assert refused.count() == 2  # both names of the linked file
+        text = refused.first.inner_text()
+        assert "hard link" in text and "copy the file in" in text, text
+        assert refused.locator("button").count() == 0
+        plain = page.locator("#folder-browser li[data-kind='file']:not([data-refused])")
+        assert plain.count() == 1 and "plain.xml" in plain.inner_text()
+        _doc_shot(page.locator("#folder-browser"), "admin_folder_browser_hard_link")
+    finally:
+        shutil.rmtree(probe)

@@ -72,6 +72,9 @@ export async function browseFolder({ start = "", pick = "dir", title = "Choose a
       for (const e of r.entries) {
         if (e.kind === "dir") {
           rows.push(el("li", { "data-kind": "dir" }, el("button", { type: "button", class: "link fb-dir", "data-path": e.path, onclick: () => open(e.path) }, `${e.name}/`), e.exists === false ? el("span", { class: "muted" }, " (not created yet)") : null));
+        } else if (e.hard_link) {  // an import refuses it: shown, not offered
+          rows.push(el("li", { "data-kind": "file", "data-refused": "hard-link" }, el("span", { class: "muted" }, e.name),
+            el("span", { class: "warn fb-refused" }, ` \u26a0 ${e.refused}`)));
         } else {
           rows.push(el("li", { "data-kind": "file" }, pick !== "dir"
             ? el("button", { type: "button", class: "link fb-file", "data-path": e.path, onclick: () => done(e.path) }, e.name)

@@ -21,9 +21,16 @@ For each it reports
 - ``memory``: the tab's renderer and the GPU process (SwiftShader keeps the buffers there):
   RSS and peak RSS (VmHWM) from /proc, and the page's JS heap (performance.memory);
 - ``lasso``: a screen lasso (the selection tool's own function) chosen to hold ~``--lasso``
-  points, relabelled to *water* (blue) through a file-backed corrections hook: the time until
-  a screenshot shows the region blue (``relabel_visible_s``), then undo until it is not
-  (``undo_visible_s``); ``select_s``: lasso closed -> selection highlighted in the browser;
+  points, relabelled to *water* (blue) through a file-backed corrections hook, then undone:
+  ``relabel_drawn_s`` / ``undo_drawn_s``: the call -> the first frame the browser finished
+  with the region blue (not blue) and the whole level of detail drawn, seen by a frame probe
+  (:data:`PROBE_HOOK`: the region's pixels read from the WebGL drawing buffer after each
+  frame, no screenshot); ``relabel_visible_s`` / ``undo_visible_s``: the call -> a screenshot
+  taken then has returned showing it (a screenshot costs frames of its own: seconds under
+  software WebGL; until 2026-12-06 the bench polled with screenshots, which is what the older
+  ``*_visible_s`` figures measured); ``trace_relabel`` / ``trace_undo``: the timeline of each
+  (the viewer's refreshes, what the proxy sent, the frames the page rendered, the probe,
+  the screenshots); ``selection_drawn_s``: lasso closed -> selection highlighted (cyan);
 - ``toggle_p50_s``: a class checkbox clicked in the browser until the server sees it.
 
 Prints one JSON object. ``--shots DIR`` saves the progressive run's screenshots (first points,
@@ -60,10 +67,16 @@ BLUE = np.array([0, 0, 255])
 VIEW = (1000, 700)
 
 
+SHOT_LOG: list[tuple[float, float]] = []  # (start, end) wall-clock of every screenshot
+REFRESH_LOG: list[tuple[float, float]] = []  # (start, end) of every viewer refresh_now
+
+
 def shot(page, path: Path | None = None) -> np.ndarray:
     from PIL import Image
 
+    a = time.time()
     b = page.screenshot(timeout=180_000)
+    SHOT_LOG.append((a, time.time()))
     if path is not None:
         path.write_bytes(b)
     return np.asarray(Image.open(io.BytesIO(b)).convert("RGB"), np.int16)
@@ -159,10 +172,13 @@ def tab_memory(page) -> dict:
 
 # counts the frames three.js renders (one clear() per frame): viser renders on demand, so
 # requestAnimationFrame alone also counts frames that draw nothing
-RENDER_HOOK = """(() => { const w = window; w.__renders = 0;
+# and keeps the wall-clock time (ms since the epoch) of the last 400 of them for the trace
+RENDER_HOOK = """(() => { const w = window; w.__renders = 0; w.__renderTimes = [];
   for (const C of [self.WebGLRenderingContext, self.WebGL2RenderingContext]) { if (!C) continue;
     const clear = C.prototype.clear;
-    C.prototype.clear = function (m) { w.__renders++; return clear.call(this, m); }; } })();"""
+    C.prototype.clear = function (m) { w.__renders++; w.__renderTimes.push(Date.now());
+      if (w.__renderTimes.length > 400) w.__renderTimes.shift();
+      return clear.call(this, m); }; } })();"""
 
 
 def orbit_fps(page, svc, st, seconds: float, hz: float = 30.0, warm_s: float = 5.0) -> dict:
@@ -239,43 +255,192 @@ def wait_shot(page, pred, timeout_s: float, t0: float) -> tuple[float | None, np
     return None, img
 
 
-def lasso_relabel(page, svc, st, want: int, shots: Path | None) -> dict:
+def trace_refreshes(svc) -> None:
+    """Record the start and end of every refresh of the viewer (its refresh thread calls
+    ``refresh_now``) in :data:`REFRESH_LOG`."""
+    orig = type(svc).refresh_now
+
+    def traced(self, *a, **kw):  # noqa: ANN001, ANN202
+        t = time.time()
+        try:
+            return orig(self, *a, **kw)
+        finally:
+            REFRESH_LOG.append((t, time.time()))
+
+    svc.refresh_now = traced.__get__(svc)
+
+
+def timeline(page, stats: dict, t0: float, t_end: float) -> dict:
+    """What happened between ``t0`` and ``t_end`` (wall clock), in seconds after ``t0``:
+    the viewer's refreshes, the frames the proxy sent to the browser (count, MB, first and
+    last), the WebGL frames the page started (the render hook's clear() times: several per
+    frame), the frame probe's log (frame finished, colour share, background share) and the
+    screenshots taken."""
+    off = time.time() - time.perf_counter()
+    msgs, prev = [], None
+    for t, cum in list(stats.get("log", [])):
+        if prev is not None and t0 <= t + off <= t_end:
+            msgs.append((t + off - t0, cum - prev))
+        prev = cum
+    renders = [t / 1000 - t0 for t in page.evaluate("() => window.__renderTimes || []")
+               if t0 <= t / 1000 <= t_end]
+
+    def r(v: float) -> float:
+        return round(v, 3)
+
+    return {"refreshes": [[r(a - t0), r(b - t0)] for a, b in REFRESH_LOG if t0 <= a <= t_end],
+            "ws_frames": len(msgs), "ws_mb": round(sum(b for _t, b in msgs) / 2**20, 2),
+            "ws_first_last": [r(msgs[0][0]), r(msgs[-1][0])] if msgs else None,
+            "ws_big": [[r(t), round(b / 2**20, 2)] for t, b in msgs if b > 1 << 20],
+            "webgl_frames": [r(t) for t in renders],
+            "probe": [[r(t / 1000 - t0), round(a, 3), round(b, 3)] for t, a, b in
+                      page.evaluate("() => window.__probeLog || []") if t0 <= t / 1000 <= t_end],
+            "shots": [[r(a - t0), r(b - t0)] for a, b in SHOT_LOG if t0 <= a <= t_end]}
+
+
+# the frame probe: after every animation frame that rendered, the pixels of a screen box are
+# read from the WebGL2 drawing buffer (before the compositor takes it) into a pixel buffer
+# behind a fence, and once the fence has passed (the frame is rasterised; polled every 10 ms,
+# so the page's main thread is never held) the shares close to a colour and to the
+# background (transparent: the page's white) are logged with that wall-clock time: when
+# the browser has *drawn* a change, without the screenshots that polled for it (each one is
+# itself a frame of everything shown, seconds under software WebGL). The background share tells a frame of the whole level of
+# detail from one of the coarse level alone (drawn while the camera moves or an update is
+# on its way: its gaps show the background), which must not count as the change drawn.
+PROBE_HOOK = """(() => { const w = window; w.__gl = null;
+  const gc = HTMLCanvasElement.prototype.getContext;
+  HTMLCanvasElement.prototype.getContext = function (t, a) { const c = gc.call(this, t, a);
+    if (c && (t === 'webgl2' || t === 'webgl')) w.__gl = c; return c; };
+  const raf = w.requestAnimationFrame.bind(w);
+  w.requestAnimationFrame = (cb) => raf((ts) => { cb(ts); if (w.__probe) w.__probe(); });
+})();"""
+
+ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog = [];
+  const pending = []; let polling = false;
+  const poll = () => { const gl = w.__gl;
+    while (pending.length) { const p = pending[0];
+      if (gl.getSyncParameter(p.sync, gl.SYNC_STATUS) !== gl.SIGNALED) break;
+      pending.shift(); const t = Date.now(); const px = new Uint8Array(4 * p.n);
+      gl.bindBuffer(gl.PIXEL_PACK_BUFFER, p.buf);
+      gl.getBufferSubData(gl.PIXEL_PACK_BUFFER, 0, px);
+      gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null); gl.deleteBuffer(p.buf); gl.deleteSync(p.sync);
+      let k = 0, bg = 0;
+      for (let i = 0; i < p.n; i++) { const r = px[4 * i], g = px[4 * i + 1], b = px[4 * i + 2];
+        if (Math.abs(r - col[0]) + Math.abs(g - col[1]) + Math.abs(b - col[2]) < tol) k++;
+        if (px[4 * i + 3] < 128 || 765 - r - g - b < tol) bg++; }
+      w.__probeLog.push([t, k / p.n, bg / p.n]); }
+    polling = pending.length > 0; if (polling) setTimeout(poll, 10); };
+  w.__probe = () => { const gl = w.__gl; if (!gl || w.__renders === w.__probeSeen) return;
+    w.__probeSeen = w.__renders;
+    const W = gl.drawingBufferWidth, H = gl.drawingBufferHeight;
+    const x0 = Math.floor(u0 * W), x1 = Math.ceil(u1 * W);
+    const y0 = Math.floor((1 - v1) * H), y1 = Math.ceil((1 - v0) * H);
+    const n = (x1 - x0) * (y1 - y0);
+    // into a pixel buffer behind a fence: the main thread is not held while the GPU draws
+    const buf = gl.createBuffer(); gl.bindBuffer(gl.PIXEL_PACK_BUFFER, buf);
+    gl.bufferData(gl.PIXEL_PACK_BUFFER, 4 * n, gl.STREAM_READ);
+    const rb = gl.getParameter(gl.READ_FRAMEBUFFER_BINDING);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
+    gl.readPixels(x0, y0, x1 - x0, y1 - y0, gl.RGBA, gl.UNSIGNED_BYTE, 0);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, rb);
+    gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
+    pending.push({buf, n, sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0)});
+    gl.flush(); if (!polling) { polling = true; setTimeout(poll, 10); } };
+  return w.__renders; }"""
+
+
+def arm_probe(page, poly: np.ndarray, colour: np.ndarray) -> None:
+    """Log, for every frame the page renders from now on, the share of the lasso's bounding
+    box (2 px inside, as :func:`blue_share`) close to ``colour``."""
+    (u0, v0), (u1, v1) = poly.min(axis=0), poly.max(axis=0)
+    page.evaluate(ARM_PROBE, [float(u0) + 0.003, float(v0) + 0.003, float(u1) - 0.003,
+                              float(v1) - 0.003, [int(c) for c in colour], 60])
+
+
+def wait_drawn(page, pred, timeout_s: float, w0: float) -> tuple[float | None, list | None]:
+    """(seconds after wall-clock ``w0`` at which the first frame whose probe (colour share,
+    background share) satisfies ``pred`` was finished, that probe); (None, the last probe)
+    after ``timeout_s``."""
+    last = None
+    while time.time() - w0 < timeout_s:
+        for t, share, bg in page.evaluate("() => window.__probeLog || []"):
+            last = [round(share, 3), round(bg, 3)]
+            if t / 1000 >= w0 and pred(share, bg):
+                return t / 1000 - w0, last
+        page.wait_for_timeout(100)
+    return None, last
+
+
+def probed(page, wait_s: float = 30.0) -> tuple[float, float] | None:
+    """(colour share, background share) of the last frame drawn (waiting for one)."""
+    t = time.time()
+    while time.time() - t < wait_s:
+        log = page.evaluate("() => window.__probeLog || []")
+        if log:
+            return float(log[-1][1]), float(log[-1][2])
+        page.wait_for_timeout(100)
+    return None
+
+
+def lasso_relabel(page, svc, st, want: int, shots: Path | None, stats: dict) -> dict:
     """Lasso ~``want`` points from the default view, relabel to water, undo; times until
-    the browser shows each."""
+    the browser has drawn each (frame probe: ``*_drawn_s``) and until a screenshot taken
+    then shows it (``*_visible_s``), with the timeline of each step (``trace_*``)."""
     svc._place_camera(st)
     page.wait_for_timeout(1500)
     cam = st.client.camera
     camt = (np.asarray(cam.position), np.asarray(cam.wxyz), float(cam.fov), float(cam.aspect))
     poly, est = lasso_polygon(st, camt, want)
     base = blue_share(shot(page), poly)
+    arm_probe(page, poly, BLUE)
+    _b, bg0 = probed(page) or (0.0, 1.0)  # the whole LOD drawn: its gaps in the box
+    cyan = np.array([0, 255, 255])
+    arm_probe(page, poly, cyan)
     st.gui["sel_mode"].value = "replace"
     st.lasso, st.lasso_cam = [tuple(p) for p in poly], camt
-    t0 = time.perf_counter()
+    t0, w0 = time.perf_counter(), time.time()
     picked = corrections_panel.close_lasso(svc, st)
     t_sel = time.perf_counter() - t0
-    cyan = np.array([0, 255, 255])
-    t_hi, img = wait_shot(page, lambda im: blue_share(im, poly, cyan) > base + 0.1, 60, t0)
-    if shots is not None and img is not None:
+    t_hi, _p = wait_drawn(page, lambda s, bg: s > base + 0.1, 60, w0)
+    if shots is not None:
         shot(page, shots / "viewer_scale_selection_1m.png")
     st.gui["to_class"].value = next(o for o in st.gui["to_class"].options
                                     if o.endswith(f"({WATER})"))
-    t0 = time.perf_counter()
+    page.wait_for_timeout(3000)  # the selection's frames are drawn
+    arm_probe(page, poly, BLUE)
+    probed(page)
+    whole = bg0 + 0.05  # at most this much background: the whole level of detail is drawn
+    t0, w0 = time.perf_counter(), time.time()
     corrections_panel.relabel(svc, st, st.gui["to_class"].value, "bench")
     t_call = time.perf_counter() - t0
-    t_vis, img = wait_shot(page, lambda im: blue_share(im, poly) > base + 0.1, 60, t0)
-    after = blue_share(img, poly) if img is not None else None
-    if shots is not None:
-        shot(page, shots / "viewer_scale_relabelled.png")
-    t0 = time.perf_counter()
+    t_drawn, p_rel = wait_drawn(page, lambda s, bg: s > base + 0.1 and bg <= whole, 60, w0)
+    img = shot(page, shots / "viewer_scale_relabelled.png" if shots is not None else None)
+    t_vis = time.time() - w0
+    trace_relabel = timeline(page, stats, w0, time.time())
+    after = blue_share(img, poly)
+    page.wait_for_timeout(3000)
+    arm_probe(page, poly, BLUE)
+    t0, w0 = time.perf_counter(), time.time()
     corrections_panel.undo_redo(svc, st, "undo")
-    t_undo, img = wait_shot(page, lambda im: blue_share(im, poly) < base + 0.03, 60, t0)
+    t_undo_call = time.perf_counter() - t0
+    t_undo, p_undo = wait_drawn(page, lambda s, bg: s < base + 0.03 and bg <= whole, 60, w0)
+    img = shot(page)
+    t_undo_vis = time.time() - w0
+    trace_undo = timeline(page, stats, w0, time.time())
+
+    def r(v: float | None) -> float | None:
+        return None if v is None else round(v, 3)
+
     return {"selected_points": int(len(picked)), "estimate": est,
-            "close_lasso_s": round(t_sel, 3),
-            "selection_visible_s": None if t_hi is None else round(t_hi, 3),
-            "relabel_call_s": round(t_call, 3),
-            "relabel_visible_s": None if t_vis is None else round(t_vis, 3),
-            "undo_visible_s": None if t_undo is None else round(t_undo, 3),
-            "blue_share_before_after": [round(base, 3), None if after is None else round(after, 3)]}
+            "close_lasso_s": r(t_sel), "selection_drawn_s": r(t_hi),
+            "relabel_call_s": r(t_call), "relabel_drawn_s": r(t_drawn),
+            "relabel_visible_s": r(t_vis) if after > base + 0.1 else None,
+            "undo_call_s": r(t_undo_call), "undo_drawn_s": r(t_undo),
+            "undo_visible_s": r(t_undo_vis) if blue_share(img, poly) < base + 0.03 else None,
+            "blue_share_before_after": [round(base, 3), round(after, 3)],
+            "probe_background_whole_lod": round(bg0, 3),
+            "probe_at_drawn": {"relabel": p_rel, "undo": p_undo},
+            "trace_relabel": trace_relabel, "trace_undo": trace_undo}
 
 
 def toggles(page, st, n: int) -> dict:
@@ -295,12 +460,16 @@ def toggles(page, st, n: int) -> dict:
 
 
 def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -> dict:
-    svc.lod_scheme = scheme
+    # "progressive_keep_tiles": the new path with the tiles left shown during a correction's
+    # update (ViewerService.hide_tiles_on_update off), to weigh that step on its own
+    svc.lod_scheme = scheme.removesuffix("_keep_tiles")
+    svc.hide_tiles_on_update = not scheme.endswith("_keep_tiles")
     browser = p.chromium.launch(executable_path="/usr/bin/chromium",
                                 args=CHROMIUM_ARGS + ["--enable-precise-memory-info"])
     try:
         ctx = browser.new_context(viewport={"width": VIEW[0], "height": VIEW[1]})
         ctx.add_init_script(RENDER_HOOK)
+        ctx.add_init_script(PROBE_HOOK)
         ctx.add_cookies([{"name": "occufly_session", "value": REVIEWER, "url": srv.url}])
         page = ctx.new_page()
         n_before = len(svc.proxy_stats)
@@ -344,7 +513,7 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
             out["toggle_latency_s"] = {"error": f"{type(e).__name__}: {str(e)[:200]}"}
         if args.lasso:
             try:
-                out["lasso"] = lasso_relabel(page, svc, st, args.lasso, shots)
+                out["lasso"] = lasso_relabel(page, svc, st, args.lasso, shots, stats)
             except Exception as e:  # noqa: BLE001
                 out["lasso"] = {"error": f"{type(e).__name__}: {str(e)[:200]}"}
         out["memory_end"] = tab_memory(page)
@@ -376,6 +545,7 @@ def main() -> None:
         kw = {"max_points": args.max_points} if args.max_points else {}
         app = make_app(root, corrections=FileCorrections(root / "bench").hooks(), **kw)
         svc = app.state.viewer
+        trace_refreshes(svc)
         result: dict = {"bench": "viewer_scale", "points": args.points,
                         "max_points": svc.max_points, "coarse_points": svc.preview_points,
                         "tiles": svc.lod_tiles ** 2, "generate_s": round(gen_s, 2),

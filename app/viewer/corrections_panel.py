@@ -16,6 +16,8 @@ browser draws), in chunks, with the vectorised functions of :mod:`app.viewer.sel
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -161,11 +163,18 @@ def candidates(st: Any) -> np.ndarray:
 
 
 def _chunked(ids: np.ndarray, xyz: np.ndarray, fn) -> np.ndarray:  # noqa: ANN001
+    """The ``ids`` whose points ``fn`` (float32 (n, 3) -> (n,) bool) keeps, ``CHUNK`` at a
+    time. When every point is a candidate the cloud is read in slices (no gather)."""
     out = []
-    for a in range(0, len(ids), CHUNK):
-        part = ids[a:a + CHUNK]
-        out.append(part[fn(np.asarray(xyz[part], np.float32))])
-    return np.concatenate(out) if out else np.zeros(0, np.int64)
+    if len(ids) == len(xyz):  # sorted unique ids of every point: 0..N-1
+        for a in range(0, len(ids), CHUNK):
+            keep = fn(np.asarray(xyz[a:a + CHUNK], np.float32))
+            out.append(a + np.flatnonzero(keep))
+    else:
+        for a in range(0, len(ids), CHUNK):
+            part = ids[a:a + CHUNK]
+            out.append(part[fn(np.asarray(xyz[part], np.float32))])
+    return np.concatenate(out).astype(np.int64, copy=False) if out else np.zeros(0, np.int64)
 
 
 def arm(svc: Any, st: Any) -> None:
@@ -319,16 +328,42 @@ def relabel(svc: Any, st: Any, choice: str, comment: str) -> dict | None:
                                    color="red")
         return None
     name = "unlabelled" if to_class == 0 else sb.class_name(st.data.taxonomy, to_class)
-    st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} points "
-                                   f"-> {md_text(name)}.")
-    st.last_edit = {"id": int(edit["id"]), "n_points": int(edit["n_points"]), "to": name}
-    update_proposal_button(svc, st)
-    st.client.add_notification("Correction saved", f"{edit['n_points']:,} points -> {name}",
-                               color="green", auto_close_seconds=4.0)
-    set_selection(svc, st, np.zeros(0, np.int64))
-    svc.refresh(st.scene_id)
+    with show_change(svc, st):
+        st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} "
+                                       f"points -> {md_text(name)}.")
+        st.last_edit = {"id": int(edit["id"]), "n_points": int(edit["n_points"]), "to": name}
+        update_proposal_button(svc, st)
+        st.client.add_notification("Correction saved", f"{edit['n_points']:,} points -> {name}",
+                                   color="green", auto_close_seconds=4.0)
+        set_selection(svc, st, np.zeros(0, np.int64))
     update_stack(svc, st)
     return edit
+
+
+@contextmanager
+def show_change(svc: Any, st: Any) -> Iterator[None]:
+    """The panel's messages of a correction this tab made, and the points it changed, in
+    one message window: the browser applies them together and draws the change once
+    (under software WebGL every window that touches the scene costs a frame of all the
+    points shown). The refresh runs here, in the tab's callback, not queued: only the
+    correction layer changed, so it is a delta (:meth:`ViewerService.refresh_now`); the
+    labels_updated event that follows finds the data current. The old path
+    (``lod_scheme = "legacy"``, the benchmark's baseline) queues it as before."""
+    if svc.lod_scheme == "legacy":
+        try:
+            yield
+        finally:
+            svc.refresh(st.scene_id)
+        return
+    with st.client.atomic():
+        try:
+            yield
+        finally:  # the correction is saved: show it whatever the panel's messages did
+            try:
+                svc.refresh_now(st.scene_id)
+            except Exception:  # noqa: BLE001 - the refresh thread tries again
+                log.exception("viewer: refresh after a correction failed")
+                svc.refresh(st.scene_id)
 
 
 def undo_redo(svc: Any, st: Any, which: str) -> dict | None:
@@ -339,9 +374,9 @@ def undo_redo(svc: Any, st: Any, which: str) -> dict | None:
     except Exception as e:  # noqa: BLE001 - nothing to undo, not allowed...
         st.gui["edit_info"].content = md_text(getattr(e, "detail", e))
         return None
-    st.gui["edit_info"].content = (f"Correction **{edit['id']}** "
-                                   f"{'undone' if which == 'undo' else 'redone'}.")
-    svc.refresh(st.scene_id)
+    with show_change(svc, st):
+        st.gui["edit_info"].content = (f"Correction **{edit['id']}** "
+                                       f"{'undone' if which == 'undo' else 'redone'}.")
     update_stack(svc, st)
     return edit
 

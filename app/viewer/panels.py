@@ -149,12 +149,7 @@ class PanelsMixin:
         data = st.data
         if data is None:
             return
-        lab = data.labels
-        if lab is not None:
-            counts = np.bincount(np.asarray(lab), minlength=256)
-        else:
-            counts = np.zeros(256, np.int64)
-            counts[0] = data.scene.n_points
+        counts = data.label_counts()  # kept up to date by a relabel's delta
         present = set(np.flatnonzero(counts).tolist())
         for cid in [c for c in st.class_boxes if c not in present]:
             st.class_boxes.pop(cid).remove()

@@ -18,7 +18,8 @@ visibility flag. ``/points/<class>/detail`` holds the tiles: while the camera mo
 viewer hides these frames (the coarse level alone is drawn, fast enough to orbit under
 software WebGL) and shows them again once the camera rests (``motion_rest_s``). The plan (which points, which tile) is fixed when a scene is opened: a
 relabel moves points between the class nodes of the *same* tile, so a correction re-sends only
-the (class, tile) chunks holding changed points (:func:`affected_chunks`).
+the (class, tile) chunks holding changed points (:func:`delta_chunks` from the points a
+correction changed; :func:`affected_chunks` when the whole labels were compared).
 
 Chunk keys are ``(group, class id)`` with group 0 = coarse and ``1 + tile index`` = a tile.
 """
@@ -157,6 +158,24 @@ def affected_chunks(plan: LodPlan, old: sb.ViewerData, new: sb.ViewerData,
     pos = np.flatnonzero(changed)
     g = plan.group[pos].astype(np.int64)
     keys = np.union1d(g * 256 + ol[pos], g * 256 + nl[pos])
+    return {divmod(int(k), 256) for k in keys}
+
+
+def delta_chunks(plan: LodPlan, delta: sb.LabelDelta, mode: str) -> set[tuple[int, int]]:
+    """The ``(group, class id)`` chunks holding the shown points of ``delta`` (a relabel's,
+    an undo's: :meth:`sb.ViewerData.with_corrections`): both the chunk a point leaves and
+    the one it joins. In the semantic and RGB modes a point whose label stayed (only its
+    confidence or origin changed) keeps its node and colour and is left out."""
+    ids, old, new = delta.ids, delta.old, delta.new
+    if mode in ("semantic", "rgb"):
+        moved = old != new
+        ids, old, new = ids[moved], old[moved], new[moved]
+    if len(ids) == 0 or len(plan.ids) == 0:
+        return set()
+    pos = np.minimum(np.searchsorted(plan.ids, ids), len(plan.ids) - 1)
+    shown = plan.ids[pos] == ids
+    g = plan.group[pos[shown]].astype(np.int64)
+    keys = np.union1d(g * 256 + old[shown], g * 256 + new[shown])
     return {divmod(int(k), 256) for k in keys}
 
 

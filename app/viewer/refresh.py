@@ -4,8 +4,10 @@ of :class:`app.viewer.server.ViewerService`)."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,33 +47,70 @@ class RefreshMixin:
         return True
 
     def refresh_now(self, scene_id: str, classes: set[int] | None = None) -> set[int]:
-        """Synchronous refresh; returns the class ids re-sent."""
-        with self._lock:
-            old = self._data.get(scene_id)
-        if old is None:
-            return set()  # nobody has it open
-        new = self.scene_data(scene_id, reload=True)
-        affected = set(classes) if classes is not None else changed_classes(old, new)
-        for st in self.clients_of(scene_id):
-            with st.lock:
-                prev, st.data = st.data if st.data is not None else old, new
-                if new.labels is not None and old.labels is None:
-                    st.subsample = None
-                    st.lod_plan = None
-                    affected = None  # first labels: everything changes
-                if affected is None or affected:
-                    self._rebuild_class_boxes(st)
-                if (classes is None and affected is not None and st.lod_plan is not None
-                        and self.lod_scheme != "legacy"):
-                    # only the (class, tile) chunks holding changed points
-                    keys = point_lod.affected_chunks(st.lod_plan, prev, new, st.mode)
-                    if keys is None:
-                        self.send_points(st)
-                    elif keys:
-                        self.update_chunks(st, keys)
-                elif affected is None or affected:
-                    self.send_points(st, None if affected is None else affected)
+        """Synchronous refresh; returns the class ids re-sent.
+
+        When only the correction layer changed since the scene's data was loaded (a relabel,
+        undo or redo, by anyone), the data is brought up to date as a delta
+        (:meth:`ViewerData.with_corrections`) and each tab re-sends only the chunks holding
+        changed points (:func:`point_lod.delta_chunks`); otherwise the workspace is read
+        again and old and new are compared."""
+        with self._refresh_lock:  # one refresh at a time: each delta applies to its data
+            with self._lock:
+                old = self._data.get(scene_id)
+            if old is None:
+                return set()  # nobody has it open
+            new, delta = self._reload(scene_id, old)
+            if classes is not None:
+                affected = set(classes)
+            elif delta is not None:
+                affected = {int(c) for c in np.union1d(delta.old, delta.new)}
+            else:
+                affected = changed_classes(old, new)
+            for st in self.clients_of(scene_id):
+                self._refresh_client(st, old, new, delta, classes, affected)
         return set() if affected is None else affected
+
+    def _refresh_client(self, st: Any, old: sb.ViewerData, new: sb.ViewerData,
+                        delta: sb.LabelDelta | None, classes: set[int] | None,
+                        affected: set[int] | None) -> None:
+        with st.lock:
+            prev, st.data = st.data if st.data is not None else old, new
+            if new.labels is not None and old.labels is None:
+                st.subsample = None
+                st.lod_plan = None
+                affected = None  # first labels: everything changes
+            if affected is None or affected:
+                self._rebuild_class_boxes(st)
+            if (classes is None and affected is not None and st.lod_plan is not None
+                    and self.lod_scheme != "legacy"):
+                # only the (class, tile) chunks holding changed points
+                if delta is not None and prev is old:
+                    keys = point_lod.delta_chunks(st.lod_plan, delta, st.mode)
+                else:  # this tab showed other data: compare what it showed
+                    keys = point_lod.affected_chunks(st.lod_plan, prev, new, st.mode)
+                if keys is None:
+                    self.send_points(st)
+                elif keys:
+                    self.update_shown(st, keys)
+            elif affected is None or affected:
+                self.send_points(st, None if affected is None else affected)
+
+    def _reload(self, scene_id: str, old: sb.ViewerData) -> tuple[sb.ViewerData,
+                                                                  sb.LabelDelta | None]:
+        """The scene's data now and, when only its correction layer changed since ``old``
+        was loaded, what changed (else None: the workspace was read again)."""
+        ws = old.workspace
+        if self.lod_scheme != "legacy" and ws is not None and old.base is not None:
+            full, base = workspace_stamps(ws)  # before the layer is read
+            if base == self._base_stamps.get(scene_id):
+                new, delta = old.with_corrections()
+                if delta is not None:
+                    with self._lock:
+                        if self._data.get(scene_id) is old:
+                            self._data[scene_id] = new
+                            self._stamps[scene_id] = full
+                    return new, delta
+        return self.scene_data(scene_id, reload=True), None
 
     def _refresh_loop(self) -> None:
         while not self._stop.is_set():
@@ -101,6 +140,23 @@ class RefreshMixin:
 
 def workspace_stamp(ws: Path) -> str:
     return Workspace(ws).stamp()
+
+
+def workspace_stamps(ws: Path) -> tuple[str, str]:
+    """(``Workspace.stamp()``, the same stamp without the correction layer) from one look at
+    the files: the second is unchanged when only corrections were made."""
+    w = Workspace(ws)
+    full, base = hashlib.sha1(), hashlib.sha1()
+    for p in w.stamp_paths():
+        try:
+            st = p.stat()
+            part = f"{p.name}:{st.st_mtime_ns}:{st.st_size};".encode()
+        except FileNotFoundError:
+            part = f"{p.name}:-;".encode()
+        full.update(part)
+        if p != w.overrides_path:
+            base.update(part)
+    return full.hexdigest()[:16], base.hexdigest()[:16]
 
 
 def changed_classes(old: sb.ViewerData, new: sb.ViewerData) -> set[int] | None:

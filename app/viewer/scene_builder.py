@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 from occufly.errors import WorkspaceError
 from occufly.lifting import VoteStore
 from occufly.lifting.corrections import apply_overrides
-from occufly.lifting.result import LiftResult
+from occufly.lifting.result import ORIGIN_CORRECTED, LiftResult
 from occufly.scene import Scene
 from occufly.taxonomy import Taxonomy
 from occufly.workspace import Workspace
@@ -74,6 +74,9 @@ class ViewerData:
     confidence: (N,) float32 in [0, 1] or None. origin: (N,) uint8 codes 0..3 or None.
     direct: (N,) uint8 direct-vote labels (0 = no vote) or None.
     grid: an ``occufly.grid.SceneGrid`` or None.
+    base: the fill output the corrections were applied to (memory-mapped; None when the
+    data was not loaded from a workspace's lifting files): what :meth:`with_corrections`
+    applies the current correction layer to again.
     """
 
     scene: Scene
@@ -83,6 +86,8 @@ class ViewerData:
     direct: np.ndarray | None = None
     grid: Any = None
     workspace: Path | None = None
+    base: LiftResult | None = field(default=None, repr=False)
+    _counts: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         n = self.scene.n_points
@@ -99,6 +104,39 @@ class ViewerData:
     @property
     def taxonomy(self) -> Taxonomy:
         return self.scene.taxonomy
+
+    def label_counts(self) -> np.ndarray:
+        """(256,) int64 points per raw class id (all unlabelled without labels); computed
+        once per data (a relabel's data gets them from :meth:`with_corrections`)."""
+        if self._counts is None:
+            if self.labels is None:
+                c = np.zeros(256, np.int64)
+                c[0] = self.scene.n_points
+            else:
+                c = np.bincount(np.asarray(self.labels), minlength=256).astype(np.int64)
+            self._counts = c
+        return self._counts
+
+    def with_corrections(self) -> tuple[ViewerData, LabelDelta | None]:
+        """This data with the workspace's *current* correction layer applied to the same fill
+        output (:attr:`base`, unchanged on disk: the caller checks), and what changed.
+
+        What a relabel, undo or redo (anyone's) changes is the correction layer only, so the
+        scene, votes and grid are kept and the fill output is not read again; the changed
+        points are found among the corrected points of the old and new layers (their origin
+        is ``ORIGIN_CORRECTED``), never by comparing every point. The delta is None when
+        this data cannot be refreshed so (no lifting files): reload it instead."""
+        if self.base is None or self.workspace is None or self.labels is None:
+            return self, None
+        res = apply_overrides(self.base, self.workspace)
+        new = ViewerData(self.scene, res.labels, res.confidence, res.origin, self.direct,
+                         self.grid, self.workspace, self.base)
+        delta = label_delta(self, new)
+        c = self.label_counts().copy()
+        np.subtract.at(c, delta.old.astype(np.int64), 1)
+        np.add.at(c, delta.new.astype(np.int64), 1)
+        new._counts = c
+        return new, delta
 
     @classmethod
     def load(cls, ws: str | Path, *, scene: Scene | None = None) -> ViewerData:
@@ -119,13 +157,37 @@ class ViewerData:
         labels = opt(w.labels_path)
         conf = opt(w.confidence_path)
         origin = opt(w.label_origin_path)
+        base = None
         if labels is not None and conf is not None and origin is not None:
             # what every reader sees: the fill output with reviewers' corrections on top
-            res = apply_overrides(LiftResult(labels, conf, origin), w)
+            base = LiftResult(labels, conf, origin)
+            res = apply_overrides(base, w)
             labels, conf, origin = res.labels, res.confidence, res.origin
         direct = _load_direct(ws, scene)
         grid = w.grid()
-        return cls(scene, labels, conf, origin, direct, grid, ws)
+        return cls(scene, labels, conf, origin, direct, grid, ws, base)
+
+
+@dataclass
+class LabelDelta:
+    """The points whose label, confidence or origin differ between two datas of one scene:
+    ids (K,) int64 sorted; old / new (K,) uint8 their labels before and after."""
+
+    ids: np.ndarray
+    old: np.ndarray
+    new: np.ndarray
+
+
+def label_delta(old: ViewerData, new: ViewerData) -> LabelDelta:
+    """What changed from ``old`` to ``new``, two datas of the same fill output that differ
+    only by their correction layers: every point either layer names has origin
+    ``ORIGIN_CORRECTED`` in the data it is applied to, so only those points are compared."""
+    cand = np.flatnonzero((np.asarray(old.origin) == ORIGIN_CORRECTED)
+                          | (np.asarray(new.origin) == ORIGIN_CORRECTED))
+    ol, nl = np.asarray(old.labels[cand]), np.asarray(new.labels[cand])
+    changed = ((ol != nl) | (np.asarray(old.confidence[cand]) != np.asarray(new.confidence[cand]))
+               | (np.asarray(old.origin[cand]) != np.asarray(new.origin[cand])))
+    return LabelDelta(cand[changed], ol[changed], nl[changed])
 
 
 def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:

@@ -32,6 +32,7 @@ class SceneViewMixin:
     refine_pause_s = 0.0  # after each batch (the round trip of _drawn paces them)
     draw_wait_s: float | None = 15.0  # at most this long for the browser to draw a batch
     motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
+    hide_tiles_on_update = True  # ... and while a correction's chunks are on their way
 
     # ---- scene content ---------------------------------------------------------------------
     def open_scene(self, st: ClientState, scene_id: str, *, done: bool = True) -> None:
@@ -187,14 +188,16 @@ class SceneViewMixin:
         with st.client.atomic():
             for cid in sorted({c for _g, c in chunks}):
                 if cid not in st.point_handles:  # the class's frame: one visibility flag
-                    st.point_handles[cid] = st.client.scene.add_frame(
+                    h = st.point_handles[cid] = st.client.scene.add_frame(
                         point_lod.class_frame_name(d.taxonomy, cid), show_axes=False,
                         visible=st.class_visible.get(cid, True))
+                    if h.visible != st.class_visible.get(cid, True):  # toggled meanwhile
+                        h.visible = st.class_visible.get(cid, True)  # (no lock: see there)
             for cid in sorted({c for g, c in chunks if g > 0}):
                 if cid not in st.detail_handles:  # the tiles: hidden while the camera moves
                     st.detail_handles[cid] = st.client.scene.add_frame(
                         point_lod.detail_frame_name(d.taxonomy, cid), show_axes=False,
-                        visible=not st.moving)
+                        visible=not (st.moving or st.updating))
             for k, nd in chunks.items():
                 st.chunk_handles[k] = st.client.scene.add_point_cloud(
                     nd.name, points=nd.xyz, colors=nd.colors, point_size=st.point_size,
@@ -281,9 +284,42 @@ class SceneViewMixin:
                 wait = st.last_move + self.motion_rest_s - time.monotonic()
                 if wait <= 0:
                     st.moving = False
+                    show = not st.updating
                     break
             time.sleep(wait)
-        self._set_detail_visible(st, True)
+        if show:
+            self._set_detail_visible(st, True)
+
+    # ---- a correction's update --------------------------------------------------------------
+    def update_shown(self, st: ClientState, keys: set[tuple[int, int]]) -> None:
+        """Re-send the chunks ``keys`` after a correction (st.lock held), the tiles hidden
+        meanwhile, as while the camera moves: the browser applies new point data one frame
+        after the frame that received it, and under software WebGL that frame of every point
+        shown took as long as the one that draws the change. With the tiles hidden it draws
+        the coarse level alone; the tiles come back (with the new chunks) once the browser
+        has drawn what it received (:meth:`_drawn`), so the change costs one full frame."""
+        if not any(k[0] > 0 for k in keys) or not self.hide_tiles_on_update:
+            self.update_chunks(st, keys)
+            return
+        with st.motion_lock:
+            st.updating += 1
+            hide = st.updating == 1 and not st.moving
+        with st.client.atomic():  # one window: the tiles hidden, the new chunks
+            if hide:
+                self._set_detail_visible(st, False)
+            self.update_chunks(st, keys)
+        threading.Thread(target=self._show_after_update, args=(st,), daemon=True,
+                         name="viewer-update").start()
+
+    def _show_after_update(self, st: ClientState) -> None:
+        try:
+            self._drawn(st)
+        finally:
+            with st.motion_lock:
+                st.updating -= 1
+                show = st.updating == 0 and not st.moving
+            if show:
+                self._set_detail_visible(st, True)
 
     def _set_detail_visible(self, st: ClientState, visible: bool) -> None:
         try:

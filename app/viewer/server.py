@@ -36,7 +36,7 @@ from app.viewer import scene_builder as sb
 from app.viewer import session_state
 from app.viewer.markdown_escape import md_text
 from app.viewer.panels import PanelsMixin
-from app.viewer.refresh import RefreshMixin, workspace_stamp
+from app.viewer.refresh import RefreshMixin, workspace_stamps
 from app.viewer.scene_view import SceneViewMixin
 from app.viewer.state import (
     TICKET_HEADER,
@@ -118,6 +118,8 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
         self._clients: dict[int, ClientState] = {}
         self._data: dict[str, sb.ViewerData] = {}
         self._stamps: dict[str, str] = {}
+        self._base_stamps: dict[str, str] = {}  # the stamps without the correction layer
+        self._refresh_lock = threading.RLock()
         self._lock = threading.RLock()
         self._start_lock = threading.Lock()
         self._pending: dict[str, set[int] | None] = {}
@@ -220,10 +222,12 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
         if scene_id not in table:
             raise KeyError(scene_id)
         ws = Path(table[scene_id][1])
-        data = sb.ViewerData.load(ws)
+        full, base = workspace_stamps(ws)  # before the files are read: a change meanwhile
+        data = sb.ViewerData.load(ws)      # is seen by the next event or look
         with self._lock:
             self._data[scene_id] = data
-            self._stamps[scene_id] = workspace_stamp(ws)
+            self._stamps[scene_id] = full
+            self._base_stamps[scene_id] = base
         return data
 
     def scenes_for(self, user: Any) -> dict:
@@ -315,6 +319,7 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
                     c.scene_id == st.scene_id for c in self._clients.values()):
                 self._data.pop(st.scene_id, None)  # nobody looks at it any more
                 self._stamps.pop(st.scene_id, None)
+                self._base_stamps.pop(st.scene_id, None)
 
 
     def check_access(self) -> list[int]:
@@ -341,6 +346,7 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
                         c.scene_id == st.scene_id for c in self._clients.values()):
                     self._data.pop(st.scene_id, None)
                     self._stamps.pop(st.scene_id, None)
+                    self._base_stamps.pop(st.scene_id, None)
             self.revoked.append((user_key(st.user), st.scene_id))
             log.info("viewer: access of %s to scene %s withdrawn; socket closed",
                      user_key(st.user), st.scene_id)

@@ -77,6 +77,7 @@ class ClientState:
     lod_done: threading.Event = field(default_factory=threading.Event)
     detail_handles: dict[int, Any] = field(default_factory=dict)  # /points/<class>/detail
     moving: bool = False  # the camera moves: the detail frames are hidden
+    updating: int = 0  # corrections whose chunks the browser has not drawn yet: hidden too
     last_move: float = 0.0
     motion_hooked: bool = False
     motion_lock: threading.Lock = field(default_factory=threading.Lock)

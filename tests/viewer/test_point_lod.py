@@ -4,11 +4,10 @@ and a relabel re-sending only the (class, tile) chunks whose points changed."""
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
 
 import numpy as np
-from viewer_fixtures import COUNTS
+from viewer_fixtures import COUNTS, FakeClient
 
 from app.viewer import point_lod
 from app.viewer import scene_builder as sb
@@ -17,68 +16,11 @@ from app.viewer.state import ClientState, default_scenes
 from occufly.lifting.corrections import write_overrides
 
 
-class _Handle:
-    def __init__(self, log: list, name: str) -> None:
-        self.log, self.name = log, name
-        self.visible = True
-        self.point_size = 0.0
-
-    def remove(self) -> None:
-        self.log.append(("remove", self.name, 0, None, None))
-
-
-class _Scene:
-    """Records what a viser client would be sent, in order."""
-
-    def __init__(self) -> None:
-        self.log: list[tuple] = []
-        self.lock = threading.Lock()
-
-    def add_frame(self, name: str, **kw) -> _Handle:
-        with self.lock:
-            self.log.append(("frame", name, 0, None, kw.get("visible", True)))
-        return _Handle(self.log, name)
-
-    def add_point_cloud(self, name: str, *, points, colors, **kw) -> _Handle:
-        with self.lock:
-            self.log.append(("points", name, len(points), np.array(points), np.array(colors)))
-        return _Handle(self.log, name)
-
-
-class _Box(_Handle):
-    def __init__(self, log: list, name: str, value: bool) -> None:
-        super().__init__(log, name)
-        self.label, self.value = name, value
-
-    def on_update(self, fn) -> None:
-        pass
-
-
-class _Gui:
-    def __init__(self, log: list) -> None:
-        self.log = log
-
-    def add_checkbox(self, label: str, initial_value: bool) -> _Box:
-        return _Box(self.log, label, initial_value)
-
-
-class _Client:
-    def __init__(self) -> None:
-        self.scene = _Scene()
-        self.gui = _Gui(self.scene.log)
-
-    def atomic(self):
-        return contextlib.nullcontext()
-
-    def flush(self) -> None:
-        pass
-
-
 def _service(tiny, coarse: int) -> tuple[ViewerService, ClientState]:
     svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=coarse)
     svc.refine_pause_s = 0.0
     svc.lod_tiles = 3
-    st = ClientState(client=_Client(), scene_id="tiny")
+    st = ClientState(client=FakeClient(), scene_id="tiny")
     st.gui["classes"] = contextlib.nullcontext()
     st.data = svc.scene_data("tiny")
     with svc._lock:

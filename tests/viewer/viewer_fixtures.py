@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,3 +50,73 @@ def build_tiny(ws: Path, *, seed: int = 3) -> Tiny:
     atomic_save_npy(ws / "lifting" / "confidence.npy", conf)
     atomic_save_npy(ws / "lifting" / "origin.npy", origin)
     return Tiny(ws, Scene.load(ws), labels, conf, origin)
+
+
+# ---- a viser client that records what it is sent (tests/viewer/test_point_lod.py, ...) ----
+class FakeHandle:
+    def __init__(self, log: list, name: str) -> None:
+        self.log, self.name = log, name
+        self.visible = True
+        self.point_size = 0.0
+
+    def remove(self) -> None:
+        self.log.append(("remove", self.name, 0, None, None))
+
+
+class FakeScene:
+    """Records what a viser client would be sent, in order."""
+
+    def __init__(self) -> None:
+        self.log: list[tuple] = []
+        self.lock = threading.Lock()
+
+    def add_frame(self, name: str, **kw) -> FakeHandle:
+        with self.lock:
+            self.log.append(("frame", name, 0, None, kw.get("visible", True)))
+        h = FakeHandle(self.log, name)
+        h.visible = kw.get("visible", True)
+        return h
+
+    def add_point_cloud(self, name: str, *, points, colors, **kw) -> FakeHandle:
+        with self.lock:
+            self.log.append(("points", name, len(points), np.array(points), np.array(colors)))
+        return FakeHandle(self.log, name)
+
+
+class FakeBox(FakeHandle):
+    def __init__(self, log: list, name: str, value: bool) -> None:
+        super().__init__(log, name)
+        self.label, self.value = name, value
+
+    def on_update(self, fn) -> None:
+        pass
+
+
+class FakeGui:
+    def __init__(self, log: list) -> None:
+        self.log = log
+
+    def add_checkbox(self, label: str, initial_value: bool) -> FakeBox:
+        return FakeBox(self.log, label, initial_value)
+
+
+class FakeClient:
+    def __init__(self) -> None:
+        self.scene = FakeScene()
+        self.notes: list[tuple[str, str]] = []
+        self.gui = FakeGui(self.scene.log)
+
+    @contextlib.contextmanager
+    def atomic(self):
+        """Logs ("atomic", "begin" / "end"): what viser sends in one message window."""
+        self.scene.log.append(("atomic", "begin", 0, None, None))
+        try:
+            yield
+        finally:
+            self.scene.log.append(("atomic", "end", 0, None, None))
+
+    def flush(self) -> None:
+        pass
+
+    def add_notification(self, title: str, body: str, **kw) -> None:
+        self.notes.append((title, body))

@@ -27,10 +27,29 @@ not frames), waits for the queue to drain, reads every acknowledged version back
 byte. It reports save p50/p95/max, prefill latency, CPU seconds per save of the server
 processes (API and lifting separately, psutil), lags p50/p95/max, ``lost`` and ``corrupted``.
 
+The scene is fabricated by default (``_workspace``: ``--points`` points on a plane, ``--frames``
+frames, imported through the app). ``--source PROJECT`` loads against a real project instead
+(what ``occufly import`` takes, e.g. an ``occufly synth`` folder; read-only): the app's own
+import job imports it into the bench's data dir, or, with ``--workspace WS`` (a workspace
+``occufly import PROJECT -w WS`` made), copies that workspace, which the import job takes as
+a source too (app.pipeline.import_scene) and is much faster than importing again. Only the
+frames at the scene's largest size are handed out (the survey preset: its 20 full-size
+5472 x 3648 frames; ``--handout N``: the first N of them) and the masks are theirs: the
+project's synthetic truth masks (``truth/masks/<stem>.png``), a first draft with the top third
+of the rows painted, later drafts two thirds, a submit all of it (``_mask`` for a frame
+without one). When ``next`` has no frame left, a realistic annotator takes back the frame it
+submitted longest ago (``/reopen``) and goes on with it (``reopened``). Every run's JSON names
+its ``workspace`` (fabricated, or the source, points, frames, frames handed out), the server
+processes' peak RSS (``peak_rss_mb``; ``--min-available-mb``: below that much available host
+memory the server is stopped and the run reported ``aborted``) and the load average during
+the load (``load_avg_1min_during``).
+
     .venv/bin/python bench/bench_api_load.py --models realistic,b2b --mp 12,20 \
         --lifting-workers 1,2 [--annotators 20] [--factor 1] [--seconds 240]
         [--b2b-seconds 60] [--scenes 2] [--api-workers 2] [--out docs/bench/x.json]
     .venv/bin/python bench/bench_api_load.py --knee 4,8,16 --seconds 90  # factor sweep
+    .venv/bin/python bench/bench_api_load.py --models realistic --lifting-workers 1 --scenes 1 \
+        --source /data/synth_survey --workspace /data/ws_survey  # a survey-sized scene
 """
 
 from __future__ import annotations
@@ -96,13 +115,18 @@ def _workspace(path: Path, n_frames: int, width: int, height: int, n_points: int
 
 
 def _mask(width: int, height: int, seed: int) -> bytes:
-    from PIL import Image
-
     rng = np.random.default_rng(seed)
     m = np.full((height, width), 6, np.uint8)  # grass
     for cls in (1, 8, 16, 13):  # a few rectangles of road / tree / building / vehicle
         x0, y0 = rng.integers(0, width // 2), rng.integers(0, height // 2)
         m[y0:y0 + rng.integers(50, height // 2), x0:x0 + rng.integers(50, width // 2)] = cls
+    return _encode(m)
+
+
+def _encode(m: np.ndarray) -> bytes:
+    """A mask of class ids as the clients send it (``--upload``)."""
+    from PIL import Image
+
     if UPLOAD == "editor":  # what the editor uploads (frontend/js/core/png.js: None / Up rows)
         from occufly.io.masks import encode_mask_png
 
@@ -125,11 +149,164 @@ def _ids_digest(png: bytes) -> str:
     return hashlib.sha256(np.asarray(Image.open(io.BytesIO(png))).tobytes()).hexdigest()
 
 
-def _seed(env: dict, n_annotators: int, src: Path, n_scenes: int) -> list[int]:
-    from sqlalchemy import update
+def _truth_dir(source: Path, workspace: Path | None) -> Path | None:
+    """The synthetic truth masks of the project (``<project>/truth/masks``, one
+    ``<image stem>.png`` of raw class ids per frame, as bench/bench_survey.py reads them):
+    ``source``'s own, else those of the project the workspace's frame images come from."""
+    for cand in (source, workspace):
+        if cand is not None and (cand / "truth" / "masks").is_dir():
+            return cand / "truth" / "masks"
+    from occufly.workspace import Workspace
+
+    for ws in (workspace, source):
+        if ws is not None and Workspace(ws).exists():
+            frames = json.loads(Workspace(ws).scene_json.read_text()).get("frames") or []
+            img = next((f.get("image_path") for f in frames if f.get("image_path")), None)
+            if img and (Path(img).parent.parent / "truth" / "masks").is_dir():
+                return Path(img).parent.parent / "truth" / "masks"
+    return None
+
+
+PAINTED = (1 / 3, 2 / 3, 1.0)  # the rows painted in a first draft, later drafts, a submit
+
+
+def _real_masks(truth: Path | None, frames: dict[str, tuple[int, int]]
+                ) -> tuple[dict[str, list[bytes]], int]:
+    """What the annotators upload on a real scene: per handed-out frame, its truth mask with
+    the top third of the rows painted (a first draft), two thirds (later drafts), all of it
+    (a submit); the rest 0 (unpainted). A frame without a truth mask gets ``_mask`` at its
+    size. Returns the payloads by frame name and how many frames had a truth mask."""
+    from PIL import Image
+
+    out, found = {}, 0
+    for k, (name, (w, h)) in enumerate(sorted(frames.items())):
+        p = truth / f"{Path(name).stem}.png" if truth is not None else None
+        if p is not None and p.is_file():
+            full = np.asarray(Image.open(p))
+            if full.shape != (h, w):
+                raise RuntimeError(f"{p}: {full.shape[1]}x{full.shape[0]}, frame {name} is {w}x{h}")
+            found += 1
+            bodies = []
+            for frac in PAINTED:
+                m = full.copy()
+                m[int(round(h * frac)):] = 0
+                bodies.append(_encode(m))
+            out[name] = bodies
+        else:
+            out[name] = [_mask(w, h, 1000 + 3 * k + j) for j in range(len(PAINTED))]
+    return out, found
+
+
+class _Mem:
+    """Once a second while the server runs: the RSS of its processes (API processes,
+    lifting workers: psutil; mapped file pages count in every process that touches them, so
+    the sum over-counts shared pages; ``server_anon`` leaves the resident file pages out),
+    the memory the host has available, the 1-min load."""
+
+    def __init__(self, roots: list[int], floor_mb: float = 0.0) -> None:
+        """``floor_mb``: when the host has less available, stop the server (SIGTERM to its
+        process groups) before the kernel's OOM killer picks something (a shared machine)."""
+        import psutil
+
+        self.psutil = psutil
+        self.pids = list(roots)
+        self.floor = floor_mb * 2**20
+        self.tripped: dict | None = None
+        self.t_begin = time.monotonic()
+        self.roots = []
+        for pid in roots:
+            try:
+                self.roots.append(psutil.Process(pid))
+            except psutil.NoSuchProcess:
+                pass
+        self.peak = {"api": 0, "lifting": 0, "server": 0, "largest_process": 0,
+                     "api_anon": 0, "lifting_anon": 0, "server_anon": 0}
+        self.min_avail = float("inf")
+        self.load: list[tuple[float, float]] = []  # (monotonic, 1-min load average)
+        self.role: dict[int, str] = {}
+        self.per_process: dict[int, list] = {}  # pid -> [role, peak rss, peak anon]
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._loop, daemon=True)
+        self._t.start()
+
+    def _tick(self) -> None:
+        procs = {}
+        for r in self.roots:
+            try:
+                for q in [r, *r.children(recursive=True)]:
+                    procs[q.pid] = q
+            except self.psutil.Error:
+                continue
+        sums = {"api": 0, "lifting": 0}
+        anon = {"api": 0, "lifting": 0}
+        for q in procs.values():
+            try:
+                if q.pid not in self.role:
+                    self.role[q.pid] = "lifting" if "app.lifting" in " ".join(q.cmdline()) else "api"
+                mi = q.memory_info()
+            except self.psutil.Error:
+                continue
+            rss = mi.rss
+            anon[self.role[q.pid]] += rss - getattr(mi, "shared", 0)  # less resident file pages
+            pp = self.per_process.setdefault(q.pid, [self.role[q.pid], 0, 0])
+            pp[1], pp[2] = max(pp[1], rss), max(pp[2], rss - getattr(mi, "shared", 0))
+            sums[self.role[q.pid]] += rss
+            self.peak["largest_process"] = max(self.peak["largest_process"], rss)
+        for k, v in sums.items():
+            self.peak[k] = max(self.peak[k], v)
+        self.peak["server"] = max(self.peak["server"], sums["api"] + sums["lifting"])
+        for k, v in anon.items():
+            self.peak[f"{k}_anon"] = max(self.peak[f"{k}_anon"], v)
+        self.peak["server_anon"] = max(self.peak["server_anon"], anon["api"] + anon["lifting"])
+        avail = self.psutil.virtual_memory().available
+        self.min_avail = min(self.min_avail, avail)
+        self.load.append((time.monotonic(), os.getloadavg()[0]))
+        if avail < self.floor and self.tripped is None:
+            import signal
+
+            self.tripped = {"after_s": round(time.monotonic() - self.t_begin, 1),
+                            "available_mb": round(avail / 2**20),
+                            "server_rss_mb": round((sums["api"] + sums["lifting"]) / 2**20)}
+            for pid in self.pids:
+                try:
+                    os.killpg(pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._tick()
+            self._stop.wait(1.0)
+
+    def stop(self, t0: float, t1: float) -> dict:
+        """Peaks so far (MB) and the load average sampled between ``t0`` and ``t1``."""
+        self._stop.set()
+        self._t.join(timeout=10)
+        during = [x for t, x in self.load if t0 <= t <= t1]
+        return {"memory_guard": self.tripped,
+                "peak_rss_mb": {k: round(v / 2**20) for k, v in self.peak.items()},
+                "peak_rss_anon_mb_per_process": sorted(
+                    ([r, round(a / 2**20), round(b / 2**20)] for r, a, b in
+                     self.per_process.values()), key=lambda x: -x[1]),
+                "min_available_mb": round(self.min_avail / 2**20),
+                "load_avg_1min_during": {"first": round(during[0], 2),
+                                         "mean": round(float(np.mean(during)), 2),
+                                         "max": round(max(during), 2)} if during else None}
+
+
+def _seed(env: dict, n_annotators: int, src: Path, n_scenes: int, *,
+          largest_only: bool = False, handout: int = 0) -> tuple[list[int], dict]:
+    """Users, ``n_scenes`` scenes imported from ``src`` by the app's own import job, members.
+
+    Every frame is selected (handed out); with ``largest_only`` only the frames at the scene's
+    largest frame size (the survey preset: its 20 full-size 5472 x 3648 frames, the rest are
+    rendered at 1/12 of that), at most ``handout`` of them (0: all; the first by index). Returns the scene ids and what was imported (points, frames,
+    frames handed out, their size, the import's wall time)."""
+    from sqlalchemy import func, select, update
 
     from app.config import Settings
     from app.jobs import service as jobs
+    from app.jobs.models import Job
     from app.main import close, create_app
     from app.scenes import service as scenes
     from app.scenes.models import Frame
@@ -138,7 +315,8 @@ def _seed(env: dict, n_annotators: int, src: Path, n_scenes: int) -> list[int]:
     settings = Settings.from_env(env)
     app = create_app(settings)
     ctx = app.state.ctx
-    sids = []
+    sids: list[int] = []
+    info: dict = {"import_source": str(src), "import_s": [], "scenes": [], "handed_out": {}}
     with ctx.sessions() as s:
         users.create_user(session=s, username="admin", password=PASSWORD, role="admin")
         for i in range(n_annotators):
@@ -150,19 +328,45 @@ def _seed(env: dict, n_annotators: int, src: Path, n_scenes: int) -> list[int]:
             job = jobs.create(session=s, kind="import", scene_id=scene.id, user_id=None,
                               params={"source": str(src)})
             sids.append(scene.id)
+        t0 = time.monotonic()
         ctx.jobs.submit(job.id)
-        ctx.jobs.wait(job.id, timeout=600)
+        ctx.jobs.wait(job.id, timeout=7200)
+        info["import_s"].append(round(time.monotonic() - t0, 1))
+        with ctx.sessions() as s:
+            j = s.get(Job, job.id)
+            if j.status != "done":
+                raise RuntimeError(f"import of {src} into scene {scene.id}: {j.status}: "
+                                   f"{j.message}")
     with ctx.sessions() as s:
         for k, sid in enumerate(sids):
-            s.execute(update(Frame).where(Frame.scene_id == sid).values(selected=True))
+            q = update(Frame).where(Frame.scene_id == sid)
+            if largest_only:
+                area = s.scalar(select(func.max(Frame.width * Frame.height))
+                                .where(Frame.scene_id == sid))
+                ids = select(Frame.id).where(Frame.scene_id == sid,
+                                             Frame.width * Frame.height == area)
+                if handout:
+                    ids = ids.order_by(Frame.index).limit(handout)
+                q = q.where(Frame.id.in_(list(s.scalars(ids))))
+            s.execute(q.values(selected=True))
             s.commit()
+            sc = s.get(scenes.Scene, sid)
+            sizes = s.execute(select(Frame.width, Frame.height, func.count())
+                              .where(Frame.scene_id == sid, Frame.selected.is_(True))
+                              .group_by(Frame.width, Frame.height)).all()
+            info["handed_out"].update({n: (w, h) for n, w, h in s.execute(
+                select(Frame.name, Frame.width, Frame.height)
+                .where(Frame.scene_id == sid, Frame.selected.is_(True)))})
+            info["scenes"].append({"id": sid, "points": sc.n_points, "frames": sc.n_frames,
+                                   "frames_handed_out": sum(n for _, _, n in sizes),
+                                   "handed_out_sizes": {f"{w}x{h}": n for w, h, n in sizes}})
             # annotators see only the scenes they are members of: annotator i -> scene i mod S
             ids = [users.get_by_name(session=s, username=f"ann{i:02d}").id
                    for i in range(n_annotators) if i % n_scenes == k]
             scenes.set_members(session=s, scene=s.get(scenes.Scene, sid), user_ids=ids,
                                replace=True)
     close(app)
-    return sids
+    return sids, info
 
 
 def _login(c, username: str) -> None:  # noqa: ANN001
@@ -286,19 +490,45 @@ class _Cpu:
 
 
 def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, model: str,
-               mp: int, lifting_workers: int, factor: float, seconds: float) -> dict:
+               mp: int | None, lifting_workers: int, factor: float, seconds: float) -> dict:
+    """One configuration; ``mp`` None: the scene comes from ``--source`` (``--workspace``)
+    and the masks are of its frames' own size."""
     import httpx
 
-    width, height = MP[mp]
     tag = f"{backend}_{model}_{mp}mp_l{lifting_workers}_f{factor:g}_{uuid.uuid4().hex[:4]}"
     data = tmp / tag
+    roots = [tmp / "src"] + ([args.source] if args.source else []) + (
+        [args.workspace] if args.workspace else [])
     env = dict(os.environ, OCCUFLY_DATA_DIR=str(data), OCCUFLY_DATABASE_URL=url,
-               OCCUFLY_IMPORT_ROOTS=str(tmp / "src"), OCCUFLY_SECRET_KEY=uuid.uuid4().hex * 2,
+               OCCUFLY_IMPORT_ROOTS=os.pathsep.join(str(r) for r in roots),
+               OCCUFLY_SECRET_KEY=uuid.uuid4().hex * 2,
                OCCUFLY_ARGON2_MEMORY_KIB="8192", OCCUFLY_ARGON2_TIME_COST="1",
                OCCUFLY_MAX_UPLOAD_MB="256", OCCUFLY_FILL_DEBOUNCE_S=str(args.debounce),
                OCCUFLY_LIFTING="external" if args.api_workers > 1 else "embedded")
-    src = tmp / "src" / f"ws_{mp}"
-    sids = _seed(env, args.annotators, src, args.scenes)
+    real = mp is None
+    if real:  # the app imports the project, or copies the pre-built workspace (pipeline)
+        src = args.workspace or args.source
+    else:
+        src = tmp / "src" / f"ws_{mp}"
+    sids, scene_info = _seed(env, args.annotators, src, args.scenes, largest_only=real,
+                             handout=args.handout)
+    handed_out = scene_info.pop("handed_out")
+    if real:
+        width, height = max(handed_out.values(), key=lambda wh: wh[0] * wh[1])
+        truth = _truth_dir(args.source, args.workspace)
+        bank, n_truth = _real_masks(truth, handed_out)
+        masks = [b for bodies in bank.values() for b in bodies]
+        workspace = {"kind": "source", "source": str(args.source),
+                     "workspace": str(args.workspace) if args.workspace else None,
+                     **scene_info, "truth_masks": str(truth) if truth else None,
+                     "frames_with_truth_mask": n_truth}
+    else:
+        width, height = MP[mp]
+        bank = None
+        masks = [_mask(width, height, s) for s in range(args.distinct)]
+        workspace = {"kind": "fabricated (_workspace)", "points": args.points,
+                     "frames": args.frames, **scene_info}
+    digest = {id(m): _ids_digest(m) for m in masks}  # stored canonically: compare ids
     port = _free_port()
     procs = [subprocess.Popen(
         [sys.executable, "-m", "occufly.cli", "serve", "--workers", str(args.api_workers),
@@ -310,6 +540,7 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                       start_new_session=True))
     base = f"http://127.0.0.1:{port}"
+    mem = _Mem([p.pid for p in procs], args.min_available_mb)
     try:
         for _ in range(600):
             try:
@@ -320,8 +551,6 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         else:
             raise RuntimeError("server did not come up: " + procs[0].stderr.read(2000).decode())
         time.sleep(2.0)  # the lifting workers take their slots
-        masks = [_mask(width, height, s) for s in range(args.distinct)]
-        digest = {id(m): _ids_digest(m) for m in masks}  # stored canonically: compare ids
         saves: list[dict] = []  # {kind, s, version, fid, sha}
         prefill: list[tuple[float, int]] = []
         errors: list[str] = []
@@ -329,6 +558,14 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         barrier = threading.Barrier(args.annotators + 2)
         rng_all = random.Random(1)
         seeds = [rng_all.random() for _ in range(args.annotators)]
+        reopened = [0]
+
+        def body(i: int, k: int, name: str | None, stage: int) -> bytes:
+            """The k-th save of annotator i; on a real scene the frame's own mask, ``stage``
+            indexing PAINTED (0: first draft, 1: later drafts, 2: submit)."""
+            if bank is None:
+                return masks[(i * 7 + k) % len(masks)]
+            return bank[name][stage]
 
         def put(c, fid: int, current: str, body: bytes, kind: str):  # noqa: ANN001, ANN202
             t0 = time.perf_counter()
@@ -364,25 +601,48 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                     r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
                 except httpx.RemoteProtocolError:  # idle keep-alive closed: once more
                     r = c.post(f"/api/scenes/{sids[i % len(sids)]}/next")
+                if r.status_code == 204 and bank is not None:
+                    return None, "empty", None  # every frame taken: realistic() reopens one
                 if r.status_code != 200:
                     with lock:
                         errors.append(f"ann{i}: next {r.status_code} {r.text[:80]}")
-                    return None, "none"
+                    return None, "none", None
                 fr = r.json()
                 t0 = time.perf_counter()
                 p = c.get(f"/api/frames/{fr['id']}/prefill")
             except httpx.HTTPError as e:
                 with lock:
                     errors.append(f"ann{i}: lease/prefill {type(e).__name__} {e}")
-                return None, "none"
+                return None, "none", None
             with lock:
                 prefill.append((time.perf_counter() - t0, p.status_code))
-            return fr["id"], "none" if fr.get("current_version") is None else str(fr["current_version"])
+            cur = "none" if fr.get("current_version") is None else str(fr["current_version"])
+            return fr["id"], cur, fr["name"]
+
+        def take_back(c, i: int, mine: list):  # noqa: ANN001, ANN202
+            """A real scene has few frames of full size (the survey: 20 for 20 annotators):
+            when ``next`` has none left, the annotator takes back the frame it submitted
+            longest ago (``/reopen``, as in the editor) and goes on painting it."""
+            if not mine:
+                return None, "none", None
+            fid, cur, name = mine.pop(0)
+            try:
+                r = c.post(f"/api/frames/{fid}/reopen")
+            except httpx.HTTPError as e:
+                r = None
+                msg = f"{type(e).__name__} {e}"
+            if r is None or r.status_code != 200:
+                with lock:
+                    errors.append(f"ann{i}: reopen {msg if r is None else r.status_code}")
+                return None, "none", None
+            with lock:
+                reopened[0] += 1
+            return fid, cur, name
 
         def b2b(i: int) -> None:
             with httpx.Client(base_url=base, timeout=300) as c:
                 _login(c, f"ann{i:02d}")
-                fid, current = lease(c, i)
+                fid, current, name = lease(c, i)
                 barrier.wait()
                 if fid is None:
                     return
@@ -395,7 +655,7 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                             with lock:
                                 errors.append(f"reopen: {type(e).__name__} {e}")
                             return
-                    current = put(c, fid, current, masks[(i * 7 + k) % len(masks)], "submitted")
+                    current = put(c, fid, current, body(i, k, name, 2 - k % 2), "submitted")
                     if current is None:
                         return
                     k += 1
@@ -407,10 +667,14 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                 barrier.wait()
                 first = True
                 k = 0
+                mine: list = []  # (fid, submitted version, name), oldest first
                 while time.monotonic() < deadline[0]:
-                    fid, current = lease(c, i)
+                    fid, current, name = lease(c, i)
+                    if current == "empty":
+                        fid, current, name = take_back(c, i, mine)
                     if fid is None:
                         return
+                    drafts = 0
                     on_frame = rng.uniform(120, 240) / factor  # minutes on a frame
                     if first:  # start somewhere inside the first frame: submits spread out
                         on_frame *= rng.random()
@@ -422,14 +686,17 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                             time.sleep(max(0.0, submit_at - time.monotonic()))
                             if time.monotonic() >= deadline[0]:
                                 return
-                            put(c, fid, current, masks[(i * 7 + k) % len(masks)], "submitted")
+                            v = put(c, fid, current, body(i, k, name, 2), "submitted")
                             k += 1
+                            if v is not None:
+                                mine.append((fid, v, name))
                             break
                         time.sleep(pause)
                         if time.monotonic() >= deadline[0]:
                             return
-                        nxt = put(c, fid, current, masks[(i * 7 + k) % len(masks)], "draft")
+                        nxt = put(c, fid, current, body(i, k, name, min(drafts, 1)), "draft")
                         k += 1
+                        drafts += 1
                         if nxt is None:
                             return
                         current = nxt
@@ -440,7 +707,7 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
             with httpx.Client(base_url=base, timeout=300) as c:
                 _login(c, "admin")
                 barrier.wait()
-                while time.monotonic() < deadline[0]:
+                while time.monotonic() < deadline[0] and mem.tripped is None:
                     try:
                         t1 = time.perf_counter()
                         c.get("/api/auth/me")
@@ -467,6 +734,15 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
         wall = time.monotonic() - t_start[0]
         cpu_used = cpu.used()
         submits = [x for x in saves if x["kind"] == "submitted"]
+        if mem.tripped is not None:  # the server was stopped: what the clients saw until then
+            lat = [x["s"] for x in saves]
+            return {"workspace": workspace, "model": model, "mask": f"{width}x{height}",
+                    "annotators": args.annotators, "aborted": "host memory below "
+                    f"--min-available-mb {args.min_available_mb:g}: server stopped",
+                    "wall_s": round(wall, 1), "saves": len(saves), "submits": len(submits),
+                    "save_p50_s": _pct(lat, 50), "save_p95_s": _pct(lat, 95),
+                    **mem.stop(t_start[0], t_start[0] + wall),
+                    "errors": errors[:5], "n_errors": len(errors)}
         lift = _lift_lag(url, submits, wall, timeout=max(300.0, seconds * 3),
                          fill_wait=30.0 if args.knee else None)  # the knee: votes lag
         cpu_total = cpu.used()  # including the drain
@@ -484,13 +760,17 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
                 t1 = time.perf_counter()
                 c.get("/api/auth/me")
                 base_lat.append(time.perf_counter() - t1)
+        memory = mem.stop(t_start[0], t_start[0] + wall)  # includes the drain and read-back
         lat = [x["s"] for x in saves]
         lat_sub = [x["s"] for x in submits]
         pre_ok = [t for t, code in prefill if code == 200]
         n = max(1, len(saves))
         eq = args.annotators * (factor if model == "realistic" else float("nan"))
         return {
-            "model": model, "mask": f"{width}x{height}", "mp": mp, "annotators": args.annotators,
+            "workspace": workspace,
+            "model": model, "mask": f"{width}x{height}",
+            "mp": mp if mp is not None else round(width * height / 1e6, 1),
+            "annotators": args.annotators,
             "factor": factor if model == "realistic" else None,
             "equivalent_annotators": None if model == "b2b" else eq,
             "lifting_workers": lifting_workers, "api_workers": args.api_workers,
@@ -514,11 +794,13 @@ def run_config(backend: str, url: str, args: argparse.Namespace, tmp: Path, *, m
             "mask_bytes_mean": int(np.mean([len(m) for m in masks])),
             "acknowledged": len(saves), "lost": lost + lift["missing_from_lift_queue"],
             "corrupted": corrupted, "load_avg_1min": round(os.getloadavg()[0], 1),
+            **memory, "reopened": reopened[0],
             **lift, "errors": errors[:5], "n_errors": len(errors),
         }
     finally:
         import signal
 
+        mem.stop(0.0, 0.0)
         for p in procs:
             try:
                 os.killpg(p.pid, signal.SIGTERM)  # serve, its API workers, the lifting worker
@@ -568,6 +850,21 @@ def main() -> None:
     ap.add_argument("--b2b-seconds", type=float, default=60, help="b2b model: run length")
     ap.add_argument("--knee", default="", help="realistic factors to sweep (e.g. 4,8,16)")
     ap.add_argument("--debounce", type=float, default=5.0, help="OCCUFLY_FILL_DEBOUNCE_S")
+    ap.add_argument("--source", type=Path, default=None,
+                    help="load against this project (what `occufly import` takes, e.g. an "
+                         "`occufly synth` folder) instead of the fabricated workspace: the app "
+                         "imports it (read-only) into its own data dir; only the frames at its "
+                         "largest size are handed out and the masks are theirs (--mp ignored): "
+                         "the synthetic truth masks (<project>/truth/masks) where there are")
+    ap.add_argument("--workspace", type=Path, default=None,
+                    help="with --source: a workspace already imported from it (`occufly import "
+                         "SRC -w WS`); the app's import copies it instead of importing SRC again")
+    ap.add_argument("--handout", type=int, default=0,
+                    help="with --source: hand out at most this many of those frames (0: all; "
+                         "e.g. 20 at bench scale to mirror the survey's 20 full-size frames)")
+    ap.add_argument("--min-available-mb", type=float, default=1024,
+                    help="stop the server (and report the run as aborted) when the host's "
+                         "available memory falls below this")
     ap.add_argument("--points", type=int, default=20000)
     ap.add_argument("--frames", type=int, default=120, help="frames per scene")
     ap.add_argument("--distinct", type=int, default=6, help="distinct mask payloads")
@@ -580,12 +877,27 @@ def main() -> None:
     ap.add_argument("--postgres-url", default=os.environ.get(
         "OCCUFLY_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"))
     args = ap.parse_args()
+    if args.workspace and not args.source:
+        ap.error("--workspace needs --source (the project it was imported from)")
+    for a in ("source", "workspace"):
+        if getattr(args, a) is not None:
+            setattr(args, a, getattr(args, a).absolute())
+            if not getattr(args, a).is_dir():
+                ap.error(f"--{a} {getattr(args, a)}: no such folder")
     global UPLOAD
     UPLOAD = args.upload
 
     out: dict = {"benchmark": "api_load", "cpu_count": os.cpu_count(), "upload": args.upload,
                  "argv": sys.argv[1:], "runs": []}
     mps = [int(x) for x in args.mp.split(",") if x]
+    if args.source:  # one size: the scene's own frames
+        out["workspace"] = {"kind": "source", "source": str(args.source),
+                            "workspace": str(args.workspace) if args.workspace else None,
+                            "mp_requested": mps}
+        mps = [None]
+    else:
+        out["workspace"] = {"kind": "fabricated (_workspace)", "points": args.points,
+                            "frames": args.frames}
     lws = [int(x) for x in args.lifting_workers.split(",") if x]
     plan = []
     if args.knee:
@@ -599,7 +911,7 @@ def main() -> None:
                                  args.seconds if model == "realistic" else args.b2b_seconds))
     with tempfile.TemporaryDirectory(prefix="occufly-bench-") as d:
         tmp = Path(d)
-        for mp in sorted({p[1] for p in plan}):
+        for mp in sorted({p[1] for p in plan if p[1] is not None}):
             _workspace(tmp / "src" / f"ws_{mp}_raw", args.frames, *MP[mp], args.points)
             (tmp / "src" / f"ws_{mp}_raw" / "ws").rename(tmp / "src" / f"ws_{mp}")
         for model, mp, lw, factor, seconds in plan:

@@ -319,23 +319,26 @@ def relabel(svc: Any, st: Any, choice: str, comment: str) -> dict | None:
     to_class = _class_of(choice)
     if to_class is None:
         return None
-    try:
-        edit = svc.corrections["relabel"](st.scene_id, st.selection, to_class, comment,
-                                          st.user, st.frame_index)
-    except Exception as e:  # noqa: BLE001 - tell the reviewer (403, bad class, ...)
-        log.warning("viewer: relabel failed: %s", e)
-        st.client.add_notification("Correction not saved", str(getattr(e, "detail", e)),
-                                   color="red")
-        return None
-    name = "unlabelled" if to_class == 0 else sb.class_name(st.data.taxonomy, to_class)
-    with show_change(svc, st):
-        st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} "
-                                       f"points -> {md_text(name)}.")
-        st.last_edit = {"id": int(edit["id"]), "n_points": int(edit["n_points"]), "to": name}
-        update_proposal_button(svc, st)
-        st.client.add_notification("Correction saved", f"{edit['n_points']:,} points -> {name}",
-                                   color="green", auto_close_seconds=4.0)
-        set_selection(svc, st, np.zeros(0, np.int64))
+    with svc.tiles_held(st):  # from the click until the change is drawn
+        try:
+            edit = svc.corrections["relabel"](st.scene_id, st.selection, to_class, comment,
+                                              st.user, st.frame_index)
+        except Exception as e:  # noqa: BLE001 - tell the reviewer (403, bad class, ...)
+            log.warning("viewer: relabel failed: %s", e)
+            st.client.add_notification("Correction not saved", str(getattr(e, "detail", e)),
+                                       color="red")
+            return None
+        name = "unlabelled" if to_class == 0 else sb.class_name(st.data.taxonomy, to_class)
+        with show_change(svc, st):
+            st.gui["edit_info"].content = (f"Correction **{edit['id']}**: {edit['n_points']:,} "
+                                           f"points -> {md_text(name)}.")
+            st.last_edit = {"id": int(edit["id"]), "n_points": int(edit["n_points"]),
+                            "to": name}
+            update_proposal_button(svc, st)
+            st.client.add_notification("Correction saved",
+                                       f"{edit['n_points']:,} points -> {name}",
+                                       color="green", auto_close_seconds=4.0)
+            set_selection(svc, st, np.zeros(0, np.int64))
     update_stack(svc, st)
     return edit
 
@@ -369,14 +372,15 @@ def show_change(svc: Any, st: Any) -> Iterator[None]:
 def undo_redo(svc: Any, st: Any, which: str) -> dict | None:
     if svc.corrections is None or st.scene_id is None:
         return None
-    try:
-        edit = svc.corrections[which](st.scene_id, st.user)
-    except Exception as e:  # noqa: BLE001 - nothing to undo, not allowed...
-        st.gui["edit_info"].content = md_text(getattr(e, "detail", e))
-        return None
-    with show_change(svc, st):
-        st.gui["edit_info"].content = (f"Correction **{edit['id']}** "
-                                       f"{'undone' if which == 'undo' else 'redone'}.")
+    with svc.tiles_held(st):  # from the click until the change is drawn
+        try:
+            edit = svc.corrections[which](st.scene_id, st.user)
+        except Exception as e:  # noqa: BLE001 - nothing to undo, not allowed...
+            st.gui["edit_info"].content = md_text(getattr(e, "detail", e))
+            return None
+        with show_change(svc, st):
+            st.gui["edit_info"].content = (f"Correction **{edit['id']}** "
+                                           f"{'undone' if which == 'undo' else 'redone'}.")
     update_stack(svc, st)
     return edit
 

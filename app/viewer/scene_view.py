@@ -7,6 +7,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -297,7 +299,9 @@ class SceneViewMixin:
         after the frame that received it, and under software WebGL that frame of every point
         shown took as long as the one that draws the change. With the tiles hidden it draws
         the coarse level alone; the tiles come back (with the new chunks) once the browser
-        has drawn what it received (:meth:`_drawn`), so the change costs one full frame."""
+        has drawn what it received (:meth:`_drawn`). The correction panel hides them from
+        the click on (:meth:`tiles_held`): a frame viser starts while the edit is saved is
+        of the coarse level too."""
         if not any(k[0] > 0 for k in keys) or not self.hide_tiles_on_update:
             self.update_chunks(st, keys)
             return
@@ -310,6 +314,30 @@ class SceneViewMixin:
             self.update_chunks(st, keys)
         threading.Thread(target=self._show_after_update, args=(st,), daemon=True,
                          name="viewer-update").start()
+
+    @contextmanager
+    def tiles_held(self, st: ClientState) -> Iterator[None]:
+        """The tiles hidden from now on (a correction is being saved) until the body is done
+        and any update it started (:meth:`update_shown`) is drawn: the frames the browser
+        starts meanwhile (viser renders at least once a second) draw the coarse level."""
+        if (self.lod_scheme == "legacy" or not self.hide_tiles_on_update
+                or not st.detail_handles):
+            yield
+            return
+        with st.motion_lock:
+            st.updating += 1
+            hide = st.updating == 1 and not st.moving
+        if hide:
+            self._set_detail_visible(st, False)
+            st.client.flush()
+        try:
+            yield
+        finally:
+            with st.motion_lock:
+                st.updating -= 1
+                show = st.updating == 0 and not st.moving
+            if show:
+                self._set_detail_visible(st, True)
 
     def _show_after_update(self, st: ClientState) -> None:
         try:

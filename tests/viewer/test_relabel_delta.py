@@ -129,6 +129,19 @@ def _relabel(svc, st, ids, to_class: int) -> None:  # noqa: ANN001
     assert corrections_panel.relabel(svc, st, f"{name} ({to_class})", "") is not None
 
 
+def _windows(log: list) -> list[list]:
+    """The outermost atomic() blocks of a client's log, each as the entries inside it."""
+    out, depth = [], 0
+    for e in log:
+        if e[0] == "atomic":
+            depth += 1 if e[1] == "begin" else -1
+            if depth == 1 and e[1] == "begin":
+                out.append([])
+        elif depth > 0:
+            out[-1].append(e)
+    return out
+
+
 def _sent_since(st: ClientState, n0: int) -> int:
     return sum(e[2] for e in st.client.scene.log[n0:] if e[0] == "points" and e[1] != "/selection")
 
@@ -157,19 +170,13 @@ def test_relabel_undo_and_overlapping_relabels_show_the_workspace(tiny):
         assert st.data.scene is scene0  # a delta: the workspace was not read again
         assert 0 < _sent_since(st, n0) < n  # only the chunks holding changed points
         # the panel's messages and the new chunks went in one window (viser's atomic())
-        window = log[n0:]
-        begin = next(i for i, e in enumerate(window) if e[:2] == ("atomic", "begin"))
-        depth, end = 0, None
-        for i, e in enumerate(window[begin:], begin):
-            depth += {"begin": 1, "end": -1}.get(e[1], 0) if e[0] == "atomic" else 0
-            if depth == 0:
-                end = i
-                break
-        inside = window[begin:end]
-        assert any(e[0] == "points" for e in inside), what
-        assert all(e[0] != "points" for e in window[end:]), what
+        blocks = _windows(log[n0:])
+        with_points = [b for b in blocks if any(e[0] == "points" for e in b)]
+        assert len(with_points) == 1, what
+        outside = [e for e in log[n0:] if e[0] == "points" and e[1] != "/selection"]
+        assert sum(1 for e in with_points[0] if e[0] == "points") == len(outside), what
         if what == "relabel":  # the selection's highlight goes in the same window
-            assert ("remove", "/selection") in [e[:2] for e in inside]
+            assert ("remove", "/selection") in [e[:2] for e in with_points[0]]
     assert not st.updating  # the tiles are back (shown again once drawn)
     assert all(h.visible for h in st.detail_handles.values())
     # the event the corrections service publishes after the layer is written finds the
@@ -257,8 +264,23 @@ def test_tiles_stay_hidden_until_the_browser_has_drawn_the_new_chunks(tiny):
     st.client.get_render = lambda w, h, timeout: gate.wait(timeout)
     svc.motion_rest_s = 0.05
     grass = np.flatnonzero(tiny.labels == GRASS)
+    seen, save = [], svc.corrections["relabel"]
+
+    def hook(*a, **kw):  # noqa: ANN002, ANN003, ANN202 - the tiles while the edit is saved
+        seen.append([h.visible for h in st.detail_handles.values()])
+        return save(*a, **kw)
+
+    def refused(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+        raise PermissionError("not a reviewer of this scene")
+
+    svc.corrections["relabel"] = refused  # a refused correction: the tiles come back
+    st.selection = grass[:5]
+    assert corrections_panel.relabel(svc, st, "vehicle (13)", "") is None
+    assert st.updating == 0 and all(h.visible for h in st.detail_handles.values())
+    svc.corrections["relabel"] = hook
     n0 = len(st.client.scene.log)
     _relabel(svc, st, grass[::3], VEHICLE)
+    assert seen and not any(seen[0])  # hidden from the click on
     assert st.updating == 1 and st.detail_handles
     assert not any(h.visible for h in st.detail_handles.values())
     svc.camera_moved(st)  # the reviewer orbits and stops while the browser is busy

@@ -271,17 +271,17 @@ def robustness(args: argparse.Namespace) -> dict:
 
 
 def _snap_pixels(sc: Scene, masks: dict, exact: dict) -> dict:
-    """Mean share of the painted pixels of ``masks`` that differ from the exact masks,
-    before and after :func:`occufly.lifting.snap.snap_frame_mask`, and the share it changed."""
+    """Mean share of the pixels of ``masks`` painted and different from the exact masks,
+    before and after :func:`occufly.lifting.snap.snap_frame_mask`, and the share it changed
+    (with ``SNAP_ABSTAIN`` the pixels it unpaints count as changed, not as wrong)."""
     from occufly.lifting.snap import snap_frame_mask
     from occufly.taxonomy import EMPTY
 
     before, after, changed = [], [], []
     for fi, m in masks.items():
         s = snap_frame_mask(sc.frames[fi], m)
-        painted = m != EMPTY
-        before.append(float(((m != exact[fi]) & painted).mean()))
-        after.append(float(((s != exact[fi]) & painted).mean()))
+        before.append(float(((m != exact[fi]) & (m != EMPTY)).mean()))
+        after.append(float(((s != exact[fi]) & (s != EMPTY)).mean()))
         changed.append(float((s != m).mean()))
     return {"wrong_before": round(float(np.mean(before)), 5),
             "wrong_after": round(float(np.mean(after)), 5),
@@ -559,6 +559,9 @@ def main() -> None:
     ap.add_argument("--snap-ratio", type=float, default=None,
                     help="robustness: the 'snap' colour check ratio (snap.SNAP_COLOUR_RATIO; "
                          "0 = no colour check)")
+    ap.add_argument("--snap-abstain", action="store_true",
+                    help="robustness: the pixels 'snap' would move cast no vote instead "
+                         "(snap.SNAP_ABSTAIN)")
     ap.add_argument("--only", default="", help="robustness: comma list of visibility/masks/votes runs")
     ap.add_argument("--quality", action="store_true",
                     help="measure the quality bars instead (use with --preset small)")
@@ -584,8 +587,10 @@ def main() -> None:
         import occufly.lifting.votes as votes_mod
 
         votes_mod.INTERIOR_FLOOR = args.interior_floor
-    if args.snap_share is not None or args.snap_ratio is not None:
+    if args.snap_share is not None or args.snap_ratio is not None or args.snap_abstain:
         import occufly.lifting.snap as snap_mod
+
+        snap_mod.SNAP_ABSTAIN = args.snap_abstain
 
         if args.snap_share is not None:
             snap_mod.SNAP_SHARE = args.snap_share

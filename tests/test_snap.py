@@ -199,3 +199,22 @@ def test_snap_vote_weighting_votes_the_snapped_mask(tmp_path, built):
 def _save(scene, path):
     scene.save(path)
     return Scene.load(path)
+
+
+def test_abstain_variant_unpaints_what_snapping_would_move(tmp_path, monkeypatch):
+    import occufly.lifting.snap as snap_mod
+
+    truth = _scene_regions()
+    photo = tmp_path / "p.png"
+    cv2.imwrite(str(photo), _image(truth))
+    painted = np.roll(truth, 2, axis=1)
+
+    class _Frame:
+        image_path = str(photo)
+
+    moved = snap_frame_mask(_Frame(), painted)
+    monkeypatch.setattr(snap_mod, "SNAP_ABSTAIN", True)
+    out = snap_frame_mask(_Frame(), painted)
+    assert (moved != painted).any()
+    assert np.array_equal(out == EMPTY, moved != painted)
+    assert np.array_equal(out[out != EMPTY], painted[out != EMPTY])

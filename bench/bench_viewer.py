@@ -293,8 +293,11 @@ def timeline(page, stats: dict, t0: float, t_end: float) -> dict:
             "ws_first_last": [r(msgs[0][0]), r(msgs[-1][0])] if msgs else None,
             "ws_big": [[r(t), round(b / 2**20, 2)] for t, b in msgs if b > 1 << 20],
             "webgl_frames": [r(t) for t in renders],
-            "probe": [[r(t / 1000 - t0), round(a, 3), round(b, 3)] for t, a, b in
+            "probe": [[r(t / 1000 - t0), round(a, 3), round(b, 3), fi] for t, a, b, fi in
                       page.evaluate("() => window.__probeLog || []") if t0 <= t / 1000 <= t_end],
+            "frame_starts": {i: r(t / 1000 - t0) for i, t in
+                             enumerate(page.evaluate("() => window.__frames || []"))
+                             if t0 <= t / 1000 <= t_end},
             "shots": [[r(a - t0), r(b - t0)] for a, b in SHOT_LOG if t0 <= a <= t_end]}
 
 
@@ -302,17 +305,20 @@ def timeline(page, stats: dict, t0: float, t_end: float) -> dict:
 # read from the WebGL2 drawing buffer (before the compositor takes it) into a pixel buffer
 # behind a fence, and once the fence has passed (the frame is rasterised; polled every 10 ms,
 # so the page's main thread is never held) the shares close to a colour and to the
-# background (transparent: the page's white) are logged with that wall-clock time: when
-# the browser has *drawn* a change, without the screenshots that polled for it (each one is
-# itself a frame of everything shown, seconds under software WebGL). The background share tells a frame of the whole level of
+# background (transparent: the page's white) are logged with that wall-clock time and the
+# frame's index (a frame is finished at the latest when the next one starts, see
+# wait_drawn): when the browser has *drawn* a change, without the screenshots that polled
+# for it (each one is itself a frame of everything shown, seconds under software WebGL). The background share tells a frame of the whole level of
 # detail from one of the coarse level alone (drawn while the camera moves or an update is
 # on its way: its gaps show the background), which must not count as the change drawn.
 PROBE_HOOK = """(() => { const w = window; w.__gl = null;
   const gc = HTMLCanvasElement.prototype.getContext;
   HTMLCanvasElement.prototype.getContext = function (t, a) { const c = gc.call(this, t, a);
     if (c && (t === 'webgl2' || t === 'webgl')) w.__gl = c; return c; };
-  const raf = w.requestAnimationFrame.bind(w);
-  w.requestAnimationFrame = (cb) => raf((ts) => { cb(ts); if (w.__probe) w.__probe(); });
+  const raf = w.requestAnimationFrame.bind(w); w.__frames = [];
+  w.requestAnimationFrame = (cb) => raf((ts) => { const n = w.__renders, t = Date.now();
+    cb(ts);
+    if (w.__renders !== n) { w.__frames.push(t); if (w.__probe) w.__probe(w.__frames.length - 1); } });
 })();"""
 
 ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog = [];
@@ -328,10 +334,9 @@ ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog 
       for (let i = 0; i < p.n; i++) { const r = px[4 * i], g = px[4 * i + 1], b = px[4 * i + 2];
         if (Math.abs(r - col[0]) + Math.abs(g - col[1]) + Math.abs(b - col[2]) < tol) k++;
         if (px[4 * i + 3] < 128 || 765 - r - g - b < tol) bg++; }
-      w.__probeLog.push([t, k / p.n, bg / p.n]); }
+      w.__probeLog.push([t, k / p.n, bg / p.n, p.frame]); }
     polling = pending.length > 0; if (polling) setTimeout(poll, 10); };
-  w.__probe = () => { const gl = w.__gl; if (!gl || w.__renders === w.__probeSeen) return;
-    w.__probeSeen = w.__renders;
+  w.__probe = (frame) => { const gl = w.__gl; if (!gl) return;
     const W = gl.drawingBufferWidth, H = gl.drawingBufferHeight;
     const x0 = Math.floor(u0 * W), x1 = Math.ceil(u1 * W);
     const y0 = Math.floor((1 - v1) * H), y1 = Math.ceil((1 - v0) * H);
@@ -344,7 +349,7 @@ ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog 
     gl.readPixels(x0, y0, x1 - x0, y1 - y0, gl.RGBA, gl.UNSIGNED_BYTE, 0);
     gl.bindFramebuffer(gl.READ_FRAMEBUFFER, rb);
     gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null);
-    pending.push({buf, n, sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0)});
+    pending.push({buf, n, frame, sync: gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0)});
     gl.flush(); if (!polling) { polling = true; setTimeout(poll, 10); } };
   return w.__renders; }"""
 
@@ -360,13 +365,20 @@ def arm_probe(page, poly: np.ndarray, colour: np.ndarray) -> None:
 def wait_drawn(page, pred, timeout_s: float, w0: float) -> tuple[float | None, list | None]:
     """(seconds after wall-clock ``w0`` at which the first frame whose probe (colour share,
     background share) satisfies ``pred`` was finished, that probe); (None, the last probe)
-    after ``timeout_s``."""
+    after ``timeout_s``.
+
+    Finished: the start of the page's next frame (Chromium begins one only when the one
+    before is drawn) or the probe's fence, whichever came first. The fence alone reads
+    late: the browser learns it has passed only with the next frame's swap, which under
+    software WebGL can be a frame of all the points later."""
     last = None
     while time.time() - w0 < timeout_s:
-        for t, share, bg in page.evaluate("() => window.__probeLog || []"):
+        log, frames = page.evaluate("() => [window.__probeLog || [], window.__frames || []]")
+        for t, share, bg, fi in log:
             last = [round(share, 3), round(bg, 3)]
             if t / 1000 >= w0 and pred(share, bg):
-                return t / 1000 - w0, last
+                done = min([t] + [f for f in frames[fi + 1:fi + 2]])
+                return done / 1000 - w0, last
         page.wait_for_timeout(100)
     return None, last
 

@@ -189,7 +189,10 @@ def combine(current: np.ndarray, picked: np.ndarray, mode: str) -> np.ndarray:
     """Sorted unique point ids after applying ``picked`` to ``current`` in ``mode``."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    picked = np.unique(np.asarray(picked, np.int64))
+    picked = np.asarray(picked, np.int64).reshape(-1)
+    if len(picked) > 1 and not np.all(picked[1:] > picked[:-1]):  # (the tools' picks are
+        picked = np.sort(picked)  # sorted already; np.unique hashes: 1.1 s on 1.4 M ids)
+        picked = picked[np.concatenate(([True], picked[1:] != picked[:-1]))]
     if mode == "replace":
         return picked
     if mode == "add":

@@ -87,3 +87,17 @@ def test_grid_lod_fits_the_budget_and_leaves_no_holes():
     # majority: a block of the building keeps the building's class
     assert coarse[40 // f, 50 // f, 10 // f] == 16
     assert grid_lod.coarsen(np.array([[[6, 6], [6, 0]], [[16, 255], [0, 0]]], np.uint8))[0, 0, 0] == 6
+
+
+def test_combine_is_the_set_operation_for_sorted_and_unsorted_picks():
+    """combine skips the sort of a pick that is sorted already (the tools' picks, 1 M ids and
+    more); an unsorted pick with repeats gives the same sets."""
+    rng = np.random.default_rng(5)
+    for mode in sel.MODES:
+        for _ in range(60):
+            cur = np.unique(rng.integers(0, 100, rng.integers(0, 60)))
+            pick = rng.integers(0, 100, rng.integers(0, 60))
+            want = {"replace": np.unique(pick), "add": np.union1d(cur, pick),
+                    "subtract": np.setdiff1d(cur, pick)}[mode]
+            assert np.array_equal(sel.combine(cur, pick, mode), want)
+            assert np.array_equal(sel.combine(cur, np.unique(pick), mode), want)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from occufly.lifting import VoteStore
 from occufly.lifting.suspects import contested_share, find_suspects
@@ -123,10 +124,12 @@ def test_find_suspects_lists_an_island_the_votes_did_not_contest(tmp_path):
     assert [r["points"] for r in sus] == sorted((r["points"] for r in sus), reverse=True)
 
 
-def test_frames_seeing_groups_counts_each_groups_views_like_a_search_per_group():
+@pytest.mark.parametrize("step, dense_max", [(1 << 24, 1 << 22), (997, 1 << 22), (997, 0)])
+def test_frames_seeing_groups_counts_each_groups_views_like_a_search_per_group(step, dense_max):
     """The one-pass (point -> group map) count of the frames that see each group of points
     equals counting each group's points in each frame's visibility on its own; ordered by
-    count, ties by frame index."""
+    count, ties by frame index -- in one chunk or many, with the (group, frame) table or the
+    merged keys; no group seen: nothing."""
     from occufly.lifting.suspects import _frames_seeing_groups
 
     scene, _truth = make_scene()
@@ -138,7 +141,8 @@ def test_frames_seeing_groups_counts_each_groups_views_like_a_search_per_group()
         pts = np.sort(rng.choice(free, size=int(rng.integers(1, 400)), replace=False))
         group[pts] = g
         members[g] = pts
-    got = _frames_seeing_groups(scene, group)
+    got = _frames_seeing_groups(scene, group, step, dense_max)
+    assert _frames_seeing_groups(scene, np.full(scene.n_points, -1, np.int32), step, dense_max) == {}
     vis = scene.visibility
     for g, pts in members.items():
         counts = np.array([np.isin(vis.frame_ids(f), pts).sum() for f in range(vis.n_frames)])

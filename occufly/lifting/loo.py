@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from occufly.confusion import Confusion, count_pairs_many
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
-from occufly.lifting.knn import LiftParams, knn_vote
+from occufly.lifting.knn import LiftParams, VoxelGrid, knn_vote
 from occufly.lifting.votes import vote_unit
 from occufly.render import (
     agreement_from_counts,
@@ -197,6 +197,19 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     share[sel] = (1.0 + margin) / 2.0
 
 
+def _near(q: np.ndarray, pts: np.ndarray, radius: float) -> np.ndarray:
+    """(len(pts),) bool: the points of ``pts`` in a voxel of edge ``radius`` next to (or
+    holding) a point of ``q`` -- every point within ``radius`` of a query is one, so a k-NN
+    within ``radius`` of ``q`` against them finds what it would against all of ``pts``. A
+    frame's few points to fill need not build a k-d tree of every voted point in its view
+    (survey: 5.8 k points to fill, 2.1 M voted points in their bounding box)."""
+    grid = VoxelGrid(np.concatenate([np.asarray(q, np.float64), np.asarray(pts, np.float64)]),
+                     radius, pad=1)
+    near = np.zeros(grid.n_voxels, bool)
+    near[grid.dilate(np.unique(grid.inverse[:len(q)]), 1)] = True
+    return near[grid.inverse[len(q):]]
+
+
 def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
                params: LiftParams | None = None, corrections: bool = True) -> LooLabels:
     """The labels of the points around frame ``frame_index`` decided without its votes."""
@@ -236,9 +249,13 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         q = np.asarray(xyz[ids[todo]], dtype=np.float64)
         lo, hi = q.min(0) - p.fill_radius, q.max(0) + p.fill_radius
         sx = np.asarray(xyz[ids[src]])
-        src = src[np.all((sx >= lo) & (sx <= hi), axis=1)]  # only voted points in reach
+        box = np.all((sx >= lo) & (sx <= hi), axis=1)
+        src, sx = src[box], sx[box]
+        if len(src):  # only voted points within the radius's voxels of a point to fill
+            keep = _near(q, sx, p.fill_radius)
+            src, sx = src[keep], sx[keep]
     if len(todo) and len(src):
-        tree = cKDTree(np.asarray(xyz[ids[src]], dtype=np.float64))
+        tree = cKDTree(np.asarray(sx, dtype=np.float64))
         c, fshare = knn_vote(tree, col[src], q,
                               p.fill_k, p.fill_radius, cls, weighted=True, workers=p.workers)
         col[todo] = c

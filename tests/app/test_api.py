@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import sys
 import threading
 
 import numpy as np
@@ -778,3 +779,44 @@ def test_votes_are_not_delayed_by_a_running_fill(world, monkeypatch):
     # only submitted / reviewed frames get an agreement stored by the fill (drafts never vote)
     frames = env.client.get(f"/api/scenes/{sid}/frames", headers=hdr["admin"]).json()
     assert all(f["agreement"] is None for f in frames if f["id"] not in (f1, f2))
+
+
+def test_labels_status_histogram_is_counted_once_per_labels(world, monkeypatch):
+    """Every open editor polls labels/status; the class histogram (a pass over every point's
+    label, or before the first fill the vote majority of every point) is counted once per
+    labels file and counted versions, and again after the next fill changed them."""
+    from app.annotations import service as ann
+
+    env, hdr, scene, _frames = world
+    a = hdr["annotator"]
+    fid = _lease(env, hdr, scene)
+    env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=mask_png(6),
+                   headers={**a, "If-Match": "none"})
+    lifting = env.app.state.ctx.lifting
+    assert lifting.wait_idle(scene["id"], timeout=30, include_fill=True)
+    calls = []
+    real = ann.load_labels
+
+    def counted(ws):  # noqa: ANN001, ANN202 - the histogram's reads only (fill hooks read too)
+        f = sys._getframe(1)
+        if f.f_code.co_name == "_labels_histogram":
+            calls.append(ws)
+        return real(ws)
+
+    monkeypatch.setattr(ann, "load_labels", counted)
+    url = f"/api/scenes/{scene['id']}/labels/status"
+    first = env.client.get(url, headers=a).json()
+    assert first["labels_source"] == "filled" and first["class_histogram"].get("6")
+    for _ in range(5):
+        assert env.client.get(url, headers=a).json() == first
+    assert len(calls) <= 1  # (0: an earlier request of this process counted these labels)
+    # the next fill: counted again, and the histogram is the new labels'
+    fid2 = _lease(env, hdr, scene, "annotator2")
+    env.client.put(f"/api/frames/{fid2}/mask?kind=submitted", content=mask_png(8),
+                   headers={**hdr["annotator2"], "If-Match": "none"})
+    assert lifting.wait_idle(scene["id"], timeout=30, include_fill=True)
+    n = len(calls)
+    second = env.client.get(url, headers=a).json()
+    assert len(calls) == n + 1
+    assert second["filled_versions"] != first["filled_versions"]
+    assert second["class_histogram"] != first["class_histogram"]

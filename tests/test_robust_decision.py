@@ -135,7 +135,7 @@ def test_redecide_does_not_depend_on_the_chunk_size():
     data = _votes(2)
     a = robust.redecide(*data[:6], robust.RobustParams(), xyz=data[6])
     b = robust.redecide(*data[:6], robust.RobustParams(chunk=7_919), xyz=data[6])
-    for x, y in zip(a[:3], b[:3]):
+    for x, y in zip(a[:3], b[:3], strict=True):
         assert np.array_equal(x, y)
     assert a[3]["robust_points_evaluated"] == b[3]["robust_points_evaluated"]
 

@@ -365,6 +365,7 @@ def test_monoscene_every_split_collates(ssc):
     """The test split collated with TypeError (frustum keys set to None, as their datasets
     do): every split of both MonoScene adapters batches through their collate_fn's logic."""
     import torch  # noqa: F401  (the test set-up installs it: a missing torch fails, not skips)
+
     from occufly.datasets.compat.monoscene import Kitti360Dataset, KittiDataset
 
     for cls in (Kitti360Dataset, KittiDataset):

@@ -555,9 +555,9 @@ def test_a_job_not_yet_claimed_is_not_swept_as_lost(env):
     same job, unclaimed for longer than the stale limit, is swept."""
     from datetime import timedelta
 
+    from app.db import utcnow
     from app.jobs import service as jobs
     from app.jobs.models import Job
-    from app.db import utcnow
 
     with env.app.state.ctx.sessions() as s:
         job = jobs.create(session=s, kind="selection", scene_id=None, user_id=None, params={})

@@ -305,9 +305,7 @@ class SceneViewMixin:
         if not any(k[0] > 0 for k in keys) or not self.hide_tiles_on_update:
             self.update_chunks(st, keys)
             return
-        with st.motion_lock:
-            st.updating += 1
-            hide = st.updating == 1 and not st.moving
+        hide = self._hold_tiles(st)
         with st.client.atomic():  # one window: the tiles hidden, the new chunks
             if hide:
                 self._set_detail_visible(st, False)
@@ -324,30 +322,36 @@ class SceneViewMixin:
                 or not st.detail_handles):
             yield
             return
-        with st.motion_lock:
-            st.updating += 1
-            hide = st.updating == 1 and not st.moving
+        hide = self._hold_tiles(st)
         if hide:
             self._set_detail_visible(st, False)
             st.client.flush()
         try:
             yield
         finally:
-            with st.motion_lock:
-                st.updating -= 1
-                show = st.updating == 0 and not st.moving
-            if show:
-                self._set_detail_visible(st, True)
+            self._release_tiles(st)
 
     def _show_after_update(self, st: ClientState) -> None:
         try:
             self._drawn(st)
         finally:
-            with st.motion_lock:
-                st.updating -= 1
-                show = st.updating == 0 and not st.moving
-            if show:
-                self._set_detail_visible(st, True)
+            self._release_tiles(st)
+
+    @staticmethod
+    def _hold_tiles(st: ClientState) -> bool:
+        """One more update keeps the tiles hidden; True where they must be hidden now (the
+        first hold while the camera rests)."""
+        with st.motion_lock:
+            st.updating += 1
+            return st.updating == 1 and not st.moving
+
+    def _release_tiles(self, st: ClientState) -> None:
+        """An update done: the tiles shown again after the last one, if the camera rests."""
+        with st.motion_lock:
+            st.updating -= 1
+            show = st.updating == 0 and not st.moving
+        if show:
+            self._set_detail_visible(st, True)
 
     def _set_detail_visible(self, st: ClientState, visible: bool) -> None:
         try:

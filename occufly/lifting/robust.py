@@ -638,14 +638,14 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
         w2 = np.float32(n2[i])
         b = c2[i]
         ra = logpi_t[a]
+        for t in range(C):
+            L[t] = ra[t] * w1
+        if w2 > 0:
+            rb = logpi_t[b]
+            for t in range(C):
+                L[t] += rb[t] * w2
         if local:
             lv = lp_vox[vrow[i]]
-            for t in range(C):
-                L[t] = ra[t] * w1
-            if w2 > 0:
-                rb = logpi_t[b]
-                for t in range(C):
-                    L[t] += rb[t] * w2
             # the classes the views voted for take the scene's prior, the others the
             # neighbourhood's (each value the same float32 sum as one formula per class)
             L[a] += logprior_scene[a] * pw
@@ -655,12 +655,6 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
                 if t != a and t != b:
                     L[t] += lv[t] * pw
         else:
-            for t in range(C):
-                L[t] = ra[t] * w1
-            if w2 > 0:
-                rb = logpi_t[b]
-                for t in range(C):
-                    L[t] += rb[t] * w2
             for t in range(C):
                 L[t] += logprior[t]
         arg = 0

@@ -110,7 +110,8 @@ def test_lasso_relabel_undo_redo_and_what_follows(live, setup, new_page):
     expected = np.flatnonzero(vis & sel.points_in_polygon(uv[:, 0] / W, uv[:, 1] / H, got_poly))
     jac = len(np.intersect1d(chosen, expected)) / len(np.union1d(chosen, expected))
     assert len(expected) > 50 and jac > 0.9, (len(chosen), len(expected), jac)
-    assert "points selected" in st.gui["counts"].content
+    # the panel's count is written just after the selection is stored: wait for it
+    _wait(lambda: "points selected" in st.gui["counts"].content, 10, "the selection's count")
     time.sleep(1.5)  # let the highlight draw
     DOCS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(DOCS / "viewer_selection.png"))

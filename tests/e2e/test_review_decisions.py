@@ -106,7 +106,15 @@ def test_double_press_is_one_decision_and_undo_restores_it(live, decide_scene, n
     page.keyboard.press("a")
     page.keyboard.press("a")
     page.locator("#undo-decision").wait_for()
+    # Playwright hands the "request" events to this thread only while it waits on the page:
+    # give them time to arrive (on a loaded machine they came after the undo button)
+    for _ in range(50):
+        if sent:
+            break
+        page.wait_for_timeout(100)
+    page.wait_for_timeout(300)  # a second request would have been posted by now
     assert len(sent) == 1, sent
+    assert _audit(live, fid).count("review_accept") == 1
     assert live.client("reviewer").get(f"/api/frames/{fid}").json()["state"] == "accepted"
     page.click("#undo-decision")
     live.wait_until(lambda: live.client("reviewer").get(f"/api/frames/{fid}").json()["state"]

@@ -79,6 +79,10 @@ def test_a_key_pressed_while_the_next_frame_loads_decides_nothing(live, decide_s
     rev = live.client("reviewer")
     assert rev.get(f"/api/frames/{first}").json()["state"] == "rejected"
     assert _audit(live, first) == ["review_reject"]
+    for _ in range(50):  # the page may ask for the agreement after the keys were pressed
+        if held:
+            break
+        page.wait_for_timeout(100)
     assert len(held) == 1 and page.locator("#review-detail .loading").is_visible()
     held[0].continue_()
     wait_js(page, f"() => window.__occufly_review.frame && window.__occufly_review.frame.id === {nxt}")

@@ -34,3 +34,56 @@ def test_voxel_grid_keys_and_neighbours_are_those_of_the_sorted_hash():
     nb = g.neighbour(np.arange(g.n_voxels), 1, 0, 0)
     hit = nb >= 0
     assert hit.any() and np.array_equal(g.keys[nb[hit]], g.keys[hit] + g.offset_key(1, 0, 0))
+
+
+def _numpy_lattice(xyz, edge, pad, origin=None):
+    """The lattice as VoxelGrid computed it with numpy before the compiled keys."""
+    mn = (xyz.min(axis=0) if origin is None else np.asarray(origin)).astype(np.float64)
+    q = np.floor((xyz - mn) / edge).astype(np.int64) + pad
+    dims = q.max(axis=0) + pad + 1
+    return mn, dims, (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("origin", [None, "below", "inside"])
+def test_compiled_lattice_equals_numpy(dtype, origin, tmp_path):
+    from occufly.lifting.blockknn import voxel_keys
+
+    rng = np.random.default_rng(7)
+    xyz = (rng.normal(0, 40, (30_000, 3)) + [300.0, -20.0, 5.0]).astype(dtype)
+    # points exactly on voxel faces, where float rounding decides the cell
+    xyz[:500] = (np.round(xyz[:500] / 0.35) * 0.35).astype(dtype)
+    org = {None: None, "below": xyz.min(axis=0) - 3.3, "inside": np.median(xyz, axis=0)}[origin]
+    for edge, pad in ((0.35, 1), (1.0, 2), (2.5, 0)):
+        mn, dims, key = voxel_keys(xyz, edge, pad, org)
+        rmn, rdims, rkey = _numpy_lattice(xyz, edge, pad, org)
+        assert np.array_equal(mn, rmn) and mn.dtype == np.float64
+        assert np.array_equal(dims, rdims)
+        assert np.array_equal(key, rkey) and key.dtype == np.int64
+    # a file map and a strided view give the same as the array
+    m = np.lib.format.open_memmap(tmp_path / "x.npy", mode="w+", dtype=dtype, shape=xyz.shape)
+    m[:] = xyz
+    assert np.array_equal(voxel_keys(m, 0.5, 1)[2], voxel_keys(xyz, 0.5, 1)[2])
+    wide = np.zeros((len(xyz), 4), dtype)
+    wide[:, :3] = xyz
+    assert np.array_equal(voxel_keys(wide[:, :3], 0.5, 1)[2], _numpy_lattice(xyz, 0.5, 1)[2])
+
+
+def test_compiled_lattice_refuses_no_points():
+    from occufly.lifting.blockknn import voxel_keys
+
+    with pytest.raises(ValueError, match="n >= 1"):
+        voxel_keys(np.zeros((0, 3), np.float32), 1.0, 1)
+
+
+def test_points_in_box_equals_the_gathered_comparison():
+    from occufly.lifting.blockknn import points_in_box
+
+    rng = np.random.default_rng(11)
+    xyz = rng.uniform(-5, 5, (20_000, 3)).astype(np.float32)
+    ids = np.sort(rng.choice(len(xyz), 9_000, replace=False))
+    lo, hi = np.array([-1.0, -2.0, float(xyz[ids[3], 2])]), np.array([2.5, 1.0, 4.0])
+    ref = np.all((xyz[ids] >= lo) & (xyz[ids] <= hi), axis=1)
+    got = points_in_box(xyz, ids, lo, hi)
+    assert got.dtype == bool and np.array_equal(got, ref) and 0 < ref.sum() < len(ids)
+    assert got[3] == ref[3]  # a point on the box's face counts

@@ -1,5 +1,6 @@
-"""Compiled kernel of the denoise's exact k-NN at class boundaries (see
-:func:`occufly.lifting.knn._block_knn`).
+"""Compiled kernels of the fill: the denoise's exact k-NN at class boundaries (see
+:func:`occufly.lifting.knn._block_knn`) and the voxel hash's keys (:func:`voxel_keys`, for
+:class:`occufly.lifting.knn.VoxelGrid`).
 
 For every labelled query point of a chunk of voxels it counts, per class column, its k nearest
 labelled points (one more on an exact distance tie) within the radius, searched among the
@@ -152,9 +153,82 @@ def block_votes(xyz: np.ndarray, cols: np.ndarray, order: np.ndarray, starts: np
     return qids, votes, kth2, full
 
 
+@numba.njit(nogil=True, cache=True)
+def _bounds(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(per-axis minimum (3,), maximum (3,)) of ``xyz`` (n, 3), n >= 1, in one pass (numpy's
+    ``min(axis=0)`` of an (n, 3) array walks it with a stride of 3 per axis: ~5x slower)."""
+    lo = np.empty(3, xyz.dtype)
+    hi = np.empty(3, xyz.dtype)
+    for a in range(3):
+        lo[a] = xyz[0, a]
+        hi[a] = xyz[0, a]
+    for i in range(1, xyz.shape[0]):
+        for a in range(3):
+            v = xyz[i, a]
+            if v < lo[a]:
+                lo[a] = v
+            elif v > hi[a]:
+                hi[a] = v
+    return lo, hi
+
+
+@numba.njit(nogil=True, cache=True)
+def _voxel_keys(xyz: np.ndarray, mn: np.ndarray, edge: float, pad: int, d1: int, d2: int,
+                out: np.ndarray) -> None:
+    """``out[i] = (qx * d1 + qy) * d2 + qz`` with ``q = floor((xyz[i] - mn) / edge) + pad``
+    in float64, the same operations as numpy's broadcast expression in the same order."""
+    for i in range(xyz.shape[0]):
+        qx = np.int64(np.floor((np.float64(xyz[i, 0]) - mn[0]) / edge)) + pad
+        qy = np.int64(np.floor((np.float64(xyz[i, 1]) - mn[1]) / edge)) + pad
+        qz = np.int64(np.floor((np.float64(xyz[i, 2]) - mn[2]) / edge)) + pad
+        out[i] = (qx * d1 + qy) * d2 + qz
+
+
+@numba.njit(nogil=True, cache=True)
+def _in_box(xyz: np.ndarray, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray, out: np.ndarray) -> None:
+    for j in range(len(ids)):
+        i = ids[j]
+        out[j] = (lo[0] <= xyz[i, 0] <= hi[0]) and (lo[1] <= xyz[i, 1] <= hi[1]) \
+            and (lo[2] <= xyz[i, 2] <= hi[2])
+
+
+def points_in_box(xyz: np.ndarray, ids: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(len(ids),) bool: ``lo <= xyz[ids] <= hi`` on every axis (bounds inclusive, compared in
+    float64), without gathering the points first: one compiled pass."""
+    xyz = np.asarray(xyz)
+    out = np.empty(len(ids), np.bool_)
+    _in_box(xyz, np.asarray(ids, np.int64), np.asarray(lo, np.float64), np.asarray(hi, np.float64), out)
+    return out
+
+
+def voxel_keys(xyz: np.ndarray, edge: float, pad: int, origin: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voxel hash's lattice of points ``xyz`` (n, 3), n >= 1: (origin (3,) float64 -- the
+    given one or the points' minimum --, dims (3,) int64, key per point (n,) int64), exactly
+    what :class:`occufly.lifting.knn.VoxelGrid` computed with numpy (``q = floor((xyz - mn) /
+    edge) + pad``, ``dims = q.max(0) + pad + 1``, key row-major in dims) in two compiled
+    passes and no (n, 3) temporaries: ~5x less CPU on 1.6 M points."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0:
+        raise ValueError(f"voxel_keys needs (n >= 1, 3) points, got {xyz.shape}")
+    if xyz.dtype not in (np.float32, np.float64):
+        xyz = xyz.astype(np.float64)
+    lo, hi = _bounds(xyz)
+    mn = (lo if origin is None else np.asarray(origin)).astype(np.float64)
+    # floor and the division are monotone: the largest q is the maximum's q
+    qmax = np.floor((hi.astype(np.float64) - mn) / float(edge)).astype(np.int64) + pad
+    dims = qmax + pad + 1
+    key = np.empty(len(xyz), np.int64)
+    _voxel_keys(xyz, mn, float(edge), int(pad), int(dims[1]), int(dims[2]), key)
+    return mn, dims, key
+
+
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the kernels on a tiny input: the Docker image runs
     this at build time, so a container's first fill does not pay the compilation."""
+    for dt in (np.float32, np.float64):
+        voxel_keys(np.zeros((1, 3), dt), 1.0, 1)
+        points_in_box(np.zeros((1, 3), dt), np.zeros(1, np.int64), np.zeros(3), np.ones(3))
     xyz = np.zeros((2, 3), np.float32)
     xyz[1, 0] = 1.0
     xyz.flags.writeable = False  # as _block_knn passes it

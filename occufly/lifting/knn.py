@@ -71,7 +71,7 @@ from scipy.spatial import cKDTree
 from occufly.density import knn_radius as typical_knn_radius
 from occufly.fsutil import require_memory
 from occufly.lifting import calibration
-from occufly.lifting.blockknn import block_votes
+from occufly.lifting.blockknn import block_votes, voxel_keys
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
 from occufly.parallel import single_threaded_blas
@@ -421,14 +421,11 @@ class VoxelGrid:
         self.pad = int(pad)
         # origin: the lattice's corner (default the cloud's minimum); a subset of a cloud
         # given the whole cloud's origin gets the same voxels (occufly.lifting.incremental)
-        mn = (xyz.min(axis=0) if origin is None else np.asarray(origin)).astype(np.float64)
-        q = np.floor((xyz - mn) / edge).astype(np.int64) + pad
-        self.dims = q.max(axis=0) + pad + 1
+        # the lattice and each point's key in compiled passes (voxel_keys: what
+        # floor((xyz - mn) / edge) + pad and a row-major key computed with (n, 3) temporaries)
+        self.mn, self.dims, key = voxel_keys(xyz, edge, pad, origin)
         if float(np.prod(self.dims.astype(np.float64))) > 2**62:
             raise ValueError("scene too large for the voxel hash at this voxel size")
-        self.mn = mn
-        key = (q[:, 0] * self.dims[1] + q[:, 1]) * self.dims[2] + q[:, 2]
-        del q
         self.keys, self.inverse = unique_keys(key, int(np.prod(self.dims)))
 
     @property

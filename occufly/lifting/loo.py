@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from occufly.confusion import Confusion, count_pairs_many
+from occufly.lifting.blockknn import points_in_box
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
 from occufly.lifting.knn import LiftParams, VoxelGrid, knn_vote
@@ -248,9 +249,8 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         xyz = scene.xyz
         q = np.asarray(xyz[ids[todo]], dtype=np.float64)
         lo, hi = q.min(0) - p.fill_radius, q.max(0) + p.fill_radius
+        src = src[points_in_box(xyz, ids[src], lo, hi)]
         sx = np.asarray(xyz[ids[src]])
-        box = np.all((sx >= lo) & (sx <= hi), axis=1)
-        src, sx = src[box], sx[box]
         if len(src):  # only voted points within the radius's voxels of a point to fill
             keep = _near(q, sx, p.fill_radius)
             src, sx = src[keep], sx[keep]

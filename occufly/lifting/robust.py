@@ -381,10 +381,9 @@ def _fit_qda(features: np.ndarray, train: np.ndarray, cols: np.ndarray, C: int,
     need = max(p.min_train, F + 2)
 
     def split(idx_all: np.ndarray) -> list[np.ndarray]:
-        tc = cols[idx_all]
-        order = np.argsort(tc, kind="stable")
-        bounds = np.searchsorted(tc[order], np.arange(C + 1))
-        return [idx_all[order[bounds[c]:bounds[c + 1]]] for c in range(C)]
+        # a stable counting sort by class (what a stable argsort did, in two passes)
+        grouped, bounds = _group_by_class(np.asarray(idx_all), np.asarray(cols[idx_all]), C)
+        return [grouped[bounds[c]:bounds[c + 1]] for c in range(C)]
 
     def cap(idx: np.ndarray) -> np.ndarray:
         if len(idx) > p.train_per_class:
@@ -456,6 +455,27 @@ def _fit_qda(features: np.ndarray, train: np.ndarray, cols: np.ndarray, C: int,
     if pooled is None:
         pooled = (np.zeros(F, np.float32), np.eye(F, dtype=np.float32), np.float32(0.0))
     return _QDA(mean, whiten, logdet, ok, pooled)
+
+
+@numba.njit(nogil=True, cache=True)
+def _group_by_class(idx: np.ndarray, tc: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
+    """(``idx`` grouped by class ``tc`` in [0, C), each group in ``idx``'s order -- entries of
+    another class left out --, group bounds (C + 1,)): a stable counting sort."""
+    bounds = np.zeros(C + 1, np.int64)
+    for i in range(len(tc)):
+        c = tc[i]
+        if 0 <= c < C:
+            bounds[c + 1] += 1
+    for c in range(C):
+        bounds[c + 1] += bounds[c]
+    pos = bounds[:C].copy()
+    out = np.empty(bounds[C], idx.dtype)
+    for i in range(len(tc)):
+        c = tc[i]
+        if 0 <= c < C:
+            out[pos[c]] = idx[i]
+            pos[c] += 1
+    return out, bounds
 
 
 def _gaussian(x: np.ndarray, reg: float) -> tuple | None:
@@ -804,6 +824,8 @@ def compile_kernels() -> None:
         _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
                          np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
                          np.float32(1.0), 2, np.float32(12.0), best, cand, lk)
+    for dt in (np.int16, np.int64):
+        _group_by_class(np.arange(2, dtype=np.int64), np.array([1, 0], dt), C)
     eye = np.eye(F, dtype=np.float32)
     _feature_kernel(np.zeros((1, F), np.float32), np.array([[0, 1]]), np.zeros((1, 2), np.float32),
                     np.zeros((C, F), np.float32), np.stack([eye, eye]), z, np.array([True, False]),

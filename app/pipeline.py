@@ -43,6 +43,18 @@ def encode_png(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def encode_png_palette(indices: np.ndarray, palette: np.ndarray) -> bytes:
+    """(h, w) uint8 palette indices and their (256, 4) uint8 RGBA colours to an indexed PNG
+    (PLTE + tRNS): decoded, the same pixels as ``palette[indices]`` as RGBA, a quarter of the
+    bytes to compress (a 20 MP review overlay: ~0.15 instead of ~0.6 s)."""
+    pal = np.asarray(palette, np.uint8)
+    im = Image.fromarray(np.ascontiguousarray(indices, dtype=np.uint8), mode="P")
+    im.putpalette(pal[:, :3].tobytes(), rawmode="RGB")
+    buf = io.BytesIO()
+    im.save(buf, format="PNG", compress_level=3, transparency=pal[:, 3].tobytes())
+    return buf.getvalue()
+
+
 # ---- import / selection --------------------------------------------------------------------
 def import_scene(source: Path, workspace: Path, *, cloud: Path | None = None,
                  depth_maps: Path | None = None, progress: ProgressFn | None = None,

@@ -151,3 +151,37 @@ def test_splat_kernels_match_a_plain_reference():
     assert np.array_equal(depth, want_d)
     assert np.array_equal(best, want_b)
     assert np.isfinite(depth).sum() > 0.5 * h * w  # the case is not trivially empty
+
+
+def _disagreement_rgba_reference(mask, rendered, taxonomy):
+    """The overlay as it was computed before the palette version (boolean masks per case)."""
+    valid = taxonomy.valid_lut()
+    m_lab, r_lab = valid[mask], valid[rendered]
+    out = np.zeros(mask.shape + (4,), dtype=np.uint8)
+    dis = m_lab & r_lab & (mask != rendered)
+    out[dis, :3] = taxonomy.colour_lut()[rendered[dis]]
+    out[dis, 3] = 230
+    out[m_lab & ~r_lab] = (128, 128, 128, 96)
+    return out
+
+
+def test_disagreement_palette_png_decodes_to_the_rgba_overlay():
+    import io
+
+    from PIL import Image
+
+    from app.pipeline import encode_png_palette
+    from occufly.render import disagreement_indices, disagreement_palette
+
+    rng = np.random.default_rng(5)
+    ids = np.concatenate([[0, 255, 200, 77], np.asarray(TAX.ids)])  # 200, 77: no class
+    mask = rng.choice(ids, (300, 410)).astype(np.uint8)
+    rend = rng.choice(ids, (300, 410)).astype(np.uint8)
+    rend[:50] = mask[:50]  # agreement
+    ref = _disagreement_rgba_reference(mask, rend, TAX)
+    assert np.array_equal(disagreement_image(mask, rend, TAX), ref)
+    assert (ref[..., 3] == 230).any() and (ref[..., 3] == 96).any() and (ref[..., 3] == 0).any()
+    png = encode_png_palette(disagreement_indices(mask, rend, TAX), disagreement_palette(TAX))
+    with Image.open(io.BytesIO(png)) as im:
+        assert im.mode == "P"
+        assert np.array_equal(np.asarray(im.convert("RGBA")), ref)

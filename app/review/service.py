@@ -146,9 +146,10 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
         nb = lifting_loo.disagreeing_neighbours(scene.workspace, ws_scene, frame.index, loo)
         # the disagreement image is encoded once, with the figures: the page asks for both,
         # and an entry keeps a few MB instead of the frame-sized renderings
-        rgba = render.disagreement_image(mask, imgs["loo"], ws_scene.taxonomy)
-        return {"version": v.id, "figures": figures, "neighbours": nb,
-                "disagreement_png": pipeline.encode_png(np.asarray(rgba, dtype=np.uint8))}
+        # (as a palette PNG: the RGBA overlay's pixels at a quarter of the bytes to encode)
+        idx = render.disagreement_indices(mask, imgs["loo"], ws_scene.taxonomy)
+        png = pipeline.encode_png_palette(idx, render.disagreement_palette(ws_scene.taxonomy))
+        return {"version": v.id, "figures": figures, "neighbours": nb, "disagreement_png": png}
 
     return _CACHE.get(key, compute)
 

@@ -503,10 +503,14 @@ def test_agreement_render_and_disagreement(world):
     assert r.json()["agreement"] is None and r.json()["status"] == "not_enough_independent_views"
     img = env.client.get(f"/api/frames/{fid}/disagreement", headers=hdr["reviewer"])
     assert img.status_code == 200 and img.content.startswith(b"\x89PNG")
-    pre = env.client.get(f"/api/frames/{fid}/prefill", headers=hdr["annotator"])
     import io
 
     from PIL import Image
+
+    # a palette PNG with per-entry alpha: decoded, an RGBA overlay of the frame's size
+    rgba = np.asarray(Image.open(io.BytesIO(img.content)).convert("RGBA"))
+    assert rgba.shape == (H, W, 4) and set(np.unique(rgba[..., 3])) <= {0, 96, 230}
+    pre = env.client.get(f"/api/frames/{fid}/prefill", headers=hdr["annotator"])
 
     arr = np.asarray(Image.open(io.BytesIO(pre.content)))
     assert arr.shape == (H, W) and set(np.unique(arr)) <= {0, 6} and (arr == 6).any()

@@ -22,6 +22,7 @@ from app.context import AppContext
 from app.db import utcnow
 from app.errors import Conflict, Forbidden, Invalid, NotFound, TooManyAttempts
 from app.notifications.service import notify_frame_people
+from app.review.disk_cache import DiskCache
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
@@ -51,15 +52,26 @@ class _ReviewCache:
     frame, its mask and the stamps (mtime, size) of every file they are computed from: the
     votes, the frame's own votes, the labels and the corrections. The reviewer page asks for
     the agreement and the disagreement image of a frame at once: they share one computation
-    (a second request for a key being computed waits for it)."""
+    (a second request for a key being computed waits for it).
 
-    def __init__(self, size: int = 3) -> None:
+    With ``shared`` (a :class:`~app.review.disk_cache.DiskCache`) and a ``data_dir``, a value
+    not in this process's memory is read from, or computed once into, the data dir's shared
+    folder: the other API processes, the lifting worker's after-fill refresh and the
+    prefetch threads of every process then compute each frame's review once between them."""
+
+    def __init__(self, size: int = 3, shared: DiskCache | None = None) -> None:
         self.size = size
+        self.shared = shared
         self._lock = threading.Lock()
         self._items: OrderedDict = OrderedDict()
         self._busy: dict = {}
 
-    def get(self, key, compute):  # noqa: ANN001
+    def get(self, key, compute, data_dir=None):  # noqa: ANN001
+        if self.shared is not None and data_dir is not None:
+            local = compute
+
+            def compute():  # noqa: ANN202
+                return self.shared.get(data_dir, key, local)
         while True:
             with self._lock:
                 if key in self._items:
@@ -82,9 +94,11 @@ class _ReviewCache:
                 self._busy.pop(key, None)
             ev.set()
 
-    def has(self, key) -> bool:  # noqa: ANN001
+    def has(self, key, data_dir=None) -> bool:  # noqa: ANN001
         with self._lock:
-            return key in self._items
+            if key in self._items:
+                return True
+        return self.shared is not None and data_dir is not None and self.shared.has(data_dir, key)
 
     def clear(self) -> None:
         with self._lock:
@@ -94,8 +108,8 @@ class _ReviewCache:
 # the review list's top frames whose review is computed in the background after each fill
 # (refresh_agreement); the caches keep them and the frame open beside them
 PREFETCH_FRAMES = 4
-_CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
-_RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2)
+_CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review"))
+_RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review_render"))
 # the suspects list of the scenes' current labels (issue 38: seconds of CPU on a survey, so it
 # is computed after each fill, not when a reviewer opens the tab); its own cache, so that the
 # frames warmed after it do not push it out
@@ -151,14 +165,14 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
         png = pipeline.encode_png_palette(idx, render.disagreement_palette(ws_scene.taxonomy))
         return {"version": v.id, "figures": figures, "neighbours": nb, "disagreement_png": png}
 
-    return _CACHE.get(key, compute)
+    return _CACHE.get(key, compute, ctx.settings.data_dir)
 
 
-def cached_review(scene: Scene, frame: Frame, session: Session) -> bool:
-    """Whether the frame's current mask's review computation is in the cache (tests, the
-    background warm-up)."""
+def cached_review(scene: Scene, frame: Frame, session: Session, data_dir=None) -> bool:  # noqa: ANN001
+    """Whether the frame's current mask's review computation is in this process's cache, or
+    with ``data_dir`` in the processes' shared one (tests, the background warm-up)."""
     v = annotations.current_version(session=session, frame=frame)
-    return _CACHE.has(_review_key(scene, frame, v))
+    return _CACHE.has(_review_key(scene, frame, v), data_dir)
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
@@ -220,7 +234,8 @@ def render_png(ctx: AppContext, scene: Scene, frame: Frame, *, downscale: int = 
     if downscale != 1:
         return pipeline.encode_png(rendered(ctx, scene, frame, downscale=downscale))
     return _RENDER_CACHE.get(_render_key(scene, frame),
-                             lambda: pipeline.encode_png(rendered(ctx, scene, frame)))
+                             lambda: pipeline.encode_png(rendered(ctx, scene, frame)),
+                             ctx.settings.data_dir)
 
 
 def _render_key(scene: Scene, frame: Frame) -> tuple:
@@ -261,7 +276,7 @@ def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int], *,
                 if scene is None or f is None or f.current_version_id is None:
                     continue
                 try:
-                    if not cached_review(scene, f, s):
+                    if not cached_review(scene, f, s, ctx.settings.data_dir):
                         frame_agreement(ctx, s, scene, f)
                     render_png(ctx, scene, f)
                 except Exception:  # noqa: BLE001 - best effort: the request computes it then
@@ -357,7 +372,8 @@ def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *,
     for f in reversed(top):
         if stop is not None and stop.is_set():
             return []
-        if not cached_review(scene, f, session) or not _RENDER_CACHE.has(_render_key(scene, f)):
+        if not cached_review(scene, f, session, ctx.settings.data_dir) \
+                or not _RENDER_CACHE.has(_render_key(scene, f), ctx.settings.data_dir):
             one(f, warm=True)
     return [f.id for f in top]
 

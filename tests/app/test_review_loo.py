@@ -248,7 +248,11 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
 
     from app.scenes.models import Frame, Scene
 
-    review._CACHE.clear()
+    import shutil
+
+    review._CACHE.clear()  # this process's memory and the processes' shared folder
+    data_dir = env.app.state.ctx.settings.data_dir
+    shutil.rmtree(review._CACHE.shared.folder(data_dir), ignore_errors=True)
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement&state=submitted",
                         headers=hdr["reviewer"]).json()
     first, nxt = fl[0]["id"], fl[1]["id"]
@@ -256,9 +260,9 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
     with env.app.state.ctx.sessions() as s:
         sc, fr = s.get(Scene, scene["id"]), s.get(Frame, nxt)
         end = time.monotonic() + 30
-        while not review.cached_review(sc, fr, s) and time.monotonic() < end:
+        while not review.cached_review(sc, fr, s, data_dir) and time.monotonic() < end:
             time.sleep(0.05)
-        assert review.cached_review(sc, fr, s)
+        assert review.cached_review(sc, fr, s, data_dir)
     nxt_index = next(f["index"] for f in frames if f["id"] == nxt)
     n = calls.count(nxt_index)  # (the frames after it are being computed meanwhile)
     assert env.client.get(f"/api/frames/{nxt}/agreement", headers=hdr["reviewer"]).status_code == 200

@@ -244,11 +244,10 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
     assert after["agreement"] == pytest.approx(1.0)
 
     # opening a frame computes the next ones in the list in the background (N finds them)
+    import shutil
     import time
 
     from app.scenes.models import Frame, Scene
-
-    import shutil
 
     review._CACHE.clear()  # this process's memory and the processes' shared folder
     data_dir = env.app.state.ctx.settings.data_dir

@@ -58,11 +58,16 @@ class LooLabels:
     share: np.ndarray | None = None
 
 
-def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _frame_votes(ws: Path, f: int, *, weights: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Frame ``f``'s votes: (point ids, columns, weights) as int64; with ``weights=False``
+    the ids and columns in their stored types and no weights (None)."""
     p = Workspace(ws).lifting_frame(f)
     if not p.is_file():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
     with np.load(p, allow_pickle=False) as z:
+        if not weights:
+            return z["point_ids"], z["cols"], None
         pids = z["point_ids"].astype(np.int64)
         cols = z["cols"].astype(np.int64)
         w = z["weights"].astype(np.int64) if "weights" in z.files else np.ones(len(pids), np.int64)
@@ -305,6 +310,11 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     samp = own_p[np.unique(np.linspace(0, len(own_p) - 1, min(len(own_p), _NEIGHBOUR_SAMPLE))
                           .astype(np.int64))]
     loo_cols = ClassColumns(scene.taxonomy).col_of[loo.labels]  # -1: no independent label
+    # the frame's vote column per scene point (-1: none; a point's first vote where it has
+    # two): one gather per neighbour's vote instead of a binary search into the frame's
+    # ~2 M voted points (24 neighbours of a 20 MP survey frame: 1.2 of 2.6 s)
+    mine_of = np.full(scene.n_points, -1, np.int16)
+    mine_of[own_p[::-1]] = own_c[::-1]
     out = []
     for g in others:
         fr = scene.frames[g]
@@ -313,13 +323,13 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
             & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
         if not inside.any():
             continue
-        gp, gc, _ = _frame_votes(Path(ws), g)
-        pos = np.minimum(np.searchsorted(own_p, gp), len(own_p) - 1)
-        hit = own_p[pos] == gp
+        gp, gc = _frame_votes(Path(ws), g, weights=False)[:2]
+        mine = mine_of[gp]
+        hit = mine >= 0
         n_shared = int(hit.sum())
         if not n_shared:
             continue
-        gp, gc, mine = gp[hit], gc[hit], own_c[pos[hit]]
+        gp, gc, mine = gp[hit], gc[hit], mine[hit]
         dis = gc != mine
         n_dis = int(dis.sum())
         if n_dis < NEIGHBOUR_MIN_POINTS or n_dis < NEIGHBOUR_MIN_SHARE * n_shared:

@@ -87,3 +87,27 @@ def test_points_in_box_equals_the_gathered_comparison():
     got = points_in_box(xyz, ids, lo, hi)
     assert got.dtype == bool and np.array_equal(got, ref) and 0 < ref.sum() < len(ids)
     assert got[3] == ref[3]  # a point on the box's face counts
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_block_sum_is_the_numpy_sum_bit_for_bit(dtype):
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(0, 9, (8_000, 3)).astype(np.float32)
+    g = VoxelGrid(xyz, 0.6, pad=1)
+    counts = rng.uniform(0, 3, (g.n_voxels, 5)).astype(dtype) * (rng.random((g.n_voxels, 1)) < 0.7)
+    ref = counts.copy()  # the numpy version: offsets in order, occupied neighbours only
+    allv = np.arange(g.n_voxels)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                nb = g.neighbour(allv, dx, dy, dz)
+                ok = nb >= 0
+                ref[ok] += counts[nb[ok]]
+    got = g.block_sum(counts)
+    assert got.dtype == dtype and np.array_equal(got, ref)
+    assert not np.array_equal(got, counts)
+    # integer counts take the numpy path, with the same sums
+    ic = (counts * 10).astype(np.int64)
+    assert np.array_equal(g.block_sum(ic), np.rint(g.block_sum(ic.astype(np.float64))).astype(np.int64))

@@ -201,6 +201,26 @@ def points_in_box(xyz: np.ndarray, ids: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return out
 
 
+@numba.njit(nogil=True, cache=True)
+def block_sum_sorted(keys: np.ndarray, offsets: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (V, C), holding ``counts`` on entry: for each offset in order, add the counts of
+    the voxel whose key is ``keys[v] + offset`` (where occupied) to voxel v's row. ``keys``
+    sorted ascending and unique, so each offset is one merge walk of them."""
+    V = len(keys)
+    C = counts.shape[1]
+    for o in offsets:
+        j = 0
+        for v in range(V):
+            t = keys[v] + o
+            while j < V and keys[j] < t:
+                j += 1
+            if j == V:
+                break
+            if keys[j] == t:
+                for c in range(C):
+                    out[v, c] += counts[j, c]
+
+
 def voxel_keys(xyz: np.ndarray, edge: float, pad: int, origin: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The voxel hash's lattice of points ``xyz`` (n, 3), n >= 1: (origin (3,) float64 -- the
@@ -227,6 +247,8 @@ def compile_kernels() -> None:
     """Compile (or load from numba's cache) the kernels on a tiny input: the Docker image runs
     this at build time, so a container's first fill does not pay the compilation."""
     for dt in (np.float32, np.float64):
+        block_sum_sorted(np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros((1, 1), dt),
+                         np.zeros((1, 1), dt))
         voxel_keys(np.zeros((1, 3), dt), 1.0, 1)
         points_in_box(np.zeros((1, 3), dt), np.zeros(1, np.int64), np.zeros(3), np.ones(3))
     xyz = np.zeros((2, 3), np.float32)

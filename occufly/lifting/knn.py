@@ -71,7 +71,7 @@ from scipy.spatial import cKDTree
 from occufly.density import knn_radius as typical_knn_radius
 from occufly.fsutil import require_memory
 from occufly.lifting import calibration
-from occufly.lifting.blockknn import block_votes, voxel_keys
+from occufly.lifting.blockknn import block_sum_sorted, block_votes, voxel_keys
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.result import ORIGIN_DENOISED, ORIGIN_DIRECT, ORIGIN_FILLED, LiftResult
 from occufly.parallel import single_threaded_blas
@@ -444,7 +444,17 @@ class VoxelGrid:
 
     def block_sum(self, counts: np.ndarray) -> np.ndarray:
         """(V, C) per-voxel counts -> (V, C) sums over each voxel's 3x3x3 block (occupied
-        neighbours only), in ``counts``' dtype."""
+        neighbours only), in ``counts``' dtype: the voxel's own counts, then each occupied
+        neighbour's added in the order (dx, dy, dz) over -1, 0, 1 -- so float sums are the same
+        bit for bit however they are computed. Compiled for float32 / float64 counts (one
+        merge walk of the sorted keys per offset, no (V, C) temporaries); numpy otherwise."""
+        if counts.ndim == 2 and counts.dtype in (np.float32, np.float64) and len(self.keys):
+            offs = np.array([self.offset_key(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1)
+                             for dz in (-1, 0, 1) if (dx, dy, dz) != (0, 0, 0)], np.int64)
+            out = np.ascontiguousarray(counts).copy()
+            block_sum_sorted(np.ascontiguousarray(self.keys, np.int64), offs,
+                             np.ascontiguousarray(counts), out)
+            return out
         block = counts.copy()
         allv = np.arange(self.n_voxels)
         for dx in (-1, 0, 1):

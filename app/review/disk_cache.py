@@ -128,6 +128,19 @@ class DiskCache:
         self.prune(data_dir)
         return v
 
+    def put(self, data_dir: str | Path, key: Any, value: Any) -> None:  # noqa: ANN401
+        """Store ``value`` for ``key`` unless an entry is there (best effort)."""
+        if self.has(data_dir, key):
+            return
+        d = self.folder(data_dir)
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(d / f"{self.digest(key)}.entry", encode(value))
+        except (OSError, TypeError):
+            log.warning("review cache: could not store an entry in %s", d, exc_info=True)
+            return
+        self.prune(data_dir)
+
     def prune(self, data_dir: str | Path) -> None:
         """Remove the oldest entries beyond ``max_bytes``, and lock files left without an
         entry for ``_STALE_LOCK_S``."""

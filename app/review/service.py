@@ -94,6 +94,16 @@ class _ReviewCache:
                 self._busy.pop(key, None)
             ev.set()
 
+    def put(self, key, value, data_dir=None) -> None:  # noqa: ANN001
+        """Store a value computed elsewhere (in memory, and in the shared folder)."""
+        with self._lock:
+            self._items[key] = value
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+        if self.shared is not None and data_dir is not None:
+            self.shared.put(data_dir, key, value)
+
     def has(self, key, data_dir=None) -> bool:  # noqa: ANN001
         with self._lock:
             if key in self._items:
@@ -148,11 +158,18 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
     def compute() -> dict:
         mask = _mask_array(ctx, scene, v.sha256)
         ws_scene = ctx.load_scene(scene.workspace)
+        rkey = _render_key(scene, frame)  # before the labels are read: never newer than them
         labels = annotations.current_labels(ctx, scene)
         if labels is None:
             raise NotFound(f"scene {scene.id} has no lifted labels yet")
         loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
         imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels)
+        cam = ws_scene.frames[frame.index].camera
+        if mask.shape == (cam.height, cam.width):
+            # the labels' full-size rendering is the page's /render image (render_png): the
+            # same pixels (render_many_for_mask), so that request need not render it again
+            _RENDER_CACHE.put(rkey, pipeline.encode_png(np.asarray(imgs["self"], np.uint8)),
+                              ctx.settings.data_dir)
         # the figures once, with the entry: a cached agreement request only reads them
         figures = lifting_loo.loo_agreement(mask, imgs["loo"], ws_scene,
                                             self_rendered=imgs["self"],

@@ -510,6 +510,16 @@ def test_agreement_render_and_disagreement(world):
     # a palette PNG with per-entry alpha: decoded, an RGBA overlay of the frame's size
     rgba = np.asarray(Image.open(io.BytesIO(img.content)).convert("RGBA"))
     assert rgba.shape == (H, W, 4) and set(np.unique(rgba[..., 3])) <= {0, 96, 230}
+    # the labels' rendering the review computed serves /render: the pixels a fresh render gives
+    from app.review import service as review
+    from app.scenes.models import Frame, Scene
+
+    ren = env.client.get(f"/api/frames/{fid}/render", headers=hdr["reviewer"])
+    assert ren.status_code == 200
+    with env.app.state.ctx.sessions() as s:
+        fr = s.get(Frame, fid)
+        fresh = review.rendered(env.app.state.ctx, s.get(Scene, fr.scene_id), fr)
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(ren.content))), fresh) and (fresh > 0).any()
     pre = env.client.get(f"/api/frames/{fid}/prefill", headers=hdr["annotator"])
 
     arr = np.asarray(Image.open(io.BytesIO(pre.content)))

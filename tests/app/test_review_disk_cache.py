@@ -109,3 +109,13 @@ def test_prune_keeps_the_newest_entries_within_the_budget(tmp_path):
     # an unreadable entry is recomputed, not served
     dc._entry(tmp_path, ("k", 5)).write_bytes(b"garbage")
     assert dc.get(tmp_path, ("k", 5), lambda: b"fresh") == b"fresh"
+
+
+def test_put_stores_a_value_computed_elsewhere(tmp_path):
+    c = _ReviewCache(2, shared=DiskCache("review_render"))
+    c.put(("r", 1), b"png-bytes", tmp_path)
+    assert c.get(("r", 1), lambda: pytest.fail("computed"), tmp_path) == b"png-bytes"
+    other = _ReviewCache(2, shared=DiskCache("review_render"))  # another process
+    assert other.get(("r", 1), lambda: pytest.fail("computed"), tmp_path) == b"png-bytes"
+    DiskCache("review_render").put(tmp_path, ("r", 1), b"other")  # an entry there is kept
+    assert DiskCache("review_render").read(tmp_path, ("r", 1)) == b"png-bytes"

@@ -329,3 +329,69 @@ def test_the_fill_thread_yields_the_cpu_to_requests(env):
     assert Settings.from_env({"OCCUFLY_FILL_NICE": "0", "OCCUFLY_ENV": "development"}).fill_nice == 0
     with pytest.raises(ConfigError, match="OCCUFLY_FILL_NICE must be 0..19"):
         Settings.from_env({"OCCUFLY_FILL_NICE": "25", "OCCUFLY_ENV": "development"})
+
+
+def test_an_after_fill_subscriber_runs_beside_the_fill_not_in_it(env):
+    """The review's refresh after a fill (minutes on a survey) used to run inside the fill
+    thread: the labels showed "filling" until it ended and the next fill waited. Now each
+    owned subscriber runs in a thread of its own at the fill's priority; events that arrive
+    meanwhile are coalesced into one more run with the newest; wait_idle(include_fill) waits
+    for it."""
+    import threading
+
+    from app.lifting.models import LiftStatus
+
+    admin, ann = env.bearer("admin"), env.bearer("annotator")
+    env.import_tiny(admin)
+    scene, _frames_ = _frames(env, admin)
+    sid = scene["id"]
+    env.select_all(sid)
+    ctx = env.app.state.ctx
+    svc = ctx.lifting.service
+    gate, calls = threading.Event(), []
+
+    def slow(msg, stop) -> None:  # noqa: ANN001
+        calls.append((msg.payload.get("fills"), threading.current_thread().name,
+                      os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
+        gate.wait(30)
+
+    svc.bus.subscribe("labels_updated", svc._owned_only(slow))
+    fa = env.client.post(f"/api/scenes/{sid}/next", headers=ann).json()["id"]
+    _put(env, ann, fa, 6, None)
+    deadline = time.monotonic() + 30
+    while not calls and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert calls, "the subscriber never ran"
+
+    def state() -> str:
+        with ctx.sessions() as s:
+            return s.scalar(select(LiftStatus.fill_state).where(LiftStatus.scene_id == sid))
+
+    # the fill thread finishes (its status idle) while the subscriber is still held
+    deadline = time.monotonic() + 10
+    while (svc.busy(sid)["filling"] or state() != "idle") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not svc.busy(sid)["filling"] and state() == "idle"
+    assert svc.busy(sid)["refreshing"] and len(calls) == 1 and not gate.is_set()
+    assert not ctx.lifting.wait_idle(sid, timeout=0.5, include_fill=True)
+    # a second fill finishes while the first refresh still runs
+    fb = env.client.post(f"/api/scenes/{sid}/next", headers=ann).json()["id"]
+    _put(env, ann, fb, 7, None)
+    first_fills = calls[0][0]
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with ctx.sessions() as s:
+            fills = s.scalar(select(LiftStatus.fills).where(LiftStatus.scene_id == sid))
+        if fills > first_fills and not svc.busy(sid)["filling"]:
+            break
+        time.sleep(0.05)
+    assert fills > first_fills and len(calls) == 1  # not held by the running subscriber
+    gate.set()
+    assert ctx.lifting.wait_idle(sid, timeout=30, include_fill=True)
+    assert [c[0] for c in calls] == [first_fills, fills]  # once more, with the newest only
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert calls[0][1] == f"occufly-after-fill-{sid}"
+    # at least the fill's lowered priority (started from the fill thread, it lowers its own
+    # once more: a fill comes before a refresh)
+    assert calls[0][2] >= min(19, base + env.settings.fill_nice)
+    assert not svc.busy(sid)["refreshing"]

@@ -33,8 +33,28 @@ For each it reports
   the screenshots); ``selection_drawn_s``: lasso closed -> selection highlighted (cyan);
 - ``toggle_p50_s``: a class checkbox clicked in the browser until the server sees it.
 
-Prints one JSON object. ``--shots DIR`` saves the progressive run's screenshots (first points,
-full LOD, the 1 M selection). Usage: ``python bench/bench_viewer.py --points 8000000``.
+With ``--grid`` (issue 38's "scene grid display"), after the orbit, ``grids``:
+
+- ``scene``: the "Scene grid" box ticked in the browser, from the default view -> the boxes
+  drawn (``first_boxes_s``, ``drawn_s``: the frame probe in reference mode, the share of the
+  canvas that changed from the frame before the tick; ``visible_s``: a screenshot has
+  returned), the level of detail (:mod:`app.viewer.grid_lod`: ``lod_level``, ``boxes``,
+  ``box_edge_m``), ``ws_bytes`` the proxy sent meanwhile, the server's wall and thread CPU
+  to build the nodes and for the whole ``send_grids``, ``orbit`` fps with the grid shown (the
+  points-only ``orbit`` above is the baseline of the same run) and the tab's ``memory``;
+- ``camera``: the same for one frame's camera grid alone (``--grid-frame``; default the
+  first selected frame), chosen in the "Camera grid of frame" dropdown (set on the server,
+  as the browser's message does), seen from the default view's angle on the grid's middle.
+
+``--workspace WS`` opens an existing workspace (lifted labels, ``occufly voxelize``'s grid)
+instead of the fabricated points, hard-linked into the bench's data dir (``--tmp-dir``, on
+WS's file system) as scene ``bench`` (:func:`link_workspace`); nothing is written into WS.
+
+Prints one JSON object (its last line of stdout). ``--shots DIR`` saves the progressive run's
+screenshots (first points, full LOD, the 1 M selection, the grids). Usage:
+``python bench/bench_viewer.py --points 8000000``;
+``python bench/bench_viewer.py --workspace WS --tmp-dir DIR --schemes progressive --toggles 0
+--lasso 0 --grid --shots docs/screenshots``.
 """
 
 from __future__ import annotations
@@ -43,9 +63,11 @@ import argparse
 import io
 import json
 import os
+import resource
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -143,6 +165,18 @@ def _proc_tree(root_pid: int) -> list[int]:
             out.append(c)
             todo.append(c)
     return out
+
+
+def browser_cpu_s() -> float:
+    """CPU seconds (user + sys) of this process's children so far: Chromium's processes."""
+    tick, total = os.sysconf("SC_CLK_TCK"), 0
+    for pid in _proc_tree(os.getpid()):
+        try:
+            f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        total += int(f[11]) + int(f[12])  # utime, stime
+    return total / tick
 
 
 def tab_memory(page) -> dict:
@@ -322,6 +356,7 @@ PROBE_HOOK = """(() => { const w = window; w.__gl = null;
 })();"""
 
 ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog = [];
+  w.__probeRef = null;
   const pending = []; let polling = false;
   const poll = () => { const gl = w.__gl;
     while (pending.length) { const p = pending[0];
@@ -331,8 +366,12 @@ ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog 
       gl.getBufferSubData(gl.PIXEL_PACK_BUFFER, 0, px);
       gl.bindBuffer(gl.PIXEL_PACK_BUFFER, null); gl.deleteBuffer(p.buf); gl.deleteSync(p.sync);
       let k = 0, bg = 0;
+      // col null: the share of pixels changed from the first frame probed (the reference)
+      const ref = col === null ? (w.__probeRef = w.__probeRef || px) : null;
       for (let i = 0; i < p.n; i++) { const r = px[4 * i], g = px[4 * i + 1], b = px[4 * i + 2];
-        if (Math.abs(r - col[0]) + Math.abs(g - col[1]) + Math.abs(b - col[2]) < tol) k++;
+        if (ref !== null) { if (Math.abs(r - ref[4 * i]) + Math.abs(g - ref[4 * i + 1])
+                                + Math.abs(b - ref[4 * i + 2]) >= tol) k++; }
+        else if (Math.abs(r - col[0]) + Math.abs(g - col[1]) + Math.abs(b - col[2]) < tol) k++;
         if (px[4 * i + 3] < 128 || 765 - r - g - b < tol) bg++; }
       w.__probeLog.push([t, k / p.n, bg / p.n, p.frame]); }
     polling = pending.length > 0; if (polling) setTimeout(poll, 10); };
@@ -354,12 +393,15 @@ ARM_PROBE = """([u0, v0, u1, v1, col, tol]) => { const w = window; w.__probeLog 
   return w.__renders; }"""
 
 
-def arm_probe(page, poly: np.ndarray, colour: np.ndarray) -> None:
+def arm_probe(page, poly: np.ndarray, colour: np.ndarray | None) -> None:
     """Log, for every frame the page renders from now on, the share of the lasso's bounding
-    box (2 px inside, as :func:`blue_share`) close to ``colour``."""
+    box (2 px inside, as :func:`blue_share`) close to ``colour``; ``colour`` None: the share
+    changed from the first frame logged (the reference: take a screenshot, which renders
+    one, right after arming)."""
     (u0, v0), (u1, v1) = poly.min(axis=0), poly.max(axis=0)
     page.evaluate(ARM_PROBE, [float(u0) + 0.003, float(v0) + 0.003, float(u1) - 0.003,
-                              float(v1) - 0.003, [int(c) for c in colour], 60])
+                              float(v1) - 0.003,
+                              None if colour is None else [int(c) for c in colour], 60])
 
 
 def wait_drawn(page, pred, timeout_s: float, w0: float) -> tuple[float | None, list | None]:
@@ -377,10 +419,16 @@ def wait_drawn(page, pred, timeout_s: float, w0: float) -> tuple[float | None, l
         for t, share, bg, fi in log:
             last = [round(share, 3), round(bg, 3)]
             if t / 1000 >= w0 and pred(share, bg):
-                done = min([t] + [f for f in frames[fi + 1:fi + 2]])
-                return done / 1000 - w0, last
+                return finished_at(t, fi, frames) - w0, last
         page.wait_for_timeout(100)
     return None, last
+
+
+def finished_at(t_probe_ms: float, frame: int, frames: list) -> float:
+    """Wall-clock seconds at which probed frame ``frame`` was finished: the start of the
+    page's next frame or the probe's fence (``t_probe_ms``), whichever came first (see
+    :func:`wait_drawn`)."""
+    return min([t_probe_ms] + list(frames[frame + 1:frame + 2])) / 1000
 
 
 def probed(page, wait_s: float = 30.0) -> tuple[float, float] | None:
@@ -471,6 +519,267 @@ def toggles(page, st, n: int) -> dict:
     return {"p50": round(statistics.median(lat), 3), "max": round(max(lat), 3)}
 
 
+# ---- the voxel grids (issue 38: "the scene grid display") ---------------------------------
+GRID_LOG: list[dict] = []  # one entry per traced call of the grid path (see trace_grids)
+# what-if: keyword arguments the bench adds to every add_batched_meshes_simple of the grids
+# (``--grid-what-if material=toon3``: not the app's code, a measured alternative)
+GRID_MESH_OVERRIDES: dict = {}
+CANVAS_BOX = np.array([[0.02, 0.25], [0.6, 0.98]])  # the canvas left of the panels (u, v)
+
+
+def _boxes(nodes: list) -> dict:
+    return {"nodes": len(nodes), "boxes": int(sum(len(nd.centers) for nd in nodes)),
+            "edge_m": float(nodes[0].size) if nodes else None,
+            "by_kind": {nd.name.rsplit("/", 1)[-1]: len(nd.centers) for nd in nodes}}
+
+
+def trace_grids(svc) -> None:
+    """Record wall and thread CPU of the viewer's grid path in :data:`GRID_LOG`: the whole
+    ``send_grids`` (build + send, the callback of the "Scene grid" box and the frame
+    dropdown), the scene grid's level of detail (:func:`grid_lod.scene_grid_nodes_lod`),
+    a frame's camera grid sampled (``load_camera_grid``) and turned into nodes
+    (``camera_grid_nodes``); the nodes' box counts (the functions are wrapped where
+    scene_view looks them up, nothing else changes)."""
+    from app.viewer import scene_builder, scene_view
+
+    def wrap(mod, name: str, kind: str, summary) -> None:  # noqa: ANN001
+        orig = getattr(mod, name)
+
+        def traced(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+            t, c = time.time(), time.thread_time()
+            out = orig(*a, **kw)
+            GRID_LOG.append({"kind": kind, "start": t, "end": time.time(),
+                             "cpu_s": time.thread_time() - c, **summary(out)})
+            return out
+
+        setattr(mod, name, traced)
+
+    wrap(scene_view, "scene_grid_nodes_lod", "scene_build", _boxes)
+    wrap(scene_view, "load_camera_grid", "camera_sample",
+         lambda cg: {} if cg is None else {"shape": list(np.shape(cg[0]))})
+    wrap(scene_builder, "camera_grid_nodes", "camera_build", _boxes)
+    send_voxel_nodes = scene_builder.send_voxel_nodes
+
+    class Overridden:  # the scene api, with GRID_MESH_OVERRIDES on the grids' meshes
+        def __init__(self, api) -> None:  # noqa: ANN001
+            self.api = api
+
+        def add_batched_meshes_simple(self, *a, **kw):  # noqa: ANN002, ANN003, ANN202
+            return self.api.add_batched_meshes_simple(*a, **(kw | GRID_MESH_OVERRIDES))
+
+    scene_builder.send_voxel_nodes = lambda api, nodes, visible=None: send_voxel_nodes(
+        Overridden(api) if GRID_MESH_OVERRIDES else api, nodes, visible)
+    orig = type(svc).send_grids
+
+    def send_grids(self, st):  # noqa: ANN001, ANN202
+        t, c = time.time(), time.thread_time()
+        try:
+            return orig(self, st)
+        finally:
+            GRID_LOG.append({"kind": "send_grids", "start": t, "end": time.time(),
+                             "cpu_s": time.thread_time() - c,
+                             "handles": len(st.grid_handles)})
+
+    svc.send_grids = send_grids.__get__(svc)
+
+
+def settle(page, since: float, span_s: float = 3.0, tol: float = 0.005,
+           max_s: float = 120.0, min_share: float = 0.0) -> float | None:
+    """Wait until the armed probe's share has been steady (within ``tol``) and at least
+    ``min_share`` over frames started after wall-clock ``since`` and spanning ``span_s`` (at
+    least three frames); the page renders continuously (viser's render loop: a few frames a
+    second on an idle page), so quiet is a steady picture, not an absence of frames (and
+    frames without a change just sent go on for seconds under software WebGL: hence
+    ``min_share``). Returns that share, or None after ``max_s``."""
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < max_s:
+        log, frames = page.evaluate("() => [window.__probeLog || [], window.__frames || []]")
+        ok = [(frames[fi] / 1000, share) for _t, share, _bg, fi in log
+              if fi < len(frames) and frames[fi] / 1000 >= since]
+        if len(ok) >= 3:
+            last = ok[-1][1]
+            k = len(ok) - 1
+            while k > 0 and abs(ok[k - 1][1] - last) <= tol:
+                k -= 1
+            if len(ok) - k >= 3 and ok[-1][0] - ok[k][0] >= span_s and last >= min_share:
+                return last
+        page.wait_for_timeout(250)
+    return None
+
+
+def click_checkbox(page, label: str) -> float:
+    """Click the GUI checkbox ``label`` in the browser (a JS click, as :func:`toggles`);
+    returns the page's wall clock (s) at the click (the page's main thread, busy with
+    software-rendered frames, takes the driver's call seconds later)."""
+    row = page.locator("div.mantine-Flex-root", has=page.get_by_text(label, exact=True))
+    box = row.locator("input").last.element_handle(timeout=300_000)
+    return box.evaluate("e => { const t = Date.now(); e.click(); return t; }") / 1000
+
+
+def view_at(st, centre: np.ndarray, extent: float) -> None:
+    """The default view's angle (:meth:`SceneViewMixin._place_camera`) on ``centre``."""
+    cam = st.client.camera
+    with st.client.atomic():
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = tuple(np.asarray(centre, np.float64)
+                             + np.array([0.0, -0.9 * extent, 0.8 * extent]))
+        cam.look_at = tuple(np.asarray(centre, np.float64))
+
+
+def grid_shown(page, svc, st, stats: dict, kind: str, trigger, args,
+               shot_path: Path | None) -> dict:
+    """One grid display: ``trigger()`` (the box ticked / the frame chosen) -> the boxes
+    drawn, seen by the frame probe in reference mode (:data:`ARM_PROBE` with no colour:
+    the share of the canvas left of the panels that changed from the frame before).
+
+    ``first_boxes_s``: the tick (the page's clock at the click; the call for the dropdown,
+    ``tick_after_call_s`` after the driver's call) -> the first finished frame with >= 2 %
+    of the box changed; ``drawn_s``: -> the first finished frame, started after the server
+    had sent every node, within 2 % of the final picture's change (steady for 3 s after:
+    :func:`settle`; ``drawn_after_call_s`` from the driver's call);
+    ``visible_s``: -> a screenshot taken then has returned; server: when ``send_grids`` ran
+    (seconds after the call), its and the build's wall and thread CPU (:func:`trace_grids`),
+    the level of detail, the boxes sent; ``ws_bytes`` / ``ws_frames`` / ``ws_first_last_s``:
+    what the proxy sent meanwhile; ``browser_cpu_s_to_steady``: Chromium's CPU from the
+    call to the steady picture; ``orbit`` with the grid shown and the tab's ``memory``."""
+    st.lod_done.wait(600)
+    t = time.perf_counter()
+    arm_probe(page, CANVAS_BOX, None)  # the view still moving or filling in: not steady
+    steady = settle(page, time.time(), max_s=min(180.0, args.grid_timeout)) is not None
+    waited = time.perf_counter() - t
+    arm_probe(page, CANVAS_BOX, None)  # the reference: the next frame (the page renders
+    ref = probed(page)  # continuously)
+    n_log, b0 = len(GRID_LOG), int(stats["bytes"])
+    c0, w0 = browser_cpu_s(), time.time()
+    tick = trigger() or w0  # the page's clock at the click, or now
+    sent = None
+    while time.time() - w0 < args.grid_timeout:
+        sent = next((e for e in GRID_LOG[n_log:] if e["kind"] == "send_grids"), None)
+        if sent is not None:
+            break
+        page.wait_for_timeout(50)
+    if sent is None:
+        return {"error": f"send_grids not done in {args.grid_timeout} s"}
+    steady_after = settle(page, sent["end"], max_s=args.grid_timeout, min_share=0.02)
+    log, frames = page.evaluate("() => [window.__probeLog || [], window.__frames || []]")
+    after = [(finished_at(t, fi, frames), share, frames[fi] / 1000 if fi < len(frames) else 0)
+             for t, share, _bg, fi in log if t / 1000 >= w0]
+    final = after[-1][1] if after else 0.0
+    first = next((d for d, s, _f in after if s >= 0.02), None)
+    drawn = next((d for d, s, f in after if f >= sent["end"] and s >= final - 0.02), None)
+    c1 = browser_cpu_s()  # the drawing and the steady frames after it (not the screenshot)
+    img = shot(page, shot_path)
+    t_vis = time.time() - w0
+    b1 = int(stats["bytes"])
+    trace = timeline(page, stats, w0, time.time())
+    build = [e for e in GRID_LOG[n_log:] if e["kind"] != "send_grids"]
+
+    def r(v: float | None) -> float | None:
+        return None if v is None else round(v, 3)
+
+    out = {"kind": kind, "settled_before_s": round(waited, 2), "steady_before": steady,
+           "tick_after_call_s": r(tick - w0), "steady_after": steady_after is not None,
+           "first_boxes_s": r(first - tick if first else None),
+           "drawn_s": r(drawn - tick if drawn else None),
+           "drawn_after_call_s": r(drawn - w0 if drawn else None), "visible_s": r(t_vis),
+           "changed_share_final": round(final, 3),
+           "browser_cpu_s_to_steady": round(c1 - c0, 2), "wall_s_to_steady": r(
+               max(t for t, _s, _f in after) - w0 if after else None),
+           "reference_probe": None if ref is None else [round(v, 3) for v in ref],
+           "has_points_after": has_points(img),
+           "server": {"send_grids_after_s": [r(sent["start"] - w0), r(sent["end"] - w0)],
+                      "send_grids_wall_s": r(sent["end"] - sent["start"]),
+                      "send_grids_cpu_s": r(sent["cpu_s"]), "handles": sent["handles"],
+                      "steps": [{k: (r(v) if isinstance(v, float) else v)
+                                 for k, v in e.items() if k not in ("start", "end")}
+                                | {"wall_s": r(e["end"] - e["start"])} for e in build]},
+           "ws_bytes": b1 - b0, "ws_mb": round((b1 - b0) / 2**20, 2),
+           "ws_frames": trace["ws_frames"], "ws_first_last_s": trace["ws_first_last"],
+           "webgl_frames": len(trace["webgl_frames"]),
+           "frame_starts_s": list(trace["frame_starts"].values())[:40]}
+    step = next((e for e in build if e["kind"] in ("scene_build", "camera_build")), None)
+    if step is not None:
+        out["boxes"], out["box_edge_m"] = step["boxes"], step["edge_m"]
+        if step["kind"] == "scene_build" and step["edge_m"]:  # level k: 2**k x the voxel
+            out["lod_level"] = int(round(np.log2(step["edge_m"]
+                                                 / float(st.data.grid.voxel_size))))
+    page.wait_for_timeout(1000)
+    out["orbit"] = orbit_fps(page, svc, st, args.orbit_s)
+    out["memory"] = tab_memory(page)
+    return out
+
+
+def grid_frame(st, name: str | None) -> int:
+    """The frame whose camera grid is shown: ``name`` (a stem or an index), else the first
+    frame of the workspace's selection (``selection.json``), else the middle frame."""
+    scene = st.data.scene
+    if name is not None:
+        return int(name) if name.isdigit() else scene.frame_index(name)
+    sel_path = st.data.workspace / "selection.json" if st.data.workspace else None
+    if sel_path is not None and sel_path.is_file():
+        chosen = json.loads(sel_path.read_text()).get("frames") or []
+        if chosen:
+            return int(chosen[0])
+    return len(scene.frames) // 2
+
+
+def measure_grids(page, svc, st, stats: dict, args, shots: Path | None) -> dict:
+    """The scene grid (the "Scene grid" box ticked in the browser, from the default view),
+    then one frame's camera grid alone (the scene grid unticked; the frame chosen in the
+    "Camera grid of frame" dropdown -- set on the server, as the browser's message does;
+    seen from the default view's angle on the camera grid's middle)."""
+    from occufly.sampling import FrameGridSpec
+
+    d = st.data
+    out: dict = {}
+    if d.grid is not None:
+        g = d.grid
+        out["scene_grid"] = {"shape": list(np.shape(g.labels)),
+                             "voxel_size": float(g.voxel_size)}
+    svc._place_camera(st)
+    out["scene"] = grid_shown(page, svc, st, stats, "scene", lambda: click_checkbox(
+        page, "Scene grid"), args, shots / "viewer_scale_grid.png" if shots else None)
+    out["scene"]["grid_info"] = st.gui["grid_info"].content
+
+    def untick() -> None:
+        click_checkbox(page, "Scene grid")  # off again
+        t = time.perf_counter()
+        while st.gui["grid_scene"].value and time.perf_counter() - t < 60:
+            page.wait_for_timeout(50)
+
+    untick()
+    if args.grid_what_if:  # the scene grid again, drawn with other mesh options
+        GRID_MESH_OVERRIDES.update(dict(kv.split("=", 1) for kv in args.grid_what_if.split(",")))
+        svc._place_camera(st)
+        try:
+            out["scene_what_if"] = grid_shown(page, svc, st, stats, "scene", lambda: click_checkbox(
+                page, "Scene grid"), args, shots / "viewer_scale_grid_what_if.png" if shots
+                else None)
+            out["scene_what_if"]["mesh_options"] = dict(GRID_MESH_OVERRIDES)
+        finally:
+            GRID_MESH_OVERRIDES.clear()
+        untick()
+    fi = grid_frame(st, args.grid_frame)
+    fr = d.scene.frames[fi]
+    spec = FrameGridSpec()
+    T = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+    depth = spec.shape[2] * spec.voxel_size
+    centre = T[:3, 3] + T[:3, 2] * depth / 2  # the camera grid's middle, scene-local
+    view_at(st, centre, 1.2 * depth)
+    stem = fr.stem
+
+    def choose() -> None:  # the browser's message is handled off the socket's thread
+        threading.Thread(target=lambda: setattr(st.gui["grid_frame"], "value", stem),
+                         daemon=True).start()
+
+    out["camera"] = grid_shown(page, svc, st, stats, "camera", choose, args,
+                               shots / "viewer_scale_camera_grid.png" if shots else None)
+    out["camera"]["frame"] = {"index": fi, "stem": stem,
+                              "size": [fr.camera.width, fr.camera.height]}
+    st.gui["grid_frame"].value = "(none)"
+    return out
+
+
 def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -> dict:
     # "progressive_keep_tiles": the new path with the tiles left shown during a correction's
     # update (ViewerService.hide_tiles_on_update off), to weigh that step on its own
@@ -518,6 +827,11 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
         out["orbit"]["points_drawn"] = (st.lod_plan.n_coarse if st.lod_plan is not None
                                         and svc.motion_rest_s is not None else st.sent_points)
         out["memory_after_orbit"] = tab_memory(page)
+        if args.grid:
+            try:
+                out["grids"] = measure_grids(page, svc, st, stats, args, shots)
+            except Exception as e:  # noqa: BLE001
+                out["grids"] = {"error": f"{type(e).__name__}: {str(e)[:300]}"}
         try:  # a step that fails (a timeout on a starved machine) is reported, not fatal
             if args.toggles:
                 out["toggle_latency_s"] = toggles(page, st, args.toggles)
@@ -537,9 +851,55 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
         browser.close()
 
 
+def link_workspace(src: Path, dst: Path) -> dict:
+    """``dst``: a tree of hard links to workspace ``src``'s files (read-only use: the viewer
+    reads them memory-mapped; whatever it writes -- the bench's correction layer -- is
+    written atomically under a new name, replacing a link, never into ``src``'s files).
+
+    Not the app's import of a workspace (``app.pipeline.import_scene``, which
+    bench_api_load's ``--workspace`` goes through): that writes the scene's points and
+    correspondences anew (~10 GB on the survey) and leaves the lifted labels and the voxel
+    grid behind, the very things the viewer shows. Refuses another file system."""
+    src, dst = Path(src).resolve(), Path(dst)
+    if not (src / "scene.json").is_file():
+        raise SystemExit(f"--workspace {src}: not a workspace (no scene.json)")
+    if os.stat(src).st_dev != os.stat(dst.parent).st_dev:
+        raise SystemExit(f"--workspace {src} and the bench's folder {dst.parent} are on "
+                         "different file systems: no hard links (use --tmp-dir on the same one)")
+    n, size = 0, 0
+    for d, _dirs, files in os.walk(src):
+        rel = Path(d).relative_to(src)
+        (dst / rel).mkdir(parents=True, exist_ok=True)
+        for f in files:
+            a = Path(d) / f
+            if a.is_symlink():
+                os.symlink(os.readlink(a), dst / rel / f)
+                continue
+            os.link(a, dst / rel / f)
+            n += 1
+            size += a.stat().st_size
+    return {"files": n, "gb": round(size / 2**30, 2)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=2_000_000)
+    ap.add_argument("--workspace", type=Path, default=None,
+                    help="an existing workspace (e.g. after occufly voxelize) instead of the "
+                    "fabricated points: hard-linked into the bench's data dir as scene 'bench'")
+    ap.add_argument("--tmp-dir", type=Path, default=None,
+                    help="where the bench's data dir goes (on --workspace's file system)")
+    ap.add_argument("--grid", action="store_true",
+                    help="also measure the voxel grids: the scene grid, one frame's camera grid")
+    ap.add_argument("--grid-frame", default=None,
+                    help="the camera grid's frame (stem or index; default: the first selected)")
+    ap.add_argument("--grid-timeout", type=float, default=600.0)
+    ap.add_argument("--grid-npz", type=Path, default=None,
+                    help="with --workspace: show this scene grid (.npz) instead of the "
+                    "workspace's (linked into the bench's copy only)")
+    ap.add_argument("--grid-what-if", default=None,
+                    help="the scene grid once more with these add_batched_meshes_simple "
+                    "options, e.g. material=toon3 (a measured alternative, not the app's)")
     ap.add_argument("--max-points", type=int, default=None, help="the viewer's LOD budget")
     ap.add_argument("--toggles", type=int, default=6)
     ap.add_argument("--orbit-s", type=float, default=5.0)
@@ -549,16 +909,31 @@ def main() -> None:
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(dir=args.tmp_dir) as tmp:
         root = Path(tmp)
         t = time.perf_counter()
-        make_demo_workspace(root / "bench", args.points, seed=1, with_grid=False)
+        if args.workspace is not None:
+            source = {"workspace": str(args.workspace),
+                      **link_workspace(args.workspace, root / "bench")}
+            if args.grid_npz is not None:  # a scene grid from elsewhere (e.g. the synthetic
+                grid = root / "bench" / "grid" / "scene_grid.npz"  # truth) in the copy only
+                grid.parent.mkdir(exist_ok=True)
+                grid.unlink(missing_ok=True)
+                os.link(args.grid_npz, grid)
+                source["scene_grid"] = str(args.grid_npz)
+            args.points = int(json.loads((root / "bench" / "scene.json").read_text())
+                              ["n_points"])
+        else:
+            make_demo_workspace(root / "bench", args.points, seed=1, with_grid=False)
+            source = {"fabricated": "make_demo_workspace", "seed": 1}
         gen_s = time.perf_counter() - t
         kw = {"max_points": args.max_points} if args.max_points else {}
         app = make_app(root, corrections=FileCorrections(root / "bench").hooks(), **kw)
         svc = app.state.viewer
         trace_refreshes(svc)
-        result: dict = {"bench": "viewer_scale", "points": args.points,
+        if args.grid:
+            trace_grids(svc)
+        result: dict = {"bench": "viewer_scale", "source": source, "points": args.points,
                         "max_points": svc.max_points, "coarse_points": svc.preview_points,
                         "tiles": svc.lod_tiles ** 2, "generate_s": round(gen_s, 2),
                         "cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}
@@ -568,6 +943,9 @@ def main() -> None:
                                             args.shots if scheme == "progressive" else None)
                 print(json.dumps({scheme: result[scheme]}), file=sys.stderr, flush=True)
         result["load_avg_end"] = os.getloadavg()
+        ru = resource.getrusage(resource.RUSAGE_SELF)  # the app's viewer and this driver
+        result["bench_process"] = {"cpu_s": round(ru.ru_utime + ru.ru_stime, 1),
+                                   "peak_rss_mb": round(ru.ru_maxrss / 1024)}
         if "legacy" in result and "progressive" in result:
             old, new = result["legacy"], result["progressive"]
             ratio = {}

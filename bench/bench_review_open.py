@@ -1,0 +1,140 @@
+"""A reviewer's first open of a frame that nothing prefetched, step by step, on a real workspace.
+
+What ``app.review.service.review_images`` computes for ``GET /frames/{fid}/agreement`` and
+``/disagreement`` when neither the process nor the shared cache holds it: the leave-one-out
+labels (:func:`occufly.lifting.loo.loo_labels`), the one render of the LOO, confident-LOO and
+self labels, the figures, the disagreeing neighbours and the overlay PNG -- each step's CPU
+time in one process, best of ``--repeat`` after a warm-up, for the working tree and for a
+baseline git revision (its ``occufly/`` and ``app/`` extracted, run in its own process,
+alternating rounds), plus whether both give the same LOO labels.
+
+The frame: ``--frame`` or the first annotated full-size frame of the source's truth
+(``<source>/truth/meta.json``), its mask the source's truth mask. Prints one JSON object.
+
+    .venv/bin/python bench/bench_review_open.py WS SOURCE --baseline d7b0818
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHILD = r"""
+import json, sys, time
+from pathlib import Path
+import numpy as np
+ws, src, frame, rep, out = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+from occufly import render
+from occufly.io.masks import read_mask
+from occufly.lifting import corrections as corr
+from occufly.lifting import loo as L
+from occufly.lifting.votes import VoteStore
+from occufly.scene import Scene
+scene = Scene.load(ws)
+labels = np.asarray(corr.load_labels(ws).labels)
+if frame < 0:
+    state = VoteStore.open(ws, scene, read_only=True)
+    lifted = sorted(state.included_versions())
+    state.close()
+    meta = json.loads((src / "truth" / "meta.json").read_text())
+    full = {scene.frame_index(n) for n in meta.get("full_size_frames", [])}
+    frame = next((f for f in lifted if f in full), lifted[0])
+fr = scene.frames[frame]
+p = src / "truth" / "masks" / (Path(fr.name).stem + ".png")
+mask = read_mask(p.read_bytes(), fr, scene.taxonomy, name=str(p))
+
+def overlay(imgs):
+    if hasattr(render, "disagreement_indices"):
+        from app.pipeline import encode_png_palette
+        return encode_png_palette(render.disagreement_indices(mask, imgs["loo"], scene.taxonomy),
+                                  render.disagreement_palette(scene.taxonomy))
+    from app.pipeline import encode_png
+    return encode_png(render.disagreement_image(mask, imgs["loo"], scene.taxonomy))
+
+def step():
+    t, c = {}, time.process_time()
+    loo = L.loo_labels(ws, scene, frame); t["loo_labels"] = time.process_time() - c
+    c = time.process_time()
+    imgs = L.render_review(scene, loo, mask.shape, labels); t["render_review"] = time.process_time() - c
+    c = time.process_time()
+    fig = L.loo_agreement(mask, imgs["loo"], scene, self_rendered=imgs["self"],
+                          confident_rendered=imgs["confident"]); t["agreement"] = time.process_time() - c
+    c = time.process_time()
+    L.disagreeing_neighbours(ws, scene, frame, loo); t["neighbours"] = time.process_time() - c
+    c = time.process_time()
+    png = overlay(imgs); t["overlay_png"] = time.process_time() - c
+    t["total"] = sum(t.values())
+    return t, fig, loo, len(png)
+
+step()
+runs = [step() for _ in range(rep)]
+t, fig, loo, nbytes = min(runs, key=lambda r: r[0]["total"])
+np.save(out, loo.labels)
+print(json.dumps({"frame": int(frame), "size": [int(mask.shape[1]), int(mask.shape[0])],
+                  "points_gathered": int(len(loo.point_ids)),
+                  "cpu_s": {k: round(v, 3) for k, v in t.items()},
+                  "totals": [round(r[0]["total"], 3) for r in runs], "overlay_bytes": nbytes,
+                  "agreement": fig["agreement"], "review_score": fig["review_score"]}))
+"""
+
+
+def code_tree(rev: str, dest: Path) -> Path:
+    """``occufly/`` and ``app/`` of git revision ``rev`` extracted under ``dest``."""
+    shutil.rmtree(dest, ignore_errors=True)
+    dest.mkdir(parents=True)
+    arch = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "occufly", "app"],
+                          capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=arch, check=True)
+    return dest
+
+
+def main() -> None:
+    import numpy as np
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("workspace", type=Path)
+    ap.add_argument("source", type=Path, help="the synthetic project (its truth masks)")
+    ap.add_argument("--frame", type=int, default=-1)
+    ap.add_argument("--baseline", default="d7b0818", help="git revision to compare with")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        trees = {"baseline": code_tree(args.baseline, Path(tmp) / "base"), "now": ROOT}
+        runs: dict[str, list[dict]] = {k: [] for k in trees}
+        for _ in range(args.rounds):
+            for k, tree in trees.items():
+                out = str(Path(tmp) / f"{k}.npy")
+                p = subprocess.run([sys.executable, "-c", CHILD, str(args.workspace), str(args.source),
+                                    str(args.frame), str(args.repeat), out], capture_output=True,
+                                   text=True, env={**os.environ, "PYTHONPATH": str(tree)})
+                if p.returncode:
+                    sys.exit(f"{k} failed:\n{p.stderr[-3000:]}")
+                runs[k].append(json.loads(p.stdout.strip().splitlines()[-1]))
+        same = bool(np.array_equal(np.load(Path(tmp) / "baseline.npy"), np.load(Path(tmp) / "now.npy")))
+    best = {k: min(rs, key=lambda r: r["cpu_s"]["total"]) for k, rs in runs.items()}
+    res = {"benchmark": "review_open", "workspace": str(args.workspace), "baseline": args.baseline,
+           "load_avg": os.getloadavg(), "cpus": os.cpu_count(), "repeat": args.repeat,
+           "rounds": args.rounds, "best": best,
+           "totals": {k: [r["cpu_s"]["total"] for r in rs] for k, rs in runs.items()},
+           "ratio_now_to_baseline": round(best["now"]["cpu_s"]["total"]
+                                          / best["baseline"]["cpu_s"]["total"], 3),
+           "loo_labels_identical": same,
+           "budget_first_open_le_1s_cpu": best["now"]["cpu_s"]["total"] <= 1.0}
+    text = json.dumps(res, indent=1)
+    if args.json:
+        args.json.write_text(text)
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()

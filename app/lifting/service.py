@@ -188,31 +188,6 @@ class _SceneWork:
     thread: threading.Thread | None = None
 
 
-class _YieldToVotes:
-    """The stop event an after-fill subscriber is handed: ``is_set()`` is the service's stop,
-    but first waits (up to ``MAX_WAIT_S``) while the scene's votes are being applied. The
-    review's refresh asks it between frames, so a save's votes do not share the CPU and the
-    interpreter's lock with the next frame's leave-one-out computation (thread priorities do
-    not order the lock)."""
-
-    MAX_WAIT_S = 30.0
-
-    def __init__(self, service: LiftingService, scene_id: int) -> None:
-        self.service = service
-        self.scene_id = scene_id
-
-    def is_set(self) -> bool:
-        stop = self.service._stop
-        end = time.monotonic() + self.MAX_WAIT_S
-        while not stop.is_set() and time.monotonic() < end \
-                and self.service.busy(self.scene_id).get("applying"):
-            stop.wait(0.05)
-        return stop.is_set()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        return self.service._stop.wait(timeout)
-
-
 def lower_thread_priority(nice: int) -> None:
     """Add ``nice`` to the calling thread's niceness (Linux: a thread is a task with its own
     nice value; the threads it starts inherit it). The fill is the lifting worker's heavy,
@@ -777,7 +752,7 @@ class LiftingService:
                         self._cv.notify_all()
                         return
                 try:
-                    fn(msg, _YieldToVotes(self, key[1]))
+                    fn(msg, self._stop)
                 except Exception:  # noqa: BLE001 - a subscriber never stops the lifting
                     log.warning("labels_updated subscriber %s failed", fn, exc_info=True)
 

@@ -395,31 +395,3 @@ def test_an_after_fill_subscriber_runs_beside_the_fill_not_in_it(env):
     # once more: a fill comes before a refresh)
     assert calls[0][2] >= min(19, base + env.settings.fill_nice)
     assert not svc.busy(sid)["refreshing"]
-
-
-def test_the_after_fill_stop_waits_while_votes_are_applied():
-    """The refresh asks its stop event between frames: while the scene's votes are being
-    applied it waits (so a save's votes do not share the interpreter with a frame's LOO), then
-    answers the service's stop."""
-    import threading
-
-    from app.lifting.service import _YieldToVotes
-
-    class Fake:
-        def __init__(self) -> None:
-            self._stop = threading.Event()
-            self.until = time.monotonic() + 0.4
-
-        def busy(self, scene_id: int) -> dict:
-            return {"applying": scene_id == 3 and time.monotonic() < self.until}
-
-    svc = Fake()
-    t0 = time.monotonic()
-    assert _YieldToVotes(svc, 3).is_set() is False
-    assert time.monotonic() - t0 >= 0.35  # waited for the votes
-    t0 = time.monotonic()
-    assert _YieldToVotes(svc, 4).is_set() is False and time.monotonic() - t0 < 0.2  # other scene
-    svc.until = time.monotonic() + 60
-    threading.Timer(0.2, svc._stop.set).start()
-    t0 = time.monotonic()
-    assert _YieldToVotes(svc, 3).is_set() is True and time.monotonic() - t0 < 5  # stop ends it

@@ -239,11 +239,6 @@ class LiftingService:
         self.decode_threads = decode_threads or max(1, min(4, os.cpu_count() or 1))
         self._pool: ThreadPoolExecutor | None = None
         self.applied = 0  # entries applied by this process (tests, benchmarks)
-        # the after-fill subscribers' work per scene (see _owned_only): newest event waiting,
-        # scenes whose subscriber thread is running
-        self._after_pending: dict[tuple[int, int], Message] = {}
-        self._after_running: set[tuple[int, int]] = set()
-        self._after_fns: list[OwnedSubscriber] = []
         self.name = bus.origin  # lift_queue.applied_by
 
     # ---- lifecycle --------------------------------------------------------------------------
@@ -349,13 +344,10 @@ class LiftingService:
     def busy(self, scene_id: int) -> dict:
         sc = self._scenes.get(scene_id)
         if sc is None:
-            with self._cv:
-                return {"applying": False, "fill_due": False, "filling": False,
-                        "refreshing": any(k[1] == scene_id for k in self._after_running)}
+            return {"applying": False, "fill_due": False, "filling": False}
         with self._cv:
             return {"applying": sc.applying, "fill_due": sc.fill_due is not None,
-                    "filling": sc.filling,
-                    "refreshing": any(k[1] == scene_id for k in self._after_running)}
+                    "filling": sc.filling}
 
     # ---- recovery ---------------------------------------------------------------------------
     def _recover(self) -> None:
@@ -729,44 +721,15 @@ class LiftingService:
     # ---- subscribers ------------------------------------------------------------------------
     def _owned_only(self, fn: OwnedSubscriber) -> Callable[[Message], None]:
         """``fn`` for the scenes this worker owns (every worker gets every event; the one
-        owning the scene acts), handed this service's stop event; best effort.
-
-        ``fn`` runs in a thread of its own per scene, below the fill's priority (started from
-        the fill thread, whose niceness it inherits, it adds ``fill_nice`` once more), not in
-        the thread that published the event: the publisher is the fill thread, and the
-        review's refresh (up to 200 frames' leave-one-out agreement: minutes on a survey) used
-        to hold it -- the scene's labels showed "filling" and the next fill waited for the
-        whole refresh (survey: 12.8 min after a 2.9 min fill). Events that arrive while ``fn``
-        runs for the scene are coalesced: it runs once more, with the newest."""
-        slot = len(self._after_fns)
-        self._after_fns.append(fn)
-
-        def run(key: tuple[int, int]) -> None:
-            lower_thread_priority(self.settings.fill_nice)
-            while True:
-                with self._cv:
-                    msg = self._after_pending.pop(key, None)
-                    if msg is None or self._stop.is_set():
-                        self._after_pending.pop(key, None)
-                        self._after_running.discard(key)
-                        self._cv.notify_all()
-                        return
-                try:
-                    fn(msg, self._stop)
-                except Exception:  # noqa: BLE001 - a subscriber never stops the lifting
-                    log.warning("labels_updated subscriber %s failed", fn, exc_info=True)
+        owning the scene acts), handed this service's stop event; best effort."""
 
         def on_event(msg: Message) -> None:
             owned = self.owned()
             if msg.scene_id is None or (owned is not None and msg.scene_id not in owned):
                 return
-            key = (slot, msg.scene_id)
-            with self._cv:
-                self._after_pending[key] = msg  # the newest labels replace a waiting event
-                if key in self._after_running:
-                    return
-                self._after_running.add(key)
-            threading.Thread(target=run, args=(key,), daemon=True,
-                             name=f"occufly-after-fill-{msg.scene_id}").start()
+            try:
+                fn(msg, self._stop)
+            except Exception:  # noqa: BLE001 - a subscriber never stops the lifting
+                log.warning("labels_updated subscriber %s failed", fn, exc_info=True)
 
         return on_event

@@ -57,6 +57,19 @@ def _truth_mask(src: Path, scene, fi: int) -> np.ndarray:  # noqa: ANN001
     return read_mask(p.read_bytes(), fr, scene.taxonomy, name=str(p))
 
 
+def review_frame(ws: Path, src: Path, scene) -> int:  # noqa: ANN001
+    """One lifted frame to review: the first full-size (20 MP) one of the source's truth where
+    the scene has one, else the first lifted frame."""
+    from occufly.lifting.votes import VoteStore
+
+    state = VoteStore.open(ws, scene, read_only=True)
+    lifted = sorted(state.included_versions())
+    state.close()
+    meta = json.loads((src / "truth" / "meta.json").read_text())
+    full = {scene.frame_index(n) for n in meta.get("full_size_frames", [])}
+    return next((f for f in lifted if f in full), lifted[0])
+
+
 def _box_of(xyz: np.ndarray, n: int) -> np.ndarray:
     """Ids of the points in the smallest square column (x, y) around the cloud's centre that
     holds at least ``n`` points (a lasso's worth of a reviewer's relabel)."""
@@ -73,7 +86,6 @@ def review(ws: Path, src: Path) -> None:
     from occufly.lifting.loo import frame_loo
     from occufly.lifting.quality import quality_report
     from occufly.lifting.suspects import find_suspects
-    from occufly.lifting.votes import VoteStore
     from occufly.scene import Scene
     from occufly.workspace import Workspace
 
@@ -87,13 +99,7 @@ def review(ws: Path, src: Path) -> None:
     labels = np.asarray(corr.load_labels(ws).labels)
     sus = timed("suspects", lambda: find_suspects(scene, votes, labels))
     OUT["suspects"] = len(sus)
-    # one lifted frame: a full-size (20 MP) one where the scene has one
-    state = VoteStore.open(ws, scene, read_only=True)
-    lifted = sorted(state.included_versions())
-    state.close()
-    meta = json.loads((src / "truth" / "meta.json").read_text())
-    full = {scene.frame_index(n) for n in meta.get("full_size_frames", [])}
-    fi = next((f for f in lifted if f in full), lifted[0])
+    fi = review_frame(ws, src, scene)
     mask = _truth_mask(src, scene, fi)
     OUT["loo_frame"] = {"index": int(fi), "size": [int(mask.shape[1]), int(mask.shape[0])]}
     fig = timed("loo_one_frame", lambda: frame_loo(ws, scene, fi, mask, self_labels=labels))

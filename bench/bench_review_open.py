@@ -32,24 +32,17 @@ import json, sys, time
 from pathlib import Path
 import numpy as np
 ws, src, frame, rep, out = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
+sys.path.append(sys.argv[6])  # bench/: the survey stages' frame choice and truth mask
+from _survey_stages import _truth_mask, review_frame
 from occufly import render
-from occufly.io.masks import read_mask
 from occufly.lifting import corrections as corr
 from occufly.lifting import loo as L
-from occufly.lifting.votes import VoteStore
 from occufly.scene import Scene
 scene = Scene.load(ws)
 labels = np.asarray(corr.load_labels(ws).labels)
 if frame < 0:
-    state = VoteStore.open(ws, scene, read_only=True)
-    lifted = sorted(state.included_versions())
-    state.close()
-    meta = json.loads((src / "truth" / "meta.json").read_text())
-    full = {scene.frame_index(n) for n in meta.get("full_size_frames", [])}
-    frame = next((f for f in lifted if f in full), lifted[0])
-fr = scene.frames[frame]
-p = src / "truth" / "masks" / (Path(fr.name).stem + ".png")
-mask = read_mask(p.read_bytes(), fr, scene.taxonomy, name=str(p))
+    frame = review_frame(ws, src, scene)
+mask = _truth_mask(src, scene, frame)
 
 def overlay(imgs):
     if hasattr(render, "disagreement_indices"):
@@ -115,7 +108,8 @@ def main() -> None:
             for k, tree in trees.items():
                 out = str(Path(tmp) / f"{k}.npy")
                 p = subprocess.run([sys.executable, "-c", CHILD, str(args.workspace), str(args.source),
-                                    str(args.frame), str(args.repeat), out], capture_output=True,
+                                    str(args.frame), str(args.repeat), out, str(ROOT / "bench")],
+                                   capture_output=True,
                                    text=True, env={**os.environ, "PYTHONPATH": str(tree)})
                 if p.returncode:
                     sys.exit(f"{k} failed:\n{p.stderr[-3000:]}")

@@ -119,10 +119,7 @@ class DiskCache:
                 if v is not None:
                     return v
                 v = compute()
-                try:
-                    atomic_write_bytes(d / f"{dig}.entry", encode(v))
-                except (OSError, TypeError):  # a full disk costs the sharing, not the answer
-                    log.warning("review cache: could not store an entry in %s", d, exc_info=True)
+                self._write(d, dig, v)
             finally:
                 fcntl.flock(lk, fcntl.LOCK_UN)
         self.prune(data_dir)
@@ -135,11 +132,22 @@ class DiskCache:
         d = self.folder(data_dir)
         try:
             d.mkdir(parents=True, exist_ok=True)
-            atomic_write_bytes(d / f"{self.digest(key)}.entry", encode(value))
+        except OSError:
+            log.warning("review cache: could not create %s", d, exc_info=True)
+            return
+        if self._write(d, self.digest(key), value):
+            self.prune(data_dir)
+
+    @staticmethod
+    def _write(d: Path, dig: str, value: Any) -> bool:  # noqa: ANN401
+        """Write the entry atomically; False where it could not be (a full disk costs the
+        sharing, not the answer)."""
+        try:
+            atomic_write_bytes(d / f"{dig}.entry", encode(value))
+            return True
         except (OSError, TypeError):
             log.warning("review cache: could not store an entry in %s", d, exc_info=True)
-            return
-        self.prune(data_dir)
+            return False
 
     def prune(self, data_dir: str | Path) -> None:
         """Remove the oldest entries beyond ``max_bytes``, and lock files left without an

@@ -84,23 +84,23 @@ class _ReviewCache:
             ev.wait()
         try:
             val = compute()
-            with self._lock:
-                self._items[key] = val
-                while len(self._items) > self.size:
-                    self._items.popitem(last=False)
+            self._remember(key, val)
             return val
         finally:
             with self._lock:
                 self._busy.pop(key, None)
             ev.set()
 
-    def put(self, key, value, data_dir=None) -> None:  # noqa: ANN001
-        """Store a value computed elsewhere (in memory, and in the shared folder)."""
+    def _remember(self, key, value) -> None:  # noqa: ANN001
         with self._lock:
             self._items[key] = value
             self._items.move_to_end(key)
             while len(self._items) > self.size:
                 self._items.popitem(last=False)
+
+    def put(self, key, value, data_dir=None) -> None:  # noqa: ANN001
+        """Store a value computed elsewhere (in memory, and in the shared folder)."""
+        self._remember(key, value)
         if self.shared is not None and data_dir is not None:
             self.shared.put(data_dir, key, value)
 

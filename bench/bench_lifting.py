@@ -41,6 +41,7 @@ from occufly.lifting import (  # noqa: E402
     fill_and_denoise,
     fill_and_denoise_exact,
 )
+from occufly.lifting.confusion import ConfusionParams  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
@@ -158,7 +159,17 @@ BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
 ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-interior": None,
                       "robust-snap": None, "robust-plain": None,
                       "robust-prior05": RobustParams(prior_weight=0.5),
-                      "robust-prior075": RobustParams(prior_weight=0.75)}
+                      "robust-prior075": RobustParams(prior_weight=0.75),
+                      # issue 37, fourth round: the per-annotator confusion model
+                      # (occufly.lifting.confusion); -author: the crew's annotator of each
+                      # frame (crew noise only; the others: each frame its own annotator);
+                      # -diag / -nofilter: the two alternatives tried on small seed 0 only
+                      "robust-confusion": RobustParams(confusion=ConfusionParams()),
+                      "robust-confusion-author": RobustParams(confusion=ConfusionParams()),
+                      "robust-confusion-diag": RobustParams(
+                          confusion=ConfusionParams(diag_prior=20.0, pooled_prior=0.0)),
+                      "robust-confusion-nofilter": RobustParams(
+                          confusion=ConfusionParams(train_min_posterior=0.0))}
 
 
 def weighting_of(mode: str) -> str:
@@ -242,7 +253,9 @@ def robustness(args: argparse.Namespace) -> dict:
                     tie_fill=robust != "tieorder",
                     robust=robust in ("robust", "robust-before") or robust in ROBUST_MODES,
                     robust_params=BEFORE_TINY if robust == "robust-before"
-                    else ROBUST_MODES.get(robust), reliability=robust.endswith("reliable")))
+                    else ROBUST_MODES.get(robust), reliability=robust.endswith("reliable")),
+                    annotators=crew_of if robust.endswith("-author") and mname == "crew"
+                    else None)
                 t_fill, c_fill = time.perf_counter() - t_fill, time.process_time() - c_fill
                 ev = evaluate_points(res.labels, truth, tax, res.origin)
                 has = (direct > 0) & (truth > 0) & (truth < 255)
@@ -259,7 +272,8 @@ def robustness(args: argparse.Namespace) -> dict:
                                       for k, v in ev["per_class"].items()},
                     "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
                     "lift_stats": {k: v for k, v in res.stats.items()
-                                   if k.startswith(("robust", "reliability")) or k.endswith("seconds")},
+                                   if k.startswith(("robust", "reliability", "confusion"))
+                                   or k.endswith("seconds")},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
                 if weighting_of(robust) == "snap":  # what the snapping did to the masks
@@ -540,7 +554,9 @@ def main() -> None:
                          "decision), robust (the default), robust-before (the robust "
                          "decision before the tiny-object work), boundary (weighted votes), "
                          "robust-interior / robust-snap (the robust decision with interior "
-                         "vote weights / masks snapped to their photos' edges)")
+                         "vote weights / masks snapped to their photos' edges), "
+                         "robust-confusion (per-annotator confusion model, each frame its own "
+                         "annotator), robust-confusion-author (crew: the crew's annotators)")
     ap.add_argument("--noise", default="degraded",
                     help="robustness: comma list of noise models besides the exact masks: "
                          "degraded (occufly.synthetic.degrade), crew (occufly.synthetic.noise)")

@@ -128,6 +128,12 @@ class RobustParams:
     confirm_local_share: float = 0.1  # ... or its neighbourhood's votes hold this share of it
     chunk: int = 1_000_000
     seed: int = 0
+    # issue 37, fourth round: the votes' likelihood from a per-annotator confusion model
+    # (occufly.lifting.confusion, Dawid-Skene EM over every frame's votes, initialised from
+    # this decision's own labels) instead of the pooled matrix over the two leading classes;
+    # fill_snapshot runs the pooled decision first, fits the model, then decides again.
+    # None = off (the default); a ConfusionParams = on.
+    confusion: object | None = None
 
 
 # ---- features ------------------------------------------------------------------------------
@@ -524,9 +530,16 @@ def local_votes(xyz: np.ndarray, voted: np.ndarray, col1: np.ndarray, n1: np.nda
 
 def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.ndarray,
              col2: np.ndarray, n2: np.ndarray, params: RobustParams | None = None,
-             progress: ProgressFn | None = None, xyz: np.ndarray | None = None
+             progress: ProgressFn | None = None, xyz: np.ndarray | None = None,
+             confusion=None,  # noqa: ANN001
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Re-decide every voted point from its votes, the annotator model and the classifier.
+
+    ``confusion``: a fitted :class:`occufly.lifting.confusion.ConfusionModel` over the same
+    points: every voted point's vote log-likelihood comes from it (all its votes, each under
+    its annotator's matrix) instead of the pooled matrix over the two leading classes, and
+    the classifier trains only on the unanimous points whose class the model gives at least
+    ``train_min_posterior`` (a sloppy painter's unanimous wrong regions are left out).
 
     col1/n1: (N,) leading vote column (-1 = no votes) and its votes; col2/n2: the second
     (n2 = 0 where none); xyz: (N, 3) the cloud, for the neighbourhood prior (None: the
@@ -556,6 +569,10 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     t_em = time.perf_counter()
     report(0.2, "point classifier")
     train = np.flatnonzero(voted & (n2 == 0) & (n1 >= 2))
+    if confusion is not None and confusion.params.train_min_posterior > 0 and len(train):
+        ok = confusion.class_posterior(train, col1[train]) >= confusion.params.train_min_posterior
+        stats["confusion_train_dropped"] = int(len(train) - ok.sum())
+        train = train[ok]
     vidx_all = np.flatnonzero(voted)
     majority = vidx_all[n1[vidx_all] > n2[vidx_all]] if p.min_strong > 0 else None
     q = _fit_qda(features, train, col1, C, p, majority)
@@ -593,7 +610,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         vrow = local[0][a:a + p.chunk] if local is not None else None
         best, m, n_multi = _decide_chunk(
             logpi, c1, n1[ids], c2, n2[ids], logprior_scene, logprior,
-            None if local is None else (local[2], vrow), K, p, features, ids, q)
+            None if local is None else (local[2], vrow), K, p, features, ids, q,
+            None if confusion is None else confusion.loglik(ids))
         evaluated += n_multi
         labels[ids] = cls.ids[best]
         margin[ids] = m
@@ -638,7 +656,7 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
                      n2: np.ndarray, lp_vox: np.ndarray, vrow: np.ndarray,
                      logprior_scene: np.ndarray, logprior: np.ndarray, pw: np.float32,
                      K: int, nats: np.float32, best: np.ndarray, cand: np.ndarray,
-                     lk: np.ndarray) -> np.ndarray:
+                     lk: np.ndarray, ll: np.ndarray) -> np.ndarray:
     """Per point (one compiled pass, float32 as the model is): the log-likelihood of every
     class, ``sum_c n_c log pi[t, c]`` over the two leading vote classes plus the weighted log
     prior (with ``lp_vox`` non-empty: the neighbourhood's row ``lp_vox[vrow]`` for the classes
@@ -646,10 +664,12 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
     (the first of equals). Returns the rows with a second class within ``nats`` of the best,
     and for each of those its ``K`` likeliest classes within ``nats`` in ``cand`` (by
     likelihood, the lower column first among equals) with their log-likelihoods in ``lk``
-    (slots beyond them: -inf)."""
+    (slots beyond them: -inf). ``ll`` non-empty ((n, C)): the votes' log-likelihood of every
+    class per point (the confusion model's) instead of the pooled ``logpi_t`` rows."""
     n = c1.shape[0]
     C = logpi_t.shape[0]
     local = lp_vox.shape[0] > 0
+    own = ll.shape[0] > 0
     L = np.empty(C, np.float32)
     multi = np.zeros(n, np.bool_)
     for i in range(n):
@@ -657,13 +677,17 @@ def _vote_candidates(logpi_t: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np
         w1 = np.float32(n1[i])
         w2 = np.float32(n2[i])
         b = c2[i]
-        ra = logpi_t[a]
-        for t in range(C):
-            L[t] = ra[t] * w1
-        if w2 > 0:
-            rb = logpi_t[b]
+        if own:
             for t in range(C):
-                L[t] += rb[t] * w2
+                L[t] = ll[i, t]
+        else:
+            ra = logpi_t[a]
+            for t in range(C):
+                L[t] = ra[t] * w1
+            if w2 > 0:
+                rb = logpi_t[b]
+                for t in range(C):
+                    L[t] += rb[t] * w2
         if local:
             lv = lp_vox[vrow[i]]
             # the classes the views voted for take the scene's prior, the others the
@@ -779,7 +803,8 @@ def _feature_kernel(x: np.ndarray, cand: np.ndarray, lk: np.ndarray, mean: np.nd
 def _decide_chunk(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
                   n2: np.ndarray, logprior_scene: np.ndarray, logprior: np.ndarray,
                   local: tuple | None, K: int, p: RobustParams, features: np.ndarray,
-                  ids: np.ndarray, q: _QDA) -> tuple[np.ndarray, np.ndarray, int]:
+                  ids: np.ndarray, q: _QDA, ll: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, int]:
     """The decision of one chunk of voted points ``ids``: (class column (n,), posterior margin
     (n,) float32, how many points the classifier weighed). Candidates: the ``K`` classes the
     votes and the prior make likeliest (``local``: (the per-voxel log of the mixed
@@ -798,7 +823,8 @@ def _decide_chunk(logpi: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndar
     multi = _vote_candidates(
         np.ascontiguousarray(logpi.T, np.float32), c1, np.asarray(n1, np.float32), c2,
         np.asarray(n2, np.float32), lp_vox, np.asarray(vrow), logprior_scene, logprior,
-        np.float32(p.prior_weight), K, np.float32(p.candidate_nats), best, cand, lk)
+        np.float32(p.prior_weight), K, np.float32(p.candidate_nats), best, cand, lk,
+        np.zeros((0, C), np.float32) if ll is None else np.ascontiguousarray(ll, np.float32))
     rows = np.flatnonzero(multi)
     if len(rows) == 0:
         return best, m, 0
@@ -823,7 +849,12 @@ def compile_kernels() -> None:
     for lp_vox in (np.zeros((1, C), np.float32), np.zeros((0, C), np.float32)):
         _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
                          np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
-                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk)
+                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk,
+                         np.zeros((0, C), np.float32))
+        _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
+                         np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
+                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk,
+                         np.zeros((1, C), np.float32))
     for dt in (np.int16, np.int64):
         _group_by_class(np.arange(2, dtype=np.int64), np.array([1, 0], dt), C)
     eye = np.eye(F, dtype=np.float32)

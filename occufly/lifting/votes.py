@@ -640,7 +640,8 @@ class VoteStore:
     def fill_and_denoise(self, progress: ProgressFn | None = None,
                          params: LiftParams | None = None, *,
                          snapshot: VoteSnapshot | None = None, write: bool = True,
-                         incremental=None) -> LiftResult:  # noqa: ANN001
+                         incremental=None, annotators: dict | None = None
+                         ) -> LiftResult:  # noqa: ANN001
         """kNN fill + denoise of the votes; writes labels/confidence/origin (``write=False``:
         only returns them).
 
@@ -649,7 +650,8 @@ class VoteStore:
         counts, so updates may go on meanwhile. ``incremental``: an
         :class:`occufly.lifting.incremental.IncrementalFill` of this scene (a live worker keeps
         one per scene): the k-NN passes rerun only around the points whose decided label
-        changed since its last fill (same result).
+        changed since its last fill (same result). ``annotators``: frame -> who painted it,
+        for the confusion model (``RobustParams.confusion``; default: each frame its own).
         """
         report = progress or noop
         if write:
@@ -663,6 +665,13 @@ class VoteStore:
                 # frames that see the same points are left out
                 vetoed, rstats = self.reliability_snapshot(None)
                 snapshot = vetoed or snapshot
+            rp = getattr(params, "robust_params", None)
+            if getattr(rp, "confusion", None) is not None:  # the votes as counted now
+                snapshot.frame_votes = {fi: self._load_frame_file(self._frame_path(fi))
+                                        for fi in self._versions
+                                        if self._frame_path(fi).is_file()}
+        if annotators is not None:
+            snapshot.annotators = dict(annotators)
         result = fill_snapshot(self.scene, snapshot, params=params, ws=self.ws,
                                read_only=self.read_only or not write,
                                progress=lambda f, m: report(0.05 + 0.9 * f, m),
@@ -693,6 +702,11 @@ class VoteSnapshot:
     second_col: np.ndarray | None = None
     second: np.ndarray | None = None
     vote_unit: int = 1  # counts per view (VOTE_UNITS; top is already in views)
+    # issue 37, the confusion model (RobustParams.confusion): every frame's votes (frame ->
+    # point ids, columns, weights; None = read from the workspace's frame files) and who
+    # painted each frame (frame -> annotator id; None or a frame missing: its own annotator)
+    frame_votes: dict | None = None
+    annotators: dict | None = None
 
     @property
     def annotated_frames(self) -> int:
@@ -743,6 +757,10 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
         direct, margin, top, robust_stats = redecide(
             cls, feats, col1, top1, snapshot.second_col, second,
             rp, progress=lambda f, m: report(0.3 * f, m), xyz=scene.xyz)
+        if getattr(rp, "confusion", None) is not None:
+            direct, margin, top, robust_stats = _confusion_decision(
+                scene, snapshot, ws, cls, feats, col1, top1, second, rp,
+                (direct, margin, top, robust_stats), lambda f, m: report(0.3 * f, m))
         if rp.confirm_views is not None and p.confirm_views is not None:
             # the robust margin is a posterior margin, not a vote share: it confirms alone
             p = replace(p, confirm_views=rp.confirm_views)
@@ -762,6 +780,38 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     result.stats["annotated_frames"] = snapshot.annotated_frames
     result.stats["versions"] = {str(k): v for k, v in sorted(snapshot.versions.items())}
     return result
+
+
+def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns,  # noqa: ANN001
+                        feats: np.ndarray, col1: np.ndarray, top1: np.ndarray, second: np.ndarray,
+                        rp, first: tuple, report: ProgressFn  # noqa: ANN001
+                        ) -> tuple:
+    """The robust decision again, with the votes' likelihood from a per-annotator confusion
+    model (:mod:`occufly.lifting.confusion`) fitted from every frame's votes and initialised
+    from the first decision's labels (``first``: its (labels, margin, top, stats)). Without the frames' votes (a snapshot made
+    without them and no workspace): the first decision, with a stat saying so."""
+    from occufly.lifting.confusion import fit_confusion, load_frame_votes, vote_table
+    from occufly.lifting.robust import redecide
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    frames = snapshot.frame_votes
+    if frames is None and ws is not None:
+        frames = load_frame_votes(ws, sorted(snapshot.versions))
+    if not frames:
+        first[3]["confusion_skipped"] = "no per-frame votes"
+        return first
+    table = vote_table(frames, scene.n_points, snapshot.annotators, snapshot.vote_unit)
+    init = np.where(first[0] > 0, cls.col_of[first[0]], -1)
+    model = fit_confusion(table, cls.C, init, rp.confusion)
+    t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
+    direct, margin, top, stats = redecide(cls, feats, col1, top1, snapshot.second_col, second,
+                                          rp, progress=report, xyz=scene.xyz, confusion=model)
+    stats.update(model.stats)
+    stats["confusion_fit_seconds"] = round(t_fit, 3)
+    stats["confusion_fit_cpu_seconds"] = round(c_fit, 3)
+    stats["confusion_first_robust_seconds"] = first[3].get("robust_seconds")
+    stats["confusion_changed_points"] = int(np.count_nonzero(direct != first[0]))
+    return direct, margin, top, stats
 
 
 def _npz_bytes(**arrays: np.ndarray) -> bytes:

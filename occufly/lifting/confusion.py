@@ -234,8 +234,6 @@ def fit_confusion(table: VoteTable, C: int, init_labels: np.ndarray | None = Non
             post[~ok] = _vote_shares(S, ~ok, A, C)
     else:
         post = _vote_shares(S, np.ones(len(ids), bool), A, C)
-    starts = (np.cumsum(lens) - lens)[lens > 0]
-    has = lens > 0
     for _ in range(max(1, p.iterations)):
         # M-step: expected counts E[a, t, c] = sum over a's votes c of post[point, t]
         E = np.asarray(S @ post).reshape(A, C, C).transpose(0, 2, 1)  # (A, true, voted)
@@ -245,11 +243,12 @@ def fit_confusion(table: VoteTable, C: int, init_labels: np.ndarray | None = Non
         pi = Acnt / Acnt.sum(axis=2, keepdims=True)
         prior = post.sum(axis=0) + 1.0
         prior /= prior.sum()
-        # E-step on the sample
-        rows = np.log(pi).transpose(0, 2, 1).reshape(A * C, C)
-        g = rows[key] * table.w[idx][:, None]
-        L = np.zeros((len(ids), C), np.float64)
-        L[has] = np.add.reduceat(g, starts, axis=0)
+        # E-step on the sample, in blocks (float32 gathers, as ConfusionModel.loglik)
+        rows = np.ascontiguousarray(np.log(pi).transpose(0, 2, 1).reshape(A * C, C), np.float32)
+        L = np.empty((len(ids), C), np.float64)
+        ch = max(1, p.chunk)
+        for a in range(0, len(ids), ch):
+            L[a:a + ch] = _loglik_block(table, rows, ids[a:a + ch], C)
         L += np.log(prior)
         L -= L.max(axis=1, keepdims=True)
         post = np.exp(L)

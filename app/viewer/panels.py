@@ -85,10 +85,7 @@ class PanelsMixin:
 
         @g["lod"].on_update
         def _(_e: Any) -> None:
-            st.max_points = max(1000, int(g["lod"].value))
-            st.subsample = None
-            st.lod_plan = None  # a new plan (the old chunks are removed)
-            self.send_points(st)
+            self.lod_field_changed(st, g["lod"].value)
 
         @g["grid_scene"].on_update
         def _(_e: Any) -> None:

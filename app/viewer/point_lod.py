@@ -94,6 +94,36 @@ def batches(plan: LodPlan, n: int) -> list[list[int]]:
     return [b for b in out if b]
 
 
+def group_sizes(plan: LodPlan) -> dict[int, int]:
+    """Points per tile group of ``plan.order``."""
+    if not plan.order:
+        return {}
+    counts = np.bincount(plan.group, minlength=max(plan.order) + 1)
+    return {g: int(counts[g]) for g in plan.order}
+
+
+def next_batch(todo: list[int], sizes: dict[int, int], shown: int, draw_s: float,
+               budget_s: float, must: set[int] | frozenset = frozenset()) -> list[int]:
+    """The tile groups to send next so that a frame stays within ``budget_s``: the browser
+    drew ``shown`` points in ``draw_s`` seconds (a render round trip), so it is taken to
+    need ``draw_s / shown`` seconds a point (an over-estimate where a fixed cost is part of
+    the round trip: the next measurement, with more points shown, corrects it). Tiles are
+    taken in ``todo``'s order (the middle of the view first) while the predicted frame fits;
+    the groups of ``must`` (on screen before: a colour change re-sends them) always go.
+    An empty list: nothing more fits, the refinement stops."""
+    per_point = max(draw_s, 0.0) / max(shown, 1)
+    room = budget_s / per_point - shown if per_point > 0 else float("inf")
+    out, used, full = [], 0, False
+    for g in todo:
+        n = sizes.get(g, 0)
+        if g in must or (not full and used + n <= room):
+            out.append(g)
+            used += n
+        else:
+            full = True  # keep the order: no farther tile behind one that did not fit
+    return out
+
+
 def chunk_name(taxonomy: sb.Taxonomy, class_id: int, group: int) -> str:
     part = "coarse" if group == 0 else f"detail/t{group - 1:03d}"
     return f"/points/{sb.class_name(taxonomy, class_id)}/{part}"

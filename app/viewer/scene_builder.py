@@ -552,9 +552,16 @@ def camera_grid_nodes(labels: np.ndarray, invalid: np.ndarray, occluded: np.ndar
     return nodes
 
 
+#: the voxel grids' mesh material: ``toon3`` (three shading bands, no physically based
+#: lighting) drew the survey's scene grid in 3.5 s frames under software WebGL where the
+#: standard material took 7.3 s, with 44 % less of the browser's CPU (issue 38)
+GRID_MATERIAL = "toon3"
+
+
 def send_voxel_nodes(scene_api: Any, nodes: list[VoxelNode],
                      visible: dict[int, bool] | None = None) -> dict[str, Any]:
-    """Add every voxel node as instanced boxes (``add_batched_meshes_simple``)."""
+    """Add every voxel node as instanced boxes (``add_batched_meshes_simple``, the
+    :data:`GRID_MATERIAL`)."""
     handles = {}
     for nd in nodes:
         n = len(nd.centers)
@@ -562,7 +569,8 @@ def send_voxel_nodes(scene_api: Any, nodes: list[VoxelNode],
             nd.name, vertices=CUBE_VERTICES * np.float32(nd.size), faces=CUBE_FACES,
             batched_wxyzs=np.broadcast_to(np.asarray(nd.wxyz, np.float32), (n, 4)),
             batched_positions=nd.centers, batched_colors=np.asarray(nd.color, np.uint8),
-            opacity=nd.opacity, flat_shading=True, lod="off", cast_shadow=False,
+            opacity=nd.opacity, flat_shading=True, lod="off", material=GRID_MATERIAL,
+            cast_shadow=False,
             receive_shadow=False,
             visible=True if visible is None else visible.get(nd.class_id, True),
         )

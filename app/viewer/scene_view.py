@@ -33,6 +33,13 @@ class SceneViewMixin:
     refine_batches = 2  # the refinement tiles arrive in this many batches
     refine_pause_s = 0.0  # after each batch (the round trip of _drawn paces them)
     draw_wait_s: float | None = 15.0  # at most this long for the browser to draw a batch
+    #: the resting level of detail is chosen per browser: the refinement sends only the
+    #: tiles with which a frame of the points shown is predicted to take at most this long
+    #: (from the render round trip, :meth:`_refine`); None sends the whole plan. 0.4 s: a
+    #: relabel is drawn after the frame in flight, a frame of the coarse level that takes the
+    #: new data in, and a frame with the tiles back (:meth:`update_shown`): about 2 frames of
+    #: everything shown plus the server's 0.3-0.5 s, within the issue's 2 s
+    frame_budget_s: float | None = 0.4
     motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
     hide_tiles_on_update = True  # ... and while a correction's chunks are on their way
 
@@ -148,14 +155,16 @@ class SceneViewMixin:
                     d, st.max_points, coarse_points=self.preview_points or st.max_points,
                     tiles=self.lod_tiles, subsample=st.subsample)
                 st.subsample = st.lod_plan.ids
+            keep = set(st.sent_groups) - {0}  # tiles on screen (a colour change): re-sent
             st.lod_gen += 1
             st.lod_done.clear()
+            st.lod_stopped = None
             st.lod_started = time.perf_counter()
             nodes = self._send_groups(st, {0})
             st.first_sent_at = st.first_sent_at or time.perf_counter()
             gen, plan = st.lod_gen, st.lod_plan
         if plan.order:
-            threading.Thread(target=self._refine, args=(st, gen, plan), daemon=True,
+            threading.Thread(target=self._refine, args=(st, gen, plan, keep), daemon=True,
                              name="viewer-lod").start()
         else:
             self._lod_finished(st, gen)
@@ -209,37 +218,122 @@ class SceneViewMixin:
         st.point_nodes = point_lod.merge_by_class(st.chunks, d.taxonomy)
         st.sent_points = int(sum(len(nd.point_ids) for nd in st.chunks.values()))
 
-    def _refine(self, st: ClientState, gen: int, plan: point_lod.LodPlan) -> None:
-        """Send the refinement tiles in ``refine_batches`` batches (the middle of the view
-        first), each after the browser has drawn what it had: under software WebGL every
-        batch that arrives costs a frame of everything shown, so few batches, each behind
-        a round trip (:meth:`_drawn`), put the coarse picture on screen first and the full
-        level soon after, without a backlog of frames."""
+    def _refine(self, st: ClientState, gen: int, plan: point_lod.LodPlan,
+                keep: set[int] | frozenset = frozenset()) -> None:
+        """Send the refinement tiles (the middle of the view first), each batch after the
+        browser has drawn what it had: under software WebGL every batch that arrives costs a
+        frame of everything shown, so few batches, each behind a round trip (:meth:`_drawn`),
+        put the coarse picture on screen first and more soon after, without a backlog.
+
+        The resting level of detail is this browser's: after each batch a second round trip
+        measures how long it takes to draw what it shows, and the next batch holds only the
+        tiles with which a frame is predicted to stay within :attr:`frame_budget_s`
+        (:func:`point_lod.next_batch`); where none fits, the refinement stops there and the
+        status line says so (a GPU browser draws 2 M points in milliseconds and gets them
+        all, in one batch; software WebGL needs seconds a frame for them, and every change
+        would wait for such frames). The user's own "LOD max points" (``st.lod_explicit``),
+        a client that cannot answer a render request, or ``frame_budget_s`` None: the plan
+        is sent whole, in ``refine_batches`` batches. ``keep``: tile groups on screen before
+        this send (a colour change re-sends them): always sent, never left stale."""
         try:
-            batches = point_lod.batches(plan, self.refine_batches)
-            for batch in batches:
-                self._drawn(st)
+            adaptive = (self.frame_budget_s is not None and not st.lod_explicit
+                        and getattr(st.client, "get_render", None) is not None)
+            if not adaptive:
+                for batch in point_lod.batches(plan, self.refine_batches):
+                    self._drawn(st)
+                    if not self._send_batch(st, gen, batch):
+                        return
+                self._lod_finished(st, gen)
+                return
+            sizes = point_lod.group_sizes(plan)
+            todo = list(plan.order)
+            while todo:
+                self._drawn(st)  # what was sent is drawn (uploads, shaders compiled) ...
+                draw_s = self._drawn(st)  # ... and a frame of it takes this long
                 with st.lock:
                     if st.lod_gen != gen or st.data is None:
                         return
-                    self._send_groups(st, set(batch))
-                if self.refine_pause_s:
-                    time.sleep(self.refine_pause_s)
+                    shown = self._points_drawn(st)
+                if draw_s is None:  # no answer: the rest as planned
+                    batch = todo
+                else:
+                    st.draw_s = draw_s
+                    batch = point_lod.next_batch(todo, sizes, shown, draw_s,
+                                                 float(self.frame_budget_s), keep)
+                    if not batch:
+                        with st.lock:
+                            if st.lod_gen != gen:
+                                return
+                            st.lod_stopped = (st.sent_points, len(plan.ids), draw_s)
+                        log.info("viewer: this browser draws %d points in %.2f s: the level "
+                                 "of detail stops at %d of %d", shown, draw_s, st.sent_points,
+                                 len(plan.ids))
+                        self._show_lod_choice(st, st.sent_points)
+                        break
+                if not self._send_batch(st, gen, batch):
+                    return
+                todo = [g for g in todo if g not in set(batch)]
             self._lod_finished(st, gen)
         except Exception:  # noqa: BLE001 - a closed tab ends its refinement
             log.debug("viewer: refinement stopped", exc_info=True)
 
-    def _drawn(self, st: ClientState) -> None:
+    def _send_batch(self, st: ClientState, gen: int, batch: list[int]) -> bool:
+        with st.lock:
+            if st.lod_gen != gen or st.data is None:
+                return False
+            self._send_groups(st, set(batch))
+        if self.refine_pause_s:
+            time.sleep(self.refine_pause_s)
+        return True
+
+    @staticmethod
+    def _points_drawn(st: ClientState) -> int:
+        """The points the browser draws now: the tiles count only while they are shown."""
+        if st.moving or st.updating:
+            return sum(len(nd.point_ids) for (g, _c), nd in st.chunks.items() if g == 0)
+        return st.sent_points
+
+    def _show_lod_choice(self, st: ClientState, shown: int) -> None:
+        """Write the viewer's choice into the "LOD max points" field (not the user's setting:
+        the field's callback leaves it alone); raising it there sends the rest."""
+        box = st.gui.get("lod")
+        if box is None:
+            return
+        st.lod_gui_sync = True
+        try:
+            box.value = int(shown)
+        except Exception:  # noqa: BLE001 - the tab closed meanwhile
+            log.debug("viewer: LOD field", exc_info=True)
+        finally:
+            st.lod_gui_sync = False
+
+    def lod_field_changed(self, st: ClientState, value: float) -> None:
+        """The "LOD max points" field changed: by the user, a new plan of that many points,
+        sent whole however slowly this browser draws; by the viewer showing where its
+        refinement stopped (:meth:`_show_lod_choice`), nothing."""
+        if st.lod_gui_sync:
+            return
+        st.lod_explicit = True
+        st.max_points = max(1000, int(value))
+        st.subsample = None
+        st.lod_plan = None  # a new plan (the old chunks are removed)
+        self.send_points(st)
+
+    def _drawn(self, st: ClientState) -> float | None:
         """Wait (at most ``draw_wait_s``) until the browser has handled every message sent so
         far and drawn a frame: viser's client answers a render request (a 16 x 16 picture)
-        only after the messages before it, and handles nothing else meanwhile."""
+        only after the messages before it, and handles nothing else meanwhile. Returns the
+        seconds the round trip took (None: no answer)."""
         get_render = getattr(st.client, "get_render", None)
         if get_render is None or not self.draw_wait_s:
-            return
+            return None
+        t = time.perf_counter()
         try:
             get_render(16, 16, timeout=self.draw_wait_s)
         except Exception:  # noqa: BLE001 - no answer (a socket-level client): go on
             log.debug("viewer: no render answer", exc_info=True)
+            return None
+        return time.perf_counter() - t
 
     def _lod_finished(self, st: ClientState, gen: int) -> None:
         with st.lock:
@@ -253,8 +347,13 @@ class SceneViewMixin:
     def status_line(self, st: ClientState) -> str:
         d = st.data
         lifted = "lifted labels" if d.labels is not None else "no lifted labels yet (RGB only)"
-        return (f"**{md_text(st.scene_id)}**: {d.scene.n_points:,} points, "
+        line = (f"**{md_text(st.scene_id)}**: {d.scene.n_points:,} points, "
                 f"{len(d.scene.frames)} cameras, {lifted}; showing {st.sent_points:,} points.")
+        if st.lod_stopped is not None:
+            shown, planned, draw_s = st.lod_stopped
+            line += (f" This browser draws slowly ({draw_s:.1f} s a frame of {shown:,} points):"
+                     f" showing {shown:,} of {planned:,}; raise *LOD max points* to see more.")
+        return line
 
     # ---- motion level of detail -------------------------------------------------------------
     def _watch_motion(self, st: ClientState) -> None:
@@ -269,14 +368,19 @@ class SceneViewMixin:
         st.client.camera.on_update(moved)
 
     def camera_moved(self, st: ClientState) -> None:
-        """A camera message: the tiles go (the coarse level alone is drawn) until the camera
-        has rested ``motion_rest_s``; then they come back (visibility flags, no data)."""
+        """A camera message: the tiles and the voxel grids' boxes go (the coarse level alone
+        is drawn) until the camera has rested ``motion_rest_s``; then they come back
+        (visibility flags, no data). Under software WebGL a frame with the grid's 35 k boxes
+        took 0.45 s (2.2 fps orbiting, issue 38); the points' coarse level alone reaches
+        10-19 fps."""
         with st.motion_lock:
             st.last_move = time.monotonic()
             if st.moving:
                 return
             st.moving = True
-        self._set_detail_visible(st, False)
+        with st.client.atomic():
+            self._set_detail_visible(st, False)
+            self._set_grid_visible(st, False)
         threading.Thread(target=self._rest_watch, args=(st,), daemon=True,
                          name="viewer-motion").start()
 
@@ -289,8 +393,10 @@ class SceneViewMixin:
                     show = not st.updating
                     break
             time.sleep(wait)
-        if show:
-            self._set_detail_visible(st, True)
+        with st.client.atomic():
+            self._set_grid_visible(st, True)
+            if show:
+                self._set_detail_visible(st, True)
 
     # ---- a correction's update --------------------------------------------------------------
     def update_shown(self, st: ClientState, keys: set[tuple[int, int]]) -> None:
@@ -360,6 +466,17 @@ class SceneViewMixin:
                     h.visible = visible
         except Exception:  # noqa: BLE001 - the tab closed meanwhile
             log.debug("viewer: motion LOD", exc_info=True)
+
+    def _set_grid_visible(self, st: ClientState, visible: bool) -> None:
+        """The voxel grids' boxes shown (each as its class's checkbox says) or hidden."""
+        try:
+            for name, h in list(st.grid_handles.items()):
+                cid = st.grid_classes.get(name)
+                want = visible and (cid is None or st.class_visible.get(cid, True))
+                if h.visible != want:
+                    h.visible = want
+        except Exception:  # noqa: BLE001 - the tab closed meanwhile
+            log.debug("viewer: motion LOD of the grid", exc_info=True)
 
     def set_point_size(self, st: ClientState, size: float) -> None:
         st.point_size = float(size)
@@ -442,7 +559,11 @@ class SceneViewMixin:
                 if cg is not None:
                     nodes += sb.camera_grid_nodes(*cg, taxonomy=d.taxonomy,
                                                   surface_only=surface_only)
-            st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, st.class_visible)
+            st.grid_classes = {nd.name: nd.class_id for nd in nodes}
+            visible = dict(st.class_visible)
+            if st.moving:  # the camera moves: the boxes come with the rest (_rest_watch)
+                visible.update({nd.class_id: False for nd in nodes})
+            st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, visible)
 
     def set_class_visible(self, st: ClientState, class_id: int, visible: bool) -> None:
         """Show/hide a class's points and voxels. Takes no lock on purpose: a toggle must
@@ -454,7 +575,7 @@ class SceneViewMixin:
         name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
         for n, gh in list(st.grid_handles.items()):
             if n.rsplit("/", 1)[-1] == name:
-                gh.visible = visible
+                gh.visible = visible and not st.moving  # moving: back at rest (_rest_watch)
 
     # ---- cameras ---------------------------------------------------------------------------
     def show_frame(self, st: ClientState, frame_index: int) -> None:

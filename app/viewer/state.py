@@ -53,6 +53,7 @@ class ClientState:
     point_handles: dict[int, Any] = field(default_factory=dict)
     point_nodes: dict[int, sb.PointNode] = field(default_factory=dict)
     grid_handles: dict[str, Any] = field(default_factory=dict)
+    grid_classes: dict[str, int] = field(default_factory=dict)  # grid node name -> class id
     frustum_handles: dict[int, Any] = field(default_factory=dict)
     selection: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     frame_index: int | None = None
@@ -76,6 +77,14 @@ class ClientState:
     first_sent_at: float = 0.0  # perf_counter when the first points of a scene were sent
     lod_done: threading.Event = field(default_factory=threading.Event)
     detail_handles: dict[int, Any] = field(default_factory=dict)  # /points/<class>/detail
+    # the resting level of detail this browser draws (scene_view._refine): the seconds its
+    # last measured frame took (a render round trip), whether the user set "LOD max points"
+    # (then every point of the plan is sent), and (points shown, points planned, seconds a
+    # frame) where the refinement stopped because this browser draws slowly, else None
+    draw_s: float | None = None
+    lod_explicit: bool = False
+    lod_stopped: tuple[int, int, float] | None = None
+    lod_gui_sync: bool = False  # the viewer writes its choice into the field: not the user's
     moving: bool = False  # the camera moves: the detail frames are hidden
     updating: int = 0  # corrections whose chunks the browser has not drawn yet: hidden too
     last_move: float = 0.0

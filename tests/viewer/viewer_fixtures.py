@@ -83,6 +83,15 @@ class FakeScene:
         return FakeHandle(self.log, name)
 
 
+    def add_batched_meshes_simple(self, name: str, *, batched_positions, **kw) -> FakeHandle:
+        with self.lock:
+            self.log.append(("boxes", name, len(batched_positions), kw.get("material"),
+                             kw.get("visible", True)))
+        h = FakeHandle(self.log, name)
+        h.visible = kw.get("visible", True)
+        return h
+
+
 class FakeBox(FakeHandle):
     def __init__(self, log: list, name: str, value: bool) -> None:
         super().__init__(log, name)

@@ -22,7 +22,7 @@ from app.context import AppContext
 from app.db import utcnow
 from app.errors import Conflict, Forbidden, Invalid, NotFound, TooManyAttempts
 from app.notifications.service import notify_frame_people
-from app.review.disk_cache import DiskCache
+from app.review.disk_cache import DiskCache, decode, encode
 from app.review.models import ReviewComment, ReviewItem, SuspectMark
 from app.scenes.membership import check_member
 from app.scenes.models import Frame, Scene
@@ -122,8 +122,10 @@ _CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review"))
 _RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review_render"))
 # the suspects list of the scenes' current labels (issue 38: seconds of CPU on a survey, so it
 # is computed after each fill, not when a reviewer opens the tab); its own cache, so that the
-# frames warmed after it do not push it out
-_SUSPECT_CACHE = _ReviewCache(4)
+# frames warmed after it do not push it out; shared between processes and kept on disk, so an
+# API process that did not run the fill, or one started after it (a restart, a deploy), reads
+# it instead of computing it again (a survey's list: ~65 s of CPU)
+_SUSPECT_CACHE = _ReviewCache(4, shared=DiskCache("suspects"))
 
 
 def _stamp(*paths: Path) -> tuple:
@@ -464,11 +466,15 @@ def _suspect_rows(ctx: AppContext, scene: Scene) -> list[dict]:
             r["n_frames"] = len(r["frames"])
             r["frames"] = r["frames"][:50]
             r["outline"] = _outline(ws_scene, views, r["best_frame"], pts)
-            r["_points"] = np.asarray(pts, np.int64)  # for the 3D jump (suspect_points)
+            # for the 3D jump (suspect_points): raw int64 bytes, stored as such (base64) in
+            # the shared cache, not as a JSON list of numbers
+            r["_points"] = np.asarray(pts, "<i8").tobytes()
             out.append(r)
-        return out
+        # the form every process reads back from the shared cache (JSON: a dict's integer
+        # keys become strings), here too, so the computing process answers the same
+        return decode(encode(out))
 
-    return _SUSPECT_CACHE.get(key, compute)
+    return _SUSPECT_CACHE.get(key, compute, ctx.settings.data_dir)
 
 
 def _warm_suspects(ctx: AppContext, scene: Scene) -> None:
@@ -509,7 +515,7 @@ def suspect_points(ctx: AppContext, scene: Scene, key: str) -> np.ndarray | None
         return None
     for r in rows:
         if r.get("key") == key:
-            return np.sort(np.asarray(r["_points"], np.int64))
+            return np.sort(np.frombuffer(r["_points"], "<i8").astype(np.int64))
     return None
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
+from occufly.workspace import Workspace
 from tests.app.conftest import H, W, png
 
 
@@ -114,6 +117,45 @@ def test_suspects_list_is_computed_after_a_fill_not_when_opened(world, monkeypat
     r = env.client.get(f"/api/scenes/{scene['id']}/suspects", headers=hdr["reviewer"])
     assert r.status_code == 200 and r.json()["suspects"], r.text
     assert len(calls) == n  # served from what the fill's refresh computed
+
+
+def test_suspects_list_survives_a_restart(world, monkeypatch):
+    """Issue 38: after a restart (or in an API process that did not run the fill) the
+    suspects list is read from the data dir's shared cache, not computed again (~65 s of CPU
+    on the survey); the 3D jump's point ids come back the same."""
+    from app.review import service as review
+
+    env, hdr, scene, frames = world
+    sid = scene["id"]
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
+        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=20, include_fill=True)
+    first = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"])
+    assert first.status_code == 200 and first.json()["suspects"], first.text
+    ctx = env.app.state.ctx
+    from app.scenes.models import Scene
+
+    with ctx.sessions() as s:
+        sc = s.get(Scene, sid)
+        key = first.json()["suspects"][0]["key"]
+        before = review.suspect_points(ctx, sc, key)
+        assert before is not None and len(before) > 0
+        assert (np.diff(before) > 0).all() and before.min() == int(key[1:])
+        review._SUSPECT_CACHE.clear()  # a new process: nothing in memory
+        calls = []
+        monkeypatch.setattr(review, "find_suspects", lambda *a, **k: calls.append(1) or [])
+        again = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"])
+        assert again.status_code == 200 and again.json() == first.json()
+        np.testing.assert_array_equal(review.suspect_points(ctx, sc, key), before)
+        assert calls == []  # read from the shared cache, not computed again
+        # new labels (a new stamp): computed again, not the old list
+        review._SUSPECT_CACHE.clear()
+        labels = Workspace(sc.workspace).labels_path
+        st = os.stat(labels)
+        os.utime(labels, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        r = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"])
+        assert r.status_code == 200 and calls == [1] and r.json()["suspects"] == []
 
 
 def test_suspect_marks_are_shared_and_idempotent(world):

@@ -58,14 +58,16 @@ def plan_lod(data: sb.ViewerData, max_points: int, *, coarse_points: int = DEFAU
     by distance of the tile's centre to ``focus`` (scene-local xy; default the middle)."""
     n = data.scene.n_points
     ids = subsample if subsample is not None else sb.stratified_subsample(
-        data.labels, n, max_points, seed=seed)
+        data.labels, n, max_points, seed=seed,
+        counts=data.label_counts() if data.labels is not None else None)
     ids = np.asarray(ids, np.int64)
     group = np.zeros(len(ids), np.int16)
     if len(ids) <= coarse_points or tiles < 1:
         return LodPlan(ids, group, [])
     lab = np.asarray(data.labels[ids]) if data.labels is not None else None
     coarse = sb.stratified_subsample(lab, len(ids), coarse_points, seed=seed + 1)
-    xy = np.asarray(data.scene.xyz[ids, :2], np.float64)
+    # whole rows, then x and y: a memory-mapped cloud gathers rows twice as fast as columns
+    xy = np.asarray(np.take(data.scene.xyz, ids, axis=0)[:, :2], np.float64)
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     span = np.maximum(hi - lo, 1e-6)
     cell = np.minimum(((xy - lo) / span * tiles).astype(np.int64), tiles - 1)

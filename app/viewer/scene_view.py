@@ -42,6 +42,7 @@ class SceneViewMixin:
     frame_budget_s: float | None = 0.4
     motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
     hide_tiles_on_update = True  # ... and while a correction's chunks are on their way
+    hide_grid_on_motion = True  # the voxel grids' boxes hidden while the camera moves too
 
     # ---- scene content ---------------------------------------------------------------------
     def open_scene(self, st: ClientState, scene_id: str, *, done: bool = True) -> None:
@@ -151,9 +152,7 @@ class SceneViewMixin:
                 st.chunk_handles.clear()
                 st.chunks.clear()
                 st.sent_groups = set()
-                st.lod_plan = point_lod.plan_lod(
-                    d, st.max_points, coarse_points=self.preview_points or st.max_points,
-                    tiles=self.lod_tiles, subsample=st.subsample)
+                st.lod_plan = self._plan(st)
                 st.subsample = st.lod_plan.ids
             keep = set(st.sent_groups) - {0}  # tiles on screen (a colour change): re-sent
             st.lod_gen += 1
@@ -169,6 +168,30 @@ class SceneViewMixin:
         else:
             self._lod_finished(st, gen)
         return list(nodes.values())
+
+    def _plan(self, st: ClientState) -> point_lod.LodPlan:
+        """The tab's level of detail plan (st.lock held): shared by the tabs of a scene
+        that ask for the same plan (another tab, "3D" on a frame, a reconnect) -- on a
+        32 M-point survey the stratified choice of 2 M points takes ~1 s of the first
+        picture. Plans are read only; a plan made before a relabel still shows every class
+        (the stratification is by the labels when it was made)."""
+        d = st.data
+        coarse = self.preview_points or st.max_points
+        if st.subsample is not None:  # the legacy preview's subsample: not shared
+            return point_lod.plan_lod(d, st.max_points, coarse_points=coarse,
+                                      tiles=self.lod_tiles, subsample=st.subsample)
+        key = (st.scene_id, id(d.scene), d.labels is None, st.max_points, coarse,
+               self.lod_tiles)
+        with self._lock:
+            hit = self._plans.get(key)
+        if hit is not None and hit[0] is d.scene:  # (the scene object kept: ids are reused)
+            return hit[1]
+        plan = point_lod.plan_lod(d, st.max_points, coarse_points=coarse, tiles=self.lod_tiles)
+        with self._lock:
+            if len(self._plans) >= 8:
+                self._plans.clear()
+            self._plans[key] = (d.scene, plan)
+        return plan
 
     def _send_groups(self, st: ClientState, groups: set[int]) -> dict:
         """Build and send every chunk of ``groups`` (st.lock held)."""
@@ -469,6 +492,8 @@ class SceneViewMixin:
 
     def _set_grid_visible(self, st: ClientState, visible: bool) -> None:
         """The voxel grids' boxes shown (each as its class's checkbox says) or hidden."""
+        if not self.hide_grid_on_motion:
+            return
         try:
             for name, h in list(st.grid_handles.items()):
                 cid = st.grid_classes.get(name)
@@ -561,7 +586,7 @@ class SceneViewMixin:
                                                   surface_only=surface_only)
             st.grid_classes = {nd.name: nd.class_id for nd in nodes}
             visible = dict(st.class_visible)
-            if st.moving:  # the camera moves: the boxes come with the rest (_rest_watch)
+            if st.moving and self.hide_grid_on_motion:  # back at rest (_rest_watch)
                 visible.update({nd.class_id: False for nd in nodes})
             st.grid_handles = sb.send_voxel_nodes(st.client.scene, nodes, visible)
 
@@ -575,7 +600,7 @@ class SceneViewMixin:
         name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
         for n, gh in list(st.grid_handles.items()):
             if n.rsplit("/", 1)[-1] == name:
-                gh.visible = visible and not st.moving  # moving: back at rest (_rest_watch)
+                gh.visible = visible and not (st.moving and self.hide_grid_on_motion)
 
     # ---- cameras ---------------------------------------------------------------------------
     def show_frame(self, st: ClientState, frame_index: int) -> None:

@@ -117,6 +117,7 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
         self._tickets: dict[str, Ticket] = {}
         self._clients: dict[int, ClientState] = {}
         self._data: dict[str, sb.ViewerData] = {}
+        self._plans: dict[tuple, tuple] = {}  # level of detail plans (scene_view._plan)
         self._stamps: dict[str, str] = {}
         self._base_stamps: dict[str, str] = {}  # the stamps without the correction layer
         self._refresh_lock = threading.RLock()

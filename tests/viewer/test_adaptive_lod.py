@@ -152,6 +152,7 @@ def test_budgets_are_per_client(tiny):
     svc.send_points(fast)
     assert fast.lod_done.wait(20)
     assert fast.sent_points == TOTAL and slow.sent_points < TOTAL
+    assert fast.lod_plan is slow.lod_plan  # one plan for the scene's tabs, made once
     assert fast.lod_stopped is None and slow.lod_stopped is not None
 
 

@@ -2,7 +2,8 @@
 
 Every event is a row of the ``events`` table (so a subscriber that was briefly away misses
 nothing recent) and, on PostgreSQL, a ``NOTIFY occufly_events`` sent in the same transaction,
-so subscribers (one ``LISTEN`` connection per process) learn of it at once. On SQLite the
+so subscribers (one ``LISTEN`` connection per process) learn of it at once (each
+notification wakes the listener as it arrives). On SQLite the
 table is polled (``poll_s``, default 0.25 s). Subscribers in the publishing process are called
 synchronously by :meth:`EventBus.publish`; other processes' subscribers are called from the
 bus's listener thread, in event-id order. Events are kept ``keep_s`` seconds (default 1 h).
@@ -88,21 +89,29 @@ def psycopg_dsn(engine: Engine) -> str:
 
 
 def listen(engine: Engine, channels: tuple[str, ...], *, stop: threading.Event,
-           on_wake: Callable[[], None], timeout_s: float = 1.0) -> None:
-    """Block until ``stop``: call ``on_wake()`` for every NOTIFY on ``channels`` and at least
-    every ``timeout_s`` (so a lost connection costs at most one poll interval). PostgreSQL
-    only; reconnects with back-off."""
+           on_wake: Callable[[], None], timeout_s: float = 1.0,
+           stop_channel: str | None = None) -> None:
+    """Block until ``stop``: call ``on_wake()`` at once for every NOTIFY on ``channels`` and at
+    least every ``timeout_s`` (so a lost connection costs at most one poll interval). A NOTIFY
+    on ``stop_channel`` (:func:`wake_listener`, after setting ``stop``) ends the wait at once
+    instead of at the next heartbeat. PostgreSQL only; reconnects with back-off."""
     delay = 0.5
+    listened = channels + ((stop_channel,) if stop_channel else ())
     while not stop.is_set():
         try:
             with psycopg.connect(psycopg_dsn(engine), autocommit=True) as conn:
-                for ch in channels:
+                for ch in listened:
                     conn.execute(f"LISTEN {ch}")
                 delay = 0.5
                 on_wake()  # anything published while we were not listening
                 while not stop.is_set():
-                    for _n in conn.notifies(timeout=timeout_s, stop_after=64):
-                        pass
+                    # each notification wakes the subscriber as it arrives (the generator
+                    # itself returns only at its timeout: waking after it, as before, made
+                    # every NOTIFY wait up to timeout_s)
+                    for _n in conn.notifies(timeout=timeout_s):
+                        if stop.is_set():
+                            break
+                        on_wake()
                     on_wake()
         except Exception as e:  # noqa: BLE001 - the database restarts; keep listening
             if stop.is_set():
@@ -110,6 +119,22 @@ def listen(engine: Engine, channels: tuple[str, ...], *, stop: threading.Event,
             log.warning("LISTEN %s: %s; reconnecting in %.1f s", channels, e, delay)
             stop.wait(delay)
             delay = min(delay * 2, 10.0)
+
+
+def stop_channel_name() -> str:
+    """A channel of one listener's own, to end its wait (:func:`wake_listener`)."""
+    return f"occufly_stop_{uuid.uuid4().hex}"
+
+
+def wake_listener(engine: Engine, channel: str) -> None:
+    """NOTIFY ``channel`` (best effort): a :func:`listen` thread whose ``stop`` is set and
+    whose ``stop_channel`` this is returns now rather than at its next heartbeat."""
+    try:
+        with engine.connect() as c:
+            c.execute(text("SELECT pg_notify(:c, '')"), {"c": channel})
+            c.commit()
+    except Exception:  # noqa: BLE001 - the database is away: the heartbeat ends the wait
+        log.debug("could not wake the listener on %s", channel, exc_info=True)
 
 
 class EventBus:
@@ -128,6 +153,7 @@ class EventBus:
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self._listener: threading.Thread | None = None
+        self._stop_channel = stop_channel_name()
         self._last_id: int | None = None
         self._seen: set[int] = set()  # delivered ids within LOOKBACK of _last_id
         self._start_id = 0
@@ -181,7 +207,8 @@ class EventBus:
                     self._listener = threading.Thread(
                         target=listen, name="occufly-events-listen", daemon=True,
                         args=(self.engine, (CHANNEL,)),
-                        kwargs=dict(stop=self._stop, on_wake=self._wake.set))
+                        kwargs=dict(stop=self._stop, on_wake=self._wake.set,
+                                    stop_channel=self._stop_channel))
                     self._listener.start()
 
     def _deliver(self, msg: Message, *, remote_only: bool = False) -> None:
@@ -231,6 +258,8 @@ class EventBus:
     def close(self) -> None:
         self._stop.set()
         self._wake.set()
+        if self._listener is not None and self._listener.is_alive():
+            wake_listener(self.engine, self._stop_channel)
         for t in (self._thread, self._listener):
             if t is not None:
                 t.join(timeout=5)

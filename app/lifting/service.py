@@ -61,7 +61,15 @@ from sqlalchemy import func, select, update
 
 from app.annotations.models import MaskVersion
 from app.db import utcnow
-from app.events import LIFT_CHANNEL, EventBus, Message, listen, psycopg_dsn
+from app.events import (
+    LIFT_CHANNEL,
+    EventBus,
+    Message,
+    listen,
+    psycopg_dsn,
+    stop_channel_name,
+    wake_listener,
+)
 from app.lifting.models import LiftQueueEntry, LiftStatus
 from app.pipeline import stored_mask_ids
 from app.scenes.models import Scene
@@ -224,6 +232,7 @@ class LiftingService:
         self.on_owned_labels = tuple(on_owned_labels)
         self.debounce_s = settings.fill_debounce_s if debounce_s is None else debounce_s
         self.poll_s = poll_s
+        self._stop_channel = stop_channel_name()  # ends the LISTEN thread's wait on stop()
         self.batch = batch
         self._scenes: dict[int, _SceneWork] = {}
         self._scenes_lock = threading.Lock()
@@ -289,13 +298,16 @@ class LiftingService:
             t = threading.Thread(target=listen, name="occufly-lift-listen", daemon=True,
                                  args=(self.engine, (LIFT_CHANNEL,)),
                                  kwargs=dict(stop=self._stop, on_wake=self._wake.set,
-                                             timeout_s=self.poll_s))
+                                             timeout_s=self.poll_s,
+                                             stop_channel=self._stop_channel))
             t.start()
             self._threads.append(t)
 
     def stop(self) -> None:
         self._stop.set()
         self._wake.set()
+        if self.bus.is_postgres and self._threads:
+            wake_listener(self.engine, self._stop_channel)
         with self._cv:
             self._cv.notify_all()
         for t in self._threads + [sc.thread for sc in self._scenes.values() if sc.thread]:

@@ -191,6 +191,47 @@ def test_events_reach_other_processes_once(env):
     assert latency < 2.0
 
 
+def test_listen_wakes_at_each_notify_and_stops_on_its_own_channel(pg_url):
+    """A NOTIFY wakes the subscriber as it arrives, not at the listener's next heartbeat (the
+    old loop woke only when psycopg's notifies() generator timed out: every cross-process
+    event and every save's "frame queued" waited up to that heartbeat, 1 s / 0.5 s), and
+    stopping ends the wait at once (an app's close waited out the heartbeat). The heartbeat
+    is set to 120 s here so that the old behaviour fails by a wide margin."""
+    import threading
+
+    from sqlalchemy import text
+
+    from app import db
+    from app.events import listen, stop_channel_name, wake_listener
+
+    engine = db.make_engine(pg_url)
+    stop, woke = threading.Event(), threading.Event()
+    channel = stop_channel_name()
+    t = threading.Thread(target=listen, args=(engine, ("occufly_test_wake",)), daemon=True,
+                         kwargs=dict(stop=stop, on_wake=woke.set, timeout_s=120,
+                                     stop_channel=channel))
+    t.start()
+    try:
+        assert woke.wait(30), "no first wake-up (LISTEN never started)"
+        for _ in range(2):
+            woke.clear()
+            t0 = time.monotonic()
+            with engine.connect() as c:
+                c.execute(text("SELECT pg_notify('occufly_test_wake', 'x')"))
+                c.commit()
+            assert woke.wait(30), "a NOTIFY did not wake the subscriber"
+            assert time.monotonic() - t0 < 30
+        t0 = time.monotonic()
+        stop.set()
+        wake_listener(engine, channel)
+        t.join(30)
+        assert not t.is_alive() and time.monotonic() - t0 < 30
+    finally:
+        stop.set()
+        wake_listener(engine, channel)
+        engine.dispose()
+
+
 def test_viewer_refreshes_on_the_event_not_on_a_poll(env):
     viewer = env.app.state.viewer
     assert viewer.watch_interval_s is None  # no file-stamp poll in the app

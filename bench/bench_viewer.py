@@ -9,7 +9,9 @@ fresh browser each (so the tab's memory is its own), on the same workspace in th
 
 For each it reports
 
-- ``first_points_s``: page opened -> the first screenshot with points on it (the canvas crop
+- ``first_points_s``: page opened -> the first frame drawn with points (``--first-by-probe``:
+  the frame probe below, the canvas changed from the first frame; no screenshot is taken
+  until the level of detail is sent) or else the first screenshot with points on it (the canvas crop
   clear of the panels has a pixel standard deviation > 20);
 - ``full_lod_s``: page opened -> the first screenshot taken after the server sent the last
   chunk of the level of detail and the browser received it (``lod_sent_s`` / ``lod_received_s``);
@@ -85,6 +87,7 @@ from app.viewer.demo_scene import make_demo_workspace  # noqa: E402
 from occufly.lifting.corrections import write_overrides  # noqa: E402
 
 WATER = 14
+ADAPTIVE_GRID_MATERIAL = "toon3"  # scene_builder.GRID_MATERIAL of the adaptive path
 BLUE = np.array([0, 0, 255])
 VIEW = (1000, 700)
 
@@ -249,6 +252,19 @@ def orbit_fps(page, svc, st, seconds: float, hz: float = 30.0, warm_s: float = 5
     dt = time.perf_counter() - t1
     return {"fps": round((n1 - n0) / dt, 2), "frames": n1 - n0, "seconds": round(dt, 2),
             "warm_s": warm_s, "camera_updates": k}
+
+
+def rest_frames(page, seconds: float) -> dict:
+    """The frames the page renders at rest (the level of detail shown, the camera still:
+    viser keeps rendering) over ``seconds``: their count and the median and largest interval
+    between frame starts -- how long a change waits for the frame in flight."""
+    w0 = time.time()
+    page.wait_for_timeout(int(1000 * seconds))
+    starts = [t / 1000 for t in page.evaluate("() => window.__frames || []") if t / 1000 >= w0]
+    gaps = np.diff(starts) if len(starts) > 1 else np.zeros(0)
+    return {"seconds": seconds, "frames": len(starts),
+            "interval_median_s": round(float(np.median(gaps)), 3) if len(gaps) else None,
+            "interval_max_s": round(float(gaps.max()), 3) if len(gaps) else None}
 
 
 def lasso_polygon(st, cam, want: int) -> tuple[np.ndarray, int]:
@@ -780,11 +796,43 @@ def measure_grids(page, svc, st, stats: dict, args, shots: Path | None) -> dict:
     return out
 
 
+DRAWN_LOG: list[tuple[float, float, int]] = []  # (end wall clock, seconds, points drawn)
+
+
+def trace_drawn(svc) -> None:
+    """Record every render round trip of the viewer (:meth:`SceneViewMixin._drawn`: the
+    refinement's and a correction's) with the points the browser drew meanwhile, in
+    :data:`DRAWN_LOG` (the draw times the resting level of detail is chosen from)."""
+    orig = type(svc)._drawn
+
+    def traced(self, st):  # noqa: ANN001, ANN202
+        out = orig(self, st)
+        if out is not None:
+            DRAWN_LOG.append((time.time(), out, self._points_drawn(st)))
+        return out
+
+    svc._drawn = traced.__get__(svc)
+
+
 def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -> dict:
     # "progressive_keep_tiles": the new path with the tiles left shown during a correction's
-    # update (ViewerService.hide_tiles_on_update off), to weigh that step on its own
-    svc.lod_scheme = scheme.removesuffix("_keep_tiles")
+    # update (ViewerService.hide_tiles_on_update off), to weigh that step on its own;
+    # "progressive_full": the path before the adaptive resting level (every tile of the plan
+    # sent whatever the browser's draw time: frame_budget_s None) and before the grid's
+    # toon3 material and motion hiding -- the baseline of issue 38's adaptive LOD
+    from app.viewer import scene_builder
+
+    base = scheme.removesuffix("_keep_tiles").removesuffix("_full")
+    svc.lod_scheme = base
     svc.hide_tiles_on_update = not scheme.endswith("_keep_tiles")
+    full = scheme.endswith("_full")
+    svc.frame_budget_s = None if full else type(svc).frame_budget_s
+    svc.hide_grid_on_motion = not full
+    scene_builder.GRID_MATERIAL = "standard" if full else ADAPTIVE_GRID_MATERIAL
+    with svc._lock:  # every scheme opens the scene cold (its data and plan made by its tab)
+        svc._data.clear()
+        svc._plans.clear()
+    DRAWN_LOG.clear()
     browser = p.chromium.launch(executable_path="/usr/bin/chromium",
                                 args=CHROMIUM_ARGS + ["--enable-precise-memory-info"])
     try:
@@ -794,16 +842,24 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
         ctx.add_cookies([{"name": "occufly_session", "value": REVIEWER, "url": srv.url}])
         page = ctx.new_page()
         n_before = len(svc.proxy_stats)
-        t0 = time.perf_counter()
+        t0, t0_wall = time.perf_counter(), time.time()
         page.goto(srv.url + "/viewer/?scene=bench")
         st = None
         while st is None and time.perf_counter() - t0 < 300:
             st = next(iter(svc.client_states()), None)
             page.wait_for_timeout(20)
         t_conn = time.perf_counter() - t0
-        t_first, _img = wait_shot(page, has_points, 600, t0)
-        if shots is not None:
-            shot(page, shots / "viewer_scale_first_points.png")
+        if args.first_by_probe:  # no screenshots meanwhile: they are frames of their own and
+            # would also be what the viewer's render round trips measure
+            arm_probe(page, CANVAS_BOX, None)  # reference: the first frame (no points yet)
+            t_drawn, _p = wait_drawn(page, lambda share, _bg: share >= 0.02, 600, t0_wall)
+            page.evaluate("() => { window.__probe = null; }")
+            t_first = t_drawn
+        else:
+            t_drawn = None
+            t_first, _img = wait_shot(page, has_points, 600, t0)
+            if shots is not None:
+                shot(page, shots / "viewer_scale_first_points.png")
         if not st.lod_done.wait(600):
             raise RuntimeError("the level of detail was not sent in 600 s")
         lod_sent = st.lod_done_at - t0
@@ -817,10 +873,18 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
         out = {"connected_s": round(t_conn, 3),
                "first_sent_s": round(st.first_sent_at - t0, 3) if st.first_sent_at else None,
                "first_points_s": None if t_first is None else round(t_first, 3),
+               "first_points_by": "frame probe" if args.first_by_probe else "screenshots",
                "lod_sent_s": round(lod_sent, 3), "lod_received_s": round(lod_recv, 3),
                "full_lod_s": round(t_full, 3), "points_shown": st.sent_points,
+               "points_planned": len(st.lod_plan.ids) if st.lod_plan is not None else None,
+               "lod_stopped": st.lod_stopped, "frame_budget_s": svc.frame_budget_s,
+               "grid_material": scene_builder.GRID_MATERIAL,
+               "render_round_trips": [[round(w - t0_wall, 3), round(dt, 3), n]
+                                      for w, dt, n in DRAWN_LOG],
+               "status": st.gui["status"].content,
                "ws_bytes": int(stats["bytes"]), "point_nodes": len(st.chunk_handles)
                or len(st.point_handles)}
+        out["rest"] = rest_frames(page, args.rest_s)
         page.wait_for_timeout(1000)
         out["orbit"] = orbit_fps(page, svc, st, args.orbit_s)
         # drawn while moving: the coarse level (tiles hidden) or, on the old path, everything
@@ -903,6 +967,12 @@ def main() -> None:
     ap.add_argument("--max-points", type=int, default=None, help="the viewer's LOD budget")
     ap.add_argument("--toggles", type=int, default=6)
     ap.add_argument("--orbit-s", type=float, default=5.0)
+    ap.add_argument("--first-by-probe", action="store_true",
+                    help="first points: the first frame drawn with them (the frame probe), "
+                    "no screenshots until the level of detail is sent (the older figures "
+                    "polled with screenshots)")
+    ap.add_argument("--rest-s", type=float, default=6.0,
+                    help="frames counted at rest after the full level of detail")
     ap.add_argument("--lasso", type=int, default=1_000_000)
     ap.add_argument("--schemes", default="legacy,progressive")
     ap.add_argument("--shots", type=Path, default=None)
@@ -931,6 +1001,7 @@ def main() -> None:
         app = make_app(root, corrections=FileCorrections(root / "bench").hooks(), **kw)
         svc = app.state.viewer
         trace_refreshes(svc)
+        trace_drawn(svc)
         if args.grid:
             trace_grids(svc)
         result: dict = {"bench": "viewer_scale", "source": source, "points": args.points,
@@ -946,18 +1017,20 @@ def main() -> None:
         ru = resource.getrusage(resource.RUSAGE_SELF)  # the app's viewer and this driver
         result["bench_process"] = {"cpu_s": round(ru.ru_utime + ru.ru_stime, 1),
                                    "peak_rss_mb": round(ru.ru_maxrss / 1024)}
-        if "legacy" in result and "progressive" in result:
-            old, new = result["legacy"], result["progressive"]
+        for base in ("legacy", "progressive_full"):
+            if base not in result or "progressive" not in result:
+                continue
+            old, new = result[base], result["progressive"]
             ratio = {}
             for k in ("first_points_s", "full_lod_s"):
                 if old.get(k) and new.get(k):
                     ratio[k] = round(new[k] / old[k], 3)
             ratio["orbit_fps"] = round(new["orbit"]["fps"] / max(old["orbit"]["fps"], 1e-6), 2)
             lo, ln = old.get("lasso", {}), new.get("lasso", {})
-            for k in ("relabel_visible_s", "undo_visible_s"):
+            for k in ("relabel_drawn_s", "undo_drawn_s", "relabel_visible_s", "undo_visible_s"):
                 if lo.get(k) and ln.get(k):
                     ratio[k] = round(ln[k] / lo[k], 3)
-            result["ratio_new_vs_old"] = ratio
+            result["ratio_new_vs_" + base] = ratio
         print(json.dumps(result))
 
 

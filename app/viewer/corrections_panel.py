@@ -303,6 +303,9 @@ def highlight(st: Any, max_points: int = 500_000) -> None:
     if st.data is None or len(st.selection) == 0:
         return
     ids = st.selection
+    stopped = getattr(st, "lod_stopped", None)
+    if stopped is not None:  # a browser that draws slowly (scene_view._refine): a highlight
+        max_points = min(max_points, max(20_000, stopped[0] // 2))  # of half what it shows
     if len(ids) > max_points:
         ids = ids[:: int(np.ceil(len(ids) / max_points))]
     xyz = np.asarray(st.data.scene.xyz[ids], np.float32)

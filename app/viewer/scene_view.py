@@ -156,6 +156,9 @@ class SceneViewMixin:
                 st.lod_plan = self._plan(st)
                 st.subsample = st.lod_plan.ids
             keep = set(st.sent_groups) - {0}  # tiles on screen (a colour change): re-sent
+            lod = st.gui.get("lod")
+            if st.lod_stopped is not None and lod is not None and not st.lod_explicit:
+                self._show_lod_choice(st, st.max_points)  # the plan again, until it stops
             st.lod_gen += 1
             st.lod_done.clear()
             st.lod_stopped = None

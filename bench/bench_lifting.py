@@ -163,13 +163,15 @@ ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-
                       # issue 37, fourth round: the per-annotator confusion model
                       # (occufly.lifting.confusion); -author: the crew's annotator of each
                       # frame (crew noise only; the others: each frame its own annotator);
-                      # -diag / -nofilter: the two alternatives tried on small seed 0 only
+                      # -diag / -nofilter / -pool100: the alternatives tried on small seed 0 only
                       "robust-confusion": RobustParams(confusion=ConfusionParams()),
                       "robust-confusion-author": RobustParams(confusion=ConfusionParams()),
                       "robust-confusion-diag": RobustParams(
                           confusion=ConfusionParams(diag_prior=20.0, pooled_prior=0.0)),
                       "robust-confusion-nofilter": RobustParams(
-                          confusion=ConfusionParams(train_min_posterior=0.0))}
+                          confusion=ConfusionParams(train_min_posterior=0.0)),
+                      "robust-confusion-pool100": RobustParams(
+                          confusion=ConfusionParams(pooled_prior=100.0))}
 
 
 def weighting_of(mode: str) -> str:

@@ -29,6 +29,13 @@ Decision
     (direct labels, a margin = posterior top - second that feeds the confirmation rule and the
     confidence, the winner's votes) and the fill and denoise run on it unchanged.
 
+Per-annotator confusion (issue 37, fourth round; ``RobustParams.confusion``, off by default)
+    :mod:`occufly.lifting.confusion` fits one matrix per annotator (each frame, or its author
+    when the caller names it) from every frame's votes; the decision then runs again with each
+    point's vote log-likelihood from those matrices. Measured in docs/lifting.md: large gains
+    with a systematically sloppy annotator, but exact masks lose 0.3-0.6 mIoU points (rare
+    classes under per-frame matrices), so not the default.
+
 Tiny objects (persons, bicycles, ground obstacles: blobs of about 10 mask pixels that an
 annotator paints a few pixels off, onto the ground beside them, or skips)
     Three additions keep them; each was measured on its own (README):

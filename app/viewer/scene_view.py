@@ -296,6 +296,7 @@ class SceneViewMixin:
                                  "of detail stops at %d of %d", shown, draw_s, st.sent_points,
                                  len(plan.ids))
                         self._show_lod_choice(st, st.sent_points)
+                        self._fit_point_size(st, st.sent_points)
                         break
                 if not self._send_batch(st, gen, batch):
                     return
@@ -327,6 +328,21 @@ class SceneViewMixin:
         if st.moving or st.updating:
             return sum(len(nd.point_ids) for (g, _c), nd in st.chunks.items() if g == 0)
         return st.sent_points
+
+    def _fit_point_size(self, st: ClientState, shown: int) -> None:
+        """Points as large as the spacing of the ``shown`` points (not of the plan's), so that
+        a level of detail that stopped early still covers the ground; a size the user chose
+        stays."""
+        if st.point_size_set or st.data is None or "size" not in st.gui:
+            return
+        size = round(round(sb.default_point_size(st.data, shown) / 0.005) * 0.005, 3)
+        if abs(size - st.point_size) < 1e-9:
+            return
+        self.set_point_size(st, size)  # st.point_size first: the slider's callback then
+        try:  # takes the value for ours, not the user's
+            st.gui["size"].value = size
+        except Exception:  # noqa: BLE001 - the tab closed meanwhile
+            log.debug("viewer: point size", exc_info=True)
 
     def _show_lod_choice(self, st: ClientState, shown: int) -> None:
         """Write the viewer's choice into the "LOD max points" field (not the user's setting:

@@ -66,6 +66,7 @@ def _open(tiny, per_point_s: float, budget: float | None = 0.06):
     st.gui["classes"] = contextlib.nullcontext()
     st.gui["status"] = type("Md", (), {"content": ""})()
     st.gui["lod"] = Field(svc, st, st.max_points)
+    st.gui["size"] = type("Slider", (), {"value": st.point_size})()
     st.data = svc.scene_data("tiny")
     with svc._lock:
         svc._clients[1] = st
@@ -109,6 +110,12 @@ def test_a_slow_browser_stops_the_refinement_within_its_frame_budget(tiny):
     assert "LOD max points" in status
     assert st.gui["lod"].value == st.sent_points  # the field shows the viewer's choice ...
     assert not st.lod_explicit  # ... which is not taken for the user's
+    # the points as large as the spacing of those shown (the ground covered): 0.8 x the
+    # square root of the footprint's area per point, footprint 40 x 30 m
+    xy = np.asarray(st.data.scene.xyz)[:, :2]
+    area = float(np.prod(np.ptp(xy, axis=0)))
+    assert abs(st.point_size - 0.8 * np.sqrt(area / st.sent_points)) < 0.005
+    assert st.gui["size"].value == st.point_size and not st.point_size_set
 
 
 def test_a_fast_browser_gets_the_whole_plan(tiny):

@@ -38,12 +38,16 @@ DEFAULT_TILES = 4  # 4 x 4 region tiles over the footprint
 
 @dataclass
 class LodPlan:
-    """ids: (M,) int64 sorted point ids shown; group: (M,) int16 0 = coarse level, 1 + k =
-    refinement tile k; order: the tile groups (1 + k) in sending order."""
+    """ids: (M,) int64 sorted point ids shown; group: (M,) int16 0 = coarse level (the
+    motion level where the plan has one), 1 + k = refinement tile k; order: the tile groups
+    (1 + k) in sending order; first: the groups sent at once (the coarse level: group 0 and,
+    with a motion level, the rest of the coarse level as one more detail group, hidden while
+    the camera moves)."""
 
     ids: np.ndarray
     group: np.ndarray
     order: list[int]
+    first: tuple[int, ...] = (0,)
 
     @property
     def n_coarse(self) -> int:
@@ -52,10 +56,14 @@ class LodPlan:
 
 def plan_lod(data: sb.ViewerData, max_points: int, *, coarse_points: int = DEFAULT_COARSE_POINTS,
              tiles: int = DEFAULT_TILES, focus: np.ndarray | None = None,
-             subsample: np.ndarray | None = None, seed: int = 0) -> LodPlan:
+             subsample: np.ndarray | None = None, seed: int = 0,
+             motion_points: int | None = None) -> LodPlan:
     """The points shown and their level: a stratified subsample of ``max_points`` (or
     ``subsample``), ``coarse_points`` of them in the coarse level, the rest in tiles ordered
-    by distance of the tile's centre to ``focus`` (scene-local xy; default the middle)."""
+    by distance of the tile's centre to ``focus`` (scene-local xy; default the middle).
+    ``motion_points`` (fewer than the coarse level): a stratified part of the coarse level
+    stays group 0 (drawn while the camera moves), the rest of it becomes one more detail
+    group ``1 + tiles**2``, sent with group 0 (``first``) and hidden while moving."""
     n = data.scene.n_points
     ids = subsample if subsample is not None else sb.stratified_subsample(
         data.labels, n, max_points, seed=seed,
@@ -79,6 +87,13 @@ def plan_lod(data: sb.ViewerData, max_points: int, *, coarse_points: int = DEFAU
     present = set(np.unique(group[group > 0]).tolist())
     order = [1 + int(k) for k in np.argsort(np.linalg.norm(centre - f, axis=1), kind="stable")
              if 1 + int(k) in present]
+    if motion_points is not None and 0 < motion_points < len(coarse):
+        rest = 1 + tiles * tiles
+        keep = sb.stratified_subsample(lab[coarse] if lab is not None else None, len(coarse),
+                                       motion_points, seed=seed + 2)
+        group[coarse] = rest
+        group[coarse[keep]] = 0
+        return LodPlan(ids, group, order, (0, rest))
     return LodPlan(ids, group, order)
 
 

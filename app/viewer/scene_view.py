@@ -43,6 +43,10 @@ class SceneViewMixin:
     #: within the issue's 2 s, and room for a loaded machine
     frame_budget_s: float | None = 0.4
     draw_samples = 2  # render round trips per measurement (the shortest counts)
+    #: drawn while the camera moves: this many of the coarse level's points (the rest of
+    #: it is hidden with the tiles). 8 M and 32 M points under SwiftShader: the 150 k coarse
+    #: level drew at 3.9-4.6 frames a second while orbiting (issue 38 asks for 10)
+    motion_points: int | None = 40_000
     motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
     hide_tiles_on_update = True  # ... and while a correction's chunks are on their way
     hide_grid_on_motion = True  # the voxel grids' boxes hidden while the camera moves too
@@ -157,7 +161,8 @@ class SceneViewMixin:
                 st.sent_groups = set()
                 st.lod_plan = self._plan(st)
                 st.subsample = st.lod_plan.ids
-            keep = set(st.sent_groups) - {0}  # tiles on screen (a colour change): re-sent
+            keep = set(st.sent_groups) - set(st.lod_plan.first)  # tiles on screen (a colour
+            # change): re-sent
             lod = st.gui.get("lod")
             if st.lod_stopped is not None and lod is not None and not st.lod_explicit:
                 self._show_lod_choice(st, st.max_points)  # the plan again, until it stops
@@ -165,7 +170,7 @@ class SceneViewMixin:
             st.lod_done.clear()
             st.lod_stopped = None
             st.lod_started = time.perf_counter()
-            nodes = self._send_groups(st, {0})
+            nodes = self._send_groups(st, set(st.lod_plan.first))
             st.first_sent_at = st.first_sent_at or time.perf_counter()
             gen, plan = st.lod_gen, st.lod_plan
         if plan.order:
@@ -187,12 +192,13 @@ class SceneViewMixin:
             return point_lod.plan_lod(d, st.max_points, coarse_points=coarse,
                                       tiles=self.lod_tiles, subsample=st.subsample)
         key = (st.scene_id, id(d.scene), d.labels is None, st.max_points, coarse,
-               self.lod_tiles)
+               self.lod_tiles, self.motion_points)
         with self._lock:
             hit = self._plans.get(key)
         if hit is not None and hit[0] is d.scene:  # (the scene object kept: ids are reused)
             return hit[1]
-        plan = point_lod.plan_lod(d, st.max_points, coarse_points=coarse, tiles=self.lod_tiles)
+        plan = point_lod.plan_lod(d, st.max_points, coarse_points=coarse, tiles=self.lod_tiles,
+                                  motion_points=self.motion_points)
         with self._lock:
             if len(self._plans) >= 8:
                 self._plans.clear()

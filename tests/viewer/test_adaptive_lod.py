@@ -234,3 +234,34 @@ def test_the_grid_is_hidden_while_the_camera_moves(tiny, tiny_grid):
     time.sleep(0.05)
     for n, h in st.grid_handles.items():  # back at rest, the hidden class stays hidden
         assert h.visible == (n not in person), n
+
+
+def test_the_motion_level_is_part_of_the_coarse_level(tiny):
+    """With ``motion_points`` below the coarse level, the first send still holds the whole
+    coarse level (the first picture), but only the motion part is group 0 (drawn while the
+    camera moves); the rest of the coarse level is a detail group, hidden with the tiles."""
+    svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=200)
+    svc.lod_tiles, svc.motion_points, svc.motion_rest_s = 3, 50, 0.2
+    st = ClientState(client=FakeClient(), scene_id="tiny")
+    st.gui["classes"] = contextlib.nullcontext()
+    st.data = svc.scene_data("tiny")
+    with svc._lock:
+        svc._clients[1] = st
+    first = svc.send_points(st)
+    assert st.lod_done.wait(20)
+    plan = st.lod_plan
+    rest = 1 + 3 * 3
+    assert plan.first == (0, rest) and rest not in plan.order
+    assert plan.n_coarse == 50 and int((plan.group == rest).sum()) == 150
+    assert sum(len(nd.point_ids) for nd in first) == 200  # the first picture: 200 points
+    motion = plan.ids[plan.group == 0]
+    # stratified: the rare class moves along (a floor of a quarter of 50 over 5 classes)
+    assert (tiny.labels[motion] == 11).sum() >= int(0.25 * 50 / 5) > 0
+    log = [e for e in st.client.scene.log if e[0] == "points"]
+    assert sum(e[2] for e in log if "/detail/t009" in e[1]) == 150  # sent once, with the
+    assert st.sent_points == TOTAL  # coarse level; no client round trips: everything sent
+    svc.camera_moved(st)
+    assert svc._points_drawn(st) == 50
+    shown = [h for h in st.detail_handles.values() if h.visible]
+    assert not shown  # the rest of the coarse level is hidden with the tiles
+    _assert_shown_is_the_plan_of(st, set(np.unique(plan.group).tolist()))

@@ -858,8 +858,9 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
     # "progressive_keep_tiles": the new path with the tiles left shown during a correction's
     # update (ViewerService.hide_tiles_on_update off), to weigh that step on its own;
     # "progressive_full": the path before the adaptive resting level (every tile of the plan
-    # sent whatever the browser's draw time: frame_budget_s None) and before the grid's
-    # toon3 material and motion hiding -- the baseline of issue 38's adaptive LOD
+    # sent whatever the browser's draw time: frame_budget_s None), before the motion level
+    # (the whole coarse level drawn while moving) and before the grid's toon3 material and
+    # motion hiding -- the baseline of issue 38's adaptive LOD
     from app.viewer import scene_builder
 
     base = scheme.removesuffix("_keep_tiles").removesuffix("_full")
@@ -868,6 +869,7 @@ def run_scheme(p, srv: LiveServer, svc, scheme: str, args, shots: Path | None) -
     full = scheme.endswith("_full")
     svc.frame_budget_s = None if full else type(svc).frame_budget_s
     svc.hide_grid_on_motion = not full
+    svc.motion_points = None if full else type(svc).motion_points  # the whole coarse level
     scene_builder.GRID_MATERIAL = "standard" if full else ADAPTIVE_GRID_MATERIAL
     with svc._lock:  # every scheme opens the scene cold (its data and plan made by its tab)
         svc._data.clear()

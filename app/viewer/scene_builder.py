@@ -113,7 +113,7 @@ class ViewerData:
                 c = np.zeros(256, np.int64)
                 c[0] = self.scene.n_points
             else:
-                c = np.bincount(np.asarray(self.labels), minlength=256).astype(np.int64)
+                c = count_labels(self.labels)
             self._counts = c
         return self._counts
 
@@ -213,6 +213,17 @@ def _load_direct(ws: Path, scene: Scene) -> np.ndarray | None:
 
 
 # ---- level of detail ---------------------------------------------------------------------
+def count_labels(labels: np.ndarray, chunk: int = 1 << 20) -> np.ndarray:
+    """(256,) int64 points per raw class id of ``labels`` ((N,) uint8), counted in chunks:
+    one ``np.bincount`` of a survey's 32 M labels first casts them to a 256 MB index array
+    (0.37-0.79 s when that memory is fresh), chunks of 1 M stay in cache (0.05 s)."""
+    lab = np.asarray(labels)
+    out = np.zeros(256, np.int64)
+    for i in range(0, len(lab), chunk):
+        out += np.bincount(lab[i:i + chunk], minlength=256)[:256]
+    return out
+
+
 def class_quotas(counts: np.ndarray, max_points: int, *, floor_share: float = 0.25) -> np.ndarray:
     """Stratified LOD budget per class: a guaranteed floor, the rest proportional.
 
@@ -258,17 +269,32 @@ def stratified_subsample(labels: np.ndarray | None, n_points: int, max_points: i
     if n_points <= max_points:
         return np.arange(n_points, dtype=np.int64)
     if counts is None:
-        counts = np.bincount(labels, minlength=256)
+        counts = count_labels(labels)
     quotas = class_quotas(counts, max_points)
     rng = np.random.default_rng(seed)
+    # per class, the ranks (among its members, in index order) of the points kept, uniform
+    # without replacement; then one pass over 1 M-label chunks maps ranks to indices. The
+    # whole-array version (a 32 M comparison and flatnonzero per class) took 0.6-1.0 s on a
+    # 32 M survey, mostly fresh memory; the chunks stay in cache (0.44 s)
+    ranks = {}
+    for cid in np.flatnonzero(counts).tolist():
+        q, m = int(quotas[cid]), int(counts[cid])
+        if 0 < q < m:
+            ranks[cid] = np.sort(rng.choice(m, q, replace=False))
+    seen = np.zeros(256, np.int64)
     picks = []
-    for cid in np.flatnonzero(counts):  # per class, vectorised inside (no argsort of N)
-        members = np.flatnonzero(labels == cid)  # ascending index
-        q = int(quotas[cid])
-        if q >= len(members):
-            picks.append(members)
-        elif q > 0:
-            picks.append(members[rng.choice(len(members), q, replace=False)])
+    chunk = 1 << 20
+    for i in range(0, n_points, chunk):
+        part = labels[i:i + chunk]
+        for cid in np.flatnonzero(np.bincount(part, minlength=256)).tolist():
+            members = np.flatnonzero(part == cid)
+            if quotas[cid] > 0 and cid in ranks:
+                r = ranks[cid]
+                lo, hi = np.searchsorted(r, [seen[cid], seen[cid] + len(members)])
+                picks.append(members[r[lo:hi] - seen[cid]] + i)
+            elif quotas[cid] > 0:
+                picks.append(members + i)
+            seen[cid] += len(members)
     idx = np.concatenate(picks) if picks else np.zeros(0, np.int64)
     idx.sort()
     return idx.astype(np.int64, copy=False)

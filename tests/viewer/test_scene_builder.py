@@ -255,3 +255,25 @@ def test_direct_votes_read_only_from_lifting_state(tiny):
     assert sorted(p.name for p in (tiny.ws / "lifting").iterdir()) == before  # nothing written
     np.save(tiny.ws / "lifting" / "votes.npy", votes[:10])  # wrong shape: ignored, not fatal
     assert sb.ViewerData.load(tiny.ws).direct is None
+
+
+def test_stratified_subsample_is_uniform_within_each_class_across_chunks():
+    """Across several 1 M-label chunks: each class gets its quota, only its own points, and
+    its picks are spread over all of its members (not the first ones of a chunk)."""
+    rng = np.random.default_rng(5)
+    n = 2_500_000  # three chunks of the chunked pass
+    labels = np.where(rng.random(n) < 0.7, 6, 16).astype(np.uint8)
+    labels[rng.choice(n, 50, replace=False)] = 11
+    idx = sb.stratified_subsample(labels, n, 100_000, seed=2)
+    counts = np.bincount(labels, minlength=256)
+    want = sb.class_quotas(counts, 100_000)
+    got = np.bincount(labels[idx], minlength=256)
+    assert np.array_equal(got, want) and got[11] == 50
+    assert np.all(np.diff(idx) > 0)
+    for cid in (6, 16):
+        members = np.flatnonzero(labels == cid)
+        picked = idx[labels[idx] == cid]
+        # the picked share of each decile of the class's members is its quota's share
+        dec = np.searchsorted(members, picked) * 10 // len(members)
+        share = np.bincount(dec, minlength=10) / len(picked)
+        assert np.abs(share - 0.1).max() < 0.01, (cid, share)

@@ -17,6 +17,15 @@ def _submit(env, hdr, fid: int, m: np.ndarray) -> None:
     assert r.status_code == 200, r.text
 
 
+def _paint_grass_and_road(env, hdr, scene, frames) -> None:  # noqa: ANN001
+    """The four frames submitted as grass, grass, road, road (the same ground: contested)
+    and lifted."""
+    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
+    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
+        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+
+
 def test_wrong_frame_gets_low_loo_agreement_and_sorts_first(world):
     env, hdr, scene, frames = world
     ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
@@ -104,10 +113,7 @@ def test_suspects_list_is_computed_after_a_fill_not_when_opened(world, monkeypat
     calls = []
     real = review.find_suspects
     monkeypatch.setattr(review, "find_suspects", lambda *a, **k: calls.append(1) or real(*a, **k))
-    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
-    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
-        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
-    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    _paint_grass_and_road(env, hdr, scene, frames)
     end = time.monotonic() + 30
     while not calls and time.monotonic() < end:  # the fill's subscriber, in the background
         time.sleep(0.05)
@@ -127,10 +133,7 @@ def test_suspects_list_survives_a_restart(world, monkeypatch):
 
     env, hdr, scene, frames = world
     sid = scene["id"]
-    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
-    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
-        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
-    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=20, include_fill=True)
+    _paint_grass_and_road(env, hdr, scene, frames)
     first = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"])
     assert first.status_code == 200 and first.json()["suspects"], first.text
     ctx = env.app.state.ctx
@@ -165,10 +168,7 @@ def test_suspect_marks_are_shared_and_idempotent(world):
 
     env, hdr, scene, frames = world
     sid = scene["id"]
-    ids = [f["id"] for f in sorted(frames, key=lambda f: f["index"])]
-    for fid, cid in zip(ids, (6, 6, 1, 1), strict=True):
-        _submit(env, hdr, fid, np.full((H, W), cid, np.uint8))
-    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=20, include_fill=True)
+    _paint_grass_and_road(env, hdr, scene, frames)
     key = env.client.get(f"/api/scenes/{sid}/suspects", headers=hdr["reviewer"]).json()[
         "suspects"][0]["key"]
     url = f"/api/scenes/{sid}/suspects/{key}/mark"

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.viewer import scene_builder as sb
+from occufly.subsample import tile_groups
 
 DEFAULT_COARSE_POINTS = 200_000
 DEFAULT_TILES = 4  # 4 x 4 region tiles over the footprint
@@ -74,12 +75,11 @@ def plan_lod(data: sb.ViewerData, max_points: int, *, coarse_points: int = DEFAU
         return LodPlan(ids, group, [])
     lab = np.asarray(data.labels[ids]) if data.labels is not None else None
     coarse = sb.stratified_subsample(lab, len(ids), coarse_points, seed=seed + 1)
-    # whole rows, then x and y: a memory-mapped cloud gathers rows twice as fast as columns
-    xy = np.asarray(np.take(data.scene.xyz, ids, axis=0)[:, :2], np.float64)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    # the tile of each point, compiled: straight from the (memory-mapped) cloud's rows, no
+    # (M, 3) gather and no reductions along axis 0 of an (M, 2) array (~0.6 s of a 32 M
+    # survey's first picture in numpy)
+    group[:], lo, hi = tile_groups(data.scene.xyz, ids, tiles)
     span = np.maximum(hi - lo, 1e-6)
-    cell = np.minimum(((xy - lo) / span * tiles).astype(np.int64), tiles - 1)
-    group[:] = 1 + cell[:, 0] * tiles + cell[:, 1]
     group[coarse] = 0
     centre = lo + span * (np.stack(np.meshgrid(np.arange(tiles), np.arange(tiles),
                                                indexing="ij"), -1).reshape(-1, 2) + 0.5) / tiles

@@ -49,6 +49,7 @@ from app.viewer.state import (
     Ticket,
     user_key,
 )
+from occufly import subsample
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +155,8 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
             server.on_client_disconnect(self._on_disconnect)
             self.server = server
             self._stop.clear()
+            # the level of detail's compiled kernels loaded now, not in a first picture
+            threading.Thread(target=subsample.warm, name="viewer-warm", daemon=True).start()
             self._worker = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
                                             daemon=True)
             self._worker.start()

@@ -43,7 +43,17 @@ def test_login_cookie_bearer_logout(env):
     assert stored and token not in stored
 
 
-def test_login_bruteforce_is_throttled(env):
+def test_login_bruteforce_is_throttled(env, monkeypatch):
+    # the service's clock stands still: the first lock lasts 1 s, and on a loaded machine the
+    # next request came more than a second after the failure that set it (the lock had
+    # expired: 401, not 429); the expiry is checked by moving the clock on
+    from datetime import timedelta
+
+    from app.db import utcnow
+    from app.users import service as users_service
+
+    clock = [utcnow()]
+    monkeypatch.setattr(users_service, "utcnow", lambda: clock[0])
     for _ in range(3):  # login_free_failures=3 in the fixture
         r = env.client.post("/api/auth/login", json={"username": "admin", "password": "wrong-pass"})
         assert r.status_code == 401
@@ -59,6 +69,11 @@ def test_login_bruteforce_is_throttled(env):
         assert r.status_code == 401, i
     r = env.client.post("/api/auth/login", json={"username": "reviewer", "password": "nope-nope"})
     assert r.status_code == 429
+    # once the locks have run out, the right password gets in
+    clock[0] += timedelta(minutes=10)
+    r = env.client.post("/api/auth/login", json={"username": "admin",
+                                                 "password": "correct-horse-battery"})
+    assert r.status_code == 200, r.text
 
 
 def test_admin_creates_users_and_duplicates_conflict(env):

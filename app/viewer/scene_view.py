@@ -283,8 +283,11 @@ class SceneViewMixin:
             sizes = point_lod.group_sizes(plan)
             todo = list(plan.order)
             while todo:
-                self._drawn(st)  # what was sent is drawn (uploads, shaders compiled) ...
-                draw_s = self._draw_time(st)  # ... and a frame of it takes this long
+                # what was sent is drawn (uploads, shaders compiled) ... and a frame of it
+                # takes this long; no answer within draw_wait_s: not asked again for this
+                # batch (a client that does not answer render requests waited 3 x 15 s)
+                waited = self._drawn(st)
+                draw_s = None if waited is None else self._draw_time(st)
                 with st.lock:
                     if st.lod_gen != gen or st.data is None:
                         return
@@ -317,8 +320,12 @@ class SceneViewMixin:
         """Seconds the browser takes to draw what it shows: the shortest of
         ``draw_samples`` render round trips (each waits for the frame in flight and draws
         one; the shortest is the least disturbed by whatever else the browser does)."""
-        samples = [self._drawn(st) for _ in range(max(1, self.draw_samples))]
-        got = [t for t in samples if t is not None]
+        got = []
+        for _ in range(max(1, self.draw_samples)):
+            t = self._drawn(st)
+            if t is None:  # no answer within draw_wait_s: asking again would wait as long
+                break
+            got.append(t)
         return min(got) if got else None
 
     def _send_batch(self, st: ClientState, gen: int, batch: list[int]) -> bool:

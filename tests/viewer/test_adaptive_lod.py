@@ -130,6 +130,34 @@ def test_a_fast_browser_gets_the_whole_plan(tiny):
     assert len(st.client.renders) == 1 + svc.draw_samples
 
 
+class Mute(Browser):
+    """A client that never answers a render request (each one waits out its timeout)."""
+
+    def get_render(self, h: int, w: int, timeout: float | None = None) -> np.ndarray:
+        self.renders.append(self.st.sent_points if self.st is not None else 0)
+        raise TimeoutError("no render answer")
+
+
+def test_a_client_that_does_not_answer_is_asked_once_and_gets_the_plan(tiny):
+    """No answer within draw_wait_s: the rest of the plan goes at once, without asking again
+    (each request waits the whole timeout: a socket-level client waited 3 x 15 s)."""
+    svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=200)
+    svc.lod_tiles = 3
+    svc.frame_budget_s = 0.06
+    client = Mute(0.0)
+    st = ClientState(client=client, scene_id="tiny")
+    client.st = st
+    st.gui["classes"] = contextlib.nullcontext()
+    st.gui["status"] = type("Md", (), {"content": ""})()
+    st.gui["lod"] = Field(svc, st, st.max_points)
+    st.gui["size"] = type("Slider", (), {"value": st.point_size})()
+    st.data = svc.scene_data("tiny")
+    svc.send_points(st)
+    assert st.lod_done.wait(20), "the refinement did not finish"
+    assert st.sent_points == TOTAL and st.lod_stopped is None
+    assert len(client.renders) == 1
+
+
 def test_without_a_budget_the_slow_browser_gets_everything(tiny):
     _svc, st = _open(tiny, PER_POINT_S, budget=None)
     assert st.sent_points == TOTAL and st.lod_stopped is None

@@ -56,11 +56,12 @@ class Field:
             self.svc.lod_field_changed(self.st, v)
 
 
-def _open(tiny, per_point_s: float, budget: float | None = 0.06):
+def _open(tiny, per_point_s: float, budget: float | None = 0.06,
+          client: Browser | None = None):
     svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=200)
     svc.lod_tiles = 3
     svc.frame_budget_s = budget
-    client = Browser(per_point_s)
+    client = client if client is not None else Browser(per_point_s)
     st = ClientState(client=client, scene_id="tiny")
     client.st = st
     st.gui["classes"] = contextlib.nullcontext()
@@ -141,21 +142,9 @@ class Mute(Browser):
 def test_a_client_that_does_not_answer_is_asked_once_and_gets_the_plan(tiny):
     """No answer within draw_wait_s: the rest of the plan goes at once, without asking again
     (each request waits the whole timeout: a socket-level client waited 3 x 15 s)."""
-    svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=200)
-    svc.lod_tiles = 3
-    svc.frame_budget_s = 0.06
-    client = Mute(0.0)
-    st = ClientState(client=client, scene_id="tiny")
-    client.st = st
-    st.gui["classes"] = contextlib.nullcontext()
-    st.gui["status"] = type("Md", (), {"content": ""})()
-    st.gui["lod"] = Field(svc, st, st.max_points)
-    st.gui["size"] = type("Slider", (), {"value": st.point_size})()
-    st.data = svc.scene_data("tiny")
-    svc.send_points(st)
-    assert st.lod_done.wait(20), "the refinement did not finish"
+    _svc, st = _open(tiny, 0.0, budget=0.06, client=Mute(0.0))
     assert st.sent_points == TOTAL and st.lod_stopped is None
-    assert len(client.renders) == 1
+    assert len(st.client.renders) == 1
 
 
 def test_without_a_budget_the_slow_browser_gets_everything(tiny):

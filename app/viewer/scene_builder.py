@@ -264,13 +264,11 @@ def stratified_subsample(labels: np.ndarray | None, n_points: int, max_points: i
     of ``labels`` when known (:meth:`ViewerData.label_counts`: a bincount of a survey's
     32 M labels costs 0.2-0.7 s). Deterministic for a given seed.
     """
-    if labels is None:
-        labels = np.zeros(n_points, np.uint8)
-    labels = np.asarray(labels)
-    if labels.dtype != np.uint8:  # raw class ids (< 256) in a wider type
-        labels = labels.astype(np.uint8)
     if n_points <= max_points:
         return np.arange(n_points, dtype=np.int64)
+    labels = np.zeros(n_points, np.uint8) if labels is None else np.asarray(labels)
+    if labels.dtype != np.uint8:  # raw class ids (< 256) in a wider type
+        labels = labels.astype(np.uint8)
     if counts is None:
         counts = count_labels(labels)
     quotas = class_quotas(counts, max_points)

@@ -295,7 +295,6 @@ class SceneViewMixin:
                 if draw_s is None:  # no answer: the rest as planned
                     batch = todo
                 else:
-                    st.draw_s = draw_s
                     batch = point_lod.next_batch(todo, sizes, shown, draw_s,
                                                  float(self.frame_budget_s), keep)
                     if not batch:
@@ -311,7 +310,8 @@ class SceneViewMixin:
                         break
                 if not self._send_batch(st, gen, batch):
                     return
-                todo = [g for g in todo if g not in set(batch)]
+                sent = set(batch)
+                todo = [g for g in todo if g not in sent]
             self._lod_finished(st, gen)
         except Exception:  # noqa: BLE001 - a closed tab ends its refinement
             log.debug("viewer: refinement stopped", exc_info=True)
@@ -640,9 +640,8 @@ class SceneViewMixin:
         h = st.point_handles.get(class_id)
         if h is not None:
             h.visible = visible
-        name = sb.class_name(st.data.taxonomy, class_id) if st.data else None
         for n, gh in list(st.grid_handles.items()):
-            if n.rsplit("/", 1)[-1] == name:
+            if st.grid_classes.get(n) == class_id:
                 gh.visible = visible and not (st.moving and self.hide_grid_on_motion)
 
     # ---- cameras ---------------------------------------------------------------------------

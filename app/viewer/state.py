@@ -77,11 +77,10 @@ class ClientState:
     first_sent_at: float = 0.0  # perf_counter when the first points of a scene were sent
     lod_done: threading.Event = field(default_factory=threading.Event)
     detail_handles: dict[int, Any] = field(default_factory=dict)  # /points/<class>/detail
-    # the resting level of detail this browser draws (scene_view._refine): the seconds its
-    # last measured frame took (a render round trip), whether the user set "LOD max points"
-    # (then every point of the plan is sent), and (points shown, points planned, seconds a
-    # frame) where the refinement stopped because this browser draws slowly, else None
-    draw_s: float | None = None
+    # the resting level of detail this browser draws (scene_view._refine): whether the user
+    # set "LOD max points" (then every point of the plan is sent), and (points shown, points
+    # planned, seconds a frame) where the refinement stopped because this browser draws
+    # slowly, else None
     lod_explicit: bool = False
     lod_stopped: tuple[int, int, float] | None = None
     lod_gui_sync: bool = False  # the viewer writes its choice into the field: not the user's

@@ -113,10 +113,10 @@ def load_frame_votes(ws: str | Path, frames: list[int]) -> dict[int, tuple]:
     (frames without a file are left out)."""
     from occufly.workspace import Workspace
 
-    d = Workspace(ws).lifting_dir / "frames"
+    w_s = Workspace(ws)
     out = {}
     for f in frames:
-        p = d / f"{int(f)}.npz"
+        p = w_s.lifting_frame(f)
         if p.is_file():
             with np.load(p, allow_pickle=False) as z:
                 w = z["weights"] if "weights" in z.files else None

@@ -854,14 +854,10 @@ def compile_kernels() -> None:
     best, cand, lk = np.empty(1, np.int64), np.empty((1, 2), np.int64), np.empty((1, 2), np.float32)
     z = np.zeros(C, np.float32)
     for lp_vox in (np.zeros((1, C), np.float32), np.zeros((0, C), np.float32)):
-        _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
-                         np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
-                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk,
-                         np.zeros((0, C), np.float32))
-        _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
-                         np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
-                         np.float32(1.0), 2, np.float32(12.0), best, cand, lk,
-                         np.zeros((1, C), np.float32))
+        for ll in (np.zeros((0, C), np.float32), np.zeros((1, C), np.float32)):
+            _vote_candidates(np.zeros((C, C), np.float32), one, np.ones(1, np.float32), one - 1,
+                             np.zeros(1, np.float32), lp_vox, np.zeros(1, np.int32), z, z,
+                             np.float32(1.0), 2, np.float32(12.0), best, cand, lk, ll)
     for dt in (np.int16, np.int64):
         _group_by_class(np.arange(2, dtype=np.int64), np.array([1, 0], dt), C)
     eye = np.eye(F, dtype=np.float32)

@@ -667,9 +667,9 @@ class VoteStore:
                 snapshot = vetoed or snapshot
             rp = getattr(params, "robust_params", None)
             if getattr(rp, "confusion", None) is not None:  # the votes as counted now
-                snapshot.frame_votes = {fi: self._load_frame_file(self._frame_path(fi))
+                snapshot.frame_votes = {fi: self._load_frame_file(fp)
                                         for fi in self._versions
-                                        if self._frame_path(fi).is_file()}
+                                        if (fp := self._frame_path(fi)).is_file()}
         if annotators is not None:
             snapshot.annotators = dict(annotators)
         result = fill_snapshot(self.scene, snapshot, params=params, ws=self.ws,

@@ -585,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stages", default=STAGES)
     ap.add_argument("--compare", type=Path, metavar="EARLIER",
                     help="an earlier results file: per stage wall / CPU / peak ratios, stages "
-                    f"that moved more than {MOVED:.0%} flagged (under 'comparison')")
+                    f"that moved more than {MOVED:.0%}% flagged (under 'comparison')")
     ap.add_argument("--resume", action="store_true", help="keep the stages already in --out")
     ap.add_argument("--no-dask", action="store_true")
     ap.add_argument("--keep-exports", action="store_true")

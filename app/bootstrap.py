@@ -20,6 +20,7 @@ from app.lifting.client import LiftingClient
 from app.lifting.service import LiftingService
 from app.review import jobs as review_jobs
 from app.review import service as review
+from app.review.refresher import ReviewRefresher
 from app.scenes import jobs as scene_jobs
 
 log = logging.getLogger("occufly.app")
@@ -54,11 +55,28 @@ def build_context(settings: Settings, *, lifting: str | None = None,
 
 def build_lifting_service(ctx: AppContext) -> LiftingService:
     """The lifting service over ``ctx``'s database, store and scenes, with the subscribers of
-    the scenes it owns (:data:`app.events.CATALOGUE`): the review's agreement refresh."""
+    the scenes it owns (:data:`app.events.CATALOGUE`): the review's agreement refresh -- in a
+    niced child process per refresh (:class:`app.review.refresher.ReviewRefresher`), or with
+    ``review_refresh_process=False`` in the fill thread."""
+    if ctx.settings.review_refresh_process:
+        refresh = ReviewRefresher(ctx.settings, run_review_refresh,
+                                  nice=ctx.settings.review_refresh_nice)
+    else:
+        def refresh(msg, stop):  # noqa: ANN001, ANN202
+            review.refresh_after_fill(ctx, msg, stop)
     return LiftingService(
         settings=ctx.settings, engine=ctx.engine, sessions=ctx.sessions, store=ctx.store,
-        load_scene=ctx.load_scene, bus=ctx.events,
-        on_owned_labels=(lambda msg, stop: review.refresh_after_fill(ctx, msg, stop),))
+        load_scene=ctx.load_scene, bus=ctx.events, on_owned_labels=(refresh,))
+
+
+def run_review_refresh(settings: Settings, scene_id: int, stop) -> None:  # noqa: ANN001
+    """Entry point of the review refresh's child process (:mod:`app.review.refresher`): its
+    own context (reads the votes and labels; runs no lifting, no jobs), one scene's refresh."""
+    ctx = build_context(settings, lifting="external", jobs=False)
+    try:
+        review.refresh_scene(ctx, scene_id, stop)
+    finally:
+        ctx.engine.dispose()
 
 
 def subscribe_api_process(ctx: AppContext) -> None:

@@ -17,6 +17,10 @@
 ``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
 ``OCCUFLY_FILL_NICE``          niceness added to the lifting worker's fill thread (default 5,
                                0 = none): saves and page requests go first on a busy host
+``OCCUFLY_REVIEW_REFRESH_PROCESS``  1 (default): the review's after-fill refresh (stored
+                               agreement of up to 200 frames, suspects) runs in a child process
+                               of the lifting worker; 0: in its fill thread (tests, debugging)
+``OCCUFLY_REVIEW_REFRESH_NICE``  niceness of that child process (default 10, 0..19)
 ``OCCUFLY_JOB_WORKERS``        concurrently running jobs (default 2)
 ``OCCUFLY_JOB_PROCESSES``      1 (default): heavy jobs run in worker processes (or on Dask);
                                0: in threads of the server process (debugging)
@@ -96,6 +100,9 @@ class Settings:
     # it answers with the last one (stale) or 202 (none yet); the computation goes on
     quality_wait_s: float = 1.5
     fill_nice: int = 5  # the fill thread's added niceness (0..19; docs/lifting-scale.md)
+    # issue 38: the review's after-fill refresh in a niced child process (app.review.refresher)
+    review_refresh_process: bool = True
+    review_refresh_nice: int = 10
     job_workers: int = 2
     job_processes: bool = True
     frontend_dir: Path = REPO_ROOT / "frontend"
@@ -201,6 +208,8 @@ class Settings:
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
             quality_wait_s=num("OCCUFLY_QUALITY_WAIT_S", 1.5, float),
             fill_nice=num("OCCUFLY_FILL_NICE", 5),
+            review_refresh_process=bool(num("OCCUFLY_REVIEW_REFRESH_PROCESS", 1)),
+            review_refresh_nice=num("OCCUFLY_REVIEW_REFRESH_NICE", 10),
             min_independent_coverage=num("OCCUFLY_MIN_INDEPENDENT_COVERAGE", 0.5, float),
             job_workers=num("OCCUFLY_JOB_WORKERS", 2),
             job_processes=bool(num("OCCUFLY_JOB_PROCESSES", 1)),
@@ -236,4 +245,7 @@ class Settings:
         if not 0 <= kw["fill_nice"] <= 19:
             raise ConfigError(f"OCCUFLY_FILL_NICE must be 0..19 (added niceness), got "
                               f"{kw['fill_nice']}")
+        if not 0 <= kw["review_refresh_nice"] <= 19:
+            raise ConfigError(f"OCCUFLY_REVIEW_REFRESH_NICE must be 0..19 (added niceness), got "
+                              f"{kw['review_refresh_nice']}")
         return cls(**kw)

@@ -116,14 +116,16 @@ class LiftingClient:
                 "lag_s": round(lag_s, 1)}
 
     def wait_idle(self, scene_id: int, timeout: float = 10.0, *, include_fill: bool = False) -> bool:
-        """Until the scene's queue is empty (and, with ``include_fill``, its fill finished)."""
+        """Until the scene's queue is empty (and, with ``include_fill``, its fill finished and
+        the review's after-fill refresh with it)."""
         end = time.monotonic() + timeout
         while True:
             st = self.status(scene_id)
             busy = self.service.busy(scene_id) if self.service is not None else {}
             idle = st["pending_frames"] == 0 and not busy.get("applying")
-            if include_fill:
-                idle = idle and not st["pending_fill"] and not busy.get("filling")
+            if include_fill:  # the fill and what follows it (the review's refresh)
+                idle = idle and not st["pending_fill"] and not busy.get("filling") \
+                    and not busy.get("refreshing")
             if idle:
                 return True
             if time.monotonic() >= end:

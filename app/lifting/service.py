@@ -222,7 +222,9 @@ class LiftingService:
                  decode_threads: int | None = None) -> None:
         """on_owned_labels: ``labels_updated`` subscribers for the scenes this worker owns
         (the composition root's; e.g. the review's agreement refresh), called with the event
-        and this service's stop event."""
+        and this service's stop event in the fill's thread; one that hands its work to the
+        background has ``busy(scene_id)`` (:meth:`busy`'s ``refreshing``; ``wait_idle`` with
+        ``include_fill`` waits for it) and ``close()`` (called by :meth:`stop`)."""
         self.settings = settings
         self.engine = engine
         self.sessions = sessions
@@ -312,6 +314,10 @@ class LiftingService:
             self._cv.notify_all()
         for t in self._threads + [sc.thread for sc in self._scenes.values() if sc.thread]:
             t.join(timeout=60)
+        for fn in self.on_owned_labels:  # a subscriber's background work (a child process)
+            close = getattr(fn, "close", None)
+            if close is not None:
+                close()
         for sc in self._scenes.values():
             close = getattr(sc.state, "close", None)
             if close is not None:
@@ -356,10 +362,19 @@ class LiftingService:
     def busy(self, scene_id: int) -> dict:
         sc = self._scenes.get(scene_id)
         if sc is None:
-            return {"applying": False, "fill_due": False, "filling": False}
+            return {"applying": False, "fill_due": False, "filling": False,
+                    "refreshing": self.refreshing(scene_id)}
         with self._cv:
-            return {"applying": sc.applying, "fill_due": sc.fill_due is not None,
-                    "filling": sc.filling}
+            out = {"applying": sc.applying, "fill_due": sc.fill_due is not None,
+                   "filling": sc.filling}
+        out["refreshing"] = self.refreshing(scene_id)
+        return out
+
+    def refreshing(self, scene_id: int) -> bool:
+        """Whether a subscriber that works in the background (one with a ``busy(scene_id)``,
+        e.g. :class:`app.review.refresher.ReviewRefresher`) still works on the scene."""
+        return any(getattr(fn, "busy", None) is not None and fn.busy(scene_id)
+                   for fn in self.on_owned_labels)
 
     # ---- recovery ---------------------------------------------------------------------------
     def _recover(self) -> None:

@@ -352,11 +352,18 @@ AGREEMENT_REFRESH_FRAMES = 200  # frames whose stored agreement a fill recompute
 
 def refresh_after_fill(ctx: AppContext, msg, stop: threading.Event) -> None:  # noqa: ANN001
     """The ``labels_updated`` subscriber of the process whose lifting service owns the scene
-    (wired by :func:`app.bootstrap.build_lifting_service`): recompute the stored per-frame
-    agreement of submitted / reviewed frames against the new labels and leave the review
-    list's top frames computed in the review cache (:func:`refresh_agreement`)."""
+    (wired by :func:`app.bootstrap.build_lifting_service`; by default it runs
+    :func:`refresh_scene` in a child process instead: :mod:`app.review.refresher`)."""
+    refresh_scene(ctx, msg.scene_id, stop)
+
+
+def refresh_scene(ctx: AppContext, scene_id: int, stop: threading.Event) -> None:
+    """After a fill: the suspects list, then the stored per-frame agreement of submitted /
+    reviewed frames against the new labels, leaving the review list's top frames computed in
+    the review cache (:func:`refresh_agreement`); stops between two frames when ``stop``
+    is set."""
     with ctx.sessions() as s:
-        scene = s.get(Scene, msg.scene_id)
+        scene = s.get(Scene, scene_id)
         if scene is not None:
             _warm_suspects(ctx, scene)
             refresh_agreement(ctx, s, scene, stop=stop, log=log)

@@ -225,6 +225,9 @@ def env(request, tmp_path: Path):
     settings = Settings(data_dir=tmp_path / "data", database_url=url, import_roots=[root],
                         env="development", fill_debounce_s=0.2, job_workers=2,
                         job_processes=request.node.get_closest_marker("job_processes") is not None,
+                        # the review's after-fill refresh in the fill thread, unless marked
+                        review_refresh_process=request.node.get_closest_marker(
+                            "review_process") is not None,
                         login_free_failures=3, max_upload_bytes=1 << 20,
                         # argon2id at a test cost (production default: 64 MiB, 3 passes)
                         argon2_memory_kib=1024, argon2_time_cost=1,
@@ -253,6 +256,9 @@ def world(env):
 def pytest_configure(config) -> None:  # noqa: ANN001
     config.addinivalue_line(
         "markers", "job_processes: run remote job kinds in spawned worker processes")
+    config.addinivalue_line(
+        "markers", "review_process: run the review's after-fill refresh in its child process "
+        "(the default outside the in-process test apps)")
 
 
 def seed_served_data(tmp: Path, extra_env: dict | None = None, *,

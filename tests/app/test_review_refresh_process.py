@@ -182,3 +182,32 @@ def test_the_child_refresh_reaches_the_api(world):
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
                         headers=hdr["reviewer"]).json()
     assert fl[0]["id"] == ids[3]
+
+
+_PARENT = r"""
+import sys, threading, time
+from types import SimpleNamespace
+from app.review.refresher import ReviewRefresher
+from tests.app.test_review_refresh_process import blocking_entry
+r = ReviewRefresher(SimpleNamespace(), blocking_entry)
+r.request(1)
+time.sleep(600)
+"""
+
+
+def test_a_child_whose_parent_died_exits(trace: Path):
+    """The lifting worker killed (OOM, SIGKILL): its refresh child does not run on alone."""
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[2]
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT], cwd=repo,
+                              env={**os.environ, "PYTHONPATH": str(repo)})
+    try:
+        assert _wait(lambda: list(trace.glob("run-0-1")), 60)
+        child = int((trace / "run-0-1").read_text().split()[0])
+        assert _alive(child)
+    finally:
+        parent.kill()
+        parent.wait()
+    assert _wait(lambda: not _alive(child), 10)

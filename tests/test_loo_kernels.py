@@ -1,0 +1,128 @@
+"""The compiled parts of a frame's leave-one-out labels (a reviewer's first open of a 20 MP
+frame) against the code they replaced, bit for bit: the fill's k-NN vote by a grid search
+(``loo._fill_vote``) against the k-d tree of the voted points ``_near`` keeps
+(``loo._fill_tree``), including ties at the k-th neighbour, points with no voted point in
+reach and empty inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from occufly.lifting import loo as L
+from occufly.lifting.classes import ClassColumns
+from occufly.lifting.knn import LiftParams
+from occufly.taxonomy import default_taxonomy
+
+CLS = ClassColumns(default_taxonomy())
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    return (a[0].dtype == b[0].dtype and a[1].dtype == b[1].dtype
+            and np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32), b[1].view(np.uint32)))
+
+
+def _cloud(seed: int, n: int, *, grid: bool = False):
+    """A clustered cloud (surfaces with gaps: many points to fill far from any vote), its
+    gathered ids (sorted, a subset of the scene), voted rows and rows to fill."""
+    rng = np.random.default_rng(seed)
+    if grid:  # integer coordinates: many points at equal distances (ties at the k-th)
+        xyz = rng.integers(0, 12, (n, 3)).astype(np.float32)
+    else:
+        centres = rng.uniform(0, 40, (12, 3))
+        xyz = (centres[rng.integers(0, 12, n)] + rng.normal(0, 2.5, (n, 3))).astype(np.float32)
+        xyz[:, 2] *= 0.3
+    ids = np.sort(rng.choice(n, int(n * 0.8), replace=False)).astype(np.int64)
+    col = np.full(len(ids), -1, np.int64)
+    voted = rng.random(len(ids)) < 0.6
+    col[voted] = rng.integers(0, CLS.C, int(voted.sum()))
+    todo = np.flatnonzero(~voted & (rng.random(len(ids)) < 0.5))
+    src = np.flatnonzero(voted)
+    return xyz, ids, todo, src, col
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("k,radius", [(100, 3.0), (8, 1.0), (1, 0.7), (30, 0.25)])
+def test_fill_vote_equals_the_tree(seed, k, radius):
+    xyz, ids, todo, src, col = _cloud(seed, 6000)
+    p = LiftParams(fill_k=k, fill_radius=radius)
+    got = L._fill_vote(xyz, ids, todo, src, col, p, CLS)
+    want = L._fill_tree(xyz, ids, todo, src, col, p, CLS)
+    assert _same(got, want)
+    assert (got[0] >= 0).any()
+    if radius <= 1.0:
+        assert (got[0] < 0).any()  # points with no voted point within the radius
+
+
+@pytest.mark.parametrize("k", [1, 6, 27, 100])
+def test_fill_vote_ties_at_the_kth_neighbour_take_the_trees_answer(k, monkeypatch):
+    xyz, ids, todo, src, col = _cloud(5, 4000, grid=True)
+    p = LiftParams(fill_k=k, fill_radius=4.0)
+    calls = []
+    tree = L._fill_tree
+
+    def spy(*a, **kw):
+        calls.append(kw.get("only"))
+        return tree(*a, **kw)
+
+    monkeypatch.setattr(L, "_fill_tree", spy)
+    got = L._fill_vote(xyz, ids, todo, src, col, p, CLS)
+    assert calls and calls[0] is not None and 0 < len(calls[0]) < len(todo)  # the tied ones only
+    monkeypatch.setattr(L, "_fill_tree", tree)
+    assert _same(got, tree(xyz, ids, todo, src, col, p, CLS))
+
+
+def test_fill_vote_edge_cases():
+    xyz, ids, todo, src, col = _cloud(7, 3000)
+    p = LiftParams()
+    for t, s in ((todo[:0], src), (todo, src[:0]), (todo[:1], src), (todo, src[:3])):
+        assert _same(L._fill_vote(xyz, ids, t, s, col, p, CLS), L._fill_tree(xyz, ids, t, s, col, p, CLS))
+    # no voted point in the box of the points to fill
+    far = xyz.copy()
+    far[ids[todo]] += 1000.0
+    got = L._fill_vote(far, ids, todo, src, col, p, CLS)
+    assert _same(got, L._fill_tree(far, ids, todo, src, col, p, CLS))
+    assert (got[0] == -1).all() and (got[1] == 0).all()
+    # a grid too large for the dense voxels: the tree answers
+    wide = xyz.copy()
+    wide[ids[todo[0]]] = (1e6, -1e6, 1e5)
+    old = L._FILL_GRID_MAX_CELLS
+    try:
+        L._FILL_GRID_MAX_CELLS = 1000
+        assert _same(L._fill_vote(wide, ids, todo, src, col, p, CLS),
+                     L._fill_tree(wide, ids, todo, src, col, p, CLS))
+    finally:
+        L._FILL_GRID_MAX_CELLS = old
+
+
+def test_loo_labels_compiled_fill_equals_the_tree(tmp_path, monkeypatch):
+    """Every annotated frame's leave-one-out labels and shares through the compiled fill and
+    through the k-d tree (the analytic scene, a house painted as ground in one frame)."""
+    from occufly.lifting import VoteStore
+    from occufly.scene import Scene
+    from tests.lift_scene import BUILDING, GRASS, make_scene, truth_mask
+
+    scene, _ = make_scene()
+    path = tmp_path / "ws"
+    scene.save(path)
+    scene = Scene.load(path)
+    st = VoteStore.open(path, scene)
+    frames = (1, 4, 5, 9)
+    for fi in frames:
+        m = truth_mask(scene.frames[fi])
+        if fi == 5:
+            m = np.where(m == BUILDING, GRASS, m).astype(np.uint8)
+        st.set_mask(fi, m, version=str(fi))
+    st.fill_and_denoise()
+    st.close()
+    for fi in frames:
+        out = {}
+        for flag in (False, True):
+            monkeypatch.setattr(L, "COMPILED_FILL", flag)
+            out[flag] = L.loo_labels(path, scene, fi)
+        a, b = out[False], out[True]
+        assert np.array_equal(a.point_ids, b.point_ids) and np.array_equal(a.labels, b.labels)
+        assert np.array_equal(a.voted, b.voted)
+        assert np.array_equal(a.share.view(np.uint32), b.share.view(np.uint32))
+        assert (b.labels[~b.voted] > 0).any()  # the fill gave labels
+

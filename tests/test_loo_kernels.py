@@ -95,6 +95,23 @@ def test_fill_vote_edge_cases():
         L._FILL_GRID_MAX_CELLS = old
 
 
+def test_gauss_at_equals_gauss_row():
+    from occufly.lifting import robust as R
+
+    rng = np.random.default_rng(0)
+    n, F, C = 2000, 10, 4
+    x = rng.normal(size=(n, F)).astype(np.float32)
+    mean = rng.normal(size=(C, F)).astype(np.float32)
+    wh = np.triu(rng.normal(size=(C, F, F))).astype(np.float32)
+    ld = rng.normal(size=C).astype(np.float32)
+    d, z = np.empty(F, np.float32), np.empty(F, np.float32)
+    for i in range(n):
+        c = i % C
+        a = R._gauss_row(x[i], mean[c], wh[c], ld[c], d)
+        b = R._gauss_at(x, i, mean, wh, ld, c, d, z)
+        assert np.float32(a).view(np.uint32) == np.float32(b).view(np.uint32)
+
+
 def test_loo_labels_compiled_fill_equals_the_tree(tmp_path, monkeypatch):
     """Every annotated frame's leave-one-out labels and shares through the compiled fill and
     through the k-d tree (the analytic scene, a house painted as ground in one frame)."""

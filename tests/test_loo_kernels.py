@@ -143,3 +143,16 @@ def test_loo_labels_compiled_fill_equals_the_tree(tmp_path, monkeypatch):
         assert np.array_equal(a.share.view(np.uint32), b.share.view(np.uint32))
         assert (b.labels[~b.voted] > 0).any()  # the fill gave labels
 
+
+def test_rows_in_equals_a_point_to_row_map():
+    """rows_in (merge walk for sorted queries, binary search otherwise) against the (N,) map
+    it replaced: sorted, repeated, unsorted and absent ids, and empty inputs."""
+    rng = np.random.default_rng(11)
+    n = 50_000
+    ids = np.sort(rng.choice(n, 20_000, replace=False)).astype(np.int64)
+    row_of = np.full(n, -1, np.int32)
+    row_of[ids] = np.arange(len(ids))
+    for q in (np.sort(rng.integers(0, n, 9000)), rng.integers(0, n, 9000), ids, ids[::-1],
+              np.zeros(0, np.int64), np.array([n - 1]), np.array([0, 0, 0])):
+        assert np.array_equal(L.rows_in(ids, q), row_of[q].astype(np.int64))
+    assert np.array_equal(L.rows_in(ids[:0], np.array([1, 2])), [-1, -1])

@@ -126,7 +126,8 @@ def _winner_minus_own(votes: np.ndarray, ids: np.ndarray, pos: np.ndarray, own_c
 
 def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.ndarray,
                own_w: np.ndarray, cls: ClassColumns, share: np.ndarray | None = None, *,
-               rows: np.ndarray | None = None, second: bool = False
+               rows: np.ndarray | None = None, own_rows: np.ndarray | None = None,
+               second: bool = False
                ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(K,) int64 winner column (:meth:`ClassColumns.winner`'s tie order; -1 = no vote) of the
     vote counts ``votes[ids]`` ((N, C) uint16, a memmap is read in place) minus a frame's
@@ -134,7 +135,8 @@ def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.
     below 0). One compiled pass over the rows: no (K, C) copy, no packed key array.
     ``share``: an optional (K,) float32 output, the winner's share of the votes left;
     ``rows``: an optional (N,) map of scene point id -> row in ``ids`` (-1 = none), used
-    instead of a binary search of ``own_p``. ``second``: return (winner, its votes, the
+    instead of a binary search of ``own_p``; ``own_rows``: the rows of ``own_p`` in ``ids``
+    already found (-1 = none). ``second``: return (winner, its votes, the
     runner-up column (-1 = none), its votes), the vote pattern of :func:`robust.redecide`."""
     ids = np.ascontiguousarray(ids, dtype=np.int64)
     n = len(ids)
@@ -143,7 +145,9 @@ def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.
     top, out2, n2 = np.zeros(n, np.int64), np.full(n, -1, np.int64), np.zeros(n, np.int64)
     if not n:
         return (out, top, out2, n2) if second else out
-    if rows is not None:
+    if own_rows is not None:
+        pos = np.asarray(own_rows, np.int64)
+    elif rows is not None:
         pos = rows[own_p].astype(np.int64)
     else:
         pos = np.searchsorted(ids, own_p).astype(np.int64)
@@ -156,6 +160,46 @@ def loo_winner(votes: np.ndarray, ids: np.ndarray, own_p: np.ndarray, own_c: np.
     _winner_minus_own(votes, ids, pos, np.ascontiguousarray(own_c, np.int64),
                       np.ascontiguousarray(own_w, np.int64), tie, out, share, top, out2, n2)
     return (out, top, out2, n2) if second else out
+
+
+@numba.njit(nogil=True, cache=True)
+def _rows_in(ids: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
+    n = ids.shape[0]
+    m = q.shape[0]
+    srt = True
+    for i in range(1, m):
+        if q[i] < q[i - 1]:
+            srt = False
+            break
+    if srt:  # one merge walk
+        j = 0
+        for i in range(m):
+            v = q[i]
+            while j < n and ids[j] < v:
+                j += 1
+            out[i] = j if j < n and ids[j] == v else -1
+        return
+    for i in range(m):  # a binary search each
+        v = q[i]
+        lo, hi = 0, n
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if ids[mid] < v:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[i] = lo if lo < n and ids[lo] == v else -1
+
+
+def rows_in(ids: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(len(q),) int64 position of each of ``q`` in ``ids`` (sorted ascending, distinct),
+    -1 where absent: one merge walk when ``q`` is sorted (a frame's visible points, its votes
+    and the overrides are), else a binary search each -- what an (N,) map from point id to row
+    gave without writing 4 bytes per scene point (128 MB on a 32 M-point scene) per call."""
+    out = np.empty(len(q), np.int64)
+    if len(q):
+        _rows_in(np.ascontiguousarray(ids, np.int64), np.ascontiguousarray(q, np.int64), out)
+    return out
 
 
 def _vote_unit(ws: Path) -> int:
@@ -557,28 +601,32 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
     fr = scene.frames[frame_index]
     vis = np.asarray(scene.visibility.frame_ids(frame_index), dtype=np.int64)
     cand = frustum_candidates(scene, fr.camera, fr.T_cam_world)
-    # row of each scene point in ids (-1: not gathered): one int32 map instead of a binary
-    # search per lookup (visible points, own votes, overrides: ~2 M each on a 20 MP frame)
-    row_of = np.full(scene.n_points, -1, np.int32)
+    # row in ids of the visible points, own votes and overrides (-1: not gathered): a merge
+    # walk of the sorted ids and each sorted list (:func:`rows_in`), no (N,) map of the scene
     if cand is None:
         ids = np.arange(scene.n_points, dtype=np.int64)
+
+        def rows(q: np.ndarray) -> np.ndarray:  # every point gathered: its id is its row
+            q = np.asarray(q, np.int64)
+            return np.where((q >= 0) & (q < len(ids)), q, -1)
     else:
         ids = np.asarray(cand, np.int64)  # sorted; f's visible points are (almost) all in it
-        row_of[ids] = np.arange(len(ids), dtype=np.int32)
-        missing = vis[row_of[vis] < 0]
+        missing = vis[rows_in(ids, vis) < 0]
         if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
             ids = np.sort(np.concatenate([ids, missing]))
-    row_of[ids] = np.arange(len(ids), dtype=np.int32)
+
+        def rows(q: np.ndarray) -> np.ndarray:
+            return rows_in(ids, q)
     own_p, own_c, own_w = _frame_votes(ws, frame_index)
     share = np.empty(len(ids), np.float32)
-    col, n1, col2, n2 = loo_winner(votes, ids, own_p, own_c, own_w, cls, share, rows=row_of,
-                                   second=True)
+    col, n1, col2, n2 = loo_winner(votes, ids, own_p, own_c, own_w, cls, share,
+                                   own_rows=rows(own_p), second=True)
     voted = col >= 0
     if getattr(p, "robust", False):
         _robust_decision(ws, scene, cls, ids, col, n1, col2, n2, share, p)
     # fill: the points f sees without an independent vote, from the other frames' voted points
     is_vis = np.zeros(len(ids), bool)
-    is_vis[row_of[vis]] = True
+    is_vis[rows(vis)] = True  # every visible point is in ids
     todo = np.flatnonzero(is_vis & ~voted)
     src = np.flatnonzero(voted)
     if len(todo) and len(src):
@@ -591,7 +639,7 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
         ov = read_overrides(ws, scene.n_points)
         if ov is not None and len(ov):
             op = np.asarray(ov.point_ids, np.int64)
-            pos = row_of[op]
+            pos = rows(op)
             hit = pos >= 0
             labels[pos[hit]] = np.asarray(ov.labels)[hit]
             share[pos[hit]] = 1.0

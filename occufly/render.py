@@ -235,8 +235,12 @@ def _upsample(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
 
 
 def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float, splat_factor: float,
-            surface_tol: float, chunk: int, cand: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The splat renderer at ``cam``'s resolution (``cand``: the frustum cull of the points)."""
+            surface_tol: float, chunk: int, cand: np.ndarray | None, at_cand: bool = False
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The splat renderer at ``cam``'s resolution (``cand``: the frustum cull of the points;
+    ``at_cand``: ``labels`` holds the labels of the points ``cand`` only, row k point
+    ``cand[k]``, instead of every point's)."""
+    at_cand = at_cand and cand is not None
     h, w = cam.height, cam.width
     f = 0.5 * sum(cam.focal)
     n_cand = scene.n_points if cand is None else len(cand)
@@ -259,7 +263,8 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
             # the s x s pixels whose centres lie within s/2 of the projected point
             col0 = np.ceil(uv[:, 0] - size / 2.0 - 0.5).astype(np.int64)
             row0 = np.ceil(uv[:, 1] - size / 2.0 - 0.5).astype(np.int64)
-            yield uv, z, size, col0, row0, labels[sub][idx]  # (n,) or (n, L)
+            lab = labels[a:b] if at_cand else labels[sub]
+            yield uv, z, size, col0, row0, lab[idx]  # (n,) or (n, L)
 
     # pass 1: nearest depth per pixel; pass 2: among the fragments of the front surface
     # (depth within a tolerance of the nearest), the point projecting closest to the pixel
@@ -287,7 +292,7 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
         for label_pass in (False, True):
             project_splat_pass(depth, best2, xyz, ids, T, float(fx), float(fy), float(cx),
                                float(cy), float(cam.skew), np.float32(ksize), MAX_SPLAT,
-                               MAX_SPLAT, lab2, tol, h, w, label_pass)
+                               MAX_SPLAT, lab2, tol, h, w, label_pass, at_cand)
         return _finish(depth, best, multi, h, w)
 
     # the projections are kept for the second pass when they are small (culled frames)
@@ -329,7 +334,7 @@ def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int, mask_sha
     return cls, depth
 
 
-def render_many_for_mask(scene: Scene, labels: list[np.ndarray], frame_index: int,
+def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
                          mask_shape: tuple[int, int], *, point_spacing: float | None = None,
                          splat_factor: float = SPLAT_FACTOR, surface_tol: float = 3.0,
                          chunk: int = 500_000) -> list[np.ndarray]:
@@ -337,12 +342,27 @@ def render_many_for_mask(scene: Scene, labels: list[np.ndarray], frame_index: in
     (h, w) class images (no depth): the projection, the cull and the depth pass are shared
     and one label pass keeps a key per label set, so each image equals that label array's own
     :func:`render_for_mask` image (tests/test_render.py) at little more than one render's
-    cost. The review renders a frame's leave-one-out and self labels this way."""
-    arrs = [np.asarray(a) for a in labels]
-    for a in arrs:
-        if a.shape != (scene.n_points,):
-            raise ValueError(f"labels must be ({scene.n_points},), got {a.shape}")
-    if not arrs:
+    cost. The review renders a frame's leave-one-out and self labels this way.
+
+    A label set may also be given sparse, as ``(ids, values)``: the points ``ids`` (strictly
+    increasing) labelled ``values``, every other point 0 -- the image of the (N,) array that
+    holds them, without building it. Only the culled points' labels are gathered (a 20 MP
+    frame of a 32 M-point scene: 2.6 M rows instead of an (N, L) stack)."""
+    sets = []
+    for a in labels:
+        if isinstance(a, tuple):
+            ids, vals = (np.asarray(v) for v in a)
+            if ids.ndim != 1 or ids.shape != vals.shape:
+                raise ValueError(f"sparse labels need (K,) ids and values, got {ids.shape}, {vals.shape}")
+            if len(ids) and (ids[0] < 0 or ids[-1] >= scene.n_points):
+                raise ValueError(f"sparse label ids must lie in 0..{scene.n_points - 1}")
+            sets.append((ids, vals))
+        else:
+            a = np.asarray(a)
+            if a.shape != (scene.n_points,):
+                raise ValueError(f"labels must be ({scene.n_points},), got {a.shape}")
+            sets.append(a)
+    if not sets:
         return []
     frame = scene.frames[frame_index]
     scale = 1.0 / (frame.camera.width // int(mask_shape[1]))
@@ -355,12 +375,35 @@ def render_many_for_mask(scene: Scene, labels: list[np.ndarray], frame_index: in
     cand = frustum_candidates(scene, cam, frame.T_cam_world,
                               margin=MAX_SPLAT * (MAX_COARSE if big else 1))
     k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
-    stack = np.stack(arrs, axis=1).astype(np.uint8, copy=False)  # (N, L)
+    stack = _labels_at(scene.n_points, sets, cand)  # (K, L): the labels of the culled points
     cls, _ = _render(scene, stack, frame, cam.scaled(1.0 / k) if k > 1 else cam, spacing,
-                     splat_factor, surface_tol, chunk, cand)
+                     splat_factor, surface_tol, chunk, cand, at_cand=cand is not None)
     from occufly.splat import upsample_u8
 
     return [upsample_u8(c, k, h, w) if k > 1 else c for c in cls]
+
+
+def _labels_at(n_points: int, sets: list, cand: np.ndarray | None) -> np.ndarray:
+    """(K, L) uint8: the labels of the points ``cand`` (every point where None) in each label
+    set ((N,) array or sparse ``(ids, values)``, see :func:`render_many_for_mask`)."""
+    from occufly.splat import sparse_at
+
+    n = n_points if cand is None else len(cand)
+    out = np.empty((n, len(sets)), np.uint8)
+    at = None if cand is None else np.ascontiguousarray(cand, np.int64)
+    for j, s in enumerate(sets):
+        if not isinstance(s, tuple):
+            out[:, j] = s if at is None else s[at]
+            continue
+        ids, vals = s
+        col = np.zeros(n, np.uint8)
+        if at is None or not sparse_at(np.ascontiguousarray(ids, np.int64),
+                                       np.ascontiguousarray(vals, np.uint8), at, col):
+            full = np.zeros(n_points, np.uint8)
+            full[ids] = vals
+            col = full if at is None else full[at]
+        out[:, j] = col
+    return out
 
 
 def prefill_for_mask(scene: Scene, labels: np.ndarray, frame_index: int,

@@ -96,6 +96,29 @@ def splat_label_pass_multi(depth: np.ndarray, best: np.ndarray, uv: np.ndarray, 
 
 
 @numba.njit(nogil=True, cache=True)
+def sparse_at(ids: np.ndarray, values: np.ndarray, at: np.ndarray, out: np.ndarray) -> bool:
+    """``out[k]`` = the value of point ``at[k]`` in the sparse labels (``ids`` strictly
+    increasing, ``values`` theirs; 0 where a point is not among them), ``at`` ascending: one
+    merge walk instead of an (N,) array per label set. Returns False (``out`` incomplete)
+    when ``ids`` or ``at`` is not sorted."""
+    n = ids.shape[0]
+    for i in range(1, n):
+        if ids[i] <= ids[i - 1]:
+            return False
+    j = 0
+    prev = -1
+    for k in range(at.shape[0]):
+        a = at[k]
+        if a < prev:
+            return False
+        prev = a
+        while j < n and ids[j] < a:
+            j += 1
+        out[k] = values[j] if j < n and ids[j] == a else 0
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
 def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     """(h, w) uint8: every pixel of ``img`` repeated k x k, rows / columns past the end
     repeating the last one -- :func:`occufly.render._upsample` for uint8 images. Each output
@@ -132,7 +155,8 @@ def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
 def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids: np.ndarray,
                        T: np.ndarray, fx: float, fy: float, cx: float, cy: float, skew: float,
                        ksize: np.float32, margin: int, max_splat: int, lab: np.ndarray,
-                       tol: np.float32, h: int, w: int, label_pass: bool) -> None:
+                       tol: np.float32, h: int, w: int, label_pass: bool,
+                       lab_by_pos: bool = False) -> None:
     """:func:`splat_pass` (``label_pass`` False) / :func:`splat_label_pass_multi` straight
     from the cloud, for an undistorted camera: each point ``xyz[ids[k]]`` ((N, 3) scene-local
     metres) is projected with the float64 operations of the numpy path in their order
@@ -140,7 +164,8 @@ def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids
     ``(fx x + skew y) + cx``), its depth rounded to float32, its splat side
     ``clip(ceil(ksize / z), 1, max_splat)`` in float32, points ``margin`` px or more outside
     the image dropped -- and splatted at once, without the per-point arrays (uv, z, size,
-    corners, labels) the numpy path builds. ``lab``: (N, L) uint8 label sets; ``best``:
+    corners, labels) the numpy path builds. ``lab``: (N, L) uint8 label sets (with
+    ``lab_by_pos``: (len(ids), L), row k the labels of point ``ids[k]``); ``best``:
     (L, h * w) uint64, row j lowered as :func:`splat_label_pass_multi` lowers it."""
     k005 = np.float32(0.005)
     k65536 = np.float32(65536.0)
@@ -201,8 +226,9 @@ def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids
                 ey = r + 0.5 - v
                 d2 = np.float32(ex * ex + ey * ey)
                 base = np.uint64(min(d2 * k65536, cap)) << np.uint64(8)
+                lq = k if lab_by_pos else q
                 for j in range(n_lab):
-                    key = base | np.uint64(lab[q, j])
+                    key = base | np.uint64(lab[lq, j])
                     if key < best[j, p]:
                         best[j, p] = key
 
@@ -220,8 +246,11 @@ def compile_kernels() -> None:
                            np.full((1, 2), 0.5), z, one, one - 1, one - 1,
                            np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
     upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
+    sparse_at(one, np.ones(1, np.uint8), one, np.zeros(1, np.uint8))
     for label_pass in (False, True):
-        project_splat_pass(depth, best.reshape(1, -1), np.zeros((1, 3), np.float32), one - 1,
-                           np.eye(4)[:3], 1.0, 1.0, 1.0, 1.0, 0.0, np.float32(1.0), 8, 8,
-                           np.ones((1, 1), np.uint8), np.float32(0.1), 2, 2, label_pass)
+        for by_pos in (False, True):
+            project_splat_pass(depth, best.reshape(1, -1), np.zeros((1, 3), np.float32), one - 1,
+                               np.eye(4)[:3], 1.0, 1.0, 1.0, 1.0, 0.0, np.float32(1.0), 8, 8,
+                               np.ones((1, 1), np.uint8), np.float32(0.1), 2, 2, label_pass,
+                               by_pos)
 

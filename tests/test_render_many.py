@@ -176,3 +176,46 @@ def test_compiled_projection_equals_the_numpy_projection(monkeypatch):
         assert (a[0] > 0).mean() > 0.3  # something was rendered
         n_compiled += not sc.frames[fi].camera.has_distortion
     assert n_compiled >= 3  # the compiled path was taken
+
+
+def test_sparse_label_sets_equal_their_dense_arrays(monkeypatch):
+    """A label set given as (sorted ids, values) renders as the (N,) array holding them (the
+    review's leave-one-out labels, no (N,) array built): the small scene (no cull) and a
+    culled > 4 MP frame rendered coarser, through the compiled and the numpy projection; ids
+    out of order take the dense path and give the same image."""
+    import occufly.render as R
+    from occufly.splat import sparse_at
+
+    scene, truth = make_scene()
+    rng = np.random.default_rng(8)
+    g = np.arange(-24, 24, 0.08)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel(), gy.ravel() + rng.uniform(-0.02, 0.02, gx.size),
+                           np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)]).astype(np.float32)
+    cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1824.0, 1368.0, 912.0]))
+    big = Scene(frames=[Frame("f.jpg", cam, look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0],
+                                                    up=(0.0, 1.0, 0.0)))],
+                xyz=xyz, rgb=np.zeros_like(xyz, np.uint8), taxonomy=TAX)
+    big.meta["point_spacing"] = 0.08
+    for sc, fi, shape in ((scene, 3, (scene.frames[3].camera.height, scene.frames[3].camera.width)),
+                          (big, 0, (1824, 2736))):
+        n = sc.n_points
+        ids = np.sort(rng.choice(n, n // 3, replace=False)).astype(np.int64)
+        vals = _labels(len(ids), 9)
+        dense = np.zeros(n, np.uint8)
+        dense[ids] = vals
+        other = _labels(n, 10)
+        for compiled in (True, False):
+            monkeypatch.setattr(R, "COMPILED_PROJECTION", compiled)
+            want = render_many_for_mask(sc, [dense, other], fi, shape)
+            got = render_many_for_mask(sc, [(ids, vals), other], fi, shape)
+            assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))
+            assert (got[0] > 0).any()
+        perm = rng.permutation(len(ids))  # unsorted ids: the dense fallback, the same image
+        got = render_many_for_mask(sc, [(ids[perm], vals[perm])], fi, shape)
+        assert np.array_equal(got[0], want[0])
+    out = np.zeros(3, np.uint8)
+    assert sparse_at(np.array([1, 4, 9]), np.array([5, 6, 7], np.uint8), np.array([0, 4, 9]), out)
+    assert out.tolist() == [0, 6, 7]
+    assert not sparse_at(np.array([4, 1]), np.array([5, 6], np.uint8), np.array([0, 4, 9]), out)
+    assert not sparse_at(np.array([1, 4]), np.array([5, 6], np.uint8), np.array([4, 0, 9]), out)

@@ -729,14 +729,12 @@ def render_review(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int],
     :func:`~occufly.render.render_for_mask`): ``"loo"`` the leave-one-out labels,
     ``"confident"`` those of them holding >= ``CONFIDENT_SHARE`` of their votes (others 0),
     and with ``self_labels`` ((N,) uint8, the lifted labels) ``"self"``."""
-    full = np.zeros(scene.n_points, np.uint8)  # calloc'd: only the cull's pages are touched
-    full[loo.point_ids] = loo.labels
-    sets = [full]
+    # sparse label sets: the render gathers its culled points' labels by one merge walk of
+    # the sorted point ids, no (N,) array per set
+    sets: list = [(loo.point_ids, loo.labels)]
     if loo.share is not None:
-        conf = np.zeros(scene.n_points, np.uint8)
-        keep = loo.share >= CONFIDENT_SHARE
-        conf[loo.point_ids[keep]] = loo.labels[keep]
-        sets.append(conf)
+        sets.append((loo.point_ids, np.where(loo.share >= CONFIDENT_SHARE, loo.labels,
+                                             np.uint8(0)).astype(np.uint8)))
     if self_labels is not None:
         sets.append(np.asarray(self_labels, np.uint8))
     imgs = render_many_for_mask(scene, sets, loo.frame_index, mask_shape)

@@ -156,3 +156,30 @@ def test_rows_in_equals_a_point_to_row_map():
               np.zeros(0, np.int64), np.array([n - 1]), np.array([0, 0, 0])):
         assert np.array_equal(L.rows_in(ids, q), row_of[q].astype(np.int64))
     assert np.array_equal(L.rows_in(ids[:0], np.array([1, 2])), [-1, -1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_local_votes_compiled_counts_equal_the_bincounts(seed, monkeypatch):
+    """local_votes' compiled sums of whole vote counts against the chunked float64 bincounts
+    they replace (bit for bit), and fractional counts (weighted votes) still through those."""
+    from occufly.lifting import robust as R
+
+    rng = np.random.default_rng(seed)
+    n, C = 40_000, 9
+    xyz = rng.uniform(0, 20, (n, 3)).astype(np.float32)
+    c1 = rng.integers(0, C, n).astype(np.int16)
+    n1 = rng.integers(1, 6, n).astype(np.uint16)
+    c2 = np.where(rng.random(n) < 0.4, (c1 + 1) % C, -1).astype(np.int8)
+    n2 = np.where(c2 >= 0, rng.integers(1, 3, n), 0).astype(np.uint16)
+    voted = np.flatnonzero(rng.random(n) < 0.9)
+    assert R._integral_votes(n1, n2, voted, c2)
+    got = R.local_votes(xyz, voted, c1, n1, c2, n2, C, 0.7, chunk=7000)
+    monkeypatch.setattr(R, "_integral_votes", lambda *a: False)
+    want = R.local_votes(xyz, voted, c1, n1, c2, n2, C, 0.7, chunk=7000)
+    assert np.array_equal(got[0], want[0]) and got[1].dtype == want[1].dtype
+    assert np.array_equal(got[1].view(np.uint32), want[1].view(np.uint32))
+    monkeypatch.undo()
+    frac = n2.astype(np.float32) / 3
+    assert not R._integral_votes(n1, frac, voted, c2)
+    assert not R._integral_votes(np.full(n, 60_000, np.int64), n2, voted, c2)  # > 2^24 in all
+    assert not R._integral_votes(np.full(n, -1, np.int64), n2, voted, c2)

@@ -183,3 +183,23 @@ def test_local_votes_compiled_counts_equal_the_bincounts(seed, monkeypatch):
     assert not R._integral_votes(n1, frac, voted, c2)
     assert not R._integral_votes(np.full(n, 60_000, np.int64), n2, voted, c2)  # > 2^24 in all
     assert not R._integral_votes(np.full(n, -1, np.int64), n2, voted, c2)
+
+
+def test_redecide_without_the_support_gives_the_same_labels_and_margins():
+    from occufly.lifting import robust as R
+
+    rng = np.random.default_rng(2)
+    n, C = 30_000, CLS.C
+    xyz = rng.uniform(0, 30, (n, 3)).astype(np.float32)
+    truth = (xyz[:, 0] // 4 + xyz[:, 1] // 4).astype(np.int64) % C
+    col1 = np.where(rng.random(n) < 0.15, rng.integers(0, C, n), truth)
+    n1 = rng.integers(1, 4, n).astype(np.uint16)
+    col2 = np.where(rng.random(n) < 0.3, rng.integers(0, C, n), -1)
+    col2[col2 == col1] = -1
+    n2 = np.minimum(np.where(col2 >= 0, rng.integers(1, 3, n), 0), n1).astype(np.uint16)
+    feats = (rng.normal(size=(n, 8)) + truth[:, None] * 0.3).astype(np.float16)
+    args = (CLS, feats, col1.astype(np.int16), n1, col2.astype(np.int8), n2)
+    a = R.redecide(*args, xyz=xyz)
+    b = R.redecide(*args, xyz=xyz, with_top=False)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32), b[1].view(np.uint32))
+    assert (a[2] > 0).any() and not b[2].any()

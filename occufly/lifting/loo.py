@@ -242,7 +242,7 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
         sec = sec.astype(np.uint16)
     labels, margin, _top, _stats = redecide(
         cls, np.asarray(feats[pts]), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
-        rp, xyz=np.asarray(scene.xyz[pts]))
+        rp, xyz=np.asarray(scene.xyz[pts]), with_top=False)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0
 

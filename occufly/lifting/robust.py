@@ -589,7 +589,7 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
              col2: np.ndarray, n2: np.ndarray, params: RobustParams | None = None,
              progress: ProgressFn | None = None, xyz: np.ndarray | None = None,
              confusion=None,  # noqa: ANN001
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+             with_top: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Re-decide every voted point from its votes, the annotator model and the classifier.
 
     ``confusion``: a fitted :class:`occufly.lifting.confusion.ConfusionModel` over the same
@@ -604,7 +604,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     float32 posterior top - second; top (N,) uint16 the support of the decided class for the
     fill's confirmation rule: its votes, at least 1 where the neighbourhood supports it
     (``confirm_local_share``), 0 where nothing but the features chose it (with
-    ``confirm_needs_vote=False``: its votes, at least 1); stats).
+    ``confirm_needs_vote=False``: its votes, at least 1); stats). ``with_top=False``: the
+    support is not computed (``top`` all 0; the leave-one-out labels use labels and margin only).
     """
     p = params or RobustParams()
     report = progress or noop
@@ -672,6 +673,9 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         evaluated += n_multi
         labels[ids] = cls.ids[best]
         margin[ids] = m
+        changed += int(np.count_nonzero(best != c1))
+        if not with_top:
+            continue
         votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
         # 0 where no view of the point voted for the decided class: the fill's confirmation
         # rule then never protects it (the denoise decides)
@@ -683,7 +687,6 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         else:
             supported = np.maximum(votes_best, 1)
         top[ids] = supported.astype(np.uint16)
-        changed += int(np.count_nonzero(best != c1))
     stats.update({
         "robust_points_evaluated": int(evaluated),
         "robust_points_changed": int(changed),

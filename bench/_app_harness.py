@@ -245,30 +245,44 @@ def pct(xs, q: float) -> float | None:
 
 
 class Cpu:
-    """CPU seconds of the server's process tree (API processes, lifting workers)."""
+    """CPU seconds of the server's process tree (API processes, lifting workers), the
+    processes they start later included (the review refresh's child of the lifting worker,
+    job processes): each read finds the roots' descendants again, and a descendant that
+    exited and was waited for counts through its parent's ``children_*`` times. A process
+    counts under its root's role (``lifting`` for an ``app.lifting`` worker, else ``api``)."""
 
     def __init__(self, roots: list[int]) -> None:
         import psutil
 
-        self.procs: dict[int, object] = {}
+        self.roots: list[tuple[object, str]] = []
         for pid in roots:
             try:
                 p = psutil.Process(pid)
-            except psutil.NoSuchProcess:
+                role = "lifting" if "app.lifting" in " ".join(p.cmdline()) else "api"
+            except psutil.Error:
                 continue
-            for q in [p, *p.children(recursive=True)]:
-                self.procs[q.pid] = q
+            self.roots.append((p, role))
+        self.procs: dict[int, object] = {}
         self.start = self._read()
 
     def _read(self) -> dict[str, float]:
         out = {"api": 0.0, "lifting": 0.0}
-        for p in self.procs.values():
+        seen: set[int] = set()
+        for root, role in self.roots:
             try:
-                t = p.cpu_times()
-                role = "lifting" if "app.lifting" in " ".join(p.cmdline()) else "api"
-            except Exception:  # noqa: BLE001 - exited
-                continue
-            out[role] += t.user + t.system
+                tree = [root, *root.children(recursive=True)]
+            except Exception:  # noqa: BLE001 - the root exited
+                tree = [root]
+            for p in tree:
+                if p.pid in seen:
+                    continue
+                seen.add(p.pid)
+                self.procs[p.pid] = p
+                try:
+                    t = p.cpu_times()
+                except Exception:  # noqa: BLE001 - exited
+                    continue
+                out[role] += t.user + t.system + t.children_user + t.children_system
         return out
 
     def read(self) -> dict[str, float]:

@@ -34,6 +34,9 @@ SPLAT_FACTOR = 1.5
 _SPACING_CACHE: dict[tuple[int, int], float] = {}
 _BINS_CACHE: dict[tuple[int, int], object] = {}
 _CULL_MIN_POINTS = 200_000  # below this a full pass over the cloud is as fast as culling
+# render_many's class images and depth finished by one compiled sweep (splat.finish_keys);
+# False: the numpy masks and casts (tests compare the two)
+COMPILED_FINISH = True
 # undistorted cameras project and splat in one compiled pass (occufly.splat.project_splat_pass);
 # False takes the numpy projection it replaced (tests compare the two images bit for bit)
 COMPILED_PROJECTION = True
@@ -312,6 +315,12 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
 def _finish(depth: np.ndarray, best: np.ndarray, multi: bool, h: int, w: int
             ) -> tuple[np.ndarray, np.ndarray]:
     """The class image(s) and the depth image from the two passes' per-pixel minima."""
+    if multi and COMPILED_FINISH and best.ndim == 2 and depth.ndim == 1:
+        from occufly.splat import finish_keys
+
+        cls = np.empty(best.shape, np.uint8)  # one compiled sweep, no (L, P) temporaries
+        finish_keys(depth, best, cls)
+        return cls.reshape(-1, h, w), depth.reshape(h, w)
     depth[~np.isfinite(depth)] = 0.0
     if multi:  # no match is key max, whose low byte is 255: those pixels are 0
         cls = (best & np.uint64(255)).astype(np.uint8)
@@ -541,6 +550,13 @@ def disagreement_indices(mask: np.ndarray, rendered: np.ndarray, taxonomy: Taxon
     table = np.where(valid[:, None] & valid[None, :] & (ids[:, None] != ids[None, :]),
                      ids[None, :], DISAGREE_CLEAR).astype(np.uint8)
     table[valid[:, None] & ~valid[None, :]] = DISAGREE_GAP
+    if COMPILED_FINISH:
+        from occufly.splat import pair_lookup
+
+        out = np.empty(mask.shape, np.uint8)
+        pair_lookup(table, np.ascontiguousarray(mask).reshape(-1),
+                    np.ascontiguousarray(rendered).reshape(-1), out.reshape(-1))
+        return out
     key = mask.astype(np.uint16)
     key <<= 8
     key |= rendered

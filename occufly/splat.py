@@ -119,6 +119,31 @@ def sparse_at(ids: np.ndarray, values: np.ndarray, at: np.ndarray, out: np.ndarr
 
 
 @numba.njit(nogil=True, cache=True)
+def finish_keys(depth: np.ndarray, best: np.ndarray, cls: np.ndarray) -> None:
+    """The end of the two passes in one sweep: ``depth`` (P,) float32 set to 0 where not
+    finite (in place); ``cls`` (L, P) uint8 the low byte of each key of ``best`` (L, P)
+    uint64, 0 where no fragment matched (the key is the uint64 maximum) -- what
+    ``render._finish`` computed with masks and casts."""
+    for p in range(depth.shape[0]):
+        if not np.isfinite(depth[p]):
+            depth[p] = 0.0
+    none = np.uint64(0xFFFFFFFFFFFFFFFF)
+    low = np.uint64(255)
+    for j in range(best.shape[0]):
+        for p in range(best.shape[1]):
+            k = best[j, p]
+            cls[j, p] = 0 if k == none else np.uint8(k & low)
+
+
+@numba.njit(nogil=True, cache=True)
+def pair_lookup(table: np.ndarray, a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out[i] = table[a[i], b[i]]`` for uint8 ``a``, ``b`` and a (256, 256) uint8 table
+    (what ``table.ravel()[(a << 8) | b]`` gives, without the uint16 key array)."""
+    for i in range(a.shape[0]):
+        out[i] = table[a[i], b[i]]
+
+
+@numba.njit(nogil=True, cache=True)
 def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     """(h, w) uint8: every pixel of ``img`` repeated k x k, rows / columns past the end
     repeating the last one -- :func:`occufly.render._upsample` for uint8 images. Each output
@@ -247,6 +272,9 @@ def compile_kernels() -> None:
                            np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
     upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
     sparse_at(one, np.ones(1, np.uint8), one, np.zeros(1, np.uint8))
+    finish_keys(depth, best.reshape(1, -1), np.zeros((1, 4), np.uint8))
+    pair_lookup(np.zeros((256, 256), np.uint8), np.ones(2, np.uint8), np.ones(2, np.uint8),
+                np.zeros(2, np.uint8))
     for label_pass in (False, True):
         for by_pos in (False, True):
             project_splat_pass(depth, best.reshape(1, -1), np.zeros((1, 3), np.float32), one - 1,

@@ -219,3 +219,26 @@ def test_sparse_label_sets_equal_their_dense_arrays(monkeypatch):
     assert out.tolist() == [0, 6, 7]
     assert not sparse_at(np.array([4, 1]), np.array([5, 6], np.uint8), np.array([0, 4, 9]), out)
     assert not sparse_at(np.array([1, 4]), np.array([5, 6], np.uint8), np.array([4, 0, 9]), out)
+
+
+def test_compiled_finish_and_overlay_lookup_equal_the_numpy_ones(monkeypatch):
+    """render_many's class images finished by one compiled sweep, and the overlay's palette
+    indices by a compiled table lookup, against the numpy masks and casts they replaced."""
+    import occufly.render as R
+
+    scene, truth = make_scene()
+    other = _labels(scene.n_points, 12)
+    fi = 12  # half its pixels see no point
+    shape = (scene.frames[fi].camera.height, scene.frames[fi].camera.width)
+    rng = np.random.default_rng(13)
+    mask = np.array([int(i) for i in TAX.ids] + [0, 255, 200], np.uint8)[
+        rng.integers(0, len(TAX.ids) + 3, shape)]
+    got = {}
+    for flag in (True, False):
+        monkeypatch.setattr(R, "COMPILED_FINISH", flag)
+        imgs = render_many_for_mask(scene, [truth, other], fi, shape)
+        got[flag] = imgs + [R.disagreement_indices(mask, imgs[0], TAX),
+                            R.disagreement_indices(mask[:, ::2], imgs[1][:, ::2], TAX)]
+    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(got[True], got[False], strict=True))
+    assert (got[True][0] == 0).any() and (got[True][2] == R.DISAGREE_GAP).any()
+    assert ((got[True][2] != 0) & (got[True][2] != R.DISAGREE_GAP)).any()

@@ -34,6 +34,10 @@ SPLAT_FACTOR = 1.5
 _SPACING_CACHE: dict[tuple[int, int], float] = {}
 _BINS_CACHE: dict[tuple[int, int], object] = {}
 _CULL_MIN_POINTS = 200_000  # below this a full pass over the cloud is as fast as culling
+# the compiled projection's depth pass records the points it keeps for the label pass
+# (splat.project_depth_pass / splat_labels_recorded); False: both passes project the cloud
+# (splat.project_splat_pass; tests compare the two)
+RECORD_PROJECTION = True
 # render_many's class images and depth finished by one compiled sweep (splat.finish_keys);
 # False: the numpy masks and casts (tests compare the two)
 COMPILED_FINISH = True
@@ -292,6 +296,21 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
         fx, fy = cam.focal
         cx, cy = cam.principal_point
         xyz = np.asarray(scene.xyz)
+        if RECORD_PROJECTION:
+            # the depth pass records each point it keeps (position, u, v, depth, side): the
+            # label pass reads those instead of gathering and projecting the cloud again
+            # (survey frame 52 at 1/3: 1.9 of 3.0 M culled points kept, label pass 0.12 ->
+            # 0.08 s CPU)
+            from occufly.splat import project_depth_pass, splat_labels_recorded
+
+            n = len(ids)
+            rk, ruv = np.empty(n, np.int64), np.empty((n, 2), np.float64)
+            rz, rs = np.empty(n, np.float32), np.empty(n, np.int8)
+            m = project_depth_pass(depth, xyz, ids, T, float(fx), float(fy), float(cx),
+                                   float(cy), float(cam.skew), np.float32(ksize), MAX_SPLAT,
+                                   MAX_SPLAT, h, w, rk, ruv, rz, rs)
+            splat_labels_recorded(depth, best2, m, rk, ruv, rz, rs, ids, lab2, at_cand, tol, h, w)
+            return _finish(depth, best, multi, h, w)
         for label_pass in (False, True):
             project_splat_pass(depth, best2, xyz, ids, T, float(fx), float(fy), float(cx),
                                float(cy), float(cam.skew), np.float32(ksize), MAX_SPLAT,

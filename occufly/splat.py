@@ -258,6 +258,115 @@ def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids
                         best[j, p] = key
 
 
+@numba.njit(nogil=True, cache=True)
+def project_depth_pass(depth: np.ndarray, xyz: np.ndarray, ids: np.ndarray, T: np.ndarray,
+                       fx: float, fy: float, cx: float, cy: float, skew: float,
+                       ksize: np.float32, margin: int, max_splat: int, h: int, w: int,
+                       rec_k: np.ndarray, rec_uv: np.ndarray, rec_z: np.ndarray,
+                       rec_s: np.ndarray) -> int:
+    """:func:`project_splat_pass`'s depth pass (the same projection, depth and splat side
+    of each point, in the same order), recording each point it keeps -- its position k in
+    ``ids``, (u, v), float32 depth and splat side -- for :func:`splat_labels_recorded`, so
+    the label pass neither reads the cloud again nor projects. Returns how many it kept."""
+    one = np.float32(1.0)
+    smax = np.float32(max_splat)
+    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    lo_u = -np.float64(margin)
+    hi_u = np.float64(w + margin)
+    lo_v = -np.float64(margin)
+    hi_v = np.float64(h + margin)
+    n = 0
+    for k in range(ids.shape[0]):
+        q = ids[k]
+        x = np.float64(xyz[q, 0])
+        y = np.float64(xyz[q, 1])
+        zw = np.float64(xyz[q, 2])
+        zc = ((x * t20 + t21 * y) + t22 * zw) + t23
+        if not zc > 1e-6:
+            continue
+        xc = ((x * t00 + t01 * y) + t02 * zw) + t03
+        yc = ((x * t10 + t11 * y) + t12 * zw) + t13
+        xn = xc / zc
+        yn = yc / zc
+        u = (fx * xn + skew * yn) + cx
+        v = fy * yn + cy
+        if not (u >= lo_u and u < hi_u and v >= lo_v and v < hi_v):
+            continue
+        zi = np.float32(zc)
+        sf = np.ceil(ksize / zi)
+        if sf < one:
+            sf = one
+        if sf > smax:
+            sf = smax
+        s = np.int64(sf)
+        rec_k[n] = k
+        rec_uv[n, 0] = u
+        rec_uv[n, 1] = v
+        rec_z[n] = zi
+        rec_s[n] = s
+        n += 1
+        half = np.float64(s) / 2.0
+        col0 = np.int64(np.ceil((u - half) - 0.5))
+        row0 = np.int64(np.ceil((v - half) - 0.5))
+        for dy in range(s):
+            r = row0 + dy
+            if r < 0 or r >= h:
+                continue
+            for dx in range(s):
+                c = col0 + dx
+                if c < 0 or c >= w:
+                    continue
+                p = r * w + c
+                if zi < depth[p]:
+                    depth[p] = zi
+    return n
+
+
+@numba.njit(nogil=True, cache=True)
+def splat_labels_recorded(depth: np.ndarray, best: np.ndarray, n: int, rec_k: np.ndarray,
+                          rec_uv: np.ndarray, rec_z: np.ndarray, rec_s: np.ndarray,
+                          ids: np.ndarray, lab: np.ndarray, lab_by_pos: bool, tol: np.float32,
+                          h: int, w: int) -> None:
+    """:func:`project_splat_pass`'s label pass over the points :func:`project_depth_pass`
+    recorded (in its order, with its projections): the same keys, the same minima."""
+    k005 = np.float32(0.005)
+    k65536 = np.float32(65536.0)
+    cap = np.float32(2.0 ** 31)
+    n_lab = lab.shape[1]
+    for i in range(n):
+        k = rec_k[i]
+        lq = k if lab_by_pos else ids[k]
+        u = rec_uv[i, 0]
+        v = rec_uv[i, 1]
+        zi = rec_z[i]
+        s = np.int64(rec_s[i])
+        half = np.float64(s) / 2.0
+        col0 = np.int64(np.ceil((u - half) - 0.5))
+        row0 = np.int64(np.ceil((v - half) - 0.5))
+        for dy in range(s):
+            r = row0 + dy
+            if r < 0 or r >= h:
+                continue
+            for dx in range(s):
+                c = col0 + dx
+                if c < 0 or c >= w:
+                    continue
+                p = r * w + c
+                zf = depth[p]
+                if not zi <= zf + (tol + k005 * zf):
+                    continue
+                ex = c + 0.5 - u
+                ey = r + 0.5 - v
+                d2 = np.float32(ex * ex + ey * ey)
+                base = np.uint64(min(d2 * k65536, cap)) << np.uint64(8)
+                for j in range(n_lab):
+                    key = base | np.uint64(lab[lq, j])
+                    if key < best[j, p]:
+                        best[j, p] = key
+
+
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the pass on a one-point input."""
     depth = np.full(4, np.inf, np.float32)
@@ -273,6 +382,13 @@ def compile_kernels() -> None:
     upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
     sparse_at(one, np.ones(1, np.uint8), one, np.zeros(1, np.uint8))
     finish_keys(depth, best.reshape(1, -1), np.zeros((1, 4), np.uint8))
+    rk, ruv = np.zeros(1, np.int64), np.zeros((1, 2), np.float64)
+    rz, rs = np.zeros(1, np.float32), np.zeros(1, np.int8)
+    m = project_depth_pass(depth, np.zeros((1, 3), np.float32), one - 1, np.eye(4)[:3], 1.0,
+                           1.0, 1.0, 1.0, 0.0, np.float32(1.0), 8, 8, 2, 2, rk, ruv, rz, rs)
+    for by_pos in (False, True):
+        splat_labels_recorded(depth, best.reshape(1, -1), m, rk, ruv, rz, rs, one - 1,
+                              np.ones((1, 1), np.uint8), by_pos, np.float32(0.1), 2, 2)
     pair_lookup(np.zeros((256, 256), np.uint8), np.ones(2, np.uint8), np.ones(2, np.uint8),
                 np.zeros(2, np.uint8))
     for label_pass in (False, True):

@@ -242,3 +242,38 @@ def test_compiled_finish_and_overlay_lookup_equal_the_numpy_ones(monkeypatch):
     assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(got[True], got[False], strict=True))
     assert (got[True][0] == 0).any() and (got[True][2] == R.DISAGREE_GAP).any()
     assert ((got[True][2] != 0) & (got[True][2] != R.DISAGREE_GAP)).any()
+
+
+def test_recorded_projection_equals_projecting_twice(monkeypatch):
+    """The label pass over the points the depth pass recorded gives the images and depth of
+    the label pass that projects the cloud again: the small scene's frames and a culled,
+    coarser > 4 MP frame, one label set and several (one of them sparse)."""
+    import occufly.render as R
+    from occufly.render import render_labels
+
+    scene, truth = make_scene()
+    rng = np.random.default_rng(14)
+    g = np.arange(-24, 24, 0.08)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel() + rng.uniform(-0.02, 0.02, gx.size), gy.ravel(),
+                           np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)]).astype(np.float32)
+    cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1830.0, 1370.5, 911.0]))
+    big = Scene(frames=[Frame("f.jpg", cam, look_at([3.0, 1.0, 30.0], [2.0, 0.0, 0.0],
+                                                    up=(0.0, 1.0, 0.0)))],
+                xyz=xyz, rgb=np.zeros_like(xyz, np.uint8), taxonomy=TAX)
+    big.meta["point_spacing"] = 0.08
+    for sc, fi, shape in [(scene, 3, (scene.frames[3].camera.height, scene.frames[3].camera.width)),
+                          (scene, 12, (scene.frames[12].camera.height // 2,
+                                       scene.frames[12].camera.width // 2)),
+                          (big, 0, (1824, 2736))]:
+        la = truth if sc is scene else _labels(sc.n_points, 15)
+        ids = np.sort(rng.choice(sc.n_points, sc.n_points // 4, replace=False))
+        got = {}
+        for rec in (True, False):
+            monkeypatch.setattr(R, "RECORD_PROJECTION", rec)
+            s = sc.frames[fi].camera.width // shape[1]
+            got[rec] = [render_for_mask(sc, la, fi, shape)[0],
+                        render_labels(sc, la, fi, scale=1.0 / s)[1],
+                        *render_many_for_mask(sc, [la, (ids, la[ids])], fi, shape)]
+        assert all(np.array_equal(a, b) for a, b in zip(got[True], got[False], strict=True))
+        assert (got[True][0] > 0).mean() > 0.3

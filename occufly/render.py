@@ -414,23 +414,27 @@ def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
 def _labels_at(n_points: int, sets: list, cand: np.ndarray | None) -> np.ndarray:
     """(K, L) uint8: the labels of the points ``cand`` (every point where None) in each label
     set ((N,) array or sparse ``(ids, values)``, see :func:`render_many_for_mask`)."""
-    from occufly.splat import sparse_at
+    from occufly.splat import sparse_at_columns
 
     n = n_points if cand is None else len(cand)
     out = np.empty((n, len(sets)), np.uint8)
     at = None if cand is None else np.ascontiguousarray(cand, np.int64)
+    groups: dict[int, list[int]] = {}  # sparse sets over the same ids: one merge walk
     for j, s in enumerate(sets):
         if not isinstance(s, tuple):
             out[:, j] = s if at is None else s[at]
+        else:
+            groups.setdefault(id(s[0]), []).append(j)
+    for js in groups.values():
+        ids = sets[js[0]][0]
+        vals = np.stack([np.asarray(sets[j][1], np.uint8) for j in js], axis=1)
+        if at is not None and sparse_at_columns(np.ascontiguousarray(ids, np.int64), vals, at,
+                                                out, np.asarray(js, np.int64)):
             continue
-        ids, vals = s
-        col = np.zeros(n, np.uint8)
-        if at is None or not sparse_at(np.ascontiguousarray(ids, np.int64),
-                                       np.ascontiguousarray(vals, np.uint8), at, col):
+        for c, j in enumerate(js):  # not sorted, or no cull: through an (N,) array
             full = np.zeros(n_points, np.uint8)
-            full[ids] = vals
-            col = full if at is None else full[at]
-        out[:, j] = col
+            full[ids] = vals[:, c]
+            out[:, j] = full if at is None else full[at]
     return out
 
 

@@ -119,6 +119,34 @@ def sparse_at(ids: np.ndarray, values: np.ndarray, at: np.ndarray, out: np.ndarr
 
 
 @numba.njit(nogil=True, cache=True)
+def sparse_at_columns(ids: np.ndarray, values: np.ndarray, at: np.ndarray, out: np.ndarray,
+                      cols: np.ndarray) -> bool:
+    """:func:`sparse_at` of several value columns over the same ids in one merge walk:
+    ``out[k, cols[j]]`` = ``values[i, j]`` where ``ids[i] == at[k]``, else 0."""
+    n = ids.shape[0]
+    for i in range(1, n):
+        if ids[i] <= ids[i - 1]:
+            return False
+    m = cols.shape[0]
+    j = 0
+    prev = -1
+    for k in range(at.shape[0]):
+        a = at[k]
+        if a < prev:
+            return False
+        prev = a
+        while j < n and ids[j] < a:
+            j += 1
+        if j < n and ids[j] == a:
+            for c in range(m):
+                out[k, cols[c]] = values[j, c]
+        else:
+            for c in range(m):
+                out[k, cols[c]] = 0
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
 def finish_keys(depth: np.ndarray, best: np.ndarray, cls: np.ndarray) -> None:
     """The end of the two passes in one sweep: ``depth`` (P,) float32 set to 0 where not
     finite (in place); ``cls`` (L, P) uint8 the low byte of each key of ``best`` (L, P)
@@ -381,6 +409,7 @@ def compile_kernels() -> None:
                            np.ones((1, 2), np.uint8), np.float32(0.1), 2, 2)
     upsample_u8(np.ones((1, 1), np.uint8), 2, 2, 2)
     sparse_at(one, np.ones(1, np.uint8), one, np.zeros(1, np.uint8))
+    sparse_at_columns(one, np.ones((1, 1), np.uint8), one, np.zeros((1, 1), np.uint8), one - 1)
     finish_keys(depth, best.reshape(1, -1), np.zeros((1, 4), np.uint8))
     rk, ruv = np.zeros(1, np.int64), np.zeros((1, 2), np.float64)
     rz, rs = np.zeros(1, np.float32), np.zeros(1, np.int8)

@@ -205,10 +205,13 @@ def test_sparse_label_sets_equal_their_dense_arrays(monkeypatch):
         dense = np.zeros(n, np.uint8)
         dense[ids] = vals
         other = _labels(n, 10)
+        vals2 = np.where(rng.random(len(ids)) < 0.5, vals, 0).astype(np.uint8)
+        dense2 = np.zeros(n, np.uint8)
+        dense2[ids] = vals2
         for compiled in (True, False):
             monkeypatch.setattr(R, "COMPILED_PROJECTION", compiled)
-            want = render_many_for_mask(sc, [dense, other], fi, shape)
-            got = render_many_for_mask(sc, [(ids, vals), other], fi, shape)
+            want = render_many_for_mask(sc, [dense, other, dense2], fi, shape)
+            got = render_many_for_mask(sc, [(ids, vals), other, (ids, vals2)], fi, shape)
             assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))
             assert (got[0] > 0).any()
         perm = rng.permutation(len(ids))  # unsorted ids: the dense fallback, the same image
@@ -219,6 +222,12 @@ def test_sparse_label_sets_equal_their_dense_arrays(monkeypatch):
     assert out.tolist() == [0, 6, 7]
     assert not sparse_at(np.array([4, 1]), np.array([5, 6], np.uint8), np.array([0, 4, 9]), out)
     assert not sparse_at(np.array([1, 4]), np.array([5, 6], np.uint8), np.array([4, 0, 9]), out)
+    from occufly.splat import sparse_at_columns
+
+    out2 = np.full((3, 3), 9, np.uint8)
+    assert sparse_at_columns(np.array([1, 4, 9]), np.array([[5, 1], [6, 2], [7, 3]], np.uint8),
+                             np.array([0, 4, 9]), out2, np.array([2, 0]))
+    assert out2.tolist() == [[0, 9, 0], [2, 9, 6], [3, 9, 7]]
 
 
 def test_compiled_finish_and_overlay_lookup_equal_the_numpy_ones(monkeypatch):

@@ -203,3 +203,33 @@ def test_redecide_without_the_support_gives_the_same_labels_and_margins():
     b = R.redecide(*args, xyz=xyz, with_top=False)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32), b[1].view(np.uint32))
     assert (a[2] > 0).any() and not b[2].any()
+
+
+def test_half_rows_equal_numpys_gather_and_cast():
+    """The compiled float16 row gathers against numpy's fancy index and float16 -> float32
+    cast: every one of the 65,536 halves (zeros, subnormals, infinities, NaN payloads), a
+    memory map, and the numpy fallback for other arrays."""
+    from occufly.lifting import robust as R
+
+    allh = np.arange(65536, dtype=np.uint32).astype(np.uint16).view(np.float16).reshape(-1, 16)
+    rows = np.random.default_rng(0).permutation(len(allh))
+    got = R.half_rows_as_float32(allh, rows)
+    assert got.dtype == np.float32
+    assert np.array_equal(got.view(np.uint32), allh[rows].astype(np.float32).view(np.uint32))
+    got16 = R.half_rows(allh, rows)
+    assert got16.dtype == np.float16
+    assert np.array_equal(got16.view(np.uint16), allh[rows].view(np.uint16))
+    f64 = np.arange(12.0).reshape(4, 3)
+    assert np.array_equal(R.half_rows(f64, [2, 0]), f64[[2, 0]])
+    assert np.array_equal(R.half_rows_as_float32(f64, [1]), f64[[1]].astype(np.float32))
+
+
+def test_half_rows_of_a_memory_map(tmp_path):
+    from occufly.lifting import robust as R
+
+    a = np.random.default_rng(1).normal(size=(5000, 10)).astype(np.float16)
+    np.save(tmp_path / "f.npy", a)
+    m = np.load(tmp_path / "f.npy", mmap_mode="r")
+    rows = np.sort(np.random.default_rng(2).choice(5000, 1200, replace=False))
+    assert np.array_equal(R.half_rows(m, rows).view(np.uint16), a[rows].view(np.uint16))
+    assert np.array_equal(R.half_rows_as_float32(m, rows), a[rows].astype(np.float32))

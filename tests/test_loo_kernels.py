@@ -233,3 +233,55 @@ def test_half_rows_of_a_memory_map(tmp_path):
     rows = np.sort(np.random.default_rng(2).choice(5000, 1200, replace=False))
     assert np.array_equal(R.half_rows(m, rows).view(np.uint16), a[rows].view(np.uint16))
     assert np.array_equal(R.half_rows_as_float32(m, rows), a[rows].astype(np.float32))
+
+
+def test_neighbour_counts_merge_equals_the_vote_map():
+    """disagreeing_neighbours' merge walk against the (N,) vote map it replaced: repeated
+    points on both sides (the frame's first vote counts), points without an independent label,
+    and unsorted votes (refused: the map answers)."""
+    rng = np.random.default_rng(21)
+    n = 20_000
+    own_p = np.sort(rng.integers(0, n, 6000)).astype(np.int64)  # repeats
+    own_c = rng.integers(0, 6, len(own_p)).astype(np.int64)
+    gp = np.sort(rng.integers(0, n, 8000)).astype(np.int32)
+    gc = rng.integers(0, 6, len(gp)).astype(np.uint8)
+    pids = np.sort(rng.choice(n, 9000, replace=False)).astype(np.int64)
+    loo = L.LooLabels(0, pids, np.zeros(len(pids), np.uint8), np.zeros(len(pids), bool))
+    loo_cols = rng.integers(-1, 6, len(pids)).astype(np.int64)
+    mine_of = np.full(n, -1, np.int16)
+    mine_of[own_p[::-1]] = own_c[::-1]
+    want = L._neighbour_counts_map(mine_of, gp, gc, loo, loo_cols)
+    got = L._neighbour_counts(own_p, own_c, gp, gc, pids, loo_cols)
+    assert tuple(int(v) for v in got) == want and want[1] > 0 and want[2] > 0
+    assert L._neighbour_counts(own_p, own_c, gp[::-1], gc[::-1], pids, loo_cols)[0] == -1
+    assert tuple(L._neighbour_counts(own_p, own_c, gp[:0], gc[:0], pids, loo_cols)) == (0, 0, 0, 0)
+
+
+def test_disagreeing_neighbours_merge_equals_the_map_path(tmp_path, monkeypatch):
+    from occufly.lifting import VoteStore
+    from occufly.scene import Scene
+    from tests.lift_scene import BUILDING, GRASS, ROAD, ROOF, make_scene, truth_mask
+
+    scene, _ = make_scene()
+    path = tmp_path / "ws"
+    scene.save(path)
+    scene = Scene.load(path)
+    st = VoteStore.open(path, scene)
+    for fi in (1, 4, 5, 6, 9, 10):
+        m = truth_mask(scene.frames[fi])
+        if fi == 5:
+            m = m.copy()
+            m[m == BUILDING] = GRASS
+            m[m == ROOF] = ROAD
+        st.set_mask(fi, m, version=str(fi))
+    st.fill_and_denoise()
+    st.close()
+    for fi in (1, 5, 9):
+        loo = L.loo_labels(path, scene, fi)
+        got = L.disagreeing_neighbours(path, scene, fi, loo, limit=10)
+        with monkeypatch.context() as mp:
+            mp.setattr(L, "_neighbour_counts", lambda *a: (-1, 0, 0, 0))
+            want = L.disagreeing_neighbours(path, scene, fi, loo, limit=10)
+        assert got == want
+    assert any(L.disagreeing_neighbours(path, scene, fi, L.loo_labels(path, scene, fi))
+               for fi in (1, 4, 6, 9, 10))  # the wrong frame 5 is named

@@ -653,6 +653,66 @@ NEIGHBOUR_MIN_SHARE = 0.1
 _NEIGHBOUR_SAMPLE = 4096  # the frame's voted points projected to find the frames that see them
 
 
+@numba.njit(nogil=True, cache=True)
+def _neighbour_counts(own_p: np.ndarray, own_c: np.ndarray, gp: np.ndarray, gc: np.ndarray,
+                      pids: np.ndarray, loo_cols: np.ndarray) -> tuple:
+    """(shared, disagreeing, overruled, disagreeing with an independent label) of a
+    neighbour's votes ``gp``/``gc`` against the frame's ``own_p``/``own_c`` (sorted; a point's
+    first vote counts), the independent labels' columns ``loo_cols`` of ``pids`` (sorted):
+    one merge walk. (-1, 0, 0, 0) when ``gp`` is not sorted."""
+    m = gp.shape[0]
+    for i in range(1, m):
+        if gp[i] < gp[i - 1]:
+            return -1, 0, 0, 0
+    n_own = own_p.shape[0]
+    n_p = pids.shape[0]
+    j = 0
+    k = 0
+    shared = 0
+    dis = 0
+    over = 0
+    has = 0
+    for i in range(m):
+        v = np.int64(gp[i])
+        while j < n_own and own_p[j] < v:
+            j += 1
+        if j == n_own or own_p[j] != v:
+            continue
+        mc = np.int64(np.int16(own_c[j]))  # as the int16 map held it
+        if mc < 0:
+            continue
+        shared += 1
+        c = np.int64(gc[i])
+        if c == mc:
+            continue
+        dis += 1
+        while k < n_p and pids[k] < v:
+            k += 1
+        if k < n_p and pids[k] == v:
+            lc = loo_cols[k]
+            if lc >= 0:
+                has += 1
+                if lc != c:
+                    over += 1
+    return shared, dis, over, has
+
+
+def _neighbour_counts_map(mine_of: np.ndarray, gp: np.ndarray, gc: np.ndarray, loo: LooLabels,
+                          loo_cols: np.ndarray) -> tuple[int, int, int, int]:
+    """:func:`_neighbour_counts` for votes in any order, through the frame's (N,) vote map."""
+    mine = mine_of[gp]
+    hit = mine >= 0
+    n_shared = int(hit.sum())
+    if not n_shared:
+        return 0, 0, 0, 0
+    gp, gc, mine = gp[hit], gc[hit], mine[hit]
+    dis = gc != mine
+    r = np.minimum(np.searchsorted(loo.point_ids, gp[dis]), len(loo.point_ids) - 1)
+    lc = np.where(loo.point_ids[r] == gp[dis], loo_cols[r], -1)
+    has = lc >= 0
+    return n_shared, int(dis.sum()), int((has & (lc != gc[dis])).sum()), int(has.sum())
+
+
 def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: LooLabels, *,
                            limit: int = 3) -> list[dict]:
     """The annotated frames whose votes contradict frame ``frame_index``'s, most first.
@@ -674,16 +734,14 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     others = [g for g in others if g != frame_index and 0 <= g < len(scene.frames)]
     if not len(own_p) or not others:
         return []
-    order = np.argsort(own_p, kind="stable")
-    own_p, own_c = own_p[order], own_c[order]
+    if len(own_p) > 1 and (np.diff(own_p) < 0).any():  # stored sorted; else a stable sort
+        order = np.argsort(own_p, kind="stable")
+        own_p, own_c = own_p[order], own_c[order]
     samp = own_p[np.unique(np.linspace(0, len(own_p) - 1, min(len(own_p), _NEIGHBOUR_SAMPLE))
                           .astype(np.int64))]
     loo_cols = ClassColumns(scene.taxonomy).col_of[loo.labels]  # -1: no independent label
-    # the frame's vote column per scene point (-1: none; a point's first vote where it has
-    # two): one gather per neighbour's vote instead of a binary search into the frame's
-    # ~2 M voted points (24 neighbours of a 20 MP survey frame: 1.2 of 2.6 s)
-    mine_of = np.full(scene.n_points, -1, np.int16)
-    mine_of[own_p[::-1]] = own_c[::-1]
+    pids = np.ascontiguousarray(loo.point_ids, np.int64)
+    mine_of = None  # built only for a neighbour whose votes are not sorted
     out = []
     for g in others:
         fr = scene.frames[g]
@@ -693,23 +751,24 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
         if not inside.any():
             continue
         gp, gc = _frame_votes(Path(ws), g, weights=False)[:2]
-        mine = mine_of[gp]
-        hit = mine >= 0
-        n_shared = int(hit.sum())
+        # both vote lists sorted by point id: one merge walk counts the shared, disagreeing
+        # and overruled points (no (N,) map of the frame's votes, no per-vote temporaries)
+        counts = _neighbour_counts(own_p, own_c, gp, gc, pids, loo_cols) if len(gp) else (0, 0, 0, 0)
+        if counts[0] < 0:
+            if mine_of is None:
+                # the frame's vote column per scene point (-1: none; a point's first vote where
+                # it has two): one gather per neighbour's vote
+                mine_of = np.full(scene.n_points, -1, np.int16)
+                mine_of[own_p[::-1]] = own_c[::-1]
+            counts = _neighbour_counts_map(mine_of, gp, gc, loo, loo_cols)
+        n_shared, n_dis, over, n_has = counts
         if not n_shared:
             continue
-        gp, gc, mine = gp[hit], gc[hit], mine[hit]
-        dis = gc != mine
-        n_dis = int(dis.sum())
         if n_dis < NEIGHBOUR_MIN_POINTS or n_dis < NEIGHBOUR_MIN_SHARE * n_shared:
             continue
-        r = np.minimum(np.searchsorted(loo.point_ids, gp[dis]), len(loo.point_ids) - 1)
-        lc = np.where(loo.point_ids[r] == gp[dis], loo_cols[r], -1)
-        has = lc >= 0
-        over = int((has & (lc != gc[dis])).sum())
         out.append({"frame_index": int(g), "shared_points": n_shared, "disagree_points": n_dis,
                     "disagree_share": round(n_dis / n_shared, 4),
-                    "overruled_share": round(over / int(has.sum()), 4) if has.any() else None})
+                    "overruled_share": round(over / n_has, 4) if n_has else None})
     out.sort(key=lambda r: (-r["disagree_points"], r["frame_index"]))
     return out[:limit]
 

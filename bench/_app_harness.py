@@ -248,41 +248,48 @@ class Cpu:
     """CPU seconds of the server's process tree (API processes, lifting workers), the
     processes they start later included (the review refresh's child of the lifting worker,
     job processes): each read finds the roots' descendants again, and a descendant that
-    exited and was waited for counts through its parent's ``children_*`` times. A process
-    counts under its root's role (``lifting`` for an ``app.lifting`` worker, else ``api``)."""
+    exited and was waited for counts through its parent's ``children_*`` times. Role
+    ``lifting``: an ``app.lifting`` worker and its descendants; ``api``: the rest."""
 
     def __init__(self, roots: list[int]) -> None:
         import psutil
 
-        self.roots: list[tuple[object, str]] = []
+        self.roots = []
         for pid in roots:
             try:
-                p = psutil.Process(pid)
-                role = "lifting" if "app.lifting" in " ".join(p.cmdline()) else "api"
+                self.roots.append(psutil.Process(pid))
             except psutil.Error:
                 continue
-            self.roots.append((p, role))
         self.procs: dict[int, object] = {}
         self.start = self._read()
+
+    def _role(self, p, inherited: str) -> str:  # noqa: ANN001
+        try:
+            return "lifting" if "app.lifting" in " ".join(p.cmdline()) else inherited
+        except Exception:  # noqa: BLE001 - exited
+            return inherited
 
     def _read(self) -> dict[str, float]:
         out = {"api": 0.0, "lifting": 0.0}
         seen: set[int] = set()
-        for root, role in self.roots:
+
+        def walk(p, inherited: str) -> None:  # noqa: ANN001
+            if p.pid in seen:
+                return
+            seen.add(p.pid)
+            self.procs[p.pid] = p
+            role = self._role(p, inherited)
             try:
-                tree = [root, *root.children(recursive=True)]
-            except Exception:  # noqa: BLE001 - the root exited
-                tree = [root]
-            for p in tree:
-                if p.pid in seen:
-                    continue
-                seen.add(p.pid)
-                self.procs[p.pid] = p
-                try:
-                    t = p.cpu_times()
-                except Exception:  # noqa: BLE001 - exited
-                    continue
-                out[role] += t.user + t.system + t.children_user + t.children_system
+                t = p.cpu_times()
+                kids = p.children()
+            except Exception:  # noqa: BLE001 - exited
+                return
+            out[role] += t.user + t.system + t.children_user + t.children_system
+            for k in kids:
+                walk(k, role)
+
+        for root in self.roots:
+            walk(root, "api")
         return out
 
     def read(self) -> dict[str, float]:

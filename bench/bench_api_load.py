@@ -244,7 +244,9 @@ def _lift_lag(url: str, submits: list[dict], t_stop: float, timeout: float,
     slope = None
     if len(votes) >= 3 and np.ptp(t_sub) > 0:
         slope = round(float(np.polyfit(np.asarray(t_sub), np.asarray(votes), 1)[0]), 3)
-    return {"votes_lag_p50_s": _pct(votes, 50), "votes_lag_p95_s": _pct(votes, 95),
+    return {"votes_lag_s": [round(v, 3) for v in votes],
+            "labels_lag_s": [round(v, 3) for v in labels],
+            "votes_lag_p50_s": _pct(votes, 50), "votes_lag_p95_s": _pct(votes, 95),
             "votes_lag_max_s": round(max(votes), 3) if votes else None,
             "labels_lag_p50_s": _pct(labels, 50), "labels_lag_p95_s": _pct(labels, 95),
             "labels_lag_max_s": round(max(labels), 3) if labels else None,

@@ -285,3 +285,11 @@ def test_disagreeing_neighbours_merge_equals_the_map_path(tmp_path, monkeypatch)
         assert got == want
     assert any(L.disagreeing_neighbours(path, scene, fi, L.loo_labels(path, scene, fi))
                for fi in (1, 4, 6, 9, 10))  # the wrong frame 5 is named
+
+
+def test_gallop_finds_the_first_index_not_below():
+    a = np.array([1, 3, 3, 3, 7, 8, 20, 21, 22, 40], np.int64)
+    for j in range(len(a) + 1):
+        for v in range(-1, 45):
+            want = max(j, int(np.searchsorted(a, v, side="left")))
+            assert L._gallop(a, j, v) == want

@@ -654,6 +654,31 @@ _NEIGHBOUR_SAMPLE = 4096  # the frame's voted points projected to find the frame
 
 
 @numba.njit(nogil=True, cache=True)
+def _gallop(a: np.ndarray, j: int, v: int) -> int:
+    """The first index >= ``j`` of sorted ``a`` whose value is >= ``v``: doubling steps, then a
+    binary search -- O(log gap), so a short list walked against a long one costs little."""
+    n = a.shape[0]
+    if j >= n or a[j] >= v:
+        return j
+    lo = j  # a[lo] < v
+    step = 1
+    hi = j + 1
+    while hi < n and a[hi] < v:
+        lo = hi
+        step *= 2
+        hi = j + step
+    if hi > n:
+        hi = n
+    while hi - lo > 1:  # a[lo] < v <= a[hi] (or hi == n)
+        mid = (lo + hi) // 2
+        if a[mid] < v:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+@numba.njit(nogil=True, cache=True)
 def _neighbour_counts(own_p: np.ndarray, own_c: np.ndarray, gp: np.ndarray, gc: np.ndarray,
                       pids: np.ndarray, loo_cols: np.ndarray) -> tuple:
     """(shared, disagreeing, overruled, disagreeing with an independent label) of a
@@ -674,8 +699,7 @@ def _neighbour_counts(own_p: np.ndarray, own_c: np.ndarray, gp: np.ndarray, gc: 
     has = 0
     for i in range(m):
         v = np.int64(gp[i])
-        while j < n_own and own_p[j] < v:
-            j += 1
+        j = _gallop(own_p, j, v)
         if j == n_own or own_p[j] != v:
             continue
         mc = np.int64(np.int16(own_c[j]))  # as the int16 map held it
@@ -686,8 +710,7 @@ def _neighbour_counts(own_p: np.ndarray, own_c: np.ndarray, gp: np.ndarray, gc: 
         if c == mc:
             continue
         dis += 1
-        while k < n_p and pids[k] < v:
-            k += 1
+        k = _gallop(pids, k, v)
         if k < n_p and pids[k] == v:
             lc = loo_cols[k]
             if lc >= 0:

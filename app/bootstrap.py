@@ -8,6 +8,7 @@ builds its context here, so no lower module imports ``app.main``.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from app import db
 from app.blobs import BlobStore
@@ -19,9 +20,11 @@ from app.jobs.runner import JobRunner
 from app.lifting.client import LiftingClient
 from app.lifting.service import LiftingService
 from app.review import jobs as review_jobs
+from app.review import quality_cache
 from app.review import service as review
 from app.review.refresher import ReviewRefresher
 from app.scenes import jobs as scene_jobs
+from app.scenes.models import Scene
 
 log = logging.getLogger("occufly.app")
 
@@ -71,10 +74,18 @@ def build_lifting_service(ctx: AppContext) -> LiftingService:
 
 def run_review_refresh(settings: Settings, scene_id: int, stop) -> None:  # noqa: ANN001
     """Entry point of the review refresh's child process (:mod:`app.review.refresher`): its
-    own context (reads the votes and labels; runs no lifting, no jobs), one scene's refresh."""
+    own context (reads the votes and labels; runs no lifting, no jobs), one scene's refresh,
+    then the scene's quality report of the new labels (the admin page's quality section finds
+    it computed instead of starting minutes of work in an API process)."""
     ctx = build_context(settings, lifting="external", jobs=False)
     try:
         review.refresh_scene(ctx, scene_id, stop)
+        if not stop.is_set():
+            with ctx.sessions() as s:
+                scene = s.get(Scene, scene_id)
+                ws = None if scene is None else scene.workspace
+            if ws is not None:
+                quality_cache.compute_locked(ctx, scene_id, Path(ws))
     finally:
         ctx.engine.dispose()
 

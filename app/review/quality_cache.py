@@ -117,6 +117,21 @@ def _compute(ctx: AppContext, scene_id: int, ws: Path) -> None:
     _remember(scene_id, key, q)
 
 
+def compute_locked(ctx: AppContext, scene_id: int, ws: Path) -> None:
+    """Compute and store the report of the workspace's current stamp, once across processes
+    (a process that waited for another's computation of the same stamp reads it). The
+    review's after-fill refresh calls it in its child process (:func:`app.bootstrap.
+    run_review_refresh`), so the admin page finds the report of the new labels computed."""
+    d = _dir(ctx)
+    d.mkdir(parents=True, exist_ok=True)
+    with open(d / f"scene_{scene_id}.lock", "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another process's computation first
+        try:
+            _compute(ctx, scene_id, ws)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 def _worker(ctx: AppContext, scene_id: int, ws: Path) -> None:
     lower_thread_priority(ctx.settings.fill_nice)
     job = (str(ctx.settings.data_dir), scene_id)
@@ -124,14 +139,7 @@ def _worker(ctx: AppContext, scene_id: int, ws: Path) -> None:
         while True:
             with _CACHE_LOCK:
                 wanted = _WANTED.get(job)
-            d = _dir(ctx)
-            d.mkdir(parents=True, exist_ok=True)
-            with open(d / f"scene_{scene_id}.lock", "a+") as lock:
-                fcntl.flock(lock, fcntl.LOCK_EX)  # another process's computation first
-                try:
-                    _compute(ctx, scene_id, ws)
-                finally:
-                    fcntl.flock(lock, fcntl.LOCK_UN)
+            compute_locked(ctx, scene_id, ws)
             with _CACHE_LOCK:
                 newest = _WANTED.get(job)
             # asked again for newer labels while this one ran (and nobody computed them): go on

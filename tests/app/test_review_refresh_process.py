@@ -182,6 +182,11 @@ def test_the_child_refresh_reaches_the_api(world):
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
                         headers=hdr["reviewer"]).json()
     assert fl[0]["id"] == ids[3]
+    # the child computed the quality report of the new labels: the admin page reads it
+    q = env.client.get(f"/api/scenes/{scene['id']}/quality", headers=hdr["admin"])
+    assert q.status_code == 200, q.text
+    assert q.json()["cached"] is True and q.json()["stale"] is False
+    assert q.json()["loo"]["frames"] == 4
 
 
 _PARENT = r"""

@@ -71,7 +71,9 @@ step()
 runs = [step() for _ in range(rep)]
 t, fig, loo, nbytes = min(runs, key=lambda r: r[0]["total"])
 np.save(out, loo.labels)
+import occufly
 print(json.dumps({"frame": int(frame), "size": [int(mask.shape[1]), int(mask.shape[0])],
+                  "code": str(Path(occufly.__file__).resolve().parents[1]),
                   "points_gathered": int(len(loo.point_ids)),
                   "cpu_s": {k: round(v, 3) for k, v in t.items()},
                   "totals": [round(r[0]["total"], 3) for r in runs], "overlay_bytes": nbytes,
@@ -107,9 +109,13 @@ def main() -> None:
         for _ in range(args.rounds):
             for k, tree in trees.items():
                 out = str(Path(tmp) / f"{k}.npy")
-                p = subprocess.run([sys.executable, "-c", CHILD, str(args.workspace), str(args.source),
+                # run outside the checkout: ``python -c`` puts its working directory first on
+                # sys.path, ahead of PYTHONPATH, so from the repository root the baseline child
+                # imported the working tree's occufly (both columns were today's code)
+                p = subprocess.run([sys.executable, "-c", CHILD, str(args.workspace.resolve()),
+                                    str(args.source.resolve()),
                                     str(args.frame), str(args.repeat), out, str(ROOT / "bench")],
-                                   capture_output=True,
+                                   capture_output=True, cwd=tmp,
                                    text=True, env={**os.environ, "PYTHONPATH": str(tree)})
                 if p.returncode:
                     sys.exit(f"{k} failed:\n{p.stderr[-3000:]}")

@@ -216,3 +216,19 @@ def test_a_child_whose_parent_died_exits(trace: Path):
         parent.kill()
         parent.wait()
     assert _wait(lambda: not _alive(child), 10)
+
+
+def test_the_refresh_settings_are_read_and_checked():
+    from app.config import ConfigError, Settings
+
+    dev = {"OCCUFLY_ENV": "development"}
+    s = Settings.from_env(dev)
+    assert s.review_refresh_process is True and s.review_refresh_nice == 10
+    s = Settings.from_env({**dev, "OCCUFLY_REVIEW_REFRESH_PROCESS": "0",
+                           "OCCUFLY_REVIEW_REFRESH_NICE": "19"})
+    assert s.review_refresh_process is False and s.review_refresh_nice == 19
+    for bad in ("20", "-1"):
+        with pytest.raises(ConfigError, match="OCCUFLY_REVIEW_REFRESH_NICE must be 0..19"):
+            Settings.from_env({**dev, "OCCUFLY_REVIEW_REFRESH_NICE": bad})
+    with pytest.raises(ConfigError, match="OCCUFLY_REVIEW_REFRESH_PROCESS must be a number"):
+        Settings.from_env({**dev, "OCCUFLY_REVIEW_REFRESH_PROCESS": "yes"})

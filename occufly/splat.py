@@ -204,6 +204,38 @@ def upsample_u8(img: np.ndarray, k: int, h: int, w: int) -> np.ndarray:
     return out
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _project_point(xyz: np.ndarray, q: int, T: np.ndarray, fx: float, fy: float, cx: float,
+                   cy: float, skew: float, ksize: np.float32, margin: int, max_splat: int,
+                   h: int, w: int) -> tuple:
+    """(kept, u, v, float32 depth, splat side) of point ``xyz[q]`` for the compiled splat
+    passes: the float64 operations of the numpy path in their order (see
+    :func:`project_splat_pass`); kept False behind the camera or ``margin`` px or more
+    outside the image."""
+    x = np.float64(xyz[q, 0])
+    y = np.float64(xyz[q, 1])
+    zw = np.float64(xyz[q, 2])
+    zc = ((x * T[2, 0] + T[2, 1] * y) + T[2, 2] * zw) + T[2, 3]
+    if not zc > 1e-6:
+        return False, 0.0, 0.0, np.float32(0.0), np.int64(0)
+    xc = ((x * T[0, 0] + T[0, 1] * y) + T[0, 2] * zw) + T[0, 3]
+    yc = ((x * T[1, 0] + T[1, 1] * y) + T[1, 2] * zw) + T[1, 3]
+    xn = xc / zc
+    yn = yc / zc
+    u = (fx * xn + skew * yn) + cx
+    v = fy * yn + cy
+    if not (u >= -np.float64(margin) and u < np.float64(w + margin)
+            and v >= -np.float64(margin) and v < np.float64(h + margin)):
+        return False, 0.0, 0.0, np.float32(0.0), np.int64(0)
+    zi = np.float32(zc)
+    sf = np.ceil(ksize / zi)
+    if sf < np.float32(1.0):
+        sf = np.float32(1.0)
+    if sf > np.float32(max_splat):
+        sf = np.float32(max_splat)
+    return True, u, v, zi, np.int64(sf)
+
+
 @numba.njit(nogil=True, cache=True)
 def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids: np.ndarray,
                        T: np.ndarray, fx: float, fy: float, cx: float, cy: float, skew: float,
@@ -223,39 +255,13 @@ def project_splat_pass(depth: np.ndarray, best: np.ndarray, xyz: np.ndarray, ids
     k005 = np.float32(0.005)
     k65536 = np.float32(65536.0)
     cap = np.float32(2.0 ** 31)
-    one = np.float32(1.0)
-    smax = np.float32(max_splat)
     n_lab = lab.shape[1]
-    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
-    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
-    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
-    lo_u = -np.float64(margin)
-    hi_u = np.float64(w + margin)
-    lo_v = -np.float64(margin)
-    hi_v = np.float64(h + margin)
     for k in range(ids.shape[0]):
         q = ids[k]
-        x = np.float64(xyz[q, 0])
-        y = np.float64(xyz[q, 1])
-        zw = np.float64(xyz[q, 2])
-        zc = ((x * t20 + t21 * y) + t22 * zw) + t23
-        if not zc > 1e-6:
+        ok, u, v, zi, s = _project_point(xyz, q, T, fx, fy, cx, cy, skew, ksize, margin,
+                                         max_splat, h, w)
+        if not ok:
             continue
-        xc = ((x * t00 + t01 * y) + t02 * zw) + t03
-        yc = ((x * t10 + t11 * y) + t12 * zw) + t13
-        xn = xc / zc
-        yn = yc / zc
-        u = (fx * xn + skew * yn) + cx
-        v = fy * yn + cy
-        if not (u >= lo_u and u < hi_u and v >= lo_v and v < hi_v):
-            continue
-        zi = np.float32(zc)
-        sf = np.ceil(ksize / zi)
-        if sf < one:
-            sf = one
-        if sf > smax:
-            sf = smax
-        s = np.int64(sf)
         half = np.float64(s) / 2.0
         col0 = np.int64(np.ceil((u - half) - 0.5))
         row0 = np.int64(np.ceil((v - half) - 0.5))
@@ -296,39 +302,13 @@ def project_depth_pass(depth: np.ndarray, xyz: np.ndarray, ids: np.ndarray, T: n
     of each point, in the same order), recording each point it keeps -- its position k in
     ``ids``, (u, v), float32 depth and splat side -- for :func:`splat_labels_recorded`, so
     the label pass neither reads the cloud again nor projects. Returns how many it kept."""
-    one = np.float32(1.0)
-    smax = np.float32(max_splat)
-    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
-    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
-    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
-    lo_u = -np.float64(margin)
-    hi_u = np.float64(w + margin)
-    lo_v = -np.float64(margin)
-    hi_v = np.float64(h + margin)
     n = 0
     for k in range(ids.shape[0]):
         q = ids[k]
-        x = np.float64(xyz[q, 0])
-        y = np.float64(xyz[q, 1])
-        zw = np.float64(xyz[q, 2])
-        zc = ((x * t20 + t21 * y) + t22 * zw) + t23
-        if not zc > 1e-6:
+        ok, u, v, zi, s = _project_point(xyz, q, T, fx, fy, cx, cy, skew, ksize, margin,
+                                         max_splat, h, w)
+        if not ok:
             continue
-        xc = ((x * t00 + t01 * y) + t02 * zw) + t03
-        yc = ((x * t10 + t11 * y) + t12 * zw) + t13
-        xn = xc / zc
-        yn = yc / zc
-        u = (fx * xn + skew * yn) + cx
-        v = fy * yn + cy
-        if not (u >= lo_u and u < hi_u and v >= lo_v and v < hi_v):
-            continue
-        zi = np.float32(zc)
-        sf = np.ceil(ksize / zi)
-        if sf < one:
-            sf = one
-        if sf > smax:
-            sf = smax
-        s = np.int64(sf)
         rec_k[n] = k
         rec_uv[n, 0] = u
         rec_uv[n, 1] = v

@@ -268,6 +268,16 @@ COMPILED_FILL = True
 _FILL_GRID_MAX_CELLS = 1 << 24
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _grid_cell(xyz: np.ndarray, r: int, mn: np.ndarray, edge: float, n1: int, n2: int) -> int:
+    """The dense grid cell of point ``xyz[r]`` (cells of ``edge`` from ``mn``, one cell of
+    pad), row-major over (n0, n1, n2)."""
+    c0 = np.int64(np.floor((np.float64(xyz[r, 0]) - mn[0]) / edge)) + 1
+    c1 = np.int64(np.floor((np.float64(xyz[r, 1]) - mn[1]) / edge)) + 1
+    c2 = np.int64(np.floor((np.float64(xyz[r, 2]) - mn[2]) / edge)) + 1
+    return (c0 * n1 + c1) * n2 + c2
+
+
 @numba.njit(nogil=True, cache=True)
 def _fill_grid(xyz: np.ndarray, ids: np.ndarray, q_rows: np.ndarray, src_rows: np.ndarray,
                box_lo: np.ndarray, box_hi: np.ndarray, edge: float, max_cells: int) -> tuple:
@@ -321,21 +331,13 @@ def _fill_grid(xyz: np.ndarray, ids: np.ndarray, q_rows: np.ndarray, src_rows: n
     occ = np.zeros(n_cells, np.bool_)
     mark = np.zeros(n_cells, np.bool_)
     for i in range(nq):
-        r = ids[q_rows[i]]
-        c0 = np.int64(np.floor((np.float64(xyz[r, 0]) - mn[0]) / edge)) + 1
-        c1 = np.int64(np.floor((np.float64(xyz[r, 1]) - mn[1]) / edge)) + 1
-        c2 = np.int64(np.floor((np.float64(xyz[r, 2]) - mn[2]) / edge)) + 1
-        k = (c0 * n1 + c1) * n2 + c2
+        k = _grid_cell(xyz, ids[q_rows[i]], mn, edge, n1, n2)
         occ[k] = True
         mark[k] = True
     cell = np.full(m, -1, np.int64)
     for j in range(m):
         if inbox[j]:
-            r = ids[src_rows[j]]
-            c0 = np.int64(np.floor((np.float64(xyz[r, 0]) - mn[0]) / edge)) + 1
-            c1 = np.int64(np.floor((np.float64(xyz[r, 1]) - mn[1]) / edge)) + 1
-            c2 = np.int64(np.floor((np.float64(xyz[r, 2]) - mn[2]) / edge)) + 1
-            k = (c0 * n1 + c1) * n2 + c2
+            k = _grid_cell(xyz, ids[src_rows[j]], mn, edge, n1, n2)
             occ[k] = True
             cell[j] = k
     # the separable dilation of VoxelGrid.dilate(voxels, 1): per axis, from the voxels marked
@@ -364,11 +366,7 @@ def _fill_grid(xyz: np.ndarray, ids: np.ndarray, q_rows: np.ndarray, src_rows: n
         k = cell[j]
         if k >= 0:
             if mark[k]:
-                r = ids[src_rows[j]]
-                c0 = np.int64(np.floor((np.float64(xyz[r, 0]) - mn[0]) / fine)) + 1
-                c1 = np.int64(np.floor((np.float64(xyz[r, 1]) - mn[1]) / fine)) + 1
-                c2 = np.int64(np.floor((np.float64(xyz[r, 2]) - mn[2]) / fine)) + 1
-                k = (c0 * n1 + c1) * n2 + c2
+                k = _grid_cell(xyz, ids[src_rows[j]], mn, fine, n1, n2)
                 cell[j] = k
                 starts[k + 1] += 1
             else:

@@ -123,6 +123,10 @@ def test_double_press_is_one_decision_and_undo_restores_it(live, decide_scene, n
     page.click("#undo-decision")
     live.wait_until(lambda: live.client("reviewer").get(f"/api/frames/{fid}").json()["state"]
                     == "submitted", what="the undo")
+    # the route records the audit event in its own commit after the undo's (app.audit.record:
+    # "the action already happened"): a reader between the two sees the state first
+    live.wait_until(lambda: "review_undo" in _audit(live, fid), timeout=10,
+                    what="the undo's audit event")
     assert _audit(live, fid)[-2:] == ["review_accept", "review_undo"]
 
 

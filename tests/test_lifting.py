@@ -731,3 +731,33 @@ def test_block_knn_kernel_counts_the_exact_k_nearest(case):
         assert kth[r] == want_kth
         assert full[r] == (kk == k)
         assert np.array_equal(votes[r], np.bincount(cols[cand[sel]], minlength=C))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fill_is_the_exact_knn_where_the_cloud_is_sparse(seed):
+    """The fill's k-d tree holds only the voted points near the points to fill; in a sparse
+    cloud (fine voxels, most of them empty) it must still hold every voted point within the
+    fill radius: the fill equals a k-NN vote against all voted points. (The near set was once
+    a dilation through occupied voxels only; here it kept a fraction of the neighbours.)"""
+    from scipy.spatial import cKDTree
+
+    from occufly.lifting.classes import ClassColumns
+    from occufly.lifting.knn import VoxelGrid, _fill, knn_vote
+
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(0, 40, (3000, 3)).astype(np.float32)
+    xyz[:, 2] *= 0.2
+    cls = ClassColumns(TAX)
+    direct = np.where(rng.random(len(xyz)) < 0.5, rng.choice([ROAD, BUILDING, GRASS], len(xyz)), 0)
+    dcols = cls.col_of[direct.astype(np.uint8)].astype(np.int64)
+    p = LiftParams(fill_k=20, fill_radius=3.0)
+    edge = 0.4
+    grid = VoxelGrid(xyz, edge, pad=int(np.ceil(p.fill_radius / edge)) + 1)
+    filled, agree, dist = _fill(xyz, dcols, grid, p, cls, {}, lambda f, m: None)
+    lab, un = np.flatnonzero(dcols >= 0), np.flatnonzero(dcols < 0)
+    near = np.empty(len(un), np.float32)
+    c, s = knn_vote(cKDTree(xyz[lab]), dcols[lab], xyz[un], p.fill_k, p.fill_radius, cls,
+                    weighted=True, nearest=near)
+    assert (c >= 0).mean() > 0.9
+    assert np.array_equal(filled[un], c)
+    assert np.array_equal(agree[un], s) and np.array_equal(dist[un], near)

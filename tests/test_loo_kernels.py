@@ -293,3 +293,26 @@ def test_gallop_finds_the_first_index_not_below():
         for v in range(-1, 45):
             want = max(j, int(np.searchsorted(a, v, side="left")))
             assert L._gallop(a, j, v) == want
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("radius", [3.0, 1.0])
+def test_the_near_voted_points_hold_every_neighbour_within_the_radius(seed, radius, monkeypatch):
+    """``_near`` (and the compiled grid that mirrors it) keep only the voted points in voxels
+    next to a point to fill: the fill must equal the k-NN vote against every voted point, also
+    where most voxels are empty (a voxel diagonal behind an empty one was once left out)."""
+    rng = np.random.default_rng(seed)
+    n = 5000
+    xyz = rng.uniform(0, 50, (n, 3)).astype(np.float32)
+    ids = np.arange(n, dtype=np.int64)
+    col = np.full(n, -1, np.int64)
+    voted = rng.random(n) < 0.7
+    col[voted] = rng.integers(0, CLS.C, int(voted.sum()))
+    todo, src = np.flatnonzero(~voted), np.flatnonzero(voted)
+    p = LiftParams(fill_k=10, fill_radius=radius)
+    got_tree = L._fill_tree(xyz, ids, todo, src, col, p, CLS)
+    got_grid = L._fill_vote(xyz, ids, todo, src, col, p, CLS)
+    monkeypatch.setattr(L, "_near", lambda q, pts, r: np.ones(len(pts), bool))
+    want = L._fill_tree(xyz, ids, todo, src, col, p, CLS)
+    assert (want[0] >= 0).any()
+    assert _same(got_tree, want) and _same(got_grid, want)

@@ -111,3 +111,49 @@ def test_compiled_block_sum_is_the_numpy_sum_bit_for_bit(dtype):
     # integer counts take the numpy path, with the same sums
     ic = (counts * 10).astype(np.int64)
     assert np.array_equal(g.block_sum(ic), np.rint(g.block_sum(ic.astype(np.float64))).astype(np.int64))
+
+
+def _sparse_voxels(seed: int, n: int = 400, span: float = 30.0):
+    """A sparse cloud (most voxels empty, so diagonal neighbours often sit behind empty ones)
+    and its voxel grid's integer coordinates."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(0, span, (n, 3)).astype(np.float32)
+    g = VoxelGrid(xyz, 1.0, pad=4)
+    c0, rest = np.divmod(g.keys, g.dims[1] * g.dims[2])
+    c1, c2 = np.divmod(rest, g.dims[2])
+    return g, np.stack([c0, c1, c2], axis=1), rng
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("r", [0, 1, 2, 4])
+def test_dilate_is_the_chebyshev_dilation_through_empty_voxels(seed, r):
+    """Every occupied voxel within r steps of a given one, whether or not the voxels between
+    are occupied (the dilation once stepped through occupied voxels only and missed most of
+    them in a sparse cloud)."""
+    g, coords, rng = _sparse_voxels(seed)
+    given = np.sort(rng.choice(g.n_voxels, 25, replace=False))
+    cheb = np.abs(coords[:, None, :] - coords[None, given, :]).max(axis=2).min(axis=1)
+    want = np.flatnonzero(cheb <= r)
+    got = g.dilate(given, r)
+    assert np.array_equal(got, want)
+    if r >= 2:
+        assert len(want) > len(given)  # the case the old dilation got wrong: far, sparse voxels
+
+
+def test_dilate_refuses_steps_beyond_the_pad():
+    g, _c, _rng = _sparse_voxels(0)
+    with pytest.raises(ValueError, match="pad"):
+        g.dilate(np.arange(3), 5)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+@pytest.mark.parametrize("r", [1, 2, 3, 7])
+def test_near_marks_every_voxel_within_r_and_none_beyond_2r(seed, r):
+    g, coords, rng = _sparse_voxels(seed, n=1500, span=60.0)
+    given = rng.choice(g.n_voxels, 40, replace=False)
+    cheb = np.abs(coords[:, None, :] - coords[None, given, :]).max(axis=2).min(axis=1)
+    got = g.near(given, r)
+    assert got.dtype == bool and got.shape == (g.n_voxels,)
+    assert got[cheb <= r].all()  # a superset: nothing within r is left out
+    assert not got[cheb >= 2 * r].any()  # and no more than the 27 blocks around
+    assert got.sum() < g.n_voxels

@@ -285,8 +285,8 @@ def _fill_grid(xyz: np.ndarray, ids: np.ndarray, q_rows: np.ndarray, src_rows: n
     rows ``src_rows`` (into ``ids``) whose point lies in the box ``box_lo..box_hi`` (bounds
     inclusive, :func:`points_in_box`) and in a voxel that :func:`_near` keeps -- the voxels
     of edge ``edge`` (pad 1) of :class:`VoxelGrid` over the points to fill and those points,
-    the points to fill's voxels dilated along x, then y, then z by one step into occupied
-    voxels only (:meth:`VoxelGrid.dilate`), computed with the same float64 operations.
+    the points to fill's voxels and their 26 neighbours (:meth:`VoxelGrid.dilate` by one
+    step), computed with the same float64 operations.
     Returns (grid origin (3,), dims (3,), cell starts (cells + 1,), the kept source rows
     grouped by cell in their given order, cell edge) of the search grid: cells of ``edge / 4``
     (coarser where that would exceed ``max_cells``) with the same origin and pad; dims[0] = -1
@@ -328,28 +328,21 @@ def _fill_grid(xyz: np.ndarray, ids: np.ndarray, q_rows: np.ndarray, src_rows: n
         return mn, dims, np.zeros(1, np.int64), np.zeros(0, np.int64), edge
     n1, n2 = dims[1], dims[2]
     n_cells = dims[0] * n1 * n2
-    occ = np.zeros(n_cells, np.bool_)
     mark = np.zeros(n_cells, np.bool_)
     for i in range(nq):
-        k = _grid_cell(xyz, ids[q_rows[i]], mn, edge, n1, n2)
-        occ[k] = True
-        mark[k] = True
+        mark[_grid_cell(xyz, ids[q_rows[i]], mn, edge, n1, n2)] = True
     cell = np.full(m, -1, np.int64)
     for j in range(m):
         if inbox[j]:
-            k = _grid_cell(xyz, ids[src_rows[j]], mn, edge, n1, n2)
-            occ[k] = True
-            cell[j] = k
-    # the separable dilation of VoxelGrid.dilate(voxels, 1): per axis, from the voxels marked
-    # before it, one step each way into an occupied voxel (the pad keeps steps inside)
+            cell[j] = _grid_cell(xyz, ids[src_rows[j]], mn, edge, n1, n2)
+    # the separable dilation of VoxelGrid.dilate(voxels, 1): per axis, from the cells marked
+    # before it, one step each way, empty cells included (the pad keeps steps inside)
     for stride in (n1 * n2, n2, 1):
         prev = mark.copy()
         for k in range(n_cells):
             if prev[k]:
-                if occ[k - stride]:
-                    mark[k - stride] = True
-                if occ[k + stride]:
-                    mark[k + stride] = True
+                mark[k - stride] = True
+                mark[k + stride] = True
     # the kept points binned on a finer grid (edge / sub from the same origin) for the search
     sub = 4
     while sub > 1 and (np.floor((mx[0] - mn[0]) / (edge / sub)) + 3) \

@@ -147,13 +147,17 @@ def test_dilate_refuses_steps_beyond_the_pad():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-@pytest.mark.parametrize("r", [1, 2, 3, 7])
-def test_near_marks_every_voxel_within_r_and_none_beyond_2r(seed, r):
+@pytest.mark.parametrize("r", [1, 2, 3, 4, 7, 10])
+@pytest.mark.parametrize("split", [1, 3])
+def test_near_marks_every_voxel_within_r_and_none_far_beyond(seed, r, split):
     g, coords, rng = _sparse_voxels(seed, n=1500, span=60.0)
     given = rng.choice(g.n_voxels, 40, replace=False)
     cheb = np.abs(coords[:, None, :] - coords[None, given, :]).max(axis=2).min(axis=1)
-    got = g.near(given, r)
+    got = g.near(given, r, split=split)
     assert got.dtype == bool and got.shape == (g.n_voxels,)
     assert got[cheb <= r].all()  # a superset: nothing within r is left out
-    assert not got[cheb >= 2 * r].any()  # and no more than the 27 blocks around
+    b = -(-r // split)
+    reach = (-(-r // b) + 1) * b - 1  # the farthest a voxel of a block in reach can be
+    assert not got[cheb > reach].any()
+    assert reach < 2 * r or r == 1
     assert got.sum() < g.n_voxels

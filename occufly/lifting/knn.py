@@ -492,22 +492,25 @@ class VoxelGrid:
         pos = np.minimum(np.searchsorted(self.keys, cells), len(self.keys) - 1)
         return pos[self.keys[pos] == cells]  # sorted: both key lists are
 
-    def near(self, voxels: np.ndarray, r: int) -> np.ndarray:
+    def near(self, voxels: np.ndarray, r: int, split: int = 3) -> np.ndarray:
         """(V,) bool: occupied voxels that may lie within Chebyshev distance ``r`` (voxel
-        steps) of one of ``voxels`` -- every voxel that does is marked, and some up to 2r - 1
-        steps away: the voxels of the 27 blocks of r x r x r voxels around each block holding
-        one of ``voxels``. A k-NN within ``r`` voxel edges of those voxels' points against the
-        marked voxels' points finds what it would against every point, at the cost of one key
-        per voxel (the exact :meth:`dilate` costs (2r + 1)^3 keys per voxel)."""
+        steps) of one of ``voxels`` -- every voxel that does is marked, and some up to about
+        r (1 + 1 / split) steps away: blocks of b = ceil(r / split) voxels a side, the blocks
+        within ceil(r / b) blocks of each block holding one of ``voxels`` (a voxel r steps
+        away is never farther). A k-NN within ``r`` voxel edges of those voxels' points
+        against the marked voxels' points finds what it would against every point, at the cost
+        of one key per voxel (the exact :meth:`dilate` costs (2r + 1)^3 keys per voxel)."""
         r = max(int(r), 1)
+        b = -(-r // max(int(split), 1))
+        m = -(-r // b)
         d1, d2 = int(self.dims[1]), int(self.dims[2])
         c0, rest = np.divmod(self.keys, d1 * d2)
         c1, c2 = np.divmod(rest, d2)
-        # block coordinates (one block of pad around them, so that +-1 stays inside)
-        b0, b1, b2 = ((c - self.pad) // r + 1 for c in (c0, c1, c2))
-        n1, n2 = int(b1.max()) + 2, int(b2.max()) + 2
+        # block coordinates, m blocks of pad around them (so that +-m stays inside)
+        b0, b1, b2 = ((c - self.pad) // b + m for c in (c0, c1, c2))
+        n1, n2 = int(b1.max()) + m + 1, int(b2.max()) + m + 1
         bkey = (b0 * n1 + b1) * n2 + b2
-        steps = np.arange(-1, 2, dtype=np.int64)
+        steps = np.arange(-m, m + 1, dtype=np.int64)
         hit = np.unique(bkey[np.asarray(voxels, np.int64)])
         for stride in (n1 * n2, n2, 1):
             hit = np.unique((hit[:, None] + steps[None, :] * stride).ravel())

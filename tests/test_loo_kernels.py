@@ -203,6 +203,17 @@ def test_redecide_without_the_support_gives_the_same_labels_and_margins():
     b = R.redecide(*args, xyz=xyz, with_top=False)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32), b[1].view(np.uint32))
     assert (a[2] > 0).any() and not b[2].any()
+    # threads (the neighbourhood votes beside the classifier's fit, the chunks shared out):
+    # the same labels, margins and support as one thread, however the points are chunked
+    from dataclasses import replace
+    for workers, chunk in ((2, 1_000_000), (3, 7_001), (4, 1)):
+        params = replace(R.RobustParams(), chunk=chunk)
+        one = R.redecide(*args, params=params, xyz=xyz)
+        t = R.redecide(*args, params=params, xyz=xyz, workers=workers)
+        for u, v in zip(t[:3], one[:3]):
+            assert u.dtype == v.dtype and np.array_equal(u.view(np.uint8), v.view(np.uint8))
+        assert np.array_equal(t[0], a[0])
+        assert t[3]["robust_points_changed"] == one[3]["robust_points_changed"]
 
 
 def test_half_rows_equal_numpys_gather_and_cast():

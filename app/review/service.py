@@ -6,6 +6,8 @@ import logging
 import os
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
 
@@ -158,33 +160,59 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
     key = _review_key(scene, frame, v)
 
     def compute() -> dict:
-        mask = _mask_array(ctx, scene, v.sha256)
         ws_scene = ctx.load_scene(scene.workspace)
         rkey = _render_key(scene, frame)  # before the labels are read: never newer than them
         labels = annotations.current_labels(ctx, scene)
         if labels is None:
             raise NotFound(f"scene {scene.id} has no lifted labels yet")
-        loo = lifting_loo.loo_labels(scene.workspace, ws_scene, frame.index)
+        out = compute_review(ws_scene, scene.workspace, frame.index,
+                             lambda: _mask_array(ctx, scene, v.sha256), labels)
+        render_png_bytes = out.pop("render_png", None)
+        if render_png_bytes is not None:
+            _RENDER_CACHE.put(rkey, render_png_bytes, ctx.settings.data_dir)
+        return {"version": v.id, **out}
+
+    return _CACHE.get(key, compute, ctx.settings.data_dir)
+
+
+def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: ANN001
+                   mask: np.ndarray | Callable[[], np.ndarray], labels: np.ndarray) -> dict:
+    """What a frame's review shows, computed (:func:`review_images` caches it): the figures
+    of ``mask`` (or of what the callable ``mask`` returns: it is decoded beside the
+    leave-one-out labels) against the labels decided without the frame's votes (``figures``), the
+    frames whose votes contradict it (``neighbours``), the disagreement overlay
+    (``disagreement_png``) and, for a full-size mask, the labels' rendering as the page's
+    /render PNG (``render_png``, else None).
+
+    After the leave-one-out labels, the neighbours (24 vote files read) and the /render PNG's
+    deflate run in a second thread beside the rendering and the overlay: they only read what
+    is done, and a reviewer's first open of a 20 MP frame waits for the longest path only."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-review") as pool:
+        mask_fut = pool.submit(mask) if callable(mask) else None
+        loo = lifting_loo.loo_labels(workspace, ws_scene, frame_index)
+        if mask_fut is not None:
+            mask = mask_fut.result()
+        nb_fut = pool.submit(lifting_loo.disagreeing_neighbours, workspace, ws_scene,
+                             frame_index, loo)
         imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels)
-        cam = ws_scene.frames[frame.index].camera
+        cam = ws_scene.frames[frame_index].camera
+        png_fut = None
         if mask.shape == (cam.height, cam.width):
             # the labels' full-size rendering is the page's /render image (render_png): the
             # same pixels (render_many_for_mask), so that request need not render it again
-            _RENDER_CACHE.put(rkey, pipeline.encode_png(np.asarray(imgs["self"], np.uint8)),
-                              ctx.settings.data_dir)
+            png_fut = pool.submit(pipeline.encode_png, np.asarray(imgs["self"], np.uint8))
         # the figures once, with the entry: a cached agreement request only reads them
         figures = lifting_loo.loo_agreement(mask, imgs["loo"], ws_scene,
                                             self_rendered=imgs["self"],
                                             confident_rendered=imgs["confident"])
-        nb = lifting_loo.disagreeing_neighbours(scene.workspace, ws_scene, frame.index, loo)
         # the disagreement image is encoded once, with the figures: the page asks for both,
         # and an entry keeps a few MB instead of the frame-sized renderings
         # (as a palette PNG: the RGBA overlay's pixels at a quarter of the bytes to encode)
         idx = render.disagreement_indices(mask, imgs["loo"], ws_scene.taxonomy)
         png = pipeline.encode_png_palette(idx, render.disagreement_palette(ws_scene.taxonomy))
-        return {"version": v.id, "figures": figures, "neighbours": nb, "disagreement_png": png}
-
-    return _CACHE.get(key, compute, ctx.settings.data_dir)
+        del imgs, idx
+        return {"figures": figures, "neighbours": nb_fut.result(), "disagreement_png": png,
+                "render_png": None if png_fut is None else png_fut.result()}
 
 
 def cached_review(scene: Scene, frame: Frame, session: Session, data_dir=None) -> bool:  # noqa: ANN001

@@ -16,6 +16,7 @@ Cost: proportional to the points in f's frustum (the render cull), never a pass 
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -242,9 +243,13 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
         sec = sec.astype(np.uint16)
     labels, margin, _top, _stats = redecide(
         cls, half_rows(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
-        rp, xyz=np.asarray(scene.xyz[pts]), with_top=False)
+        rp, xyz=np.asarray(scene.xyz[pts]), with_top=False, workers=LOO_THREADS)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0
+
+
+# threads of a frame's robust decision (the reviewer waits for it; the same labels as one)
+LOO_THREADS = max(1, min(4, os.cpu_count() or 1))
 
 
 def _near(q: np.ndarray, pts: np.ndarray, radius: float) -> np.ndarray:

@@ -81,6 +81,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -589,7 +590,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
              col2: np.ndarray, n2: np.ndarray, params: RobustParams | None = None,
              progress: ProgressFn | None = None, xyz: np.ndarray | None = None,
              confusion=None,  # noqa: ANN001
-             with_top: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+             with_top: bool = True, workers: int = 1
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Re-decide every voted point from its votes, the annotator model and the classifier.
 
     ``confusion``: a fitted :class:`occufly.lifting.confusion.ConfusionModel` over the same
@@ -606,6 +608,9 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     (``confirm_local_share``), 0 where nothing but the features chose it (with
     ``confirm_needs_vote=False``: its votes, at least 1); stats). ``with_top=False``: the
     support is not computed (``top`` all 0; the leave-one-out labels use labels and margin only).
+    ``workers`` > 1: the neighbourhood votes are counted while the classifier is fitted, and
+    the chunks are decided by that many threads (compiled kernels without the interpreter
+    lock; each chunk writes its own rows): the same result as one thread, in less wall time.
     """
     p = params or RobustParams()
     report = progress or noop
@@ -633,7 +638,16 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         train = train[ok]
     vidx_all = np.flatnonzero(voted)
     majority = vidx_all[n1[vidx_all] > n2[vidx_all]] if p.min_strong > 0 else None
-    q = _fit_qda(features, train, col1, C, p, majority)
+    want_local = xyz is not None and p.local_voxel > 0
+    pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+    local_fut = (pool.submit(local_votes, xyz, vidx_all, col1, n1, col2, n2, C, p.local_voxel,
+                             p.chunk) if pool is not None and want_local else None)
+    try:
+        q = _fit_qda(features, train, col1, C, p, majority)
+    except BaseException:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        raise
     del majority
     stats["robust_classifier_classes"] = int(q.ok.sum())
     stats["robust_train_points"] = int(len(train))
@@ -650,43 +664,63 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     logprior = (p.prior_weight * logprior_scene).astype(np.float32)
     vidx = vidx_all
     local = None
-    if xyz is not None and p.local_voxel > 0:
+    if want_local:
         report(0.25, "neighbourhood votes")
-        vox, block = local_votes(xyz, vidx, col1, n1, col2, n2, C, p.local_voxel, p.chunk)
+        try:
+            vox, block = (local_fut.result() if local_fut is not None else
+                          local_votes(xyz, vidx, col1, n1, col2, n2, C, p.local_voxel, p.chunk))
+        except BaseException:
+            if pool is not None:
+                pool.shutdown(cancel_futures=True)
+            raise
         # per voxel, once: the neighbourhood's vote shares and the log of the mixed prior
         # (the same float32 operations per row as per point, so the same values)
         local = (vox, *_local_prior_tables(block, prior, p))
         del block
     t_local = time.perf_counter()
     K = min(p.candidates, C)
-    changed = 0
-    evaluated = 0
-    for a in range(0, len(vidx), p.chunk):
-        report(0.3 + 0.7 * a / len(vidx), "robust decision")
-        ids = vidx[a:a + p.chunk]
+
+    # pointwise: any split into chunks gives the same result; threads take one share each
+    step = p.chunk if pool is None else max(1, min(p.chunk, -(-len(vidx) // workers)))
+
+    def decide(a: int) -> tuple[int, int]:
+        ids = vidx[a:a + step]
         c1, c2 = col1[ids].astype(np.int64), col2[ids].astype(np.int64)
-        vrow = local[0][a:a + p.chunk] if local is not None else None
+        vrow = local[0][a:a + step] if local is not None else None
         best, m, n_multi = _decide_chunk(
             logpi, c1, n1[ids], c2, n2[ids], logprior_scene, logprior,
             None if local is None else (local[2], vrow), K, p, features, ids, q,
             None if confusion is None else confusion.loglik(ids))
-        evaluated += n_multi
         labels[ids] = cls.ids[best]
         margin[ids] = m
-        changed += int(np.count_nonzero(best != c1))
-        if not with_top:
-            continue
-        votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
-        # 0 where no view of the point voted for the decided class: the fill's confirmation
-        # rule then never protects it (the denoise decides)
-        if p.confirm_needs_vote:
-            supported = votes_best
-            if local is not None and p.confirm_local_share < 1.0:
-                near = local[1][vrow, best] >= p.confirm_local_share
-                supported = np.where(near, np.maximum(votes_best, 1), votes_best)
+        if with_top:
+            votes_best = np.where(best == c1, n1[ids], np.where(best == c2, n2[ids], 0))
+            # 0 where no view of the point voted for the decided class: the fill's
+            # confirmation rule then never protects it (the denoise decides)
+            if p.confirm_needs_vote:
+                supported = votes_best
+                if local is not None and p.confirm_local_share < 1.0:
+                    near = local[1][vrow, best] >= p.confirm_local_share
+                    supported = np.where(near, np.maximum(votes_best, 1), votes_best)
+            else:
+                supported = np.maximum(votes_best, 1)
+            top[ids] = supported.astype(np.uint16)
+        return n_multi, int(np.count_nonzero(best != c1))
+
+    starts = range(0, len(vidx), step)
+    try:
+        if pool is not None and len(starts) > 1:
+            done = list(pool.map(decide, starts))
         else:
-            supported = np.maximum(votes_best, 1)
-        top[ids] = supported.astype(np.uint16)
+            done = []
+            for a in starts:
+                report(0.3 + 0.7 * a / len(vidx), "robust decision")
+                done.append(decide(a))
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    evaluated = sum(d[0] for d in done)
+    changed = sum(d[1] for d in done)
     stats.update({
         "robust_points_evaluated": int(evaluated),
         "robust_points_changed": int(changed),

@@ -184,16 +184,16 @@ def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: A
     (``disagreement_png``) and, for a full-size mask, the labels' rendering as the page's
     /render PNG (``render_png``, else None).
 
-    After the leave-one-out labels, the neighbours (24 vote files read) and the /render PNG's
-    deflate run in a second thread beside the rendering and the overlay: they only read what
-    is done, and a reviewer's first open of a 20 MP frame waits for the longest path only."""
+    The parts that do not wait for each other run side by side, in a second thread: the mask's
+    decode and the neighbours' vote files (24 on a survey frame) beside the leave-one-out
+    labels; the /render PNG's deflate beside the overlay and the figures. A
+    reviewer's first open of a 20 MP frame waits for the longest path only."""
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-review") as pool:
         mask_fut = pool.submit(mask) if callable(mask) else None
+        nv_fut = pool.submit(lifting_loo.neighbour_votes, workspace, ws_scene, frame_index)
         loo = lifting_loo.loo_labels(workspace, ws_scene, frame_index)
         if mask_fut is not None:
             mask = mask_fut.result()
-        nb_fut = pool.submit(lifting_loo.disagreeing_neighbours, workspace, ws_scene,
-                             frame_index, loo)
         imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels)
         cam = ws_scene.frames[frame_index].camera
         png_fut = None
@@ -201,17 +201,19 @@ def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: A
             # the labels' full-size rendering is the page's /render image (render_png): the
             # same pixels (render_many_for_mask), so that request need not render it again
             png_fut = pool.submit(pipeline.encode_png, np.asarray(imgs["self"], np.uint8))
-        # the figures once, with the entry: a cached agreement request only reads them
-        figures = lifting_loo.loo_agreement(mask, imgs["loo"], ws_scene,
-                                            self_rendered=imgs["self"],
-                                            confident_rendered=imgs["confident"])
         # the disagreement image is encoded once, with the figures: the page asks for both,
         # and an entry keeps a few MB instead of the frame-sized renderings
         # (as a palette PNG: the RGBA overlay's pixels at a quarter of the bytes to encode)
         idx = render.disagreement_indices(mask, imgs["loo"], ws_scene.taxonomy)
         png = pipeline.encode_png_palette(idx, render.disagreement_palette(ws_scene.taxonomy))
+        # the figures once, with the entry: a cached agreement request only reads them
+        figures = lifting_loo.loo_agreement(mask, imgs["loo"], ws_scene,
+                                            self_rendered=imgs["self"],
+                                            confident_rendered=imgs["confident"])
+        nb = lifting_loo.disagreeing_neighbours(workspace, ws_scene, frame_index, loo,
+                                                votes=nv_fut.result())
         del imgs, idx
-        return {"figures": figures, "neighbours": nb_fut.result(), "disagreement_png": png,
+        return {"figures": figures, "neighbours": nb, "disagreement_png": png,
                 "render_png": None if png_fut is None else png_fut.result()}
 
 

@@ -732,8 +732,50 @@ def _neighbour_counts_map(mine_of: np.ndarray, gp: np.ndarray, gc: np.ndarray, l
     return n_shared, int(dis.sum()), int((has & (lc != gc[dis])).sum()), int(has.sum())
 
 
+@dataclass
+class NeighbourVotes:
+    """What :func:`disagreeing_neighbours` reads before it needs the leave-one-out labels:
+    frame ``frame_index``'s votes (``own_p`` point ids sorted, ``own_c`` columns) and, for
+    each annotated frame into which a sample of its voted points projects, that frame's votes
+    (``frames``: a list of (frame index, point ids, columns) in frame order)."""
+
+    frame_index: int
+    own_p: np.ndarray
+    own_c: np.ndarray
+    frames: list
+
+
+def neighbour_votes(ws: str | Path, scene: Scene, frame_index: int) -> NeighbourVotes:
+    """The votes :func:`disagreeing_neighbours` compares (:class:`NeighbourVotes`): one
+    projection of a sample of the frame's voted points per annotated frame, the vote files of
+    the frames that see it. Needs no labels, so a review reads them while the leave-one-out
+    labels are decided."""
+    w = Workspace(ws)
+    own_p, own_c, _ = _frame_votes(Path(ws), frame_index)
+    d = w.lifting_frames_dir
+    others = sorted(int(q.stem) for q in d.glob("*.npz")) if d.is_dir() else []
+    others = [g for g in others if g != frame_index and 0 <= g < len(scene.frames)]
+    if not len(own_p) or not others:
+        return NeighbourVotes(frame_index, own_p, own_c, [])
+    if len(own_p) > 1 and (np.diff(own_p) < 0).any():  # stored sorted; else a stable sort
+        order = np.argsort(own_p, kind="stable")
+        own_p, own_c = own_p[order], own_c[order]
+    samp = own_p[np.unique(np.linspace(0, len(own_p) - 1, min(len(own_p), _NEIGHBOUR_SAMPLE))
+                          .astype(np.int64))]
+    frames = []
+    for g in others:
+        fr = scene.frames[g]
+        uv, z = project_points(fr, scene.xyz, samp)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < fr.camera.width) \
+            & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
+        if inside.any():
+            gp, gc = _frame_votes(Path(ws), g, weights=False)[:2]
+            frames.append((g, gp, gc))
+    return NeighbourVotes(frame_index, own_p, own_c, frames)
+
+
 def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: LooLabels, *,
-                           limit: int = 3) -> list[dict]:
+                           limit: int = 3, votes: NeighbourVotes | None = None) -> list[dict]:
     """The annotated frames whose votes contradict frame ``frame_index``'s, most first.
 
     Candidates are the frames with votes (``ws/lifting/frames``) into which a sample of the
@@ -745,31 +787,18 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     neighbour (it is the likely wrong one); near 0, they side with it. Listed when at least
     ``NEIGHBOUR_MIN_POINTS`` and ``NEIGHBOUR_MIN_SHARE`` of the shared points disagree.
     Cost: one projection of the sample per annotated frame, the votes of the frames that see
-    it."""
-    w = Workspace(ws)
-    own_p, own_c, _ = _frame_votes(Path(ws), frame_index)
-    d = w.lifting_frames_dir
-    others = sorted(int(q.stem) for q in d.glob("*.npz")) if d.is_dir() else []
-    others = [g for g in others if g != frame_index and 0 <= g < len(scene.frames)]
-    if not len(own_p) or not others:
+    it (``votes``: those already read by :func:`neighbour_votes`)."""
+    nv = votes if votes is not None else neighbour_votes(ws, scene, frame_index)
+    if nv.frame_index != frame_index:
+        raise ValueError(f"neighbour votes of frame {nv.frame_index}, not {frame_index}")
+    own_p, own_c = nv.own_p, nv.own_c
+    if not nv.frames:
         return []
-    if len(own_p) > 1 and (np.diff(own_p) < 0).any():  # stored sorted; else a stable sort
-        order = np.argsort(own_p, kind="stable")
-        own_p, own_c = own_p[order], own_c[order]
-    samp = own_p[np.unique(np.linspace(0, len(own_p) - 1, min(len(own_p), _NEIGHBOUR_SAMPLE))
-                          .astype(np.int64))]
     loo_cols = ClassColumns(scene.taxonomy).col_of[loo.labels]  # -1: no independent label
     pids = np.ascontiguousarray(loo.point_ids, np.int64)
     mine_of = None  # built only for a neighbour whose votes are not sorted
     out = []
-    for g in others:
-        fr = scene.frames[g]
-        uv, z = project_points(fr, scene.xyz, samp)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < fr.camera.width) \
-            & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
-        if not inside.any():
-            continue
-        gp, gc = _frame_votes(Path(ws), g, weights=False)[:2]
+    for g, gp, gc in nv.frames:
         # both vote lists sorted by point id: one merge walk counts the shared, disagreeing
         # and overruled points (no (N,) map of the frame's votes, no per-vote temporaries)
         counts = _neighbour_counts(own_p, own_c, gp, gc, pids, loo_cols) if len(gp) else (0, 0, 0, 0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import time
 
 import numpy as np
 import pytest
@@ -761,3 +762,80 @@ def test_fill_is_the_exact_knn_where_the_cloud_is_sparse(seed):
     assert (c >= 0).mean() > 0.9
     assert np.array_equal(filled[un], c)
     assert np.array_equal(agree[un], s) and np.array_equal(dist[un], near)
+
+
+def test_snapshot_without_the_lock_equals_the_locked_one(ws, monkeypatch):
+    """A fill's snapshot taken with the update lock held only at both ends (the pass over
+    the counts without it): updates that land meanwhile -- before the pass, during it (a
+    thread applying masks while the pass reads), after it, a removal, a rebuild -- are
+    recomputed at the finish, so the snapshot equals the one taken under the lock then."""
+    import threading
+
+    path, scene, _ = ws
+    st = VoteStore.open(path, scene)
+    rng = np.random.default_rng(9)
+
+    def mask(fi):
+        h, w = scene.frames[fi].camera.height, scene.frames[fi].camera.width
+        m = TAX.ids[rng.integers(0, 4, (h // 6 + 1, w // 6 + 1))].repeat(6, 0).repeat(6, 1)
+        return np.ascontiguousarray(m[:h, :w]).astype(np.uint8)
+
+    for fi in range(4):
+        st.apply_frame(fi, mask(fi), version=f"a{fi}")
+
+    def same(a, b):
+        assert a.versions == b.versions
+        for f in ("direct", "margin", "top", "second_col", "second"):
+            x, y = getattr(a, f), getattr(b, f)
+            assert x.dtype == y.dtype and np.array_equal(x.view(np.uint8), y.view(np.uint8)), f
+
+    lock = threading.Lock()
+    # updates between the begin and the pass, and between the pass and the finish
+    with lock:
+        st.snapshot_begin()
+    st.apply_frame(1, mask(1), version="b1")
+    rows = st.snapshot_rows()
+    st.remove_frame(2)
+    st.apply_frame(5, mask(5), version="b5")
+    with lock:
+        got = st.snapshot_finish(rows)
+    same(got, st.snapshot())
+    assert 2 not in got.versions and got.versions[5] == "b5"
+    # a thread applying masks while the pass reads the counts (slowed so that they overlap)
+    orig = VoteStore._direct
+    started = threading.Event()
+
+    def slow_direct(self, *a, **k):
+        started.set()
+        time.sleep(0.3)
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(VoteStore, "_direct", slow_direct)
+    with lock:
+        st.snapshot_begin()
+
+    def writer():
+        started.wait(5)
+        for fi in (0, 3, 4):
+            with lock:
+                st.apply_frame(fi, mask(fi), version=f"c{fi}")
+
+    t = threading.Thread(target=writer)
+    t.start()
+    rows = st.snapshot_rows()
+    t.join()
+    with lock:
+        got = st.snapshot_finish(rows)
+    monkeypatch.setattr(VoteStore, "_direct", orig)
+    same(got, st.snapshot())
+    assert got.versions[4] == "c4"
+    # a rebuild meanwhile rewrites every row
+    with lock:
+        st.snapshot_begin()
+    rows = st.snapshot_rows()
+    st.votes[:5] = 0  # damage, then repair by a recount from the frame files
+    st.rebuild()
+    with lock:
+        same(st.snapshot_finish(rows), st.snapshot())
+    with pytest.raises(RuntimeError, match="snapshot_begin"):
+        st.snapshot_finish(rows)

@@ -44,7 +44,7 @@ def test_compiled_majority_equals_the_numpy_passes(dtype, high, monkeypatch):
     assert V.direct_compiles(c, CLS)
     got2, got1 = _direct(c, True, monkeypatch)
     want2, want1 = _direct(c, False, monkeypatch)
-    for g, w in zip(got2 + got1, want2 + want1):
+    for g, w in zip(got2 + got1, want2 + want1, strict=True):
         assert g.dtype == w.dtype and np.array_equal(g.view(np.uint8), w.view(np.uint8))
     labels, margin, top, col2, votes2 = got2
     assert (labels == 0).sum() >= len(c) // 10 and (col2 >= 0).any() and (margin == 0).any()
@@ -57,7 +57,7 @@ def test_compiled_majority_reads_a_memory_map(tmp_path, monkeypatch):
     mm = np.load(tmp_path / "votes.npy", mmap_mode="r")
     got, _ = _direct(mm, True, monkeypatch)
     want, _ = _direct(c, False, monkeypatch)
-    assert all(np.array_equal(g, w) for g, w in zip(got, want))
+    assert all(np.array_equal(g, w) for g, w in zip(got, want, strict=True))
 
 
 def test_other_counts_take_the_numpy_path():

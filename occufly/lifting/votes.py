@@ -189,6 +189,9 @@ class VoteStore:
         self.votes = votes  # (N, C) uint16 memmap
         self._versions = versions
         self._cls = ClassColumns(scene.taxonomy)
+        # while a snapshot is taken without the update lock (snapshot_begin .. _finish): the
+        # point ids of every row an update wrote meanwhile, recomputed at the finish
+        self._touch_log: list[np.ndarray] | None = None
         self.read_only = False
         self.vote_weighting = "plain"
 
@@ -312,6 +315,7 @@ class VoteStore:
     def rebuild(self) -> None:
         """Recount every vote from the per-frame files (repairs an interrupted update)."""
         self._write_state(dirty=True)
+        self._touched(None)
         self.votes[:] = 0
         flat = self.votes.reshape(-1)
         C = self._cls.C
@@ -342,11 +346,15 @@ class VoteStore:
     def snapshot(self, counts: np.ndarray | None = None) -> VoteSnapshot:
         """The vote majority and the versions it counts, copied out of the shared counts.
 
-        Cheap next to a fill (one pass over the (N, C) counts): take it under the lock that
-        serialises updates, then run :meth:`fill_and_denoise` ``(snapshot=...)`` or
-        :func:`fill_snapshot` without holding it. It keeps the two leading vote classes of
-        every point, all the robust decision (:mod:`occufly.lifting.robust`) reads."""
-        direct, margin, top, second_col, second = self._direct(with_second=True, counts=counts)
+        One compiled pass over the (N, C) counts: take it under the lock that serialises
+        updates, then run :meth:`fill_and_denoise` ``(snapshot=...)`` or
+        :func:`fill_snapshot` without holding it -- or hold the lock only at both ends
+        (:meth:`snapshot_begin`, :meth:`snapshot_finish`). It keeps the two leading vote
+        classes of every point, all the robust decision (:mod:`occufly.lifting.robust`) reads."""
+        return self._as_snapshot(self._direct(with_second=True, counts=counts))
+
+    def _as_snapshot(self, rows: tuple) -> VoteSnapshot:
+        direct, margin, top, second_col, second = rows
         unit = vote_unit(self.vote_weighting)
         if unit != 1:
             # the confirmation rule counts views: a full-weight vote is one view
@@ -354,6 +362,43 @@ class VoteStore:
         return VoteSnapshot(direct=direct, margin=margin, top=top,
                             versions=self.included_versions(), second_col=second_col,
                             second=second, vote_unit=unit)
+
+    def _touched(self, rows: np.ndarray | None) -> None:
+        """An update wrote the counts of points ``rows`` (None: every point)."""
+        if self._touch_log is not None:
+            self._touch_log.append(np.arange(self.scene.n_points, dtype=np.int64) if rows is None
+                                   else np.array(rows, np.int64))
+
+    def snapshot_begin(self) -> None:
+        """Start a :meth:`snapshot` whose pass over the counts runs without the update lock
+        (a survey's 32 M x 21 counts: about a second, which every vote update would wait for):
+        call holding the lock, then :meth:`snapshot_rows` without it, then
+        :meth:`snapshot_finish` holding it again. The updates in between log the rows they
+        write; the finish recomputes those rows from the counts as they are then, so the
+        snapshot is the one the lock would have given at the finish."""
+        self._touch_log = []
+
+    def snapshot_rows(self) -> tuple:
+        """The pass over the counts of a snapshot begun with :meth:`snapshot_begin` (no lock:
+        rows an update writes meanwhile may be read half old, half new; they are logged)."""
+        return self._direct(with_second=True)
+
+    def snapshot_cancel(self) -> None:
+        """Stop logging the updates' rows (a begun snapshot that will not be finished)."""
+        self._touch_log = None
+
+    def snapshot_finish(self, rows: tuple) -> VoteSnapshot:
+        """The snapshot of :meth:`snapshot_rows`' ``rows`` with every row an update wrote
+        since :meth:`snapshot_begin` recomputed; call holding the update lock."""
+        log, self._touch_log = self._touch_log, None
+        if log is None:
+            raise RuntimeError("snapshot_finish without snapshot_begin")
+        if log:
+            t = np.unique(np.concatenate(log))
+            again = self._direct(with_second=True, counts=np.asarray(self.votes[t]))
+            for full, part in zip(rows, again, strict=True):
+                full[t] = part
+        return self._as_snapshot(rows)
 
     def labels(self) -> LiftResult | None:
         """The latest fill/denoise output on disk (labels, confidence, origin), or None."""
@@ -363,10 +408,10 @@ class VoteStore:
                 ) -> tuple[np.ndarray, ...]:
         """(labels (N,) uint8, vote margin (N,) float32 = (top - second) / votes,
         top (N,) uint16 = votes of the winning class); ``with_second`` adds the second
-        class's column (N,) int8 (-1 = none) and votes (N,) uint16. ``counts``: (N, C) counts
+        class's column (N,) int8 (-1 = none) and votes (N,) uint16. ``counts``: (n, C) counts (any rows)
         to read instead of the state's (the reliability veto's)."""
         src = self.votes if counts is None else counts
-        n = self.scene.n_points
+        n = len(src)
         labels = np.zeros(n, dtype=np.uint8)
         margin = np.zeros(n, dtype=np.float32)
         top_votes = np.zeros(n, dtype=np.uint16)
@@ -531,6 +576,7 @@ class VoteStore:
                 if len(f):
                     after[f] = self._cls.packed_winner(rows[f], dt)[0]
             self.votes[diff] = rows
+            self._touched(diff)
             changed = int(np.count_nonzero(before != after))
         return {
             "points_touched": points_touched,

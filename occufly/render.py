@@ -17,6 +17,7 @@ mask and the rendering both have a label (mask not 0/255, rendering not 0) and a
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -301,15 +302,10 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
             # label pass reads those instead of gathering and projecting the cloud again
             # (survey frame 52 at 1/3: 1.9 of 3.0 M culled points kept, label pass 0.12 ->
             # 0.08 s CPU)
-            from occufly.splat import project_depth_pass, splat_labels_recorded
+            from occufly.splat import splat_labels_recorded
 
-            n = len(ids)
-            rk, ruv = np.empty(n, np.int64), np.empty((n, 2), np.float64)
-            rz, rs = np.empty(n, np.float32), np.empty(n, np.int8)
-            m = project_depth_pass(depth, xyz, ids, T, float(fx), float(fy), float(cx),
-                                   float(cy), float(cam.skew), np.float32(ksize), MAX_SPLAT,
-                                   MAX_SPLAT, h, w, rk, ruv, rz, rs)
-            splat_labels_recorded(depth, best2, m, rk, ruv, rz, rs, ids, lab2, at_cand, tol, h, w)
+            rec = _depth_record(depth, xyz, ids, T, cam, ksize, h, w)
+            splat_labels_recorded(depth, best2, *rec, ids, lab2, at_cand, tol, h, w)
             return _finish(depth, best, multi, h, w)
         for label_pass in (False, True):
             project_splat_pass(depth, best2, xyz, ids, T, float(fx), float(fy), float(cx),
@@ -329,6 +325,76 @@ def _render(scene: Scene, labels: np.ndarray, frame, cam: Camera, spacing: float
                        col0, row0, np.ascontiguousarray(lab if not multi else lab[:, 0],
                                                         dtype=np.uint8), tol, h, w, label_pass)
     return _finish(depth, best, multi, h, w)
+
+
+def _depth_record(depth: np.ndarray, xyz: np.ndarray, ids: np.ndarray, T: np.ndarray,
+                  cam: Camera, ksize: float, h: int, w: int) -> tuple:
+    """The compiled depth pass over the points ``ids`` into ``depth``, recording each point it
+    keeps: (count kept, pixel keys, uv, depth, splat side) for the label pass."""
+    from occufly.splat import project_depth_pass
+
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    n = len(ids)
+    rk, ruv = np.empty(n, np.int64), np.empty((n, 2), np.float64)
+    rz, rs = np.empty(n, np.float32), np.empty(n, np.int8)
+    m = project_depth_pass(depth, xyz, ids, T, float(fx), float(fy), float(cx), float(cy),
+                           float(cam.skew), np.float32(ksize), MAX_SPLAT, MAX_SPLAT, h, w,
+                           rk, ruv, rz, rs)
+    return m, rk, ruv, rz, rs
+
+
+@dataclass
+class FrameGeometry:
+    """The half of :func:`render_many_for_mask` that needs no labels, for one frame and mask
+    size: the frustum cull, the coarsening and the depth pass with its record of the points
+    it kept. Computed while the labels are still being decided (a review does it beside the
+    leave-one-out labels) and handed to ``render_many_for_mask(..., geometry=)``, which then
+    runs the label pass only; the images are the same bit for bit. Used once: the label pass
+    finishes its depth buffer in place."""
+
+    key: tuple  # (frame index, mask shape, point spacing, splat factor, surface tolerance)
+    cand: np.ndarray | None
+    k: int
+    h: int
+    w: int
+    depth: np.ndarray
+    record: tuple
+    ids: np.ndarray
+    tol: np.float32
+
+
+def frame_geometry(scene: Scene, frame_index: int, mask_shape: tuple[int, int], *,
+                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
+                   surface_tol: float = 3.0) -> FrameGeometry | None:
+    """:class:`FrameGeometry` of ``render_many_for_mask(scene, ..., frame_index, mask_shape)``
+    with the same keywords, or None where that render does not take the compiled recorded
+    path (a distorted camera: it projects in numpy and gains nothing from this)."""
+    frame = scene.frames[frame_index]
+    scale = 1.0 / (frame.camera.width // int(mask_shape[1]))
+    cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
+    if (cam.height, cam.width) != tuple(mask_shape):
+        raise ValueError(f"rendered {(cam.height, cam.width)} does not match mask "
+                         f"{tuple(mask_shape)}")
+    spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    big = cam.width * cam.height > COARSE_MIN_PIXELS
+    cand = frustum_candidates(scene, cam, frame.T_cam_world,
+                              margin=MAX_SPLAT * (MAX_COARSE if big else 1))
+    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    rcam = cam.scaled(1.0 / k) if k > 1 else cam
+    ksize = splat_factor * (0.5 * sum(rcam.focal)) * spacing
+    if not (COMPILED_PROJECTION and RECORD_PROJECTION and not rcam.has_distortion
+            and type(ksize) is float):
+        return None
+    h, w = rcam.height, rcam.width
+    ids = np.arange(scene.n_points, dtype=np.int64) if cand is None \
+        else np.ascontiguousarray(cand, dtype=np.int64)
+    depth = np.full(h * w, np.inf, dtype=np.float32)
+    T = np.ascontiguousarray(np.asarray(frame.T_cam_world, dtype=np.float64)[:3, :4])
+    rec = _depth_record(depth, np.asarray(scene.xyz), ids, T, rcam, ksize, h, w)
+    return FrameGeometry((int(frame_index), tuple(int(v) for v in mask_shape), spacing,
+                          float(splat_factor), float(surface_tol)), cand, k, h, w, depth, rec,
+                         ids, np.float32(surface_tol * spacing))
 
 
 def _finish(depth: np.ndarray, best: np.ndarray, multi: bool, h: int, w: int
@@ -365,7 +431,8 @@ def render_for_mask(scene: Scene, labels: np.ndarray, frame_index: int, mask_sha
 def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
                          mask_shape: tuple[int, int], *, point_spacing: float | None = None,
                          splat_factor: float = SPLAT_FACTOR, surface_tol: float = 3.0,
-                         chunk: int = 500_000) -> list[np.ndarray]:
+                         chunk: int = 500_000, geometry: FrameGeometry | None = None
+                         ) -> list[np.ndarray]:
     """:func:`render_for_mask` of several (N,) uint8 label arrays over the same points, as
     (h, w) class images (no depth): the projection, the cull and the depth pass are shared
     and one label pass keeps a key per label set, so each image equals that label array's own
@@ -399,6 +466,23 @@ def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
     if (h, w) != tuple(mask_shape):
         raise ValueError(f"rendered {(h, w)} does not match mask {tuple(mask_shape)}")
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    from occufly.splat import upsample_u8
+
+    if geometry is not None:
+        want = (int(frame_index), tuple(int(v) for v in mask_shape), spacing,
+                float(splat_factor), float(surface_tol))
+        if geometry.key != want:
+            raise ValueError(f"geometry of {geometry.key}, not of {want}")
+        from occufly.splat import splat_labels_recorded
+
+        g = geometry
+        stack = _labels_at(scene.n_points, sets, g.cand)
+        best = np.full((stack.shape[1], g.h * g.w), np.iinfo(np.uint64).max, dtype=np.uint64)
+        splat_labels_recorded(g.depth, best, *g.record, g.ids,
+                              np.ascontiguousarray(stack, dtype=np.uint8), g.cand is not None,
+                              g.tol, g.h, g.w)
+        cls, _ = _finish(g.depth, best, True, g.h, g.w)
+        return [upsample_u8(c, g.k, h, w) if g.k > 1 else c for c in cls]
     big = cam.width * cam.height > COARSE_MIN_PIXELS
     cand = frustum_candidates(scene, cam, frame.T_cam_world,
                               margin=MAX_SPLAT * (MAX_COARSE if big else 1))
@@ -406,8 +490,6 @@ def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
     stack = _labels_at(scene.n_points, sets, cand)  # (K, L): the labels of the culled points
     cls, _ = _render(scene, stack, frame, cam.scaled(1.0 / k) if k > 1 else cam, spacing,
                      splat_factor, surface_tol, chunk, cand, at_cand=cand is not None)
-    from occufly.splat import upsample_u8
-
     return [upsample_u8(c, k, h, w) if k > 1 else c for c in cls]
 
 

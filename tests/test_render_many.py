@@ -55,6 +55,48 @@ def test_many_equal_their_own_renders_culled_and_coarse():
         assert np.array_equal(b, render_for_mask(scene, lb, 0, shape)[0])
 
 
+def test_geometry_computed_first_gives_the_same_images():
+    """The depth pass computed before the labels (``frame_geometry``, as a review computes it
+    beside the leave-one-out labels) then the label pass: the same images bit for bit, dense
+    and sparse label sets, culled and coarsened, full and half size; a geometry of another
+    frame or size is refused."""
+    import pytest
+
+    from occufly.render import frame_geometry
+
+    rng = np.random.default_rng(4)
+    sp = 0.08
+    g = np.arange(-24, 24, sp)
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.column_stack([gx.ravel() + rng.uniform(-0.02, 0.02, gx.size),
+                           gy.ravel(), np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)])
+    xyz = xyz.astype(np.float32)
+    cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1824.0, 1368.0, 912.0]))
+    T = look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    T2 = look_at([-2.0, 1.0, 25.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    scene = Scene(frames=[Frame("f.jpg", cam, T), Frame("g.jpg", cam, T2)], xyz=xyz,
+                  rgb=np.zeros_like(xyz, np.uint8), taxonomy=TAX)
+    scene.meta["point_spacing"] = sp
+    la = _labels(scene.n_points, 5)
+    ids = np.sort(rng.choice(scene.n_points, scene.n_points // 3, replace=False))
+    sparse = (ids, la[ids])
+    for fi in (0, 1):
+        for shape in ((1824, 2736), (912, 1368)):
+            want = render_many_for_mask(scene, [la, sparse], fi, shape)
+            geo = frame_geometry(scene, fi, shape)
+            assert geo is not None and (geo.k > 1) == (shape[0] == 1824)
+            got = render_many_for_mask(scene, [la, sparse], fi, shape, geometry=geo)
+            assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))
+    with pytest.raises(ValueError, match="geometry of"):
+        render_many_for_mask(scene, [la], 1, (912, 1368),
+                             geometry=frame_geometry(scene, 0, (912, 1368)))
+    small, truth = make_scene()
+    h, w = small.frames[3].camera.height, small.frames[3].camera.width
+    geo = frame_geometry(small, 3, (h, w))
+    assert np.array_equal(render_many_for_mask(small, [truth], 3, (h, w), geometry=geo)[0],
+                          render_for_mask(small, truth, 3, (h, w))[0])
+
+
 def test_agreement_counts_match_a_plain_reference():
     """The compiled pair count behind ``agreement``: class x class pixels only (0, 255 and
     ids outside the taxonomy left out of the score, 255 in the mask not counted as painted)."""

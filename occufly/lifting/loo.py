@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -575,12 +576,24 @@ def _fill_vote(xyz: np.ndarray, ids: np.ndarray, todo: np.ndarray, src: np.ndarr
         return c, fshare
     pts, pc = _gather_rows(xyz_a, ids, np.ascontiguousarray(col, np.int64), order)
     amb = np.zeros(len(todo), bool)
-    for a in range(0, len(todo), _FILL_CHUNK):
-        b = min(len(todo), a + _FILL_CHUNK)
+    # each query alone: chunks of them, shared out to LOO_THREADS threads (the kernel holds
+    # no interpreter lock), give the same result as one pass
+    step = max(1, min(_FILL_CHUNK, -(-len(todo) // LOO_THREADS)))
+
+    def run(a: int) -> None:
+        b = min(len(todo), a + step)
         scores = np.zeros((b - a, cls.C), np.float64)
         _fill_knn_scores(xyz_a, ids, todo[a:b], pts, pc, mn, dims, starts, fine, k, radius,
                          scores, amb[a:b])
         c[a:b], fshare[a:b] = _scores_to_cols(cls, scores)
+
+    starts_q = range(0, len(todo), step)
+    if LOO_THREADS > 1 and len(starts_q) > 1:
+        with ThreadPoolExecutor(max_workers=LOO_THREADS) as pool:
+            list(pool.map(run, starts_q))
+    else:
+        for a in starts_q:
+            run(a)
     if amb.any():  # ties at the k-th neighbour: the k-d tree decides, as before
         rows = np.flatnonzero(amb)
         c[rows], fshare[rows] = _fill_tree(xyz, ids, todo, src, col, p, cls, only=rows)
@@ -830,12 +843,14 @@ CONFIDENT_SHARE = 0.6
 
 
 def render_review(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int],
-                  self_labels: np.ndarray | None = None) -> dict:
+                  self_labels: np.ndarray | None = None, *, geometry=None) -> dict:  # noqa: ANN001
     """The renderings a review compares a mask with, in one pass over the frame's geometry
     (:func:`occufly.render.render_many_for_mask`; each image equals its own
     :func:`~occufly.render.render_for_mask`): ``"loo"`` the leave-one-out labels,
     ``"confident"`` those of them holding >= ``CONFIDENT_SHARE`` of their votes (others 0),
-    and with ``self_labels`` ((N,) uint8, the lifted labels) ``"self"``."""
+    and with ``self_labels`` ((N,) uint8, the lifted labels) ``"self"``. ``geometry``: the
+    frame's :func:`occufly.render.frame_geometry` for ``mask_shape``, computed beforehand
+    (then only the label pass runs)."""
     # sparse label sets: the render gathers its culled points' labels by one merge walk of
     # the sorted point ids, no (N,) array per set
     sets: list = [(loo.point_ids, loo.labels)]
@@ -844,7 +859,7 @@ def render_review(scene: Scene, loo: LooLabels, mask_shape: tuple[int, int],
                                              np.uint8(0)).astype(np.uint8)))
     if self_labels is not None:
         sets.append(np.asarray(self_labels, np.uint8))
-    imgs = render_many_for_mask(scene, sets, loo.frame_index, mask_shape)
+    imgs = render_many_for_mask(scene, sets, loo.frame_index, mask_shape, geometry=geometry)
     out = {"loo": imgs[0], "confident": imgs[1] if loo.share is not None else imgs[0]}
     if self_labels is not None:
         out["self"] = imgs[-1]

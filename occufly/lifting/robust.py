@@ -680,6 +680,34 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     t_local = time.perf_counter()
     K = min(p.candidates, C)
 
+    done = _decide_all(cls, vidx, col1, n1, col2, n2, logpi, logprior_scene, logprior, local, K,
+                       p, features, q, confusion, labels, margin, top, with_top, pool, workers,
+                       report)
+    evaluated = sum(d[0] for d in done)
+    changed = sum(d[1] for d in done)
+    stats.update({
+        "robust_points_evaluated": int(evaluated),
+        "robust_points_changed": int(changed),
+        "robust_em_seconds": round(t_em - t0, 3),
+        "robust_fit_seconds": round(t_fit - t_em, 3),
+        "robust_local_seconds": round(t_local - t_fit, 3),
+        "robust_seconds": round(time.perf_counter() - t0, 3),
+        "robust_cpu_seconds": round(time.process_time() - c0, 3),
+    })
+    report(1.0, "robust decision")
+    return labels, margin, top, stats
+
+
+def _decide_all(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.ndarray,
+                col2: np.ndarray, n2: np.ndarray, logpi: np.ndarray, logprior_scene: np.ndarray,
+                logprior: np.ndarray, local: tuple | None, K: int, p: RobustParams,
+                features: np.ndarray, q: _QDA, confusion, labels: np.ndarray,  # noqa: ANN001
+                margin: np.ndarray, top: np.ndarray, with_top: bool,
+                pool: ThreadPoolExecutor | None, workers: int, report: ProgressFn
+                ) -> list[tuple[int, int]]:
+    """:func:`redecide`'s decision of the voted points ``vidx`` in chunks, written into
+    ``labels`` / ``margin`` / ``top``; with ``pool`` the chunks shared out to its threads.
+    Returns (points the classifier weighed, points changed) per chunk; shuts ``pool`` down."""
     # pointwise: any split into chunks gives the same result; threads take one share each
     step = p.chunk if pool is None else max(1, min(p.chunk, -(-len(vidx) // workers)))
 
@@ -719,19 +747,7 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     finally:
         if pool is not None:
             pool.shutdown()
-    evaluated = sum(d[0] for d in done)
-    changed = sum(d[1] for d in done)
-    stats.update({
-        "robust_points_evaluated": int(evaluated),
-        "robust_points_changed": int(changed),
-        "robust_em_seconds": round(t_em - t0, 3),
-        "robust_fit_seconds": round(t_fit - t_em, 3),
-        "robust_local_seconds": round(t_local - t_fit, 3),
-        "robust_seconds": round(time.perf_counter() - t0, 3),
-        "robust_cpu_seconds": round(time.process_time() - c0, 3),
-    })
-    report(1.0, "robust decision")
-    return labels, margin, top, stats
+    return done
 
 
 def _local_prior_tables(block: np.ndarray, prior: np.ndarray, p: RobustParams

@@ -168,7 +168,7 @@ def changed_classes(old: sb.ViewerData, new: sb.ViewerData) -> set[int] | None:
     ol, nl = np.asarray(old.labels), np.asarray(new.labels)
     changed = ol != nl
     for a, b in ((old.confidence, new.confidence), (old.origin, new.origin),
-                 (old.direct, new.direct)):
+                 (old.direct_array(), new.direct_array())):
         if (a is None) != (b is None):
             return None
         if a is not None:

@@ -277,3 +277,43 @@ def test_stratified_subsample_is_uniform_within_each_class_across_chunks():
         dec = np.searchsorted(members, picked) * 10 // len(members)
         share = np.bincount(dec, minlength=10) / len(picked)
         assert np.abs(share - 0.1).max() < 0.01, (cid, share)
+
+
+def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
+    """Loading a scene does not wait for the direct-vote labels (a pass over every point's
+    vote counts, only the disagreement colours read them): the load returns while they are
+    computed; the disagreement colours wait for them; a failed computation leaves the
+    colours to the origin fallback instead of breaking the viewer."""
+    import threading
+
+    n, ids = tiny.scene.n_points, list(TAX.ids)
+    votes = np.zeros((n, len(ids)), np.uint16)
+    votes[:, ids.index(6)] = 1
+    np.save(tiny.ws / "lifting" / "votes.npy", votes)
+    gate = threading.Event()
+    real = sb.VoteStore.direct_labels
+
+    def slow(self):
+        assert gate.wait(10)
+        return real(self)
+
+    monkeypatch.setattr(sb.VoteStore, "direct_labels", slow)
+    data = sb.ViewerData.load(tiny.ws)  # returns with the votes still being counted
+    assert isinstance(data.direct, sb.LazyLabels) and data.direct.shape == (n,)
+    assert not data.direct._done.is_set()
+    gate.set()
+    col = sb.point_colours(data, "disagreement", np.arange(n))
+    lab = np.asarray(tiny.labels)
+    assert np.all(col[lab == 6] == sb.AGREE_COLOUR) and np.all(col[lab != 6] == sb.DISAGREE_COLOUR)
+
+    def broken(self):
+        raise ValueError("torn")
+
+    monkeypatch.setattr(sb.VoteStore, "direct_labels", broken)
+    data = sb.ViewerData.load(tiny.ws)
+    assert data.direct_array() is None
+    with pytest.raises(ValueError, match="torn"):
+        data.direct.get()
+    org = np.asarray(data.origin)
+    col = sb.point_colours(data, "disagreement", np.arange(n))
+    assert np.all(col[org == 3] == sb.DISAGREE_COLOUR)

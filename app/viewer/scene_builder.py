@@ -472,6 +472,13 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def matrices_to_quats(R: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations -> (n, 4) float64 quaternions (w, x, y, z), w >= 0: each row what
+    :func:`matrix_to_quat` gives for that matrix."""
+    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()[:, [3, 0, 1, 2]]
+    return np.where(q[:, :1] >= 0, q, -q)
+
+
 def points_in_screen_rect(xyz: np.ndarray, cam_position: np.ndarray, cam_wxyz: np.ndarray,
                           fov_y: float, aspect: float, screen_min: tuple[float, float],
                           screen_max: tuple[float, float]) -> np.ndarray:
@@ -679,8 +686,14 @@ def frustum_nodes(scene: Scene, states: dict[int, str] | None = None) -> list[Fr
     """One frustum per frame; ``states`` maps frame index -> one of :data:`FRAME_STATES`."""
     nodes = []
     states = states or {}
+    if not scene.frames:
+        return nodes
+    # every frame's pose inverted and turned into a quaternion in one batched call each (a
+    # survey's 2,100 cameras: 0.3 s of per-frame scipy calls before the first points)
+    T_world_cam = np.linalg.inv(np.stack([np.asarray(fr.T_cam_world, np.float64)
+                                          for fr in scene.frames]))
+    wxyz = matrices_to_quats(T_world_cam[:, :3, :3])
     for i, fr in enumerate(scene.frames):
-        T_world_cam = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
         fy = fr.camera.focal[1]
         fov = 2.0 * float(np.arctan2(fr.camera.height / 2.0, fy))
         st = states.get(i, "not_selected")
@@ -688,8 +701,8 @@ def frustum_nodes(scene: Scene, states: dict[int, str] | None = None) -> list[Fr
             raise ValueError(f"frame state must be one of {FRAME_STATES}, got {st!r}")
         nodes.append(FrustumNode(
             name=f"/cameras/{fr.stem}", frame_index=i, fov=fov,
-            aspect=fr.camera.width / fr.camera.height, wxyz=matrix_to_quat(T_world_cam[:3, :3]),
-            position=T_world_cam[:3, 3].copy(), state=st, color=STATE_COLOURS[st],
+            aspect=fr.camera.width / fr.camera.height, wxyz=wxyz[i],
+            position=T_world_cam[i, :3, 3].copy(), state=st, color=STATE_COLOURS[st],
         ))
     return nodes
 

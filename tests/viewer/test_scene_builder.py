@@ -317,3 +317,33 @@ def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
     org = np.asarray(data.origin)
     col = sb.point_colours(data, "disagreement", np.arange(n))
     assert np.all(col[org == 3] == sb.DISAGREE_COLOUR)
+
+
+def test_frusta_of_many_cameras_equal_the_per_frame_poses():
+    """frustum_nodes inverts the poses and converts the rotations of all frames in one
+    batched call each: every node equals what one frame's inverse and matrix_to_quat give
+    (a survey's 2,100 cameras took 0.3 s of per-frame calls before the first points)."""
+    from scipy.spatial.transform import Rotation
+
+    from occufly.camera import Camera
+    from occufly.scene import Frame, Scene
+
+    rng = np.random.default_rng(3)
+    cam = Camera("PINHOLE", 64, 48, np.array([50.0, 50.0, 32.0, 24.0]))
+    frames = []
+    for i, R in enumerate(Rotation.random(300, random_state=2).as_matrix()):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, rng.normal(0, 50, 3)
+        if i == 0:
+            T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # w = 0: the sign rule
+        frames.append(Frame(f"f{i}.jpg", cam, T))
+    scene = Scene(frames=frames, xyz=np.zeros((1, 3), np.float32), rgb=np.zeros((1, 3), np.uint8),
+                  taxonomy=TAX)
+    nodes = sb.frustum_nodes(scene, {5: "selected"})
+    assert len(nodes) == 300 and nodes[5].state == "selected"
+    for fr, nd in zip(frames, nodes, strict=True):
+        Twc = np.linalg.inv(np.asarray(fr.T_cam_world, np.float64))
+        assert np.array_equal(nd.wxyz, sb.matrix_to_quat(Twc[:3, :3]))
+        assert np.array_equal(nd.position, Twc[:3, 3]) and nd.wxyz[0] >= 0
+    assert sb.frustum_nodes(Scene(frames=[], xyz=np.zeros((1, 3), np.float32),
+                                  rgb=np.zeros((1, 3), np.uint8), taxonomy=TAX)) == []

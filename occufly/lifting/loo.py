@@ -34,6 +34,7 @@ from occufly.lifting.votes import vote_unit
 from occufly.render import (
     agreement_from_counts,
     disagreement_image,
+    frame_geometry,
     frustum_candidates,
     render_many_for_mask,
 )
@@ -995,9 +996,14 @@ def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, 
     with ``self_labels`` ((N,) uint8, the lifted labels) also the self-agreement; with
     ``image`` the disagreement RGBA under ``"image"``; with ``neighbours`` the frames whose
     votes contradict this one's under ``"neighbours"`` (:func:`disagreeing_neighbours`)."""
-    loo = loo_labels(ws, scene, frame_index, params=params)
-    nb = disagreeing_neighbours(ws, scene, frame_index, loo) if neighbours else None
-    imgs = render_review(scene, loo, mask.shape, self_labels)
+    # the render's depth pass and the neighbours' vote files need no labels: read beside them
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-loo") as pool:
+        geo = pool.submit(frame_geometry, scene, frame_index, mask.shape)
+        nbv = pool.submit(neighbour_votes, ws, scene, frame_index) if neighbours else None
+        loo = loo_labels(ws, scene, frame_index, params=params)
+        nb = (disagreeing_neighbours(ws, scene, frame_index, loo, votes=nbv.result())
+              if nbv is not None else None)
+        imgs = render_review(scene, loo, mask.shape, self_labels, geometry=geo.result())
     ren = imgs["loo"]
     out = loo_agreement(mask, ren, scene, self_rendered=imgs.get("self"),
                         confident_rendered=imgs["confident"])

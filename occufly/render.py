@@ -188,13 +188,7 @@ def _render_scaled(scene: Scene, labels: np.ndarray, frame_index: int, *, scale:
     cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
     h, w = cam.height, cam.width
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
-    # a large image may be rendered up to MAX_COARSE x coarser, whose splats reach that much
-    # farther in full-size pixels: one cull wide enough for any k (the cull is conservative,
-    # so the image is the same as with the narrowest cull; one cull instead of two)
-    big = cam.width * cam.height > COARSE_MIN_PIXELS
-    cand = frustum_candidates(scene, cam, frame.T_cam_world,
-                              margin=MAX_SPLAT * (MAX_COARSE if big else 1))
-    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    cand, k = _cull_and_coarsening(scene, frame, cam, spacing, splat_factor)
     if k > 1:  # a large image finer than the cloud: render k x coarser, repeat each pixel k x k
         cls, depth = _render(scene, labels, frame, cam.scaled(1.0 / k), spacing, splat_factor,
                              surface_tol, chunk, cand)
@@ -364,23 +358,45 @@ class FrameGeometry:
     tol: np.float32
 
 
-def frame_geometry(scene: Scene, frame_index: int, mask_shape: tuple[int, int], *,
-                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
-                   surface_tol: float = 3.0) -> FrameGeometry | None:
-    """:class:`FrameGeometry` of ``render_many_for_mask(scene, ..., frame_index, mask_shape)``
-    with the same keywords, or None where that render does not take the compiled recorded
-    path (a distorted camera: it projects in numpy and gains nothing from this)."""
+def _mask_camera(scene: Scene, frame_index: int, mask_shape: tuple[int, int]) -> tuple:
+    """(frame, its camera at the size of a (possibly downscaled) mask ``mask_shape``); a
+    ValueError where the mask is not the frame at an integer downscale."""
     frame = scene.frames[frame_index]
     scale = 1.0 / (frame.camera.width // int(mask_shape[1]))
     cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
     if (cam.height, cam.width) != tuple(mask_shape):
         raise ValueError(f"rendered {(cam.height, cam.width)} does not match mask "
                          f"{tuple(mask_shape)}")
-    spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    return frame, cam
+
+
+def _cull_and_coarsening(scene: Scene, frame, cam: Camera, spacing: float,  # noqa: ANN001
+                         splat_factor: float) -> tuple[np.ndarray | None, int]:
+    """(the frustum cull of the points for ``cam``, the render's coarsening factor k). A
+    large image may be rendered up to MAX_COARSE x coarser, whose splats reach that much
+    farther in full-size pixels: one cull wide enough for any k (the cull is conservative,
+    so the image is the same as with the narrowest cull; one cull instead of two)."""
     big = cam.width * cam.height > COARSE_MIN_PIXELS
     cand = frustum_candidates(scene, cam, frame.T_cam_world,
                               margin=MAX_SPLAT * (MAX_COARSE if big else 1))
-    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    return cand, _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+
+
+def _geometry_key(frame_index: int, mask_shape: tuple[int, int], spacing: float,
+                  splat_factor: float, surface_tol: float) -> tuple:
+    return (int(frame_index), tuple(int(v) for v in mask_shape), spacing, float(splat_factor),
+            float(surface_tol))
+
+
+def frame_geometry(scene: Scene, frame_index: int, mask_shape: tuple[int, int], *,
+                   point_spacing: float | None = None, splat_factor: float = SPLAT_FACTOR,
+                   surface_tol: float = 3.0) -> FrameGeometry | None:
+    """:class:`FrameGeometry` of ``render_many_for_mask(scene, ..., frame_index, mask_shape)``
+    with the same keywords, or None where that render does not take the compiled recorded
+    path (a distorted camera: it projects in numpy and gains nothing from this)."""
+    frame, cam = _mask_camera(scene, frame_index, mask_shape)
+    spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
+    cand, k = _cull_and_coarsening(scene, frame, cam, spacing, splat_factor)
     rcam = cam.scaled(1.0 / k) if k > 1 else cam
     ksize = splat_factor * (0.5 * sum(rcam.focal)) * spacing
     if not (COMPILED_PROJECTION and RECORD_PROJECTION and not rcam.has_distortion
@@ -392,9 +408,9 @@ def frame_geometry(scene: Scene, frame_index: int, mask_shape: tuple[int, int], 
     depth = np.full(h * w, np.inf, dtype=np.float32)
     T = np.ascontiguousarray(np.asarray(frame.T_cam_world, dtype=np.float64)[:3, :4])
     rec = _depth_record(depth, np.asarray(scene.xyz), ids, T, rcam, ksize, h, w)
-    return FrameGeometry((int(frame_index), tuple(int(v) for v in mask_shape), spacing,
-                          float(splat_factor), float(surface_tol)), cand, k, h, w, depth, rec,
-                         ids, np.float32(surface_tol * spacing))
+    return FrameGeometry(_geometry_key(frame_index, mask_shape, spacing, splat_factor,
+                                       surface_tol), cand, k, h, w, depth, rec, ids,
+                         np.float32(surface_tol * spacing))
 
 
 def _finish(depth: np.ndarray, best: np.ndarray, multi: bool, h: int, w: int
@@ -459,18 +475,13 @@ def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
             sets.append(a)
     if not sets:
         return []
-    frame = scene.frames[frame_index]
-    scale = 1.0 / (frame.camera.width // int(mask_shape[1]))
-    cam = frame.camera if scale == 1.0 else frame.camera.scaled(scale)
+    frame, cam = _mask_camera(scene, frame_index, mask_shape)
     h, w = cam.height, cam.width
-    if (h, w) != tuple(mask_shape):
-        raise ValueError(f"rendered {(h, w)} does not match mask {tuple(mask_shape)}")
     spacing = scene_point_spacing(scene) if point_spacing is None else float(point_spacing)
     from occufly.splat import upsample_u8
 
     if geometry is not None:
-        want = (int(frame_index), tuple(int(v) for v in mask_shape), spacing,
-                float(splat_factor), float(surface_tol))
+        want = _geometry_key(frame_index, mask_shape, spacing, splat_factor, surface_tol)
         if geometry.key != want:
             raise ValueError(f"geometry of {geometry.key}, not of {want}")
         from occufly.splat import splat_labels_recorded
@@ -483,10 +494,7 @@ def render_many_for_mask(scene: Scene, labels: list, frame_index: int,
                               g.tol, g.h, g.w)
         cls, _ = _finish(g.depth, best, True, g.h, g.w)
         return [upsample_u8(c, g.k, h, w) if g.k > 1 else c for c in cls]
-    big = cam.width * cam.height > COARSE_MIN_PIXELS
-    cand = frustum_candidates(scene, cam, frame.T_cam_world,
-                              margin=MAX_SPLAT * (MAX_COARSE if big else 1))
-    k = _coarsening(scene, cam, frame.T_cam_world, spacing, splat_factor, cand)
+    cand, k = _cull_and_coarsening(scene, frame, cam, spacing, splat_factor)
     stack = _labels_at(scene.n_points, sets, cand)  # (K, L): the labels of the culled points
     cls, _ = _render(scene, stack, frame, cam.scaled(1.0 / k) if k > 1 else cam, spacing,
                      splat_factor, surface_tol, chunk, cand, at_cand=cand is not None)

@@ -32,9 +32,11 @@ def test_many_equal_their_own_renders_small_scene():
             assert np.array_equal(b, render_for_mask(scene, other, fi, shape)[0])
 
 
-def test_many_equal_their_own_renders_culled_and_coarse():
-    """A cloud above the cull threshold and a > 4 MP frame (rendered coarser, upsampled)."""
-    rng = np.random.default_rng(0)
+def _big_scene(seed: int, extra_poses: tuple = ()) -> Scene:
+    """A cloud above the cull threshold (a 48 m plane at 8 cm with a raised disc) and > 4 MP
+    frames over it (rendered coarser, upsampled): one looking down at (3, 0), then
+    ``extra_poses``."""
+    rng = np.random.default_rng(seed)
     sp = 0.08
     g = np.arange(-24, 24, sp)
     gx, gy = np.meshgrid(g, g)
@@ -42,10 +44,16 @@ def test_many_equal_their_own_renders_culled_and_coarse():
                            gy.ravel(), np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)])
     xyz = xyz.astype(np.float32)
     cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1824.0, 1368.0, 912.0]))
-    T = look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
-    scene = Scene(frames=[Frame("f.jpg", cam, T)], xyz=xyz, rgb=np.zeros_like(xyz, np.uint8),
-                  taxonomy=TAX)
+    poses = [look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), *extra_poses]
+    scene = Scene(frames=[Frame(f"f{i}.jpg", cam, T) for i, T in enumerate(poses)], xyz=xyz,
+                  rgb=np.zeros_like(xyz, np.uint8), taxonomy=TAX)
     scene.meta["point_spacing"] = sp
+    return scene
+
+
+def test_many_equal_their_own_renders_culled_and_coarse():
+    """A cloud above the cull threshold and a > 4 MP frame (rendered coarser, upsampled)."""
+    scene = _big_scene(0)
     assert scene.n_points > 200_000
     la, lb = _labels(scene.n_points, 2), _labels(scene.n_points, 3)
     for shape in ((1824, 2736), (912, 1368)):
@@ -65,18 +73,7 @@ def test_geometry_computed_first_gives_the_same_images():
     from occufly.render import frame_geometry
 
     rng = np.random.default_rng(4)
-    sp = 0.08
-    g = np.arange(-24, 24, sp)
-    gx, gy = np.meshgrid(g, g)
-    xyz = np.column_stack([gx.ravel() + rng.uniform(-0.02, 0.02, gx.size),
-                           gy.ravel(), np.where(np.hypot(gx, gy).ravel() < 5, 3.0, 0.0)])
-    xyz = xyz.astype(np.float32)
-    cam = Camera("PINHOLE", 2736, 1824, np.array([1824.0, 1824.0, 1368.0, 912.0]))
-    T = look_at([3.0, 0.0, 30.0], [3.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
-    T2 = look_at([-2.0, 1.0, 25.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
-    scene = Scene(frames=[Frame("f.jpg", cam, T), Frame("g.jpg", cam, T2)], xyz=xyz,
-                  rgb=np.zeros_like(xyz, np.uint8), taxonomy=TAX)
-    scene.meta["point_spacing"] = sp
+    scene = _big_scene(4, (look_at([-2.0, 1.0, 25.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)),))
     la = _labels(scene.n_points, 5)
     ids = np.sort(rng.choice(scene.n_points, scene.n_points // 3, replace=False))
     sparse = (ids, la[ids])

@@ -184,28 +184,12 @@ def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: A
     (``disagreement_png``) and, for a full-size mask, the labels' rendering as the page's
     /render PNG (``render_png``, else None).
 
-    The parts that do not wait for each other run side by side, in a second thread: beside
-    the leave-one-out labels, the mask's decode, the render's depth pass (it needs no labels:
-    :func:`occufly.render.frame_geometry`) and the neighbours' vote files (24 on a survey
-    frame); beside the render's label pass, the neighbours' counts; beside the overlay and
-    the figures, the /render PNG's deflate. A reviewer's first open of a 20 MP frame waits for
-    the longest path only."""
+    The leave-one-out labels, the renderings and the neighbours come from
+    :func:`occufly.lifting.loo.review_renders` (what needs no labels beside the labels); the
+    /render PNG's deflate runs beside the overlay and the figures."""
+    mask, _loo, imgs, nb = lifting_loo.review_renders(workspace, ws_scene, frame_index, mask,
+                                                      self_labels=labels, neighbours=True)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-review") as pool:
-        mask_fut = pool.submit(mask) if callable(mask) else None
-
-        def geometry():  # noqa: ANN202
-            shape = (mask_fut.result() if mask_fut is not None else mask).shape
-            return render.frame_geometry(ws_scene, frame_index, shape)
-
-        geo_fut = pool.submit(geometry)
-        nv_fut = pool.submit(lifting_loo.neighbour_votes, workspace, ws_scene, frame_index)
-        loo = lifting_loo.loo_labels(workspace, ws_scene, frame_index)
-        nb_fut = pool.submit(lambda: lifting_loo.disagreeing_neighbours(
-            workspace, ws_scene, frame_index, loo, votes=nv_fut.result()))
-        if mask_fut is not None:
-            mask = mask_fut.result()
-        imgs = lifting_loo.render_review(ws_scene, loo, mask.shape, labels,
-                                         geometry=geo_fut.result())
         cam = ws_scene.frames[frame_index].camera
         png_fut = None
         if mask.shape == (cam.height, cam.width):
@@ -222,7 +206,7 @@ def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: A
                                             self_rendered=imgs["self"],
                                             confident_rendered=imgs["confident"])
         del imgs, idx
-        return {"figures": figures, "neighbours": nb_fut.result(), "disagreement_png": png,
+        return {"figures": figures, "neighbours": nb, "disagreement_png": png,
                 "render_png": None if png_fut is None else png_fut.result()}
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -989,6 +990,35 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
     return out
 
 
+def review_renders(ws: str | Path, scene: Scene, frame_index: int,
+                   mask: np.ndarray | Callable[[], np.ndarray], *,
+                   params: LiftParams | None = None, self_labels: np.ndarray | None = None,
+                   neighbours: bool = False) -> tuple:
+    """(mask, :class:`LooLabels`, :func:`render_review`'s images, :func:`disagreeing_neighbours`
+    or None) of frame ``frame_index``: what a review compares ``mask`` with. The parts that
+    need no labels run in a second thread beside the leave-one-out labels -- the mask's decode
+    where ``mask`` is a callable returning it, the render's depth pass
+    (:func:`occufly.render.frame_geometry`), the neighbours' vote files -- and the
+    neighbours' counts beside the render's label pass: a reviewer's first open of a 20 MP
+    frame waits for the longest path only."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-loo") as pool:
+        mask_fut = pool.submit(mask) if callable(mask) else None
+
+        def geometry():  # noqa: ANN202
+            shape = (mask_fut.result() if mask_fut is not None else mask).shape
+            return frame_geometry(scene, frame_index, shape)
+
+        geo_fut = pool.submit(geometry)
+        nv_fut = pool.submit(neighbour_votes, ws, scene, frame_index) if neighbours else None
+        loo = loo_labels(ws, scene, frame_index, params=params)
+        nb_fut = None if nv_fut is None else pool.submit(
+            lambda: disagreeing_neighbours(ws, scene, frame_index, loo, votes=nv_fut.result()))
+        if mask_fut is not None:
+            mask = mask_fut.result()
+        imgs = render_review(scene, loo, mask.shape, self_labels, geometry=geo_fut.result())
+        return mask, loo, imgs, None if nb_fut is None else nb_fut.result()
+
+
 def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, *,
               params: LiftParams | None = None, self_labels: np.ndarray | None = None,
               image: bool = False, neighbours: bool = False) -> dict:
@@ -996,14 +1026,8 @@ def frame_loo(ws: str | Path, scene: Scene, frame_index: int, mask: np.ndarray, 
     with ``self_labels`` ((N,) uint8, the lifted labels) also the self-agreement; with
     ``image`` the disagreement RGBA under ``"image"``; with ``neighbours`` the frames whose
     votes contradict this one's under ``"neighbours"`` (:func:`disagreeing_neighbours`)."""
-    # the render's depth pass and the neighbours' vote files need no labels: read beside them
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-loo") as pool:
-        geo = pool.submit(frame_geometry, scene, frame_index, mask.shape)
-        nbv = pool.submit(neighbour_votes, ws, scene, frame_index) if neighbours else None
-        loo = loo_labels(ws, scene, frame_index, params=params)
-        nb = (disagreeing_neighbours(ws, scene, frame_index, loo, votes=nbv.result())
-              if nbv is not None else None)
-        imgs = render_review(scene, loo, mask.shape, self_labels, geometry=geo.result())
+    mask, _loo, imgs, nb = review_renders(ws, scene, frame_index, mask, params=params,
+                                          self_labels=self_labels, neighbours=neighbours)
     ren = imgs["loo"]
     out = loo_agreement(mask, ren, scene, self_rendered=imgs.get("self"),
                         confident_rendered=imgs["confident"])

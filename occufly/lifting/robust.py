@@ -640,49 +640,42 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     majority = vidx_all[n1[vidx_all] > n2[vidx_all]] if p.min_strong > 0 else None
     want_local = xyz is not None and p.local_voxel > 0
     pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
-    local_fut = (pool.submit(local_votes, xyz, vidx_all, col1, n1, col2, n2, C, p.local_voxel,
-                             p.chunk) if pool is not None and want_local else None)
     try:
+        local_fut = (pool.submit(local_votes, xyz, vidx_all, col1, n1, col2, n2, C, p.local_voxel,
+                                 p.chunk) if pool is not None and want_local else None)
         q = _fit_qda(features, train, col1, C, p, majority)
-    except BaseException:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        raise
-    del majority
-    stats["robust_classifier_classes"] = int(q.ok.sum())
-    stats["robust_train_points"] = int(len(train))
-    t_fit = time.perf_counter()
-    if p.prior in ("train", "vote"):
-        # "vote": the shares of the vote majority over all voted points; "train": over the
-        # unanimous ones (biased against classes few views see, such as facades). Both are
-        # steadier than the EM's prior, which can trade a confusable class's mass for its
-        # look-alike's.
-        sel = train if p.prior == "train" else vidx_all
-        share = np.bincount(col1[sel], minlength=C).astype(np.float64) + 1.0
-        prior = share / share.sum()
-    logprior_scene = np.log(prior).astype(np.float32)
-    logprior = (p.prior_weight * logprior_scene).astype(np.float32)
-    vidx = vidx_all
-    local = None
-    if want_local:
-        report(0.25, "neighbourhood votes")
-        try:
+        del majority
+        stats["robust_classifier_classes"] = int(q.ok.sum())
+        stats["robust_train_points"] = int(len(train))
+        t_fit = time.perf_counter()
+        if p.prior in ("train", "vote"):
+            # "vote": the shares of the vote majority over all voted points; "train": over the
+            # unanimous ones (biased against classes few views see, such as facades). Both are
+            # steadier than the EM's prior, which can trade a confusable class's mass for its
+            # look-alike's.
+            sel = train if p.prior == "train" else vidx_all
+            share = np.bincount(col1[sel], minlength=C).astype(np.float64) + 1.0
+            prior = share / share.sum()
+        logprior_scene = np.log(prior).astype(np.float32)
+        logprior = (p.prior_weight * logprior_scene).astype(np.float32)
+        vidx = vidx_all
+        local = None
+        if want_local:
+            report(0.25, "neighbourhood votes")
             vox, block = (local_fut.result() if local_fut is not None else
                           local_votes(xyz, vidx, col1, n1, col2, n2, C, p.local_voxel, p.chunk))
-        except BaseException:
-            if pool is not None:
-                pool.shutdown(cancel_futures=True)
-            raise
-        # per voxel, once: the neighbourhood's vote shares and the log of the mixed prior
-        # (the same float32 operations per row as per point, so the same values)
-        local = (vox, *_local_prior_tables(block, prior, p))
-        del block
-    t_local = time.perf_counter()
-    K = min(p.candidates, C)
-
-    done = _decide_all(cls, vidx, col1, n1, col2, n2, logpi, logprior_scene, logprior, local, K,
-                       p, features, q, confusion, labels, margin, top, with_top, pool, workers,
-                       report)
+            # per voxel, once: the neighbourhood's vote shares and the log of the mixed prior
+            # (the same float32 operations per row as per point, so the same values)
+            local = (vox, *_local_prior_tables(block, prior, p))
+            del block
+        t_local = time.perf_counter()
+        K = min(p.candidates, C)
+        done = _decide_all(cls, vidx, col1, n1, col2, n2, logpi, logprior_scene, logprior, local, K,
+                           p, features, q, confusion, labels, margin, top, with_top, pool, workers,
+                           report)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     evaluated = sum(d[0] for d in done)
     changed = sum(d[1] for d in done)
     stats.update({
@@ -707,7 +700,7 @@ def _decide_all(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.nd
                 ) -> list[tuple[int, int]]:
     """:func:`redecide`'s decision of the voted points ``vidx`` in chunks, written into
     ``labels`` / ``margin`` / ``top``; with ``pool`` the chunks shared out to its threads.
-    Returns (points the classifier weighed, points changed) per chunk; shuts ``pool`` down."""
+    Returns (points the classifier weighed, points changed) per chunk."""
     # pointwise: any split into chunks gives the same result; threads take one share each
     step = p.chunk if pool is None else max(1, min(p.chunk, -(-len(vidx) // workers)))
 
@@ -736,17 +729,12 @@ def _decide_all(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.nd
         return n_multi, int(np.count_nonzero(best != c1))
 
     starts = range(0, len(vidx), step)
-    try:
-        if pool is not None and len(starts) > 1:
-            done = list(pool.map(decide, starts))
-        else:
-            done = []
-            for a in starts:
-                report(0.3 + 0.7 * a / len(vidx), "robust decision")
-                done.append(decide(a))
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    if pool is not None and len(starts) > 1:
+        return list(pool.map(decide, starts))
+    done = []
+    for a in starts:
+        report(0.3 + 0.7 * a / len(vidx), "robust decision")
+        done.append(decide(a))
     return done
 
 

@@ -97,10 +97,7 @@ class ViewerData:
             arr = getattr(self, name)
             if arr is None:
                 continue
-            if isinstance(arr, LazyLabels):  # computed in the background (direct votes)
-                if arr.shape != (n,):
-                    raise WorkspaceError(f"{name}: expected shape ({n},) for {n} points, "
-                                         f"got {arr.shape}")
+            if isinstance(arr, LazyLabels):  # direct votes: shape checked when computed
                 continue
             arr = np.asarray(arr)
             if arr.shape != (n,):
@@ -467,9 +464,7 @@ def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation -> (4,) float64 quaternion (w, x, y, z), w >= 0."""
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
-    q = np.array([w, x, y, z])
-    return q if q[0] >= 0 else -q
+    return matrices_to_quats(np.asarray(R, np.float64)[None])[0]
 
 
 def matrices_to_quats(R: np.ndarray) -> np.ndarray:

@@ -321,7 +321,7 @@ def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
 
 def test_frusta_of_many_cameras_equal_the_per_frame_poses():
     """frustum_nodes inverts the poses and converts the rotations of all frames in one
-    batched call each: every node equals what one frame's inverse and matrix_to_quat give
+    batched call each: every node equals one frame's inverse and scipy's one-matrix conversion
     (a survey's 2,100 cameras took 0.3 s of per-frame calls before the first points), and
     matrix_to_quat (now the batch of one) the same."""
     from scipy.spatial.transform import Rotation

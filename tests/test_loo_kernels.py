@@ -210,7 +210,7 @@ def test_redecide_without_the_support_gives_the_same_labels_and_margins():
         params = replace(R.RobustParams(), chunk=chunk)
         one = R.redecide(*args, params=params, xyz=xyz)
         t = R.redecide(*args, params=params, xyz=xyz, workers=workers)
-        for u, v in zip(t[:3], one[:3]):
+        for u, v in zip(t[:3], one[:3], strict=True):
             assert u.dtype == v.dtype and np.array_equal(u.view(np.uint8), v.view(np.uint8))
         assert np.array_equal(t[0], a[0])
         assert t[3]["robust_points_changed"] == one[3]["robust_points_changed"]

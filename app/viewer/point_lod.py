@@ -159,17 +159,28 @@ def build_chunks(data: sb.ViewerData, plan: LodPlan, *, mode: str = "semantic",
                  keys: set[tuple[int, int]] | None = None) -> dict[tuple[int, int], sb.PointNode]:
     """The chunk nodes of ``groups`` (all when None), or only the chunks ``keys``, keyed by
     ``(group, class id)``, points split by the *current* labels."""
-    lab = (np.asarray(data.labels[plan.ids]) if data.labels is not None
-           else np.zeros(len(plan.ids), np.uint8)).astype(np.int64)
-    key = plan.group.astype(np.int64) * 256 + lab
-    keep = np.ones(len(key), bool)
-    if groups is not None:
-        keep &= np.isin(plan.group, np.fromiter(groups, np.int64))
+    # the plan's rows of the wanted groups first, then their labels: the first picture's
+    # 150 k coarse points no longer gather the labels of all 2 M planned ones (from a
+    # memory-mapped survey: up to 0.25 s of it)
+    wanted = set(groups) if groups is not None else None
     if keys is not None:
-        keep &= np.isin(key, np.fromiter((g * 256 + c for g, c in keys), np.int64))
-    pos = np.flatnonzero(keep)
-    pos = pos[np.argsort(key[pos], kind="stable")]
-    k = key[pos]
+        wanted = {g for g, _c in keys} & (wanted if wanted is not None else {g for g, _c in keys})
+    if wanted is None:
+        pos = np.arange(len(plan.ids))
+    else:
+        lut = np.zeros(max([int(plan.group.max(initial=0)), *wanted]) + 1, bool)
+        lut[[g for g in wanted if g >= 0]] = True
+        pos = np.flatnonzero(lut[plan.group])
+    lab = (np.asarray(data.labels[plan.ids[pos]]) if data.labels is not None
+           else np.zeros(len(pos), np.uint8)).astype(np.int64)
+    key = plan.group[pos].astype(np.int64) * 256 + lab
+    if keys is not None:
+        hit = np.isin(key, np.fromiter((g * 256 + c for g, c in keys), np.int64))
+        pos, key = pos[hit], key[hit]
+    order = np.argsort(key, kind="stable")
+    pos, k = pos[order], key[order]
+    if len(k) == 0:  # nothing of these groups or keys (ends below would be [0])
+        return {}
     uniq, starts = np.unique(k, return_index=True)
     ends = np.append(starts[1:], len(k))
     idx = plan.ids[pos]

@@ -47,6 +47,11 @@ class SceneViewMixin:
     #: it is hidden with the tiles). 8 M and 32 M points under SwiftShader: the 150 k coarse
     #: level drew at 3.9-4.6 frames a second while orbiting (issue 38 asks for 10)
     motion_points: int | None = 40_000
+    #: the first send holds the motion level alone, the rest of the coarse level follows once
+    #: it is drawn (False: the whole coarse level at once, the path before). The survey under
+    #: SwiftShader: connect -> first points sent 0.9-2.1 -> 0.4-0.5 s, first points on screen
+    #: 2.0-3.8 -> 1.6-1.8 s with the direct votes deferred (docs/guide/reviewer.md)
+    motion_first = True
     motion_rest_s: float | None = 1.0  # tiles hidden while moving, back after this rest
     hide_tiles_on_update = True  # ... and while a correction's chunks are on their way
     hide_grid_on_motion = True  # the voxel grids' boxes hidden while the camera moves too
@@ -170,12 +175,18 @@ class SceneViewMixin:
             st.lod_done.clear()
             st.lod_stopped = None
             st.lod_started = time.perf_counter()
-            nodes = self._send_groups(st, set(st.lod_plan.first))
+            # the first picture is the motion level (group 0) alone; the rest of the coarse
+            # level (plan.first's other groups) is the refinement's first batch, sent once
+            # that picture is drawn: software WebGL draws 40 k points in a fraction of the
+            # time 150 k take (:attr:`motion_first`)
+            first = set(st.lod_plan.first)
+            lead = sorted(first - {0}) if self.motion_first and 0 in first else []
+            nodes = self._send_groups(st, first - set(lead))
             st.first_sent_at = st.first_sent_at or time.perf_counter()
             gen, plan = st.lod_gen, st.lod_plan
-        if plan.order:
-            threading.Thread(target=self._refine, args=(st, gen, plan, keep), daemon=True,
-                             name="viewer-lod").start()
+        if plan.order or lead:
+            threading.Thread(target=self._refine, args=(st, gen, plan, keep, lead),
+                             daemon=True, name="viewer-lod").start()
         else:
             self._lod_finished(st, gen)
         return list(nodes.values())
@@ -254,7 +265,7 @@ class SceneViewMixin:
         st.sent_points = int(sum(len(nd.point_ids) for nd in st.chunks.values()))
 
     def _refine(self, st: ClientState, gen: int, plan: point_lod.LodPlan,
-                keep: set[int] | frozenset = frozenset()) -> None:
+                keep: set[int] | frozenset = frozenset(), lead: list[int] | None = None) -> None:
         """Send the refinement tiles (the middle of the view first), each batch after the
         browser has drawn what it had: under software WebGL every batch that arrives costs a
         frame of everything shown, so few batches, each behind a round trip (:meth:`_drawn`),
@@ -269,8 +280,13 @@ class SceneViewMixin:
         would wait for such frames). The user's own "LOD max points" (``st.lod_explicit``),
         a client that cannot answer a render request, or ``frame_budget_s`` None: the plan
         is sent whole, in ``refine_batches`` batches. ``keep``: tile groups on screen before
-        this send (a colour change re-sends them): always sent, never left stale."""
+        this send (a colour change re-sends them): always sent, never left stale. ``lead``:
+        the rest of the coarse level, sent first, once the motion level is drawn."""
         try:
+            if lead:
+                self._drawn(st)
+                if not self._send_batch(st, gen, lead):
+                    return
             adaptive = (self.frame_budget_s is not None and not st.lod_explicit
                         and getattr(st.client, "get_render", None) is not None)
             if not adaptive:
@@ -407,8 +423,11 @@ class SceneViewMixin:
                 return
             st.lod_done_at = time.perf_counter()
             st.lod_done.set()
-            if st.data is not None and "status" in st.gui and st.scene_id is not None:
+            d = st.data
+            if d is not None and "status" in st.gui and st.scene_id is not None:
                 st.gui["status"].content = self.status_line(st)
+        if d is not None:  # the points are on screen: the direct-vote labels (only the
+            d.start_background()  # disagreement colours read them) may take a core now
 
     def status_line(self, st: ClientState) -> str:
         d = st.data

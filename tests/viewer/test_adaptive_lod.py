@@ -254,9 +254,10 @@ def test_the_grid_is_hidden_while_the_camera_moves(tiny, tiny_grid):
 
 
 def test_the_motion_level_is_part_of_the_coarse_level(tiny):
-    """With ``motion_points`` below the coarse level, the first send still holds the whole
-    coarse level (the first picture), but only the motion part is group 0 (drawn while the
-    camera moves); the rest of the coarse level is a detail group, hidden with the tiles."""
+    """With ``motion_points`` below the coarse level, only the motion part is group 0 (drawn
+    while the camera moves) and the first send (the first picture); the rest of the coarse
+    level is a detail group, hidden with the tiles, sent right after it and before any tile
+    (``motion_first``; off: the whole coarse level in the first send)."""
     svc = ViewerService(scenes=default_scenes(tiny.ws.parent), preview_points=200)
     svc.lod_tiles, svc.motion_points, svc.motion_rest_s = 3, 50, 0.2
     st = ClientState(client=FakeClient(), scene_id="tiny")
@@ -270,7 +271,12 @@ def test_the_motion_level_is_part_of_the_coarse_level(tiny):
     rest = 1 + 3 * 3
     assert plan.first == (0, rest) and rest not in plan.order
     assert plan.n_coarse == 50 and int((plan.group == rest).sum()) == 150
-    assert sum(len(nd.point_ids) for nd in first) == 200  # the first picture: 200 points
+    assert sum(len(nd.point_ids) for nd in first) == 50  # the first picture: the motion level
+    log = [e for e in st.client.scene.log if e[0] == "points"]
+    n_motion = sum(1 for e in log if e[1].endswith("/coarse"))
+    assert all(e[1].endswith("/coarse") for e in log[:n_motion])
+    after = [e for e in log[n_motion:] if "/detail/t009" in e[1]]
+    assert log[n_motion:len(after) + n_motion] == after  # the coarse level's rest next
     motion = plan.ids[plan.group == 0]
     # stratified: the rare class moves along (a floor of a quarter of 50 over 5 classes)
     assert (tiny.labels[motion] == 11).sum() >= int(0.25 * 50 / 5) > 0
@@ -282,3 +288,7 @@ def test_the_motion_level_is_part_of_the_coarse_level(tiny):
     shown = [h for h in st.detail_handles.values() if h.visible]
     assert not shown  # the rest of the coarse level is hidden with the tiles
     _assert_shown_is_the_plan_of(st, set(np.unique(plan.group).tolist()))
+    svc.motion_first = False  # the path before: the whole coarse level in the first send
+    st.lod_plan = None
+    assert sum(len(nd.point_ids) for nd in svc.send_points(st)) == 200
+    assert st.lod_done.wait(20)

@@ -52,6 +52,32 @@ def test_plan_coarse_level_is_stratified_and_tiles_go_from_the_middle_out(tiny):
     assert small.n_coarse == n and small.order == []  # fits the coarse level: no tiles
 
 
+
+def test_chunks_of_some_groups_or_keys_are_those_of_the_whole_build(tiny):
+    """``build_chunks`` of a few groups, or of a few (group, class) keys, gathers only their
+    rows: the chunks must be exactly the whole build's, point for point and in order."""
+    data = sb.ViewerData.load(tiny.ws)
+    plan = point_lod.plan_lod(data, 10_000, coarse_points=200, tiles=3, motion_points=60)
+    whole = point_lod.build_chunks(data, plan, mode="semantic")
+    rest = 1 + 3 * 3
+    assert plan.first == (0, rest)
+
+    def same(got: dict, want_keys: set) -> None:
+        assert set(got) == want_keys
+        for k, nd in got.items():
+            ref = whole[k]
+            assert nd.name == ref.name and nd.class_id == ref.class_id
+            assert np.array_equal(nd.point_ids, ref.point_ids)
+            assert np.array_equal(nd.xyz, ref.xyz) and np.array_equal(nd.colors, ref.colors)
+
+    for groups in ({0}, {0, rest}, {plan.order[0]}, set(plan.order[:3]), {99}):
+        same(point_lod.build_chunks(data, plan, groups=groups),
+             {k for k in whole if k[0] in groups})
+    keys = {k for k in whole if k[1] == 11} | {(plan.order[0], 6), (99, 6)}
+    same(point_lod.build_chunks(data, plan, keys=keys), keys & set(whole))
+    both = point_lod.build_chunks(data, plan, groups={0}, keys=keys)
+    same(both, {k for k in keys & set(whole) if k[0] == 0})
+
 def test_coarse_level_is_sent_first_then_every_tile(tiny):
     svc, st = _service(tiny, coarse=200)
     nodes = svc.send_points(st)
@@ -122,3 +148,18 @@ def test_relabel_resends_only_the_changed_chunks_and_undo_restores(tiny):
     assert back <= names | {f"/points/grass/{tile}"}
     assert np.isin(target, st.point_nodes[6].point_ids).all()
     assert not np.isin(target, st.point_nodes[13].point_ids).any()
+
+
+def test_direct_votes_start_once_the_points_are_on_screen(tiny):
+    """The direct-vote labels (a pass over every point's vote counts) do not take a core from
+    a tab's first picture: they start when the level of detail is sent, not at the load."""
+    n = tiny.scene.n_points
+    votes = np.zeros((n, len(tiny.scene.taxonomy)), np.uint16)
+    votes[:, 1] = 1
+    np.save(tiny.ws / "lifting" / "votes.npy", votes)
+    svc, st = _service(tiny, coarse=200)
+    assert isinstance(st.data.direct, sb.LazyLabels) and not st.data.direct.started
+    svc.send_points(st)
+    assert st.lod_done.wait(10), "the refinement did not finish"
+    assert st.data.direct.started
+    assert st.data.direct.get().shape == (n,)

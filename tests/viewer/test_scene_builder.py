@@ -283,7 +283,8 @@ def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
     """Loading a scene does not wait for the direct-vote labels (a pass over every point's
     vote counts, only the disagreement colours read them): the load returns while they are
     computed; the disagreement colours wait for them; a failed computation leaves the
-    colours to the origin fallback instead of breaking the viewer."""
+    colours to the origin fallback instead of breaking the viewer. The computation starts
+    only when asked (the viewer asks once a tab's points are on screen) or when read."""
     import threading
 
     n, ids = tiny.scene.n_points, list(TAX.ids)
@@ -298,9 +299,12 @@ def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
         return real(self)
 
     monkeypatch.setattr(sb.VoteStore, "direct_labels", slow)
-    data = sb.ViewerData.load(tiny.ws)  # returns with the votes still being counted
+    data = sb.ViewerData.load(tiny.ws)  # returns with the votes not counted yet
     assert isinstance(data.direct, sb.LazyLabels) and data.direct.shape == (n,)
-    assert not data.direct._done.is_set()
+    assert not data.direct.started and not data.direct._done.is_set()
+    data.start_background()
+    data.start_background()  # once
+    assert data.direct.started and not data.direct._done.is_set()
     gate.set()
     col = sb.point_colours(data, "disagreement", np.arange(n))
     lab = np.asarray(tiny.labels)
@@ -311,7 +315,8 @@ def test_direct_votes_are_counted_in_the_background(tiny, monkeypatch):
 
     monkeypatch.setattr(sb.VoteStore, "direct_labels", broken)
     data = sb.ViewerData.load(tiny.ws)
-    assert data.direct_array() is None
+    assert not data.direct.started
+    assert data.direct_array() is None  # a reader starts it
     with pytest.raises(ValueError, match="torn"):
         data.direct.get()
     org = np.asarray(data.origin)

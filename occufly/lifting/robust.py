@@ -702,7 +702,10 @@ def _decide_all(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.nd
     ``labels`` / ``margin`` / ``top``; with ``pool`` the chunks shared out to its threads.
     Returns (points the classifier weighed, points changed) per chunk."""
     # pointwise: any split into chunks gives the same result; threads take one share each
-    step = p.chunk if pool is None else max(1, min(p.chunk, -(-len(vidx) // workers)))
+    # with threads: a multiple of ``workers`` chunks of equal size (not full chunks and a
+    # short last one, which left a thread idle while the other decided two)
+    n_chunks = 1 if pool is None else workers * max(1, -(-len(vidx) // (workers * p.chunk)))
+    step = p.chunk if pool is None else max(1, -(-len(vidx) // n_chunks))
 
     def decide(a: int) -> tuple[int, int]:
         ids = vidx[a:a + step]

@@ -80,6 +80,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     ctx.jobs.start()
     ctx.lifting.start()
     subscribe_api_process(ctx)  # the worker runs elsewhere: keep the review cache warm
+    review.warm_process_start(ctx)  # a survey's first review not 2-3 s (the process's state)
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):

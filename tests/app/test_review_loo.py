@@ -308,3 +308,34 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
     n = calls.count(nxt_index)  # (the frames after it are being computed meanwhile)
     assert env.client.get(f"/api/frames/{nxt}/agreement", headers=hdr["reviewer"]).status_code == 200
     assert calls.count(nxt_index) == n
+
+
+def test_a_server_process_warms_the_review_of_a_survey_sized_scene(world, monkeypatch):
+    """A process's first review of a big scene paid its state (the cull's bins of the whole
+    cloud, numba's kernels, the first reads): at start, one review of the review list's top
+    frame runs in a background thread, for scenes of at least WARM_MIN_POINTS points."""
+    from app.review import service
+
+    env, hdr, scene, frames = world
+    _paint_grass_and_road(env, hdr, scene, frames)
+    ctx = env.app.state.ctx
+    assert service.warm_process_start(ctx) is None  # the test scene is small: nothing to warm
+    calls = []
+    real = service.compute_review
+
+    def spy(ws_scene, workspace, frame_index, mask, labels):  # noqa: ANN001
+        calls.append(frame_index)
+        out = real(ws_scene, workspace, frame_index, mask, labels)
+        calls.append(out["figures"]["agreement"])
+        return out
+
+    monkeypatch.setattr(service, "WARM_MIN_POINTS", 1)
+    monkeypatch.setattr(service, "compute_review", spy)
+    th = service.warm_process_start(ctx)
+    assert th is not None
+    th.join(60)
+    assert not th.is_alive()
+    top = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
+                         headers=hdr["reviewer"]).json()[0]
+    index = next(f["index"] for f in frames if f["id"] == top["id"])
+    assert calls and calls[0] == index and calls[1] is not None  # the list's top, computed

@@ -291,7 +291,18 @@ def test_admin_histogram_coverage_plot_and_readable_metrics(live, sid, new_page)
         assert f"{100 * m['agreement']:.2f} %" in visible
     page.locator("#metrics").scroll_into_view_if_needed()
     shot(page, "17_05_admin_metrics", full_page=True)
-    assert not bad, bad
+    # the one 4xx the page asks for on purpose: a scene's quality report before its first
+    # fill is a 404 the page shows as "No lifted labels yet" -- accepted only where the API
+    # still says so (run alone, this module's scenes have no labels when the page opens;
+    # in the whole suite an earlier module has lifted them)
+    expected = []
+    for b in bad:
+        m = re.fullmatch(r"404 GET .*/api/scenes/(\d+)/quality", b)
+        if m:
+            r = admin.get(f"/api/scenes/{m.group(1)}/quality")
+            if r.status_code == 404 and "no lifted labels yet" in r.text:
+                expected.append(b)
+    assert not [b for b in bad if b not in expected], bad
 
 
 def test_annotator_progress_skip_help_zoom_outline_hide_and_kept_brush(live, sid, new_page):

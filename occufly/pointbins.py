@@ -166,6 +166,13 @@ def _bin_index(xyz: np.ndarray, r: int, lo: np.ndarray, cell: float, a: int) -> 
     return np.int64(np.floor((np.float64(xyz[r, a]) - lo[a]) / cell))
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _bin_key(xyz: np.ndarray, r: int, lo: np.ndarray, cell: float, dims: np.ndarray) -> int:
+    """The row-major key of point ``r``'s bin (``(i * dims[1] + j) * dims[2] + k``)."""
+    return ((_bin_index(xyz, r, lo, cell, 0) * dims[1] + _bin_index(xyz, r, lo, cell, 1))
+            * dims[2] + _bin_index(xyz, r, lo, cell, 2))
+
+
 @numba.njit(nogil=True, cache=True)
 def _bin_extent_kernel(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell: float) -> tuple:
     mx = np.zeros(3, np.int64)
@@ -211,8 +218,7 @@ def _bin_sort(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell: float, dims
     count = np.zeros(n_keys + 1, np.int64)
     for r in range(xyz.shape[0]):
         if _inside(xyz, r, lo, hi) == 1:
-            key = ((_bin_index(xyz, r, lo, cell, 0) * dims[1] + _bin_index(xyz, r, lo, cell, 1))
-                   * dims[2] + _bin_index(xyz, r, lo, cell, 2))
+            key = _bin_key(xyz, r, lo, cell, dims)
             count[key + 1] += 1
     n_full = 0
     for b in range(n_keys):
@@ -232,8 +238,7 @@ def _bin_sort(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell: float, dims
     order = np.empty(n_inner, np.int64)
     for r in range(xyz.shape[0]):
         if _inside(xyz, r, lo, hi) == 1:
-            key = ((_bin_index(xyz, r, lo, cell, 0) * dims[1] + _bin_index(xyz, r, lo, cell, 1))
-                   * dims[2] + _bin_index(xyz, r, lo, cell, 2))
+            key = _bin_key(xyz, r, lo, cell, dims)
             order[pos[key]] = r
             pos[key] += 1
     return order, nonempty, starts
@@ -249,8 +254,6 @@ def _bin_keys(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell: float, dims
     for r in range(xyz.shape[0]):
         if _inside(xyz, r, lo, hi) == 1:
             ids[k] = r
-            keys[k] = ((_bin_index(xyz, r, lo, cell, 0) * dims[1]
-                        + _bin_index(xyz, r, lo, cell, 1)) * dims[2]
-                       + _bin_index(xyz, r, lo, cell, 2))
+            keys[k] = _bin_key(xyz, r, lo, cell, dims)
             k += 1
     return ids, keys

@@ -162,9 +162,10 @@ def build_chunks(data: sb.ViewerData, plan: LodPlan, *, mode: str = "semantic",
     # the plan's rows of the wanted groups first, then their labels: the first picture's
     # 150 k coarse points no longer gather the labels of all 2 M planned ones (from a
     # memory-mapped survey: up to 0.25 s of it)
-    wanted = set(groups) if groups is not None else None
+    wanted = None if groups is None else set(groups)
     if keys is not None:
-        wanted = {g for g, _c in keys} & (wanted if wanted is not None else {g for g, _c in keys})
+        key_groups = {g for g, _c in keys}
+        wanted = key_groups if wanted is None else wanted & key_groups
     if wanted is None:
         pos = np.arange(len(plan.ids))
     else:

@@ -212,12 +212,12 @@ class LazyLabels:
     31.9 M x 21: 1.1-1.3 s of CPU) that only the *disagreement* colours read, so a scene's
     first points are not sent after it.
 
-    ``start=False`` leaves the thread to :meth:`start` (or to the first reader): the viewer
-    starts it once a tab's level of detail is on screen. Started at once, the pass took the
-    second of two cores from the first picture (the plan, the chunks, the browser's own
-    drawing): the survey's first points 2.70 s with it running, 2.20 s without."""
+    The thread starts at :meth:`start` or with the first reader: the viewer starts it once a
+    tab's level of detail is on screen. Started at once, the pass took the second of two
+    cores from the first picture (the plan, the chunks, the browser's own drawing): the
+    survey's first points 2.70 s with it running, 2.20 s without."""
 
-    def __init__(self, n: int, compute: Any, *, start: bool = True) -> None:
+    def __init__(self, n: int, compute: Any) -> None:
         self.shape = (int(n),)
         self._compute = compute
         self._value: np.ndarray | None = None
@@ -225,8 +225,6 @@ class LazyLabels:
         self._done = threading.Event()
         self._started = False
         self._start_lock = threading.Lock()
-        if start:
-            self.start()
 
     def start(self) -> None:
         """Start the computation (once; later calls do nothing)."""
@@ -300,8 +298,7 @@ def _load_direct(ws: Path, scene: Scene) -> LazyLabels | None:
     except Exception as e:  # noqa: BLE001 - a half-written lifting state must not kill the viewer
         log.warning("viewer: cannot read direct votes in %s: %s", ws, e)
         return None
-    return LazyLabels(scene.n_points, lambda: VoteStore(ws, scene, votes, {}).direct_labels(),
-                      start=False)
+    return LazyLabels(scene.n_points, lambda: VoteStore(ws, scene, votes, {}).direct_labels())
 
 
 # ---- level of detail ---------------------------------------------------------------------

@@ -103,9 +103,11 @@ class DiskCache:
     def has(self, data_dir: str | Path, key: Any) -> bool:  # noqa: ANN401
         return self._entry(data_dir, key).is_file()
 
-    def get(self, data_dir: str | Path, key: Any, compute: Callable[[], Any]) -> Any:  # noqa: ANN401
+    def get(self, data_dir: str | Path, key: Any, compute: Callable[[], Any],  # noqa: ANN401
+            valid: Callable[[], bool] | None = None) -> Any:  # noqa: ANN401
         """The stored value of ``key``, else ``compute()`` -- once across processes: the
-        computing process holds the key's lock, a process waiting on it then reads."""
+        computing process holds the key's lock, a process waiting on it then reads. With
+        ``valid``, a computed value is stored only where ``valid()`` (called after it) holds."""
         v = self.read(data_dir, key)
         if v is not None:
             return v
@@ -119,7 +121,8 @@ class DiskCache:
                 if v is not None:
                     return v
                 v = compute()
-                self._write(d, dig, v)
+                if valid is None or valid():
+                    self._write(d, dig, v)
             finally:
                 fcntl.flock(lk, fcntl.LOCK_UN)
         self.prune(data_dir)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import threading
@@ -69,12 +70,15 @@ class _ReviewCache:
         self._items: OrderedDict = OrderedDict()
         self._busy: dict = {}
 
-    def get(self, key, compute, data_dir=None):  # noqa: ANN001
+    def get(self, key, compute, data_dir=None, valid=None):  # noqa: ANN001
+        """The value of ``key``, computed once (concurrent callers wait for it). ``valid``:
+        called after a computation; where it returns False the value is returned but not
+        kept (its inputs changed while it was computed)."""
         if self.shared is not None and data_dir is not None:
             local = compute
 
             def compute():  # noqa: ANN202
-                return self.shared.get(data_dir, key, local)
+                return self.shared.get(data_dir, key, local, valid=valid)
         while True:
             with self._lock:
                 if key in self._items:
@@ -87,7 +91,8 @@ class _ReviewCache:
             ev.wait()
         try:
             val = compute()
-            self._remember(key, val)
+            if valid is None or valid():
+                self._remember(key, val)
             return val
         finally:
             with self._lock:
@@ -142,14 +147,63 @@ def _stamp(*paths: Path) -> tuple:
     return tuple(out)
 
 
-def _review_key(scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
-    """The frame, its mask version and the stamps of every file its review is computed from:
-    the votes (a neighbour's votes withdrawn on a rejection change them), the frame's own
-    votes, the labels and the corrections."""
+# the frames whose votes can reach a frame's leave-one-out labels (static geometry: computed
+# once per process and frame, ~50 ms on a survey frame), keyed by the scene's files' stamps
+_REACH: OrderedDict = OrderedDict()
+_REACH_SIZE = 8192
+_REACH_LOCK = threading.Lock()
+
+
+def _reaching(ctx: AppContext, scene: Scene, frame: Frame) -> np.ndarray | None:
     w = Workspace(scene.workspace)
-    return (str(scene.workspace), frame.index, v.id, v.sha256,
-            _stamp(w.votes, w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
+    rk = (str(scene.workspace), frame.index, _stamp(w.scene_json, w.points_xyz))
+    with _REACH_LOCK:
+        if rk in _REACH:
+            _REACH.move_to_end(rk)
+            return _REACH[rk]
+    ws_scene = ctx.load_scene(scene.workspace)
+    g = lifting_loo.frames_reaching(ws_scene, frame.index,
+                                    lifting_loo.loo_point_ids(ws_scene, frame.index))
+    with _REACH_LOCK:
+        _REACH[rk] = g
+        while len(_REACH) > _REACH_SIZE:
+            _REACH.popitem(last=False)
+    return g
+
+
+def _review_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
+    """The frame, its mask version and the stamps of every file its review is computed from:
+    the frame's own votes, the vote files of the frames that can vote at its leave-one-out
+    points (:func:`occufly.lifting.loo.frames_reaching`; a neighbour's votes withdrawn on a
+    rejection change them), the vote counts' file (its inode and size: replaced wholesale by
+    a rebuild), the labels and the corrections. A save of a frame that cannot reach this
+    one's points leaves its entry valid. Where the reaching frames cannot be bounded (a
+    distorted camera), the vote counts' stamp instead: any save invalidates it."""
+    w = Workspace(scene.workspace)
+    reach = _reaching(ctx, scene, frame)
+    try:
+        st = os.stat(w.votes)
+        votes = (st.st_ino, st.st_size)
+    except OSError:
+        votes = None
+    if reach is None:
+        votes = (votes, _stamp(w.votes))
+    else:
+        votes = (votes, _stamp(*(w.lifting_frame(int(g)) for g in reach)))
+    return (str(scene.workspace), frame.index, v.id, v.sha256, votes,
+            _stamp(w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
                    w.corrections_dir / "overrides.npz"))
+
+
+def _votes_settled(scene: Scene) -> bool:
+    """Whether no vote update is under way in the scene (the vote state is not marked dirty):
+    an update writes the frame's vote file first, then the counts, so a key read while one
+    is under way may name a vote file whose counts are not in yet."""
+    try:
+        st = json.loads(Workspace(scene.workspace).lifting_state.read_text())
+    except (OSError, ValueError):
+        return False
+    return not st.get("dirty", True)
 
 
 def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
@@ -158,7 +212,13 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
     ``confident`` (those holding >= ``CONFIDENT_SHARE`` of their votes), ``self`` (the scene's
     labels: the old, circular comparison), ``version`` -- rendered in one pass, cached."""
     v = annotations.current_version(session=session, frame=frame)
-    key = _review_key(scene, frame, v)
+    key = _review_key(ctx, scene, frame, v)
+    settled = _votes_settled(scene)  # after the key: an update begun before it shows here
+
+    def valid() -> bool:
+        # cached only if no update was under way when the key was read and none of the
+        # files it names changed during the computation (else it is answered, not kept)
+        return settled and _review_key(ctx, scene, frame, v) == key
 
     def compute() -> dict:
         ws_scene = ctx.load_scene(scene.workspace)
@@ -173,7 +233,7 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
             _RENDER_CACHE.put(rkey, render_png_bytes, ctx.settings.data_dir)
         return {"version": v.id, **out}
 
-    return _CACHE.get(key, compute, ctx.settings.data_dir)
+    return _CACHE.get(key, compute, ctx.settings.data_dir, valid=valid)
 
 
 def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: ANN001
@@ -211,11 +271,12 @@ def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: A
                 "render_png": None if png_fut is None else png_fut.result()}
 
 
-def cached_review(scene: Scene, frame: Frame, session: Session, data_dir=None) -> bool:  # noqa: ANN001
+def cached_review(ctx: AppContext, scene: Scene, frame: Frame, session: Session,
+                  data_dir=None) -> bool:  # noqa: ANN001
     """Whether the frame's current mask's review computation is in this process's cache, or
     with ``data_dir`` in the processes' shared one (tests, the background warm-up)."""
     v = annotations.current_version(session=session, frame=frame)
-    return _CACHE.has(_review_key(scene, frame, v), data_dir)
+    return _CACHE.has(_review_key(ctx, scene, frame, v), data_dir)
 
 
 def frame_agreement(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
@@ -319,7 +380,7 @@ def _warm(ctx: AppContext, scene_id: int, frame_ids: list[int], *,
                 if scene is None or f is None or f.current_version_id is None:
                     continue
                 try:
-                    if not cached_review(scene, f, s, ctx.settings.data_dir):
+                    if not cached_review(ctx, scene, f, s, ctx.settings.data_dir):
                         frame_agreement(ctx, s, scene, f)
                     render_png(ctx, scene, f)
                 except Exception:  # noqa: BLE001 - best effort: the request computes it then
@@ -478,7 +539,7 @@ def refresh_agreement(ctx: AppContext, session: Session, scene: Scene, *,
     for f in reversed(top):
         if stop is not None and stop.is_set():
             return []
-        if not cached_review(scene, f, session, ctx.settings.data_dir) \
+        if not cached_review(ctx, scene, f, session, ctx.settings.data_dir) \
                 or not _RENDER_CACHE.has(_render_key(scene, f), ctx.settings.data_dir):
             one(f, warm=True)
     return [f.id for f in top]

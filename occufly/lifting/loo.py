@@ -33,6 +33,9 @@ from occufly.lifting.corrections import read_overrides
 from occufly.lifting.knn import LiftParams, VoxelGrid, _scores_to_cols, knn_vote
 from occufly.lifting.votes import vote_unit
 from occufly.render import (
+    COARSE_MIN_PIXELS,
+    MAX_COARSE,
+    MAX_SPLAT,
     agreement_from_counts,
     disagreement_image,
     frame_geometry,
@@ -602,29 +605,134 @@ def _fill_vote(xyz: np.ndarray, ids: np.ndarray, todo: np.ndarray, src: np.ndarr
     return c, fshare
 
 
+@numba.njit(nogil=True, cache=True)
+def _reaching(xyz: np.ndarray, ids: np.ndarray, T: np.ndarray, fx: float, fy: float,
+              cx: float, cy: float, w: float, h: float, splat: float, reach: float,
+              tx: float, ty: float) -> np.ndarray:
+    """(len(ids),) bool: the points whose splat (``splat`` pixels) can reach the image, or
+    that lie within ``reach`` metres of a point projecting into it (a fill source): for a
+    point at depth z the second is a margin of ``f * reach * (1 + t) / z`` pixels, ``t`` the
+    tangent of the image's widest half angle (a displacement d at depth z moves the
+    projection by at most ``f |d| (1 + t) / z``). A point within ``reach`` of the camera
+    plane is kept; a non-finite one is not."""
+    out = np.zeros(len(ids), np.bool_)
+    for i in range(len(ids)):
+        j = ids[i]
+        px, py, pz = float(xyz[j, 0]), float(xyz[j, 1]), float(xyz[j, 2])
+        x = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
+        y = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
+        z = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        if z <= reach:
+            out[i] = z > -reach
+            continue
+        mu = splat + fx * reach * (1.0 + tx) / z
+        mv = splat + fy * reach * (1.0 + ty) / z
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        out[i] = (u >= -mu) and (u <= w + mu) and (v >= -mv) and (v <= h + mv)
+    return out
+
+
+def loo_point_ids(scene: Scene, frame_index: int, *, params: LiftParams | None = None
+                  ) -> np.ndarray:
+    """Sorted (K,) int64 ids of the points frame ``frame_index``'s leave-one-out labels are
+    decided at: the points it sees, those whose splat can reach its image (the render's
+    widest margin, ``MAX_SPLAT * MAX_COARSE`` pixels on a large image) and those within the
+    fill radius of a point projecting into it -- nothing else can change what its review
+    shows. Their decision depends only on the votes at these points, so on the vote files
+    of :func:`frames_reaching` alone (the review cache's key). Every point for a cloud
+    the render does not cull (small clouds, distorted cameras)."""
+    p = params or LiftParams()
+    fr = scene.frames[frame_index]
+    cam = fr.camera
+    cand = frustum_candidates(scene, cam, fr.T_cam_world)
+    if cand is None:
+        return np.arange(scene.n_points, dtype=np.int64)
+    vis = np.asarray(scene.visibility.frame_ids(frame_index), dtype=np.int64)
+    ids = np.asarray(cand, np.int64)  # sorted: the cull's bins, 25-30 % beyond the image
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    w, h = float(cam.width), float(cam.height)
+    splat = float(MAX_SPLAT * (MAX_COARSE if w * h > COARSE_MIN_PIXELS else 1))
+    T = np.ascontiguousarray(np.asarray(fr.T_cam_world, np.float64)[:3, :4])
+    keep = _reaching(np.asarray(scene.xyz), ids, T, float(fx), float(fy), float(cx),
+                     float(cy), w, h, splat, float(p.fill_radius),
+                     max(cx, w - cx) / fx, max(cy, h - cy) / fy)
+    ids = ids[keep]
+    missing = vis[rows_in(ids, vis) < 0]  # f's visible points are (almost) all in it
+    if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
+        ids = np.sort(np.concatenate([ids, missing]))
+    return ids
+
+
+# a frame's votes at a point whose projection is outside its image by more than this share of
+# the image's size are impossible (a visible point projects into the image; stored uv of an
+# import are clipped to it): :func:`frames_reaching` widens every frustum by it
+_VOTE_SLACK = 0.05
+
+
+def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarray | None:
+    """Sorted int64 indices of the frames other than ``frame_index`` that can vote at any of
+    the points ``ids`` (:func:`loo_point_ids`): those whose view frustum, widened by
+    ``_VOTE_SLACK``, meets the points' bounding box (a frame votes only at the points it
+    sees, which lie in its frustum). A superset, never missing one; None where it cannot be
+    bounded (a distorted camera, no finite point): every frame may."""
+    ids = np.asarray(ids, np.int64)
+    if not len(ids):
+        return np.zeros(0, np.int64)
+    if any(f.camera.has_distortion for f in scene.frames):
+        return None
+    pts = np.asarray(scene.xyz[ids], np.float64) if len(ids) < scene.n_points \
+        else np.asarray(scene.xyz, np.float64)
+    fin = np.isfinite(pts).all(axis=1)
+    if not fin.all():
+        pts = pts[fin]
+    if not len(pts):
+        return None
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                        for c in (lo[2], hi[2])])  # (8, 3)
+    T = np.stack([np.asarray(f.T_cam_world, np.float64)[:3, :4] for f in scene.frames])
+    c = np.einsum("fij,kj->fki", T[:, :, :3], corners) + T[:, None, :, 3]  # (F, 8, 3)
+    cams = [f.camera for f in scene.frames]
+    fx, fy = (np.array([cm.focal[i] for cm in cams]) for i in (0, 1))
+    cx, cy = (np.array([cm.principal_point[i] for cm in cams]) for i in (0, 1))
+    w = np.array([float(cm.width) for cm in cams])
+    h = np.array([float(cm.height) for cm in cams])
+    mu, mv = _VOTE_SLACK * w, _VOTE_SLACK * h
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    meets = (z > 0).any(axis=1)  # else the box is behind the camera
+    # u = fx x / z + cx >= -mu  <=>  fx x + (cx + mu) z >= 0 for z > 0, and so on: the box
+    # misses the frustum when all eight corners fail one side
+    for side in (fx[:, None] * x + (cx + mu)[:, None] * z,
+                 -fx[:, None] * x + (w + mu - cx)[:, None] * z,
+                 fy[:, None] * y + (cy + mv)[:, None] * z,
+                 -fy[:, None] * y + (h + mv - cy)[:, None] * z):
+        meets &= (side >= 0).any(axis=1)
+    meets[frame_index] = False
+    return np.flatnonzero(meets).astype(np.int64)
+
+
 def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
                params: LiftParams | None = None, corrections: bool = True) -> LooLabels:
-    """The labels of the points around frame ``frame_index`` decided without its votes."""
+    """The labels of the points around frame ``frame_index`` (:func:`loo_point_ids`) decided
+    without its votes."""
     ws = Path(ws)
     p = params or LiftParams()
     cls = ClassColumns(scene.taxonomy)
     votes = np.load(Workspace(ws).votes, mmap_mode="r")  # (N, C) uint16
-    fr = scene.frames[frame_index]
     vis = np.asarray(scene.visibility.frame_ids(frame_index), dtype=np.int64)
-    cand = frustum_candidates(scene, fr.camera, fr.T_cam_world)
+    ids = loo_point_ids(scene, frame_index, params=p)
     # row in ids of the visible points, own votes and overrides (-1: not gathered): a merge
     # walk of the sorted ids and each sorted list (:func:`rows_in`), no (N,) map of the scene
-    if cand is None:
-        ids = np.arange(scene.n_points, dtype=np.int64)
+    if len(ids) == scene.n_points:
 
         def rows(q: np.ndarray) -> np.ndarray:  # every point gathered: its id is its row
             q = np.asarray(q, np.int64)
             return np.where((q >= 0) & (q < len(ids)), q, -1)
     else:
-        ids = np.asarray(cand, np.int64)  # sorted; f's visible points are (almost) all in it
-        missing = vis[rows_in(ids, vis) < 0]
-        if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
-            ids = np.sort(np.concatenate([ids, missing]))
 
         def rows(q: np.ndarray) -> np.ndarray:
             return rows_in(ids, q)

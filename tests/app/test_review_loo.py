@@ -301,9 +301,9 @@ def test_top_of_the_list_is_computed_after_a_fill_and_refreshed_on_a_rejection(w
     with env.app.state.ctx.sessions() as s:
         sc, fr = s.get(Scene, scene["id"]), s.get(Frame, nxt)
         end = time.monotonic() + 30
-        while not review.cached_review(sc, fr, s, data_dir) and time.monotonic() < end:
+        while not review.cached_review(env.app.state.ctx, sc, fr, s, data_dir) and time.monotonic() < end:
             time.sleep(0.05)
-        assert review.cached_review(sc, fr, s, data_dir)
+        assert review.cached_review(env.app.state.ctx, sc, fr, s, data_dir)
     nxt_index = next(f["index"] for f in frames if f["id"] == nxt)
     n = calls.count(nxt_index)  # (the frames after it are being computed meanwhile)
     assert env.client.get(f"/api/frames/{nxt}/agreement", headers=hdr["reviewer"]).status_code == 200
@@ -339,3 +339,58 @@ def test_a_server_process_warms_the_review_of_a_survey_sized_scene(world, monkey
                          headers=hdr["reviewer"]).json()[0]
     index = next(f["index"] for f in frames if f["id"] == top["id"])
     assert calls and calls[0] == index and calls[1] is not None  # the list's top, computed
+
+
+def test_a_review_entry_outlives_saves_of_frames_that_cannot_reach_it(world, monkeypatch):
+    """The review cache's key names the vote files of the frames that can vote at the
+    frame's leave-one-out points (``loo.frames_reaching``), not the scene's vote counts: a
+    save elsewhere in a survey keeps the entry, a save of a reaching frame does not; an
+    entry computed while a vote update is under way is answered but not kept."""
+    import json
+    import shutil
+
+    from app.review import service as review
+    from app.scenes.models import Frame, Scene
+
+    env, hdr, scene, frames = world
+    _paint_grass_and_road(env, hdr, scene, frames)
+    ctx = env.app.state.ctx
+    with ctx.sessions() as s:
+        ws = Workspace(s.get(Scene, scene["id"]).workspace)
+    by_index = {f["index"]: f["id"] for f in frames}
+    a, b, c = sorted(by_index)[:3]
+    # the test scene's frames all see the same ground: say that only b reaches a
+    monkeypatch.setattr(review.lifting_loo, "frames_reaching",
+                        lambda sc, f, ids: np.array([b] if f == a else [], np.int64))
+    review._REACH.clear()
+    review._CACHE.clear()
+    shutil.rmtree(review._CACHE.shared.folder(ctx.settings.data_dir), ignore_errors=True)
+
+    def cached() -> bool:
+        with ctx.sessions() as s:
+            return review.cached_review(ctx, s.get(Scene, scene["id"]), s.get(Frame, by_index[a]),
+                                        s, ctx.settings.data_dir)
+
+    def touch(p) -> None:  # noqa: ANN001
+        st = os.stat(p)
+        os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+
+    r = env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
+    assert r.status_code == 200 and cached()
+    touch(ws.lifting_frame(c))  # a frame that cannot vote at a's points
+    touch(ws.votes)  # the counts' file: every save writes it
+    assert cached()
+    touch(ws.lifting_frame(b))  # a frame that can
+    assert not cached()
+
+    # a vote update under way when the key is read: the answer is given, the entry not kept
+    state = json.loads(ws.lifting_state.read_text())
+    ws.lifting_state.write_text(json.dumps({**state, "dirty": True}))
+    try:
+        r2 = env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
+        assert r2.status_code == 200 and r2.json()["agreement"] == r.json()["agreement"]
+        assert not cached()
+    finally:
+        ws.lifting_state.write_text(json.dumps(state))
+    env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
+    assert cached()

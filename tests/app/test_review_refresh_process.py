@@ -177,7 +177,8 @@ def test_the_child_refresh_reaches_the_api(world):
     assert stored[ids[1]] > 0.9 and all(stored[i] > 0.5 for i in ids[:3])
     with env.app.state.ctx.sessions() as s:
         sc = s.get(Scene, scene["id"])
-        assert all(review.cached_review(sc, s.get(Frame, i), s, env.settings.data_dir)
+        assert all(review.cached_review(env.app.state.ctx, sc, s.get(Frame, i), s,
+                                          env.settings.data_dir)
                    for i in ids)
     fl = env.client.get(f"/api/scenes/{scene['id']}/frames?sort=disagreement",
                         headers=hdr["reviewer"]).json()

@@ -1,0 +1,101 @@
+"""What a frame's leave-one-out labels are decided at (``loo.loo_point_ids``: the points its
+review can show, not the whole frustum cull) and which frames can change them
+(``loo.frames_reaching``: the review cache's key), on the synthetic tiny survey with the
+render's cull forced on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from occufly import render
+from occufly.lifting import VoteStore
+from occufly.lifting import loo as L
+from occufly.lifting.knn import LiftParams
+from occufly.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def lifted(tmp_path_factory, synth_tiny):
+    from occufly.io.importer import import_scene
+    from occufly.io.masks import read_mask
+    from occufly.selection import select_frames
+
+    root = tmp_path_factory.mktemp("reach")
+    import_scene(synth_tiny, root / "ws")
+    scene = Scene.load(root / "ws")
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    st = VoteStore.open(root / "ws", scene)
+    rng = np.random.default_rng(3)
+    for fi in sel.frames:
+        f = scene.frames[fi]
+        m = read_mask(synth_tiny / "truth" / "masks" / f"{f.name.rsplit('.', 1)[0]}.png", f,
+                      scene.taxonomy)
+        m = m.copy()
+        # a wrong block in some masks: points the other frames decide differently
+        if fi % 2:
+            y, x = rng.integers(0, m.shape[0] // 2), rng.integers(0, m.shape[1] // 2)
+            m[y:y + m.shape[0] // 3, x:x + m.shape[1] // 3] = 1
+        st.set_mask(fi, m, version="v")
+    st.fill_and_denoise()
+    st.close()
+    return root / "ws", scene, list(sel.frames)
+
+
+def _whole_cull(scene: Scene, f: int, params=None) -> np.ndarray:  # noqa: ANN001
+    """The points the labels were decided at before: the cull's bins and the visible points."""
+    fr = scene.frames[f]
+    cand = render.frustum_candidates(scene, fr.camera, fr.T_cam_world)
+    return np.union1d(cand, np.asarray(scene.visibility.frame_ids(f), np.int64))
+
+
+def test_the_points_decided_render_as_the_whole_cull(lifted, monkeypatch):
+    """With the plain vote (a point's label depends on its own votes and its fill sources
+    only) the labels decided at ``loo_point_ids`` render exactly as those decided over the
+    whole cull: nothing dropped can splat into the image or fill a point it shows."""
+    path, scene, sel = lifted
+    monkeypatch.setattr(render, "_CULL_MIN_POINTS", 0)
+    # a fill radius of 1 m: the tiny scene's frames see 10-20 m of ground, 3 m reach most of it
+    p = LiftParams(robust=False, fill_radius=1.0)
+    fewer = 0
+    frames = sel[:4] + [f for f in range(len(scene.frames)) if f not in sel][:4]
+    for f in frames:
+        got = L.loo_labels(path, scene, f, params=p)
+        assert np.array_equal(got.point_ids, L.loo_point_ids(scene, f, params=p))
+        with monkeypatch.context() as mp:
+            mp.setattr(L, "loo_point_ids", _whole_cull)
+            want = L.loo_labels(path, scene, f, params=p)
+        assert np.isin(got.point_ids, want.point_ids).all()
+        fewer += len(want.point_ids) - len(got.point_ids)
+        cam = scene.frames[f].camera
+        a = L.render_review(scene, got, (cam.height, cam.width))
+        b = L.render_review(scene, want, (cam.height, cam.width))
+        assert (a["loo"] > 0).mean() > 0.5
+        for k in ("loo", "confident"):
+            assert np.array_equal(a[k], b[k]), (f, k)
+    assert fewer > 0  # the cull's bins hold points the image cannot show
+
+
+def test_frames_reaching_holds_every_frame_that_sees_a_point(lifted, monkeypatch):
+    path, scene, sel = lifted
+    monkeypatch.setattr(render, "_CULL_MIN_POINTS", 0)
+    F = len(scene.frames)
+    left_out = 0
+    for f in range(0, F, max(1, F // 12)):
+        ids = L.loo_point_ids(scene, f)
+        g = L.frames_reaching(scene, f, ids)
+        assert g is not None and f not in set(g.tolist())
+        assert np.all(np.diff(g) > 0)
+        for h in sorted(set(range(F)) - set(g.tolist()) - {f}):
+            left_out += 1
+            # a frame left out sees none of the points: it cannot vote at them
+            assert not np.isin(scene.visibility.frame_ids(h), ids).any(), (f, h)
+    assert left_out > 0  # not every frame reaches every other
+
+
+def test_frames_reaching_without_a_bound(lifted):
+    path, scene, sel = lifted
+    assert len(L.frames_reaching(scene, 0, np.zeros(0, np.int64))) == 0
+    nan = Scene.load(path)
+    nan.xyz = np.full((scene.n_points, 3), np.nan, np.float32)
+    assert L.frames_reaching(nan, 0, np.arange(5)) is None  # no finite point to bound

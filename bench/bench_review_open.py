@@ -97,7 +97,8 @@ runs = [step() for _ in range(rep)]
 t, fig, loo, nbytes = min(runs, key=lambda r: r[0]["total"])
 route()
 routes = [route() for _ in range(rep)]
-np.save(out, loo.labels)
+np.savez(out, ids=loo.point_ids, labels=loo.labels,
+         rendered=L.render_review(scene, loo, mask.shape)["loo"])
 import occufly
 print(json.dumps({"frame": int(frame), "size": [int(mask.shape[1]), int(mask.shape[0])],
                   "code": str(Path(occufly.__file__).resolve().parents[1]),
@@ -137,7 +138,7 @@ def main() -> None:
         runs: dict[str, list[dict]] = {k: [] for k in trees}
         for _ in range(args.rounds):
             for k, tree in trees.items():
-                out = str(Path(tmp) / f"{k}.npy")
+                out = str(Path(tmp) / f"{k}.npz")
                 # run outside the checkout: ``python -c`` puts its working directory first on
                 # sys.path, ahead of PYTHONPATH, so from the repository root the baseline child
                 # imported the working tree's occufly (both columns were today's code)
@@ -149,7 +150,17 @@ def main() -> None:
                 if p.returncode:
                     sys.exit(f"{k} failed:\n{p.stderr[-3000:]}")
                 runs[k].append(json.loads(p.stdout.strip().splitlines()[-1]))
-        same = bool(np.array_equal(np.load(Path(tmp) / "baseline.npy"), np.load(Path(tmp) / "now.npy")))
+        a, b = np.load(Path(tmp) / "baseline.npz"), np.load(Path(tmp) / "now.npz")
+        same = bool(np.array_equal(a["ids"], b["ids"]) and np.array_equal(a["labels"], b["labels"]))
+        # where the two decide a point both gather (the robust decision's models are fitted on
+        # the points gathered, so a different set may change a few), and the rendered images
+        common, ia, ib = np.intersect1d(a["ids"], b["ids"], return_indices=True)
+        compare = {"points_baseline": int(len(a["ids"])), "points_now": int(len(b["ids"])),
+                   "points_common": int(len(common)),
+                   "labels_equal_share_at_common": round(float(
+                       (a["labels"][ia] == b["labels"][ib]).mean()) if len(common) else 1.0, 6),
+                   "rendered_pixels_equal_share": round(float(
+                       (a["rendered"] == b["rendered"]).mean()), 6)}
     best = {k: min(rs, key=lambda r: r["cpu_s"]["total"]) for k, rs in runs.items()}
     res = {"benchmark": "review_open", "workspace": str(args.workspace), "baseline": args.baseline,
            "load_avg": os.getloadavg(), "cpus": os.cpu_count(), "repeat": args.repeat,
@@ -157,7 +168,7 @@ def main() -> None:
            "totals": {k: [r["cpu_s"]["total"] for r in rs] for k, rs in runs.items()},
            "ratio_now_to_baseline": round(best["now"]["cpu_s"]["total"]
                                           / best["baseline"]["cpu_s"]["total"], 3),
-           "loo_labels_identical": same,
+           "loo_labels_identical": same, "loo_compare": compare,
            "budget_first_open_le_1s_cpu": best["now"]["cpu_s"]["total"] <= 1.0,
            "route_wall_s": {k: min(w for r in rs for w in r["route_wall_s"]) for k, rs in runs.items()},
            "route_cpu_s": {k: min(w for r in rs for w in r["route_cpu_s"]) for k, rs in runs.items()}}

@@ -112,6 +112,20 @@ class _ReviewCache:
         if self.shared is not None and data_dir is not None:
             self.shared.put(data_dir, key, value)
 
+    def peek(self, key, data_dir=None):  # noqa: ANN001
+        """The value of ``key`` in memory or in the shared folder, else None (nothing is
+        computed)."""
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        if self.shared is None or data_dir is None:
+            return None
+        v = self.shared.read(data_dir, key)
+        if v is not None:
+            self._remember(key, v)
+        return v
+
     def has(self, key, data_dir=None) -> bool:  # noqa: ANN001
         with self._lock:
             if key in self._items:
@@ -128,6 +142,8 @@ class _ReviewCache:
 PREFETCH_FRAMES = 4
 _CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review"))
 _RENDER_CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review_render"))
+# the part of each review that needs no labels (review_images): it outlives fills
+_LOO_CACHE = _ReviewCache(PREFETCH_FRAMES + 2, shared=DiskCache("review_loo"))
 # the suspects list of the scenes' current labels (issue 38: seconds of CPU on a survey, so it
 # is computed after each fill, not when a reviewer opens the tab); its own cache, so that the
 # frames warmed after it do not push it out; shared between processes and kept on disk, so an
@@ -171,14 +187,16 @@ def _reaching(ctx: AppContext, scene: Scene, frame: Frame) -> np.ndarray | None:
     return g
 
 
-def _review_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
-    """The frame, its mask version and the stamps of every file its review is computed from:
-    the frame's own votes, the vote files of the frames that can vote at its leave-one-out
-    points (:func:`occufly.lifting.loo.frames_reaching`; a neighbour's votes withdrawn on a
+def _loo_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
+    """The key of what a frame's review computes without the scene's labels (the
+    leave-one-out figures, the neighbours, the disagreement overlay): the frame, its mask
+    version and the stamps of every file that is computed from -- the frame's own votes, the
+    vote files of the frames that can vote at its leave-one-out points
+    (:func:`occufly.lifting.loo.frames_reaching`; a neighbour's votes withdrawn on a
     rejection change them), the vote counts' file (its inode and size: replaced wholesale by
-    a rebuild), the labels and the corrections. A save of a frame that cannot reach this
-    one's points leaves its entry valid. Where the reaching frames cannot be bounded (a
-    distorted camera), the vote counts' stamp instead: any save invalidates it."""
+    a rebuild) and the corrections. A save of a frame that cannot reach this one's points,
+    and a fill, leave it valid. Where the reaching frames cannot be bounded (a distorted
+    camera), the vote counts' stamp instead: any save invalidates it."""
     w = Workspace(scene.workspace)
     reach = _reaching(ctx, scene, frame)
     try:
@@ -191,8 +209,14 @@ def _review_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noq
     else:
         votes = (votes, _stamp(*(w.lifting_frame(int(g)) for g in reach)))
     return (str(scene.workspace), frame.index, v.id, v.sha256, votes,
-            _stamp(w.lifting_frame(frame.index), w.labels_path, w.labels_stats_path,
-                   w.corrections_dir / "overrides.npz"))
+            _stamp(w.lifting_frame(frame.index), w.corrections_dir / "overrides.npz"))
+
+
+def _review_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noqa: ANN001
+    """The key of a frame's whole review: :func:`_loo_key` and the stamps of the labels and
+    their stats (the self-agreement, the labels' rendering)."""
+    w = Workspace(scene.workspace)
+    return (_loo_key(ctx, scene, frame, v), _stamp(w.labels_path, w.labels_stats_path))
 
 
 def _votes_settled(scene: Scene) -> bool:
@@ -207,18 +231,23 @@ def _votes_settled(scene: Scene) -> bool:
 
 
 def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:
-    """The frame's current mask and what it is compared with, at the mask's size: ``mask``,
-    ``loo`` (the labels decided without the frame's own votes, :mod:`occufly.lifting.loo`),
-    ``confident`` (those holding >= ``CONFIDENT_SHARE`` of their votes), ``self`` (the scene's
-    labels: the old, circular comparison), ``version`` -- rendered in one pass, cached."""
+    """The frame's review (``version``, ``figures``, ``neighbours``, ``disagreement_png``;
+    :func:`compute_review`), cached in two parts: what needs no labels under
+    :func:`_loo_key` (a save of a frame that cannot reach it and a fill leave it), the whole
+    under :func:`_review_key`. After a fill only the self-agreement and the labels' rendering
+    are computed again (:func:`compute_self`)."""
     v = annotations.current_version(session=session, frame=frame)
     key = _review_key(ctx, scene, frame, v)
     settled = _votes_settled(scene)  # after the key: an update begun before it shows here
+    data_dir = ctx.settings.data_dir
 
     def valid() -> bool:
         # cached only if no update was under way when the key was read and none of the
         # files it names changed during the computation (else it is answered, not kept)
         return settled and _review_key(ctx, scene, frame, v) == key
+
+    def valid_loo() -> bool:
+        return settled and _loo_key(ctx, scene, frame, v) == key[0]
 
     def compute() -> dict:
         ws_scene = ctx.load_scene(scene.workspace)
@@ -226,14 +255,48 @@ def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame)
         labels = annotations.current_labels(ctx, scene)
         if labels is None:
             raise NotFound(f"scene {scene.id} has no lifted labels yet")
-        out = compute_review(ws_scene, scene.workspace, frame.index,
-                             lambda: _mask_array(ctx, scene, v.sha256), labels)
-        render_png_bytes = out.pop("render_png", None)
-        if render_png_bytes is not None:
-            _RENDER_CACHE.put(rkey, render_png_bytes, ctx.settings.data_dir)
-        return {"version": v.id, **out}
 
-    return _CACHE.get(key, compute, ctx.settings.data_dir, valid=valid)
+        def mask() -> np.ndarray:
+            return _mask_array(ctx, scene, v.sha256)
+
+        part = _LOO_CACHE.peek(key[0], data_dir)
+        if part is None:
+            out = compute_review(ws_scene, scene.workspace, frame.index, mask, labels)
+            part = {k: out[k] for k in ("figures", "neighbours", "disagreement_png")}
+            part["figures"] = {k: x for k, x in part["figures"].items() if k not in SELF_FIGURES}
+            if valid_loo():
+                _LOO_CACHE.put(key[0], part, data_dir)
+            own = {k: out["figures"][k] for k in SELF_FIGURES if k in out["figures"]}
+        else:
+            out = compute_self(ws_scene, frame.index, mask, labels)
+            own = out["figures"]
+        if out.get("render_png") is not None:
+            _RENDER_CACHE.put(rkey, out["render_png"], data_dir)
+        return {"version": v.id, "figures": {**part["figures"], **own},
+                "neighbours": part["neighbours"], "disagreement_png": part["disagreement_png"]}
+
+    return _CACHE.get(key, compute, data_dir, valid=valid)
+
+
+# the figures of a review computed from the scene's labels (the rest needs none)
+SELF_FIGURES = ("self_agreement", "self_pixels")
+
+
+def compute_self(ws_scene, frame_index: int,  # noqa: ANN001
+                 mask: np.ndarray | Callable[[], np.ndarray], labels: np.ndarray) -> dict:
+    """The part of a frame's review that the scene's labels decide, alone (the rest is
+    cached: :func:`review_images`): ``figures`` (``self_agreement``, ``self_pixels``) and,
+    for a full-size mask, the labels' rendering as the page's /render PNG (``render_png``,
+    else None) -- one label render, no leave-one-out labels."""
+    mask = mask() if callable(mask) else mask
+    img = render.render_many_for_mask(ws_scene, [np.asarray(labels, np.uint8)], frame_index,
+                                      mask.shape)[0]
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="occufly-review") as pool:
+        cam = ws_scene.frames[frame_index].camera
+        png_fut = (pool.submit(pipeline.encode_png, np.asarray(img, np.uint8))
+                   if mask.shape == (cam.height, cam.width) else None)
+        figures = lifting_loo.self_figures(mask, img, ws_scene)
+        return {"figures": figures, "render_png": None if png_fut is None else png_fut.result()}
 
 
 def compute_review(ws_scene, workspace: str | Path, frame_index: int,  # noqa: ANN001

@@ -1054,6 +1054,19 @@ def review_score(fig: dict) -> float | None:
     return float(1.0 - fig["area_agreement"] + (fig.get("shift_gain") or 0.0))
 
 
+def self_figures(mask: np.ndarray, self_rendered: np.ndarray, scene: Scene) -> dict:
+    """``self_agreement`` and ``self_pixels`` of :func:`loo_agreement`, alone: ``mask``
+    against the scene's own labels rendered (the old, circular figure)."""
+    mask = np.asarray(mask)
+    if np.shape(self_rendered) != mask.shape:
+        raise ValueError(f"mask {mask.shape} and rendering {np.shape(self_rendered)} must be the same (h, w)")
+    s = agreement_from_counts(count_pairs_many(scene.taxonomy.ids, mask, [self_rendered])[0],
+                              scene.taxonomy)
+    sv = s.get("agreement")
+    return {"self_agreement": None if sv is None or not np.isfinite(sv) else float(sv),
+            "self_pixels": int(s.get("pixels", 0))}
+
+
 def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
                   self_rendered: np.ndarray | None = None,
                   confident_rendered: np.ndarray | None = None) -> dict:

@@ -358,13 +358,15 @@ def test_a_review_entry_outlives_saves_of_frames_that_cannot_reach_it(world, mon
     with ctx.sessions() as s:
         ws = Workspace(s.get(Scene, scene["id"]).workspace)
     by_index = {f["index"]: f["id"] for f in frames}
-    a, b, c = sorted(by_index)[:3]
+    i0, _i1, i2, i3 = sorted(by_index)[:4]  # painted grass, grass, road, road
+    a, b, c = i2, i3, i0
     # the test scene's frames all see the same ground: say that only b reaches a
     monkeypatch.setattr(review.lifting_loo, "frames_reaching",
                         lambda sc, f, ids: np.array([b] if f == a else [], np.int64))
     review._REACH.clear()
-    review._CACHE.clear()
-    shutil.rmtree(review._CACHE.shared.folder(ctx.settings.data_dir), ignore_errors=True)
+    for cache in (review._CACHE, review._LOO_CACHE):
+        cache.clear()
+        shutil.rmtree(cache.shared.folder(ctx.settings.data_dir), ignore_errors=True)
 
     def cached() -> bool:
         with ctx.sessions() as s:
@@ -375,22 +377,55 @@ def test_a_review_entry_outlives_saves_of_frames_that_cannot_reach_it(world, mon
         st = os.stat(p)
         os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
 
-    r = env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
-    assert r.status_code == 200 and cached()
+    calls = []
+    real = review.lifting_loo.loo_labels
+    monkeypatch.setattr(review.lifting_loo, "loo_labels",
+                        lambda *x, **k: calls.append(x[2]) or real(*x, **k))
+
+    def agreement() -> dict:
+        r = env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    first = agreement()
+    assert cached() and calls.count(a) == 1  # (opening it computes the next ones too)
     touch(ws.lifting_frame(c))  # a frame that cannot vote at a's points
     touch(ws.votes)  # the counts' file: every save writes it
     assert cached()
-    touch(ws.lifting_frame(b))  # a frame that can
+    # a fill: the labels change; the leave-one-out part is kept, only the self part computed
+    touch(ws.labels_path)
     assert not cached()
+    again = agreement()
+    assert cached() and calls.count(a) == 1
+    assert again == first and again["self_agreement"] is not None
+    touch(ws.lifting_frame(b))  # a frame that can vote at a's points
+    assert not cached()
+    r = agreement()
+    assert calls.count(a) == 2 and r["agreement"] == first["agreement"]
+    touch(ws.lifting_frame(b))
 
     # a vote update under way when the key is read: the answer is given, the entry not kept
     state = json.loads(ws.lifting_state.read_text())
     ws.lifting_state.write_text(json.dumps({**state, "dirty": True}))
     try:
-        r2 = env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
-        assert r2.status_code == 200 and r2.json()["agreement"] == r.json()["agreement"]
-        assert not cached()
+        assert agreement()["agreement"] == first["agreement"]
+        assert not cached() and calls.count(a) == 3
     finally:
         ws.lifting_state.write_text(json.dumps(state))
-    env.client.get(f"/api/frames/{by_index[a]}/agreement", headers=hdr["reviewer"])
+    agreement()
     assert cached()
+    # a real save and fill that change the labels: the self-agreement follows them, from the
+    # cached leave-one-out part (c cannot reach a here, by the patched frames_reaching)
+    before = agreement()
+    n = calls.count(a)
+    with ctx.sessions() as s:
+        cur = s.get(Frame, by_index[c]).current_version_id
+    r = env.client.put(f"/api/frames/{by_index[c]}/mask?kind=submitted",  # c: grass -> road
+                       content=png(np.full((H, W), 1, np.uint8)),
+                       headers={**hdr["admin"], "If-Match": str(cur)})
+    assert r.status_code == 200, r.text
+    assert env.app.state.ctx.lifting.wait_idle(scene["id"], timeout=20, include_fill=True)
+    after = agreement()
+    assert calls.count(a) == n
+    assert after["self_agreement"] > before["self_agreement"] + 0.2
+    assert after["agreement"] == before["agreement"]

@@ -673,29 +673,66 @@ def loo_point_ids(scene: Scene, frame_index: int, *, params: LiftParams | None =
 _VOTE_SLACK = 0.05
 
 
+@numba.njit(nogil=True, cache=True)
+def _tile_boxes(xyz: np.ndarray, ids: np.ndarray, tiles: int) -> np.ndarray:
+    """(T, 6) float64 bounding boxes (min xyz, max xyz) of the finite points ``ids`` grouped
+    by a ``tiles`` x ``tiles`` grid over their x-y extent, the empty tiles left out (an
+    oblique footprint's points fill a few tiles of its bounding box)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(len(ids)):
+        j = ids[i]
+        x, y, z = float(xyz[j, 0]), float(xyz[j, 1]), float(xyz[j, 2])
+        if np.isfinite(x) and np.isfinite(y) and np.isfinite(z):
+            lo[0], lo[1], lo[2] = min(lo[0], x), min(lo[1], y), min(lo[2], z)
+            hi[0], hi[1], hi[2] = max(hi[0], x), max(hi[1], y), max(hi[2], z)
+    if not lo[0] <= hi[0]:
+        return np.zeros((0, 6))
+    box = np.empty((tiles * tiles, 6))
+    box[:, :3] = np.inf
+    box[:, 3:] = -np.inf
+    sx = max(hi[0] - lo[0], 1e-9) / tiles
+    sy = max(hi[1] - lo[1], 1e-9) / tiles
+    for i in range(len(ids)):
+        j = ids[i]
+        x, y, z = float(xyz[j, 0]), float(xyz[j, 1]), float(xyz[j, 2])
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        t = min(int((x - lo[0]) / sx), tiles - 1) * tiles + min(int((y - lo[1]) / sy), tiles - 1)
+        box[t, 0], box[t, 1], box[t, 2] = min(box[t, 0], x), min(box[t, 1], y), min(box[t, 2], z)
+        box[t, 3], box[t, 4], box[t, 5] = max(box[t, 3], x), max(box[t, 4], y), max(box[t, 5], z)
+    n = 0
+    for t in range(tiles * tiles):
+        if box[t, 0] <= box[t, 3]:
+            box[n] = box[t]
+            n += 1
+    return box[:n].copy()
+
+
+# the x-y grid of :func:`frames_reaching`'s boxes
+_REACH_TILES = 4
+
+
 def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarray | None:
     """Sorted int64 indices of the frames other than ``frame_index`` that can vote at any of
     the points ``ids`` (:func:`loo_point_ids`): those whose view frustum, widened by
-    ``_VOTE_SLACK``, meets the points' bounding box (a frame votes only at the points it
-    sees, which lie in its frustum). A superset, never missing one; None where it cannot be
-    bounded (a distorted camera, no finite point): every frame may."""
+    ``_VOTE_SLACK``, meets the bounding box of the points of one tile of a 4 x 4 x-y grid
+    over them (a frame votes only at the points it sees, which lie in its frustum). A
+    superset, never missing one; None where it cannot be bounded (a distorted camera, no
+    finite point): every frame may."""
     ids = np.asarray(ids, np.int64)
     if not len(ids):
         return np.zeros(0, np.int64)
     if any(f.camera.has_distortion for f in scene.frames):
         return None
-    pts = np.asarray(scene.xyz[ids], np.float64) if len(ids) < scene.n_points \
-        else np.asarray(scene.xyz, np.float64)
-    fin = np.isfinite(pts).all(axis=1)
-    if not fin.all():
-        pts = pts[fin]
-    if not len(pts):
+    boxes = _tile_boxes(np.asarray(scene.xyz), ids, _REACH_TILES)
+    if not len(boxes):
         return None
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
-                        for c in (lo[2], hi[2])])  # (8, 3)
+    # (B, 8, 3) corners of every box
+    sel = np.array([[a, b, c] for a in (0, 3) for b in (1, 4) for c in (2, 5)])
+    corners = boxes[:, sel]
     T = np.stack([np.asarray(f.T_cam_world, np.float64)[:3, :4] for f in scene.frames])
-    c = np.einsum("fij,kj->fki", T[:, :, :3], corners) + T[:, None, :, 3]  # (F, 8, 3)
+    c = np.einsum("fij,bkj->fbki", T[:, :, :3], corners) + T[:, None, None, :, 3]  # (F, B, 8, 3)
     cams = [f.camera for f in scene.frames]
     fx, fy = (np.array([cm.focal[i] for cm in cams]) for i in (0, 1))
     cx, cy = (np.array([cm.principal_point[i] for cm in cams]) for i in (0, 1))
@@ -703,16 +740,16 @@ def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarr
     h = np.array([float(cm.height) for cm in cams])
     mu, mv = _VOTE_SLACK * w, _VOTE_SLACK * h
     x, y, z = c[..., 0], c[..., 1], c[..., 2]
-    meets = (z > 0).any(axis=1)  # else the box is behind the camera
-    # u = fx x / z + cx >= -mu  <=>  fx x + (cx + mu) z >= 0 for z > 0, and so on: the box
+    meets = (z > 0).any(axis=2)  # (F, B); else the box is behind the camera
+    # u = fx x / z + cx >= -mu  <=>  fx x + (cx + mu) z >= 0 for z > 0, and so on: a box
     # misses the frustum when all eight corners fail one side
-    for side in (fx[:, None] * x + (cx + mu)[:, None] * z,
-                 -fx[:, None] * x + (w + mu - cx)[:, None] * z,
-                 fy[:, None] * y + (cy + mv)[:, None] * z,
-                 -fy[:, None] * y + (h + mv - cy)[:, None] * z):
-        meets &= (side >= 0).any(axis=1)
-    meets[frame_index] = False
-    return np.flatnonzero(meets).astype(np.int64)
+    e = (slice(None), None, None)
+    for side in (fx[e] * x + (cx + mu)[e] * z, -fx[e] * x + (w + mu - cx)[e] * z,
+                 fy[e] * y + (cy + mv)[e] * z, -fy[e] * y + (h + mv - cy)[e] * z):
+        meets &= (side >= 0).any(axis=2)
+    hit = meets.any(axis=1)
+    hit[frame_index] = False
+    return np.flatnonzero(hit).astype(np.int64)
 
 
 def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,

@@ -364,6 +364,7 @@ def test_a_review_entry_outlives_saves_of_frames_that_cannot_reach_it(world, mon
     monkeypatch.setattr(review.lifting_loo, "frames_reaching",
                         lambda sc, f, ids: np.array([b] if f == a else [], np.int64))
     review._REACH.clear()
+    shutil.rmtree(review._REACH_DISK.folder(ctx.settings.data_dir), ignore_errors=True)
     for cache in (review._CACHE, review._LOO_CACHE):
         cache.clear()
         shutil.rmtree(cache.shared.folder(ctx.settings.data_dir), ignore_errors=True)
@@ -429,3 +430,4 @@ def test_a_review_entry_outlives_saves_of_frames_that_cannot_reach_it(world, mon
     assert calls.count(a) == n
     assert after["self_agreement"] > before["self_agreement"] + 0.2
     assert after["agreement"] == before["agreement"]
+    review._REACH.clear()  # the patched frames' sets (this test's workspace only, but not kept)

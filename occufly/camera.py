@@ -39,6 +39,10 @@ _N_LINEAR = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3,
 _FISHEYE = frozenset({"OPENCV_FISHEYE"})
 
 
+# Camera.valid_radius per intrinsic model (the frames of a survey share a few)
+_VALID_RADIUS: dict[tuple, float] = {}
+
+
 @dataclass(frozen=True)
 class Camera:
     """An intrinsic camera model.
@@ -212,17 +216,65 @@ class Camera:
                 break
         return x
 
+    @property
+    def valid_radius(self) -> float:
+        """The largest normalised radius ``|(X/Z, Y/Z)|`` that :meth:`project` maps to pixels
+        (inf: every one). A lens polynomial is only a model of the calibrated field: beyond it
+        the distorted radius stops growing and turns back, so a point far outside the view
+        (a drone lens's k3 < 0: ~68 degrees off the axis) would land in the middle of the
+        image, at the depth of the ground there. The radius is 1.25 x the largest radius of
+        the image border's undistorted points, or less where the model stops increasing
+        before that (along 32 directions). Computed once per camera."""
+        key = (self.model, self.width, self.height, self.params.tobytes())
+        got = _VALID_RADIUS.get(key)
+        if got is None:
+            if len(_VALID_RADIUS) > 4096:
+                _VALID_RADIUS.clear()
+            got = _VALID_RADIUS[key] = self._valid_radius_uncached()
+        return got
+
+    def _valid_radius_uncached(self) -> float:
+        if self.model in _FISHEYE or not np.any(self._dist_params() != 0):
+            return float("inf")
+        t = np.linspace(0.0, 1.0, 65)
+        w, h = float(self.width), float(self.height)
+        border = np.concatenate([np.c_[t * w, 0 * t], np.c_[t * w, 0 * t + h],
+                                 np.c_[0 * t, t * h], np.c_[0 * t + w, t * h]])
+        xy = self.unproject(border, 1.0)[:, :2]
+        if not np.isfinite(xy).all():
+            return float("inf")
+        r_border = float(np.linalg.norm(xy, axis=1).max())
+        limit = 1.25 * r_border
+        # where the distorted radius stops increasing along a direction, points beyond it
+        # fold back: the limit is the first such radius (if it comes before 1.25 x border)
+        a = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
+        r = np.linspace(0.0, limit, 801)[1:]
+        d = np.stack([np.cos(a), np.sin(a)], axis=1)  # (32, 2)
+        pts = (r[None, :, None] * d[:, None, :]).reshape(-1, 2)
+        rd = np.linalg.norm(self.distort(pts), axis=1).reshape(len(a), len(r))
+        bad = np.diff(rd, axis=1) <= 0  # (32, 799): between r[j] and r[j + 1]
+        if bad.any():
+            first = int(np.flatnonzero(bad.any(axis=0))[0])
+            limit = min(limit, float(r[first]))
+        return limit
+
     # ---- projection ----------------------------------------------------------------------
     def project(self, xyz_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """xyz_cam: (N, 3) camera metres -> (uv (N, 2) float64 pixels, z (N,) float64 depth).
 
-        Points with z <= 0 get uv = NaN; callers test ``z > 0`` and the image bounds.
+        Points with z <= 0, and points beyond the lens model's :attr:`valid_radius` (which it
+        would fold back into the image), get uv = NaN; callers test ``z > 0`` and the image
+        bounds.
         """
         xyz = np.asarray(xyz_cam, dtype=np.float64).reshape(-1, 3)
         z = xyz[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = xyz[:, :2] / z[:, None]
         xy[z <= 0] = np.nan
+        lim = self.valid_radius
+        if lim != float("inf"):
+            with np.errstate(invalid="ignore"):
+                xy[(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]) > lim * lim] = np.nan
         xy = self.distort(xy)
         fx, fy = self.focal
         cx, cy = self.principal_point

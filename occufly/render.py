@@ -80,9 +80,15 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     """Sorted (K,) int64 ids of the points whose splat can reach the image of ``cam`` (a
     conservative cull: every point whose bin sphere is not entirely outside one of the frustum's
     side planes, widened by ``margin`` pixels, or behind the camera), or None for "all points"
-    (small clouds, distorted cameras). The cull drops only points that cannot touch the image,
-    so renderings are identical with and without it. The bins are built once per cloud."""
-    if scene.n_points < _CULL_MIN_POINTS or cam.has_distortion:
+    (small clouds, a lens model without a :attr:`~occufly.camera.Camera.valid_radius`). The cull
+    drops only points that cannot touch the image, so renderings are identical with and without
+    it. A distorted camera projects only points within its valid radius (normalised ``|x/z|,
+    |y/z| <= R``), so its cull is that square cone, whatever the image. The bins are built once
+    per cloud."""
+    if scene.n_points < _CULL_MIN_POINTS:
+        return None
+    R = cam.valid_radius if cam.has_distortion else None
+    if R is not None and not np.isfinite(R):
         return None
     key = (id(scene.xyz), scene.n_points)
     bins = _BINS_CACHE.get(key)
@@ -97,8 +103,11 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     cx, cy = cam.principal_point
     w, h, m = cam.width, cam.height, float(margin)
     ok = c[:, 2] > -r
-    # u = fx x / z + cx in [-m, w + m] and v likewise, as half-spaces through the camera centre
-    for a, b, d in ((fx, 0.0, cx + m), (-fx, 0.0, w + m - cx), (0.0, fy, cy + m), (0.0, -fy, h + m - cy)):
+    # u = fx x / z + cx in [-m, w + m] and v likewise, as half-spaces through the camera centre;
+    # a distorted camera: x / z and y / z in [-R, R]
+    sides = (((fx, 0.0, cx + m), (-fx, 0.0, w + m - cx), (0.0, fy, cy + m), (0.0, -fy, h + m - cy))
+             if R is None else ((1.0, 0.0, R), (-1.0, 0.0, R), (0.0, 1.0, R), (0.0, -1.0, R)))
+    for a, b, d in sides:
         ok &= (a * c[:, 0] + b * c[:, 1] + d * c[:, 2]) >= -r * float(np.sqrt(a * a + b * b + d * d))
     sel = np.flatnonzero(ok)
     lens = bins.starts[sel + 1] - bins.starts[sel]

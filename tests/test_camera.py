@@ -173,3 +173,40 @@ def test_scaled_camera_projects_to_scaled_pixels(model):
 def test_non_positive_focal_is_an_error():
     with pytest.raises(InputFormatError, match="focal length must be positive"):
         Camera("METASHAPE", 640, 480, [800.0, 320, 240, -900.0, 0, 0, 0, 0, 0, 0, 0, 0, 0])
+
+
+def test_a_lens_model_does_not_fold_far_points_back_into_the_image():
+    """A drone lens's polynomial (the synthetic formats' LENS: k3 < 0) turns back beyond its
+    calibrated field: a ground point ~68 degrees off the axis has a distorted radius near 0,
+    and projected into the middle of the image, at the depth of the ground there. Such points
+    are not projected (uv NaN); everything the image shows still is, exactly as before."""
+    from occufly.synthetic.formats import LENS
+
+    cam = Camera("FULL_OPENCV", 5472, 3648, [3648.0, 3648.0, 2736.0, 1824.0, LENS["k1"],
+                                             LENS["k2"], LENS["p1"], LENS["p2"], LENS["k3"],
+                                             0.0, 0.0, 0.0])
+    far = np.array([[2.5, 0.0, 1.0], [0.0, 2.5, 1.0], [1.8, 1.8, 1.0]]) * 50.0
+    xy = far[:, :2] / far[:, 2:]
+    uv_model = cam.distort(xy) * 3648.0 + [2736.0, 1824.0]
+    assert cam.in_image(uv_model[:1]).all()  # what the polynomial alone gives: in the image
+    uv, z = cam.project(far)
+    assert np.isnan(uv).all() and (z > 0).all()
+    # the image's own points: unchanged, and the round trip holds at the border and corners
+    px = np.array([[0.0, 0.0], [5471.0, 3647.0], [2736.0, 1824.0], [100.0, 3600.0],
+                   [5400.0, 10.0]])
+    xyz = cam.unproject(px, 30.0)
+    back, _ = cam.project(xyz)
+    assert np.allclose(back, px, atol=1e-6)
+    r_border = np.linalg.norm(cam.unproject(np.array([[0.0, 0.0]]), 1.0)[0, :2])
+    assert r_border < cam.valid_radius <= 1.25 * np.linalg.norm(
+        cam.unproject(np.array([[0.0, 0.0], [5472.0, 3648.0], [0.0, 3648.0], [5472.0, 0.0]]),
+                      1.0)[:, :2], axis=1).max() + 1e-9
+    # no distortion, or fisheye: every point in front is projected, as before
+    assert Camera("PINHOLE", 100, 80, [50.0, 50.0, 50.0, 40.0]).valid_radius == np.inf
+    pin, _ = Camera("PINHOLE", 100, 80, [50.0, 50.0, 50.0, 40.0]).project(far)
+    assert np.isfinite(pin).all()
+    # a lens that keeps growing (k1 < 0 < k2, no k3): limited at 1.25 x the border radius only
+    mono = Camera("OPENCV", 5472, 3648, [3648.0, 3648.0, 2736.0, 1824.0, -0.045, 0.032, 0.0, 0.0])
+    rb = np.linalg.norm(mono.unproject(np.array([[0.0, 0.0], [5472.0, 3648.0]]), 1.0)[:, :2],
+                        axis=1).max()
+    assert mono.valid_radius == pytest.approx(1.25 * rb, rel=1e-3)

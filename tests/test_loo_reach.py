@@ -99,3 +99,78 @@ def test_frames_reaching_without_a_bound(lifted):
     nan = Scene.load(path)
     nan.xyz = np.full((scene.n_points, 3), np.nan, np.float32)
     assert L.frames_reaching(nan, 0, np.arange(5)) is None  # no finite point to bound
+
+
+@pytest.fixture(scope="module")
+def distorted(tmp_path_factory):
+    """The tiny scene written as a COLMAP project (FULL_OPENCV: a drone lens's distortion),
+    imported, its truth masks lifted."""
+    from occufly.io.importer import import_scene
+    from occufly.synthetic.formats import generate_formats
+
+    root = tmp_path_factory.mktemp("reach-distorted")
+    generate_formats(root / "synth", ("colmap",), preset="tiny", seed=0)
+    empty = root / "no-depth-maps"
+    empty.mkdir()
+    import_scene(root / "synth", root / "ws", visibility="depth", depth_maps=empty)
+    scene = Scene.load(root / "ws")
+    assert scene.frames[0].camera.has_distortion
+    rng = np.random.default_rng(5)
+    st = VoteStore.open(root / "ws", scene)
+    frames = list(range(0, len(scene.frames), 2))
+    for fi in frames:
+        cam = scene.frames[fi].camera
+        # blocks of classes: points the other frames decide differently here and there
+        m = np.full((cam.height, cam.width), 6, np.uint8)
+        y, x = rng.integers(0, cam.height // 2), rng.integers(0, cam.width // 2)
+        m[y:y + cam.height // 3, x:x + cam.width // 3] = 1
+        st.set_mask(fi, m, version="v")
+    st.fill_and_denoise()
+    st.close()
+    return root / "ws", scene, frames
+
+
+def test_a_distorted_frames_points_render_as_every_point(distorted, monkeypatch):
+    """A distorted camera is not culled: before, its labels were decided at every point of
+    the cloud. Decided at the points whose projection reaches the image, the seen points and
+    their fill sources, they render the same (plain vote), from fewer points."""
+    path, scene, frames = distorted
+    monkeypatch.setattr(render, "_CULL_MIN_POINTS", 0)
+    p = LiftParams(robust=False, fill_radius=1.0)
+    fewer = 0
+    for f in frames[:3] + [f + 1 for f in frames[:3]]:
+        got = L.loo_labels(path, scene, f, params=p)
+        with monkeypatch.context() as mp:
+            mp.setattr(L, "loo_point_ids",
+                       lambda sc, fi, params=None: np.arange(sc.n_points, dtype=np.int64))
+            want = L.loo_labels(path, scene, f, params=p)
+        assert np.isin(np.asarray(scene.visibility.frame_ids(f)), got.point_ids).all()
+        fewer += len(want.point_ids) - len(got.point_ids)
+        cam = scene.frames[f].camera
+        a = L.render_review(scene, got, (cam.height, cam.width))
+        b = L.render_review(scene, want, (cam.height, cam.width))
+        assert (a["loo"] > 0).mean() > 0.3
+        for k in ("loo", "confident"):
+            assert np.array_equal(a[k], b[k]), (f, k)
+    assert fewer > 0
+
+
+def test_a_distorted_cameras_cull_renders_as_every_point(distorted, monkeypatch):
+    """A distorted camera projects nothing beyond its lens model's valid radius, so the render
+    culls it by that cone (before: no cull, every point projected): the same images."""
+    path, scene, frames = distorted
+    monkeypatch.setattr(render, "_CULL_MIN_POINTS", 0)
+    labels = np.asarray(VoteStore.open(path, scene).direct_labels())
+    culled = 0
+    for f in range(0, len(scene.frames), 3):
+        fr = scene.frames[f]
+        cand = render.frustum_candidates(scene, fr.camera, fr.T_cam_world)
+        assert cand is not None
+        culled += scene.n_points - len(cand)
+        got = render.render_labels(scene, labels, f)
+        with monkeypatch.context() as mp:
+            mp.setattr(render, "frustum_candidates", lambda *a, **k: None)
+            want = render.render_labels(scene, labels, f)
+        assert (got[0] > 0).mean() > 0.3
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), f
+    assert culled > 0

@@ -133,7 +133,15 @@ def test_lifting_the_same_masks_gives_identical_labels(synth, imported):
             state.apply_frame(fi, read_mask(p, sc.frames[fi], sc.taxonomy), name=str(p))
         labels[fmt] = np.asarray(state.fill_and_denoise(write=False).labels)
         state.close()
-    assert (labels["colmap"] == truth).mean() > 0.95
+    # the labelled points are right; points no frame sees (the scene's far edges) stay
+    # unlabelled. (Before the lens model's valid radius, Camera.valid_radius, points ~68
+    # degrees off a camera's axis were folded into the middle of its image and voted with
+    # whatever was painted there: right by chance on this grass scene, 0.9605 of all points
+    # then, 0.9464 now; of the labelled points 0.9893 then, 0.9891 now; the direct votes
+    # 0.9820 then, 0.9887 now.)
+    lab = labels["colmap"]
+    has = lab > 0
+    assert has.mean() > 0.9 and (lab[has] == truth[has]).mean() > 0.98
     for fmt in OTHERS:
         assert np.array_equal(labels[fmt], labels["colmap"]), fmt
 

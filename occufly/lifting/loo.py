@@ -642,20 +642,24 @@ def loo_point_ids(scene: Scene, frame_index: int, *, params: LiftParams | None =
     widest margin, ``MAX_SPLAT * MAX_COARSE`` pixels on a large image) and those within the
     fill radius of a point projecting into it -- nothing else can change what its review
     shows. Their decision depends only on the votes at these points, so on the vote files
-    of :func:`frames_reaching` alone (the review cache's key). Every point for a cloud
-    the render does not cull (small clouds, distorted cameras)."""
+    of :func:`frames_reaching` alone (the review cache's key). Every point for a
+    cloud the render does not cull (small clouds, a lens model without a valid radius). A
+    distorted camera: :func:`_distorted_point_ids`."""
     p = params or LiftParams()
     fr = scene.frames[frame_index]
     cam = fr.camera
+    w, h = float(cam.width), float(cam.height)
+    splat = float(MAX_SPLAT * (MAX_COARSE if w * h > COARSE_MIN_PIXELS else 1))
     cand = frustum_candidates(scene, cam, fr.T_cam_world)
     if cand is None:
         return np.arange(scene.n_points, dtype=np.int64)
+    if cam.has_distortion:
+        return _distorted_point_ids(scene, frame_index, np.asarray(cand, np.int64), splat,
+                                    float(p.fill_radius))
     vis = np.asarray(scene.visibility.frame_ids(frame_index), dtype=np.int64)
     ids = np.asarray(cand, np.int64)  # sorted: the cull's bins, 25-30 % beyond the image
     fx, fy = cam.focal
     cx, cy = cam.principal_point
-    w, h = float(cam.width), float(cam.height)
-    splat = float(MAX_SPLAT * (MAX_COARSE if w * h > COARSE_MIN_PIXELS else 1))
     T = np.ascontiguousarray(np.asarray(fr.T_cam_world, np.float64)[:3, :4])
     keep = _reaching(np.asarray(scene.xyz), ids, T, float(fx), float(fy), float(cx),
                      float(cy), w, h, splat, float(p.fill_radius),
@@ -665,6 +669,46 @@ def loo_point_ids(scene: Scene, frame_index: int, *, params: LiftParams | None =
     if len(missing):  # a sort of the few left out, not a hash of them all (np.union1d)
         ids = np.sort(np.concatenate([ids, missing]))
     return ids
+
+
+_PROJECT_CHUNK = 1 << 21  # points projected at once through a lens model (float64 temporaries)
+
+
+def _distorted_point_ids(scene: Scene, frame_index: int, cand: np.ndarray, splat: float,
+                         reach: float) -> np.ndarray:
+    """:func:`loo_point_ids` for a distorted camera: of its cull ``cand`` (the cone of its
+    lens model's valid radius), the points the render draws -- those in front whose projection
+    through the lens model falls within ``splat`` pixels of the image (``render._render``'s
+    rule at its coarsest) --, the points the frame sees, and the points within ``reach``
+    metres of one it sees (the fill's sources: only seen points are filled; ``_near``'s
+    voxels, a superset; looked for in the whole cloud by one compiled pass)."""
+    fr = scene.frames[frame_index]
+    cam = fr.camera
+    xyz = scene.xyz
+    n = scene.n_points
+    w, h = float(cam.width), float(cam.height)
+    keep = np.zeros(n, bool)
+    for a in range(0, len(cand), _PROJECT_CHUNK):
+        sub = cand[a:a + _PROJECT_CHUNK]
+        uv, z = project_points(fr, xyz, sub)
+        with np.errstate(invalid="ignore"):
+            keep[sub] = ((z > 1e-6) & (uv[:, 0] >= -splat) & (uv[:, 0] < w + splat)
+                         & (uv[:, 1] >= -splat) & (uv[:, 1] < h + splat))
+    vis = np.asarray(scene.visibility.frame_ids(frame_index), dtype=np.int64)
+    keep[vis] = True
+    if len(vis) and reach > 0:
+        q = np.asarray(xyz[vis], np.float64)
+        q = q[np.isfinite(q).all(axis=1)]
+        if len(q):
+            lo, hi = q.min(axis=0) - reach, q.max(axis=0) + reach
+            inbox = np.concatenate([
+                a + np.flatnonzero(points_in_box(xyz, np.arange(a, min(n, a + _PROJECT_CHUNK)),
+                                                 lo, hi))
+                for a in range(0, n, _PROJECT_CHUNK)]).astype(np.int64)
+            inbox = inbox[~keep[inbox]]
+            if len(inbox):
+                keep[inbox[_near(q, np.asarray(xyz[inbox], np.float64), reach)]] = True
+    return np.flatnonzero(keep)
 
 
 # a frame's votes at a point whose projection is outside its image by more than this share of
@@ -723,8 +767,21 @@ def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarr
     ids = np.asarray(ids, np.int64)
     if not len(ids):
         return np.zeros(0, np.int64)
-    if any(f.camera.has_distortion for f in scene.frames):
-        return None
+    # each frame's frustum as bounds of x / z and y / z: the image widened by the slack
+    bounds = np.empty((len(scene.frames), 4))
+    for g, fr in enumerate(scene.frames):
+        cm = fr.camera
+        if cm.has_distortion:
+            # a distorted camera's votes lie within the cone of its valid radius only where
+            # its votes were cast since Camera.valid_radius (a workspace lifted before may
+            # hold votes at points its lens model folded into the image): not bounded
+            return None
+        else:
+            fx, fy = cm.focal
+            cx, cy = cm.principal_point
+            mu, mv = _VOTE_SLACK * cm.width, _VOTE_SLACK * cm.height
+            bounds[g] = (-(cx + mu) / fx, (cm.width + mu - cx) / fx,
+                         -(cy + mv) / fy, (cm.height + mv - cy) / fy)
     boxes = _tile_boxes(np.asarray(scene.xyz), ids, _REACH_TILES)
     if not len(boxes):
         return None
@@ -733,19 +790,13 @@ def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarr
     corners = boxes[:, sel]
     T = np.stack([np.asarray(f.T_cam_world, np.float64)[:3, :4] for f in scene.frames])
     c = np.einsum("fij,bkj->fbki", T[:, :, :3], corners) + T[:, None, None, :, 3]  # (F, B, 8, 3)
-    cams = [f.camera for f in scene.frames]
-    fx, fy = (np.array([cm.focal[i] for cm in cams]) for i in (0, 1))
-    cx, cy = (np.array([cm.principal_point[i] for cm in cams]) for i in (0, 1))
-    w = np.array([float(cm.width) for cm in cams])
-    h = np.array([float(cm.height) for cm in cams])
-    mu, mv = _VOTE_SLACK * w, _VOTE_SLACK * h
     x, y, z = c[..., 0], c[..., 1], c[..., 2]
     meets = (z > 0).any(axis=2)  # (F, B); else the box is behind the camera
-    # u = fx x / z + cx >= -mu  <=>  fx x + (cx + mu) z >= 0 for z > 0, and so on: a box
-    # misses the frustum when all eight corners fail one side
+    # x / z >= xmin  <=>  x - xmin z >= 0 for z > 0, and so on: a box misses the frustum when
+    # all eight corners fail one side
     e = (slice(None), None, None)
-    for side in (fx[e] * x + (cx + mu)[e] * z, -fx[e] * x + (w + mu - cx)[e] * z,
-                 fy[e] * y + (cy + mv)[e] * z, -fy[e] * y + (h + mv - cy)[e] * z):
+    x0, x1, y0, y1 = (bounds[:, i][e] for i in range(4))
+    for side in (x - x0 * z, x1 * z - x, y - y0 * z, y1 * z - y):
         meets &= (side >= 0).any(axis=2)
     hit = meets.any(axis=1)
     hit[frame_index] = False

@@ -491,6 +491,9 @@ class VoteStore:
         pids, uv, _ = self.scene.visibility.frame(fi)
         h, w = mask.shape
         uv = np.asarray(uv)
+        fin = np.isfinite(uv).all(axis=1)
+        if not fin.all():  # projected on demand: points beyond the lens model's valid radius
+            pids, uv = np.asarray(pids)[fin], uv[fin]
         col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
         row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
         if self.vote_weighting == "snap":

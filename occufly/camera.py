@@ -243,6 +243,9 @@ class Camera:
         xy = self.unproject(border, 1.0)[:, :2]
         if not np.isfinite(xy).all():
             return float("inf")
+        back, _ = self._project_within(np.c_[xy, np.ones(len(xy))])
+        if not np.allclose(back, border, atol=1e-3):  # the inverse did not converge: no limit
+            return float("inf")
         r_border = float(np.linalg.norm(xy, axis=1).max())
         limit = 1.25 * r_border
         # where the distorted radius stops increasing along a direction, points beyond it
@@ -266,12 +269,15 @@ class Camera:
         would fold back into the image), get uv = NaN; callers test ``z > 0`` and the image
         bounds.
         """
+        return self._project_within(xyz_cam, self.valid_radius)
+
+    def _project_within(self, xyz_cam: np.ndarray, lim: float = float("inf")
+                           ) -> tuple[np.ndarray, np.ndarray]:
         xyz = np.asarray(xyz_cam, dtype=np.float64).reshape(-1, 3)
         z = xyz[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = xyz[:, :2] / z[:, None]
         xy[z <= 0] = np.nan
-        lim = self.valid_radius
         if lim != float("inf"):
             with np.errstate(invalid="ignore"):
                 xy[(xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]) > lim * lim] = np.nan

@@ -25,22 +25,30 @@ from tests.app.conftest import H, W, png
 TRACE = "OCCUFLY_TEST_REFRESH_TRACE"
 
 
+def _put(path: Path, text: str) -> None:
+    """Write a trace file whole (a rename): the test polls for it by name and reads it at
+    once, and a plain write showed it empty for a moment (a flake under load)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def blocking_entry(settings, scene_id: int, stop: threading.Event) -> None:  # noqa: ANN001
     """A refresh that records its process and niceness, then waits for ``<trace>/release``
     (or a stop); in a child process."""
     d = Path(os.environ[TRACE])
     n = len(list(d.glob("run-*")))
-    (d / f"run-{n}-{scene_id}").write_text(f"{os.getpid()} {os.nice(0)}")
+    _put(d / f"run-{n}-{scene_id}", f"{os.getpid()} {os.nice(0)}")
     while not (d / "release").exists():
         if stop.wait(0.02):
-            (d / f"stopped-{n}").write_text("1")
+            _put(d / f"stopped-{n}", "1")
             return
 
 
 def ignoring_entry(settings, scene_id: int, stop: threading.Event) -> None:  # noqa: ANN001, ARG001
     """A refresh that never looks at its stop event (one frame's LOO running long)."""
     d = Path(os.environ[TRACE])
-    (d / "started").write_text(str(os.getpid()))
+    _put(d / "started", str(os.getpid()))
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     time.sleep(120)
 

@@ -53,6 +53,9 @@ SLOW = {
     "tests/app/test_body_rate.py": "slow uploads over raw sockets, timed",
     "tests/app/test_body_limits.py": "a 200 MB body against a served app, its peak memory",
     "tests/app/test_header_probes.py": "oversized and malformed heads over raw sockets",
+    # moved to even the lanes again (stop 48: the other lane 12:20, this one 10:49)
+    "tests/app/test_review_refresh_process.py":
+        "the after-fill review refresh in child processes, niced, killed, orphaned",
 }
 
 

@@ -41,6 +41,7 @@ _FISHEYE = frozenset({"OPENCV_FISHEYE"})
 
 # Camera.valid_radius per intrinsic model (the frames of a survey share a few)
 _VALID_RADIUS: dict[tuple, float] = {}
+_VIEW_BOUNDS: dict[tuple, tuple | None] = {}  # Camera.view_bounds per model and margin
 
 
 @dataclass(frozen=True)
@@ -260,6 +261,43 @@ class Camera:
             first = int(np.flatnonzero(bad.any(axis=0))[0])
             limit = min(limit, float(r[first]))
         return limit
+
+    def view_bounds(self, margin: float = 0.0) -> tuple[float, float, float, float] | None:
+        """(x0, x1, y0, y1): bounds of the normalised ``X/Z``, ``Y/Z`` of every point that
+        :meth:`project` puts within ``margin`` pixels of the image, or None where they cannot
+        be bounded (a lens model without a :attr:`valid_radius`). Without distortion the
+        pinhole's; with it, the box of the widened image border's undistorted points (65 per
+        side, padded by 2 % of the box for the border's bulge between them), within the valid
+        radius's square. Computed once per camera and margin."""
+        key = (self.model, self.width, self.height, self.params.tobytes(), float(margin))
+        if key in _VIEW_BOUNDS:
+            return _VIEW_BOUNDS[key]
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        w, h, m = float(self.width), float(self.height), float(margin)
+        if not self.has_distortion:
+            out = (-(cx + m) / fx, (w + m - cx) / fx, -(cy + m) / fy, (h + m - cy) / fy)
+        else:
+            R = self.valid_radius
+            if not np.isfinite(R):
+                out = None
+            else:
+                out = (-R, R, -R, R)
+                t = np.linspace(0.0, 1.0, 65)
+                us, vs = -m + t * (w + 2 * m), -m + t * (h + 2 * m)
+                border = np.concatenate([np.c_[us, 0 * t - m], np.c_[us, 0 * t + h + m],
+                                         np.c_[0 * t - m, vs], np.c_[0 * t + w + m, vs]])
+                xy = self.unproject(border, 1.0)[:, :2]
+                back, _ = self._project_within(np.c_[xy, np.ones(len(xy))])
+                if np.isfinite(xy).all() and np.allclose(back, border, atol=1e-3):
+                    lo, hi = xy.min(axis=0), xy.max(axis=0)
+                    pad = 0.02 * (hi - lo)
+                    lo, hi = lo - pad, hi + pad
+                    out = (max(-R, lo[0]), min(R, hi[0]), max(-R, lo[1]), min(R, hi[1]))
+        if len(_VIEW_BOUNDS) > 4096:
+            _VIEW_BOUNDS.clear()
+        _VIEW_BOUNDS[key] = out
+        return out
 
     # ---- projection ----------------------------------------------------------------------
     def project(self, xyz_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

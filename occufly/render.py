@@ -82,13 +82,13 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     side planes, widened by ``margin`` pixels, or behind the camera), or None for "all points"
     (small clouds, a lens model without a :attr:`~occufly.camera.Camera.valid_radius`). The cull
     drops only points that cannot touch the image, so renderings are identical with and without
-    it. A distorted camera projects only points within its valid radius (normalised ``|x/z|,
-    |y/z| <= R``), so its cull is that square cone, whatever the image. The bins are built once
-    per cloud."""
+    it. A distorted camera: the cone of its :meth:`~occufly.camera.Camera.view_bounds` (the
+    widened image's border undistorted, within the lens model's valid radius; it projects
+    nothing beyond that). The bins are built once per cloud."""
     if scene.n_points < _CULL_MIN_POINTS:
         return None
-    R = cam.valid_radius if cam.has_distortion else None
-    if R is not None and not np.isfinite(R):
+    vb = cam.view_bounds(margin) if cam.has_distortion else None
+    if cam.has_distortion and vb is None:
         return None
     key = (id(scene.xyz), scene.n_points)
     bins = _BINS_CACHE.get(key)
@@ -104,9 +104,10 @@ def frustum_candidates(scene: Scene, cam: Camera, T_cam_world: np.ndarray,
     w, h, m = cam.width, cam.height, float(margin)
     ok = c[:, 2] > -r
     # u = fx x / z + cx in [-m, w + m] and v likewise, as half-spaces through the camera centre;
-    # a distorted camera: x / z and y / z in [-R, R]
+    # a distorted camera: x / z and y / z within its view bounds (Camera.view_bounds)
     sides = (((fx, 0.0, cx + m), (-fx, 0.0, w + m - cx), (0.0, fy, cy + m), (0.0, -fy, h + m - cy))
-             if R is None else ((1.0, 0.0, R), (-1.0, 0.0, R), (0.0, 1.0, R), (0.0, -1.0, R)))
+             if vb is None else ((1.0, 0.0, -vb[0]), (-1.0, 0.0, vb[1]), (0.0, 1.0, -vb[2]),
+                                 (0.0, -1.0, vb[3])))
     for a, b, d in sides:
         ok &= (a * c[:, 0] + b * c[:, 1] + d * c[:, 2]) >= -r * float(np.sqrt(a * a + b * b + d * d))
     sel = np.flatnonzero(ok)

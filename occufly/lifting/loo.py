@@ -650,7 +650,11 @@ def loo_point_ids(scene: Scene, frame_index: int, *, params: LiftParams | None =
     cam = fr.camera
     w, h = float(cam.width), float(cam.height)
     splat = float(MAX_SPLAT * (MAX_COARSE if w * h > COARSE_MIN_PIXELS else 1))
-    cand = frustum_candidates(scene, cam, fr.T_cam_world)
+    # the cull's margin: the render's widest for a distorted camera (its cull is tight: the
+    # view bounds); the bins' default for the others, as the labels were decided before (the
+    # bins, ~20 m on a survey, reach far beyond it; the render's own cull takes splat)
+    cand = frustum_candidates(scene, cam, fr.T_cam_world,
+                              margin=splat if cam.has_distortion else MAX_SPLAT)
     if cand is None:
         return np.arange(scene.n_points, dtype=np.int64)
     if cam.has_distortion:

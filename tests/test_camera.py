@@ -210,3 +210,32 @@ def test_a_lens_model_does_not_fold_far_points_back_into_the_image():
     rb = np.linalg.norm(mono.unproject(np.array([[0.0, 0.0], [5472.0, 3648.0]]), 1.0)[:, :2],
                         axis=1).max()
     assert mono.valid_radius == pytest.approx(1.25 * rb, rel=1e-3)
+
+
+@pytest.mark.parametrize("margin", [0.0, 8.0, 128.0])
+def test_view_bounds_hold_every_point_projected_near_the_image(margin):
+    """The distorted render's cull (``render.frustum_candidates``) keeps the cone of
+    ``view_bounds``: every point that ``project`` puts within ``margin`` pixels of the image
+    must lie in it; and it is tighter than the valid radius's square."""
+    from occufly.synthetic.formats import LENS
+
+    for cam in (Camera("FULL_OPENCV", 5472, 3648, [3648.0, 3648.0, 2736.0, 1824.0, LENS["k1"],
+                                                   LENS["k2"], LENS["p1"], LENS["p2"], LENS["k3"],
+                                                   0.0, 0.0, 0.0]),
+                Camera("SIMPLE_RADIAL", 4000, 3000, [3000.0, 2000.0, 1500.0, -0.2]),
+                Camera("OPENCV", 4000, 3000, [2900.0, 2950.0, 2010.0, 1490.0, -0.1, 0.05,
+                                              0.002, -0.001])):
+        x0, x1, y0, y1 = cam.view_bounds(margin)
+        R = cam.valid_radius
+        assert -R <= x0 < x1 <= R and -R <= y0 < y1 <= R  # (the square where the border
+        # widened by the margin lies beyond what the lens reaches: SIMPLE_RADIAL k = -0.2)
+        xy = np.random.default_rng(0).uniform(-3, 3, (400_000, 2))
+        uv, _ = cam.project(np.c_[xy, np.ones(len(xy))])
+        with np.errstate(invalid="ignore"):
+            near = ((uv[:, 0] >= -margin) & (uv[:, 0] < cam.width + margin)
+                    & (uv[:, 1] >= -margin) & (uv[:, 1] < cam.height + margin))
+        assert near.sum() > 1000
+        p = xy[near]
+        assert ((p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)).all()
+    pin = Camera("PINHOLE", 100, 80, [50.0, 50.0, 50.0, 40.0])
+    assert pin.view_bounds(0.0) == pytest.approx((-1.0, 1.0, -0.8, 0.8))

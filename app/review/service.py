@@ -235,7 +235,7 @@ def _votes_settled(scene: Scene) -> bool:
         st = json.loads(Workspace(scene.workspace).lifting_state.read_text())
     except (OSError, ValueError):
         return False
-    return not st.get("dirty", True)
+    return not st.get("dirty", False)  # as VoteStore.open reads it
 
 
 def review_images(ctx: AppContext, session: Session, scene: Scene, frame: Frame) -> dict:

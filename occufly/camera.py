@@ -237,15 +237,8 @@ class Camera:
     def _valid_radius_uncached(self) -> float:
         if self.model in _FISHEYE or not np.any(self._dist_params() != 0):
             return float("inf")
-        t = np.linspace(0.0, 1.0, 65)
-        w, h = float(self.width), float(self.height)
-        border = np.concatenate([np.c_[t * w, 0 * t], np.c_[t * w, 0 * t + h],
-                                 np.c_[0 * t, t * h], np.c_[0 * t + w, t * h]])
-        xy = self.unproject(border, 1.0)[:, :2]
-        if not np.isfinite(xy).all():
-            return float("inf")
-        back, _ = self._project_within(np.c_[xy, np.ones(len(xy))])
-        if not np.allclose(back, border, atol=1e-3):  # the inverse did not converge: no limit
+        xy = self._border_undistorted(0.0)
+        if xy is None:  # the inverse did not converge: no limit
             return float("inf")
         r_border = float(np.linalg.norm(xy, axis=1).max())
         limit = 1.25 * r_border
@@ -261,6 +254,21 @@ class Camera:
             first = int(np.flatnonzero(bad.any(axis=0))[0])
             limit = min(limit, float(r[first]))
         return limit
+
+    def _border_undistorted(self, margin: float) -> np.ndarray | None:
+        """(260, 2) normalised undistorted points of the image border widened by ``margin``
+        pixels (65 per side), or None where the inverse of the lens model does not give them
+        back (non-finite, or re-projected more than 1e-3 px off)."""
+        t = np.linspace(0.0, 1.0, 65)
+        w, h, m = float(self.width), float(self.height), float(margin)
+        us, vs = -m + t * (w + 2 * m), -m + t * (h + 2 * m)
+        border = np.concatenate([np.c_[us, 0 * t - m], np.c_[us, 0 * t + h + m],
+                                 np.c_[0 * t - m, vs], np.c_[0 * t + w + m, vs]])
+        xy = self.unproject(border, 1.0)[:, :2]
+        if not np.isfinite(xy).all():
+            return None
+        back, _ = self._project_within(np.c_[xy, np.ones(len(xy))])
+        return xy if np.allclose(back, border, atol=1e-3) else None
 
     def view_bounds(self, margin: float = 0.0) -> tuple[float, float, float, float] | None:
         """(x0, x1, y0, y1): bounds of the normalised ``X/Z``, ``Y/Z`` of every point that
@@ -283,13 +291,8 @@ class Camera:
                 out = None
             else:
                 out = (-R, R, -R, R)
-                t = np.linspace(0.0, 1.0, 65)
-                us, vs = -m + t * (w + 2 * m), -m + t * (h + 2 * m)
-                border = np.concatenate([np.c_[us, 0 * t - m], np.c_[us, 0 * t + h + m],
-                                         np.c_[0 * t - m, vs], np.c_[0 * t + w + m, vs]])
-                xy = self.unproject(border, 1.0)[:, :2]
-                back, _ = self._project_within(np.c_[xy, np.ones(len(xy))])
-                if np.isfinite(xy).all() and np.allclose(back, border, atol=1e-3):
+                xy = self._border_undistorted(m)
+                if xy is not None:
                     lo, hi = xy.min(axis=0), xy.max(axis=0)
                     pad = 0.02 * (hi - lo)
                     lo, hi = lo - pad, hi + pad

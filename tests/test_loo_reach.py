@@ -49,6 +49,17 @@ def _whole_cull(scene: Scene, f: int, params=None) -> np.ndarray:  # noqa: ANN00
     return np.union1d(cand, np.asarray(scene.visibility.frame_ids(f), np.int64))
 
 
+def _same_renders(scene: Scene, f: int, got, want, *, labelled: float) -> None:  # noqa: ANN001
+    """Frame f's LOO and confident renderings of two label sets are identical, and more than
+    ``labelled`` of the LOO image's pixels have a label."""
+    cam = scene.frames[f].camera
+    a = L.render_review(scene, got, (cam.height, cam.width))
+    b = L.render_review(scene, want, (cam.height, cam.width))
+    assert (a["loo"] > 0).mean() > labelled
+    for k in ("loo", "confident"):
+        assert np.array_equal(a[k], b[k]), (f, k)
+
+
 def test_the_points_decided_render_as_the_whole_cull(lifted, monkeypatch):
     """With the plain vote (a point's label depends on its own votes and its fill sources
     only) the labels decided at ``loo_point_ids`` render exactly as those decided over the
@@ -67,12 +78,7 @@ def test_the_points_decided_render_as_the_whole_cull(lifted, monkeypatch):
             want = L.loo_labels(path, scene, f, params=p)
         assert np.isin(got.point_ids, want.point_ids).all()
         fewer += len(want.point_ids) - len(got.point_ids)
-        cam = scene.frames[f].camera
-        a = L.render_review(scene, got, (cam.height, cam.width))
-        b = L.render_review(scene, want, (cam.height, cam.width))
-        assert (a["loo"] > 0).mean() > 0.5
-        for k in ("loo", "confident"):
-            assert np.array_equal(a[k], b[k]), (f, k)
+        _same_renders(scene, f, got, want, labelled=0.5)
     assert fewer > 0  # the cull's bins hold points the image cannot show
 
 
@@ -146,12 +152,7 @@ def test_a_distorted_frames_points_render_as_every_point(distorted, monkeypatch)
             want = L.loo_labels(path, scene, f, params=p)
         assert np.isin(np.asarray(scene.visibility.frame_ids(f)), got.point_ids).all()
         fewer += len(want.point_ids) - len(got.point_ids)
-        cam = scene.frames[f].camera
-        a = L.render_review(scene, got, (cam.height, cam.width))
-        b = L.render_review(scene, want, (cam.height, cam.width))
-        assert (a["loo"] > 0).mean() > 0.3
-        for k in ("loo", "confident"):
-            assert np.array_equal(a[k], b[k]), (f, k)
+        _same_renders(scene, f, got, want, labelled=0.3)
     assert fewer > 0
 
 

@@ -172,7 +172,7 @@ _REACH_LOCK = threading.Lock()
 _REACH_DISK = DiskCache("reach", max_bytes=64 * 2**20)
 
 
-def _reaching(ctx: AppContext, scene: Scene, frame: Frame) -> np.ndarray | None:
+def _reaching_frames(ctx: AppContext, scene: Scene, frame: Frame) -> np.ndarray | None:
     w = Workspace(scene.workspace)
     rk = (str(scene.workspace), frame.index, _stamp(w.scene_json, w.points_xyz))
     with _REACH_LOCK:
@@ -206,7 +206,7 @@ def _loo_key(ctx: AppContext, scene: Scene, frame: Frame, v) -> tuple:  # noqa: 
     and a fill, leave it valid. Where the reaching frames cannot be bounded (a distorted
     camera), the vote counts' stamp instead: any save invalidates it."""
     w = Workspace(scene.workspace)
-    reach = _reaching(ctx, scene, frame)
+    reach = _reaching_frames(ctx, scene, frame)
     try:
         st = os.stat(w.votes)
         votes = (st.st_ino, st.st_size)

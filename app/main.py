@@ -8,12 +8,14 @@ the previous process left ``running``/``queued`` is marked ``interrupted`` (resu
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import logging
 import os
+import threading
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import FastAPI, routing
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy import select, text
 
@@ -102,6 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
               review_router, jobs_router, archive_router, audit_router, corrections_router,
               notifications_router, imports_router, console_router):  # the last two: issue 28's admin console
         app.include_router(r)
+    _share_included_routers(app)
 
     @app.get("/api/health", tags=["meta"])
     def health() -> dict:
@@ -114,6 +117,37 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     mount_site(app, lambda: ctx.settings.docs_site_dir)  # the documentation site (issue 40)
     _mount_frontend(app, settings)
     return app
+
+
+# FastAPI (0.16x) resolves an included router's routes -- every endpoint's dependencies and
+# their pydantic models -- lazily, once per app, on the first requests: 0.1-0.5 s of CPU per
+# app. The routers are module objects and their resolution depends on nothing of the app (no
+# dependency overrides are used here), so a process that builds many apps (the tests: one per
+# test) resolves each router once and shares it.
+_INCLUDED: dict[int, object] = {}
+_INCLUDED_LOCK = threading.Lock()
+
+
+def _share_included_routers(app: FastAPI) -> None:
+    """Swap each router ``app`` included for the one the first app of this process included
+    (its routes already resolved). The shared copy names no app as its dependency-overrides
+    provider: ``app.dependency_overrides`` is not supported (nothing here uses it). A FastAPI
+    without the lazily resolved ``_IncludedRouter`` leaves the app as it is."""
+    included = getattr(routing, "_IncludedRouter", None)
+    if included is None:
+        return
+    with _INCLUDED_LOCK:
+        routes = app.router.routes
+        for i, route in enumerate(routes):
+            if type(route) is not included:
+                continue
+            key = id(route.original_router)
+            shared = _INCLUDED.get(key)
+            ctx = dataclasses.replace(route.include_context, dependency_overrides_provider=None)
+            if shared is None or shared.include_context != ctx:
+                shared = included(original_router=route.original_router, include_context=ctx)
+                _INCLUDED[key] = shared
+            routes[i] = shared
 
 
 def close(app: FastAPI) -> None:

@@ -131,7 +131,8 @@ class SocketLeases:
         with self._mu:
             self.held.discard(rid)
         with self.sessions() as s:
-            s.execute(delete(ViewerSocket).where(ViewerSocket.id == rid))
+            s.execute(delete(ViewerSocket).where(ViewerSocket.id == rid,
+                                                 ViewerSocket.process == self.process))
             s.commit()
 
     def renew(self) -> int:
@@ -143,7 +144,10 @@ class SocketLeases:
         if not ids:
             return 0
         with self.sessions() as s:
-            n = s.execute(update(ViewerSocket).where(ViewerSocket.id.in_(ids)).values(
+            # by id *and* process: a row removed as expired frees its id, which SQLite (no
+            # AUTOINCREMENT) or a truncated table gives to the next row, another process's
+            n = s.execute(update(ViewerSocket).where(
+                ViewerSocket.id.in_(ids), ViewerSocket.process == self.process).values(
                 expires_at=utcnow() + timedelta(seconds=self.lease_s))).rowcount
             s.commit()
         return int(n or 0)

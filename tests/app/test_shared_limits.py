@@ -47,6 +47,33 @@ def test_viewer_socket_leases_of_a_stopped_process_expire(env):
     b.close()
 
 
+def test_a_stalled_process_never_renews_or_frees_a_row_that_reused_its_id(env):
+    """A row removed as expired frees its id; SQLite (no AUTOINCREMENT) and a truncated
+    PostgreSQL table hand it to the next row, another process's. The stalled process's renewal
+    and release must leave that row alone (before the fix a leaked renewer of an earlier test
+    kept one of this module's rows alive: ['admin', 'reviewer', 'reviewer'])."""
+    from sqlalchemy import select
+
+    sessions = env.app.state.ctx.sessions
+    a, b = SocketLeases(sessions, lease_s=0.3), SocketLeases(sessions, lease_s=30.0)
+    old = a.claim("reviewer", 1)
+    a._stop.set()  # a stalls: no renewal
+    a._thread.join(10)
+    time.sleep(0.5)
+    mine = b.claim("reviewer", 1)  # a's row ran out and is removed
+    with sessions() as s:
+        before = s.scalar(select(ViewerSocket.expires_at).where(ViewerSocket.id == mine))
+    with a._mu:  # a still believes it holds a row; give it the id b's row has now
+        a.held = {old, mine}
+    assert a.renew() == 0
+    a.release(mine)
+    with sessions() as s:
+        rows = s.execute(select(ViewerSocket.id, ViewerSocket.expires_at)).all()
+    assert rows == [(mine, before)]
+    b.close()
+    a.close()
+
+
 # ---- review items and comments ---------------------------------------------------------------
 def _limits(env, **kw) -> None:  # noqa: ANN001
     ctx = env.app.state.ctx

@@ -168,3 +168,28 @@ def test_the_same_correction_submitted_at_once(world, n):
         assert r.status_code == 200 and r.json()["id"] == i, r.text
     layer = env.client.get(f"/api/scenes/{sid}/corrections/layer", headers=hdr["reviewer"]).json()
     assert layer["corrected_points"] == 0 and layer["applied"] == []
+
+
+def test_a_request_racing_a_deletion_reads_that_the_scene_is_gone(world):
+    """The race above, made deterministic: the request found the frame, then the deletion
+    committed (the members go with the scene) before its membership check. It answers 404
+    naming the scene, not 403 "you are not a member" (seen under load on PostgreSQL)."""
+    from app.errors import Forbidden, NotFound
+    from app.scenes.membership import check_member
+    from app.scenes.models import Scene
+    from app.users.models import User
+
+    env, hdr, scene, _frames = world
+    other = env.import_tiny(hdr["admin"], name="other", members=["annotator2"])
+    oid = other["id"]
+    with env.app.state.ctx.sessions() as s:
+        ann = s.scalar(select(User).where(User.username == "annotator"))
+        check_member(s, ann, scene["id"])  # a member: passes
+        with pytest.raises(Forbidden, match="not a member"):
+            check_member(s, ann, oid)  # a live scene of others: still 403
+        s.get(Scene, oid).status = "deleting"
+        s.commit()
+        with pytest.raises(NotFound, match=f"scene {oid} does not exist"):
+            check_member(s, ann, oid)
+        with pytest.raises(NotFound, match="scene 999999 does not exist"):
+            check_member(s, ann, 999999)

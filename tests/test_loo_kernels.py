@@ -216,6 +216,41 @@ def test_redecide_without_the_support_gives_the_same_labels_and_margins():
         assert t[3]["robust_points_changed"] == one[3]["robust_points_changed"]
 
 
+def test_redecide_of_a_row_subset_equals_redecide_of_the_gathered_rows(tmp_path):
+    """The review decides a subset of the cloud and hands the features as a RowSubset (rows
+    gathered where the classifier reads them): the same labels, margins and statistics as
+    the rows gathered first, from a memory map as the features cache is, with threads."""
+    from occufly.lifting import robust as R
+
+    rng = np.random.default_rng(5)
+    N, n, C = 60_000, 25_000, CLS.C
+    xyz = rng.uniform(0, 30, (N, 3)).astype(np.float32)
+    truth = (xyz[:, 0] // 4 + xyz[:, 1] // 4).astype(np.int64) % C
+    np.save(tmp_path / "f.npy", (rng.normal(size=(N, 8)) + truth[:, None] * 0.3)
+            .astype(np.float16))
+    feats = np.load(tmp_path / "f.npy", mmap_mode="r")
+    pts = np.sort(rng.choice(N, n, replace=False))
+    col1 = np.where(rng.random(n) < 0.15, rng.integers(0, C, n), truth[pts])
+    n1 = rng.integers(1, 4, n).astype(np.uint16)
+    col2 = np.where(rng.random(n) < 0.3, rng.integers(0, C, n), -1)
+    col2[col2 == col1] = -1
+    n2 = np.minimum(np.where(col2 >= 0, rng.integers(1, 3, n), 0), n1).astype(np.uint16)
+    sub = R.RowSubset(feats, pts)
+    assert sub.shape == (n, 8) and len(sub) == n
+    assert np.array_equal(sub[np.array([3, 0, 7])], np.asarray(feats[pts[[3, 0, 7]]]))
+    assert np.array_equal(R.half_rows_as_float32(sub, np.array([9, 2])),
+                          np.asarray(feats[pts[[9, 2]]], np.float32))
+    votes = (col1.astype(np.int16), n1, col2.astype(np.int8), n2)
+    for workers in (1, 2):
+        a = R.redecide(CLS, R.half_rows(feats, pts), *votes, xyz=xyz[pts], with_top=False,
+                       workers=workers)
+        b = R.redecide(CLS, sub, *votes, xyz=xyz[pts], with_top=False, workers=workers)
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32),
+                                                            b[1].view(np.uint32))
+        assert a[3]["robust_points_evaluated"] == b[3]["robust_points_evaluated"] > 0
+        assert a[3]["robust_points_changed"] == b[3]["robust_points_changed"]
+
+
 def test_half_rows_equal_numpys_gather_and_cast():
     """The compiled float16 row gathers against numpy's fancy index and float16 -> float32
     cast: every one of the 65,536 halves (zeros, subnormals, infinities, NaN payloads), a

@@ -229,7 +229,7 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     instead of deciding the labels where few frames overlap. ``col`` (winner columns) and
     ``share`` are updated in place: a re-decided point's share is its posterior
     ``(1 + margin) / 2`` (the top of two candidates; 1 where one class was possible)."""
-    from occufly.lifting.robust import RobustParams, cached_features, half_rows, redecide
+    from occufly.lifting.robust import RobustParams, RowSubset, cached_features, redecide
 
     sel = np.flatnonzero(col >= 0)
     if len(sel) == 0:
@@ -248,7 +248,7 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     else:
         sec = sec.astype(np.uint16)
     labels, margin, _top, _stats = redecide(
-        cls, half_rows(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
+        cls, RowSubset(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
         rp, xyz=np.asarray(scene.xyz[pts]), with_top=False, workers=LOO_THREADS)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0

@@ -983,10 +983,35 @@ def half_rows(features: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return np.asarray(features[rows])
 
 
+class RowSubset:
+    """The rows ``rows`` of an (N, F) feature array, gathered only where indexed:
+    ``sub[idx]`` is ``half_rows(src, rows[idx])``. :func:`redecide` reads features only at the
+    classifier's training sample and at the points with several candidates, so a caller that
+    decides a subset of the cloud (the review's leave-one-out labels: millions of points, most
+    with one candidate) passes this instead of gathering every row first."""
+
+    def __init__(self, src: np.ndarray, rows: np.ndarray) -> None:
+        self.src = src
+        self.rows = np.ascontiguousarray(rows, np.int64)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (len(self.rows), int(self.src.shape[1]))
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, idx) -> np.ndarray:  # noqa: ANN001
+        return half_rows(self.src, self.rows[idx])
+
+
 def half_rows_as_float32(features: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``np.asarray(features[rows], np.float32)`` of (N, F) features: for C-contiguous float16
     ones in one compiled gather and conversion (numpy's float16 cast is ~3x slower than the
-    gather itself), else through numpy. The same values (float16 -> float32 is exact)."""
+    gather itself), else through numpy. The same values (float16 -> float32 is exact).
+    A :class:`RowSubset` is gathered from its source rows directly."""
+    if isinstance(features, RowSubset):
+        return half_rows_as_float32(features.src, features.rows[rows])
     f = features
     if (isinstance(f, np.ndarray) and f.dtype == np.float16 and f.ndim == 2
             and f.flags.c_contiguous):

@@ -39,9 +39,19 @@ _N_LINEAR = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 3, "RADIAL": 3,
 _FISHEYE = frozenset({"OPENCV_FISHEYE"})
 
 
-# Camera.valid_radius per intrinsic model (the frames of a survey share a few)
-_VALID_RADIUS: dict[tuple, float] = {}
-_VIEW_BOUNDS: dict[tuple, tuple | None] = {}  # Camera.view_bounds per model and margin
+# Camera.valid_radius and Camera.view_bounds per intrinsic model (and margin): the frames of
+# a survey share a few models
+_DERIVED: dict[tuple, object] = {}
+
+
+def _derived(key: tuple, compute):  # noqa: ANN001, ANN202
+    """``compute()`` once per ``key`` (a bounded cache: cleared past 4096 entries)."""
+    if key in _DERIVED:
+        return _DERIVED[key]
+    if len(_DERIVED) > 4096:
+        _DERIVED.clear()
+    got = _DERIVED[key] = compute()
+    return got
 
 
 @dataclass(frozen=True)
@@ -226,13 +236,7 @@ class Camera:
         image, at the depth of the ground there. The radius is 1.25 x the largest radius of
         the image border's undistorted points, or less where the model stops increasing
         before that (along 32 directions). Computed once per camera."""
-        key = (self.model, self.width, self.height, self.params.tobytes())
-        got = _VALID_RADIUS.get(key)
-        if got is None:
-            if len(_VALID_RADIUS) > 4096:
-                _VALID_RADIUS.clear()
-            got = _VALID_RADIUS[key] = self._valid_radius_uncached()
-        return got
+        return _derived(("valid_radius", self), self._valid_radius_uncached)
 
     def _valid_radius_uncached(self) -> float:
         if self.model in _FISHEYE or not np.any(self._dist_params() != 0):
@@ -277,30 +281,25 @@ class Camera:
         pinhole's; with it, the box of the widened image border's undistorted points (65 per
         side, padded by 2 % of the box for the border's bulge between them), within the valid
         radius's square. Computed once per camera and margin."""
-        key = (self.model, self.width, self.height, self.params.tobytes(), float(margin))
-        if key in _VIEW_BOUNDS:
-            return _VIEW_BOUNDS[key]
+        m = float(margin)
+        return _derived(("view_bounds", self, m), lambda: self._view_bounds_uncached(m))
+
+    def _view_bounds_uncached(self, m: float) -> tuple[float, float, float, float] | None:
         fx, fy = self.focal
         cx, cy = self.principal_point
-        w, h, m = float(self.width), float(self.height), float(margin)
+        w, h = float(self.width), float(self.height)
         if not self.has_distortion:
-            out = (-(cx + m) / fx, (w + m - cx) / fx, -(cy + m) / fy, (h + m - cy) / fy)
-        else:
-            R = self.valid_radius
-            if not np.isfinite(R):
-                out = None
-            else:
-                out = (-R, R, -R, R)
-                xy = self._border_undistorted(m)
-                if xy is not None:
-                    lo, hi = xy.min(axis=0), xy.max(axis=0)
-                    pad = 0.02 * (hi - lo)
-                    lo, hi = lo - pad, hi + pad
-                    out = (max(-R, lo[0]), min(R, hi[0]), max(-R, lo[1]), min(R, hi[1]))
-        if len(_VIEW_BOUNDS) > 4096:
-            _VIEW_BOUNDS.clear()
-        _VIEW_BOUNDS[key] = out
-        return out
+            return (-(cx + m) / fx, (w + m - cx) / fx, -(cy + m) / fy, (h + m - cy) / fy)
+        R = self.valid_radius
+        if not np.isfinite(R):
+            return None
+        xy = self._border_undistorted(m)
+        if xy is None:
+            return (-R, R, -R, R)
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        pad = 0.02 * (hi - lo)
+        lo, hi = lo - pad, hi + pad
+        return (max(-R, lo[0]), min(R, hi[0]), max(-R, lo[1]), min(R, hi[1]))
 
     # ---- projection ----------------------------------------------------------------------
     def project(self, xyz_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

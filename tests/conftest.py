@@ -47,13 +47,13 @@ SLOW = {
     # the app served in a child process (its own peak memory, raw sockets); moved here from
     # the other lane to even the two (issue 38: 13 min 29 s against 10 min 22 s, 6 December;
     # these modules ~86 s together, measured on their own on a quiet machine)
+    # (test_attack_probes.py and test_header_probes.py, ~25 s together, went back to the other
+    # lane in stop 49, once the shared resolved routes took it from 12:06 to 9:17 and this one
+    # stayed at 10:22)
     "tests/app/test_import_memory.py": "imports of bombs and huge files, the server's peak memory",
     "tests/app/test_correction_parsing.py": "1 M - 10 M point corrections streamed to a served app",
     "tests/app/test_body_rate.py": "slow uploads over raw sockets, timed",
     "tests/app/test_body_limits.py": "a 200 MB body against a served app, its peak memory",
-    # (stop 49: test_attack_probes.py and test_header_probes.py, ~25 s together, went back to
-    # the other lane once sharing the resolved routes took it from 12:06 to 9:17, this one
-    # staying at 10:22)
     # moved to even the lanes again (stop 48: the other lane 12:20, this one 10:49)
     "tests/app/test_review_refresh_process.py":
         "the after-fill review refresh in child processes, niced, killed, orphaned",

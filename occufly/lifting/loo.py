@@ -780,12 +780,11 @@ def frames_reaching(scene: Scene, frame_index: int, ids: np.ndarray) -> np.ndarr
             # its votes were cast since Camera.valid_radius (a workspace lifted before may
             # hold votes at points its lens model folded into the image): not bounded
             return None
-        else:
-            fx, fy = cm.focal
-            cx, cy = cm.principal_point
-            mu, mv = _VOTE_SLACK * cm.width, _VOTE_SLACK * cm.height
-            bounds[g] = (-(cx + mu) / fx, (cm.width + mu - cx) / fx,
-                         -(cy + mv) / fy, (cm.height + mv - cy) / fy)
+        fx, fy = cm.focal
+        cx, cy = cm.principal_point
+        mu, mv = _VOTE_SLACK * cm.width, _VOTE_SLACK * cm.height
+        bounds[g] = (-(cx + mu) / fx, (cm.width + mu - cx) / fx,
+                     -(cy + mv) / fy, (cm.height + mv - cy) / fy)
     boxes = _tile_boxes(np.asarray(scene.xyz), ids, _REACH_TILES)
     if not len(boxes):
         return None

@@ -8,15 +8,14 @@ directly from ``occufly``; it never re-implements one.
 
 from __future__ import annotations
 
-import io
 import os
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from occufly import selection
 from occufly.errors import UnsafePathError, check_name
+from occufly.export import common as export_common
 from occufly.fsutil import PathNotConfined, confined, image_content_type
 from occufly.io import importer, masks
 from occufly.progress import ProgressFn
@@ -37,22 +36,20 @@ def stored_mask_ids(data: bytes, taxonomy: Taxonomy) -> np.ndarray:
 
 
 def encode_png(arr: np.ndarray) -> bytes:
-    """(h, w) uint8 or (h, w, 3|4) uint8 to PNG bytes."""
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(arr)).save(buf, format="PNG", compress_level=3)
-    return buf.getvalue()
+    """(h, w) uint8 or (h, w, 3|4) uint8 to PNG bytes: the export's encoder
+    (:func:`occufly.export.common.encode_png`: rows Up-filtered, one ISA-L deflate), a 20 MP
+    label rendering in ~0.005 s of one core where PIL's per-row adaptive filter took ~0.1 s,
+    for fewer bytes."""
+    return export_common.encode_png(np.asarray(arr, np.uint8))
 
 
 def encode_png_palette(indices: np.ndarray, palette: np.ndarray) -> bytes:
     """(h, w) uint8 palette indices and their (256, 4) uint8 RGBA colours to an indexed PNG
     (PLTE + tRNS): decoded, the same pixels as ``palette[indices]`` as RGBA, a quarter of the
-    bytes to compress (a 20 MP review overlay: ~0.15 instead of ~0.6 s)."""
-    pal = np.asarray(palette, np.uint8)
-    im = Image.fromarray(np.ascontiguousarray(indices, dtype=np.uint8), mode="P")
-    im.putpalette(pal[:, :3].tobytes(), rawmode="RGB")
-    buf = io.BytesIO()
-    im.save(buf, format="PNG", compress_level=3, transparency=pal[:, 3].tobytes())
-    return buf.getvalue()
+    bytes of the RGBA image to filter and deflate (the export's encoder, as :func:`encode_png`:
+    a 20 MP review overlay in ~0.01 s, where PIL took ~0.09 s)."""
+    return export_common.encode_png(np.ascontiguousarray(indices, dtype=np.uint8),
+                                    palette=np.asarray(palette, np.uint8))
 
 
 # ---- import / selection --------------------------------------------------------------------

@@ -25,6 +25,8 @@ Counting is ``np.bincount(row * n + col)`` in chunks (bounded memory on large gr
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 
@@ -182,16 +184,34 @@ def _count_pairs_many(t: np.ndarray, preds: tuple, lut: np.ndarray, out: np.ndar
             out[j, a, lut[preds[j][i]]] += 1
 
 
-def count_pairs_many(class_ids, truth: np.ndarray, preds: list[np.ndarray]) -> list[np.ndarray]:
+def count_pairs_many(class_ids, truth: np.ndarray, preds: list[np.ndarray], *,
+                     workers: int = 1) -> list[np.ndarray]:
     """:meth:`Confusion.add_all_pairs` of one ``truth`` against each of ``preds`` (uint8 raw
-    ids, all the same shape), in one compiled pass that reads ``truth`` once."""
+    ids, all the same shape), in one compiled pass that reads ``truth`` once; with ``workers``
+    > 1 the pixels are split into that many contiguous runs counted by as many threads (the
+    compiled loop holds no interpreter lock) and the counts summed: the same integers."""
     c = Confusion(class_ids)
     t = np.ascontiguousarray(truth, dtype=np.uint8).reshape(-1)
     ps = tuple(np.ascontiguousarray(p, dtype=np.uint8).reshape(-1) for p in preds)
     for p in ps:
         if p.shape != t.shape:
             raise ValueError(f"truth has {t.size} items, prediction {p.size}")
-    out = np.zeros((len(ps), c.n, c.n), np.int64)
+    n = max(1, min(int(workers), t.size // _MIN_PAIRS_PER_WORKER))
+    out = np.zeros((n, len(ps), c.n, c.n), np.int64)
     if ps:
-        _count_pairs_many(t, ps, c.lut, out)
-    return list(out)
+        cuts = np.linspace(0, t.size, n + 1).astype(np.int64)
+
+        def run(k: int) -> None:
+            a, b = cuts[k], cuts[k + 1]
+            _count_pairs_many(t[a:b], tuple(p[a:b] for p in ps), c.lut, out[k])
+
+        if n == 1:
+            run(0)
+        else:
+            with ThreadPoolExecutor(max_workers=n, thread_name_prefix="occufly-pairs") as pool:
+                list(pool.map(run, range(n)))
+    return list(out.sum(axis=0))
+
+
+# pixels below which a second counting thread costs more than it saves
+_MIN_PAIRS_PER_WORKER = 1 << 20

@@ -391,6 +391,38 @@ def test_encode_png_refuses_other_arrays():
             encode_png(bad)
 
 
+def test_encode_png_palette_decodes_to_the_palette_colours():
+    """An indexed PNG (the review's overlay): PIL, a reader we did not write, decodes it to
+    ``palette[indices]`` -- RGBA through tRNS, RGB without, a short palette, several bands --
+    and indices past the palette or a palette of the wrong shape are refused."""
+    import io
+
+    from PIL import Image
+
+    from occufly.export.common import encode_png
+
+    rng = np.random.default_rng(11)
+    for h, w, P, ch in ((3, 5, 256, 4), (700, 1900, 7, 4), (64, 33, 12, 3), (1, 1, 1, 3)):
+        pal = rng.integers(0, 256, (P, ch)).astype(np.uint8)
+        idx = rng.integers(0, P, (h, w)).astype(np.uint8)
+        idx[: h // 2, : w // 3] = 0  # runs, as an overlay's transparent areas
+        data = encode_png(idx, palette=pal)
+        with Image.open(io.BytesIO(data)) as im:
+            assert im.mode == "P" and im.size == (w, h)
+            assert np.array_equal(np.asarray(im), idx)
+            got = np.asarray(im.convert("RGBA" if ch == 4 else "RGB"))
+        assert np.array_equal(got, pal[idx])
+    pal = np.zeros((4, 4), np.uint8)
+    with pytest.raises(ValueError, match="index 4 past the 4-colour palette"):
+        encode_png(np.full((2, 2), 4, np.uint8), palette=pal)
+    for bad in (np.zeros((0, 3), np.uint8), np.zeros((257, 3), np.uint8), np.zeros((4, 2), np.uint8),
+                np.zeros((4, 3), np.int32)):
+        with pytest.raises(ValueError, match="palette must be"):
+            encode_png(np.zeros((2, 2), np.uint8), palette=bad)
+    with pytest.raises(ValueError, match="a palette image is"):
+        encode_png(np.zeros((2, 2, 3), np.uint8), palette=pal)
+
+
 def test_exported_jpeg_is_the_same_pixels_and_keeps_icc(tmp_path):
     """A JPEG frame becomes a PNG holding exactly PIL's decoded pixels (and its ICC profile);
     a palette image goes through PIL unchanged in meaning."""

@@ -245,10 +245,14 @@ def test_redecide_of_a_row_subset_equals_redecide_of_the_gathered_rows(tmp_path)
         a = R.redecide(CLS, R.half_rows(feats, pts), *votes, xyz=xyz[pts], with_top=False,
                        workers=workers)
         b = R.redecide(CLS, sub, *votes, xyz=xyz[pts], with_top=False, workers=workers)
-        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1].view(np.uint32),
-                                                            b[1].view(np.uint32))
-        assert a[3]["robust_points_evaluated"] == b[3]["robust_points_evaluated"] > 0
-        assert a[3]["robust_points_changed"] == b[3]["robust_points_changed"]
+        # the cloud's rows as a RowSubset too (gathered where the neighbourhood votes run)
+        c = R.redecide(CLS, sub, *votes, xyz=R.RowSubset(xyz, pts), with_top=False,
+                       workers=workers)
+        for x in (b, c):
+            assert np.array_equal(a[0], x[0]) and np.array_equal(a[1].view(np.uint32),
+                                                                x[1].view(np.uint32))
+            assert a[3]["robust_points_evaluated"] == x[3]["robust_points_evaluated"] > 0
+            assert a[3]["robust_points_changed"] == x[3]["robust_points_changed"]
 
 
 def test_half_rows_equal_numpys_gather_and_cast():

@@ -137,6 +137,29 @@ def test_a_class_nobody_else_sees_is_listed_with_no_figures():
         assert v["mask_pixels"] == 0 and v["recall"] is None and v["iou"] is None
 
 
+def test_pair_counts_split_over_threads_equal_one_pass():
+    """count_pairs_many over two or three threads (a 20 MP review's figures): the same
+    integers as one pass, whatever the split; below the split's threshold one thread."""
+    from occufly.confusion import _MIN_PAIRS_PER_WORKER, count_pairs_many
+
+    rng = np.random.default_rng(3)
+    pool = np.concatenate([np.asarray(TAX.ids, np.uint8), np.uint8([0, 255, 200])])
+    h, w = 1201, 2011  # 2.4 M pixels: up to two runs of at least _MIN_PAIRS_PER_WORKER
+    assert h * w >= 2 * _MIN_PAIRS_PER_WORKER
+    mask = pool[rng.integers(0, len(pool), (h, w))]
+    preds = [np.where(rng.random(mask.shape) < 0.6, mask, pool[rng.integers(0, len(pool), mask.shape)])
+             .astype(np.uint8) for _ in range(3)]
+    one = count_pairs_many(TAX.ids, mask, preds)
+    for workers in (2, 3, 64):
+        got = count_pairs_many(TAX.ids, mask, preds, workers=workers)
+        assert len(got) == 3
+        for g, o in zip(got, one, strict=True):
+            assert g.dtype == np.int64 and np.array_equal(g, o)
+    assert sum(int(o.sum()) for o in one) == 3 * h * w
+    small = count_pairs_many(TAX.ids, mask[:10], [p[:10] for p in preds], workers=4)
+    assert all(int(s.sum()) == 10 * w for s in small)
+
+
 def test_one_pass_counts_equal_separate_agreements():
     """loo_agreement counts the mask against its LOO, confident and self renderings in one
     compiled pass: the same figures as one ``agreement`` call per rendering."""

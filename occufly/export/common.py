@@ -174,8 +174,12 @@ def _isal_zlib():
     return isal_zlib
 
 
-def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes:
+def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None,
+               palette: np.ndarray | None = None) -> bytes:
     """A PNG of an 8-bit (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA array, fast.
+    With ``palette`` ((P, 3) RGB or (P, 4) RGBA uint8, 1 <= P <= 256), (H, W) ``pixels`` are
+    indices into it: an indexed-colour PNG (PLTE, and tRNS for RGBA), decoded as
+    ``palette[pixels]``; an index past the palette is refused.
 
     Every row uses the PNG "Up" filter (one vectorised subtraction of the previous row, in
     bands of rows that stay in cache) and the filtered bytes are deflated in one stream by
@@ -194,6 +198,21 @@ def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes
         raise ValueError(f"encode_png: empty image {a.shape}")
     ch = 1 if a.ndim == 2 else a.shape[2]
     colour = {1: 0, 3: 2, 4: 6}[ch]
+    head = []
+    if palette is not None:
+        pal = np.asarray(palette)
+        if (pal.dtype != np.uint8 or pal.ndim != 2 or pal.shape[1] not in (3, 4)
+                or not 1 <= len(pal) <= 256):
+            raise ValueError(f"encode_png: palette must be (1..256, 3|4) uint8, got {pal.dtype} "
+                             f"{pal.shape}")
+        if ch != 1:
+            raise ValueError(f"encode_png: a palette image is (H, W) indices, got {a.shape}")
+        if len(pal) < 256 and int(a.max()) >= len(pal):
+            raise ValueError(f"encode_png: index {int(a.max())} past the {len(pal)}-colour palette")
+        colour = 3
+        head.append(_png_chunk(b"PLTE", np.ascontiguousarray(pal[:, :3]).tobytes()))
+        if pal.shape[1] == 4:
+            head.append(_png_chunk(b"tRNS", np.ascontiguousarray(pal[:, 3]).tobytes()))
     isal_zlib = _isal_zlib()
     rows = a.reshape(h, w * ch) if a.flags.c_contiguous else None
     # bands of rows filtered into one small reused buffer (stays in cache, no image-sized
@@ -227,7 +246,7 @@ def encode_png(pixels: np.ndarray, *, icc_profile: bytes | None = None) -> bytes
     parts = [b"\x89PNG\r\n\x1a\n", _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0))]
     if icc_profile:
         parts.append(_png_chunk(b"iCCP", b"ICC Profile\x00\x00" + zlib.compress(icc_profile)))
-    parts += [struct.pack(">I", sum(len(piece) for piece in out)), b"IDAT", *out,
+    parts += [*head, struct.pack(">I", sum(len(piece) for piece in out)), b"IDAT", *out,
               struct.pack(">I", crc), _png_chunk(b"IEND", b"")]
     return b"".join(parts)
 

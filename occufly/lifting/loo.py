@@ -249,7 +249,7 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
         sec = sec.astype(np.uint16)
     labels, margin, _top, _stats = redecide(
         cls, RowSubset(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
-        rp, xyz=np.asarray(scene.xyz[pts]), with_top=False, workers=LOO_THREADS)
+        rp, xyz=RowSubset(scene.xyz, pts), with_top=False, workers=LOO_THREADS)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0
 
@@ -1179,7 +1179,7 @@ def loo_agreement(mask: np.ndarray, rendered: np.ndarray, scene: Scene, *,
         if np.shape(im) != mask.shape:
             raise ValueError(f"mask {mask.shape} and rendering {np.shape(im)} must be the same (h, w)")
     # every rendering's pixel pairs with the mask counted in one compiled pass
-    counts = count_pairs_many(tax.ids, mask, imgs)
+    counts = count_pairs_many(tax.ids, mask, imgs, workers=LOO_THREADS)
     res = agreement_from_counts(counts[0], tax)
     valid = tax.valid_lut()
     painted = int(res.get("mask_pixels", 0))  # pixels of a taxonomy class (not 0 / 255)

@@ -518,7 +518,9 @@ def local_votes(xyz: np.ndarray, voted: np.ndarray, col1: np.ndarray, n1: np.nda
     of every voted point summed over the 3x3x3 voxels of edge ``edge`` around a voxel).
 
     Cost ~ the voted points (one voxel hash, 26 sorted-key lookups per occupied voxel)."""
-    pts = np.asarray(xyz[voted], np.float32) if len(voted) < len(xyz) else np.asarray(xyz, np.float32)
+    # a RowSubset (the review's cloud rows) is gathered here, in the caller's pool thread
+    whole = len(voted) == len(xyz) and not isinstance(xyz, RowSubset)
+    pts = np.asarray(xyz, np.float32) if whole else np.asarray(xyz[voted], np.float32)
     grid = VoxelGrid(pts, edge, pad=1)
     del pts
     vox = grid.inverse.astype(np.int32)
@@ -601,8 +603,9 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     ``train_min_posterior`` (a sloppy painter's unanimous wrong regions are left out).
 
     col1/n1: (N,) leading vote column (-1 = no votes) and its votes; col2/n2: the second
-    (n2 = 0 where none); xyz: (N, 3) the cloud, for the neighbourhood prior (None: the
-    scene-wide prior only). Returns (labels (N,) uint8 raw ids, 0 = no votes; margin (N,)
+    (n2 = 0 where none); xyz: (N, 3) the cloud (or a :class:`RowSubset` of it, gathered
+    where :func:`local_votes` runs), for the neighbourhood prior (None: the scene-wide prior
+    only). Returns (labels (N,) uint8 raw ids, 0 = no votes; margin (N,)
     float32 posterior top - second; top (N,) uint16 the support of the decided class for the
     fill's confirmation rule: its votes, at least 1 where the neighbourhood supports it
     (``confirm_local_share``), 0 where nothing but the features chose it (with

@@ -97,6 +97,52 @@ def atomic_save_npy(path: str | Path, array: np.ndarray) -> None:
     _replace_into(write_tmp(path, writer=lambda f: np.save(f, arr, allow_pickle=False)), path)
 
 
+def load_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` by name. Members stored uncompressed (``np.savez``, what the
+    workspace writes) are read-only memory maps of the file at their data's offset: no copy
+    and no CRC pass over the bytes (33 vote files of a 20 MP review's neighbours: ~0.02 s of
+    CPU instead of ~0.1 s through ``np.load``), pages read where used. Any other archive --
+    a compressed member, an object array, a header that does not describe exactly the
+    member's bytes -- is read whole through ``np.load`` (its errors, ``allow_pickle=False``).
+    A file replaced after the call (the workspace renames new files into place) leaves the
+    maps on the old file's bytes."""
+    import struct
+    import zipfile
+
+    fmt = np.lib.format
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(path) as z, open(path, "rb") as f:
+            for info in z.infolist():
+                if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                    raise ValueError("not a stored .npy member")
+                f.seek(info.header_offset)
+                head = f.read(30)
+                if len(head) != 30 or head[:4] != b"PK\x03\x04":
+                    raise ValueError("no local file header")
+                name_len, extra_len = struct.unpack("<2H", head[26:30])
+                start = info.header_offset + 30 + name_len + extra_len
+                f.seek(start)
+                version = fmt.read_magic(f)
+                read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+                shape, fortran, dtype = read(f)
+                offset = f.tell()
+                count = int(np.prod(shape, dtype=np.int64))
+                if dtype.hasobject or offset - start + count * dtype.itemsize != info.file_size:
+                    raise ValueError("header and member size differ")
+                key = info.filename[:-4]
+                if count == 0:
+                    out[key] = np.zeros(shape, dtype)
+                else:
+                    # a plain ndarray view (compiled kernels take it), the map its base
+                    out[key] = np.asarray(np.memmap(path, dtype=dtype, mode="r", offset=offset,
+                                                    shape=shape, order="F" if fortran else "C"))
+    except (ValueError, OSError, zipfile.BadZipFile, struct.error):
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    return out
+
+
 @contextmanager
 def atomic_directory(path: str | Path, *, overwrite: bool = False):
     """Build a directory under a temporary sibling name; rename it into place on success.

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import subprocess
 import sys
 import time
+import zipfile
 
+import numpy as np
 import pytest
 
 from occufly.fsutil import atomic_directory, remove_stale_partials
@@ -76,3 +79,55 @@ def test_sigterm_unwinds_a_command_and_leaves_no_partial_output(tmp_path, comman
     assert b"interrupted" in err
     assert not out.exists()
     assert [p.name for p in work.iterdir()] == []
+
+
+def test_load_npz_maps_stored_members_and_reads_anything_else_whole(tmp_path):
+    """load_npz: the arrays of np.savez as read-only maps equal to np.load's (several dtypes,
+    a 2-D Fortran array, an empty one, a long name); a compressed archive, a pickled object
+    array and a member whose header lies about its size go through np.load (equal arrays, or
+    np.load's refusal); a file replaced after the call leaves the maps on the old bytes."""
+    from occufly.fsutil import atomic_write_bytes, load_npz
+
+    rng = np.random.default_rng(2)
+    arrays = {"point_ids": np.sort(rng.integers(0, 1 << 40, 5000)),
+              "cols": rng.integers(-1, 20, 5000).astype(np.int8),
+              "w": np.asfortranarray(rng.random((30, 7)).astype(np.float32)),
+              "empty": np.zeros((0, 3), np.uint16), "x" * 200: np.arange(3, dtype=np.uint16)}
+    p = tmp_path / "v.npz"
+    np.savez(p, **arrays)
+    got = load_npz(p)
+    assert sorted(got) == sorted(arrays)
+    for k, a in arrays.items():
+        assert type(got[k]) is np.ndarray and got[k].dtype == a.dtype and got[k].shape == a.shape
+        assert np.array_equal(got[k], a)
+    assert isinstance(got["point_ids"].base, np.memmap) and not got["point_ids"].flags.writeable
+    assert got["w"].flags.f_contiguous
+    # replaced by a rename (as the workspace writes): the maps keep the bytes they mapped
+    buf = io.BytesIO()
+    np.savez(buf, point_ids=np.zeros(5000, np.int64))
+    atomic_write_bytes(p, buf.getvalue())
+    assert np.array_equal(got["point_ids"], arrays["point_ids"])
+    assert not load_npz(p)["point_ids"].any()
+    # compressed: read whole, the same arrays
+    c = tmp_path / "c.npz"
+    np.savez_compressed(c, **arrays)
+    gc = load_npz(c)
+    assert all(np.array_equal(gc[k], a) and not isinstance(gc[k].base, np.memmap)
+               for k, a in arrays.items())
+    # an object array is never unpickled
+    o = tmp_path / "o.npz"
+    np.savez(o, bad=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="allow_pickle"):
+        load_npz(o)
+    # a header claiming more elements than the member holds: not mapped past it
+    raw = bytearray(buf.getvalue())
+    at = raw.index(b"'shape': (5000,)")
+    raw[at:at + 16] = b"'shape': (9000,)"
+    lie = tmp_path / "lie.npz"
+    lie.write_bytes(bytes(raw))
+    with pytest.raises((ValueError, OSError, zipfile.BadZipFile)):
+        load_npz(lie)
+    # not an archive at all
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises((ValueError, OSError, zipfile.BadZipFile)):
+        load_npz(tmp_path / "junk.npz")

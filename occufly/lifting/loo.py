@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from occufly.confusion import Confusion, count_pairs_many
+from occufly.fsutil import load_npz
 from occufly.lifting.blockknn import points_in_box
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
@@ -72,12 +73,12 @@ def _frame_votes(ws: Path, f: int, *, weights: bool = True
     p = Workspace(ws).lifting_frame(f)
     if not p.is_file():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    with np.load(p, allow_pickle=False) as z:
-        if not weights:
-            return z["point_ids"], z["cols"], None
-        pids = z["point_ids"].astype(np.int64)
-        cols = z["cols"].astype(np.int64)
-        w = z["weights"].astype(np.int64) if "weights" in z.files else np.ones(len(pids), np.int64)
+    z = load_npz(p)  # stored members as memory maps: no copy, no CRC pass
+    if not weights:
+        return z["point_ids"], z["cols"], None
+    pids = z["point_ids"].astype(np.int64)
+    cols = z["cols"].astype(np.int64)
+    w = z["weights"].astype(np.int64) if "weights" in z else np.ones(len(pids), np.int64)
     return pids, cols, w
 
 

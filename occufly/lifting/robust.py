@@ -421,8 +421,10 @@ def _fit_qda(features: np.ndarray, train: np.ndarray, cols: np.ndarray, C: int,
     if weak:
         strong = np.flatnonzero(ok)
         maj = split(majority)
-        steal_sample = {s: np.asarray(features[per[s][rng.permutation(len(per[s]))[:2000]]],
-                                      np.float32) for s in strong}
+        # 2,000 of each strong class's points drawn without replacement in O(2,000) (a
+        # permutation of all of them cost ~0.03 s per 20 MP review)
+        steal_sample = {s: np.asarray(features[per[s][rng.choice(
+            len(per[s]), min(2000, len(per[s])), replace=False)]], np.float32) for s in strong}
         for c in weak:
             base = per[c]
             extra = cap(np.setdiff1d(maj[c], base, assume_unique=False))

@@ -439,3 +439,52 @@ def test_polygon_and_flood_fill_tools_in_the_page(live, new_page):
     page.keyboard.press("Control+z")
     assert not editor_ids(page).any()
     shot(page, "10_annotator_tools")
+
+
+def test_chromium_decodes_the_review_pngs_to_their_pixels(browser):
+    """The review's PNGs come from our own encoder (Up filter, ISA-L deflate; the overlay
+    indexed with PLTE + tRNS): Chromium, the reviewer's reader, decodes the grey /render
+    image to its label ids and the overlay to ``palette[indices]`` (alpha exact; colour exact
+    where opaque, within canvas premultiplication rounding where translucent)."""
+    from app.pipeline import encode_png, encode_png_palette
+    from occufly.render import disagreement_indices, disagreement_palette
+    from occufly.taxonomy import default_taxonomy
+
+    tax = default_taxonomy()
+    rng = np.random.default_rng(4)
+    ids = np.concatenate([[0, 255], np.asarray(tax.ids)]).astype(np.uint8)
+    h, w = 120, 1500
+    mask = rng.choice(ids, (h, w)).astype(np.uint8)
+    mask[:, :400] = ids[3]  # runs, as real masks have
+    rend = np.where(rng.random((h, w)) < 0.5, mask, rng.choice(ids, (h, w))).astype(np.uint8)
+    pal = disagreement_palette(tax)
+    idx = disagreement_indices(mask, rend, tax)
+    want = pal[idx]
+    assert len(np.unique(want[..., 3])) >= 3  # opaque, translucent and clear pixels
+
+    ctx = browser.new_context()
+    page = ctx.new_page()
+    try:
+        def decoded(png: bytes) -> np.ndarray:
+            b64 = page.evaluate("""async (src) => {
+                const img = new Image(); img.src = src; await img.decode();
+                const c = document.createElement('canvas'); c.width = img.width; c.height = img.height;
+                const g = c.getContext('2d', {colorSpace: 'srgb'}); g.drawImage(img, 0, 0);
+                const a = g.getImageData(0, 0, c.width, c.height).data; let s = '';
+                for (let i = 0; i < a.length; i += 0x8000) s += String.fromCharCode.apply(null, a.subarray(i, i + 0x8000));
+                return btoa(s); }""", "data:image/png;base64," + base64.b64encode(png).decode())
+            return np.frombuffer(base64.b64decode(b64), np.uint8).reshape(h, w, 4)
+
+        grey = decoded(encode_png(rend))
+        assert (grey[..., 3] == 255).all()
+        for ch in range(3):
+            assert np.array_equal(grey[..., ch], rend)
+        over = decoded(encode_png_palette(idx, pal))
+        assert np.array_equal(over[..., 3], want[..., 3])
+        opaque = want[..., 3] == 255
+        assert np.array_equal(over[opaque], want[opaque])
+        part = (want[..., 3] > 0) & ~opaque
+        assert part.any()
+        assert np.abs(over[part][:, :3].astype(int) - want[part][:, :3]).max() <= 3
+    finally:
+        ctx.close()

@@ -32,7 +32,7 @@ from app.jobs.schemas import ExportIn
 from app.lifting.worker import main
 from app.main import create_app
 from app.scenes.models import Scene
-from app.serving import uvicorn_options
+from app.serving import tune_allocator, uvicorn_options
 from app.users import service
 from occufly.errors import InputFormatError, OccuflyError
 
@@ -98,6 +98,7 @@ def _serve(args: argparse.Namespace) -> int:
     # header-read/keep-alive timeouts, head size cap, no permessage-deflate, proxy headers
     # only with --proxy-headers from OCCUFLY_TRUSTED_PROXIES (app.serving)
     opts = uvicorn_options(settings, proxy_headers=args.proxy_headers)
+    tune_allocator()  # freed request temporaries kept for the next request (app.serving)
     app = create_app(settings)
     uvicorn.run(app, host=args.host, port=args.port, log_level="info", **opts)
     return 0
@@ -211,7 +212,9 @@ def demo(*, preset: str = "small", seed: int = 0, source: str | None = None,
         import uvicorn  # the web server, for serving only: every other command starts without it
 
         print(f"  open http://{host}:{port}/", file=sys.stderr)
-        uvicorn.run(app, host=host, port=port, log_level="info", **uvicorn_options(settings))
+        opts = uvicorn_options(settings)
+        tune_allocator()
+        uvicorn.run(app, host=host, port=port, log_level="info", **opts)
     else:
         from app.main import close  # the app factory's module, loaded by demo's app already
 

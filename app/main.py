@@ -62,6 +62,9 @@ def app_from_env() -> FastAPI:
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT", "")
     if parent.isdigit():
         die_with_parent(int(parent))
+    from app.serving import tune_allocator
+
+    tune_allocator()  # freed request temporaries kept for the next request (app.serving)
     return create_app(Settings.from_env())
 
 

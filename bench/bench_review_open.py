@@ -9,6 +9,8 @@ baseline git revision (its ``occufly/`` and ``app/`` extracted, run in its own p
 alternating rounds), plus whether both give the same LOO labels. Then the route's whole
 computation as it runs (``compute_review``: its threads included, the mask already decoded):
 ``route_wall_s`` is what a reviewer waits for on an idle machine, ``route_cpu_s`` its CPU.
+Each revision's process tunes its allocator as that revision's serving processes do
+(``app.serving.tune_allocator`` where it exists; ``allocator_tuned`` in the output).
 ``after_fill_wall_s``: the same request after a fill where the leave-one-out part is cached
 (``compute_self``: the labels' render, the self-agreement, the /render PNG). ``loo_compare``:
 the two revisions' leave-one-out point sets, labels at their common points, rendered images.
@@ -43,6 +45,11 @@ from occufly import render
 from occufly.lifting import corrections as corr
 from occufly.lifting import loo as L
 from occufly.scene import Scene
+try:  # what the revision's serving processes do to their allocator (app.serving)
+    from app.serving import tune_allocator
+except ImportError:
+    tune_allocator = None
+TUNED = bool(tune_allocator and tune_allocator())
 scene = Scene.load(ws)
 labels = np.asarray(corr.load_labels(ws).labels)
 if frame < 0:
@@ -117,7 +124,7 @@ np.savez(out, ids=loo.point_ids, labels=loo.labels,
          rendered=L.render_review(scene, loo, mask.shape)["loo"])
 import occufly
 print(json.dumps({"frame": int(frame), "size": [int(mask.shape[1]), int(mask.shape[0])],
-                  "code": str(Path(occufly.__file__).resolve().parents[1]),
+                  "code": str(Path(occufly.__file__).resolve().parents[1]), "allocator_tuned": TUNED,
                   "points_gathered": int(len(loo.point_ids)),
                   "cpu_s": {k: round(v, 3) for k, v in t.items()},
                   "totals": [round(r[0]["total"], 3) for r in runs], "overlay_bytes": nbytes,

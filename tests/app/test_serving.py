@@ -268,3 +268,56 @@ def test_nginx_tls_example_gives_secure_cookies(tmp_path):
         finally:
             proc.terminate()
             proc.wait(10)
+
+
+_KEEP_PROBE = r"""
+import os, resource, sys
+import numpy as np
+from app.serving import tune_allocator
+tuned = tune_allocator()
+def request():  # a review's temporaries: a dozen 20 MB blocks, allocated, used, freed
+    blocks = [np.ones(20 << 20, np.uint8) for _ in range(12)]
+    del blocks
+for _ in range(3):
+    request()
+r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+request()
+print(int(tuned), resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0)
+"""
+
+
+def test_a_serving_process_keeps_freed_heap_for_its_next_request(monkeypatch):
+    """tune_allocator (every `occufly serve` process): the freed blocks of one request are
+    reused by the next without page faults; with OCCUFLY_MALLOC_KEEP_MB=0 (glibc's defaults)
+    the 240 MB go back to the system and are faulted in again; an operator's own malloc
+    environment wins; a bad value is refused naming the variable."""
+    import platform
+    import sys
+
+    from app.serving import malloc_keep_mb
+    from occufly.errors import InputFormatError
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc's mallopt: the deployment's C library")
+    base = {k: v for k, v in os.environ.items()
+            if not k.startswith(("MALLOC_", "GLIBC_TUNABLES", "OCCUFLY_MALLOC"))}
+
+    def probe(**extra: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", _KEEP_PROBE], env={**base, **extra}, cwd=REPO,
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        tuned, faults = out.stdout.split()
+        return int(tuned), int(faults)
+
+    tuned, kept = probe()
+    assert tuned == 1 and kept < 50, kept
+    tuned, default = probe(OCCUFLY_MALLOC_KEEP_MB="0")
+    # at least one fault per 2 MB huge page of the 240 MB, 4 kB pages many more
+    assert tuned == 0 and default >= 100, default
+    assert probe(MALLOC_TRIM_THRESHOLD_="131072")[0] == 0
+    for bad in ("lots", "-1", "5000", "1.5"):
+        monkeypatch.setenv("OCCUFLY_MALLOC_KEEP_MB", bad)
+        with pytest.raises(InputFormatError, match="OCCUFLY_MALLOC_KEEP_MB"):
+            malloc_keep_mb()
+    monkeypatch.delenv("OCCUFLY_MALLOC_KEEP_MB")
+    assert malloc_keep_mb() == 512

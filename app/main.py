@@ -62,7 +62,7 @@ def app_from_env() -> FastAPI:
     parent = os.environ.get("OCCUFLY_DIE_WITH_PARENT", "")
     if parent.isdigit():
         die_with_parent(int(parent))
-    from app.serving import tune_allocator
+    from app.serving import tune_allocator  # uvicorn's modules: loaded by serving processes only
 
     tune_allocator()  # freed request temporaries kept for the next request (app.serving)
     return create_app(Settings.from_env())

@@ -45,8 +45,10 @@ afresh on every request.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
+import platform
 from typing import Any
 
 import h11
@@ -131,9 +133,6 @@ def tune_allocator() -> bool:
     A no-op (False) off glibc, with ``OCCUFLY_MALLOC_KEEP_MB=0``, or where the environment
     already tunes malloc (``MALLOC_TRIM_THRESHOLD_``, ``MALLOC_MMAP_THRESHOLD_``,
     ``GLIBC_TUNABLES``: the operator's choice wins)."""
-    import ctypes
-    import platform
-
     keep = malloc_keep_mb()
     if keep == 0 or platform.libc_ver()[0] != "glibc":
         return False

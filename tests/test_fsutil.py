@@ -81,12 +81,13 @@ def test_sigterm_unwinds_a_command_and_leaves_no_partial_output(tmp_path, comman
     assert [p.name for p in work.iterdir()] == []
 
 
-def test_load_npz_maps_stored_members_and_reads_anything_else_whole(tmp_path):
-    """load_npz: the arrays of np.savez as read-only maps equal to np.load's (several dtypes,
-    a 2-D Fortran array, an empty one, a long name); a compressed archive, a pickled object
-    array and a member whose header lies about its size go through np.load (equal arrays, or
-    np.load's refusal); a file replaced after the call leaves the maps on the old bytes."""
-    from occufly.fsutil import atomic_write_bytes, load_npz
+def test_load_npz_reads_stored_members_directly_and_anything_else_through_np_load(tmp_path,
+                                                                                  monkeypatch):
+    """load_npz: the arrays of np.savez equal to np.load's (several dtypes, a 2-D Fortran
+    array, an empty one, a long name), no file left open; a compressed archive, a pickled
+    object array, a member whose header lies about its size and a file that is no archive go
+    through np.load (equal arrays, or np.load's refusal)."""
+    from occufly.fsutil import load_npz
 
     rng = np.random.default_rng(2)
     arrays = {"point_ids": np.sort(rng.integers(0, 1 << 40, 5000)),
@@ -95,31 +96,36 @@ def test_load_npz_maps_stored_members_and_reads_anything_else_whole(tmp_path):
               "empty": np.zeros((0, 3), np.uint16), "x" * 200: np.arange(3, dtype=np.uint16)}
     p = tmp_path / "v.npz"
     np.savez(p, **arrays)
-    got = load_npz(p)
+    fds = len(os.listdir("/proc/self/fd"))
+    with monkeypatch.context() as m:  # read directly: np.load is not called
+        m.setattr(np, "load", lambda *a, **k: pytest.fail("np.load used for a stored archive"))
+        got = load_npz(p)
+    assert len(os.listdir("/proc/self/fd")) == fds  # nothing held open
     assert sorted(got) == sorted(arrays)
     for k, a in arrays.items():
         assert type(got[k]) is np.ndarray and got[k].dtype == a.dtype and got[k].shape == a.shape
         assert np.array_equal(got[k], a)
-    assert isinstance(got["point_ids"].base, np.memmap) and not got["point_ids"].flags.writeable
     assert got["w"].flags.f_contiguous
-    # replaced by a rename (as the workspace writes): the maps keep the bytes they mapped
+    # mmap=True: read-only maps of the same arrays; the files close when they are dropped
+    mapped = load_npz(p, mmap=True)
+    assert all(np.array_equal(mapped[k], a) for k, a in arrays.items())
+    assert isinstance(mapped["point_ids"].base, np.memmap) and not mapped["cols"].flags.writeable
+    assert len(os.listdir("/proc/self/fd")) > fds
+    del mapped
+    assert len(os.listdir("/proc/self/fd")) == fds
     buf = io.BytesIO()
     np.savez(buf, point_ids=np.zeros(5000, np.int64))
-    atomic_write_bytes(p, buf.getvalue())
-    assert np.array_equal(got["point_ids"], arrays["point_ids"])
-    assert not load_npz(p)["point_ids"].any()
     # compressed: read whole, the same arrays
     c = tmp_path / "c.npz"
     np.savez_compressed(c, **arrays)
     gc = load_npz(c)
-    assert all(np.array_equal(gc[k], a) and not isinstance(gc[k].base, np.memmap)
-               for k, a in arrays.items())
+    assert sorted(gc) == sorted(arrays) and all(np.array_equal(gc[k], a) for k, a in arrays.items())
     # an object array is never unpickled
     o = tmp_path / "o.npz"
     np.savez(o, bad=np.array([{"a": 1}], dtype=object))
     with pytest.raises(ValueError, match="allow_pickle"):
         load_npz(o)
-    # a header claiming more elements than the member holds: not mapped past it
+    # a header claiming more elements than the member holds: not read past it
     raw = bytearray(buf.getvalue())
     at = raw.index(b"'shape': (5000,)")
     raw[at:at + 16] = b"'shape': (9000,)"

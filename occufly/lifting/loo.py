@@ -66,19 +66,16 @@ class LooLabels:
     share: np.ndarray | None = None
 
 
-def _frame_votes(ws: Path, f: int, *, weights: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Frame ``f``'s votes: (point ids, columns, weights) as int64; with ``weights=False``
-    the ids and columns in their stored types and no weights (None)."""
+def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame ``f``'s votes: (point ids, columns, weights) as int64."""
     p = Workspace(ws).lifting_frame(f)
     if not p.is_file():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    z = load_npz(p)  # stored members as memory maps: no copy, no CRC pass
-    if not weights:
-        return z["point_ids"], z["cols"], None
-    pids = z["point_ids"].astype(np.int64)
-    cols = z["cols"].astype(np.int64)
-    w = z["weights"].astype(np.int64) if "weights" in z else np.ones(len(pids), np.int64)
+    z = load_npz(p)  # stored members read straight into their arrays: no CRC pass
+    pids = z["point_ids"].astype(np.int64, copy=False)
+    cols = z["cols"].astype(np.int64, copy=False)
+    w = (z["weights"].astype(np.int64, copy=False) if "weights" in z
+         else np.ones(len(pids), np.int64))
     return pids, cols, w
 
 
@@ -952,7 +949,8 @@ class NeighbourVotes:
     """What :func:`disagreeing_neighbours` reads before it needs the leave-one-out labels:
     frame ``frame_index``'s votes (``own_p`` point ids sorted, ``own_c`` columns) and, for
     each annotated frame into which a sample of its voted points projects, that frame's votes
-    (``frames``: a list of (frame index, point ids, columns) in frame order)."""
+    (``frames``: a list of (frame index, its vote file) in frame order, read one at a time
+    by :func:`disagreeing_neighbours`)."""
 
     frame_index: int
     own_p: np.ndarray
@@ -962,9 +960,9 @@ class NeighbourVotes:
 
 def neighbour_votes(ws: str | Path, scene: Scene, frame_index: int) -> NeighbourVotes:
     """The votes :func:`disagreeing_neighbours` compares (:class:`NeighbourVotes`): one
-    projection of a sample of the frame's voted points per annotated frame, the vote files of
-    the frames that see it. Needs no labels, so a review reads them while the leave-one-out
-    labels are decided."""
+    projection of a sample of the frame's voted points per annotated frame, which frames see
+    it. Needs no labels, so a review finds them while the leave-one-out labels are decided;
+    their vote files are read when compared, one at a time (memory maps, one open file)."""
     w = Workspace(ws)
     own_p, own_c, _ = _frame_votes(Path(ws), frame_index)
     d = w.lifting_frames_dir
@@ -984,8 +982,7 @@ def neighbour_votes(ws: str | Path, scene: Scene, frame_index: int) -> Neighbour
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < fr.camera.width) \
             & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
         if inside.any():
-            gp, gc = _frame_votes(Path(ws), g, weights=False)[:2]
-            frames.append((g, gp, gc))
+            frames.append((g, w.lifting_frame(g)))
     return NeighbourVotes(frame_index, own_p, own_c, frames)
 
 
@@ -1013,7 +1010,13 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     pids = np.ascontiguousarray(loo.point_ids, np.int64)
     mine_of = None  # built only for a neighbour whose votes are not sorted
     out = []
-    for g, gp, gc in nv.frames:
+    for g, path in nv.frames:
+        try:  # the stored votes mapped, not copied; dropped (and the file closed) each turn
+            z = load_npz(path, mmap=True)
+        except FileNotFoundError:  # its mask was deleted since: no votes to compare
+            continue
+        gp, gc = z["point_ids"], z["cols"]
+        del z
         # both vote lists sorted by point id: one merge walk counts the shared, disagreeing
         # and overruled points (no (N,) map of the frame's votes, no per-vote temporaries)
         counts = _neighbour_counts(own_p, own_c, gp, gc, pids, loo_cols) if len(gp) else (0, 0, 0, 0)

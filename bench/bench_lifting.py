@@ -272,6 +272,8 @@ def robustness(args: argparse.Namespace) -> dict:
                     "held_out_agreement": round(ag["agreement"], 4),
                     "per_class_iou": {k: (round(v["iou"], 4) if v["iou"] is not None else None)
                                       for k, v in ev["per_class"].items()},
+                    "errors": error_breakdown(np.asarray(st.votes), st._cls, direct,
+                                              np.asarray(res.labels), truth, tax),
                     "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
                     "lift_stats": {k: v for k, v in res.stats.items()
                                    if k.startswith(("robust", "reliability", "confusion"))
@@ -283,6 +285,39 @@ def robustness(args: argparse.Namespace) -> dict:
                         sc, masks, exact)
                 print(json.dumps({f"{vname}/{mname}/{robust}": out[f"{vname}/{mname}/{robust}"]}),
                       file=sys.stderr, flush=True)
+    return out
+
+
+def error_breakdown(counts: np.ndarray, cls, direct: np.ndarray, labels: np.ndarray,  # noqa: ANN001
+                    truth: np.ndarray, tax, top: int = 8) -> dict:  # noqa: ANN001
+    """Where a lifting's wrong points come from, by what the votes said of them (shares of
+    the points with a truth class): ``no_vote`` (no view voted the point), ``truth_unvoted``
+    (views voted it, none for its true class), ``truth_minority`` (its true class had votes
+    but not the most), ``truth_majority`` (the vote majority was right); each with the share
+    of all points it holds and the share wrong in the end. ``pairs``: the ``top`` (true class,
+    lifted class) confusions by share of all points. Issue 37's round 5 started from this."""
+    valid = (truth > 0) & (truth < 255)
+    n = max(1, int(valid.sum()))
+    tc = cls.col_of[np.clip(truth, 0, 255)].astype(np.int64)
+    rows = np.flatnonzero(valid & (tc >= 0))
+    tv = np.zeros(len(truth), np.int64)
+    tv[rows] = counts[rows, tc[rows]]
+    nv = counts.sum(axis=1, dtype=np.int64)
+    wrong = valid & (labels != truth)
+    out: dict = {"wrong": round(float(wrong.sum() / n), 4)}
+    for name, m in (("no_vote", nv == 0), ("truth_unvoted", (nv > 0) & (tv == 0)),
+                    ("truth_minority", (tv > 0) & (direct != truth)),
+                    ("truth_majority", (tv > 0) & (direct == truth))):
+        m = m & valid
+        out[name] = {"share": round(float(m.sum() / n), 4),
+                     "wrong": round(float((m & wrong).sum() / n), 4)}
+    names = {c.id: c.name for c in tax.classes}
+    key = truth[wrong].astype(np.int64) * 256 + labels[wrong]
+    u, c = np.unique(key, return_counts=True)
+    order = np.argsort(-c, kind="stable")[:top]
+    out["pairs"] = [[names.get(int(u[i] // 256), str(int(u[i] // 256))),
+                     names.get(int(u[i] % 256), "unlabelled"), round(float(c[i] / n), 4)]
+                    for i in order]
     return out
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ import numpy as np
 from numpy.lib import format as npy_format
 
 from occufly.errors import WorkspaceError
-from occufly.fsutil import atomic_save_npy, atomic_write_text
+from occufly.fsutil import atomic_save_npy, atomic_write_text, load_npz
 from occufly.grid import SceneGrid
 
 SCENE_JSON = "scene.json"
@@ -155,6 +156,30 @@ class Workspace:
     def lifting_frame(self, frame_index: int) -> Path:
         """The votes frame ``frame_index`` cast (``lifting/frames/<index>.npz``)."""
         return self.lifting_frames_dir / f"{int(frame_index)}.npz"
+
+    def read_frame_votes(self, frame_index: int
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+        """The votes frame ``frame_index`` cast, as stored: (point ids, vote columns, weights --
+        None where the state counts plain votes and the file keeps none), or None without a
+        file. The one reader of ``lifting/frames/<index>.npz`` (the votes store, the review's
+        leave-one-out labels, the quality report, the confusion model): stored members are
+        read straight into their arrays (:func:`occufly.fsutil.load_npz`: no zip stream, no
+        CRC pass, no descriptor left open); a file that is not the archive the votes store
+        writes is a :class:`WorkspaceError` naming it."""
+        p = self.lifting_frame(frame_index)
+        if not p.is_file():
+            return None
+        try:
+            z = load_npz(p)
+            pids, cols = z["point_ids"], z["cols"]
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
+            raise WorkspaceError(f"{p}: unreadable votes of frame {int(frame_index)} ({e}); "
+                                 "re-apply the frame's mask to rewrite them") from None
+        w = z.get("weights")
+        if pids.ndim != 1 or cols.shape != pids.shape or (w is not None and w.shape != pids.shape):
+            raise WorkspaceError(f"{p}: point_ids {pids.shape}, cols {cols.shape} and weights "
+                                 f"{None if w is None else w.shape} differ")
+        return pids, cols, w
 
     @property
     def labels_path(self) -> Path:

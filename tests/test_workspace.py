@@ -99,3 +99,51 @@ def test_direct_labels_is_a_read_only_reader(tmp_path):
     got = read_direct_labels(ws.root)
     assert np.array_equal(got, expected) and (got > 0).any()
     assert {p: p.stat().st_mtime_ns for p in ws.lifting_dir.rglob("*") if p.is_file()} == before
+
+
+def test_frame_votes_have_one_reader_for_every_consumer(tmp_path):
+    """Workspace.read_frame_votes is what the votes store, the review's leave-one-out labels,
+    the quality report and the confusion model read a frame's votes with: what apply_frame
+    wrote comes back as written (weights only where the state weighs votes), a missing file is
+    None, and a damaged file is a WorkspaceError naming it -- not a zip or numpy traceback."""
+    from occufly.lifting import VoteStore
+    from occufly.lifting.confusion import load_frame_votes
+    from occufly.lifting.loo import _frame_votes
+    from tests.lift_scene import make_scene, truth_mask
+
+    scene, _truth = make_scene()
+    scene.save(tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    st = VoteStore.open(ws.root, scene)
+    mask = truth_mask(scene.frames[5])
+    pids, cols, _w = st.frame_votes(5, mask)
+    st.apply_frame(5, mask, version="v1")
+    st.save()
+    assert ws.read_frame_votes(4) is None
+    got_p, got_c, got_w = ws.read_frame_votes(5)
+    assert np.array_equal(got_p, pids) and np.array_equal(got_c, cols) and got_w is None
+    assert got_p.dtype == np.int32 and got_c.dtype == np.uint8 and len(got_p) > 100
+    # every consumer sees the same votes
+    lp, lc, lw = _frame_votes(ws.root, 5)
+    assert np.array_equal(lp, pids) and np.array_equal(lc, cols) and (lw == 1).all()
+    cp, cc, cw = load_frame_votes(ws.root, [4, 5])[5]
+    assert np.array_equal(cp, pids) and np.array_equal(cc, cols) and cw is None
+    assert list(load_frame_votes(ws.root, [4, 5])) == [5]
+    # a counted rebuild from the files gives the same counts
+    before = np.array(st.votes)
+    st.rebuild()
+    assert np.array_equal(np.asarray(st.votes), before)
+    st.close()
+    # damaged: not an archive, a member missing, members that disagree in length
+    p = ws.lifting_frame(5)
+    for bad in (b"not a zip", None, "short"):
+        if bad is None:
+            np.savez(p.with_suffix(".tmp.npz"), point_ids=pids)
+        elif bad == "short":
+            np.savez(p.with_suffix(".tmp.npz"), point_ids=pids, cols=cols[:-1])
+        if isinstance(bad, bytes):
+            p.write_bytes(bad)
+        else:
+            p.with_suffix(".tmp.npz").replace(p)
+        with pytest.raises(WorkspaceError, match=r"5\.npz"):
+            ws.read_frame_votes(5)

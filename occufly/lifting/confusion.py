@@ -114,14 +114,7 @@ def load_frame_votes(ws: str | Path, frames: list[int]) -> dict[int, tuple]:
     from occufly.workspace import Workspace
 
     w_s = Workspace(ws)
-    out = {}
-    for f in frames:
-        p = w_s.lifting_frame(f)
-        if p.is_file():
-            with np.load(p, allow_pickle=False) as z:
-                w = z["weights"] if "weights" in z.files else None
-                out[int(f)] = (z["point_ids"], z["cols"], w)
-    return out
+    return {int(f): got for f in frames if (got := w_s.read_frame_votes(f)) is not None}
 
 
 def _gather(t: VoteTable, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -68,15 +68,12 @@ class LooLabels:
 
 def _frame_votes(ws: Path, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame ``f``'s votes: (point ids, columns, weights) as int64."""
-    p = Workspace(ws).lifting_frame(f)
-    if not p.is_file():
+    got = Workspace(ws).read_frame_votes(f)  # stored members read straight: no CRC pass
+    if got is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    z = load_npz(p)  # stored members read straight into their arrays: no CRC pass
-    pids = z["point_ids"].astype(np.int64, copy=False)
-    cols = z["cols"].astype(np.int64, copy=False)
-    w = (z["weights"].astype(np.int64, copy=False) if "weights" in z
-         else np.ones(len(pids), np.int64))
-    return pids, cols, w
+    pids, cols, w = got
+    return (pids.astype(np.int64, copy=False), cols.astype(np.int64, copy=False),
+            w.astype(np.int64, copy=False) if w is not None else np.ones(len(pids), np.int64))
 
 
 @numba.njit(nogil=True, cache=True)

@@ -106,8 +106,11 @@ def workspace_truth(ws: str | Path, n_points: int) -> np.ndarray | None:
 
 
 def _frame_votes(w: Workspace, f: int) -> tuple[np.ndarray, np.ndarray]:
-    with np.load(w.lifting_frame(f), allow_pickle=False) as z:
-        return z["point_ids"].astype(np.int64), z["cols"].astype(np.int64)
+    got = w.read_frame_votes(f)
+    if got is None:
+        raise WorkspaceError(f"{w.lifting_frame(f)}: the votes of frame {f} are missing; "
+                             "re-apply the frame's mask")
+    return got[0].astype(np.int64), got[1].astype(np.int64)
 
 
 def _vote_stats(votes: np.ndarray, labels: np.ndarray, cls: ClassColumns,

@@ -322,7 +322,7 @@ class VoteStore:
         for p in sorted(Workspace(self.ws).lifting_frames_dir.glob("*.npz")):
             if not p.stem.isdigit():
                 continue
-            pids, cols, w = self._load_frame_file(p)
+            pids, cols, w = self._frame_file(int(p.stem))
             np.add.at(flat, pids.astype(np.int64) * C + cols, w)
             self._versions.setdefault(int(p.stem), None)
         for fi in list(self._versions):
@@ -509,17 +509,19 @@ class VoteStore:
         return (np.asarray(pids)[keep].astype(np.int32),
                 self._cls.col_of[raw[keep]].astype(np.uint8), weight)
 
-    @staticmethod
-    def _load_frame_file(p: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with np.load(p, allow_pickle=False) as z:
-            pids, cols = z["point_ids"], z["cols"]
-            w = z["weights"] if "weights" in z.files else np.ones(len(pids), np.uint8)
-            return pids, cols, w
+    def _frame_file(self, fi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Frame ``fi``'s stored votes (point ids, columns, weights -- ones for plain votes),
+        or None without a file (:meth:`Workspace.read_frame_votes`)."""
+        got = Workspace(self.ws).read_frame_votes(fi)
+        if got is None:
+            return None
+        pids, cols, w = got
+        return pids, cols, (w if w is not None else np.ones(len(pids), np.uint8))
 
     def _old_votes(self, fi: int) -> tuple[np.ndarray, np.ndarray]:
-        p = self._frame_path(fi)
-        if p.is_file():
-            return self._load_frame_file(p)
+        got = self._frame_file(fi)
+        if got is not None:
+            return got
         return np.zeros(0, np.int32), np.zeros(0, np.uint8), np.zeros(0, np.uint8)
 
     def _apply(self, old: tuple[np.ndarray, ...], new: tuple[np.ndarray, ...]) -> dict:
@@ -674,11 +676,7 @@ class VoteStore:
         (:mod:`occufly.lifting.reliability`; judged against ``labels``, a first lifting, or
         with ``labels=None`` against the other frames' votes), as a snapshot; None when
         nothing is vetoed. Stats: the vetoed (frame, class) pairs."""
-        frames = {}
-        for fi in self._versions:
-            pth = self._frame_path(fi)
-            if pth.is_file():
-                frames[fi] = self._load_frame_file(pth)
+        frames = {fi: got for fi in self._versions if (got := self._frame_file(fi)) is not None}
         pairs = {f: v[:2] for f, v in frames.items()}
         if labels is not None:
             votes, agree = frame_class_agreement(pairs, labels, self._cls)
@@ -729,9 +727,8 @@ class VoteStore:
                 snapshot = vetoed or snapshot
             rp = getattr(params, "robust_params", None)
             if getattr(rp, "confusion", None) is not None:  # the votes as counted now
-                snapshot.frame_votes = {fi: self._load_frame_file(fp)
-                                        for fi in self._versions
-                                        if (fp := self._frame_path(fi)).is_file()}
+                snapshot.frame_votes = {fi: got for fi in self._versions
+                                        if (got := self._frame_file(fi)) is not None}
         if annotators is not None:
             snapshot.annotators = dict(annotators)
         result = fill_snapshot(self.scene, snapshot, params=params, ws=self.ws,

@@ -1,0 +1,158 @@
+"""How far better masks or a better annotator model could take the lifting (issue 37).
+
+Prints one JSON object. On a synthetic scene imported into ``--ws`` (``occufly synth`` then
+``occufly import``), the greedy rho 0.99 frames are lifted with the default robust decision
+from their exact masks, from degrade.py's masks, and from degrade.py's masks with one kind of
+error taken back using the synthetic truth -- which no method has, so each figure is a
+ceiling, not a result:
+
+``degraded_swaps_repaired``
+    the whole regions degrade.py painted as their look-alike (away from the exact masks'
+    class boundaries) painted back to their true class;
+``degraded_boundaries_repaired``
+    every painted pixel within ``--band`` px of an exact class boundary that differs from the
+    exact mask painted back: the boundary drift, and the small objects skipped or shifted;
+``degraded_both_repaired``
+    both;
+``degraded_true_annotator_model``
+    the degraded masks as they are, but the robust decision's pooled confusion matrix
+    replaced by the one counted from the truth (every vote against its point's true class):
+    what a perfect annotator model would give.
+
+The baseline is the first run (``degraded``), in the same process. Each run also reports the
+share of painted pixels still wrong (``pixels_wrong``) and the error breakdown of
+``bench_lifting.error_breakdown``.
+
+    .venv/bin/python bench/bench_lifting_bounds.py --synthetic SYN --ws WS --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from bench_lifting import error_breakdown  # noqa: E402
+
+from occufly.io.masks import read_mask  # noqa: E402
+from occufly.lifting import LiftParams, VoteStore  # noqa: E402
+from occufly.lifting import robust as robust_mod  # noqa: E402
+from occufly.metrics import evaluate_points  # noqa: E402
+from occufly.scene import Scene  # noqa: E402
+from occufly.selection import select_frames  # noqa: E402
+from occufly.synthetic.degrade import _confusion_lut, degrade_masks  # noqa: E402
+
+
+def boundary_band(mask: np.ndarray, band: int) -> np.ndarray:
+    """Pixels within ``band`` px of a class boundary of ``mask``."""
+    edge = ndimage.morphological_gradient(mask, size=3) > 0
+    return ndimage.binary_dilation(edge, iterations=band) if band > 0 else edge
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--synthetic", type=Path, required=True, help="the occufly synth folder (truth)")
+    ap.add_argument("--ws", type=Path, required=True, help="its imported workspace")
+    ap.add_argument("--seed", type=int, default=0, help="degrade.py's seed")
+    ap.add_argument("--band", type=int, default=4, help="px either side of an exact boundary")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-bench"))
+    args = ap.parse_args()
+
+    scene = Scene.load(args.ws)
+    tax = scene.taxonomy
+    truth = np.load(args.synthetic / "truth" / "point_labels.npy")
+    if len(truth) != scene.n_points:
+        raise SystemExit(f"{args.synthetic}: truth has {len(truth)} points, {args.ws} {scene.n_points}")
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    exact = {fi: read_mask(args.synthetic / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
+                           scene.frames[fi], tax) for fi in sel.frames}
+    degraded = degrade_masks(exact, tax, seed=args.seed)
+    lut = _confusion_lut(tax)
+    bands = {fi: boundary_band(m, args.band) for fi, m in exact.items()}
+    swapped = {fi: (degraded[fi] != m) & (lut[m] == degraded[fi]) & (lut[m] != m) & ~bands[fi]
+               for fi, m in exact.items()}
+    drifted = {fi: (degraded[fi] != m) & (degraded[fi] != 0) & bands[fi] for fi, m in exact.items()}
+
+    def repaired(which: dict) -> dict:
+        return {fi: np.where(which[fi], exact[fi], degraded[fi]).astype(np.uint8) for fi in exact}
+
+    true_pi: dict = {}
+
+    def lift(masks: dict, *, with_true_pi: bool = False) -> dict:
+        tmp = args.cache / "bounds-ws"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for name in ("scene.json", "taxonomy.json", "points", "visibility"):
+            (tmp / name).symlink_to(args.ws.resolve() / name)
+        st = VoteStore.open(tmp, scene)
+        for fi in sel.frames:
+            st.apply_frame(fi, masks[fi], version="bounds")
+        estimate = robust_mod.estimate_confusion
+        if with_true_pi:
+            # the pooled matrix counted from the truth, with the EM's own Dirichlet prior
+            cls = st._cls
+            counts = np.zeros((cls.C, cls.C))
+            for fi in sel.frames:
+                pids, cols, _ = st.frame_votes(fi, masks[fi])
+                tcol = cls.col_of[truth[pids]]
+                ok = tcol >= 0
+                np.add.at(counts, (tcol[ok], cols[ok].astype(np.int64)), 1)
+
+            def true_matrix(c1, n1, c2, n2, C, p):  # noqa: ANN001, ANN202
+                _pi, prior = estimate(c1, n1, c2, n2, C, p)
+                a = counts + p.off_prior + p.diag_prior * np.eye(C)
+                true_pi["matrix"] = a / a.sum(axis=1, keepdims=True)
+                return true_pi["matrix"], prior
+
+            robust_mod.estimate_confusion = true_matrix
+        try:
+            t = time.perf_counter()
+            res = st.fill_and_denoise(write=False, params=LiftParams())
+            sec = time.perf_counter() - t
+        finally:
+            robust_mod.estimate_confusion = estimate
+        ev = evaluate_points(res.labels, truth, tax, res.origin)
+        out = {"accuracy": round(ev["accuracy"], 4), "miou": round(ev["miou"], 4),
+               "pixels_wrong": round(float(np.mean([((masks[f] != exact[f]) & (masks[f] != 0)).mean()
+                                                    for f in exact])), 4),
+               "errors": error_breakdown(np.asarray(st.votes), st._cls, st.direct_labels(),
+                                         np.asarray(res.labels), truth, tax),
+               "fill_seconds": round(sec, 2)}
+        st.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        return out
+
+    out: dict = {"bench": "lifting-bounds", "synthetic": str(args.synthetic), "seed": args.seed,
+                 "points": scene.n_points, "frames": len(scene.frames), "selected": len(sel.frames),
+                 "band_px": args.band,
+                 "pixels_swapped": round(float(np.mean([s.mean() for s in swapped.values()])), 4),
+                 "pixels_in_band_wrong": round(float(np.mean([d.mean() for d in drifted.values()])), 4)}
+    runs = {"degraded": lambda: lift(degraded), "exact": lambda: lift(exact),
+            "degraded_swaps_repaired": lambda: lift(repaired(swapped)),
+            "degraded_boundaries_repaired": lambda: lift(repaired(drifted)),
+            "degraded_both_repaired": lambda: lift(repaired({f: swapped[f] | drifted[f] for f in exact})),
+            "degraded_true_annotator_model": lambda: lift(degraded, with_true_pi=True)}
+    for name, run in runs.items():
+        out[name] = run()
+        print(json.dumps({name: {k: out[name][k] for k in ("accuracy", "miou", "pixels_wrong")}}),
+              file=sys.stderr, flush=True)
+    base = out["degraded"]
+    for name in runs:
+        if name != "degraded":
+            out[name]["gain_points"] = [round(100 * (out[name]["accuracy"] - base["accuracy"]), 2),
+                                        round(100 * (out[name]["miou"] - base["miou"]), 2)]
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -152,7 +152,7 @@ def quality(args: argparse.Namespace) -> dict:
 #: the robust decision before the tiny-object work (issue 18's last round): scene-wide prior
 #: only, classifier trained on unanimous points only, the fill's two-view confirmation
 BEFORE_TINY = RobustParams(local_voxel=0.0, min_strong=0, confirm_views=None,
-                           confirm_needs_vote=False)
+                           confirm_needs_vote=False, refit_rounds=0)
 
 
 #: the robust decision's variants measured in issue 37 (name -> RobustParams; None = defaults)
@@ -160,6 +160,11 @@ ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-
                       "robust-snap": None, "robust-plain": None,
                       "robust-prior05": RobustParams(prior_weight=0.5),
                       "robust-prior075": RobustParams(prior_weight=0.75),
+                      # issue 37, fifth round: the pooled matrix counted again from the
+                      # decision's labels (twice: the default since; -norefit the default
+                      # before, -refit1 once)
+                      "robust-norefit": RobustParams(refit_rounds=0),
+                      "robust-refit1": RobustParams(refit_rounds=1),
                       # issue 37, fourth round: the per-annotator confusion model
                       # (occufly.lifting.confusion); -author: the crew's annotator of each
                       # frame (crew noise only; the others: each frame its own annotator);

@@ -160,3 +160,29 @@ def test_right_frame_next_to_a_wrong_one_is_not_blamed(tmp_path):
     assert wrong["agreement"] < 0.1
     nb = {n["frame_index"]: n for n in wrong["neighbours"]}
     assert nb[5]["disagree_share"] > 0.9 and nb[5]["overruled_share"] < 0.1
+
+
+def test_loo_robust_decision_skips_the_refit_rounds_and_keeps_the_rest(lifted, monkeypatch):
+    """The review's leave-one-out decision is the pipeline's redecide without the refit
+    rounds (issue 37's fifth round: two more decision passes cost a 20 MP first open 0.85 ->
+    1.22 s): redecide sees refit_rounds=0 and every other parameter the caller gave."""
+    from dataclasses import replace
+
+    from occufly.lifting import robust
+    from occufly.lifting.robust import RobustParams
+
+    path, scene, _masks, _labels = lifted
+    seen = []
+    real = robust.redecide
+
+    def spy(*a, **k):
+        seen.append(a[6] if len(a) > 6 else k.get("params"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(robust, "redecide", spy)
+    mine = replace(RobustParams(), candidate_nats=9.0)
+    assert mine.refit_rounds > 0  # the pipeline's default refits
+    loo = loo_labels(path, scene, WRONG, params=LiftParams(robust_params=mine))
+    assert seen and all(p.refit_rounds == 0 for p in seen)
+    assert all(p.candidate_nats == 9.0 for p in seen)
+    assert loo.voted.any()

@@ -39,7 +39,9 @@ Refit (issue 37, fifth round; ``RobustParams.refit_rounds``, 2 by default)
     the same Dirichlet prior) and the points are decided again, twice. The decided labels
     carry the classifier's and the neighbourhood's evidence, which the EM's posteriors did not.
     Measured in docs/lifting.md (fifth round): degraded masks +0.16 to +0.59 accuracy points
-    on four scenes, exact masks within 0.02 accuracy and 0.04 mIoU points.
+    on four scenes, exact masks within 0.02 accuracy and 0.04 mIoU points. The review's
+    leave-one-out labels decide without it (:mod:`occufly.lifting.loo`: two more passes took
+    a 20 MP first open over 1 s).
 
 Per-annotator confusion (issue 37, fourth round; ``RobustParams.confusion``, off by default)
     :mod:`occufly.lifting.confusion` fits one matrix per annotator (each frame, or its author

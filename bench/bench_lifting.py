@@ -281,8 +281,8 @@ def robustness(args: argparse.Namespace) -> dict:
                                               np.asarray(res.labels), truth, tax),
                     "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
                     "lift_stats": {k: v for k, v in res.stats.items()
-                                   if k.startswith(("robust", "reliability", "confusion"))
-                                   or k.endswith("seconds")},
+                                   if (k.startswith(("robust", "reliability", "confusion"))
+                                       or k.endswith("seconds")) and k != "robust_matrix"},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
                 if weighting_of(robust) == "snap":  # what the snapping did to the masks

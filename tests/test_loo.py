@@ -162,27 +162,49 @@ def test_right_frame_next_to_a_wrong_one_is_not_blamed(tmp_path):
     assert nb[5]["disagree_share"] > 0.9 and nb[5]["overruled_share"] < 0.1
 
 
-def test_loo_robust_decision_skips_the_refit_rounds_and_keeps_the_rest(lifted, monkeypatch):
-    """The review's leave-one-out decision is the pipeline's redecide without the refit
-    rounds (issue 37's fifth round: two more decision passes cost a 20 MP first open 0.85 ->
-    1.22 s): redecide sees refit_rounds=0 and every other parameter the caller gave."""
+def test_loo_robust_decision_reuses_the_fills_matrix_and_never_refits(lifted, monkeypatch):
+    """The review's leave-one-out decision is the pipeline's redecide with the annotator
+    matrix the last fill decided with (labels.json's robust_matrix, refitted) and without
+    refit rounds of its own (issue 37's fifth round: two more decision passes cost a 20 MP
+    first open 0.85 -> 1.22 s); every other parameter is the caller's. A workspace whose fill
+    stored no matrix (or one for other classes) gets the EM on the frame's cull."""
     from dataclasses import replace
 
+    from occufly.lifting import loo as loo_mod
     from occufly.lifting import robust
+    from occufly.lifting.classes import ClassColumns
     from occufly.lifting.robust import RobustParams
+    from occufly.workspace import Workspace
 
     path, scene, _masks, _labels = lifted
+    cls = ClassColumns(scene.taxonomy)
+    stored = Workspace(path).lift_stats()["robust_matrix"]
+    assert stored["class_ids"] == [int(i) for i in cls.ids]
+    pi = np.asarray(stored["pi"])
+    assert pi.shape == (cls.C, cls.C) and np.allclose(pi.sum(axis=1), 1.0, atol=1e-4)
     seen = []
     real = robust.redecide
 
     def spy(*a, **k):
-        seen.append(a[6] if len(a) > 6 else k.get("params"))
+        seen.append((a[6] if len(a) > 6 else k.get("params"), k.get("confusion_matrix")))
         return real(*a, **k)
 
     monkeypatch.setattr(robust, "redecide", spy)
     mine = replace(RobustParams(), candidate_nats=9.0)
     assert mine.refit_rounds > 0  # the pipeline's default refits
     loo = loo_labels(path, scene, WRONG, params=LiftParams(robust_params=mine))
-    assert seen and all(p.refit_rounds == 0 for p in seen)
-    assert all(p.candidate_nats == 9.0 for p in seen)
+    assert seen and all(p.refit_rounds == 0 and p.candidate_nats == 9.0 for p, _m in seen)
+    assert all(m is not None and np.array_equal(m, pi) for _p, m in seen)
     assert loo.voted.any()
+    # no stored matrix (a fill of an older version), or one of another taxonomy: the EM
+    seen.clear()
+    monkeypatch.setattr(Workspace, "lift_stats", lambda self: {})
+    assert loo_mod.stored_matrix(path, cls) is None
+    loo_labels(path, scene, WRONG, params=LiftParams(robust_params=mine))
+    assert seen and all(m is None and p.refit_rounds == 0 for p, m in seen)
+    other = {"robust_matrix": {"class_ids": list(range(1, cls.C + 1))[::-1], "pi": stored["pi"]}}
+    monkeypatch.setattr(Workspace, "lift_stats", lambda self: other)
+    assert loo_mod.stored_matrix(path, cls) is None
+    broken = {"robust_matrix": {"class_ids": stored["class_ids"], "pi": [[0.5, 0.5]]}}
+    monkeypatch.setattr(Workspace, "lift_stats", lambda self: broken)
+    assert loo_mod.stored_matrix(path, cls) is None

@@ -229,3 +229,44 @@ def test_refit_undoes_a_rare_look_alike_row_the_em_inflates():
     wrong_base = int(np.count_nonzero(cls.col_of[base] != truth))
     wrong_refit = int(np.count_nonzero(cls.col_of[refit] != truth))
     assert wrong_refit < 0.85 * wrong_base
+
+
+def test_a_given_matrix_replaces_the_em_and_the_refit():
+    """redecide(confusion_matrix=pi) decides with ``pi``: no EM, no refit rounds -- the dense
+    reference with ``pi`` in place of the EM's matrix -- and reports the matrix it used; a
+    matrix of the wrong shape or with a zero is refused."""
+    data = _votes(5)
+    cls, feats, col1, n1, col2, n2, xyz = data
+    p = robust.RobustParams()  # refit_rounds 2: ignored with a given matrix
+    rng = np.random.default_rng(1)
+    pi = np.eye(cls.C) * 0.8 + rng.uniform(0.001, 0.02, (cls.C, cls.C))
+    pi /= pi.sum(axis=1, keepdims=True)
+    calls = []
+    orig = robust.estimate_confusion
+    try:
+        robust.estimate_confusion = lambda *a, **k: calls.append(1) or orig(*a, **k)
+        labels, margin, top, stats = robust.redecide(*data[:6], p, xyz=xyz, confusion_matrix=pi)
+        assert not calls  # no EM (the prior is the vote shares')
+        robust.estimate_confusion = lambda *a, **k: (pi, orig(*a, **k)[1])
+        ref_labels, ref_margin, ref_top, _ = _dense(*data, replace(p, refit_rounds=0))
+    finally:
+        robust.estimate_confusion = orig
+    assert np.array_equal(labels, ref_labels) and np.array_equal(top, ref_top)
+    np.testing.assert_allclose(margin, ref_margin, rtol=0, atol=1e-5)
+    assert "robust_refit_changed" not in stats
+    np.testing.assert_allclose(stats["robust_matrix"], pi, rtol=1e-5)
+    # without one, the stats carry the matrix of the last refit round
+    _l, _m, _t, st2 = robust.redecide(*data[:6], replace(p, refit_rounds=1), xyz=xyz)
+    first, *_ = robust.redecide(*data[:6], replace(p, refit_rounds=0), xyz=xyz)
+    vidx = np.flatnonzero(n1 > 0)
+    want = robust.refit_confusion(cls.col_of[first[vidx]], col1[vidx], n1[vidx], col2[vidx],
+                                  n2[vidx], cls.C, p)
+    np.testing.assert_allclose(st2["robust_matrix"], want, rtol=1e-5)
+    # stored to 6 significant digits: a confusion of 1e-9 stays positive
+    tiny = np.full((cls.C, cls.C), 1e-9) + np.eye(cls.C)
+    tiny /= tiny.sum(axis=1, keepdims=True)
+    *_, st3 = robust.redecide(*data[:6], p, xyz=xyz, confusion_matrix=tiny)
+    assert (np.asarray(st3["robust_matrix"]) > 0).all()
+    for bad in (pi[:-1], np.where(np.eye(cls.C) > 0, 0.0, pi)):
+        with pytest.raises(ValueError, match="confusion_matrix"):
+            robust.redecide(*data[:6], p, xyz=xyz, confusion_matrix=bad)

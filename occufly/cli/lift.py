@@ -220,6 +220,7 @@ def _lift(args: argparse.Namespace) -> dict:
                 fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
+        out["labels"].pop("robust_matrix", None)  # C x C numbers, kept in labels.json
     return out
 
 

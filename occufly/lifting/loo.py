@@ -230,10 +230,12 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
     if len(sel) == 0:
         return
     rp = getattr(p, "robust_params", None) or RobustParams()
-    # without the refit rounds (RobustParams.refit_rounds, issue 37's fifth round): each is
-    # another decision pass over the frame's points, and a 20 MP survey frame's first open
-    # went from 0.85 to 1.22 s (frame 157) for labels that differed at 0.065 % of its 2.76 M
-    # points; the EM's matrix alone is what the review used before (docs/lifting.md)
+    # the annotator matrix the last fill decided with (refitted, RobustParams.refit_rounds):
+    # the shipped labels' model at no cost per open. Without one (a fill before it was
+    # stored, another taxonomy) the EM on the frame's cull, without the refit rounds: each is
+    # another decision pass, and a 20 MP survey frame's first open went from 0.85 to 1.22 s
+    # (frame 157) with them (docs/lifting.md, issue 37's fifth round)
+    matrix = stored_matrix(ws, cls)
     rp = replace(rp, refit_rounds=0)
     # the features the pipeline's fill computed and cached (fill_snapshot: default parameters)
     feats = cached_features(ws, scene.xyz, scene.rgb, read_only=True)
@@ -249,9 +251,26 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
         sec = sec.astype(np.uint16)
     labels, margin, _top, _stats = redecide(
         cls, RowSubset(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
-        rp, xyz=RowSubset(scene.xyz, pts), with_top=False, workers=LOO_THREADS)
+        rp, xyz=RowSubset(scene.xyz, pts), with_top=False, workers=LOO_THREADS,
+        confusion_matrix=matrix)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0
+
+
+def stored_matrix(ws: Path, cls: ClassColumns) -> np.ndarray | None:
+    """The (C, C) pooled annotator matrix the workspace's last fill decided with (its
+    ``labels.json``: ``robust_matrix``), or None: no fill stored one, or it names other
+    classes than ``cls`` (the taxonomy changed), or it is not a matrix of probabilities."""
+    m = Workspace(ws).lift_stats().get("robust_matrix")
+    if not isinstance(m, dict) or [int(i) for i in m.get("class_ids") or []] != [int(i) for i in cls.ids]:
+        return None
+    try:
+        pi = np.asarray(m.get("pi"), np.float64)
+    except (TypeError, ValueError):
+        return None
+    if pi.shape != (cls.C, cls.C) or not np.isfinite(pi).all() or (pi <= 0).any():
+        return None
+    return pi
 
 
 # threads of a frame's robust decision (the reviewer waits for it; the same labels as one)

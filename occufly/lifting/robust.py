@@ -39,9 +39,10 @@ Refit (issue 37, fifth round; ``RobustParams.refit_rounds``, 2 by default)
     the same Dirichlet prior) and the points are decided again, twice. The decided labels
     carry the classifier's and the neighbourhood's evidence, which the EM's posteriors did not.
     Measured in docs/lifting.md (fifth round): degraded masks +0.16 to +0.59 accuracy points
-    on four scenes, exact masks within 0.02 accuracy and 0.04 mIoU points. The review's
-    leave-one-out labels decide without it (:mod:`occufly.lifting.loo`: two more passes took
-    a 20 MP first open over 1 s).
+    on four scenes, exact masks within 0.02 accuracy and 0.04 mIoU points. The stats carry
+    the matrix decided with (``robust_matrix``); the review's leave-one-out labels decide with
+    the one the last fill stored (:mod:`occufly.lifting.loo`) instead of refitting: two more
+    passes per open took a 20 MP first open over 1 s.
 
 Per-annotator confusion (issue 37, fourth round; ``RobustParams.confusion``, off by default)
     :mod:`occufly.lifting.confusion` fits one matrix per annotator (each frame, or its author
@@ -384,6 +385,41 @@ def estimate_confusion(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.nd
     return pi, prior
 
 
+def _refit(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.ndarray,
+           col2: np.ndarray, n2: np.ndarray, p: RobustParams, labels: np.ndarray, stats: dict,
+           decide) -> tuple[np.ndarray, list]:  # noqa: ANN001
+    """:func:`redecide`'s refit rounds (:attr:`RobustParams.refit_rounds`): the matrix
+    counted from the labels decided so far (:func:`refit_confusion`), then ``decide(log pi)``
+    (every voted point again, into ``labels``); returns the last matrix and decision."""
+    t0 = time.perf_counter()
+    first = labels[vidx].copy()
+    pi, done = None, []
+    for _ in range(p.refit_rounds):
+        pi = refit_confusion(cls.col_of[labels[vidx]], col1[vidx], n1[vidx], col2[vidx],
+                             n2[vidx], cls.C, p)
+        done = decide(np.log(pi).astype(np.float32))
+    stats["robust_refit_changed"] = int(np.count_nonzero(labels[vidx] != first))
+    stats["robust_refit_seconds"] = round(time.perf_counter() - t0, 3)
+    return pi, done
+
+
+def _annotator_model(col1: np.ndarray, n1: np.ndarray, col2: np.ndarray, n2: np.ndarray,
+                     C: int, p: RobustParams, given: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(pi, prior) of :func:`redecide`: the EM's (:func:`estimate_confusion`), or ``given``
+    checked (a (C, C) matrix of positive probabilities) with a uniform prior -- which the
+    "vote" and "train" priors replace; the "em" prior is still fitted."""
+    if given is None:
+        return estimate_confusion(col1, n1, col2, n2, C, p)
+    pi = np.asarray(given, np.float64)
+    if pi.shape != (C, C) or not np.isfinite(pi).all() or (pi <= 0).any():
+        raise ValueError(f"confusion_matrix: expected a ({C}, {C}) matrix of positive "
+                         f"probabilities, got shape {pi.shape}")
+    prior = (estimate_confusion(col1, n1, col2, n2, C, p)[1] if p.prior == "em"
+             else np.full(C, 1.0 / C))
+    return pi, prior
+
+
 def refit_confusion(decided: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.ndarray,
                     n2: np.ndarray, C: int, p: RobustParams, chunk: int = 1 << 22) -> np.ndarray:
     """(C, C) pooled matrix counted from decided labels (:attr:`RobustParams.refit_rounds`):
@@ -641,7 +677,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
              col2: np.ndarray, n2: np.ndarray, params: RobustParams | None = None,
              progress: ProgressFn | None = None, xyz: np.ndarray | None = None,
              confusion=None,  # noqa: ANN001
-             with_top: bool = True, workers: int = 1
+             with_top: bool = True, workers: int = 1,
+             confusion_matrix: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Re-decide every voted point from its votes, the annotator model and the classifier.
 
@@ -663,6 +700,10 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     ``workers`` > 1: the neighbourhood votes are counted while the classifier is fitted, and
     the chunks are decided by that many threads (compiled kernels without the interpreter
     lock; each chunk writes its own rows): the same result as one thread, in less wall time.
+    ``confusion_matrix``: a (C, C) pooled matrix to decide with instead of fitting one (the
+    matrix a fill decided with, its stats' ``robust_matrix``: the review's leave-one-out
+    labels reuse it); no EM and no refit rounds then. The stats carry the matrix the final
+    decision used as ``robust_matrix`` (nested lists, 6 significant digits).
     """
     p = params or RobustParams()
     report = progress or noop
@@ -679,7 +720,8 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
     if not voted.any():
         return labels, margin, top, {"robust_seconds": 0.0}
     report(0.0, "annotator model")
-    pi, prior = estimate_confusion(col1, n1, col2, n2, C, p)
+    given = confusion_matrix is not None
+    pi, prior = _annotator_model(col1, n1, col2, n2, C, p, confusion_matrix)
     logpi = np.log(pi).astype(np.float32)
     t_em = time.perf_counter()
     report(0.2, "point classifier")
@@ -725,23 +767,18 @@ def redecide(cls: ClassColumns, features: np.ndarray, col1: np.ndarray, n1: np.n
         done = _decide_all(cls, vidx, col1, n1, col2, n2, logpi, logprior_scene, logprior, local, K,
                            p, features, q, confusion, labels, margin, top, with_top, pool, workers,
                            report)
-        if p.refit_rounds > 0 and confusion is None:
-            t_refit = time.perf_counter()
-            first = labels[vidx].copy()
-            for _ in range(p.refit_rounds):
-                pi = refit_confusion(cls.col_of[labels[vidx]], col1[vidx], n1[vidx], col2[vidx],
-                                     n2[vidx], C, p)
-                logpi = np.log(pi).astype(np.float32)
-                done = _decide_all(cls, vidx, col1, n1, col2, n2, logpi, logprior_scene, logprior,
-                                   local, K, p, features, q, None, labels, margin, top, with_top,
-                                   pool, workers, report)
-            stats["robust_refit_changed"] = int(np.count_nonzero(labels[vidx] != first))
-            stats["robust_refit_seconds"] = round(time.perf_counter() - t_refit, 3)
+        if p.refit_rounds > 0 and confusion is None and not given:
+            pi, done = _refit(cls, vidx, col1, n1, col2, n2, p, labels, stats, lambda lp: _decide_all(
+                cls, vidx, col1, n1, col2, n2, lp, logprior_scene, logprior, local, K, p, features,
+                q, None, labels, margin, top, with_top, pool, workers, report))
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
     evaluated = sum(d[0] for d in done)
     changed = sum(d[1] for d in done)
+    # 6 significant digits: rounding to decimals would make the rarest confusions (1e-9 with
+    # millions of votes) zero, which no decision may take the log of
+    stats["robust_matrix"] = [[float(f"{x:.6g}") for x in row] for row in np.asarray(pi)]
     stats.update({
         "robust_points_evaluated": int(evaluated),
         "robust_points_changed": int(changed),

@@ -882,6 +882,9 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
             direct, margin, top, robust_stats = _confusion_decision(
                 scene, snapshot, ws, cls, feats, col1, top1, second, rp,
                 (direct, margin, top, robust_stats), lambda f, m: report(0.3 * f, m))
+        if "robust_matrix" in robust_stats:  # the matrix decided with, for the review's LOO
+            robust_stats["robust_matrix"] = {"class_ids": [int(i) for i in cls.ids],
+                                             "pi": robust_stats["robust_matrix"]}
         if rp.confirm_views is not None and p.confirm_views is not None:
             # the robust margin is a posterior margin, not a vote share: it confirms alone
             p = replace(p, confirm_views=rp.confirm_views)

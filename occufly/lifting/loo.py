@@ -261,6 +261,8 @@ def stored_matrix(ws: Path, cls: ClassColumns) -> np.ndarray | None:
     """The (C, C) pooled annotator matrix the workspace's last fill decided with (its
     ``labels.json``: ``robust_matrix``), or None: no fill stored one, or it names other
     classes than ``cls`` (the taxonomy changed), or it is not a matrix of probabilities."""
+    from occufly.lifting.robust import is_annotator_matrix  # as redecide: loaded when used
+
     m = Workspace(ws).lift_stats().get("robust_matrix")
     if not isinstance(m, dict) or [int(i) for i in m.get("class_ids") or []] != [int(i) for i in cls.ids]:
         return None
@@ -268,9 +270,7 @@ def stored_matrix(ws: Path, cls: ClassColumns) -> np.ndarray | None:
         pi = np.asarray(m.get("pi"), np.float64)
     except (TypeError, ValueError):
         return None
-    if pi.shape != (cls.C, cls.C) or not np.isfinite(pi).all() or (pi <= 0).any():
-        return None
-    return pi
+    return pi if is_annotator_matrix(pi, cls.C) else None
 
 
 # threads of a frame's robust decision (the reviewer waits for it; the same labels as one)

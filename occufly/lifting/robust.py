@@ -373,8 +373,7 @@ def estimate_confusion(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.nd
     prior = np.full(C, 1.0 / C)
     for _ in range(max(1, p.em_iterations)):
         # M-step: expected (true, voted) counts; einsum, not BLAS (threads on a busy machine)
-        A = np.einsum("nt,nc->tc", post, W) + p.off_prior + p.diag_prior * np.eye(C)
-        pi = A / A.sum(axis=1, keepdims=True)
+        pi = _rows_with_prior(np.einsum("nt,nc->tc", post, W), p)
         prior = np.einsum("nt,n->t", post, weight) / wsum + 1e-6
         prior /= prior.sum()
         # E-step
@@ -385,6 +384,22 @@ def estimate_confusion(c1: np.ndarray, n1: np.ndarray, c2: np.ndarray, n2: np.nd
     return pi, prior
 
 
+def _rows_with_prior(counts: np.ndarray, p: RobustParams) -> np.ndarray:
+    """(C, C) expected or counted (true, voted) votes plus the Dirichlet pseudo-votes
+    (``off_prior`` everywhere, ``diag_prior`` on the diagonal), each row normalised; a row
+    with nothing in it (no votes and no pseudo-votes) uniform."""
+    C = len(counts)
+    A = counts + p.off_prior + p.diag_prior * np.eye(C)
+    total = A.sum(axis=1, keepdims=True)
+    return np.where(total > 0, A / np.where(total > 0, total, 1.0), 1.0 / C)
+
+
+def is_annotator_matrix(pi: np.ndarray, C: int) -> bool:
+    """Whether ``pi`` can be decided with: a (C, C) matrix of finite, positive
+    probabilities (its logs are taken)."""
+    return pi.shape == (C, C) and bool(np.isfinite(pi).all()) and not bool((pi <= 0).any())
+
+
 def _refit(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.ndarray,
            col2: np.ndarray, n2: np.ndarray, p: RobustParams, labels: np.ndarray, stats: dict,
            decide) -> tuple[np.ndarray, list]:  # noqa: ANN001
@@ -393,10 +408,10 @@ def _refit(cls: ClassColumns, vidx: np.ndarray, col1: np.ndarray, n1: np.ndarray
     (every voted point again, into ``labels``); returns the last matrix and decision."""
     t0 = time.perf_counter()
     first = labels[vidx].copy()
+    votes = (col1[vidx], n1[vidx], col2[vidx], n2[vidx])  # the same every round
     pi, done = None, []
     for _ in range(p.refit_rounds):
-        pi = refit_confusion(cls.col_of[labels[vidx]], col1[vidx], n1[vidx], col2[vidx],
-                             n2[vidx], cls.C, p)
+        pi = refit_confusion(cls.col_of[labels[vidx]], *votes, cls.C, p)
         done = decide(np.log(pi).astype(np.float32))
     stats["robust_refit_changed"] = int(np.count_nonzero(labels[vidx] != first))
     stats["robust_refit_seconds"] = round(time.perf_counter() - t0, 3)
@@ -412,7 +427,7 @@ def _annotator_model(col1: np.ndarray, n1: np.ndarray, col2: np.ndarray, n2: np.
     if given is None:
         return estimate_confusion(col1, n1, col2, n2, C, p)
     pi = np.asarray(given, np.float64)
-    if pi.shape != (C, C) or not np.isfinite(pi).all() or (pi <= 0).any():
+    if not is_annotator_matrix(pi, C):
         raise ValueError(f"confusion_matrix: expected a ({C}, {C}) matrix of positive "
                          f"probabilities, got shape {pi.shape}")
     prior = (estimate_confusion(col1, n1, col2, n2, C, p)[1] if p.prior == "em"
@@ -442,10 +457,7 @@ def refit_confusion(decided: np.ndarray, c1: np.ndarray, n1: np.ndarray, c2: np.
         A += np.bincount(t[ok] * C + k1[ok], v1[ok], minlength=C * C)
         ok2 = seen & (k2 >= 0) & (v2 > 0)
         A += np.bincount(t[ok2] * C + k2[ok2], v2[ok2], minlength=C * C)
-    A = A.reshape(C, C) + p.off_prior + p.diag_prior * np.eye(C)
-    total = A.sum(axis=1, keepdims=True)
-    # a row with nothing in it (no point decided that class, no pseudo-votes): uniform
-    return np.where(total > 0, A / np.where(total > 0, total, 1.0), 1.0 / C)
+    return _rows_with_prior(A.reshape(C, C), p)
 
 
 # ---- classifier ------------------------------------------------------------------------------

@@ -157,21 +157,25 @@ class Workspace:
         """The votes frame ``frame_index`` cast (``lifting/frames/<index>.npz``)."""
         return self.lifting_frames_dir / f"{int(frame_index)}.npz"
 
-    def read_frame_votes(self, frame_index: int
+    def read_frame_votes(self, frame_index: int, *, mmap: bool = False
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
         """The votes frame ``frame_index`` cast, as stored: (point ids, vote columns, weights --
         None where the state counts plain votes and the file keeps none), or None without a
         file. The one reader of ``lifting/frames/<index>.npz`` (the votes store, the review's
         leave-one-out labels, the quality report, the confusion model): stored members are
         read straight into their arrays (:func:`occufly.fsutil.load_npz`: no zip stream, no
-        CRC pass, no descriptor left open); a file that is not the archive the votes store
-        writes is a :class:`WorkspaceError` naming it."""
+        CRC pass, no descriptor left open; ``mmap``: read-only memory maps instead, each
+        holding the file open until dropped); a file that is not the archive the votes store
+        writes is a :class:`WorkspaceError` naming it, one removed meanwhile (its mask deleted)
+        None."""
         p = self.lifting_frame(frame_index)
         if not p.is_file():
             return None
         try:
-            z = load_npz(p)
+            z = load_npz(p, mmap=mmap)
             pids, cols = z["point_ids"], z["cols"]
+        except FileNotFoundError:
+            return None
         except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
             raise WorkspaceError(f"{p}: unreadable votes of frame {int(frame_index)} ({e}); "
                                  "re-apply the frame's mask to rewrite them") from None

@@ -129,6 +129,22 @@ def test_frame_votes_have_one_reader_for_every_consumer(tmp_path):
     cp, cc, cw = load_frame_votes(ws.root, [4, 5])[5]
     assert np.array_equal(cp, pids) and np.array_equal(cc, cols) and cw is None
     assert list(load_frame_votes(ws.root, [4, 5])) == [5]
+    # mapped: the same votes, read-only views of the file (the review's neighbours)
+    mp, mc, mw = ws.read_frame_votes(5, mmap=True)
+    assert np.array_equal(mp, pids) and np.array_equal(mc, cols) and mw is None
+    assert isinstance(mp.base, np.memmap) and not mp.flags.writeable
+    del mp, mc
+    # a file removed between the check and the read (its mask deleted): no votes, not an error
+    import occufly.workspace as workspace_mod
+
+    def gone(*_a, **_k):
+        raise FileNotFoundError(ws.lifting_frame(5))
+
+    real_load, workspace_mod.load_npz = workspace_mod.load_npz, gone
+    try:
+        assert ws.read_frame_votes(5) is None
+    finally:
+        workspace_mod.load_npz = real_load
     # a counted rebuild from the files gives the same counts
     before = np.array(st.votes)
     st.rebuild()

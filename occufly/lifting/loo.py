@@ -27,7 +27,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from occufly.confusion import Confusion, count_pairs_many
-from occufly.fsutil import load_npz
 from occufly.lifting.blockknn import points_in_box
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.corrections import read_overrides
@@ -969,9 +968,9 @@ def _neighbour_counts_map(mine_of: np.ndarray, gp: np.ndarray, gc: np.ndarray, l
 class NeighbourVotes:
     """What :func:`disagreeing_neighbours` reads before it needs the leave-one-out labels:
     frame ``frame_index``'s votes (``own_p`` point ids sorted, ``own_c`` columns) and, for
-    each annotated frame into which a sample of its voted points projects, that frame's votes
-    (``frames``: a list of (frame index, its vote file) in frame order, read one at a time
-    by :func:`disagreeing_neighbours`)."""
+    each annotated frame into which a sample of its voted points projects, that frame's index
+    (``frames``, in frame order; its votes are read one frame at a time by
+    :func:`disagreeing_neighbours`)."""
 
     frame_index: int
     own_p: np.ndarray
@@ -1003,7 +1002,7 @@ def neighbour_votes(ws: str | Path, scene: Scene, frame_index: int) -> Neighbour
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < fr.camera.width) \
             & (uv[:, 1] >= 0) & (uv[:, 1] < fr.camera.height)
         if inside.any():
-            frames.append((g, w.lifting_frame(g)))
+            frames.append(g)
     return NeighbourVotes(frame_index, own_p, own_c, frames)
 
 
@@ -1031,13 +1030,14 @@ def disagreeing_neighbours(ws: str | Path, scene: Scene, frame_index: int, loo: 
     pids = np.ascontiguousarray(loo.point_ids, np.int64)
     mine_of = None  # built only for a neighbour whose votes are not sorted
     out = []
-    for g, path in nv.frames:
-        try:  # the stored votes mapped, not copied; dropped (and the file closed) each turn
-            z = load_npz(path, mmap=True)
-        except FileNotFoundError:  # its mask was deleted since: no votes to compare
+    w = Workspace(ws)
+    for g in nv.frames:
+        # the stored votes mapped, not copied; dropped (and the file closed) each turn
+        got = w.read_frame_votes(g, mmap=True)
+        if got is None:  # its mask was deleted since: no votes to compare
             continue
-        gp, gc = z["point_ids"], z["cols"]
-        del z
+        gp, gc = got[:2]
+        del got
         # both vote lists sorted by point id: one merge walk counts the shared, disagreeing
         # and overruled points (no (N,) map of the frame's votes, no per-vote temporaries)
         counts = _neighbour_counts(own_p, own_c, gp, gc, pids, loo_cols) if len(gp) else (0, 0, 0, 0)

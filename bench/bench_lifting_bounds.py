@@ -17,7 +17,11 @@ ceiling, not a result:
 ``degraded_true_annotator_model``
     the degraded masks as they are, but the robust decision's pooled confusion matrix
     replaced by the one counted from the truth (every vote against its point's true class):
-    what a perfect annotator model would give.
+    what a perfect annotator model would give (decided without the refit rounds, which
+    would count the matrix again from the labels).
+
+Every other run decides with the library's defaults (since 6dce21b: with the refit rounds;
+``docs/bench/lifting_issue37_round5_2026-12-07.json`` was measured at d226f0e, before them).
 
 The baseline is the first run (``degraded``), in the same process. Each run also reports the
 share of painted pixels still wrong (``pixels_wrong``) and the error breakdown of
@@ -45,7 +49,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_lifting import error_breakdown  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
-from occufly.lifting import LiftParams, VoteStore  # noqa: E402
+from occufly.lifting import LiftParams, RobustParams, VoteStore  # noqa: E402
 from occufly.lifting import robust as robust_mod  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
@@ -117,7 +121,10 @@ def main() -> None:
             robust_mod.estimate_confusion = true_matrix
         try:
             t = time.perf_counter()
-            res = st.fill_and_denoise(write=False, params=LiftParams())
+            # the true matrix decides as it is: no refit rounds re-count it from the labels
+            params = (LiftParams(robust_params=RobustParams(refit_rounds=0)) if with_true_pi
+                      else LiftParams())
+            res = st.fill_and_denoise(write=False, params=params)
             sec = time.perf_counter() - t
         finally:
             robust_mod.estimate_confusion = estimate

@@ -42,6 +42,7 @@ from occufly.lifting import (  # noqa: E402
     fill_and_denoise_exact,
 )
 from occufly.lifting.confusion import ConfusionParams  # noqa: E402
+from occufly.lifting.regions import RegionParams  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
@@ -176,7 +177,14 @@ ROBUST_MODES: dict = {"robust-boundary": None, "robust-reliable": None, "robust-
                       "robust-confusion-nofilter": RobustParams(
                           confusion=ConfusionParams(train_min_posterior=0.0)),
                       "robust-confusion-pool100": RobustParams(
-                          confusion=ConfusionParams(pooled_prior=100.0))}
+                          confusion=ConfusionParams(pooled_prior=100.0)),
+                      # issue 37, sixth round: painted regions the other views contradict
+                      # counted as they say (occufly.lifting.regions); -author: the crew's
+                      # annotators count as one view each (crew noise only); -refit: the
+                      # second decision fits its matrix again instead of the first's
+                      "robust-regions": RobustParams(regions=RegionParams()),
+                      "robust-regions-author": RobustParams(regions=RegionParams()),
+                      "robust-regions-refit": RobustParams(regions=RegionParams(matrix="refit"))}
 
 
 def weighting_of(mode: str) -> str:
@@ -281,7 +289,8 @@ def robustness(args: argparse.Namespace) -> dict:
                                               np.asarray(res.labels), truth, tax),
                     "fill_seconds": round(t_fill, 2), "fill_cpu_seconds": round(c_fill, 2),
                     "lift_stats": {k: v for k, v in res.stats.items()
-                                   if (k.startswith(("robust", "reliability", "confusion"))
+                                   if (k.startswith(("robust", "reliability", "confusion",
+                                                     "region"))
                                        or k.endswith("seconds")) and k != "robust_matrix"},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -598,7 +607,10 @@ def main() -> None:
                          "robust-interior / robust-snap (the robust decision with interior "
                          "vote weights / masks snapped to their photos' edges), "
                          "robust-confusion (per-annotator confusion model, each frame its own "
-                         "annotator), robust-confusion-author (crew: the crew's annotators)")
+                         "annotator), robust-confusion-author (crew: the crew's annotators), "
+                         "robust-regions (contradicted painted regions counted as the other "
+                         "views say), robust-regions-author (crew: by annotator), "
+                         "robust-regions-refit (its second decision refits the matrix)")
     ap.add_argument("--noise", default="degraded",
                     help="robustness: comma list of noise models besides the exact masks: "
                          "degraded (occufly.synthetic.degrade), crew (occufly.synthetic.noise)")

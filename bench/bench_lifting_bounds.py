@@ -27,6 +27,13 @@ The baseline is the first run (``degraded``), in the same process. Each run also
 share of painted pixels still wrong (``pixels_wrong``) and the error breakdown of
 ``bench_lifting.error_breakdown``.
 
+``causes`` (issue 37, sixth round): the points the default lifting of degrade.py's masks gets
+wrong, each put in one group by the effect of degrade.py (:func:`degrade_stages`) that made most
+of its wrong votes -- ``geometry`` (the exact mask is wrong there too: projection, occlusion
+edges), ``boundaries`` (drift), ``skipped`` (small objects painted as their surroundings),
+``confused`` (whole regions painted as their look-alike) -- or ``no_wrong_vote``; shares of
+all points with a truth class, and each group's top (true, lifted) pairs.
+
     .venv/bin/python bench/bench_lifting_bounds.py --synthetic SYN --ws WS --seed 0
 """
 
@@ -48,19 +55,61 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_lifting import error_breakdown  # noqa: E402
 
-from occufly.io.masks import read_mask  # noqa: E402
+from occufly.io.masks import mask_scale, read_mask  # noqa: E402
 from occufly.lifting import LiftParams, RobustParams, VoteStore  # noqa: E402
 from occufly.lifting import robust as robust_mod  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
-from occufly.synthetic.degrade import _confusion_lut, degrade_masks  # noqa: E402
+from occufly.synthetic.degrade import _confusion_lut, degrade_masks, degrade_stages  # noqa: E402
 
 
 def boundary_band(mask: np.ndarray, band: int) -> np.ndarray:
     """Pixels within ``band`` px of a class boundary of ``mask``."""
     edge = ndimage.morphological_gradient(mask, size=3) > 0
     return ndimage.binary_dilation(edge, iterations=band) if band > 0 else edge
+
+
+CAUSES = ("geometry", "boundaries", "skipped", "confused")
+
+
+def wrong_vote_causes(scene: Scene, exact: dict, seed: int, labels: np.ndarray,
+                      truth: np.ndarray) -> dict:
+    """Where the wrong points of a lifting of ``degrade_masks(exact, seed)`` come from: each
+    point by the degrade.py effect behind most of its wrong votes (module docstring)."""
+    tax = scene.taxonomy
+    names = {c.id: c.name for c in tax.classes}
+    wrong_votes = np.zeros((len(truth), len(CAUSES)), np.int32)
+    for fi, m in exact.items():
+        stages = [m] + [s for _n, s in degrade_stages(m, tax, np.random.default_rng([seed, int(fi)]))]
+        painted = stages[-1]
+        cause = np.zeros(m.shape, np.int64)  # geometry unless an effect changed the pixel
+        for k in range(1, len(CAUSES)):
+            cause[stages[k] != stages[k - 1]] = k
+        pids, uv, _ = scene.visibility.frame(fi)
+        pids, uv = np.asarray(pids), np.asarray(uv)
+        fin = np.isfinite(uv).all(axis=1)
+        pids, uv = pids[fin], uv[fin]
+        s = mask_scale(m.shape, scene.frames[fi])
+        col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, m.shape[1] - 1)
+        row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, m.shape[0] - 1)
+        raw = painted[row, col]
+        bad = (raw != 0) & (raw != truth[pids])
+        np.add.at(wrong_votes, (pids[bad], cause[row[bad], col[bad]]), 1)
+    valid = (truth > 0) & (truth < 255)
+    n = max(1, int(valid.sum()))
+    wrong = valid & (labels != truth)
+    dom = np.where(wrong_votes.sum(axis=1) > 0, np.argmax(wrong_votes, axis=1), len(CAUSES))
+    out: dict = {}
+    for k, name in enumerate((*CAUSES, "no_wrong_vote")):
+        m = wrong & (dom == k)
+        key = truth[m].astype(np.int64) * 256 + labels[m]
+        u, c = np.unique(key, return_counts=True)
+        top = np.argsort(-c, kind="stable")[:5]
+        out[name] = {"share": round(float(m.sum() / n), 5),
+                     "pairs": [[names.get(int(u[i] // 256)), names.get(int(u[i] % 256), "unlabelled"),
+                                round(float(c[i] / n), 5)] for i in top]}
+    return out
 
 
 def main() -> None:
@@ -91,6 +140,7 @@ def main() -> None:
         return {fi: np.where(which[fi], exact[fi], degraded[fi]).astype(np.uint8) for fi in exact}
 
     true_pi: dict = {}
+    labels_of: dict = {}
 
     def lift(masks: dict, *, with_true_pi: bool = False) -> dict:
         tmp = args.cache / "bounds-ws"
@@ -129,6 +179,7 @@ def main() -> None:
         finally:
             robust_mod.estimate_confusion = estimate
         ev = evaluate_points(res.labels, truth, tax, res.origin)
+        labels_of.setdefault(id(masks), np.asarray(res.labels))  # the default's, not the ceilings'
         out = {"accuracy": round(ev["accuracy"], 4), "miou": round(ev["miou"], 4),
                "pixels_wrong": round(float(np.mean([((masks[f] != exact[f]) & (masks[f] != 0)).mean()
                                                     for f in exact])), 4),
@@ -153,6 +204,7 @@ def main() -> None:
         out[name] = run()
         print(json.dumps({name: {k: out[name][k] for k in ("accuracy", "miou", "pixels_wrong")}}),
               file=sys.stderr, flush=True)
+    out["causes"] = wrong_vote_causes(scene, exact, args.seed, labels_of[id(degraded)], truth)
     base = out["degraded"]
     for name in runs:
         if name != "degraded":

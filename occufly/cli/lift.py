@@ -15,9 +15,10 @@ from occufly.errors import InputFormatError, MaskError, WorkspaceError
 from occufly.fsutil import atomic_write_text
 from occufly.io.masks import read_mask
 from occufly.io.pointcloud_export import export_scene_points
-from occufly.lifting import LiftParams, VoteStore, load_labels
+from occufly.lifting import LiftParams, RobustParams, VoteStore, load_labels
 from occufly.lifting.nextbest import propose_for_workspace
 from occufly.lifting.quality import quality_report, summary_text, workspace_truth
+from occufly.lifting.regions import RegionParams
 from occufly.metrics import evaluate_points
 from occufly.progress import tqdm_progress
 from occufly.render import agreement, disagreement_image, merge_agreements, render_for_mask
@@ -77,6 +78,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-share", type=float, default=0.25,
                    help="denoise: a point keeps its class if it holds this share of its k=200 "
                         "neighbours (0 = the paper's rule: always the dominant class)")
+    p.add_argument("--regions", action="store_true",
+                   help="count a mask's painted regions that the other views contradict as a "
+                        "whole (a parking lot painted road where the others see parking lot) "
+                        "as those views say, then decide again (issue 37; docs/lifting.md)")
 
     p = command(sub, "agreement", _agreement,
                 help="pixel agreement of the rendered labels with masks")
@@ -217,7 +222,8 @@ def _lift(args: argparse.Namespace) -> dict:
         with tqdm_progress("fill/denoise") as bar:
             res = state.fill_and_denoise(progress=bar, params=LiftParams(
                 method=args.method, denoise_keep_share=args.keep_share or None,
-                fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None))
+                fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None,
+                robust_params=RobustParams(regions=RegionParams()) if args.regions else None))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
         out["labels"].pop("robust_matrix", None)  # C x C numbers, kept in labels.json

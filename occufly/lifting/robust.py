@@ -162,6 +162,10 @@ class RobustParams:
     # EM's matrix only, the default before; module docstring, "Refit"). Not with a confusion
     # model (that one is fitted per annotator instead).
     refit_rounds: int = 2
+    # issue 37, sixth round: a frame's painted regions that the other views contradict as a
+    # whole are counted as they say, and the points decided again with this decision's matrix
+    # (occufly.lifting.regions; fill_snapshot). None = off; a RegionParams = on.
+    regions: object | None = None
 
 
 # ---- features ------------------------------------------------------------------------------

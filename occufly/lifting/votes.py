@@ -726,7 +726,8 @@ class VoteStore:
                 vetoed, rstats = self.reliability_snapshot(None)
                 snapshot = vetoed or snapshot
             rp = getattr(params, "robust_params", None)
-            if getattr(rp, "confusion", None) is not None:  # the votes as counted now
+            if (getattr(rp, "confusion", None) is not None
+                    or getattr(rp, "regions", None) is not None):  # the votes as counted now
                 snapshot.frame_votes = {fi: got for fi in self._versions
                                         if (got := self._frame_file(fi)) is not None}
         if annotators is not None:
@@ -882,6 +883,10 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
             direct, margin, top, robust_stats = _confusion_decision(
                 scene, snapshot, ws, cls, feats, col1, top1, second, rp,
                 (direct, margin, top, robust_stats), lambda f, m: report(0.3 * f, m))
+        elif getattr(rp, "regions", None) is not None:
+            direct, margin, top, robust_stats = _region_decision(
+                scene, snapshot, ws, cls, feats, (col1, top1, second), rp,
+                (direct, margin, top, robust_stats), lambda f, m: report(0.3 * f, m))
         if "robust_matrix" in robust_stats:  # the matrix decided with, for the review's LOO
             robust_stats["robust_matrix"] = {"class_ids": [int(i) for i in cls.ids],
                                              "pi": robust_stats["robust_matrix"]}
@@ -936,6 +941,60 @@ def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColu
     stats["confusion_first_robust_seconds"] = first[3].get("robust_seconds")
     stats["confusion_changed_points"] = int(np.count_nonzero(direct != first[0]))
     return direct, margin, top, stats
+
+
+def _region_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns,  # noqa: ANN001
+                     feats: np.ndarray, votes: tuple, rp, first: tuple,  # noqa: ANN001
+                     report: ProgressFn) -> tuple:
+    """Issue 37, sixth round (``RobustParams.regions``): the frames' painted regions that the
+    other views contradict as a whole counted as they say (:func:`occufly.lifting.regions.
+    region_votes`), and every voted point decided again with the first decision's matrix
+    (``first``: its (labels, margin, top, stats)). The first decision where no region is
+    contradicted, where the votes are weighted, or without the frames' votes."""
+    from occufly.lifting.confusion import load_frame_votes
+    from occufly.lifting.regions import region_votes
+    from occufly.lifting.robust import redecide
+
+    stats = first[3]
+    if snapshot.vote_unit != 1 or "robust_matrix" not in stats:
+        stats["regions_skipped"] = "weighted votes" if snapshot.vote_unit != 1 else "no matrix"
+        return first
+    t0, c0 = time.perf_counter(), time.process_time()
+    frames = snapshot.frame_votes
+    if frames is None and ws is not None:
+        frames = load_frame_votes(ws, sorted(snapshot.versions))
+    if not frames:
+        stats["regions_skipped"] = "no per-frame votes"
+        return first
+    pi = np.asarray(stats["robust_matrix"], np.float64)
+    got = region_votes(scene, frames, pi, annotators=snapshot.annotators, params=rp.regions)
+    if got is None:
+        stats.update(regions=0, regions_seconds=round(time.perf_counter() - t0, 3))
+        return first
+    pts, counts, rstats = got
+    col1, top1, second = (np.array(a, copy=True) for a in votes)
+    col2 = np.array(snapshot.second_col, copy=True)
+    c = counts.astype(np.uint32)
+    w = cls.winner(c)
+    idx = np.arange(len(pts))
+    col1[pts] = w
+    top1[pts] = np.where(w >= 0, c[idx, np.maximum(w, 0)], 0)
+    c[idx, np.maximum(w, 0)] = 0
+    w2 = cls.winner(c)
+    col2[pts] = w2
+    second[pts] = np.where(w2 >= 0, c[idx, np.maximum(w2, 0)], 0)
+    t_find, c_find = time.perf_counter() - t0, time.process_time() - c0
+    fixed = pi if getattr(rp.regions, "matrix", "first") == "first" else None
+    direct, margin, top, out = redecide(cls, feats, col1, top1, col2, second, rp,
+                                        progress=report, xyz=scene.xyz, confusion_matrix=fixed)
+    for r in rstats["regions"]:  # raw class ids, as the labels are
+        r["from"], r["to"] = int(cls.ids[r["from"]]), int(cls.ids[r["to"]])
+    out.update(regions=len(rstats["regions"]), region_votes_changed=rstats["votes_changed"],
+               region_list=rstats["regions"][:50], regions_seconds=round(t_find, 3),
+               regions_cpu_seconds=round(c_find, 3),
+               regions_first_robust_seconds=stats.get("robust_seconds"),
+               regions_changed_points=int(np.count_nonzero(direct != first[0])))
+    return direct, margin, top, out
 
 
 def _npz_bytes(**arrays: np.ndarray) -> bytes:

@@ -131,19 +131,27 @@ def unpaint(mask: np.ndarray, rng: np.random.Generator, patches: int, frac: floa
     return out
 
 
-def degrade_mask(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator | int,
-                 params: Degradation | None = None) -> np.ndarray:
-    """(h, w) uint8 raw-id mask -> the same mask as an imperfect annotator paints it."""
+def degrade_stages(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator | int,
+                   params: Degradation | None = None) -> list[tuple[str, np.ndarray]]:
+    """The mask after each effect in turn: ``boundaries``, ``skipped``, ``confused``,
+    ``unpainted`` (the last is :func:`degrade_mask`'s result; a benchmark tells which effect
+    made a pixel wrong by comparing neighbouring stages)."""
     p = params or Degradation()
     rng = np.random.default_rng(rng) if not isinstance(rng, np.random.Generator) else rng
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.uint8:
         raise ValueError(f"degrade_mask: expected an (h, w) uint8 mask, got {mask.shape} {mask.dtype}")
-    out = shift_boundaries(mask, rng, p.shift_px, p.cell)
-    out = skip_small(out, rng, p.min_blob, p.skip_prob)
-    out = _confuse(out, rng, _confusion_lut(taxonomy), p.confusion_rate)
-    out = unpaint(out, rng, p.patches, p.patch_frac)
+    out = [("boundaries", shift_boundaries(mask, rng, p.shift_px, p.cell))]
+    out.append(("skipped", skip_small(out[-1][1], rng, p.min_blob, p.skip_prob)))
+    out.append(("confused", _confuse(out[-1][1], rng, _confusion_lut(taxonomy), p.confusion_rate)))
+    out.append(("unpainted", unpaint(out[-1][1], rng, p.patches, p.patch_frac)))
     return out
+
+
+def degrade_mask(mask: np.ndarray, taxonomy: Taxonomy, rng: np.random.Generator | int,
+                 params: Degradation | None = None) -> np.ndarray:
+    """(h, w) uint8 raw-id mask -> the same mask as an imperfect annotator paints it."""
+    return degrade_stages(mask, taxonomy, rng, params)[-1][1]
 
 
 def degrade_masks(masks: dict[int, np.ndarray], taxonomy: Taxonomy, seed: int = 0,

@@ -197,3 +197,14 @@ def test_cli_lift_regions(tiny, tmp_path, capsys):
     assert out["labels"]["regions"] >= 1
     stored = json.loads((ws / "lifting" / "labels.json").read_text())
     assert stored["regions"] == out["labels"]["regions"] and stored["region_list"]
+    # the same masks, all painted by one person: nobody independent contradicts a region
+    one = tmp_path / "one.json"
+    one.write_text(json.dumps({scene.frames[fi].stem: "ann" for fi in masks}))
+    assert main(["lift", str(ws), "--masks", str(tmp_path / "m"), "--regions", "--authors",
+                 str(one), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["labels"]["regions"] == 0
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"no_such_frame": "ann"}))
+    assert main(["lift", str(ws), "--masks", str(tmp_path / "m"), "--regions", "--authors",
+                 str(bad)]) == 2
+    assert "bad.json" in capsys.readouterr().err

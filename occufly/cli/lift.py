@@ -82,6 +82,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="count a mask's painted regions that the other views contradict as a "
                         "whole (a parking lot painted road where the others see parking lot) "
                         "as those views say, then decide again (issue 37; docs/lifting.md)")
+    p.add_argument("--authors", type=Path, metavar="JSON",
+                   help="with --regions: a JSON object of mask file stem -> who painted it; one "
+                        "annotator's masks count as one view against a region (default: every "
+                        "mask its own annotator)")
 
     p = command(sub, "agreement", _agreement,
                 help="pixel agreement of the rendered labels with masks")
@@ -170,6 +174,22 @@ def _mask_files(scene, masks: Path) -> dict[int, Path]:
     return out
 
 
+def _authors(path: Path, scene) -> dict[int, str]:  # noqa: ANN001
+    """frame index -> annotator from a JSON object of mask file stem -> annotator name."""
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputFormatError(f"{path}: expected a JSON object of mask stem -> annotator ({e})") from None
+    if not isinstance(raw, dict) or not all(isinstance(v, (str, int)) for v in raw.values()):
+        raise InputFormatError(f"{path}: expected a JSON object of mask stem -> annotator name")
+    by_stem = {f.stem: i for i, f in enumerate(scene.frames)}
+    unknown = [k for k in raw if k not in by_stem]
+    if unknown:
+        raise InputFormatError(f"{path}: {unknown[0]!r} is not a frame of the scene "
+                               f"({len(unknown)} unknown); expected <image stem> keys")
+    return {by_stem[k]: str(v) for k, v in raw.items()}
+
+
 def _lift(args: argparse.Namespace) -> dict:
     if args.confirm_views < 0:
         raise InputFormatError(f"--confirm-views: expected a number of views >= 0 (0 = off), got {args.confirm_views}")
@@ -177,6 +197,7 @@ def _lift(args: argparse.Namespace) -> dict:
         raise InputFormatError(f"--keep-share: expected a share in [0, 1], got {args.keep_share}")
     scene = Scene.load(args.workspace)
     files = _mask_files(scene, args.masks)
+    annotators = _authors(args.authors, scene) if args.authors else None
     state = VoteStore.open(args.workspace, scene)
     included = state.included_versions()
     if not files and not (args.sync and included):
@@ -220,7 +241,7 @@ def _lift(args: argparse.Namespace) -> dict:
     out["directly_labelled"] = float((direct > 0).mean()) if len(direct) else 0.0
     if not args.no_fill:
         with tqdm_progress("fill/denoise") as bar:
-            res = state.fill_and_denoise(progress=bar, params=LiftParams(
+            res = state.fill_and_denoise(progress=bar, annotators=annotators, params=LiftParams(
                 method=args.method, denoise_keep_share=args.keep_share or None,
                 fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None,
                 robust_params=RobustParams(regions=RegionParams()) if args.regions else None))

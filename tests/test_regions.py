@@ -57,6 +57,15 @@ def test_frame_regions_are_connected_sets_of_one_class():
     for cls in (P, W, R, H):
         assert len(np.unique(region[t == cls])) == 1
     assert len(np.unique(region)) == 4 and region.min() >= 1
+    # a visibility that lists the frame's points in another order: the same regions
+    sc = _scene(1)
+    ids, uv, depth = sc.visibility.frame(0)
+    perm = np.random.default_rng(0).permutation(len(ids))
+    sc.visibility = SimpleNamespace(frame=lambda f: (ids[perm], uv[perm], depth[perm]))
+    again, n3 = frame_regions(sc, 0, np.arange(SIDE * SIDE), t, cells=20)
+    assert n3 == 4 and all(len(np.unique(again[t == c])) == 1 for c in (P, W, R, H))
+    with pytest.raises(ValueError, match="does not see"):
+        frame_regions(sc, 0, np.array([SIDE * SIDE + 5]), np.array([P]), cells=20)
     # on a raster coarser than the points, the regions are the same
     coarse, n2 = frame_regions(_scene(1), 0, np.arange(SIDE * SIDE), t, cells=10)
     assert n2 == 4 and all(len(np.unique(coarse[t == c])) == 1 for c in (P, R))

@@ -173,7 +173,8 @@ class RobustParams:
     refit_rounds: int = 2
     # issue 37, sixth round: a frame's painted regions that the other views contradict as a
     # whole are counted as they say, and the points decided again with this decision's matrix
-    # (occufly.lifting.regions; fill_snapshot). None = off; a RegionParams = on.
+    # (occufly.lifting.regions; fill_snapshot). None = off; a RegionParams = on. Plain votes
+    # only, and not with a confusion model (that one decides per annotator instead).
     regions: object | None = None
 
 

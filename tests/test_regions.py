@@ -185,6 +185,8 @@ def test_the_fill_counts_contradicted_regions_as_the_others_say(tiny):
     for r in on.stats["region_list"]:
         assert r["from"] in names and r["to"] in names and r["from"] != r["to"]
         assert r["annotators"] >= 2 and r["agreement"] < 0.25
+        assert r["frame_name"] == scene.frames[r["frame"]].name
+        assert {r["painted"], r["counted_as"]} <= {c.name for c in scene.taxonomy.classes}
     # the second decision used the first decision's matrix (stored for the review's LOO)
     assert on.stats["robust_matrix"] == off.stats["robust_matrix"]
 

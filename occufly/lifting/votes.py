@@ -987,8 +987,11 @@ def _region_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns
     fixed = pi if getattr(rp.regions, "matrix", "first") == "first" else None
     direct, margin, top, out = redecide(cls, feats, col1, top1, col2, second, rp,
                                         progress=report, xyz=scene.xyz, confusion_matrix=fixed)
-    for r in rstats["regions"]:  # raw class ids, as the labels are
+    names = {c.id: c.name for c in scene.taxonomy.classes}
+    for r in rstats["regions"]:  # raw class ids, as the labels are, and names for people
         r["from"], r["to"] = int(cls.ids[r["from"]]), int(cls.ids[r["to"]])
+        r["frame_name"] = scene.frames[r["frame"]].name
+        r["painted"], r["counted_as"] = names.get(r["from"]), names.get(r["to"])
     out.update(regions=len(rstats["regions"]), region_votes_changed=rstats["votes_changed"],
                region_list=rstats["regions"][:50], regions_seconds=round(t_find, 3),
                regions_cpu_seconds=round(c_find, 3),

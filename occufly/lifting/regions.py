@@ -41,6 +41,8 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+from occufly.scene import project_points
+
 _EIGHT = np.ones((3, 3), bool)
 
 
@@ -69,16 +71,7 @@ def frame_regions(scene, frame_index: int, pids: np.ndarray, cols: np.ndarray,  
     region = np.zeros(n, np.int32)
     if n == 0:
         return region, 0
-    vis_ids, uv, _ = scene.visibility.frame(frame_index)
-    vis_ids = np.asarray(vis_ids)
-    pos = np.searchsorted(vis_ids, pids)
-    pos = np.minimum(pos, len(vis_ids) - 1)
-    if not np.array_equal(vis_ids[pos], pids):  # a frame's point ids are stored ascending
-        order = np.argsort(vis_ids, kind="stable")
-        pos = order[np.minimum(np.searchsorted(vis_ids, pids, sorter=order), len(order) - 1)]
-        if not np.array_equal(vis_ids[pos], pids):
-            raise ValueError(f"frame {frame_index}: votes on points the frame does not see")
-    uv = np.asarray(uv)[pos]
+    uv = _vote_pixels(scene, frame_index, pids)
     cam = scene.frames[frame_index].camera
     # no finer than about two votes per cell on average: a sparser raster has holes between
     # neighbouring points and splits every region into single points
@@ -99,6 +92,27 @@ def frame_regions(scene, frame_index: int, pids: np.ndarray, cols: np.ndarray,  
         total += k
     region[~fin] = 0
     return region, total
+
+
+def _vote_pixels(scene, frame_index: int, pids: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """(n, 2) float32 pixels of the points ``pids`` a frame voted on."""
+    vis = scene.visibility
+    xyz = vis.projected_on_demand() if hasattr(vis, "projected_on_demand") else None
+    if xyz is not None:  # uv not stored: project only the voted points, as frame() would
+        ids = vis.frame_ids(frame_index)
+        if len(pids) and (pids[-1] > ids[-1] if len(ids) else True):
+            raise ValueError(f"frame {frame_index}: votes on points the frame does not see")
+        uv, _ = project_points(scene.frames[frame_index], xyz, np.asarray(pids, np.int64))
+        return uv.astype(np.float32)
+    vis_ids, uv, _ = vis.frame(frame_index)
+    vis_ids = np.asarray(vis_ids)
+    pos = np.minimum(np.searchsorted(vis_ids, pids), len(vis_ids) - 1)
+    if not np.array_equal(vis_ids[pos], pids):  # a frame's point ids are stored ascending
+        order = np.argsort(vis_ids, kind="stable")
+        pos = order[np.minimum(np.searchsorted(vis_ids, pids, sorter=order), len(order) - 1)]
+        if not np.array_equal(vis_ids[pos], pids):
+            raise ValueError(f"frame {frame_index}: votes on points the frame does not see")
+    return np.asarray(uv)[pos]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -139,8 +153,8 @@ def _annotator_votes(pids, region, indptr, t_frame, t_ann, t_col, f, a_f, top, n
 
 
 def _table(frames: dict[int, tuple], n_points: int, annotators: dict | None):  # noqa: ANN202
-    """Every vote sorted by point: indptr (N + 1,), frame slot, annotator index, column, and
-    each frame's slot and the positions of its votes in the table."""
+    """Every vote sorted by point: the frames in slot order, each slot's annotator index, the
+    number of annotators, indptr (N + 1,), and per vote its frame slot, annotator and column."""
     keys = sorted(frames)
     who: dict = {}
     ann_of = []
@@ -148,17 +162,16 @@ def _table(frames: dict[int, tuple], n_points: int, annotators: dict | None):  #
         key = annotators.get(f, ("frame", f)) if annotators else ("frame", f)
         ann_of.append(who.setdefault(key, len(who)))
     sizes = [len(frames[f][0]) for f in keys]
-    pid = np.concatenate([np.asarray(frames[f][0], np.int64) for f in keys])
-    col = np.concatenate([np.asarray(frames[f][1], np.int16) for f in keys])
-    slot = np.repeat(np.arange(len(keys), dtype=np.int32), sizes)
+    pid = np.concatenate([np.asarray(frames[f][0], np.int32) for f in keys])
     order = np.argsort(pid, kind="stable")
     indptr = np.zeros(n_points + 1, np.int64)
     np.cumsum(np.bincount(pid, minlength=n_points), out=indptr[1:])
-    where = np.empty(len(order), np.int64)
-    where[order] = np.arange(len(order))
-    starts = np.concatenate([[0], np.cumsum(sizes)])
-    return (keys, np.asarray(ann_of, np.int32), len(who), indptr, slot[order],
-            np.asarray(ann_of, np.int32)[slot[order]], col[order], where, starts)
+    del pid
+    col = np.concatenate([np.asarray(frames[f][1], np.int16) for f in keys])[order]
+    slot = np.repeat(np.arange(len(keys), dtype=np.int16 if len(keys) < 1 << 15 else np.int32),
+                     sizes)[order]
+    ann = np.asarray(ann_of, np.int32)
+    return keys, ann, len(who), indptr, slot, ann[slot], col
 
 
 def region_votes(scene, frames: dict[int, tuple], pi: np.ndarray, *,  # noqa: ANN001
@@ -177,9 +190,8 @@ def region_votes(scene, frames: dict[int, tuple], pi: np.ndarray, *,  # noqa: AN
     frames = {int(f): v for f, v in frames.items() if len(v[0])}
     if len(frames) < 2:
         return None
-    keys, ann_of, A, indptr, t_frame, t_ann, t_col, where, starts = _table(
-        frames, scene.n_points, annotators)
-    new_col = t_col.copy()
+    keys, ann_of, A, indptr, t_frame, t_ann, t_col = _table(frames, scene.n_points, annotators)
+    moved: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # point, old column, new column
     found: list[dict] = []
     for s, f in enumerate(keys):
         pids = np.asarray(frames[f][0], np.int64)
@@ -207,7 +219,7 @@ def region_votes(scene, frames: dict[int, tuple], pi: np.ndarray, *,  # noqa: AN
         if not flip.any():
             continue
         hit = flip[region]
-        new_col[where[starts[s] + np.flatnonzero(hit)]] = top[region[hit]]
+        moved.append((pids[hit], cols[hit], top[region[hit]]))
         nvotes = np.bincount(region[hit], minlength=nr + 1)
         for k in np.flatnonzero(flip):
             found.append({"frame": int(f), "from": int(own[k]), "to": int(top[k]),
@@ -215,13 +227,16 @@ def region_votes(scene, frames: dict[int, tuple], pi: np.ndarray, *,  # noqa: AN
                           "annotators": int(views[k])})
     if not found:
         return None
-    changed = np.flatnonzero(new_col != t_col)
-    # the points whose counts change, and all of their votes after the change
-    pts = np.unique(np.searchsorted(indptr, changed, side="right") - 1)
+    pt, old_col, new_col = (np.concatenate(a) for a in zip(*moved, strict=True))
+    # the points whose counts change: all of their votes, then the moved ones moved
+    pts = np.unique(pt)
     lo, hi = indptr[pts], indptr[pts + 1]
     lens = hi - lo
     ent = np.repeat(lo - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
     row = np.repeat(np.arange(len(pts)), lens)
     counts = np.zeros((len(pts), C), np.int32)
-    np.add.at(counts, (row, new_col[ent].astype(np.int64)), 1)
-    return pts, counts, {"regions": found, "votes_changed": int(len(changed))}
+    np.add.at(counts, (row, t_col[ent].astype(np.int64)), 1)
+    at = np.searchsorted(pts, pt)
+    np.add.at(counts, (at, old_col), -1)
+    np.add.at(counts, (at, new_col), 1)
+    return pts, counts, {"regions": found, "votes_changed": int(len(pt))}

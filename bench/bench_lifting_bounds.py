@@ -55,9 +55,10 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_lifting import error_breakdown  # noqa: E402
 
-from occufly.io.masks import mask_scale, read_mask  # noqa: E402
+from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import LiftParams, RobustParams, VoteStore  # noqa: E402
 from occufly.lifting import robust as robust_mod  # noqa: E402
+from occufly.lifting.votes import frame_mask_pixels  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
 from occufly.selection import select_frames  # noqa: E402
@@ -86,13 +87,7 @@ def wrong_vote_causes(scene: Scene, exact: dict, seed: int, labels: np.ndarray,
         cause = np.zeros(m.shape, np.int64)  # geometry unless an effect changed the pixel
         for k in range(1, len(CAUSES)):
             cause[stages[k] != stages[k - 1]] = k
-        pids, uv, _ = scene.visibility.frame(fi)
-        pids, uv = np.asarray(pids), np.asarray(uv)
-        fin = np.isfinite(uv).all(axis=1)
-        pids, uv = pids[fin], uv[fin]
-        s = mask_scale(m.shape, scene.frames[fi])
-        col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, m.shape[1] - 1)
-        row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, m.shape[0] - 1)
+        pids, row, col = frame_mask_pixels(scene, fi, m.shape)
         raw = painted[row, col]
         bad = (raw != 0) & (raw != truth[pids])
         np.add.at(wrong_votes, (pids[bad], cause[row[bad], col[bad]]), 1)

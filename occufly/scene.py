@@ -156,7 +156,10 @@ class Visibility:
         self._frames = frames
         self._xyz = xyz
 
-    def _project(self, f: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, f: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(uv (m, 2), depth (m,)) float32 of points ``ids`` in frame ``f``, projected from the
+        bound cloud (:meth:`bind`) as :meth:`frame` does when uv/depth are not stored: a caller
+        that needs only some of a frame's points projects those."""
         if self._frames is None:
             raise ValueError("visibility without stored uv/depth needs bind(frames, xyz) first")
         uv, z = project_points(self._frames[f], self._xyz, np.asarray(ids, np.int64))
@@ -184,7 +187,7 @@ class Visibility:
         for f in range(self.n_frames):
             a, b = int(self.offsets[f]), int(self.offsets[f + 1])
             if b > a:
-                uv[a:b], depth[a:b] = self._project(f, self.point_ids[a:b])
+                uv[a:b], depth[a:b] = self.project(f, self.point_ids[a:b])
         return uv, depth
 
     @property
@@ -206,7 +209,7 @@ class Visibility:
         a, b = int(self.offsets[f]), int(self.offsets[f + 1])
         ids = self.point_ids[a:b]
         if self._uv is None:
-            uv, depth = self._project(f, ids)
+            uv, depth = self.project(f, ids)
             return ids, uv, depth
         return ids, self._uv[a:b], self._depth[a:b]
 

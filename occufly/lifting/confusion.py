@@ -73,26 +73,44 @@ class VoteTable:
         return len(self.names)
 
 
+def annotator_index(frames: list[int], annotators: dict | None) -> tuple[list[int], list]:
+    """Each frame's annotator index and the annotators' ids (``("author", id)`` for a frame
+    ``annotators`` names, else ``("frame", index)``: its own), in the order first seen."""
+    names: list = []
+    index: dict = {}
+    of = []
+    for f in frames:
+        key = ("author", annotators[f]) if annotators and f in annotators else ("frame", int(f))
+        of.append(index.setdefault(key, len(names)))
+        if of[-1] == len(names):
+            names.append(key)
+    return of, names
+
+
+def point_order(pid: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (V,) order that sorts votes by point (stable: frames keep their order per point)
+    and the (N + 1,) int64 indptr of the sorted votes: point ``i``'s are
+    ``indptr[i]:indptr[i + 1]``."""
+    order = np.argsort(pid, kind="stable")
+    indptr = np.zeros(n_points + 1, np.int64)
+    np.cumsum(np.bincount(pid, minlength=n_points), out=indptr[1:])
+    return order, indptr
+
+
 def vote_table(frames: dict[int, tuple], n_points: int, annotators: dict | None = None,
                unit: int = 1) -> VoteTable:
     """frames: frame -> (point ids, class columns[, weights]) as stored per frame;
     annotators: frame -> annotator id (None or a frame missing from it: the frame is its own
     annotator); unit: counts per view of the weights."""
-    names: list = []
-    index: dict = {}
+    voted = [f for f in sorted(frames) if len(frames[f][0])]
+    ann_of, names = annotator_index(voted, annotators)
     parts = []
-    for f in sorted(frames):
+    for f, a in zip(voted, ann_of, strict=True):
         v = frames[f]
         pids = np.asarray(v[0], np.int32)
-        if len(pids) == 0:
-            continue
-        key = ("author", annotators[f]) if annotators and f in annotators else ("frame", int(f))
-        if key not in index:
-            index[key] = len(names)
-            names.append(key)
         w = (np.asarray(v[2], np.float32) / unit if len(v) > 2 and v[2] is not None
              else np.ones(len(pids), np.float32))
-        parts.append((pids, np.asarray(v[1], np.int16), np.full(len(pids), index[key], np.int32), w))
+        parts.append((pids, np.asarray(v[1], np.int16), np.full(len(pids), a, np.int32), w))
     if not parts:
         z = np.zeros(0, np.int32)
         return VoteTable(z, z.astype(np.int16), z, z.astype(np.float32),
@@ -101,11 +119,8 @@ def vote_table(frames: dict[int, tuple], n_points: int, annotators: dict | None 
     keep = w > 0
     if not keep.all():
         pid, col, ann, w = pid[keep], col[keep], ann[keep], w[keep]
-    order = np.argsort(pid, kind="stable")
-    pid, col, ann, w = pid[order], col[order], ann[order], w[order]
-    indptr = np.zeros(n_points + 1, np.int64)
-    np.cumsum(np.bincount(pid, minlength=n_points), out=indptr[1:])
-    return VoteTable(pid, col, ann, w, indptr, names)
+    order, indptr = point_order(pid, n_points)
+    return VoteTable(pid[order], col[order], ann[order], w[order], indptr, names)
 
 
 def load_frame_votes(ws: str | Path, frames: list[int]) -> dict[int, tuple]:

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from occufly.scene import project_points
+from occufly.lifting.confusion import annotator_index, point_order
 
 _EIGHT = np.ones((3, 3), bool)
 
@@ -102,8 +102,7 @@ def _vote_pixels(scene, frame_index: int, pids: np.ndarray) -> np.ndarray:  # no
         ids = vis.frame_ids(frame_index)
         if len(pids) and (pids[-1] > ids[-1] if len(ids) else True):
             raise ValueError(f"frame {frame_index}: votes on points the frame does not see")
-        uv, _ = project_points(scene.frames[frame_index], xyz, np.asarray(pids, np.int64))
-        return uv.astype(np.float32)
+        return vis.project(frame_index, pids)[0]
     vis_ids, uv, _ = vis.frame(frame_index)
     vis_ids = np.asarray(vis_ids)
     pos = np.minimum(np.searchsorted(vis_ids, pids), len(vis_ids) - 1)
@@ -156,22 +155,15 @@ def _table(frames: dict[int, tuple], n_points: int, annotators: dict | None):  #
     """Every vote sorted by point: the frames in slot order, each slot's annotator index, the
     number of annotators, indptr (N + 1,), and per vote its frame slot, annotator and column."""
     keys = sorted(frames)
-    who: dict = {}
-    ann_of = []
-    for f in keys:
-        key = annotators.get(f, ("frame", f)) if annotators else ("frame", f)
-        ann_of.append(who.setdefault(key, len(who)))
+    ann_of, names = annotator_index(keys, annotators)
     sizes = [len(frames[f][0]) for f in keys]
-    pid = np.concatenate([np.asarray(frames[f][0], np.int32) for f in keys])
-    order = np.argsort(pid, kind="stable")
-    indptr = np.zeros(n_points + 1, np.int64)
-    np.cumsum(np.bincount(pid, minlength=n_points), out=indptr[1:])
-    del pid
+    order, indptr = point_order(np.concatenate([np.asarray(frames[f][0], np.int32) for f in keys]),
+                                n_points)
     col = np.concatenate([np.asarray(frames[f][1], np.int16) for f in keys])[order]
     slot = np.repeat(np.arange(len(keys), dtype=np.int16 if len(keys) < 1 << 15 else np.int32),
                      sizes)[order]
     ann = np.asarray(ann_of, np.int32)
-    return keys, ann, len(who), indptr, slot, ann[slot], col
+    return keys, ann, len(names), indptr, slot, ann[slot], col
 
 
 def region_votes(scene, frames: dict[int, tuple], pi: np.ndarray, *,  # noqa: ANN001

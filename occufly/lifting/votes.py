@@ -176,6 +176,25 @@ def interior_weights(mask: np.ndarray, *, unit: int = VOTE_UNITS["interior"],
     return out
 
 
+def frame_mask_pixels(scene: Scene, frame_index: int, shape: tuple[int, int], *,
+                      name: str = "<mask>") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points frame ``frame_index`` sees and the pixel of a mask of ``shape`` each falls
+    in: (point ids, row, col), clipped to the mask. A mask at a downscale of the frame is
+    scaled by :func:`mask_scale` (a MaskError naming ``name`` for any other size); points
+    projected beyond the lens model's valid radius are left out."""
+    s = mask_scale(shape, scene.frames[frame_index], name=name)
+    pids, uv, _ = scene.visibility.frame(frame_index)
+    h, w = shape
+    uv = np.asarray(uv)
+    pids = np.asarray(pids)
+    fin = np.isfinite(uv).all(axis=1)
+    if not fin.all():  # projected on demand: points beyond the lens model's valid radius
+        pids, uv = pids[fin], uv[fin]
+    col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
+    row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
+    return pids, row, col
+
+
 class VoteStore:
     """Per-point vote counts for one scene workspace, updated incrementally.
 
@@ -486,16 +505,8 @@ class VoteStore:
             ):
                 raise MaskError(f"{name}: expected uint8 raw class ids 0..255, got {mask.dtype}")
             mask = mask.astype(np.uint8)
-        s = mask_scale(mask.shape, frame, name=name)
+        pids, row, col = frame_mask_pixels(self.scene, fi, mask.shape, name=name)
         validate_ids(mask, self.scene.taxonomy, name=name)
-        pids, uv, _ = self.scene.visibility.frame(fi)
-        h, w = mask.shape
-        uv = np.asarray(uv)
-        fin = np.isfinite(uv).all(axis=1)
-        if not fin.all():  # projected on demand: points beyond the lens model's valid radius
-            pids, uv = np.asarray(pids)[fin], uv[fin]
-        col = np.clip(np.floor(uv[:, 0] / s).astype(np.int64), 0, w - 1)
-        row = np.clip(np.floor(uv[:, 1] / s).astype(np.int64), 0, h - 1)
         if self.vote_weighting == "snap":
             mask = snap_frame_mask(frame, mask)
         raw = mask[row, col]

@@ -32,10 +32,10 @@ import lock_check  # noqa: E402
 def _blocks(path: Path) -> dict[str, list[str]]:
     out, cur = {}, None
     for line in path.read_text().splitlines():
-        m = re.match(r"^([A-Za-z0-9_.-]+)==(\S+)", line)
+        m = lock_check.PIN.match(line)
         if m:
             cur = lock_check._norm(m.group(1))
-            out[cur] = [m.group(2)]
+            out[cur] = [m.group(3)]
         elif cur and "--hash=sha256:" in line:
             out[cur] += re.findall(r"--hash=sha256:([0-9a-f]{64})", line)
     return out
@@ -50,6 +50,25 @@ def test_every_requirement_is_pinned_with_hashes():
         assert not unhashed, f"{lock.name}: pins without a hash: {unhashed}"
     text = (REPO / "scripts" / "setup.sh").read_text()
     assert "--require-hashes" in text and "requirements.lock" in text
+
+
+def test_a_package_asked_for_with_extras_is_pinned_with_them(tmp_path):
+    """pip --require-hashes checks ``CacheControl[filecache]`` (pip-audit's requirement) on its
+    own: with a bare ``cachecontrol==0.14.4`` pin it looked up the newest CacheControl and
+    refused it as unpinned, and setup failed on a fresh machine the day 0.15.0 came out. The
+    check finds a pin written without its extras, and --write-extras puts them back."""
+    copies = []
+    for lock in LOCKS:
+        copy = tmp_path / lock.name
+        copy.write_text(re.sub(r"^([A-Za-z0-9_.-]+)\[[^\]]*\]==", r"\1==", lock.read_text(), flags=re.M))
+        copies.append(copy)
+    found = lock_check.problems(["dev", "masks", "torch"], tuple(copies))
+    assert any(p.startswith("cachecontrol[filecache]: the lock pins it without") for p in found), found
+    assert lock_check.pinned_extras(*LOCKS)["cachecontrol"] == {"filecache"}
+    written = lock_check.write_extras(copies, ["dev", "masks", "torch"])
+    assert "cachecontrol" in written
+    assert [c.read_text() for c in copies] == [lock.read_text() for lock in LOCKS]
+    assert lock_check.problems(["dev", "masks", "torch"], tuple(copies)) == []
 
 
 def test_the_locks_pin_what_is_installed():

@@ -23,6 +23,7 @@ from app.audit import routes as audit
 from app.corrections import routes as corrections
 from app.jobs import archive
 from app.jobs import routes as jobs
+from app.lifting import routes as lifting
 from app.notifications import routes as notifications
 from app.review import routes as review
 from app.scenes import console, imports
@@ -38,7 +39,7 @@ ACCESS = {"GET /api/health": "public"}
 def table() -> dict[str, str]:
     merged: dict[str, str] = dict(ACCESS)
     for mod in (users, scenes, annotations, confidence, smart, review, jobs, archive, audit,
-                corrections, notifications, imports, console):
+                corrections, notifications, imports, console, lifting):
         for key, level in getattr(mod, "ACCESS", {}).items():
             if level not in LEVELS:
                 raise ValueError(f"{mod.__name__}.ACCESS[{key!r}]: unknown level {level!r}")

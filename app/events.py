@@ -68,6 +68,12 @@ CATALOGUE: dict[str, EventKind] = {
                 "index -> version tag applied), applied_by: once per applied batch",
         publishers=("app.lifting.service.LiftingService",),
         subscribers=("tests and benchmarks (votes lag); no app component",)),
+    "lifting_model_changed": EventKind(
+        payload="scene_id, model (app.lifting.models.LIFT_MODELS): an admin changed how the "
+                "scene's votes are decided",
+        publishers=("app.lifting.routes (PUT /api/scenes/{id}/lifting)",),
+        subscribers=("app.lifting.service.LiftingService -- the worker owning the scene fills "
+                     "it again at once (a scene nobody owns is marked due and taken)",)),
     "grid_updated": EventKind(
         payload="scene_id, stamp, job (the voxelize job's id)",
         publishers=("app.jobs.runner for the voxelize kind's done_event (app.scenes.jobs)",),

@@ -36,6 +36,7 @@ from app.docs_offline import mount_docs, mount_site
 from app.jobs import service as jobs_service
 from app.jobs.archive import router as archive_router
 from app.jobs.routes import router as jobs_router
+from app.lifting.routes import router as lifting_router
 from app.notifications.routes import router as notifications_router
 from app.pipeline import stored_mask_ids
 from app.review import service as review
@@ -105,7 +106,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     for r in (users_router, scenes_router, annotations_router, confidence_router, smart_router,
               review_router, jobs_router, archive_router, audit_router, corrections_router,
-              notifications_router, imports_router, console_router):  # the last two: issue 28's admin console
+              notifications_router, imports_router, console_router, lifting_router):  # the last two: issue 28's admin console
         app.include_router(r)
     _share_included_routers(app)
 

@@ -11,6 +11,7 @@ AUDIT_ACTIONS = (
     "login", "login_failed", "logout", "mask_save", "mask_submit", "mask_restore", "review_accept",
     "review_reject", "review_undo", "import", "export", "job", "user_create", "user_update",
     "password_change", "password_reset", "user_unlock", "session_revoke", "membership", "backup",
+    "lifting_model",
 )
 
 

@@ -18,7 +18,7 @@ from sqlalchemy import func, select, text
 
 from app.db import utcnow
 from app.events import LIFT_CHANNEL
-from app.lifting.models import LiftQueueEntry, LiftStatus
+from app.lifting.models import LIFT_MODELS, LiftQueueEntry, LiftStatus
 from app.lifting.service import LiftingBusy, LiftingService
 from occufly.errors import WorkspaceError
 from occufly.lifting import VoteStore
@@ -96,6 +96,33 @@ class LiftingClient:
             svc.offer_decoded(frame_id, version_id, mask)
         svc.wake()
 
+    # ---- how the votes are decided (issue 37) ------------------------------------------------
+    def model(self, session, scene_id: int) -> str:  # noqa: ANN001
+        """The scene's annotator model (:data:`~app.lifting.models.LIFT_MODELS`)."""
+        row = session.get(LiftStatus, scene_id)
+        return row.model if row is not None and row.model in LIFT_MODELS else "pooled"
+
+    def set_model(self, session, scene_id: int, model: str) -> bool:  # noqa: ANN001
+        """Set the scene's annotator model in the caller's transaction; True if it changed.
+        A scene that has been lifted is marked due, so the worker that takes it fills again
+        (the caller publishes ``lifting_model_changed`` after the commit: its owner fills at
+        once)."""
+        if model not in LIFT_MODELS:
+            raise ValueError(f"model must be one of {sorted(LIFT_MODELS)}, got {model!r}")
+        row = session.get(LiftStatus, scene_id)
+        if row is None:  # nothing lifted yet: the first fill uses it
+            session.add(LiftStatus(scene_id=scene_id, fill_state="idle", fills=0, model=model,
+                                   updated_at=utcnow()))
+            return model != "pooled"
+        if row.model == model:
+            return False
+        row.model = model
+        if self.enabled and row.fills:
+            if row.fill_state != "running":
+                row.fill_state = "due"
+        row.updated_at = utcnow()
+        return True
+
     # ---- status -----------------------------------------------------------------------------
     def status(self, scene_id: int) -> dict:
         with self.sessions() as s:
@@ -113,7 +140,8 @@ class LiftingClient:
                 "pending_frames": int(pending),
                 "fill_running": fill_state == "running",
                 "last_error": row.last_error if row is not None else None,
-                "lag_s": round(lag_s, 1)}
+                "lag_s": round(lag_s, 1),
+                "model": row.model if row is not None and row.model in LIFT_MODELS else "pooled"}
 
     def wait_idle(self, scene_id: int, timeout: float = 10.0, *, include_fill: bool = False) -> bool:
         """Until the scene's queue is empty (and, with ``include_fill``, its fill finished and

@@ -11,6 +11,20 @@ from app.db import Base, utcnow
 
 QUEUE_STATES = ("pending", "applied", "superseded", "failed")
 FILL_STATES = ("idle", "due", "running")
+# how the live lifting decides a scene's votes (issue 37; LiftStatus.model): one annotator
+# model for every painter (the robust decision's pooled matrix), one confusion matrix per
+# mask author (occufly.lifting.confusion), or region consistency by author
+# (occufly.lifting.regions). The descriptions are what the admin console shows.
+LIFT_MODELS = {
+    "pooled": "The default: the robust decision with one confusion matrix fitted over every "
+              "mask, whoever painted it.",
+    "per_author": "A confusion matrix per mask author, so a painter who systematically swaps two "
+                  "classes is outvoted by the others where they see the same points. Fills "
+                  "take about 1.5x as long.",
+    "regions": "A region a mask painted as a look-alike class (road for parking lot, vegetation "
+               "for grass) that two other painters contradict as a whole is counted as they "
+               "say. Fills take about 1.3x as long.",
+}
 
 
 class LiftQueueEntry(Base):
@@ -48,6 +62,8 @@ class LiftStatus(Base):
     labels_stamp: Mapped[str | None] = mapped_column(String(64), nullable=True)
     last_error: Mapped[str | None] = mapped_column(String(512), nullable=True)
     updated_at: Mapped[datetime] = mapped_column(DateTime, default=utcnow)
+    # LIFT_MODELS (migration 0014): set by an admin, read by the worker at every fill
+    model: Mapped[str] = mapped_column(String(16), default="pooled", server_default="pooled")
 
 
 class Event(Base):

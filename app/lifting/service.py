@@ -70,12 +70,14 @@ from app.events import (
     stop_channel_name,
     wake_listener,
 )
-from app.lifting.models import LiftQueueEntry, LiftStatus
+from app.lifting.models import LIFT_MODELS, LiftQueueEntry, LiftStatus
 from app.pipeline import stored_mask_ids
 from app.scenes.models import Scene
 from occufly.errors import OccuflyError
-from occufly.lifting import VoteStore
+from occufly.lifting import LiftParams, RobustParams, VoteStore
+from occufly.lifting.confusion import ConfusionParams, load_frame_votes
 from occufly.lifting.incremental import IncrementalFill
+from occufly.lifting.regions import RegionParams
 from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
@@ -291,6 +293,8 @@ class LiftingService:
         self._pool = ThreadPoolExecutor(self.decode_threads, thread_name_prefix="occufly-decode")
         for fn in self.on_owned_labels:
             self.bus.subscribe("labels_updated", self._owned_only(fn))
+        # an admin changed how a scene's votes are decided: its owner fills again at once
+        self.bus.subscribe("lifting_model_changed", self._owned_only(self._on_model_changed))
         if not self.distributed:
             self._recover()
         t = threading.Thread(target=self._vote_loop, name="occufly-lift-votes", daemon=True)
@@ -741,7 +745,9 @@ class LiftingService:
             seq = sc.seq
         if sc.incremental is None:  # the first fill of this worker is a full one
             sc.incremental = IncrementalFill(sc.state.scene.xyz, sc.state.scene.taxonomy)
-        res = sc.state.fill_and_denoise(snapshot=snap, incremental=sc.incremental)
+        _model, params, annotators = self._decision(sc, snap)
+        res = sc.state.fill_and_denoise(snapshot=snap, incremental=sc.incremental,
+                                        params=params, annotators=annotators)
         inc = res.stats.get("incremental") or {}
         log.info("lifting: scene %s filled in %.2f s (%s)", sc.scene_id,
                  res.stats.get("seconds", 0.0) or 0.0,
@@ -755,6 +761,61 @@ class LiftingService:
         self.bus.publish("labels_updated", sc.scene_id, stamp=stamp,
                          versions={str(k): v for k, v in sorted(snap.versions.items())},
                          fills=sc.fills, seq=seq, applied_by=self.name)
+
+    # ---- how the votes are decided (issue 37) ------------------------------------------------
+    AUTHOR_CHUNK = 500  # version ids per IN (...) query
+
+    def _decision(self, sc: _SceneWork, snap) -> tuple[str, LiftParams | None, dict | None]:  # noqa: ANN001
+        """The scene's annotator model (``LiftStatus.model``, read at every fill) as the fill's
+        parameters: (model, LiftParams or None for the default, frame -> who painted it).
+
+        The painter of a frame is the author of the mask version its votes count; a version
+        imported from another tool (``source`` ``import:...``: the importing admin is not who
+        painted it) or without an author is a painter of its own. The models that read every
+        frame's votes get them here, consistent with ``snap``'s counts (:meth:`_frame_votes`).
+        """
+        with self.sessions() as s:
+            model = s.scalar(select(LiftStatus.model).where(
+                LiftStatus.scene_id == sc.scene_id)) or "pooled"
+            if model not in LIFT_MODELS or model == "pooled":
+                return "pooled", None, None
+            tags = {f: int(v) for f, v in snap.versions.items() if v is not None and v.isdigit()}
+            ids = sorted(set(tags.values()))
+            author: dict[int, int] = {}
+            for i in range(0, len(ids), self.AUTHOR_CHUNK):
+                rows = s.execute(select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
+                                 .where(MaskVersion.id.in_(ids[i:i + self.AUTHOR_CHUNK])))
+                author.update({vid: uid for vid, uid, src in rows
+                               if uid is not None and not (src or "").startswith("import:")})
+        annotators = {f: author[v] for f, v in tags.items() if v in author}
+        rp = (RobustParams(confusion=ConfusionParams()) if model == "per_author"
+              else RobustParams(regions=RegionParams()))
+        snap.frame_votes = self._frame_votes(sc, snap)
+        return model, LiftParams(robust_params=rp), annotators
+
+    def _frame_votes(self, sc: _SceneWork, snap) -> dict[int, tuple]:  # noqa: ANN001
+        """Every counted frame's stored votes, as ``snap`` counts them: the files are read
+        without the update lock, then a frame whose version changed meanwhile (its file now
+        holds the newer votes; the counts the older) is left out of the per-frame model --
+        its votes still count, and the change schedules the next fill, which has it."""
+        frames = sorted(f for f in snap.versions)
+        got = load_frame_votes(sc.state.ws, frames)
+        with sc.lock:
+            now = sc.state.included_versions()
+        return {f: v for f, v in got.items() if now.get(f) == snap.versions.get(f)}
+
+    def _on_model_changed(self, msg: Message, stop: threading.Event) -> None:  # noqa: ARG002
+        """An admin changed a scene's annotator model: fill it again with the new one."""
+        with self.sessions() as s:
+            ws = s.scalar(select(Scene.workspace).where(Scene.id == msg.scene_id))
+        if ws is None or not Workspace(ws).lifting_dir.is_dir():
+            return  # deleted, or nothing voted yet: the first fill uses the model
+        try:
+            sc = self._scene(int(msg.scene_id), ws)
+        except Exception:  # noqa: BLE001 - a broken workspace must not stop the others
+            log.exception("lifting: cannot open the state of scene %s", msg.scene_id)
+            return
+        self._schedule_fill(sc, delay=0.0)
 
     # ---- subscribers ------------------------------------------------------------------------
     def _owned_only(self, fn: OwnedSubscriber) -> Callable[[Message], None]:

@@ -16,6 +16,7 @@ from occufly.fsutil import atomic_write_text
 from occufly.io.masks import read_mask
 from occufly.io.pointcloud_export import export_scene_points
 from occufly.lifting import LiftParams, RobustParams, VoteStore, load_labels
+from occufly.lifting.confusion import ConfusionParams
 from occufly.lifting.nextbest import propose_for_workspace
 from occufly.lifting.quality import quality_report, summary_text, workspace_truth
 from occufly.lifting.regions import RegionParams
@@ -82,10 +83,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="count a mask's painted regions that the other views contradict as a "
                         "whole (a parking lot painted road where the others see parking lot) "
                         "as those views say, then decide again (issue 37; docs/lifting.md)")
+    p.add_argument("--per-author", action="store_true",
+                   help="decide the votes with one confusion matrix per painter (a painter who "
+                        "swaps two look-alike classes is outvoted where the others see the same "
+                        "points; issue 37) instead of one for all masks; not with --regions")
     p.add_argument("--authors", type=Path, metavar="JSON",
-                   help="with --regions: a JSON object of mask file stem -> who painted it; one "
-                        "annotator's masks count as one view against a region (default: every "
-                        "mask its own annotator)")
+                   help="with --regions or --per-author: a JSON object of mask file stem -> who "
+                        "painted it (default: every mask its own painter); one painter's masks "
+                        "count as one view against a region and share one confusion matrix")
 
     p = command(sub, "agreement", _agreement,
                 help="pixel agreement of the rendered labels with masks")
@@ -190,11 +195,26 @@ def _authors(path: Path, scene) -> dict[int, str]:  # noqa: ANN001
     return {by_stem[k]: str(v) for k, v in raw.items()}
 
 
+def _robust_params(args: argparse.Namespace) -> RobustParams | None:
+    """--regions / --per-author as the robust decision's parameters (None: the default)."""
+    if args.regions:
+        return RobustParams(regions=RegionParams())
+    if args.per_author:
+        return RobustParams(confusion=ConfusionParams())
+    return None
+
+
 def _lift(args: argparse.Namespace) -> dict:
     if args.confirm_views < 0:
         raise InputFormatError(f"--confirm-views: expected a number of views >= 0 (0 = off), got {args.confirm_views}")
     if not 0 <= args.keep_share <= 1:
         raise InputFormatError(f"--keep-share: expected a share in [0, 1], got {args.keep_share}")
+    if args.regions and args.per_author:
+        raise InputFormatError("--regions and --per-author: choose one (the per-painter model "
+                               "decides by painter itself)")
+    if args.authors and not (args.regions or args.per_author):
+        raise InputFormatError(f"--authors {args.authors}: only used with --regions or "
+                               "--per-author (the default decision does not tell painters apart)")
     scene = Scene.load(args.workspace)
     files = _mask_files(scene, args.masks)
     annotators = _authors(args.authors, scene) if args.authors else None
@@ -244,7 +264,7 @@ def _lift(args: argparse.Namespace) -> dict:
             res = state.fill_and_denoise(progress=bar, annotators=annotators, params=LiftParams(
                 method=args.method, denoise_keep_share=args.keep_share or None,
                 fill_far=args.far_fill and not args.no_far_fill, confirm_views=args.confirm_views or None,
-                robust_params=RobustParams(regions=RegionParams()) if args.regions else None))
+                robust_params=_robust_params(args)))
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
         out["labels"].pop("robust_matrix", None)  # C x C numbers, kept in labels.json

@@ -866,6 +866,7 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     (default 1) instead of ``LiftParams.confirm_views``: its margin is a posterior margin, and
     a tiny object seen by two or three views rarely has two votes for itself."""
 
+    t_start = time.perf_counter()
     p = params or LiftParams()
     report = progress or noop
     direct, margin, top = snapshot.direct, snapshot.margin, snapshot.top
@@ -917,7 +918,21 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
             vote_margin=margin, vote_top=top, progress=fill_progress)
     result.stats.update(robust_stats)
     result.stats["robust"] = bool(robust_stats)
+    # how the votes were decided, and by how many painters (the app's admin console)
+    rp_used = getattr(p, "robust_params", None) if robust_stats else None
+    result.stats["decision"] = ("majority" if not robust_stats
+                                else "confusion" if getattr(rp_used, "confusion", None) is not None
+                                else "regions" if getattr(rp_used, "regions", None) is not None
+                                else "robust")
+    if snapshot.annotators is not None:
+        named = {f: a for f, a in snapshot.annotators.items() if f in snapshot.versions}
+        result.stats["painters"] = {
+            "authors": len(set(named.values())),
+            "frames_with_author": len(named),
+            "frames_own": int(snapshot.annotated_frames) - len(named)}
     result.stats["annotated_frames"] = snapshot.annotated_frames
+    # the whole decision and fill (``seconds`` is the k-NN fill's own)
+    result.stats["total_seconds"] = round(time.perf_counter() - t_start, 3)
     result.stats["versions"] = {str(k): v for k, v in sorted(snapshot.versions.items())}
     return result
 

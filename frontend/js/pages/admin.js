@@ -41,6 +41,8 @@ class AdminPage {
     this.jobsEl = el("div", { id: "jobs" });
     this.exportsEl = el("div");
     this.qualityEl = el("div", { id: "quality" }); // issue 23: how the scene's labels were made
+    this.liftingEl = el("div", { id: "lifting", "aria-live": "polite" }); // issue 37: annotator model
+    this.liftingTimer = null;
     this.exportPlanEl = el("div", { id: "export-plan", "aria-live": "polite" });
     this.histEl = el("div");
     this.effortEl = el("div", { id: "effort" });
@@ -63,7 +65,7 @@ class AdminPage {
         el(
           "nav",
           { class: "subnav", "aria-label": "Admin sections" },
-          ["overview", "users", "scenes", "members", "selection", "masks", "jobs", "exports", "labels", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
+          ["overview", "users", "scenes", "members", "selection", "masks", "jobs", "exports", "labels", "lifting", "quality", "effort", "audit"].map((s) => el("a", { href: `#/admin`, onclick: (e) => { e.preventDefault(); document.getElementById(`sec-${s}`)?.scrollIntoView(); } }, s)),
         ),
         section("sec-overview", "Overview", el("p", { class: "hint" }, "Every scene and annotator at a glance: frames to do (selected, not started), in progress, waiting for review, accepted and rejected; time spent, throughput and how far the 3D labels lag behind."), this.overviewEl),
         section("sec-users", "Users", this.usersEl, this.userForm()),
@@ -74,6 +76,7 @@ class AdminPage {
         section("sec-jobs", "Jobs", this.jobsEl),
         section("sec-exports", "Exports and metrics", this.exportForm(), this.exportListEl, this.exportsEl),
         section("sec-labels", "Labels: class histogram", this.histEl),
+        section("sec-lifting", "Lifting: how the votes are decided", el("p", { class: "hint" }, "Every saved mask votes for its classes on the 3D points it sees; the live lifting decides each point from those votes. Who painted which mask is known here, so a painter who systematically swaps two look-alike classes can be told apart from the others. Changing the model fills the scene's labels again at once."), this.liftingEl),
         section("sec-quality", "Quality", el("p", { class: "hint" }, "How the scene's live labels were made: each annotated frame's votes against the labels the other frames give without it (leave-one-out agreement), how much of it other frames see, points seen by two or more frames, points whose votes disagree, and the calibrated confidence. An export writes the same report as quality.json beside its data."), this.qualityEl),
         section("sec-effort", "Annotation effort", el("p", { class: "hint" }, "Per submitted mask, in submission order: the share of the frame's pixels painted (what painting from an empty mask costs) and the share that differs from the 3D prefill its annotator started from."), this.effortEl),
         section("sec-audit", "Audit log", this.auditForm(), this.auditEl),
@@ -89,6 +92,7 @@ class AdminPage {
     this.alive = false;
     clearTimeout(this.timer);
     clearTimeout(this.qualityTimer);
+    clearTimeout(this.liftingTimer);
   }
 
   get sid() {
@@ -351,7 +355,7 @@ class AdminPage {
   async loadScene() {
     if (!this.sid) return;
     // metrics only once the jobs say an evaluation finished (else the API answers 404)
-    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers(), this.loadQuality(), this.loadExportPlan()]);
+    await Promise.all([this.loadSelection(), this.loadJobs().then(() => this.loadMetrics()), this.loadHistogram(), this.loadEffort(), this.loadMembers(), this.loadQuality(), this.loadExportPlan(), this.loadLifting()]);
   }
 
   // ---- overview, exports on disk (issue 28) --------------------------------------------------
@@ -831,6 +835,32 @@ class AdminPage {
   }
 
   // ---- quality (issue 23) ----------------------------------------------------------------
+  // ---- how the votes are decided (issue 37) ------------------------------------------------
+  async loadLifting() {
+    const sid = this.sid;
+    if (!sid) return;
+    clearTimeout(this.liftingTimer);
+    const r = await this.guard(() => api.get(`/scenes/${sid}/lifting`));
+    if (!r || sid !== this.sid || !this.alive) return; // another scene was chosen meanwhile
+    this.liftingEl.replaceChildren(liftingView(r, (model, button) => this.applyLifting(sid, model, button)));
+    // a fill with the new model is running: show its result when it is done
+    if (r.status.pending_fill || r.status.pending_frames) this.liftingTimer = setTimeout(() => this.loadLifting(), 2000);
+  }
+
+  async applyLifting(sid, model, button) {
+    button.disabled = true; // a double click applies once
+    try {
+      const r = await api.put(`/scenes/${sid}/lifting`, { model });
+      const name = (this.scenes || []).find((s) => String(s.id) === String(sid))?.name || `scene ${sid}`;
+      toast(`${name}: votes are now decided with “${LIFT_MODEL_NAMES[r.model]}”${r.status.pending_fill ? "; its labels are being filled again" : ""}.`);
+      if (String(sid) === String(this.sid)) this.loadLifting();
+      this.loadAudit();
+    } catch (e) {
+      showError(e);
+      button.disabled = false;
+    }
+  }
+
   async loadQuality() {
     const sid = this.sid;
     if (!sid) return;
@@ -948,6 +978,38 @@ const ISO = /^\d{4}-\d\d-\d\dT\d\d:\d\d/;
 const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i;
 
 /** One metric value as text; `dates`: ISO timestamps as local dates. */
+// issue 37: the annotator models of the live lifting (the server's descriptions go beside them)
+const LIFT_MODEL_NAMES = { pooled: "One model for all painters", per_author: "One model per painter", regions: "Region consistency by painter" };
+const LIFT_DECISIONS = { robust: "one model for all painters", confusion: "one model per painter", regions: "region consistency by painter", majority: "the plain vote majority" };
+
+export function liftingView(r, apply) {
+  const wrap = el("div", { "data-model": r.model, "data-scene": r.scene_id });
+  const radios = r.models.map((m) => {
+    const input = el("input", { type: "radio", name: "lift-model", id: `lift-model-${m.id}`, value: m.id });
+    input.checked = m.id === r.model;
+    return el("div", { class: "radio-row" }, input, el("label", { for: input.id }, el("strong", {}, LIFT_MODEL_NAMES[m.id] || m.id), m.id === r.model ? " (current)" : ""), el("small", { class: "hint" }, m.description));
+  });
+  const button = el("button", { type: "button", id: "lift-model-apply", disabled: true }, "Apply");
+  const chosen = () => radios.map((d) => d.querySelector("input")).find((i) => i.checked)?.value;
+  for (const d of radios) d.querySelector("input").addEventListener("change", () => { button.disabled = chosen() === r.model; });
+  button.addEventListener("click", () => { const m = chosen(); if (m && m !== r.model) apply(m, button); });
+  const fieldset = el("fieldset", { class: "lift-models" }, el("legend", {}, "Annotator model"), ...radios, button);
+  const f = r.last_fill || {};
+  const st = r.status || {};
+  let last;
+  if (!f.decision) last = "No fill yet: the labels are filled after the first mask is saved.";
+  else {
+    const p = f.painters;
+    const who = p ? `, ${p.authors} painter${p.authors === 1 ? "" : "s"} told apart${p.frames_own ? ` (${p.frames_own} frame${p.frames_own === 1 ? "" : "s"} imported or without an author, each counted as a painter of its own)` : ""}` : "";
+    const regions = f.decision === "regions" && f.regions != null ? `, ${f.regions} painted region${f.regions === 1 ? "" : "s"} counted as the other painters say` : "";
+    const skipped = f.confusion_skipped || f.regions_skipped ? ` (not applied: ${f.confusion_skipped || f.regions_skipped})` : "";
+    last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}${regions}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.`;
+  }
+  const busy = st.pending_fill || st.pending_frames ? el("p", { class: "warn", id: "lift-pending" }, st.fill_running ? "A fill is running; its result appears here when it is done." : "A fill is due; its result appears here when it is done.") : null;
+  wrap.append(...[fieldset, el("p", { id: "lift-last" }, last), busy, st.last_error ? el("p", { class: "error" }, `Last lifting error: ${st.last_error}`) : null].filter(Boolean));
+  return wrap;
+}
+
 function formatMetric(v, key = "", { dates = false } = {}) {
   if (typeof v === "number") {
     if (SHARE.test(key) && v >= 0 && v <= 1) return `${(100 * v).toFixed(2)} %`;

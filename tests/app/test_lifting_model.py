@@ -1,0 +1,137 @@
+"""How a scene's votes are decided (issue 37): the admin picks the annotator model of the live
+lifting (one for all painters, one per mask author, region consistency by author); the worker
+fills again with it at once, tells the painters apart by the mask versions' authors (an
+imported mask is a painter of its own) and reports what it used -- on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from sqlalchemy import select, update
+
+from tests.app.conftest import H, W, png
+
+
+def _submit(env, hdr, sid: int, cls: int) -> tuple[int, int]:  # noqa: ANN001
+    fid = env.client.post(f"/api/scenes/{sid}/next", headers=hdr).json()["id"]
+    m = np.full((H, W), cls, np.uint8)
+    m[:, : W // 3] = 1
+    r = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                       headers={**hdr, "If-Match": "none"})
+    assert r.status_code == 200, r.text
+    return fid, r.json()["version"]
+
+
+def _fills(env, sid: int) -> int:
+    from app.lifting.models import LiftStatus
+
+    with env.app.state.ctx.sessions() as s:
+        return s.get(LiftStatus, sid).fills
+
+
+def _wait_fill(env, sid: int, after: int) -> None:
+    ctx = env.app.state.ctx
+    end = time.monotonic() + 60
+    while _fills(env, sid) <= after or not ctx.lifting.wait_idle(sid, 0.1, include_fill=True):
+        assert time.monotonic() < end, "no fill after the model changed"
+        time.sleep(0.05)
+
+
+def test_the_admin_picks_the_annotator_model_and_the_scene_is_filled_again_with_it(world):
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    ctx = env.app.state.ctx
+    for who, cls in (("annotator", 6), ("annotator2", 8), ("annotator", 6), ("annotator2", 8)):
+        _submit(env, hdr[who], sid, cls)
+    assert ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    got = env.client.get(f"/api/scenes/{sid}/lifting", headers=hdr["annotator"])  # a member
+    assert got.status_code == 200, got.text
+    r = got.json()
+    assert r["model"] == "pooled" and [m["id"] for m in r["models"]] == [
+        "pooled", "per_author", "regions"]
+    assert r["last_fill"]["decision"] == "robust" and "painters" not in r["last_fill"]
+    assert r["last_fill"]["annotated_frames"] == 4 and r["last_fill"]["total_seconds"] > 0
+
+    # who may change it, and what is refused (naming the field)
+    url = f"/api/scenes/{sid}/lifting"
+    for role in ("annotator", "reviewer"):
+        assert env.client.put(url, json={"model": "per_author"}, headers=hdr[role]).status_code == 403
+    for bad in ({"model": "bogus"}, {"model": "per_author", "extra": 1}, {}):
+        resp = env.client.put(url, json=bad, headers=hdr["admin"])
+        assert resp.status_code == 422, resp.text
+        assert "model" in resp.text or "extra" in resp.text
+    assert env.client.put(f"/api/scenes/{sid + 999}/lifting", json={"model": "pooled"},
+                          headers=hdr["admin"]).status_code == 404
+    assert ctx.lifting.model(ctx.sessions(), sid) == "pooled"
+
+    # per author: filled again at once, without a new mask, the two annotators told apart
+    before = _fills(env, sid)
+    resp = env.client.put(url, json={"model": "per_author"}, headers=hdr["admin"])
+    assert resp.status_code == 200, resp.text
+    assert resp.json()["model"] == "per_author"
+    _wait_fill(env, sid, before)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert last["decision"] == "confusion", last
+    assert last["painters"] == {"authors": 2, "frames_with_author": 4, "frames_own": 0}
+    assert last["confusion_annotators"] == 2
+
+    # the same model again changes nothing: no refill, no audit line
+    before = _fills(env, sid)
+    assert env.client.put(url, json={"model": "per_author"}, headers=hdr["admin"]).status_code == 200
+    time.sleep(0.5)
+    assert _fills(env, sid) == before
+
+    # regions by author, then back to the default
+    env.client.put(url, json={"model": "regions"}, headers=hdr["admin"])
+    _wait_fill(env, sid, before)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert last["decision"] == "regions" and last["painters"]["authors"] == 2
+    assert "regions" in last or "regions_skipped" in last
+    before = _fills(env, sid)
+    env.client.put(url, json={"model": "pooled"}, headers=hdr["admin"])
+    _wait_fill(env, sid, before)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert last["decision"] == "robust" and "painters" not in last
+
+    audit = env.client.get("/api/audit?action=lifting_model", headers=hdr["admin"]).json()
+    rows = audit["events"] if isinstance(audit, dict) else audit
+    assert [(e["detail"]["from"], e["detail"]["to"]) for e in rows][::-1] == [
+        ("pooled", "per_author"), ("per_author", "regions"), ("regions", "pooled")]
+    assert all(e["actor"] == "admin" for e in rows)
+
+
+def test_painters_come_from_the_counted_versions_authors_and_imports_paint_alone(world):
+    """The worker's decision inputs: frame -> author of the version its votes count; a version
+    imported from another tool is a painter of its own; per-frame votes whose version changed
+    after the snapshot are left out of the per-frame model (their file holds newer votes)."""
+    from app.annotations.models import MaskVersion
+    from app.lifting.models import LiftStatus
+    from app.users.models import User
+
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    ctx = env.app.state.ctx
+    made = [_submit(env, hdr[w], sid, 6) for w in ("annotator", "annotator2", "annotator")]
+    assert ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    with ctx.sessions() as s:
+        s.execute(update(LiftStatus).where(LiftStatus.scene_id == sid).values(model="per_author"))
+        s.execute(update(MaskVersion).where(MaskVersion.id == made[2][1])
+                  .values(source="import:cvat"))
+        s.commit()
+        uid = dict(s.execute(select(User.username, User.id)).all())
+    svc = ctx.lifting.service
+    sc = svc._scenes[sid]
+    with sc.lock:
+        snap = sc.state.snapshot()
+    model, params, annotators = svc._decision(sc, snap)
+    index = {f["id"]: f["index"] for f in env.client.get(f"/api/scenes/{sid}/frames",
+                                                         headers=hdr["admin"]).json()}
+    assert model == "per_author" and params.robust_params.confusion is not None
+    assert annotators == {index[made[0][0]]: uid["annotator"],
+                          index[made[1][0]]: uid["annotator2"]}
+    assert sorted(snap.frame_votes) == sorted(index[f] for f, _v in made)
+    # a frame whose counted version moved on after the snapshot: its per-frame votes are left out
+    snap.versions[index[made[0][0]]] = "999999"
+    assert index[made[0][0]] not in svc._frame_votes(sc, snap)
+    assert len(svc._frame_votes(sc, snap)) == 2

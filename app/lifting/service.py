@@ -212,6 +212,36 @@ def lower_thread_priority(nice: int) -> None:
         log.info("lifting: could not lower the fill thread's priority", exc_info=True)
 
 
+AUTHOR_CHUNK = 500  # version ids per IN (...) query
+
+
+def decision_for(session: Session, scene_id: int, versions: dict
+                 ) -> tuple[str, LiftParams | None, dict | None]:
+    """How a fill of scene ``scene_id`` counting ``versions`` (frame index -> mask version id
+    or tag) decides its votes: (model, LiftParams or None for the default, frame -> who
+    painted it or None) from the scene's annotator model (``LiftStatus.model``, set by an
+    admin). The live worker and an export's relift both use it, so an export's labels are
+    decided as the live ones are.
+
+    The painter of a frame is the author of the version its votes count; a version imported
+    from another tool (``source`` ``import:...``: the importing admin is not who painted it)
+    or without an author is a painter of its own."""
+    model = session.scalar(select(LiftStatus.model).where(LiftStatus.scene_id == scene_id))
+    if model not in LIFT_MODELS or model == "pooled":
+        return "pooled", None, None
+    tags = {int(f): int(v) for f, v in versions.items() if v is not None and str(v).isdigit()}
+    ids = sorted(set(tags.values()))
+    author: dict[int, int] = {}
+    for i in range(0, len(ids), AUTHOR_CHUNK):
+        rows = session.execute(select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
+                               .where(MaskVersion.id.in_(ids[i:i + AUTHOR_CHUNK])))
+        author.update({vid: uid for vid, uid, src in rows
+                       if uid is not None and not (src or "").startswith("import:")})
+    rp = (RobustParams(confusion=ConfusionParams()) if model == "per_author"
+          else RobustParams(regions=RegionParams()))
+    return model, LiftParams(robust_params=rp), {f: author[v] for f, v in tags.items() if v in author}
+
+
 class LiftingService:
     RETRY_S = 5.0  # a scene whose entries cannot be applied is retried after this long
     TAKEOVER_S = 5.0  # a scene waiting this long is taken by any worker, not only its own
@@ -763,35 +793,15 @@ class LiftingService:
                          fills=sc.fills, seq=seq, applied_by=self.name)
 
     # ---- how the votes are decided (issue 37) ------------------------------------------------
-    AUTHOR_CHUNK = 500  # version ids per IN (...) query
-
     def _decision(self, sc: _SceneWork, snap) -> tuple[str, LiftParams | None, dict | None]:  # noqa: ANN001
-        """The scene's annotator model (``LiftStatus.model``, read at every fill) as the fill's
-        parameters: (model, LiftParams or None for the default, frame -> who painted it).
-
-        The painter of a frame is the author of the mask version its votes count; a version
-        imported from another tool (``source`` ``import:...``: the importing admin is not who
-        painted it) or without an author is a painter of its own. The models that read every
-        frame's votes get them here, consistent with ``snap``'s counts (:meth:`_frame_votes`).
-        """
+        """The scene's annotator model as this fill's parameters (:func:`decision_for`, read
+        at every fill); the models that read every frame's votes get them here, consistent
+        with ``snap``'s counts (:meth:`_frame_votes`)."""
         with self.sessions() as s:
-            model = s.scalar(select(LiftStatus.model).where(
-                LiftStatus.scene_id == sc.scene_id)) or "pooled"
-            if model not in LIFT_MODELS or model == "pooled":
-                return "pooled", None, None
-            tags = {f: int(v) for f, v in snap.versions.items() if v is not None and v.isdigit()}
-            ids = sorted(set(tags.values()))
-            author: dict[int, int] = {}
-            for i in range(0, len(ids), self.AUTHOR_CHUNK):
-                rows = s.execute(select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
-                                 .where(MaskVersion.id.in_(ids[i:i + self.AUTHOR_CHUNK])))
-                author.update({vid: uid for vid, uid, src in rows
-                               if uid is not None and not (src or "").startswith("import:")})
-        annotators = {f: author[v] for f, v in tags.items() if v in author}
-        rp = (RobustParams(confusion=ConfusionParams()) if model == "per_author"
-              else RobustParams(regions=RegionParams()))
-        snap.frame_votes = self._frame_votes(sc, snap)
-        return model, LiftParams(robust_params=rp), annotators
+            model, params, annotators = decision_for(s, sc.scene_id, snap.versions)
+        if params is not None:
+            snap.frame_votes = self._frame_votes(sc, snap)
+        return model, params, annotators
 
     def _frame_votes(self, sc: _SceneWork, snap) -> dict[int, tuple]:  # noqa: ANN001
         """Every counted frame's stored votes, as ``snap`` counts them: the files are read

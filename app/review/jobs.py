@@ -67,7 +67,8 @@ def _write_export(jc: JobContext, ws, ws_scene, plan: dict, scratch: Path,  # no
     """Lift the planned versions (in ``scratch`` when needed) and write the export into the
     attempt's staging folder: ``(summary, labels, staging)``."""
     lab = provenance.export_labels(jc.ctx, Path(ws), ws_scene, plan, scratch,
-                                   progress=lambda f, m="": jc.progress(0.3 * f, m))
+                                   progress=lambda f, m="": jc.progress(0.3 * f, m),
+                                   scene_id=jc.scene_id)
     # written under an attempt-private name, moved to ``out`` when this attempt is
     # recorded done (a stale attempt of the same job can never touch it; app.jobs.runner)
     staging = jc.output_dir(out)

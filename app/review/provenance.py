@@ -40,6 +40,7 @@ from sqlalchemy.orm import Session
 from app import pipeline
 from app.annotations.models import MaskVersion
 from app.context import AppContext
+from app.lifting.service import decision_for
 from app.scenes.models import Frame
 from app.users.models import User
 from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
@@ -142,12 +143,14 @@ def _mask_items(ctx: AppContext, taxonomy, taken: list[dict]) -> list:  # noqa: 
 
 
 def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path, *,  # noqa: ANN001
-                  voxel_size: float | None = None, progress=None) -> dict:  # noqa: ANN001
+                  voxel_size: float | None = None, progress=None,  # noqa: ANN001
+                  scene_id: int | None = None) -> dict:
     """Labels, grid and provenance of an export under ``plan``.
 
     Returns ``{"grid": SceneGrid | None (None: the workspace's grid), "provenance": {...},
     "quality": {...}}``; lifts again in ``scratch`` (left for the caller to remove) when the
-    taken versions differ from what the live labels count."""
+    taken versions differ from what the live labels count, deciding the votes with the scene
+    ``scene_id``'s annotator model as the live lifting does (:func:`decision_for`)."""
     report = progress or (lambda f, m="": None)
     ws = Path(ws)
     chosen = {str(t["frame"]): str(t["version"]) for t in plan["taken"]}
@@ -180,6 +183,7 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
                                "this app; exported as they are",
                        "corrections": Workspace(ws).overrides_path.is_file()}}}
     if live is not None and live_versions == chosen:
+        decided = live.stats
         digest = labels_digest(live)
         q = lifting_quality.quality_report(ws, ws_scene, policy=policy, truth=truth)
         grid = None
@@ -188,9 +192,16 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
         report(0.0, f"lifting {len(chosen)} mask versions again ({', '.join(plan['include'])})")
         items = _mask_items(ctx, ws_scene.taxonomy, plan["taken"])
         lift_dir = scratch / "lift"
+        params = annotators = None
+        if scene_id is not None:
+            with ctx.sessions() as s:
+                _model, params, annotators = decision_for(
+                    s, scene_id, {t["frame"]: t["version"] for t in plan["taken"]})
         res = lifting_relift.relift(
             ws_scene, items, lift_dir, vote_weighting=lifting_relift.vote_weighting_of(ws),
-            features_ws=ws, progress=lambda f, m="": report(0.6 * f, m))
+            features_ws=ws, progress=lambda f, m="": report(0.6 * f, m), params=params,
+            annotators=annotators)
+        decided = res.stats
         digest = labels_digest(res)
         ov = Workspace(ws).overrides_path
         if ov.is_file():  # the reviewers' corrections apply to these labels as well
@@ -218,7 +229,9 @@ def export_labels(ctx: AppContext, ws: Path, ws_scene, plan: dict, scratch: Path
         "labels": {"relifted": relifted, "versions": chosen, "sha256": digest,
                    "what": "sha256 of the fill output's bytes (labels uint8, confidence float32, "
                            "origin uint8), before reviewers' corrections",
-                   "corrections": Workspace(ws).overrides_path.is_file()},
+                   "corrections": Workspace(ws).overrides_path.is_file(),
+                   # how the votes were decided (issue 37: the scene's annotator model)
+                   **{k: decided[k] for k in ("decision", "painters") if k in decided}},
         "masks": masks}}
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occufly.lifting.confusion import load_frame_votes
 from occufly.lifting.knn import LiftParams
 from occufly.lifting.result import LiftResult, save_result
 from occufly.lifting.votes import VoteStore, fill_snapshot
@@ -42,13 +43,15 @@ def vote_weighting_of(ws: str | Path) -> str:
 
 def relift(scene: Scene, masks: Iterable[tuple[int, str, np.ndarray]], scratch: str | Path, *,
            vote_weighting: str = "plain", params: LiftParams | None = None,
-           features_ws: str | Path | None = None, progress: ProgressFn | None = None
-           ) -> LiftResult:
+           features_ws: str | Path | None = None, progress: ProgressFn | None = None,
+           annotators: dict | None = None) -> LiftResult:
     """Lift ``masks`` ((frame index, version tag, (h, w) uint8 raw ids) each) from scratch into
     the empty folder ``scratch`` and return the fill result (also written there).
 
     features_ws: a workspace whose robust-decision feature cache may be read (never written;
     the features are a function of the cloud alone, so the result is the same without it).
+    annotators: frame -> who painted it, for the decisions that tell painters apart
+    (``RobustParams.confusion`` / ``regions``; they read these masks' votes from ``scratch``).
     """
     report = progress or noop
     scratch = Path(scratch)
@@ -63,6 +66,11 @@ def relift(scene: Scene, masks: Iterable[tuple[int, str, np.ndarray]], scratch: 
             state.apply_frame(int(fi), mask, version=str(tag), name=f"mask version {tag}")
             report(0.5 * (k + 1) / max(1, len(items)), f"votes of {k + 1}/{len(items)} masks")
         snap = state.snapshot()
+        rp = getattr(params, "robust_params", None)
+        if getattr(rp, "confusion", None) is not None or getattr(rp, "regions", None) is not None:
+            # every frame's votes from this scratch state (not features_ws's own masks)
+            snap.frame_votes = load_frame_votes(scratch, sorted(snap.versions))
+        snap.annotators = dict(annotators) if annotators is not None else None
         result = fill_snapshot(scene, snap, params=params, ws=features_ws, read_only=True,
                                progress=lambda f, m: report(0.5 + 0.45 * f, m))
         save_result(scratch, result)

@@ -135,3 +135,56 @@ def test_painters_come_from_the_counted_versions_authors_and_imports_paint_alone
     snap.versions[index[made[0][0]]] = "999999"
     assert index[made[0][0]] not in svc._frame_votes(sc, snap)
     assert len(svc._frame_votes(sc, snap)) == 2
+
+
+def test_an_export_that_lifts_again_decides_with_the_scenes_model(world, tmp_path):
+    """Accepted masks only: the export lifts them again in a scratch folder with the scene's
+    annotator model and painters (not the default), says so in the manifest, and lifting the
+    manifest's versions again with the same inputs reproduces its labels byte for byte."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from app import pipeline
+    from app.lifting.service import decision_for
+    from occufly.lifting.relift import labels_digest, relift
+    from occufly.scene import Scene
+
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    ctx = env.app.state.ctx
+    made = [_submit(env, hdr[w], sid, c) for w, c in
+            (("annotator", 6), ("annotator2", 8), ("annotator", 6))]
+    for fid, v in made[:2]:  # the third stays submitted: the export lifts the two again
+        r = env.client.post(f"/api/frames/{fid}/review", json={"decision": "accept", "version": v},
+                            headers=hdr["reviewer"])
+        assert r.status_code == 200, r.text
+    r = env.client.put(f"/api/scenes/{sid}/lifting", json={"model": "per_author"},
+                       headers=hdr["admin"])
+    assert r.status_code == 200
+    assert ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    r = env.client.post(f"/api/scenes/{sid}/export", json={}, headers=hdr["admin"])
+    assert r.status_code == 202, r.text
+    ctx.jobs.wait(r.json()["id"], timeout=180)
+    j = env.client.get(f"/api/jobs/{r.json()['id']}", headers=hdr["admin"]).json()
+    assert j["status"] == "done", j.get("message")
+    mp = (Path(j["result"]["output"]) / "OccuFly_Dataset" / j["result"]["summary"]["scene_id"]
+          / "manifest.json")
+    labels = json.loads(mp.read_text())["provenance"]
+    assert labels["labels"]["relifted"] is True
+    assert labels["labels"]["decision"] == "confusion"
+    assert labels["labels"]["painters"] == {"authors": 2, "frames_with_author": 2, "frames_own": 0}
+    ws = env.settings.workspaces_dir / "tiny"
+    ws_scene = Scene.load(ws)
+    items = []
+    for e in labels["masks"]:
+        data = ctx.store.get(e["sha256"])
+        assert hashlib.sha256(data).hexdigest() == e["sha256"]
+        items.append((e["frame"], str(e["version"]),
+                      pipeline.stored_mask_ids(data, ws_scene.taxonomy)))
+    with ctx.sessions() as s:
+        _m, params, annotators = decision_for(s, sid, {e["frame"]: e["version"]
+                                                       for e in labels["masks"]})
+    again = relift(ws_scene, items, tmp_path / "again", params=params, annotators=annotators)
+    assert labels_digest(again) == labels["labels"]["sha256"]
+    assert again.stats["decision"] == "confusion"

@@ -146,7 +146,8 @@ def scene_quality(scene: SceneDep, session: SessionDep, ctx: CtxDep, _user: Revi
         return {"computing": True, "stale": False,
                 "message": f"the quality report of scene {scene.id} is being computed (one "
                            "leave-one-out decision per annotated frame); ask again shortly"}
-    return q
+    # who painted what, from the report's frames (issue 37: the admin's choice of model)
+    return {**q, "painters": provenance.painters(session, q)}
 
 
 @router.post("/scenes/{sid}/eval", response_model=JobOut, status_code=202)

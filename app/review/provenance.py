@@ -118,6 +118,52 @@ def export_plan(session: Session, scene_id: int, include=None) -> dict:  # noqa:
             "unreviewed_frames": [t["frame"] for t in taken if t["state"] != "accepted"]}
 
 
+def painters(session: Session, report: dict) -> list[dict]:
+    """A quality report's per-frame leave-one-out figures summed per painter (issue 37): who
+    painted each counted version (its author; an imported mask is its tool's, a version
+    without an author ``unknown``), their frames, votes with an independent label, those that
+    agree, the agreement, and their most frequent disagreements (``painted`` class where the
+    independent label says ``independent``; summed over each frame's three most frequent).
+    Lowest agreement first: a painter far below the others who swaps the same pair on every
+    frame is what the per-painter annotator model corrects."""
+    rows = (report.get("loo") or {}).get("per_frame") or []
+    versions = report.get("versions") or {}
+    vids = {int(v) for v in versions.values() if v is not None and str(v).isdigit()}
+    info = dict((vid, (uid, src)) for vid, uid, src in session.execute(
+        select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
+        .where(MaskVersion.id.in_(vids)))) if vids else {}
+    uids = {uid for uid, _src in info.values() if uid is not None}
+    names = dict(session.execute(select(User.id, User.username).where(User.id.in_(uids))).all()) \
+        if uids else {}
+    acc: dict[tuple, dict] = {}
+    for r in rows:
+        tag = versions.get(str(r["frame"]))
+        uid, src = info.get(int(tag), (None, None)) if tag is not None and str(tag).isdigit() \
+            else (None, None)
+        if (src or "").startswith("import:"):
+            key, name = ("import", src), f"imported from {src[len('import:'):]}"
+        elif uid is None:
+            key, name = ("unknown",), "unknown"
+        else:
+            key, name = ("user", uid), names.get(uid, f"user {uid}")
+        a = acc.setdefault(key, {"painter": name, "user_id": uid if key[0] == "user" else None,
+                                 "frames": 0, "votes": 0, "independent": 0, "agree": 0,
+                                 "pairs": {}})
+        a["frames"] += 1
+        for k in ("votes", "independent", "agree"):
+            a[k] += int(r.get(k) or 0)
+        for d in r.get("disagreements") or []:
+            pair = (d["painted"], d["independent"])
+            a["pairs"][pair] = a["pairs"].get(pair, 0) + int(d["votes"])
+    out = []
+    for a in acc.values():
+        pairs = sorted(a.pop("pairs").items(), key=lambda kv: (-kv[1], kv[0]))[:3]
+        a["agreement"] = round(a["agree"] / a["independent"], 4) if a["independent"] else None
+        a["disagreements"] = [{"painted": p, "independent": i, "votes": n} for (p, i), n in pairs]
+        out.append(a)
+    return sorted(out, key=lambda a: (a["agreement"] is None, a["agreement"] or 0.0, a["painter"]))
+
+
 def plan_text(plan: dict) -> str:
     """"12 accepted frames; left out: 2 drafts, 3 submitted" (what the job card shows)."""
     c = plan["counts"]

@@ -248,6 +248,7 @@ def _loo_rows(w: Workspace, ws: Path, scene: Scene, frames: list[int], cls: Clas
     cls_votes = np.zeros(C, np.int64)
     cls_ind = np.zeros(C, np.int64)
     cls_agree = np.zeros(C, np.int64)
+    names = {c.id: c.name for c in scene.taxonomy.classes}
     frame_rows = []
     for f in frames:
         pids, cols = _frame_votes(w, f)
@@ -270,8 +271,25 @@ def _loo_rows(w: Workspace, ws: Path, scene: Scene, frames: list[int], cls: Clas
             "independent_votes": int((has & by_votes).sum()),
             "agree": int(agree.sum()),
             "agreement": _share(int(agree.sum()), nh),
-            "independent_coverage": _share(nh, len(pids))})
+            "independent_coverage": _share(nh, len(pids)),
+            "disagreements": _disagreements(cls.ids[cols[has & ~agree]], ind[has & ~agree],
+                                            names)})
     return frame_rows, cls_votes, cls_ind, cls_agree
+
+
+def _disagreements(painted: np.ndarray, independent: np.ndarray, names: dict, top: int = 3
+                   ) -> list[dict]:
+    """The most frequent (painted class, independent label) pairs of a frame's disagreeing
+    votes: ``[{"painted", "independent", "votes"}]`` by class name, most votes first -- a
+    painter who swaps grass and vegetation shows as grass -> vegetation on every frame."""
+    if not len(painted):
+        return []
+    key = painted.astype(np.int64) * 256 + independent.astype(np.int64)
+    u, n = np.unique(key, return_counts=True)
+    order = np.lexsort((u, -n))[:top]
+    return [{"painted": names.get(int(u[i] // 256), str(int(u[i] // 256))),
+             "independent": names.get(int(u[i] % 256), str(int(u[i] % 256))),
+             "votes": int(n[i])} for i in order]
 
 
 def _calibration(lab: np.ndarray, conf: np.ndarray, origin: np.ndarray, labelled: np.ndarray,

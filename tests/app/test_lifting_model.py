@@ -188,3 +188,43 @@ def test_an_export_that_lifts_again_decides_with_the_scenes_model(world, tmp_pat
     again = relift(ws_scene, items, tmp_path / "again", params=params, annotators=annotators)
     assert labels_digest(again) == labels["labels"]["sha256"]
     assert again.stats["decision"] == "confusion"
+
+
+def test_the_quality_report_sums_the_leave_one_out_figures_per_painter(world):
+    """GET /quality: per painter (the author of each counted version; an imported one is its
+    tool's), frames, votes with an independent label, agreement and the pairs they paint
+    differently from the others -- a painter who swaps a class shows it on every frame."""
+    from app.annotations.models import MaskVersion
+
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    ctx = env.app.state.ctx
+    # three careful frames (grass, road at the left) and one frame painting vegetation for grass
+    made = [_submit(env, hdr[w], sid, c) for w, c in
+            (("annotator", 6), ("annotator", 6), ("annotator2", 6), ("annotator2", 7))]
+    with ctx.sessions() as s:  # the third was imported from CVAT: a painter of its own
+        s.execute(update(MaskVersion).where(MaskVersion.id == made[2][1])
+                  .values(source="import:cvat"))
+        s.commit()
+    assert ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    end = time.monotonic() + 120
+    while True:
+        r = env.client.get(f"/api/scenes/{sid}/quality", headers=hdr["reviewer"])
+        if r.status_code == 200 and not r.json().get("computing"):
+            break
+        assert time.monotonic() < end, r.text
+        time.sleep(0.2)
+    q = r.json()
+    rows = {p["painter"]: p for p in q["painters"]}
+    assert set(rows) == {"annotator", "annotator2", "imported from cvat"}, rows
+    assert rows["annotator"]["frames"] == 2 and rows["annotator2"]["frames"] == 1
+    assert rows["imported from cvat"]["user_id"] is None
+    per_frame = q["loo"]["per_frame"]
+    assert sum(p["independent"] for p in q["painters"]) == sum(f["independent"] for f in per_frame)
+    sloppy = rows["annotator2"]
+    assert sloppy["agreement"] < rows["annotator"]["agreement"]
+    assert sloppy["disagreements"][0]["painted"] == "vegetation"
+    assert sloppy["disagreements"][0]["independent"] == "grass"
+    assert q["painters"][0]["painter"] == "annotator2"  # lowest agreement first
+    assert all(f["disagreements"] == sorted(f["disagreements"], key=lambda d: -d["votes"])
+               for f in per_frame)

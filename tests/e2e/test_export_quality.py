@@ -36,6 +36,11 @@ def _mask(live, f: dict, top: int) -> bytes:  # noqa: ANN001
 
 
 
+def pct_text(v) -> str:  # noqa: ANN001
+    """The page's pct(): one decimal, a space and %, or a dash."""
+    return "–" if v is None else f"{100 * v:.1f} %"
+
+
 def _current_quality(admin, sid: int) -> dict:  # noqa: ANN001
     """The report of the current labels (it is computed in the background: 202 / stale until
     then)."""
@@ -109,6 +114,12 @@ def test_export_confirm_job_card_and_quality_section(live, sid, new_page):
     assert sec.locator("#quality-loo-hist").count() == 1
     if truth is not None and q["confidence"]["truth"]:
         assert f"ECE {q['confidence']['truth']['ece']:.4f}" in sec.locator("tr[data-figure='ece']").inner_text()
+    # issue 37: per painter, what the report's frames say about who painted them
+    for pr in q["painters"]:
+        row = sec.locator(f"tr[data-painter='{pr['painter']}']")
+        assert row.locator("td").nth(1).inner_text() == str(pr["frames"])
+        assert pct_text(pr["agreement"]) in row.inner_text()
+    assert sum(pr["frames"] for pr in q["painters"]) == q["annotated_frames"]
     sec.scroll_into_view_if_needed()
     sec.screenshot(path=str(DOCS_SHOTS / "admin_quality.png"))
 

@@ -1158,6 +1158,7 @@ export function qualityView(q) {
   if (bars.length) barPlot(canvas, bars, { title: "annotated frames by leave-one-out agreement", valueFmt: (v) => `${v} frame${v === 1 ? "" : "s"}` });
   const worst = [...(lo.per_frame || [])].filter((r) => r.agreement !== null).sort((a, b) => a.agreement - b.agreement).slice(0, 5);
   const classes = Object.values(q.classes || {}).sort((a, b) => b.points - a.points);
+  const painters = q.painters || []; // issue 37: the API adds who painted what
   return el(
     "div",
     { class: "quality", "data-stamp": q.labels_stamp || "" },
@@ -1166,6 +1167,13 @@ export function qualityView(q) {
       el("figure", {}, canvas, el("figcaption", {}, "Annotated frames by leave-one-out agreement (a wrong mask scores low)")),
       worst.length ? el("figure", {}, table(worst, [{ key: "name", label: "Lowest frames" }, { key: "agreement", label: "LOO agreement", fmt: (v) => pct(v) }, { key: "independent_coverage", label: "Independent coverage", fmt: (v) => pct(v) }]), el("figcaption", {}, "Review these first")) : null,
     ),
+    painters.length ? table(painters, [
+      { key: "painter", label: "Painter" },
+      { key: "frames", label: "Frames" },
+      { key: "agreement", label: "LOO agreement", fmt: (v) => pct(v) },
+      { key: "independent", label: "Votes with an independent label", fmt: (v) => v.toLocaleString() },
+      { key: "disagreements", label: "Most frequent disagreements (painted → others say)", fmt: (v) => (v && v.length ? v.map((d) => `${d.painted} → ${d.independent} (${d.votes.toLocaleString()})`).join("; ") : "–") },
+    ], { caption: "Per painter: a painter far below the others who swaps the same pair on every frame is outvoted by “One model per painter” (Lifting section)", rowAttrs: (r) => ({ "data-painter": r.painter }) }) : null,
     table(classes, [
       { key: "name", label: "Class" },
       { key: "points", label: "Points", fmt: (v) => v.toLocaleString() },

@@ -2,8 +2,8 @@
 
 ``GET /api/scenes/{id}/lifting`` (members): the model, the models to choose from with what
 each does, the lifting status and what the last fill used (its decision, how many painters it
-told apart, how long it took). ``PUT`` (admins): ``{"model": "pooled" | "per_author" |
-"regions"}``; recorded in the audit log; a scene that has been lifted is filled again with it
+told apart, how long it took). ``PUT`` (admins): ``{"model": "pooled" | "per_author"}``;
+recorded in the audit log; a scene that has been lifted is filled again with it
 at once (the worker owning it is told by the ``lifting_model_changed`` event).
 """
 
@@ -28,15 +28,14 @@ ACCESS = {
 
 # what the last fill's statistics say about how it decided (labels.json; the rest is large)
 LAST_FILL_KEYS = ("decision", "painters", "annotated_frames", "total_seconds", "confusion_annotators",
-                  "regions", "region_votes_changed", "confusion_skipped", "regions_skipped")
+                  "confusion_skipped")
 
 
 class LiftingIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    model: Literal["pooled", "per_author", "regions"] = Field(
+    model: Literal["pooled", "per_author"] = Field(
         description="pooled: one confusion matrix for every painter (the default); per_author: "
-                    "one per mask author; regions: a painted region two other authors "
-                    "contradict as a whole is counted as they say")
+                    "one per mask author")
 
 
 def _out(session, ctx, scene) -> dict:  # noqa: ANN001

@@ -77,7 +77,6 @@ from occufly.errors import OccuflyError
 from occufly.lifting import LiftParams, RobustParams, VoteStore
 from occufly.lifting.confusion import ConfusionParams, load_frame_votes
 from occufly.lifting.incremental import IncrementalFill
-from occufly.lifting.regions import RegionParams
 from occufly.workspace import Workspace
 
 if TYPE_CHECKING:
@@ -237,8 +236,7 @@ def decision_for(session: Session, scene_id: int, versions: dict
                                .where(MaskVersion.id.in_(ids[i:i + AUTHOR_CHUNK])))
         author.update({vid: uid for vid, uid, src in rows
                        if uid is not None and not (src or "").startswith("import:")})
-    rp = (RobustParams(confusion=ConfusionParams()) if model == "per_author"
-          else RobustParams(regions=RegionParams()))
+    rp = RobustParams(confusion=ConfusionParams())  # per_author
     return model, LiftParams(robust_params=rp), {f: author[v] for f, v in tags.items() if v in author}
 
 

@@ -6,8 +6,7 @@ Create Date: 2026-12-07 17:00:00
 
 ``lift_status.model``: the annotator model of the scene's live lifting (app/lifting/models.py
 ``LIFT_MODELS``): ``pooled`` (one confusion matrix for every painter, the default and what
-every scene had before), ``per_author`` (a confusion matrix per mask author) or ``regions``
-(a painted region the other authors contradict as a whole is counted as they say). Set by an
+every scene had before) or ``per_author`` (a confusion matrix per mask author). Set by an
 admin (``PUT /api/scenes/{id}/lifting``).
 """
 from __future__ import annotations

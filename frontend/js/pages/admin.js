@@ -979,7 +979,7 @@ const SHARE = /agreement|coverage|iou|precision|recall|delta|^d[123]$|accuracy/i
 
 /** One metric value as text; `dates`: ISO timestamps as local dates. */
 // issue 37: the annotator models of the live lifting (the server's descriptions go beside them)
-const LIFT_MODEL_NAMES = { pooled: "One model for all painters", per_author: "One model per painter", regions: "Region consistency by painter" };
+const LIFT_MODEL_NAMES = { pooled: "One model for all painters", per_author: "One model per painter" };
 const LIFT_DECISIONS = { robust: "one model for all painters", confusion: "one model per painter", regions: "region consistency by painter", majority: "the plain vote majority" };
 
 export function liftingView(r, apply) {
@@ -1001,9 +1001,8 @@ export function liftingView(r, apply) {
   else {
     const p = f.painters;
     const who = p ? `, ${p.authors} painter${p.authors === 1 ? "" : "s"} told apart${p.frames_own ? ` (${p.frames_own} frame${p.frames_own === 1 ? "" : "s"} imported or without an author, each counted as a painter of its own)` : ""}` : "";
-    const regions = f.decision === "regions" && f.regions != null ? `, ${f.regions} painted region${f.regions === 1 ? "" : "s"} counted as the other painters say` : "";
-    const skipped = f.confusion_skipped || f.regions_skipped ? ` (not applied: ${f.confusion_skipped || f.regions_skipped})` : "";
-    last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}${regions}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.`;
+    const skipped = f.confusion_skipped ? ` (not applied: ${f.confusion_skipped})` : "";
+    last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.`;
   }
   const busy = st.pending_fill || st.pending_frames ? el("p", { class: "warn", id: "lift-pending" }, st.fill_running ? "A fill is running; its result appears here when it is done." : "A fill is due; its result appears here when it is done.") : null;
   wrap.append(...[fieldset, el("p", { id: "lift-last" }, last), busy, st.last_error ? el("p", { class: "error" }, `Last lifting error: ${st.last_error}`) : null].filter(Boolean));

@@ -25,7 +25,7 @@ LIFT_MODELS = {
                   "see the same points, that painter is outvoted. On the benchmark scenes with "
                   "such a painter, +1.2 to +14.7 points of accuracy; where everyone is hurried "
                   "in the same way, little change in accuracy and up to 3.6 points of mIoU "
-                  "lost. Fills take about 1.5x to 2x as long.",
+                  "lost. Fills take about 1.3x to 2x as long.",
 }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -256,3 +257,39 @@ def test_cli_lift_per_author_with_a_sloppy_painter(tiny, tmp_path, capsys):
     for bad in (["--per-author", "--regions"], ["--authors", str(authors)]):
         assert main([*base, *bad]) == 2
         assert "--" in capsys.readouterr().err
+
+
+def test_a_per_painter_model_that_does_not_fit_in_memory_keeps_the_first_decision(
+        tiny, tmp_path, monkeypatch):
+    """The per-painter model's vote table is checked against the memory available before it
+    is built: where it does not fit, the fill goes on with one model for all painters and says
+    why (the app's worker is not brought down by the model an admin chose)."""
+    import shutil
+
+    from occufly.lifting import LiftParams, RobustParams, VoteStore
+    from occufly.lifting import votes as votes_mod
+    from occufly.lifting.confusion import ConfusionParams
+    from occufly.synthetic.noise import crew_masks
+
+    ws, scene, _truth, exact = tiny
+    masks, who = crew_masks(exact, scene.taxonomy, seed=0)
+    scratch = tmp_path / "ws"
+    scratch.mkdir()
+    for part in ("scene.json", "taxonomy.json", "points", "visibility"):
+        (scratch / part).symlink_to(Path(ws).resolve() / part)
+    st = VoteStore.open(scratch, scene)
+    for fi, m in masks.items():
+        st.apply_frame(fi, m, version=f"c{fi}")
+    per = LiftParams(robust_params=RobustParams(confusion=ConfusionParams()))
+    pooled = st.fill_and_denoise(write=False)
+    fits = st.fill_and_denoise(write=False, params=per, annotators=who)
+    assert fits.stats["decision"] == "confusion" and "confusion_skipped" not in fits.stats
+    # a table that needs more than the machine has (the fill's own check still passes)
+    monkeypatch.setattr(votes_mod, "VOTE_TABLE_BYTES", 1 << 40)
+    short = st.fill_and_denoise(write=False, params=per, annotators=who)
+    assert "needs about" in short.stats["confusion_skipped"]
+    assert "one model for all painters" in short.stats["confusion_skipped"]
+    np.testing.assert_array_equal(np.asarray(short.labels), np.asarray(pooled.labels))
+    assert not np.array_equal(np.asarray(fits.labels), np.asarray(pooled.labels))
+    st.close()
+    shutil.rmtree(scratch)

@@ -49,8 +49,8 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from occufly.errors import MaskError, WorkspaceError
-from occufly.fsutil import atomic_write_bytes, atomic_write_text
+from occufly.errors import MaskError, OccuflyError, WorkspaceError
+from occufly.fsutil import atomic_write_bytes, atomic_write_text, require_memory
 from occufly.io.masks import mask_scale, validate_ids
 from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
@@ -937,6 +937,24 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
     return result
 
 
+# peak bytes per vote of the per-frame models' vote table (confusion.vote_table, regions._table:
+# point id, column, annotator, weight, the sort by point) beyond the frames' votes themselves
+VOTE_TABLE_BYTES = 24
+
+
+def _table_memory(frames: dict, n_points: int, what: str) -> str | None:
+    """None when the vote table of ``frames`` fits in the memory available now, else why not
+    (the decision then keeps the first one, and the fill goes on: a survey's worker is not
+    brought down by a model an admin chose)."""
+    votes = sum(len(v[0]) for v in frames.values())
+    try:
+        require_memory(VOTE_TABLE_BYTES * votes + 8 * (int(n_points) + 1), what,
+                       detail=f" ({votes:,} votes)", count_own=False)
+    except OccuflyError as e:
+        return f"{e}; decided with one model for all painters"
+    return None
+
+
 def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns,  # noqa: ANN001
                         feats: np.ndarray, col1: np.ndarray, top1: np.ndarray, second: np.ndarray,
                         rp, first: tuple, report: ProgressFn  # noqa: ANN001
@@ -954,6 +972,10 @@ def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColu
         frames = load_frame_votes(ws, sorted(snapshot.versions))
     if not frames:
         first[3]["confusion_skipped"] = "no per-frame votes"
+        return first
+    short = _table_memory(frames, scene.n_points, "the per-painter model")
+    if short is not None:
+        first[3]["confusion_skipped"] = short
         return first
     table = vote_table(frames, scene.n_points, snapshot.annotators, snapshot.vote_unit)
     init = np.where(first[0] > 0, cls.col_of[first[0]], -1)
@@ -991,6 +1013,10 @@ def _region_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns
         frames = load_frame_votes(ws, sorted(snapshot.versions))
     if not frames:
         stats["regions_skipped"] = "no per-frame votes"
+        return first
+    short = _table_memory(frames, scene.n_points, "region consistency")
+    if short is not None:
+        stats["regions_skipped"] = short
         return first
     pi = np.asarray(stats["robust_matrix"], np.float64)
     got = region_votes(scene, frames, pi, annotators=snapshot.annotators, params=rp.regions)

@@ -291,7 +291,8 @@ def robustness(args: argparse.Namespace) -> dict:
                     "lift_stats": {k: v for k, v in res.stats.items()
                                    if (k.startswith(("robust", "reliability", "confusion",
                                                      "region"))
-                                       or k.endswith("seconds")) and k != "robust_matrix"},
+                                       or k.endswith("seconds"))
+                                   and k not in ("robust_matrix", "confusion_model")},
                     "seconds": round(time.perf_counter() - t, 1)}
                 shutil.rmtree(tmp, ignore_errors=True)
                 if weighting_of(robust) == "snap":  # what the snapping did to the masks

@@ -268,6 +268,7 @@ def _lift(args: argparse.Namespace) -> dict:
         out["labels"] = res.summary(scene.taxonomy)
         out["labels"].pop("versions", None)
         out["labels"].pop("robust_matrix", None)  # C x C numbers, kept in labels.json
+        out["labels"].pop("confusion_model", None)  # A x C x C, kept there too
     return out
 
 

@@ -123,6 +123,39 @@ def vote_table(frames: dict[int, tuple], n_points: int, annotators: dict | None 
     return VoteTable(pid[order], col[order], ann[order], w[order], indptr, names)
 
 
+def model_record(model: ConfusionModel, frames: dict, annotators: dict | None,
+                 class_ids) -> dict:  # noqa: ANN001
+    """What the review's leave-one-out decision needs of a fitted model, for ``labels.json``
+    (``confusion_model``): the class ids, the annotators' ids, each voting frame's annotator
+    index, the (A, C, C) log matrices and the class prior (5 significant digits)."""
+    voted = [f for f in sorted(frames) if len(frames[f][0])]
+    of, names = annotator_index(voted, annotators)
+    return {"class_ids": [int(i) for i in class_ids],
+            "names": [[str(k), v if isinstance(v, (int, str)) else str(v)] for k, v in names],
+            "frames": {str(int(f)): int(a) for f, a in zip(voted, of, strict=True)},
+            "logpi": np.round(np.asarray(model.logpi, np.float64), 5).tolist(),
+            "prior": [float(f"{x:.6g}") for x in np.asarray(model.prior, np.float64)]}
+
+
+def model_from_record(rec: dict, class_ids) -> tuple[np.ndarray, np.ndarray, dict] | None:  # noqa: ANN001
+    """(logpi (A, C, C) float32, prior (C,), frame -> annotator index) of a
+    :func:`model_record`, or None when it does not fit ``class_ids`` or is malformed."""
+    if not isinstance(rec, dict) or [int(i) for i in rec.get("class_ids") or []] != \
+            [int(i) for i in class_ids]:
+        return None
+    try:
+        logpi = np.asarray(rec["logpi"], np.float32)
+        prior = np.asarray(rec["prior"], np.float64)
+        frames = {int(k): int(v) for k, v in rec["frames"].items()}
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
+    C = len(class_ids)
+    if logpi.ndim != 3 or logpi.shape[1:] != (C, C) or prior.shape != (C,) or \
+            not np.isfinite(logpi).all() or any(not 0 <= a < len(logpi) for a in frames.values()):
+        return None
+    return logpi, prior, frames
+
+
 def load_frame_votes(ws: str | Path, frames: list[int]) -> dict[int, tuple]:
     """frame -> (point ids, columns, weights) of the given frames' vote files in ``ws``
     (frames without a file are left out)."""

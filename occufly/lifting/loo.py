@@ -213,16 +213,60 @@ def _vote_unit(ws: Path) -> int:
     return vote_unit(str(st.get("vote_weighting", "plain")))
 
 
+def _painter_model(ws: Path, scene: Scene, frame_index: int, pts: np.ndarray, rec: tuple,
+                   pooled: np.ndarray | None, unit: int):  # noqa: ANN202
+    """The fill's per-painter confusion model (its ``confusion_model`` record, ``rec``) over
+    the other frames' votes at the points ``pts`` (sorted ids; the table's rows are their
+    positions), for :func:`_robust_decision`: each frame under its painter's matrix, as the
+    fill decided. A frame the fill did not count (saved since) gets the pooled matrix."""
+    from occufly.lifting.confusion import ConfusionModel, ConfusionParams, vote_table
+
+    logpi, prior, painter_of = rec
+    reach = frames_reaching(scene, frame_index, pts)
+    w = Workspace(ws)
+    if reach is None:  # every frame may vote there
+        reach = [int(q.stem) for q in w.lifting_frames_dir.glob("*.npz") if q.stem.isdigit()]
+    frames: dict[int, tuple] = {}
+    for g in reach:
+        if int(g) == frame_index:
+            continue
+        got = w.read_frame_votes(int(g))
+        if got is None:
+            continue
+        pids, cols, wt = got
+        r = rows_in(pts, np.asarray(pids, np.int64))
+        keep = r >= 0
+        if keep.any():
+            frames[int(g)] = (r[keep].astype(np.int32), np.asarray(cols)[keep],
+                              None if wt is None else np.asarray(wt)[keep])
+    # annotator of each frame: its painter's index in the record, -1 - frame if it has none
+    ann = {g: painter_of.get(g, -1 - g) for g in frames}
+    table = vote_table(frames, len(pts), ann, unit)
+    fallback = (np.log(np.maximum(pooled, 1e-12)).astype(np.float32) if pooled is not None
+                else np.log(np.exp(logpi.astype(np.float64)).mean(axis=0)).astype(np.float32))
+    local = np.stack([logpi[a] if a >= 0 else fallback for _k, a in table.names]) \
+        if table.names else logpi[:0]
+    if not len(local):
+        local = fallback[None]
+    return ConfusionModel(table, local, prior, ConfusionParams(), {})
+
+
 def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
                      col: np.ndarray, n1: np.ndarray, col2: np.ndarray, n2: np.ndarray,
-                     share: np.ndarray, p: LiftParams) -> None:
+                     share: np.ndarray, p: LiftParams, frame_index: int | None = None) -> None:
     """Re-decide the voted points of ``ids`` (votes already without the frame's own) with the
     pipeline's robust decision, :func:`occufly.lifting.robust.redecide` -- called, not copied:
     its annotator model and point classifier are fitted on the other frames' votes in the
     frame's cull, so a neighbour's wrong votes are overruled as the pipeline overrules them
     instead of deciding the labels where few frames overlap. ``col`` (winner columns) and
     ``share`` are updated in place: a re-decided point's share is its posterior
-    ``(1 + margin) / 2`` (the top of two candidates; 1 where one class was possible)."""
+    ``(1 + margin) / 2`` (the top of two candidates; 1 where one class was possible).
+
+    Where the last fill decided per painter (issue 37: its stats hold ``confusion_model``), the
+    other frames' votes are weighed by their painters' matrices as the fill weighed them
+    (:func:`_painter_model`; ``frame_index``, the frame left out), so the reviewer's figure
+    and the shipped labels come from the same decision."""
+    from occufly.lifting.confusion import model_from_record
     from occufly.lifting.robust import RobustParams, RowSubset, cached_features, redecide
 
     sel = np.flatnonzero(col >= 0)
@@ -248,10 +292,14 @@ def _robust_decision(ws: Path, scene: Scene, cls: ClassColumns, ids: np.ndarray,
         sec = sec.astype(np.float32) / unit
     else:
         sec = sec.astype(np.uint16)
+    rec = (model_from_record(Workspace(ws).lift_stats().get("confusion_model"), cls.ids)
+           if frame_index is not None else None)
+    model = (_painter_model(ws, scene, frame_index, pts, rec, matrix, unit)
+             if rec is not None else None)
     labels, margin, _top, _stats = redecide(
         cls, RowSubset(feats, pts), c1, top.astype(np.uint16), col2[sel].astype(np.int8), sec,
         rp, xyz=RowSubset(scene.xyz, pts), with_top=False, workers=LOO_THREADS,
-        confusion_matrix=matrix)
+        confusion_matrix=matrix, confusion=model)
     col[sel] = cls.col_of[labels]
     share[sel] = (1.0 + margin) / 2.0
 
@@ -851,7 +899,7 @@ def loo_labels(ws: str | Path, scene: Scene, frame_index: int, *,
                                    own_rows=rows(own_p), second=True)
     voted = col >= 0
     if getattr(p, "robust", False):
-        _robust_decision(ws, scene, cls, ids, col, n1, col2, n2, share, p)
+        _robust_decision(ws, scene, cls, ids, col, n1, col2, n2, share, p, frame_index)
     # fill: the points f sees without an independent vote, from the other frames' voted points
     is_vis = np.zeros(len(ids), bool)
     is_vis[rows(vis)] = True  # every visible point is in ids

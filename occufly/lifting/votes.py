@@ -963,7 +963,7 @@ def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColu
     model (:mod:`occufly.lifting.confusion`) fitted from every frame's votes and initialised
     from the first decision's labels (``first``: its (labels, margin, top, stats)). Without the frames' votes (a snapshot made
     without them and no workspace): the first decision, with a stat saying so."""
-    from occufly.lifting.confusion import fit_confusion, load_frame_votes, vote_table
+    from occufly.lifting.confusion import fit_confusion, load_frame_votes, model_record, vote_table
     from occufly.lifting.robust import redecide
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -984,6 +984,8 @@ def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColu
     direct, margin, top, stats = redecide(cls, feats, col1, top1, snapshot.second_col, second,
                                           rp, progress=report, xyz=scene.xyz, confusion=model)
     stats.update(model.stats)
+    # the per-painter matrices, for the review's leave-one-out decision (occufly.lifting.loo)
+    stats["confusion_model"] = model_record(model, frames, snapshot.annotators, cls.ids)
     stats["confusion_fit_seconds"] = round(t_fit, 3)
     stats["confusion_fit_cpu_seconds"] = round(c_fit, 3)
     stats["confusion_first_robust_seconds"] = first[3].get("robust_seconds")

@@ -159,6 +159,9 @@ def close(app: FastAPI) -> None:
     ctx: AppContext = app.state.ctx
     ctx.jobs.shutdown(wait=True)
     ctx.lifting.stop()
+    viewer = getattr(app.state, "viewer", None)
+    if viewer is not None:  # the 3D server and its socket leases' renewal (app.shared_limits)
+        viewer.stop()
     if ctx.events is not None:
         ctx.events.close()
     ctx.engine.dispose()

@@ -167,18 +167,20 @@ class ViewerService(SceneViewMixin, PanelsMixin, RefreshMixin):
 
     def stop(self) -> None:
         with self._start_lock:
-            if self.server is None:
-                return
-            self._stop.set()
-            self._wake.set()
-            if self._worker is not None:
-                self._worker.join(timeout=5)
-            if self._access_worker is not None:
-                self._access_worker.join(timeout=5)
-            self.server.stop()
-            self.server = None
-            self._clients.clear()
-            if self.socket_leases is not None:  # this process's socket rows go now
+            if self.server is not None:
+                self._stop.set()
+                self._wake.set()
+                if self._worker is not None:
+                    self._worker.join(timeout=5)
+                if self._access_worker is not None:
+                    self._access_worker.join(timeout=5)
+                self.server.stop()
+                self.server = None
+                self._clients.clear()
+            # this process's socket rows go now, and their renewal stops -- also where the 3D
+            # server never started (a socket refused upstream still claimed a lease): else
+            # the renewal outlives the app and its database
+            if self.socket_leases is not None:
                 self.socket_leases.close()
 
     # ---- tickets ---------------------------------------------------------------------------

@@ -47,6 +47,27 @@ def test_viewer_socket_leases_of_a_stopped_process_expire(env):
     b.close()
 
 
+def test_closing_the_app_stops_the_lease_renewal_even_where_the_3d_server_never_ran(env):
+    """A lease claimed by a socket whose 3D server never started (refused upstream, say) was
+    renewed on after the app closed -- in the test suite, into a database already dropped
+    ("viewer sockets: renewing the leases failed" at teardown). Closing the app stops the
+    renewal and removes this process's rows."""
+    from sqlalchemy import func, select
+
+    from app.main import close
+
+    viewer = env.app.state.viewer
+    assert viewer.server is None  # nothing started the 3D server
+    leases = viewer.socket_leases
+    leases.claim("admin", 5)
+    assert leases._thread is not None and leases._thread.is_alive()
+    close(env.app)
+    leases._thread.join(timeout=5)
+    assert not leases._thread.is_alive()
+    with env.app.state.ctx.sessions() as s:
+        assert s.scalar(select(func.count()).select_from(ViewerSocket)) == 0
+
+
 def test_a_stalled_process_never_renews_or_frees_a_row_that_reused_its_id(env):
     """A row removed as expired frees its id; SQLite (no AUTOINCREMENT) and a truncated
     PostgreSQL table hand it to the next row, another process's. The stalled process's renewal

@@ -74,6 +74,11 @@ def test_report_names_the_wrong_frame_and_measures_calibration(lifted):
     others = [r["agreement"] for f, r in rows.items() if f != WRONG]
     assert rows[WRONG]["agreement"] < 0.85 < min(others) and np.median(others) > 0.95
     assert q["loo"]["agreement_distribution"]["n"] == len(SELECTED)
+    # what the wrong frame paints differently (issue 37): its houses as grass and road
+    names = {c.id: c.name for c in scene.taxonomy.classes}
+    top = {(d["painted"], d["independent"]) for d in rows[WRONG]["disagreements"][:2]}
+    assert top == {(names[GRASS], names[BUILDING]), (names[ROAD], names[ROOF])}, \
+        rows[WRONG]["disagreements"]
     # the same figures by hand: views per point from the per-frame vote files
     views = np.zeros(scene.n_points, int)
     for fi in SELECTED:
@@ -101,6 +106,7 @@ def test_cli_report_json_and_summary(lifted, capsys):
     assert cli_main(["report", str(path)]) == 0
     out = capsys.readouterr().out
     assert "LOO agreement" in out and "contested" in out and "ECE not measured" in out
+    assert "where the others say" in out  # the lowest frames' disagreements
 
 
 def test_cli_report_without_labels_is_a_clear_error(tmp_path, capsys):

@@ -408,6 +408,12 @@ def summary_text(q: dict) -> str:
         if worst:
             lines.append("  lowest frames     " + ", ".join(
                 f"{r['name']} {pc(r['agreement'])}" for r in worst))
+            for r in worst:  # what each paints differently from the others (issue 37)
+                dis = r.get("disagreements") or []
+                if dis:
+                    lines.append(f"    {r['name']}: " + "; ".join(
+                        f"{d['painted']} where the others say {d['independent']} "
+                        f"({d['votes']:,} votes)" for d in dis[:2]))
     v, c, cf = q["votes"], q["contested"], q["confidence"]
     lines.append(f">= 2 views          {pc(v['multi_view_share'])} of the labelled points")
     lines.append(f"contested           {pc(c['share'])} of the labelled points "

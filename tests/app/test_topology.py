@@ -282,6 +282,21 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
             acked[f2].append(current)
         save(a, h2, f2)  # the lease taken on B carries on on A
         wait_lifted()
+
+        # ---- issue 37: the admin switches the scene to one model per painter on A; the
+        # worker, another process, is told (PostgreSQL NOTIFY) and fills again with it
+        with sessions() as s:
+            fills = s.get(LiftStatus, sid).fills
+        r = a.put(f"/api/scenes/{sid}/lifting", json={"model": "per_author"}, headers=adm)
+        assert r.status_code == 200, r.text
+        end = time.monotonic() + 40
+        while ws.lift_stats().get("decision") != "confusion" and time.monotonic() < end:
+            time.sleep(0.1)
+        stats = ws.lift_stats()
+        assert stats.get("decision") == "confusion", (tmp_path / "lifting.log").read_text()[-2000:]
+        assert stats["painters"] == {"authors": 2, "frames_with_author": 2, "frames_own": 0}
+        with sessions() as s:
+            assert s.get(LiftStatus, sid).fills > fills
     finally:
         topo.stop()
         cluster.close()

@@ -134,7 +134,10 @@ def model_record(model: ConfusionModel, frames: dict, annotators: dict | None,
             "names": [[str(k), v if isinstance(v, (int, str)) else str(v)] for k, v in names],
             "frames": {str(int(f)): int(a) for f, a in zip(voted, of, strict=True)},
             "logpi": np.round(np.asarray(model.logpi, np.float64), 5).tolist(),
-            "prior": [float(f"{x:.6g}") for x in np.asarray(model.prior, np.float64)]}
+            "prior": [float(f"{x:.6g}") for x in np.asarray(model.prior, np.float64)],
+            # expected votes behind each row (in the EM's sample; how sure each row is)
+            "support": (np.rint(np.asarray(model.support, np.float64)).astype(int).tolist()
+                        if model.support is not None else None)}
 
 
 def model_from_record(rec: dict, class_ids) -> tuple[np.ndarray, np.ndarray, dict] | None:  # noqa: ANN001
@@ -181,12 +184,15 @@ class ConfusionModel:
     """A fitted per-annotator confusion model over a :class:`VoteTable`."""
 
     def __init__(self, table: VoteTable, logpi: np.ndarray, prior: np.ndarray,
-                 params: ConfusionParams, stats: dict):
+                 params: ConfusionParams, stats: dict, support: np.ndarray | None = None):
         self.table = table
         self.logpi = logpi  # (A, C, C) float32 log pi[a, true, voted]
         self.prior = prior  # (C,) float64 the EM's class prior
         self.params = params
         self.stats = stats
+        # (A, C) the expected votes of each annotator on each true class in the fitted sample
+        # (the data behind each row of its matrix; None where not fitted)
+        self.support = support
         A, C, _ = logpi.shape
         # row (a * C + voted) -> log pi[a, :, voted]: one gather per vote
         self._rows = np.ascontiguousarray(logpi.transpose(0, 2, 1).reshape(A * C, C))
@@ -296,7 +302,8 @@ def fit_confusion(table: VoteTable, C: int, init_labels: np.ndarray | None = Non
         post /= post.sum(axis=1, keepdims=True)
     stats["confusion_sample_points"] = int(len(ids))
     stats["confusion_sample_votes"] = int(len(idx))
-    return ConfusionModel(table, np.log(pi).astype(np.float32), prior, p, stats)
+    return ConfusionModel(table, np.log(pi).astype(np.float32), prior, p, stats,
+                          support=E.sum(axis=2))
 
 
 def _vote_shares(S: sparse.csr_matrix, sel: np.ndarray, A: int, C: int) -> np.ndarray:

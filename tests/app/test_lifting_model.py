@@ -223,3 +223,19 @@ def test_the_quality_report_sums_the_leave_one_out_figures_per_painter(world):
     assert q["painters"][0]["painter"] == "annotator2"  # lowest agreement first
     assert all(f["disagreements"] == sorted(f["disagreements"], key=lambda d: -d["votes"])
                for f in per_frame)
+
+    # per painter: the model learns the same thing, and the Lifting panel says so
+    before = _fills(env, sid)
+    r = env.client.put(f"/api/scenes/{sid}/lifting", json={"model": "per_author"},
+                       headers=hdr["admin"])
+    assert r.status_code == 200, r.text
+    _wait_fill(env, sid, before)
+    learned = env.client.get(f"/api/scenes/{sid}/lifting", headers=hdr["admin"]).json()[
+        "last_fill"]["learned"]
+    # (the tiny scene's masks are flat bands, so every painter disagrees somewhere; the one
+    # who painted vegetation over the others' grass is learned most surely)
+    assert learned[0]["painter"] == "annotator2", learned
+    top = learned[0]["confusions"][0]
+    assert (top["true"], top["painted"]) == ("grass", "vegetation") and top["share"] > 0.5
+    assert all(c["share"] >= 0.15 for x in learned for c in x["confusions"])
+    assert any(x["painter"].endswith("(no author)") for x in learned)  # the imported frame

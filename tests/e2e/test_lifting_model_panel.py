@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from tests.e2e.conftest import REPO, grey_png, import_own_scene, shot
 
 pytestmark = pytest.mark.e2e
+
+GRASS, VEGETATION = 6, 7  # the default taxonomy's ids
 
 
 @pytest.fixture(scope="module")
@@ -21,18 +24,23 @@ def sids(live):
 def test_admin_sets_the_annotator_model_and_sees_what_the_fill_used(live, sids, new_page):
     sid, other = sids
     admin = live.client("admin")
-    # two painters: the annotator and the admin, each submits one frame
-    for who, cls in (("annotator", 6), ("admin", 1)):
+    # two painters: the annotator paints three frames as the truth, the admin one with its
+    # grass as vegetation (the synthetic scene's truth masks)
+    root = live.app.state.ctx.settings.import_roots[0]
+    src = next(p for p in sorted(root.iterdir()) if p.is_dir())
+    for who in ("annotator", "admin", "annotator", "annotator"):
         c = live.client(who)
         f = c.post(f"/api/scenes/{sid}/next").json()
-        ids = np.full((f["height"], f["width"]), cls, np.uint8)
+        ids = np.array(Image.open(src / "truth" / "masks" / f"{f['name'].rsplit('.', 1)[0]}.png"))
+        if who == "admin":
+            ids[ids == GRASS] = VEGETATION
         r = c.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
                   headers={"If-Match": "none"})
         assert r.status_code == 200, r.text
 
     def filled():
         st = admin.get(f"/api/scenes/{sid}/labels/status").json()
-        return len(st.get("filled_versions") or {}) == 2 and not st["pending_fill"]
+        return len(st.get("filled_versions") or {}) == 4 and not st["pending_fill"]
 
     live.wait_until(filled, timeout=120, what="both masks lifted and filled")
     page = new_page("admin", viewport=(1366, 900))
@@ -53,7 +61,15 @@ def test_admin_sets_the_annotator_model_and_sees_what_the_fill_used(live, sids, 
         timeout=120_000)
     text = page.locator("#lift-last").inner_text()
     assert "one model per painter" in text and "2 painters told apart" in text, text
+    assert "4 painted frames" in text, text
     assert page.locator("#lift-model-per_author").is_checked()
+    learned = admin.get(f"/api/scenes/{sid}/lifting").json()["last_fill"].get("learned") or []
+    assert learned and learned[0]["painter"] == "admin", learned  # the grass painted vegetation
+    top = learned[0]["confusions"][0]
+    assert (top["true"], top["painted"]) == ("grass", "vegetation"), learned
+    assert page.locator("#lift-learned li").count() == len(learned)
+    for x in learned:  # what the model learned, as the API says it
+        assert x["painter"] in page.locator("#lift-learned").inner_text()
     audit = admin.get("/api/audit?action=lifting_model").json()
     rows = audit["events"] if isinstance(audit, dict) else audit
     assert [(e["detail"]["from"], e["detail"]["to"]) for e in rows if e["scene_id"] == sid] == [

@@ -1005,7 +1005,11 @@ export function liftingView(r, apply) {
     last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.`;
   }
   const busy = st.pending_fill || st.pending_frames ? el("p", { class: "warn", id: "lift-pending" }, st.fill_running ? "A fill is running; its result appears here when it is done." : "A fill is due; its result appears here when it is done.") : null;
-  wrap.append(...[fieldset, el("p", { id: "lift-last" }, last), busy, st.last_error ? el("p", { class: "error" }, `Last lifting error: ${st.last_error}`) : null].filter(Boolean));
+  // what the per-painter model learned: the true classes each painter paints as another
+  const learned = (f.learned || []).length ? el("div", { id: "lift-learned" },
+    el("p", {}, "What the model learned about the painters (a true class painted as another):"),
+    el("ul", {}, ...f.learned.map((x) => el("li", { "data-painter": x.painter }, `${x.painter}: ` + x.confusions.map((c) => `${c.true} painted as ${c.painted} ${pct(c.share, 0)}${c.votes != null ? ` (of ~${c.votes.toLocaleString()} votes on ${c.true})` : ""}`).join("; "))))) : null;
+  wrap.append(...[fieldset, el("p", { id: "lift-last" }, last), learned, busy, st.last_error ? el("p", { class: "error" }, `Last lifting error: ${st.last_error}`) : null].filter(Boolean));
   return wrap;
 }
 

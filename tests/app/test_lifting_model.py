@@ -239,3 +239,22 @@ def test_the_quality_report_sums_the_leave_one_out_figures_per_painter(world):
     assert (top["true"], top["painted"]) == ("grass", "vegetation") and top["share"] > 0.5
     assert all(c["share"] >= 0.15 for x in learned for c in x["confusions"])
     assert any(x["painter"].endswith("(no author)") for x in learned)  # the imported frame
+
+
+def test_a_model_set_before_the_first_mask_survives_a_restart_and_decides_the_first_fill(world):
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    url = f"/api/scenes/{sid}/lifting"
+    r = env.client.put(url, json={"model": "per_author"}, headers=hdr["admin"])
+    assert r.status_code == 200 and r.json()["model"] == "per_author"
+    assert r.json()["last_fill"] == {}  # nothing lifted yet
+    env.restart()  # the worker starts with a status row and no votes: nothing to fill
+    admin = env.bearer("admin")
+    got = env.client.get(url, headers=admin).json()
+    assert got["model"] == "per_author" and not got["status"]["pending_fill"]
+    assert got["status"]["last_error"] is None
+    _submit(env, env.bearer("annotator"), sid, 6)
+    _submit(env, env.bearer("annotator2"), sid, 8)
+    assert env.app.state.ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    last = env.client.get(url, headers=admin).json()["last_fill"]
+    assert last["decision"] == "confusion" and last["painters"]["authors"] == 2

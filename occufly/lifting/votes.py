@@ -942,17 +942,27 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
 VOTE_TABLE_BYTES = 24
 
 
-def _table_memory(frames: dict, n_points: int, what: str) -> str | None:
-    """None when the vote table of ``frames`` fits in the memory available now, else why not
-    (the decision then keeps the first one, and the fill goes on: a survey's worker is not
+def _model_frames(scene: Scene, snapshot: VoteSnapshot, ws, what: str  # noqa: ANN001
+                  ) -> tuple[dict | None, str | None]:
+    """Every frame's votes for a decision that reads them (the per-painter model, region
+    consistency): the snapshot's, else the workspace's files; (frames, None), or (None, why
+    not) -- no per-frame votes, or a vote table that does not fit in the memory available now
+    (the decision then keeps the first one and the fill goes on: a survey's worker is not
     brought down by a model an admin chose)."""
+    frames = snapshot.frame_votes
+    if frames is None and ws is not None:
+        from occufly.lifting.confusion import load_frame_votes
+
+        frames = load_frame_votes(ws, sorted(snapshot.versions))
+    if not frames:
+        return None, "no per-frame votes"
     votes = sum(len(v[0]) for v in frames.values())
     try:
-        require_memory(VOTE_TABLE_BYTES * votes + 8 * (int(n_points) + 1), what,
+        require_memory(VOTE_TABLE_BYTES * votes + 8 * (int(scene.n_points) + 1), what,
                        detail=f" ({votes:,} votes)", count_own=False)
     except OccuflyError as e:
-        return f"{e}; decided with one model for all painters"
-    return None
+        return None, f"{e}; decided with one model for all painters"
+    return frames, None
 
 
 def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns,  # noqa: ANN001
@@ -963,19 +973,13 @@ def _confusion_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColu
     model (:mod:`occufly.lifting.confusion`) fitted from every frame's votes and initialised
     from the first decision's labels (``first``: its (labels, margin, top, stats)). Without the frames' votes (a snapshot made
     without them and no workspace): the first decision, with a stat saying so."""
-    from occufly.lifting.confusion import fit_confusion, load_frame_votes, model_record, vote_table
+    from occufly.lifting.confusion import fit_confusion, model_record, vote_table
     from occufly.lifting.robust import redecide
 
     t0, c0 = time.perf_counter(), time.process_time()
-    frames = snapshot.frame_votes
-    if frames is None and ws is not None:
-        frames = load_frame_votes(ws, sorted(snapshot.versions))
-    if not frames:
-        first[3]["confusion_skipped"] = "no per-frame votes"
-        return first
-    short = _table_memory(frames, scene.n_points, "the per-painter model")
-    if short is not None:
-        first[3]["confusion_skipped"] = short
+    frames, why_not = _model_frames(scene, snapshot, ws, "the per-painter model")
+    if frames is None:
+        first[3]["confusion_skipped"] = why_not
         return first
     table = vote_table(frames, scene.n_points, snapshot.annotators, snapshot.vote_unit)
     init = np.where(first[0] > 0, cls.col_of[first[0]], -1)
@@ -1001,7 +1005,6 @@ def _region_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns
     region_votes`), and every voted point decided again with the first decision's matrix
     (``first``: its (labels, margin, top, stats)). The first decision where no region is
     contradicted, where the votes are weighted, or without the frames' votes."""
-    from occufly.lifting.confusion import load_frame_votes
     from occufly.lifting.regions import region_votes
     from occufly.lifting.robust import redecide
 
@@ -1010,15 +1013,9 @@ def _region_decision(scene: Scene, snapshot: VoteSnapshot, ws, cls: ClassColumns
         stats["regions_skipped"] = "weighted votes" if snapshot.vote_unit != 1 else "no matrix"
         return first
     t0, c0 = time.perf_counter(), time.process_time()
-    frames = snapshot.frame_votes
-    if frames is None and ws is not None:
-        frames = load_frame_votes(ws, sorted(snapshot.versions))
-    if not frames:
-        stats["regions_skipped"] = "no per-frame votes"
-        return first
-    short = _table_memory(frames, scene.n_points, "region consistency")
-    if short is not None:
-        stats["regions_skipped"] = short
+    frames, why_not = _model_frames(scene, snapshot, ws, "region consistency")
+    if frames is None:
+        stats["regions_skipped"] = why_not
         return first
     pi = np.asarray(stats["robust_matrix"], np.float64)
     got = region_votes(scene, frames, pi, annotators=snapshot.annotators, params=rp.regions)

@@ -214,6 +214,21 @@ def lower_thread_priority(nice: int) -> None:
 AUTHOR_CHUNK = 500  # version ids per IN (...) query
 
 
+def version_painters(session: Session, version_ids) -> dict[int, tuple[int | None, str | None]]:  # noqa: ANN001
+    """version id -> (who painted it, its source): the author, or None for a version
+    imported from another tool (``source`` ``import:...``: the importing admin did not paint
+    it) or without an author -- the one rule of who painted a mask (the lifting's painters,
+    the quality report's per-painter sums)."""
+    ids = sorted({int(v) for v in version_ids})
+    out: dict[int, tuple[int | None, str | None]] = {}
+    for i in range(0, len(ids), AUTHOR_CHUNK):
+        for vid, uid, src in session.execute(
+                select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
+                .where(MaskVersion.id.in_(ids[i:i + AUTHOR_CHUNK]))):
+            out[vid] = (None if (src or "").startswith("import:") else uid, src)
+    return out
+
+
 def decision_for(session: Session, scene_id: int, versions: dict
                  ) -> tuple[str, LiftParams | None, dict | None]:
     """How a fill of scene ``scene_id`` counting ``versions`` (frame index -> mask version id
@@ -229,15 +244,10 @@ def decision_for(session: Session, scene_id: int, versions: dict
     if model not in LIFT_MODELS or model == "pooled":
         return "pooled", None, None
     tags = {int(f): int(v) for f, v in versions.items() if v is not None and str(v).isdigit()}
-    ids = sorted(set(tags.values()))
-    author: dict[int, int] = {}
-    for i in range(0, len(ids), AUTHOR_CHUNK):
-        rows = session.execute(select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
-                               .where(MaskVersion.id.in_(ids[i:i + AUTHOR_CHUNK])))
-        author.update({vid: uid for vid, uid, src in rows
-                       if uid is not None and not (src or "").startswith("import:")})
+    info = version_painters(session, tags.values())
     rp = RobustParams(confusion=ConfusionParams())  # per_author
-    return model, LiftParams(robust_params=rp), {f: author[v] for f, v in tags.items() if v in author}
+    return model, LiftParams(robust_params=rp), {
+        f: uid for f, v in tags.items() if (uid := info.get(v, (None, None))[0]) is not None}
 
 
 class LiftingService:

@@ -40,7 +40,7 @@ from sqlalchemy.orm import Session
 from app import pipeline
 from app.annotations.models import MaskVersion
 from app.context import AppContext
-from app.lifting.service import decision_for
+from app.lifting.service import decision_for, version_painters
 from app.scenes.models import Frame
 from app.users.models import User
 from occufly.densify.pipeline import DensifyOptions, voxelize_workspace
@@ -128,10 +128,8 @@ def painters(session: Session, report: dict) -> list[dict]:
     frame is what the per-painter annotator model corrects."""
     rows = (report.get("loo") or {}).get("per_frame") or []
     versions = report.get("versions") or {}
-    vids = {int(v) for v in versions.values() if v is not None and str(v).isdigit()}
-    info = dict((vid, (uid, src)) for vid, uid, src in session.execute(
-        select(MaskVersion.id, MaskVersion.author_id, MaskVersion.source)
-        .where(MaskVersion.id.in_(vids)))) if vids else {}
+    info = version_painters(session, (v for v in versions.values()
+                                      if v is not None and str(v).isdigit()))
     uids = {uid for uid, _src in info.values() if uid is not None}
     names = dict(session.execute(select(User.id, User.username).where(User.id.in_(uids))).all()) \
         if uids else {}

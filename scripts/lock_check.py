@@ -31,23 +31,20 @@ def _norm(name: str) -> str:
 PIN = re.compile(r"^([A-Za-z0-9_.-]+)(?:\[([A-Za-z0-9_.,-]*)\])?==([^\s\\;]+)", flags=re.M)
 
 
-def pins(*paths: Path) -> dict[str, str]:
-    out = {}
+def _pin_lines(paths: tuple[Path, ...]):  # noqa: ANN202
     for p in paths:
         if p.is_file():
-            for m in PIN.finditer(p.read_text()):
-                out[_norm(m.group(1))] = m.group(3)
-    return out
+            yield from PIN.finditer(p.read_text())
+
+
+def pins(*paths: Path) -> dict[str, str]:
+    return {_norm(m.group(1)): m.group(3) for m in _pin_lines(paths)}
 
 
 def pinned_extras(*paths: Path) -> dict[str, set[str]]:
     """The extras each pin line names (``name[a,b]==v`` -> {a, b})."""
-    out: dict[str, set[str]] = {}
-    for p in paths:
-        if p.is_file():
-            for m in PIN.finditer(p.read_text()):
-                out[_norm(m.group(1))] = {_norm(e) for e in (m.group(2) or "").split(",") if e}
-    return out
+    return {_norm(m.group(1)): {_norm(e) for e in (m.group(2) or "").split(",") if e}
+            for m in _pin_lines(paths)}
 
 
 def _project_requirements(extras: list[str]) -> list[Requirement]:

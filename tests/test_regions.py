@@ -259,6 +259,20 @@ def test_cli_lift_per_author_with_a_sloppy_painter(tiny, tmp_path, capsys):
         assert "--" in capsys.readouterr().err
 
 
+def _crew_store(ws, scene, masks: dict, scratch: Path):  # noqa: ANN001, ANN202
+    """A vote store in ``scratch`` (sharing the workspace's scene arrays) with ``masks`` voted,
+    each its own version: (scratch, store)."""
+    from occufly.lifting import VoteStore
+
+    scratch.mkdir()
+    for part in ("scene.json", "taxonomy.json", "points", "visibility"):
+        (scratch / part).symlink_to(Path(ws).resolve() / part)
+    st = VoteStore.open(scratch, scene)
+    for fi, m in masks.items():
+        st.apply_frame(fi, m, version=f"c{fi}")
+    return scratch, st
+
+
 def test_a_per_painter_model_that_does_not_fit_in_memory_keeps_the_first_decision(
         tiny, tmp_path, monkeypatch):
     """The per-painter model's vote table is checked against the memory available before it
@@ -266,20 +280,14 @@ def test_a_per_painter_model_that_does_not_fit_in_memory_keeps_the_first_decisio
     why (the app's worker is not brought down by the model an admin chose)."""
     import shutil
 
-    from occufly.lifting import LiftParams, RobustParams, VoteStore
+    from occufly.lifting import LiftParams, RobustParams
     from occufly.lifting import votes as votes_mod
     from occufly.lifting.confusion import ConfusionParams
     from occufly.synthetic.noise import crew_masks
 
     ws, scene, _truth, exact = tiny
     masks, who = crew_masks(exact, scene.taxonomy, seed=0)
-    scratch = tmp_path / "ws"
-    scratch.mkdir()
-    for part in ("scene.json", "taxonomy.json", "points", "visibility"):
-        (scratch / part).symlink_to(Path(ws).resolve() / part)
-    st = VoteStore.open(scratch, scene)
-    for fi, m in masks.items():
-        st.apply_frame(fi, m, version=f"c{fi}")
+    scratch, st = _crew_store(ws, scene, masks, tmp_path / "ws")
     per = LiftParams(robust_params=RobustParams(confusion=ConfusionParams()))
     pooled = st.fill_and_denoise(write=False)
     fits = st.fill_and_denoise(write=False, params=per, annotators=who)
@@ -302,20 +310,14 @@ def test_the_review_leaves_one_out_with_the_painters_matrices_the_fill_used(tiny
     decision saw: without the record (the pooled matrix only) they are worse."""
     import json
 
-    from occufly.lifting import LiftParams, RobustParams, VoteStore
+    from occufly.lifting import LiftParams, RobustParams
     from occufly.lifting.confusion import ConfusionParams, model_from_record
     from occufly.lifting.loo import loo_labels
     from occufly.synthetic.noise import crew_masks
 
     ws, scene, truth, exact = tiny
     masks, who = crew_masks(exact, scene.taxonomy, seed=0)
-    scratch = tmp_path / "ws"
-    scratch.mkdir()
-    for part in ("scene.json", "taxonomy.json", "points", "visibility"):
-        (scratch / part).symlink_to(Path(ws).resolve() / part)
-    st = VoteStore.open(scratch, scene)
-    for fi, m in masks.items():
-        st.apply_frame(fi, m, version=f"c{fi}")
+    scratch, st = _crew_store(ws, scene, masks, tmp_path / "ws")
     st.fill_and_denoise(params=LiftParams(robust_params=RobustParams(confusion=ConfusionParams())),
                         annotators=who)
     st.close()

@@ -37,3 +37,39 @@ def ensure_seeded_scene(cache: Path, preset: str, seed: int, synthetic: Path | N
         subprocess.run([py, "-m", "occufly.cli", "import", str(syn), "--workspace", str(ws),
                         "--force", "--json"], check=True, cwd=root, stdout=subprocess.DEVNULL)
     return syn, ws
+
+
+# the files of a workspace that hold its scene (a vote state beside them writes only lifting/)
+SCENE_PARTS = ("scene.json", "taxonomy.json", "points", "visibility")
+
+
+def scratch_workspace(path: Path, ws: Path) -> Path:
+    """``path``, emptied, with the scene files of workspace ``ws`` linked in: a vote state
+    opened there shares the scene's arrays and writes only its own ``lifting/``."""
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+    path.mkdir(parents=True)
+    for name in SCENE_PARTS:
+        (path / name).symlink_to(Path(ws).resolve() / name)
+    return path
+
+
+def greedy_truth(synthetic: Path, ws: Path):  # noqa: ANN201
+    """A synthetic scene imported into ``ws``: (scene, point truth, the greedy rho 0.99
+    selection, frame -> its exact truth mask); exits naming both folders when the truth does
+    not belong to the workspace."""
+    import numpy as np
+
+    from occufly.io.masks import read_mask
+    from occufly.scene import Scene
+    from occufly.selection import select_frames
+
+    scene = Scene.load(ws)
+    truth = np.load(synthetic / "truth" / "point_labels.npy")
+    if len(truth) != scene.n_points:
+        raise SystemExit(f"{synthetic}: truth has {len(truth)} points, {ws} {scene.n_points}")
+    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
+    exact = {fi: read_mask(synthetic / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
+                           scene.frames[fi], scene.taxonomy) for fi in sel.frames}
+    return scene, truth, sel, exact

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _scene import ensure_seeded_scene  # noqa: E402
+from _scene import ensure_seeded_scene, scratch_workspace  # noqa: E402
 
 from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import (  # noqa: E402
@@ -250,12 +250,9 @@ def robustness(args: argparse.Namespace) -> dict:
                 if args.only and f"{vname}/{mname}/{robust}" not in args.only.split(","):
                     continue
                 t = time.perf_counter()
-                tmp = Path(args.cache) / f"robust-{vname}"
-                shutil.rmtree(tmp, ignore_errors=True)
-                tmp.mkdir(parents=True)
                 # a scratch workspace sharing the scene's arrays: only lifting/ is written
-                for name in ("scene.json", "taxonomy.json", "points", "visibility"):
-                    (tmp / name).symlink_to(Path(sc_path(args, vname)) / name)
+                tmp = scratch_workspace(Path(args.cache) / f"robust-{vname}",
+                                        Path(sc_path(args, vname)))
                 # tieorder: the plain vote, ties by taxonomy order; plain: the plain vote, ties
                 # to the fill (the default before the robust decision); robust: the default;
                 # boundary: weighted votes (plain decision)
@@ -396,11 +393,7 @@ def curve(args: argparse.Namespace) -> dict:
         return res, {"accuracy": round(ev["accuracy"], 4), "miou": round(ev["miou"], 4)}
 
     def state(name: str):  # noqa: ANN202
-        tmp = Path(args.cache) / f"curve-{name}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        for f in ("scene.json", "taxonomy.json", "points", "visibility"):
-            (tmp / f).symlink_to(Path(args.ws) / f)
+        tmp = scratch_workspace(Path(args.cache) / f"curve-{name}", Path(args.ws))
         return VoteStore.open(tmp, scene), tmp
 
     out: dict = {"bench": "lifting-next-frames", "synthetic": str(syn), "seed": args.seed,

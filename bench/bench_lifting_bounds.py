@@ -53,15 +53,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _scene import greedy_truth, scratch_workspace  # noqa: E402
 from bench_lifting import error_breakdown  # noqa: E402
 
-from occufly.io.masks import read_mask  # noqa: E402
 from occufly.lifting import LiftParams, RobustParams, VoteStore  # noqa: E402
 from occufly.lifting import robust as robust_mod  # noqa: E402
 from occufly.lifting.votes import frame_mask_pixels  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
 from occufly.scene import Scene  # noqa: E402
-from occufly.selection import select_frames  # noqa: E402
 from occufly.synthetic.degrade import _confusion_lut, degrade_masks, degrade_stages  # noqa: E402
 
 
@@ -118,14 +117,8 @@ def main() -> None:
                     help="only the default lifting of degrade.py's masks and its causes")
     args = ap.parse_args()
 
-    scene = Scene.load(args.ws)
+    scene, truth, sel, exact = greedy_truth(args.synthetic, args.ws)
     tax = scene.taxonomy
-    truth = np.load(args.synthetic / "truth" / "point_labels.npy")
-    if len(truth) != scene.n_points:
-        raise SystemExit(f"{args.synthetic}: truth has {len(truth)} points, {args.ws} {scene.n_points}")
-    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
-    exact = {fi: read_mask(args.synthetic / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
-                           scene.frames[fi], tax) for fi in sel.frames}
     degraded = degrade_masks(exact, tax, seed=args.seed)
     lut = _confusion_lut(tax)
     bands = {fi: boundary_band(m, args.band) for fi, m in exact.items()}
@@ -140,11 +133,7 @@ def main() -> None:
     labels_of: dict = {}
 
     def lift(masks: dict, *, with_true_pi: bool = False) -> dict:
-        tmp = args.cache / "bounds-ws"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        for name in ("scene.json", "taxonomy.json", "points", "visibility"):
-            (tmp / name).symlink_to(args.ws.resolve() / name)
+        tmp = scratch_workspace(args.cache / "bounds-ws", args.ws)
         st = VoteStore.open(tmp, scene)
         for fi in sel.frames:
             st.apply_frame(fi, masks[fi], version="bounds")

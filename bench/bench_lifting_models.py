@@ -28,15 +28,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
-from occufly.io.masks import read_mask  # noqa: E402
+from _scene import greedy_truth, scratch_workspace  # noqa: E402
+
 from occufly.lifting import LiftParams, RobustParams, VoteStore  # noqa: E402
 from occufly.lifting.confusion import ConfusionParams, load_frame_votes  # noqa: E402
 from occufly.lifting.incremental import IncrementalFill  # noqa: E402
 from occufly.lifting.regions import RegionParams  # noqa: E402
 from occufly.metrics import evaluate_points  # noqa: E402
-from occufly.scene import Scene  # noqa: E402
-from occufly.selection import select_frames  # noqa: E402
 from occufly.synthetic.noise import Crew, crew_masks  # noqa: E402
 
 # the app's models (app/lifting/models.py LIFT_MODELS) as decision_for builds them
@@ -68,14 +68,8 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/occufly-bench-models"))
     args = ap.parse_args()
 
-    scene = Scene.load(args.ws)
+    scene, truth, _sel, exact = greedy_truth(args.synthetic, args.ws)
     tax = scene.taxonomy
-    truth = np.load(args.synthetic / "truth" / "point_labels.npy")
-    if len(truth) != scene.n_points:
-        raise SystemExit(f"{args.synthetic}: truth has {len(truth)} points, {args.ws} {scene.n_points}")
-    sel = select_frames(scene, mode="greedy", target_coverage=0.99)
-    exact = {fi: read_mask(args.synthetic / "truth" / "masks" / f"{scene.frames[fi].stem}.png",
-                           scene.frames[fi], tax) for fi in sel.frames}
     crew = Crew()
     masks, who = crew_masks(exact, tax, seed=args.seed, crew=crew)
     fixed = sorted(masks, key=lambda f: (who[f] >= crew.sloppy, f))[:args.saves]
@@ -84,11 +78,7 @@ def main() -> None:
                  "sloppy_frames": sum(1 for a in who.values() if a < crew.sloppy),
                  "saves": [scene.frames[f].name for f in fixed]}
     for name, params in MODELS.items():
-        tmp = args.cache / name
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        for part in ("scene.json", "taxonomy.json", "points", "visibility"):
-            (tmp / part).symlink_to(args.ws.resolve() / part)
+        tmp = scratch_workspace(args.cache / name, args.ws)
         st = VoteStore.open(tmp, scene)
         for fi, m in masks.items():
             st.apply_frame(fi, m, version=f"crew{fi}")

@@ -15,6 +15,9 @@
 ``OCCUFLY_LEASE_MINUTES``      how long ``next`` holds a frame for an annotator (default 30)
 ``OCCUFLY_SESSION_HOURS``      login token lifetime (default 12)
 ``OCCUFLY_FILL_DEBOUNCE_S``    quiet time before kNN fill/denoise reruns (default 5)
+``OCCUFLY_FILL_SETTLE_S``      quiet time after which a scene filled with the robust decision's
+                               held model is decided again with a refitted one (default 120;
+                               0 = only when the model is refitted anyway)
 ``OCCUFLY_FILL_NICE``          niceness added to the lifting worker's fill thread (default 5,
                                0 = none): saves and page requests go first on a busy host
 ``OCCUFLY_REVIEW_REFRESH_PROCESS``  1 (default): the review's after-fill refresh (stored
@@ -96,6 +99,11 @@ class Settings:
     min_independent_coverage: float = 0.5
     session_seconds: int = 12 * 3600
     fill_debounce_s: float = 5.0
+    # issue 37, eighth round: a fill after a save keeps the robust decision's fitted model
+    # (occufly.lifting.robust.HeldDecision); once the scene has been quiet this long, it is
+    # filled once more with the model fitted again, so the labels stop depending on the order
+    # of the saves (0 = not on a timer)
+    fill_settle_s: float = 120.0
     # issue 38: how long GET /scenes/{sid}/quality waits for a report being computed before
     # it answers with the last one (stale) or 202 (none yet); the computation goes on
     quality_wait_s: float = 1.5
@@ -206,6 +214,7 @@ class Settings:
             lease_seconds=int(num("OCCUFLY_LEASE_MINUTES", 30, float) * 60),
             session_seconds=int(num("OCCUFLY_SESSION_HOURS", 12, float) * 3600),
             fill_debounce_s=num("OCCUFLY_FILL_DEBOUNCE_S", 5.0, float),
+            fill_settle_s=num("OCCUFLY_FILL_SETTLE_S", 120.0, float),
             quality_wait_s=num("OCCUFLY_QUALITY_WAIT_S", 1.5, float),
             fill_nice=num("OCCUFLY_FILL_NICE", 5),
             review_refresh_process=bool(num("OCCUFLY_REVIEW_REFRESH_PROCESS", 1)),

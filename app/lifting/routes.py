@@ -31,7 +31,7 @@ ACCESS = {
 
 # what the last fill's statistics say about how it decided (labels.json; the rest is large)
 LAST_FILL_KEYS = ("decision", "painters", "annotated_frames", "total_seconds", "confusion_annotators",
-                  "confusion_skipped")
+                  "confusion_skipped", "robust_warm", "robust_warm_decided", "robust_cold_why")
 
 
 class LiftingIn(BaseModel):

@@ -188,6 +188,9 @@ class _SceneWork:
     lock: threading.Lock = field(default_factory=threading.Lock)  # updates vs snapshot
     fill_due: float | None = None
     first_due: float | None = None  # when the pending fill was first asked for
+    # a fill decided with the held robust model (issue 37, eighth round): when the quiet scene
+    # is filled again with the model refitted (Settings.fill_settle_s)
+    settle_due: float | None = None
     filling: bool = False
     seq: int = 0  # applied_seq of the last entry this worker processed for the scene
     incremental: object | None = None  # occufly.lifting.incremental.IncrementalFill
@@ -195,6 +198,11 @@ class _SceneWork:
     applying: bool = False
     fills: int = 0
     thread: threading.Thread | None = None
+
+
+def _next_due(sc: _SceneWork) -> float | None:
+    """When the scene's fill thread runs next: the pending fill, else the settle fill."""
+    return sc.fill_due if sc.fill_due is not None else sc.settle_due
 
 
 def lower_thread_priority(nice: int) -> None:
@@ -734,19 +742,24 @@ class LiftingService:
         while not self._stop.is_set() and not sc.closed:
             with self._cv:
                 while not self._stop.is_set() and not sc.closed and (
-                        sc.fill_due is None or sc.applying or time.monotonic() < sc.fill_due):
-                    wait = 1.0 if sc.fill_due is None else max(0.01, sc.fill_due - time.monotonic())
+                        _next_due(sc) is None or sc.applying or time.monotonic() < _next_due(sc)):
+                    due = _next_due(sc)
+                    wait = 1.0 if due is None else max(0.01, due - time.monotonic())
                     self._cv.wait(min(wait, 1.0))
                 if self._stop.is_set() or sc.closed:
                     return
+                settling = sc.fill_due is None  # woken by the settle timer alone
                 sc.fill_due = None
                 sc.first_due = None
+                sc.settle_due = None
                 sc.filling = True
             error = None
             try:
                 with self.sessions() as s:
                     self._set_status(s, sc.scene_id, fill_state="running")
                     s.commit()
+                if settling and sc.incremental is not None:
+                    sc.incremental.held.clear()  # the quiet scene: fit the model again
                 self._fill(sc)
             except Exception as e:  # noqa: BLE001 - keep the worker alive, report in status
                 log.exception("lifting: fill/denoise of scene %s", sc.scene_id)
@@ -792,6 +805,10 @@ class LiftingService:
                  f"incremental: {inc.get('updated_points')} points updated of "
                  f"{inc.get('region_points')} in context" if inc.get("incremental") else "full")
         sc.fills += 1
+        settle = self.settings.fill_settle_s
+        with self._cv:
+            sc.settle_due = (time.monotonic() + settle
+                             if res.stats.get("robust_warm") and settle > 0 else None)
         stamp = Workspace(sc.workspace).stamp()
         with self.sessions() as s:
             self._set_status(s, sc.scene_id, labels_stamp=stamp, bump_fills=True)

@@ -19,9 +19,14 @@ What is local and what is not
     unions of cells of edge ``r + voxel`` (``I``: the cells of ``D`` and their 26 neighbours;
     ``S``: two cells out).
 
-    Scene-wide by design: the robust decision (:mod:`occufly.lifting.robust`: its annotator
-    model and classifier are estimated from all votes, so a submit shifts posterior margins
-    everywhere) and the per-point confidence (pointwise, one vectorised pass). Margins and
+    Scene-wide by design: the per-point confidence (pointwise, one vectorised pass). The
+    robust decision (:mod:`occufly.lifting.robust`) fits its annotator model and classifier
+    from all votes, so fitted again after a submit it flips near-tie labels all over the
+    scene and the k-NN passes run everywhere; :attr:`IncrementalFill.held` keeps the fitted
+    model between the fills of a live scene (:class:`~occufly.lifting.robust.HeldDecision`:
+    only the points around changed votes are decided again), and the model is fitted again
+    when much changed or the caller clears it (the app's worker, once the scene is quiet).
+    Margins and
     vote supports enter only that confidence step and the confirmation rule, both pointwise,
     so a margin that moved everywhere does not widen the recomputed region; a decided label
     that flipped anywhere does (and when the context region exceeds ``max_fraction`` of the
@@ -44,6 +49,7 @@ from occufly.lifting import knn
 from occufly.lifting.classes import ClassColumns
 from occufly.lifting.knn import LiftParams, check_inputs, confirmed, lift_result, untie
 from occufly.lifting.result import LiftResult
+from occufly.lifting.robust import HeldDecision
 from occufly.progress import ProgressFn
 from occufly.taxonomy import Taxonomy
 
@@ -65,6 +71,8 @@ class IncrementalFill:
         self._params: LiftParams | None = None
         self._cells: tuple | None = None  # (cell edge, sorted keys, per-point cell index)
         self.last: dict = {}  # what the last call did (stats)
+        # the robust decision's model, kept between the fills of this cloud (fill_snapshot)
+        self.held = HeldDecision()
 
     # ---- the region ----------------------------------------------------------------------
     def _cell_index(self, cell: float, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

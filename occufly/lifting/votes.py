@@ -888,9 +888,16 @@ def fill_snapshot(scene: Scene, snapshot: VoteSnapshot, *, params: LiftParams | 
         if snapshot.vote_unit != 1:  # weighted votes: the model counts views
             second = second.astype(np.float32) / snapshot.vote_unit
         rp = getattr(p, "robust_params", None) or RobustParams()
+        # a live scene's fill keeps the pooled model between saves (robust.HeldDecision); the
+        # per-painter and region decisions read every frame's votes and are fitted each time
+        held = getattr(incremental, "held", None)
+        if held is not None and (getattr(rp, "confusion", None) is not None
+                                 or getattr(rp, "regions", None) is not None):
+            held.clear()
+            held = None
         direct, margin, top, robust_stats = redecide(
             cls, feats, col1, top1, snapshot.second_col, second,
-            rp, progress=lambda f, m: report(0.3 * f, m), xyz=scene.xyz)
+            rp, progress=lambda f, m: report(0.3 * f, m), xyz=scene.xyz, held=held)
         if getattr(rp, "confusion", None) is not None:
             direct, margin, top, robust_stats = _confusion_decision(
                 scene, snapshot, ws, cls, feats, col1, top1, second, rp,

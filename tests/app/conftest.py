@@ -223,7 +223,7 @@ def env(request, tmp_path: Path):
     root = tmp_path / "imports"
     root.mkdir()
     settings = Settings(data_dir=tmp_path / "data", database_url=url, import_roots=[root],
-                        env="development", fill_debounce_s=0.2, job_workers=2,
+                        env="development", fill_debounce_s=0.2, fill_settle_s=0, job_workers=2,
                         job_processes=request.node.get_closest_marker("job_processes") is not None,
                         # the review's after-fill refresh in the fill thread, unless marked
                         review_refresh_process=request.node.get_closest_marker(

@@ -258,3 +258,37 @@ def test_a_model_set_before_the_first_mask_survives_a_restart_and_decides_the_fi
     assert env.app.state.ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
     last = env.client.get(url, headers=admin).json()["last_fill"]
     assert last["decision"] == "confusion" and last["painters"]["authors"] == 2
+
+
+def test_a_save_keeps_the_fitted_model_and_the_quiet_scene_is_decided_again(world):
+    """Issue 37, eighth round: the fill after a save keeps the robust decision's fitted model
+    (decides again only around the change); once the scene has been quiet for
+    ``fill_settle_s`` the worker fills it once more with the model fitted again."""
+    env, hdr, scene, _frames = world
+    sid = scene["id"]
+    ctx = env.app.state.ctx
+    url = f"/api/scenes/{sid}/lifting"
+    for who, cls in (("annotator", 6), ("annotator2", 8), ("annotator", 6)):
+        fid, version = _submit(env, hdr[who], sid, cls)
+    assert ctx.lifting.wait_idle(sid, timeout=60, include_fill=True)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert not last.get("robust_warm") and last["robust_cold_why"] == "no held model", last
+    ctx.settings.fill_settle_s = 0.5  # this app's worker (same settings): settle after 0.5 s
+    before = _fills(env, sid)
+    # an admin saves the last frame again with a brush stroke of another class
+    m = np.full((H, W), 6, np.uint8)
+    m[:, : W // 3] = 1
+    m[H // 2 - 6:H // 2 + 6, W // 2 - 6:W // 2 + 6] = 8
+    r = env.client.put(f"/api/frames/{fid}/mask?kind=submitted", content=png(m),
+                       headers={**hdr["admin"], "If-Match": str(version)})
+    assert r.status_code == 200, r.text
+    _wait_fill(env, sid, before)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert last["robust_warm"] is True and last["robust_warm_decided"] > 0, last
+    # nothing saved since: the settle fill fits the model again, and no fill follows it
+    _wait_fill(env, sid, before + 1)
+    last = env.client.get(url, headers=hdr["admin"]).json()["last_fill"]
+    assert not last.get("robust_warm") and last["robust_cold_why"] == "no held model", last
+    settled = _fills(env, sid)
+    time.sleep(1.5)
+    assert _fills(env, sid) == settled

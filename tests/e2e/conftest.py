@@ -106,7 +106,7 @@ def live(tmp_path_factory, synth_tiny):
     imports.mkdir()
     source, kind = build_source(imports, synth_tiny)
     settings = Settings(data_dir=root / "data", env="development", import_roots=[imports],
-                        fill_debounce_s=0.3, job_workers=2, frontend_dir=REPO / "frontend")
+                        fill_debounce_s=0.3, fill_settle_s=0, job_workers=2, frontend_dir=REPO / "frontend")
     app = create_app(settings)
     with app.state.ctx.sessions() as s:
         for name, role in ROLES.items():

@@ -1002,7 +1002,9 @@ export function liftingView(r, apply) {
     const p = f.painters;
     const who = p ? `, ${p.authors} painter${p.authors === 1 ? "" : "s"} told apart${p.frames_own ? ` (${p.frames_own} frame${p.frames_own === 1 ? "" : "s"} imported or without an author, each counted as a painter of its own)` : ""}` : "";
     const skipped = f.confusion_skipped ? ` (not applied: ${f.confusion_skipped})` : "";
-    last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.`;
+    // a fill after a save keeps the model of the last full decision (issue 37, eighth round)
+    const held = f.robust_warm ? ` It kept the model of the last full decision and decided again only the ${Number(f.robust_warm_decided || 0).toLocaleString("en")} points around the change; the model is fitted again once the scene is quiet.` : "";
+    last = `Last fill: ${LIFT_DECISIONS[f.decision] || f.decision}${skipped}${who}; ${f.annotated_frames} painted frame${f.annotated_frames === 1 ? "" : "s"}${f.total_seconds != null ? `, ${Number(f.total_seconds).toFixed(1)} s` : ""}.${held}`;
   }
   const busy = st.pending_fill || st.pending_frames ? el("p", { class: "warn", id: "lift-pending" }, st.fill_running ? "A fill is running; its result appears here when it is done." : "A fill is due; its result appears here when it is done.") : null;
   // what the per-painter model learned: the true classes each painter paints as another

@@ -290,7 +290,13 @@ def test_two_api_processes_lifting_worker_and_dask(tmp_path, scratch_pg):  # noq
         r = a.put(f"/api/scenes/{sid}/lifting", json={"model": "per_author"}, headers=adm)
         assert r.status_code == 200, r.text
         end = time.monotonic() + 40
-        while ws.lift_stats().get("decision") != "confusion" and time.monotonic() < end:
+
+        def filled_again() -> bool:  # the labels are written before the fill is counted
+            with sessions() as s:
+                counted = s.get(LiftStatus, sid).fills > fills
+            return counted and ws.lift_stats().get("decision") == "confusion"
+
+        while not filled_again() and time.monotonic() < end:
             time.sleep(0.1)
         stats = ws.lift_stats()
         assert stats.get("decision") == "confusion", (tmp_path / "lifting.log").read_text()[-2000:]

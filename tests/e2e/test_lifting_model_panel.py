@@ -110,3 +110,57 @@ def test_admin_sets_the_annotator_model_and_sees_what_the_fill_used(live, sids, 
     assert page.locator(f"#lifting [data-scene='{sid}']").count() == 0
     assert page.locator(f"#lifting [data-scene='{other}']").count() == 1
     assert page.locator("#lift-model-pooled").is_checked()  # scene B never changed
+
+
+def test_a_small_correction_keeps_the_model_and_the_panel_says_so(live, new_page):
+    """Issue 37, eighth round: after a brush stroke the fill keeps the robust decision's
+    fitted model and decides again only around it; the panel says so, with how many points."""
+    sid = import_own_scene(live, "lifting_model_held")
+    ctx = live.app.state.ctx
+    root = ctx.settings.import_roots[0]
+    src = next(p for p in sorted(root.iterdir()) if p.is_dir())
+    ann = live.client("annotator")
+    done = []
+    for _ in range(3):
+        f = ann.post(f"/api/scenes/{sid}/next").json()
+        ids = np.array(Image.open(src / "truth" / "masks" / f"{f['name'].rsplit('.', 1)[0]}.png"))
+        r = ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+                    headers={"If-Match": "none"})
+        assert r.status_code == 200, r.text
+        done.append((f, ids, r.json()["version"]))
+    admin = live.client("admin")
+
+    def filled(n: int):  # noqa: ANN202
+        def ok() -> bool:
+            st = admin.get(f"/api/scenes/{sid}/labels/status").json()
+            return len(st.get("filled_versions") or {}) == n and not st["pending_fill"]
+        return ok
+
+    live.wait_until(filled(3), timeout=120, what="three masks lifted and filled")
+    # the test scene is small: a stroke is more of its voted points than on a survey
+    held = ctx.lifting.service._scenes[sid].incremental.held
+    held.max_share_save = held.max_share = 0.5
+    f, ids, version = done[-1]
+    ids = ids.copy()
+    h, w = ids.shape
+    ids[h // 2 - 8:h // 2 + 8, w // 2 - 8:w // 2 + 8] = VEGETATION  # a reviewer's stroke
+    r = admin.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+                  headers={"If-Match": str(version)})
+    assert r.status_code == 200, r.text
+
+    def kept() -> bool:
+        last = admin.get(f"/api/scenes/{sid}/lifting").json()["last_fill"]
+        return bool(last.get("robust_warm"))
+
+    live.wait_until(kept, timeout=120, what="a fill that kept the model")
+    page = new_page("admin", viewport=(1366, 900))
+    page.goto(f"{live.base_url}/#/admin?scene={sid}")
+    page.locator(f"#lifting [data-scene='{sid}']").wait_for(timeout=30_000)
+    text = page.locator("#lift-last").inner_text()
+    decided = admin.get(f"/api/scenes/{sid}/lifting").json()["last_fill"]["robust_warm_decided"]
+    assert "kept the model of the last full decision" in text, text
+    assert f"only the {decided:,} points around the change" in text, text
+    sec = page.locator("#sec-lifting")
+    sec.scroll_into_view_if_needed()
+    page.wait_for_timeout(300)
+    sec.screenshot(path=str(REPO / "docs" / "screenshots" / "admin_lifting_held.png"))

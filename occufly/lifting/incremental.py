@@ -88,13 +88,9 @@ class IncrementalFill:
         """(m,) cell indices -> bool mask over cells within Chebyshev distance r."""
         _, keys, _, dims = self._cells
         mark = np.zeros(len(keys), bool)
-        base = keys[cells]
-        for dx in range(-r, r + 1):
-            for dy in range(-r, r + 1):
-                for dz in range(-r, r + 1):
-                    nk = base + (dx * dims[1] + dy) * dims[2] + dz
-                    pos = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
-                    mark[pos[keys[pos] == nk]] = True
+        near = knn.dilate_keys(keys[cells], r, (int(dims[1] * dims[2]), int(dims[2]), 1))
+        pos = np.minimum(np.searchsorted(keys, near), len(keys) - 1)
+        mark[pos[keys[pos] == near]] = True
         return mark
 
     # ---- fill ------------------------------------------------------------------------------

@@ -473,7 +473,7 @@ class VoxelGrid:
         then y then z. Each step stays inside the lattice where ``r`` <= the pad."""
         if r > self.pad:
             raise ValueError(f"dilation by {r} voxels exceeds the grid's pad of {self.pad}")
-        return _dilate_keys(key, r, (self.offset_key(1, 0, 0), self.offset_key(0, 1, 0), 1))
+        return dilate_keys(key, r, (self.offset_key(1, 0, 0), self.offset_key(0, 1, 0), 1))
 
     def dilate(self, voxels: np.ndarray, r: int) -> np.ndarray:
         """(m,) voxel indices -> sorted indices of the occupied voxels within Chebyshev distance
@@ -505,12 +505,12 @@ class VoxelGrid:
         b0, b1, b2 = ((c - self.pad) // b + m for c in (c0, c1, c2))
         n1, n2 = int(b1.max()) + m + 1, int(b2.max()) + m + 1
         bkey = (b0 * n1 + b1) * n2 + b2
-        hit = _dilate_keys(bkey[np.asarray(voxels, np.int64)], m, (n1 * n2, n2, 1))
+        hit = dilate_keys(bkey[np.asarray(voxels, np.int64)], m, (n1 * n2, n2, 1))
         pos = np.minimum(np.searchsorted(hit, bkey), len(hit) - 1)
         return hit[pos] == bkey
 
 
-def _dilate_keys(key: np.ndarray, r: int, strides: tuple[int, int, int]) -> np.ndarray:
+def dilate_keys(key: np.ndarray, r: int, strides: tuple[int, int, int]) -> np.ndarray:
     """Sorted unique row-major lattice keys within Chebyshev distance ``r`` of ``key``: a
     separable dilation, each axis (``strides``) in turn by -r..r steps."""
     key = np.unique(key)

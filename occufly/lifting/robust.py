@@ -114,7 +114,7 @@ import numpy as np
 from scipy import ndimage
 
 from occufly.lifting.classes import ClassColumns
-from occufly.lifting.knn import VoxelGrid
+from occufly.lifting.knn import VoxelGrid, dilate_keys
 from occufly.progress import ProgressFn, noop
 
 FEATURES_VERSION = 1
@@ -902,15 +902,14 @@ def _around(xyz, vidx: np.ndarray, diff: np.ndarray, edge: float  # noqa: ANN001
     dp = np.asarray(xyz[diff], np.float64)
     q = np.floor((dp - origin) / float(edge)).astype(np.int64) + 2
     ok = ((q >= 0) & (q < dims)).all(axis=1)  # farther off: no voted point within two voxels
-    dk = np.unique((q[ok, 0] * dims[1] + q[ok, 1]) * dims[2] + q[ok, 2])
+    dk = (q[ok, 0] * dims[1] + q[ok, 1]) * dims[2] + q[ok, 2]
 
     def within(r: int) -> np.ndarray:
-        offs = np.array([(dx * dims[1] + dy) * dims[2] + dz for dx in range(-r, r + 1)
-                         for dy in range(-r, r + 1) for dz in range(-r, r + 1)], np.int64)
-        near = np.unique((dk[:, None] + offs[None, :]).ravel())
-        pos = np.minimum(np.searchsorted(near, keys), max(len(near) - 1, 0))
-        hit = near[pos] == keys if len(near) else np.zeros(len(keys), bool)
-        return vidx[hit]
+        near = dilate_keys(dk, r, (int(dims[1] * dims[2]), int(dims[2]), 1))
+        if not len(near):
+            return vidx[:0]
+        pos = np.minimum(np.searchsorted(near, keys), len(near) - 1)
+        return vidx[near[pos] == keys]
 
     return within(1), within(2), np.asarray(origin, np.float64)
 

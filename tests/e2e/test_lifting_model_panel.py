@@ -21,28 +21,42 @@ def sids(live):
     return import_own_scene(live, "lifting_model_a"), import_own_scene(live, "lifting_model_b")
 
 
+def _paint_truth(live, sid: int, who: str, as_vegetation=None) -> tuple:  # noqa: ANN001
+    """``who`` submits the next frame of scene ``sid`` painted as the synthetic scene's truth
+    mask (``as_vegetation(ids)``: a mask of its pixels painted vegetation instead); returns
+    (frame, mask, version)."""
+    root = live.app.state.ctx.settings.import_roots[0]
+    src = next(p for p in sorted(root.iterdir()) if p.is_dir())
+    c = live.client(who)
+    f = c.post(f"/api/scenes/{sid}/next").json()
+    ids = np.array(Image.open(src / "truth" / "masks" / f"{f['name'].rsplit('.', 1)[0]}.png"))
+    if as_vegetation is not None:
+        ids[as_vegetation(ids)] = VEGETATION
+    r = c.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
+              headers={"If-Match": "none"})
+    assert r.status_code == 200, r.text
+    return f, ids, r.json()["version"]
+
+
+def _wait_filled(live, sid: int, n: int) -> None:  # noqa: ANN001
+    """Until the scene's ``n`` masks are lifted and filled."""
+    admin = live.client("admin")
+
+    def filled() -> bool:
+        st = admin.get(f"/api/scenes/{sid}/labels/status").json()
+        return len(st.get("filled_versions") or {}) == n and not st["pending_fill"]
+
+    live.wait_until(filled, timeout=120, what=f"{n} masks lifted and filled")
+
+
 def test_admin_sets_the_annotator_model_and_sees_what_the_fill_used(live, sids, new_page):
     sid, other = sids
     admin = live.client("admin")
     # two painters: the annotator paints three frames as the truth, the admin one with its
     # grass as vegetation (the synthetic scene's truth masks)
-    root = live.app.state.ctx.settings.import_roots[0]
-    src = next(p for p in sorted(root.iterdir()) if p.is_dir())
     for who in ("annotator", "admin", "annotator", "annotator"):
-        c = live.client(who)
-        f = c.post(f"/api/scenes/{sid}/next").json()
-        ids = np.array(Image.open(src / "truth" / "masks" / f"{f['name'].rsplit('.', 1)[0]}.png"))
-        if who == "admin":
-            ids[ids == GRASS] = VEGETATION
-        r = c.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
-                  headers={"If-Match": "none"})
-        assert r.status_code == 200, r.text
-
-    def filled():
-        st = admin.get(f"/api/scenes/{sid}/labels/status").json()
-        return len(st.get("filled_versions") or {}) == 4 and not st["pending_fill"]
-
-    live.wait_until(filled, timeout=120, what="both masks lifted and filled")
+        _paint_truth(live, sid, who, (lambda ids: ids == GRASS) if who == "admin" else None)
+    _wait_filled(live, sid, 4)
     page = new_page("admin", viewport=(1366, 900))
     page.goto(f"{live.base_url}/#/admin?scene={sid}")
     page.reload()
@@ -117,26 +131,9 @@ def test_a_small_correction_keeps_the_model_and_the_panel_says_so(live, new_page
     fitted model and decides again only around it; the panel says so, with how many points."""
     sid = import_own_scene(live, "lifting_model_held")
     ctx = live.app.state.ctx
-    root = ctx.settings.import_roots[0]
-    src = next(p for p in sorted(root.iterdir()) if p.is_dir())
-    ann = live.client("annotator")
-    done = []
-    for _ in range(3):
-        f = ann.post(f"/api/scenes/{sid}/next").json()
-        ids = np.array(Image.open(src / "truth" / "masks" / f"{f['name'].rsplit('.', 1)[0]}.png"))
-        r = ann.put(f"/api/frames/{f['id']}/mask?kind=submitted", content=grey_png(ids),
-                    headers={"If-Match": "none"})
-        assert r.status_code == 200, r.text
-        done.append((f, ids, r.json()["version"]))
+    done = [_paint_truth(live, sid, "annotator") for _ in range(3)]
     admin = live.client("admin")
-
-    def filled(n: int):  # noqa: ANN202
-        def ok() -> bool:
-            st = admin.get(f"/api/scenes/{sid}/labels/status").json()
-            return len(st.get("filled_versions") or {}) == n and not st["pending_fill"]
-        return ok
-
-    live.wait_until(filled(3), timeout=120, what="three masks lifted and filled")
+    _wait_filled(live, sid, 3)
     # the test scene is small: a stroke is more of its voted points than on a survey
     held = ctx.lifting.service._scenes[sid].incremental.held
     held.max_share_save = held.max_share = 0.5
